@@ -1,0 +1,65 @@
+"""`thermod run|watch|deblur|sim|record|discrepancy|bench`.
+
+Each command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
+only the chosen module is imported, so `thermod watch` does not pay for numba start-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from thermod.errors import ThermodError
+
+COMMANDS = {
+    "run": ("thermod.daemon", "run the acquisition and deblurring daemon (default: simulated payload)"),
+    "watch": ("thermod.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
+    "record": ("thermod.record", "subscribe to raw frames and gyro samples and write a recording"),
+    "deblur": ("thermod.offline", "deblur recordings offline"),
+    "sim": ("thermod.sim.cli", "simulate a recording with known truth"),
+    "discrepancy": ("thermod.discrepancy", "compare simulation with a recording and fix the model"),
+    "bench": ("thermod.bench", "run the benchmark suites and print their tables"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: thermod COMMAND [options]", "", "commands:"]
+    lines += [f"  {name:<12} {helptext}" for name, (_, helptext) in COMMANDS.items()]
+    lines += ["", "`thermod COMMAND --help` for a command's options."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0 if argv else 2
+    if argv[0] == "--version":
+        from thermod import __version__
+        print(f"thermod {__version__}")
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"thermod: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module_name, helptext = COMMANDS[name]
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser(prog=f"thermod {name}", description=helptext)
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    module.add_arguments(parser)
+    args = parser.parse_args(rest)
+    logging.basicConfig(level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else
+                        logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        return int(module.run(args) or 0)
+    except ThermodError as e:
+        print(f"thermod {name}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

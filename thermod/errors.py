@@ -1,0 +1,21 @@
+"""Exception types shared across thermod. Each names the file, field or device at fault."""
+
+
+class ThermodError(Exception):
+    """Base class for every error thermod raises on purpose."""
+
+
+class RecordingError(ThermodError):
+    """A recording file is malformed: names the file and the field, and what was expected."""
+
+    def __init__(self, path, field: str, problem: str):
+        self.path, self.field, self.problem = str(path), field, problem
+        super().__init__(f"{path}: {field}: {problem}")
+
+
+class ConfigError(ThermodError):
+    """A configuration value is unknown, of the wrong type or out of range."""
+
+
+class DeviceError(ThermodError):
+    """A device could not be opened, identified or read. The message says what to check."""
