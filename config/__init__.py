@@ -1,0 +1,1 @@
+"""Packaged configurations (`thermod.configs`): sim.toml (the embedded default) and hardware examples."""

@@ -1,0 +1,160 @@
+"""Configuration: the packaged files load, and every kind of mistake is one ConfigError naming the
+file, the dotted key and what was expected."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thermod import config
+from thermod.calibration import Calibration
+from thermod.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+
+
+def _write(tmp_path, text, name="t.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+BASE = """
+[sources.gyro]
+kind = "sim"
+[sources.camera]
+kind = "sim"
+"""
+
+
+def test_default_is_the_packaged_sim_toml():
+    cfg = config.load()
+    assert cfg.path.endswith("sim.toml")
+    assert cfg.gyro.kind == "sim" and cfg.camera.kind == "sim" and cfg.uses_sim
+    assert isinstance(cfg.calibration, Calibration)
+    assert (cfg.calibration.width, cfg.calibration.height) == (640, 480)
+    assert cfg.calibration.tau_s == pytest.approx(0.008)
+    # the paper's IFOV 0.0391° → fx = 1/IFOV
+    assert cfg.calibration.fx == pytest.approx(1.0 / math.radians(0.0391))
+    assert cfg.deblur.method == "kf" and cfg.deblur.alpha == pytest.approx(2 / 3)
+    assert cfg.sim.frame_rate_hz == 50.0 and cfg.sim.gyro_rate_hz == 1000.0
+    assert cfg.publish.endpoint == "tcp://127.0.0.1:5555"
+
+
+def test_hardware_examples_parse_and_name_missing_device():
+    cfg = config.load(CONFIG_DIR / "a655sc_icm42688_spi.toml", check_devices=False)
+    assert cfg.gyro.kind == "icm42688_spi" and cfg.gyro.device == "/dev/spidev0.0"
+    assert dict(cfg.gyro.options) == {"speed_hz": 10_000_000, "odr_hz": 1000, "full_scale_dps": 2000}
+    assert cfg.camera.kind == "aravis" and cfg.camera.device == "FLIR-A655sc"
+    R = np.asarray(cfg.calibration.R_cam_gyro)
+    np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]))
+    assert cfg.deblur.mode == "grid" and cfg.deblur.grid == (3, 3)
+    boson = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False)
+    assert boson.gyro.kind == "serial" and boson.gyro.options["baud"] == 921600
+    assert boson.camera.kind == "v4l2" and boson.calibration.height == 512
+    if not Path("/dev/spidev0.0").exists():
+        with pytest.raises(ConfigError, match=r"a655sc_icm42688_spi\.toml: sources\.gyro\.device: device "
+                                              r"'/dev/spidev0\.0' does not exist"):
+            config.load(CONFIG_DIR / "a655sc_icm42688_spi.toml")
+
+
+def test_frozen_and_values(tmp_path):
+    p = _write(tmp_path, BASE + "[deblur]\nlambda = 3000\nmethod = 'wiener'\n[pipeline]\nworkers = 3\n")
+    cfg = config.load(p)
+    assert cfg.deblur.lam == 3000.0 and isinstance(cfg.deblur.lam, float)
+    assert cfg.deblur.method == "wiener" and cfg.pipeline.workers == 3
+    with pytest.raises(AttributeError):
+        cfg.deblur.lam = 1.0
+    with pytest.raises(TypeError):
+        cfg.gyro.options["x"] = 1
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("[deblur]\nlambda = -3\n", r"deblur\.lambda: expected a value in \(0\.0, 1000000000\.0\], got -3"),
+    ("[deblur]\nlambda = 'big'\n", r"deblur\.lambda: expected a number, got 'big'"),
+    ("[deblur]\nmethod = 'richardson'\n", r"deblur\.method: expected one of 'kf', 'wiener', got 'richardson'"),
+    ("[deblur]\nalpha = 0.5\n", r"deblur\.alpha: expected 1 or 2/3"),
+    ("[deblur]\ngrid = [3]\n", r"deblur\.grid: expected \[rows, cols\]"),
+    ("[deblur]\nlamda = 3\n", r"deblur\.lamda: unknown key"),
+    ("[publish]\nhwm = 0\n", r"publish\.hwm: expected a value in \[1, 1000000\], got 0"),
+    ("[publish]\nraw = 1\n", r"publish\.raw: expected true or false, got 1"),
+    ("[publish]\nendpoint = 'localhost:5555'\n", r"publish\.endpoint: expected a ZeroMQ endpoint"),
+    ("[publish]\ncurve_secret_key = '/nonexistent/key'\n",
+     r"publish\.curve_secret_key: CURVE key file '/nonexistent/key' does not exist"),
+    ("[pipeline]\nworkers = 2.5\n", r"pipeline\.workers: expected an integer, got 2\.5"),
+    ("[pipeline]\njob_queue = 0\n", r"pipeline\.job_queue: expected a value in \[1, 64\]"),
+    ("[calibration]\ntau_s = 0\n", r"calibration\.tau_s: expected a value in \(0\.0, 1\.0\]"),
+    ("[calibration]\nbias_rad_s = [0, 0]\n", r"calibration\.bias_rad_s: expected an array of 3 numbers"),
+    ("[calibration]\nR_cam_gyro = [[1,0,0],[0,1,0],[0,0,2]]\n", r"calibration\.R_cam_gyro: expected a rotation"),
+    ("[calibration]\nR_cam_gyro = [[1,0],[0,1]]\n", r"calibration\.R_cam_gyro: expected a 3×3 array"),
+    ("[calibration]\nframe_rate_hz = 60.0\n", r"calibration\.frame_rate_hz/rate_hz: expected to match sim"),
+    ("[calibration]\nreadout_s = 0.05\n", r"calibration\.readout_s: expected a value in \[0\.0, 0\.02\]"),
+    ("[sim]\ngyro_rate_hz = 1234.0\n", r"sim\.gyro_rate_hz: expected one of"),
+    ("[logging]\nlevel = 'loud'\n", r"logging\.level: expected one of"),
+    ("[daemon]\nx = 1\n", r"t\.toml: daemon: unknown key"),
+])
+def test_each_mistake_names_file_and_key(tmp_path, extra, message):
+    p = _write(tmp_path, BASE + extra)
+    with pytest.raises(ConfigError, match=message) as ei:
+        config.load(p)
+    assert str(ei.value).startswith(str(p) + ": ")
+
+
+def test_source_errors(tmp_path):
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'gyro9000'\n[sources.camera]\nkind = 'sim'\n")
+    with pytest.raises(ConfigError, match=r"sources\.gyro\.kind: expected one of 'sim', 'replay', "):
+        config.load(p)
+    p = _write(tmp_path, "[sources.camera]\nkind = 'sim'\n")
+    with pytest.raises(ConfigError, match=r"sources\.gyro: missing"):
+        config.load(p)
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_spi'\n[sources.camera]\nkind = 'sim'\n")
+    with pytest.raises(ConfigError, match=r"sources\.gyro\.device: missing \(expected a string\)"):
+        config.load(p)
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_i2c'\ndevice = '/dev/i2c-77'\naddress = 0x42\n"
+                         "[sources.camera]\nkind = 'sim'\n")
+    with pytest.raises(ConfigError, match=r"sources\.gyro\.address: expected one of 104, 105, got 66"):
+        config.load(p, check_devices=False)
+    with pytest.raises(ConfigError, match=r"sources\.gyro\.device: device '/dev/i2c-77' does not exist"):
+        _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_i2c'\ndevice = '/dev/i2c-77'\n"
+                         "[sources.camera]\nkind = 'sim'\n")
+        config.load(tmp_path / "t.toml")
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'nothere.h5'\n[sources.camera]\nkind = 'sim'\n")
+    with pytest.raises(ConfigError, match=r"sources\.gyro\.path: recording '.*nothere\.h5' does not exist"):
+        config.load(p)
+    # a recording path is relative to the config file
+    (tmp_path / "rec.h5").write_bytes(b"")
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n[sources.camera]\nkind = 'replay'\n"
+                         "path = 'rec.h5'\nspeed = 2\n")
+    cfg = config.load(p)
+    assert cfg.gyro.device == str(tmp_path / "rec.h5") and cfg.camera.options["speed"] == 2.0
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n[sources.camera]\nkind = 'replay'\n"
+                         "path = 'rec.h5'\n[sim]\nseed = 1\n")
+    with pytest.raises(ConfigError, match=r"sim: only allowed when a source has kind = 'sim'"):
+        config.load(p)
+
+
+def test_non_table_section():
+    raw = {"sources": {"gyro": {"kind": "sim"}, "camera": {"kind": "sim"}}, "deblur": 3}
+    with pytest.raises(ConfigError, match=r"^x\.toml: deblur: expected a table, got an integer$"):
+        config.parse(raw, "x.toml")
+
+
+def test_file_level_errors(tmp_path):
+    with pytest.raises(ConfigError, match=r"nope\.toml: no such configuration file"):
+        config.load(tmp_path / "nope.toml")
+    p = _write(tmp_path, "[deblur\nmethod=")
+    with pytest.raises(ConfigError, match=r"t\.toml: not valid TOML"):
+        config.load(p)
+
+
+def test_overrides_are_validated_like_the_file():
+    cfg = config.load(None, {"publish.endpoint": "tcp://127.0.0.1:6001", "deblur.lambda": 2500})
+    assert cfg.publish.endpoint == "tcp://127.0.0.1:6001" and cfg.deblur.lam == 2500.0
+    with pytest.raises(ConfigError, match=r"sim\.toml: deblur\.lambda: expected a number, got 'x'"):
+        config.load(None, {"deblur.lambda": "x"})
+    assert config.parse_override("deblur.method=wiener") == ("deblur.method", "wiener")
+    assert config.parse_override("deblur.grid=[2, 4]") == ("deblur.grid", [2, 4])
+    assert config.parse_override("publish.raw=true") == ("publish.raw", True)
+    with pytest.raises(ConfigError, match="expected KEY=VALUE"):
+        config.parse_override("deblur.method")

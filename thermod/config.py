@@ -1,0 +1,467 @@
+"""Daemon configuration: TOML (tomllib) → validated, frozen dataclasses.
+
+Every problem (unknown key, wrong type, out-of-range value, missing device or key file) raises
+one `ConfigError` whose message names the file, the dotted key (e.g. ``deblur.lambda``) and what
+was expected. `load(None)` reads the packaged default, ``thermod.configs/sim.toml`` (the simulated
+payload). `overrides` ({dotted key: value}) are applied on top of the file before validation, so
+command-line settings get the same checks as the file.
+
+Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
+``[calibration]`` (→ `thermod.calibration.Calibration`), ``[deblur]``, ``[publish]``,
+``[pipeline]``, ``[logging]``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from thermod.calibration import Calibration
+from thermod.errors import ConfigError
+
+GYRO_KINDS = ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088", "iio", "serial")
+CAMERA_KINDS = ("sim", "replay", "aravis", "v4l2")
+
+
+# ------------------------------------------------------------------------------ dataclasses
+@dataclass(frozen=True)
+class SourceConfig:
+    """One device. `device` is the device node / sysfs dir / port / recording path / camera id the
+    driver opens (None for `sim`); `options` are the kind's remaining parameters (read-only)."""
+
+    kind: str
+    device: str | None = None
+    options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    poll_timeout_s: float = 0.005
+    realtime_priority: int = 0       # SCHED_FIFO priority of the driver thread (0 = normal)
+    retry_max_s: float = 2.0         # reconnect back-off ceiling
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated payload (sim/payload.py): a pre-rendered loop played in real time."""
+
+    scene: str = "real:1"
+    motion: str = "shake:3"
+    loop_s: float = 4.0
+    seed: int = 0
+    frame_rate_hz: float = 50.0
+    gyro_rate_hz: float = 1000.0
+    gyro_noise_rad_s: float = 0.002
+    cache_dir: str = ""              # "" = $XDG_CACHE_HOME/thermod (or ~/.cache/thermod)
+
+
+@dataclass(frozen=True)
+class DeblurConfig:
+    enabled: bool = True
+    method: str = "kf"               # kf | wiener
+    lam: float | None = None         # data weight (K&F convention); None = thermod.deconv default
+    alpha: float = 2.0 / 3.0         # hyper-Laplacian exponent: 1 or 2/3
+    kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
+    exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
+    psf: bool = True                 # optical PSF refinement (Eq. 19)
+    mode: str = "uniform"            # uniform | grid (spatially varying, tiles)
+    grid: tuple[int, int] = (3, 3)
+    m: float = 5.0                   # kernel window = m·τ
+    min_coverage: float = 0.99       # gyro coverage below this → pass through
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    endpoint: str = "tcp://127.0.0.1:5555"
+    raw: bool = False
+    gyro: bool = True
+    hwm: int = 100
+    health_period_s: float = 1.0
+    curve_public_key: str | None = None
+    curve_secret_key: str | None = None
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    workers: int = 0                 # deconvolution threads; 0 = one per core
+    job_queue: int = 2               # deblur jobs waiting for a worker (overload drops the oldest)
+    frame_ring: int = 16             # frames buffered between the camera thread and the scheduler
+    gyro_ring_s: float = 10.0        # seconds of gyro history kept
+    wait_timeout_s: float = 0.05     # max wait after a frame's time for the gyro to cover it
+    reorder_timeout_s: float = 0.5   # max wait to publish frames in order
+    watchdog_s: float = 2.0          # a critical thread silent this long stops WATCHDOG=1
+
+
+@dataclass(frozen=True)
+class LoggingConfig:
+    level: str = "info"
+
+
+@dataclass(frozen=True)
+class Config:
+    gyro: SourceConfig
+    camera: SourceConfig
+    sim: SimConfig
+    calibration: Calibration
+    deblur: DeblurConfig
+    publish: PublishConfig
+    pipeline: PipelineConfig
+    logging: LoggingConfig
+    path: str = "<defaults>"
+
+    @property
+    def uses_sim(self) -> bool:
+        return "sim" in (self.gyro.kind, self.camera.kind)
+
+
+# ------------------------------------------------------------------------------ checks
+class _Section:
+    """Pops and checks the keys of one TOML table; `done()` rejects whatever is left."""
+
+    def __init__(self, path: str, prefix: str, table: Any):
+        self.path, self.prefix = path, prefix
+        if not isinstance(table, dict):
+            raise ConfigError(f"{path}: {prefix}: expected a table, got {_tname(table)}")
+        self.t = dict(table)
+
+    def key(self, k: str) -> str:
+        return f"{self.prefix}.{k}" if self.prefix else k
+
+    def fail(self, k: str, expected: str, got: Any = None, show_got: bool = True) -> ConfigError:
+        extra = f", got {got!r}" if show_got else ""
+        return ConfigError(f"{self.path}: {self.key(k)}: expected {expected}{extra}")
+
+    def has(self, k: str) -> bool:
+        return k in self.t
+
+    def pop(self, k, default, kind, *, lo=None, hi=None, lo_open=False, choices=None, required=False):
+        if k not in self.t:
+            if required:
+                raise ConfigError(f"{self.path}: {self.key(k)}: missing (expected {_describe(kind)})")
+            return default
+        v = self.t.pop(k)
+        if kind is float and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        if kind is bool and not isinstance(v, bool) or kind is not bool and isinstance(v, bool) \
+                or not isinstance(v, kind):
+            raise self.fail(k, _describe(kind), v)
+        if kind is float and not math.isfinite(v):
+            raise self.fail(k, "a finite number", v)
+        if choices is not None and v not in choices:
+            raise self.fail(k, "one of " + ", ".join(repr(c) for c in choices), v)
+        if lo is not None and (v <= lo if lo_open else v < lo) or hi is not None and v > hi:
+            rng = f"{'(' if lo_open else '['}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
+            raise self.fail(k, f"a value in {rng}", v)
+        return v
+
+    def pop_floats(self, k, default, n_allowed: tuple[int, ...], *, positive=False):
+        if k not in self.t:
+            return default
+        v = self.t.pop(k)
+        ok = isinstance(v, list) and len(v) in n_allowed and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        if not ok or positive and any(x <= 0 for x in v):
+            what = " or ".join(str(n) for n in n_allowed)
+            raise self.fail(k, f"an array of {what} {'positive ' if positive else ''}numbers", v)
+        return tuple(float(x) for x in v)
+
+    def pop_file(self, k, default=None, *, required=False, must_exist=True, what="file"):
+        v = self.pop(k, default, str, required=required)
+        if v is None:
+            return None
+        p = os.path.expanduser(v)
+        if not os.path.isabs(p) and not p.startswith("/dev/"):
+            p = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(self.path)), p)) \
+                if not self.path.startswith("<") else os.path.abspath(p)
+        if must_exist and not os.path.exists(p):
+            raise ConfigError(f"{self.path}: {self.key(k)}: {what} {p!r} does not exist")
+        return p
+
+    def done(self) -> None:
+        if self.t:
+            k = sorted(self.t)[0]
+            raise ConfigError(f"{self.path}: {self.key(k)}: unknown key")
+
+
+def _tname(v) -> str:
+    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array",
+            dict: "a table"}.get(type(v), type(v).__name__)
+
+
+def _describe(kind) -> str:
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, str(kind))
+
+
+# ------------------------------------------------------------------------------ sources
+# Kind → device key semantics and the options it accepts: name → (type, default, lo, hi, choices).
+_ODR = (1000, 2000, 4000, 8000)
+_FS = (125, 250, 500, 1000, 2000)
+_GYRO_SCHEMA: dict[str, tuple[str | None, dict]] = {
+    "sim": (None, {}),
+    "replay": ("recording", {"loop": (bool, True, None, None, None),
+                             "speed": (float, 1.0, 0.01, 100.0, None)}),
+    "icm42688_spi": ("device file", {"speed_hz": (int, 10_000_000, 100_000, 24_000_000, None),
+                                     "odr_hz": (int, 1000, None, None, _ODR),
+                                     "full_scale_dps": (int, 2000, None, None, _FS)}),
+    "icm42688_i2c": ("device file", {"address": (int, 0x68, None, None, (0x68, 0x69)),
+                                     "odr_hz": (int, 1000, None, None, _ODR),
+                                     "full_scale_dps": (int, 2000, None, None, _FS)}),
+    "mpu6000": ("device file", {"speed_hz": (int, 1_000_000, 100_000, 20_000_000, None),
+                                "odr_hz": (int, 1000, None, None, (1000, 8000)),
+                                "full_scale_dps": (int, 2000, None, None, (250, 500, 1000, 2000))}),
+    "bmi088": ("device file", {"bus": (str, "spi", None, None, ("spi", "i2c")),
+                               "address": (int, 0x68, None, None, (0x68, 0x69)),
+                               "speed_hz": (int, 10_000_000, 100_000, 10_000_000, None),
+                               "odr_hz": (int, 1000, None, None, (1000, 2000)),
+                               "full_scale_dps": (int, 2000, None, None, _FS)}),
+    "iio": ("device file", {"buffer_length": (int, 256, 2, 65536, None),
+                            "rate_hz": (float, 1000.0, 1.0, 32000.0, None)}),
+    "serial": ("device file", {"baud": (int, 921600, 1200, 12_000_000, None),
+                               "low_latency": (bool, True, None, None, None)}),
+}
+_CAMERA_SCHEMA: dict[str, tuple[str | None, dict]] = {
+    "sim": (None, {}),
+    "replay": ("recording", {"loop": (bool, True, None, None, None),
+                             "speed": (float, 1.0, 0.01, 100.0, None)}),
+    # Aravis opens by device id or IP address: not a file.
+    "aravis": ("id", {"pixel_format": (str, "Mono16", None, None, ("Mono16", "Mono14", "Mono12")),
+                      "packet_size": (int, 0, 0, 9000, None),
+                      "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None),
+                      "stream_timeout_s": (float, 1.0, 0.01, 60.0, None)}),
+    "v4l2": ("device file", {"width": (int, 640, 1, 8192, None), "height": (int, 480, 1, 8192, None),
+                             "fourcc": (str, "Y16 ", None, None, None),
+                             "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None)}),
+}
+
+
+def _source(path: str, prefix: str, table: Any, kinds: tuple, schema: dict, check_devices: bool):
+    s = _Section(path, prefix, table)
+    kind = s.pop("kind", None, str, choices=kinds, required=True)
+    dev_kind, opts_schema = schema[kind]
+    device = None
+    if dev_kind == "device file":
+        device = s.pop_file("device", required=True, must_exist=check_devices, what="device")
+    elif dev_kind == "recording":
+        device = s.pop_file("path", required=True, must_exist=True, what="recording")
+    elif dev_kind == "id":
+        device = s.pop("device", None, str, required=True)
+    opts = {}
+    for name, (typ, default, lo, hi, choices) in opts_schema.items():
+        opts[name] = s.pop(name, default, typ, lo=lo, hi=hi, choices=choices)
+    common = dict(
+        poll_timeout_s=s.pop("poll_timeout_s", 0.005, float, lo=0.0005, hi=1.0),
+        realtime_priority=s.pop("realtime_priority", 0, int, lo=0, hi=99),
+        retry_max_s=s.pop("retry_max_s", 2.0, float, lo=0.01, hi=60.0),
+    )
+    s.done()
+    return SourceConfig(kind=kind, device=device, options=MappingProxyType(opts), **common)
+
+
+# ------------------------------------------------------------------------------ sections
+def _calibration(path: str, table: Any) -> Calibration:
+    s = _Section(path, "calibration", table)
+    d = Calibration()
+    kw: dict[str, Any] = {}
+    kw["width"] = s.pop("width", d.width, int, lo=8, hi=16384)
+    kw["height"] = s.pop("height", d.height, int, lo=8, hi=16384)
+    for k in ("fx", "fy"):
+        kw[k] = s.pop(k, getattr(d, k), float, lo=0.0, lo_open=True)
+    kw["cx"] = s.pop("cx", (kw["width"] - 1) / 2.0, float, lo=-kw["width"], hi=2.0 * kw["width"])
+    kw["cy"] = s.pop("cy", (kw["height"] - 1) / 2.0, float, lo=-kw["height"], hi=2.0 * kw["height"])
+    kw["tau_s"] = s.pop("tau_s", d.tau_s, float, lo=0.0, lo_open=True, hi=1.0)
+    kw["frame_rate_hz"] = s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=0.0, lo_open=True, hi=10000.0)
+    kw["wavelength_um"] = s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0)
+    kw["f_number"] = s.pop("f_number", d.f_number, float, lo=0.1, hi=100.0)
+    kw["psf_beta"] = s.pop("psf_beta", d.psf_beta, float, lo=0.0, lo_open=True, hi=1.0)
+    kw["pixel_pitch_um"] = s.pop("pixel_pitch_um", d.pixel_pitch_um, float, lo=0.0, lo_open=True, hi=1000.0)
+    kw["readout_s"] = s.pop("readout_s", d.readout_s, float, lo=0.0, hi=1.0 / kw["frame_rate_hz"])
+    kw["rate_hz"] = s.pop("rate_hz", d.rate_hz, float, lo=0.0, lo_open=True, hi=100000.0)
+    kw["time_offset_s"] = s.pop("time_offset_s", d.time_offset_s, float, lo=-1.0, hi=1.0)
+    kw["bias_rad_s"] = s.pop_floats("bias_rad_s", d.bias_rad_s, (3,))
+    sc = s.pop_floats("scale", d.scale, (1, 3), positive=True)
+    kw["scale"] = sc * 3 if len(sc) == 1 else sc
+    if s.has("R_cam_gyro"):
+        v = s.t.pop("R_cam_gyro")
+        try:
+            R = np.asarray(v, dtype=np.float64)
+            ok = R.shape == (3, 3) and np.all(np.isfinite(R))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise s.fail("R_cam_gyro", "a 3×3 array of numbers", v)
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+            raise s.fail("R_cam_gyro", "a rotation matrix (orthonormal, det +1)", v)
+        kw["R_cam_gyro"] = tuple(tuple(float(x) for x in row) for row in R)
+    s.done()
+    return Calibration(**kw)
+
+
+def _deblur(path: str, table: Any) -> DeblurConfig:
+    s = _Section(path, "deblur", table)
+    d = DeblurConfig()
+    kw: dict[str, Any] = dict(
+        enabled=s.pop("enabled", d.enabled, bool),
+        method=s.pop("method", d.method, str, choices=("kf", "wiener")),
+        lam=s.pop("lambda", d.lam, float, lo=0.0, lo_open=True, hi=1e9),
+        kernel=s.pop("kernel", d.kernel, str, choices=("thermal", "photon")),
+        exposure_s=s.pop("exposure_s", d.exposure_s, float, lo=0.0, lo_open=True, hi=1.0),
+        psf=s.pop("psf", d.psf, bool),
+        mode=s.pop("mode", d.mode, str, choices=("uniform", "grid")),
+        m=s.pop("m", d.m, float, lo=1.0, hi=20.0),
+        min_coverage=s.pop("min_coverage", d.min_coverage, float, lo=0.0, hi=1.0),
+    )
+    alpha = s.pop("alpha", d.alpha, float)
+    if not (abs(alpha - 1.0) < 1e-9 or abs(alpha - 2.0 / 3.0) < 1e-3):
+        raise s.fail("alpha", "1 or 2/3 (0.667) — the exponents with a closed-form w-step", alpha)
+    kw["alpha"] = 1.0 if abs(alpha - 1.0) < 1e-9 else 2.0 / 3.0
+    if s.has("grid"):
+        g = s.t.pop("grid")
+        if not (isinstance(g, list) and len(g) == 2 and all(isinstance(x, int) and not isinstance(x, bool)
+                                                            and 1 <= x <= 16 for x in g)):
+            raise s.fail("grid", "[rows, cols], integers in [1, 16]", g)
+        kw["grid"] = (g[0], g[1])
+    s.done()
+    return DeblurConfig(**kw)
+
+
+def _publish(path: str, table: Any) -> PublishConfig:
+    s = _Section(path, "publish", table)
+    d = PublishConfig()
+    endpoint = s.pop("endpoint", d.endpoint, str)
+    if not endpoint.startswith(("tcp://", "ipc://", "inproc://")) or "://" == endpoint[-3:]:
+        raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or 'ipc:///run/thermod.sock'",
+                     endpoint)
+    kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
+              hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
+              health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
+              curve_public_key=s.pop_file("curve_public_key", what="CURVE key file"),
+              curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"))
+    if (kw["curve_public_key"] is None) != (kw["curve_secret_key"] is None):
+        missing = "curve_secret_key" if kw["curve_secret_key"] is None else "curve_public_key"
+        raise ConfigError(f"{path}: publish.{missing}: missing (CURVE needs both key files)")
+    s.done()
+    return PublishConfig(**kw)
+
+
+def _pipeline(path: str, table: Any) -> PipelineConfig:
+    s = _Section(path, "pipeline", table)
+    d = PipelineConfig()
+    kw = dict(workers=s.pop("workers", d.workers, int, lo=0, hi=64),
+              job_queue=s.pop("job_queue", d.job_queue, int, lo=1, hi=64),
+              frame_ring=s.pop("frame_ring", d.frame_ring, int, lo=2, hi=1024),
+              gyro_ring_s=s.pop("gyro_ring_s", d.gyro_ring_s, float, lo=0.5, hi=600.0),
+              wait_timeout_s=s.pop("wait_timeout_s", d.wait_timeout_s, float, lo=0.0, hi=2.0),
+              reorder_timeout_s=s.pop("reorder_timeout_s", d.reorder_timeout_s, float, lo=0.0, hi=10.0),
+              watchdog_s=s.pop("watchdog_s", d.watchdog_s, float, lo=0.1, hi=600.0))
+    s.done()
+    return PipelineConfig(**kw)
+
+
+def _sim(path: str, table: Any) -> SimConfig:
+    s = _Section(path, "sim", table)
+    d = SimConfig()
+    kw = dict(scene=s.pop("scene", d.scene, str), motion=s.pop("motion", d.motion, str),
+              loop_s=s.pop("loop_s", d.loop_s, float, lo=0.2, hi=120.0),
+              seed=s.pop("seed", d.seed, int, lo=0),
+              frame_rate_hz=s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=1.0, hi=500.0),
+              gyro_rate_hz=s.pop("gyro_rate_hz", d.gyro_rate_hz, float, choices=(1000.0, 2000.0, 4000.0)),
+              gyro_noise_rad_s=s.pop("gyro_noise_rad_s", d.gyro_noise_rad_s, float, lo=0.0, hi=1.0),
+              cache_dir=s.pop("cache_dir", d.cache_dir, str))
+    s.done()
+    return SimConfig(**kw)
+
+
+def _logging(path: str, table: Any) -> LoggingConfig:
+    s = _Section(path, "logging", table)
+    lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
+    s.done()
+    return LoggingConfig(level=lvl)
+
+
+# ------------------------------------------------------------------------------ entry points
+def default_path() -> Path:
+    """The packaged default configuration (the simulated payload)."""
+    return Path(str(resources.files("thermod.configs").joinpath("sim.toml")))
+
+
+def _apply_override(path: str, raw: dict, dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = raw
+    for i, p in enumerate(parts[:-1]):
+        nxt = node.setdefault(p, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"{path}: {'.'.join(parts[:i + 1])}: expected a table to override {dotted!r}")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> Config:
+    """Validate an already-parsed TOML document."""
+    top = _Section(path, "", raw)
+    src = _Section(path, "sources", top.t.pop("sources", {}))
+    if not src.has("gyro") or not src.has("camera"):
+        missing = "sources.gyro" if not src.has("gyro") else "sources.camera"
+        raise ConfigError(f"{path}: {missing}: missing (expected a table with `kind = ...`)")
+    gyro = _source(path, "sources.gyro", src.t.pop("gyro"), GYRO_KINDS, _GYRO_SCHEMA, check_devices)
+    camera = _source(path, "sources.camera", src.t.pop("camera"), CAMERA_KINDS, _CAMERA_SCHEMA, check_devices)
+    src.done()
+    if top.has("sim") and "sim" not in (gyro.kind, camera.kind):
+        raise ConfigError(f"{path}: sim: only allowed when a source has kind = 'sim'")
+    cfg = Config(
+        gyro=gyro, camera=camera,
+        sim=_sim(path, top.t.pop("sim", {})),
+        calibration=_calibration(path, top.t.pop("calibration", {})),
+        deblur=_deblur(path, top.t.pop("deblur", {})),
+        publish=_publish(path, top.t.pop("publish", {})),
+        pipeline=_pipeline(path, top.t.pop("pipeline", {})),
+        logging=_logging(path, top.t.pop("logging", {})),
+        path=path,
+    )
+    top.done()
+    if cfg.uses_sim:
+        c, s = cfg.calibration, cfg.sim
+        if abs(c.frame_rate_hz - s.frame_rate_hz) > 1e-9 or abs(c.rate_hz - s.gyro_rate_hz) > 1e-9:
+            raise ConfigError(f"{path}: calibration.frame_rate_hz/rate_hz: expected to match sim.frame_rate_hz "
+                              f"({s.frame_rate_hz}) and sim.gyro_rate_hz ({s.gyro_rate_hz})")
+    return cfg
+
+
+def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None = None, *,
+         check_devices: bool = True) -> Config:
+    """Read and validate a TOML configuration (None = the packaged simulated-payload default).
+
+    `overrides` maps dotted keys to values applied before validation ({"publish.endpoint": ...}).
+    `check_devices=False` skips the existence check of device nodes (for inspecting a hardware
+    configuration on another machine); recordings and key files are always checked.
+    """
+    p = default_path() if path is None else Path(path)
+    name = str(p)
+    try:
+        with open(p, "rb") as f:
+            raw = tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{name}: no such configuration file") from None
+    except OSError as e:
+        raise ConfigError(f"{name}: cannot read: {e.strerror}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{name}: not valid TOML: {e}") from None
+    for k, v in (overrides or {}).items():
+        _apply_override(name, raw, k, v)
+    return parse(raw, name, check_devices=check_devices)
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``"deblur.lambda=3000"`` → ("deblur.lambda", 3000.0); the value is a TOML literal, or a bare string."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. deblur.method=wiener")
+    k, v = text.split("=", 1)
+    k = k.strip()
+    try:
+        val = tomllib.loads(f"v = {v.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        val = v.strip()
+    return k, val
