@@ -417,6 +417,7 @@ def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str]
     if topic in ("frame", "raw") and len(shape) != 2:
         raise MessageError(f"{topic}: shape must be [H, W], got {shape}")
     array = np.frombuffer(payload, dtype=dtype).reshape(shape)
+    array.flags.writeable = False  # a view on ZeroMQ's message buffer
     return topic, header, array
 
 

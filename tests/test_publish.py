@@ -1,0 +1,323 @@
+"""Wire v1 over real ZeroMQ sockets on loopback: round trips, validation, seq gaps, HWM drops, CURVE."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import zmq
+import zmq.auth
+
+from thermod.errors import ThermodError
+from thermod.publish import Publisher, Subscriber, TransportError, decode
+
+EP = "tcp://127.0.0.1:*"
+
+
+def connect(pub, topics, **kw):
+    """A subscriber that is provably connected: ZeroMQ drops messages sent before the subscription
+    arrives (slow joiner), so warm up with health messages until one gets through."""
+    sub = Subscriber(pub.endpoint, topics=(*topics, "health"), **kw)
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        pub.publish_health()
+        if sub.recv(0.05) is not None:
+            while sub.recv(0.05) is not None:  # drain the other warm-up messages
+                pass
+            return sub
+    sub.close()
+    raise AssertionError("subscriber never connected")
+
+
+@pytest.fixture
+def pub():
+    p = Publisher(EP, queue_size=1024, hwm=1000).start()
+    yield p
+    p.stop()
+
+
+def test_round_trip_all_topics(pub):
+    sub = connect(pub, ("frame", "raw", "gyro"))
+    rng = np.random.default_rng(1)
+    img = rng.normal(1000, 50, (48, 64)).astype(np.float32)
+    raw = rng.integers(0, 65535, (48, 64), dtype=np.uint16)
+    gt = 100.0 + np.arange(7) * 1e-3
+    gr = rng.normal(0, 0.5, (7, 3)).astype(np.float32)
+    t0 = time.monotonic()
+    assert pub.publish_raw(raw, 12.25, frame_id=7) == 0
+    assert pub.publish_frame(img, 12.25, frame_id=7, deblurred=True, kernel_size=(9, 11),
+                             kernel_extent_px=4.5, coverage=0.99) == 0
+    assert pub.publish_frame(img, 12.27, frame_id=8, deblurred=False, reason="gyro gap") == 1
+    assert pub.publish_gyro(gt, gr, seq=4242, gap_before=True, n_lost=3) == 0
+    got = [sub.recv(2.0) for _ in range(4)]
+    assert all(m is not None for m in got)
+    by = {}
+    for topic, header, array in got:
+        by.setdefault(topic, []).append((header, array))
+
+    (h, a), = by["raw"]
+    assert a.dtype == np.uint16 and a.shape == (48, 64) and np.array_equal(a, raw)
+    assert h["v"] == 1 and h["seq"] == 0 and h["t"] == 12.25 and h["frame_id"] == 7
+    assert h["shape"] == [48, 64] and h["dtype"] == "<u2" and h["deblurred"] is False
+    assert t0 <= h["published"] <= h["received"] <= time.monotonic()
+
+    (h0, a0), (h1, a1) = by["frame"]
+    assert a0.dtype == np.float32 and np.array_equal(a0, img) and not a0.flags.writeable
+    assert h0["deblurred"] is True and h0["reason"] is None and h0["kernel_size"] == [9, 11]
+    assert h0["coverage"] == 0.99 and h0["kernel_extent_px"] == 4.5 and h0["dtype"] == "<f4"
+    assert h1["deblurred"] is False and h1["reason"] == "gyro gap" and [h0["seq"], h1["seq"]] == [0, 1]
+
+    (h, a), = by["gyro"]
+    assert h["n"] == 7 and h["sample_seq"] == 4242 and h["gap_before"] is True and h["n_lost"] == 3
+    assert h["t"] == gt[-1] and h["layout"] == [["t", "<f8", [7]], ["rate", "<f4", [7, 3]]]
+    assert np.array_equal(a["t"], gt) and np.array_equal(a["rate"], gr) and a["rate"].dtype == np.float32
+    assert sum(sub.gaps.values()) == 0 and sum(sub.errors.values()) == 0
+    st = pub.stats()
+    assert st["sent"]["frame"] == 2 and st["queue_dropped"] == 0 and st["send_errors"] == 0
+    sub.close()
+
+
+def test_health_carries_calibration_and_rates(pub):
+    from thermod.calibration import Calibration
+
+    sub = connect(pub, ())
+    cal = Calibration(width=320, height=256, tau_s=0.011, bias_rad_s=(0.01, -0.02, 0.0))
+    pub.publish_health(rates={"frame_hz": 49.9, "gyro_hz": 1000.2}, drops={"frames": 2},
+                       devices={"gyro": "ok", "camera": "stalled"}, calibration=cal,
+                       pipeline={"latency_ms": float("nan")})
+    topic, h, a = sub.recv(2.0)
+    assert topic == "health" and a.size == 0 and h["shape"] == [0]
+    assert h["rates"]["gyro_hz"] == 1000.2 and h["drops"] == {"frames": 2}
+    assert h["devices"]["camera"] == "stalled"
+    assert h["pipeline"]["latency_ms"] is None  # NaN goes out as null: strict JSON for other languages
+    assert Calibration.from_dict(h["calibration"]) == cal
+    sub.close()
+
+
+def test_copy_protects_the_callers_buffer(pub):
+    sub = connect(pub, ("frame",))
+    img = np.full((8, 8), 5.0, np.float32)
+    pub.publish_frame(img, 1.0, frame_id=1, deblurred=True)
+    img[:] = -1.0  # the caller reuses its buffer right away
+    _, _, a = sub.recv(2.0)
+    assert np.all(a == 5.0)
+    # Non-contiguous and float64 inputs are converted rather than sent wrongly.
+    pub.publish_frame(np.arange(32, dtype=np.float64).reshape(4, 8)[:, ::2], 2.0, frame_id=2, deblurred=True)
+    _, h, a = sub.recv(2.0)
+    assert a.dtype == np.float32 and a.shape == (4, 4) and a[1, 1] == 10.0
+    sub.close()
+
+
+def test_exact_topics_only(pub):
+    sub = connect(pub, ("frame",))
+    pub.publish_raw(np.zeros((2, 2), np.uint16), 1.0, frame_id=1)
+    pub.publish_gyro(np.array([1.0]), np.zeros((1, 3)), seq=0)
+    pub.publish_frame(np.zeros((2, 2), np.float32), 1.0, frame_id=1, deblurred=True)
+    topic, _, _ = sub.recv(2.0)
+    assert topic == "frame" and sub.recv(0.2) is None
+    assert "raw" not in sub.received and "gyro" not in sub.received
+    sub.close()
+
+
+def _good(seq=0, **over):
+    h = {"v": 1, "seq": seq, "t": 1.0, "published": 1.0, "shape": [2, 3], "dtype": "<u2", "deblurred": False,
+         "frame_id": seq}
+    h.update(over)
+    return h
+
+
+def test_malformed_messages_are_counted_and_skipped():
+    """A hostile/buggy publisher on a raw PUB socket: every bad message is rejected, none crashes."""
+    ctx = zmq.Context.instance()
+    raw = ctx.socket(zmq.PUB)
+    port = raw.bind_to_random_port("tcp://127.0.0.1")
+    sub = Subscriber(f"tcp://127.0.0.1:{port}", topics=("raw",), max_header_bytes=2048)
+    payload = np.arange(6, dtype="<u2").tobytes()
+    ok = [b"raw", json.dumps(_good()).encode(), payload]
+    deadline = time.monotonic() + 5
+    while sub.recv(0.05) is None:  # warm up
+        raw.send_multipart(ok)
+        assert time.monotonic() < deadline
+    bad = [
+        [b"raw", json.dumps(_good()).encode()],                                   # 2 frames
+        [b"rawx", json.dumps(_good()).encode(), payload],                         # prefix-matched topic
+        [b"raw", b"\xff\xfe not utf8", payload],                                  # not UTF-8
+        [b"raw", b"[1, 2, 3]", payload],                                          # not an object
+        [b"raw", b'{"v": 1, "seq": NaN}', payload],                               # NaN constant
+        [b"raw", json.dumps(_good(v=2)).encode(), payload],                       # future version
+        [b"raw", json.dumps(_good(seq=-1)).encode(), payload],                    # bad seq
+        [b"raw", json.dumps(_good(shape=[2, 4])).encode(), payload],              # payload length
+        [b"raw", json.dumps(_good(dtype="|O")).encode(), payload],                # object dtype
+        [b"raw", json.dumps(_good(shape=[6])).encode(), payload],                 # raw must be 2-D
+        [b"raw", json.dumps(_good(t="soon")).encode(), payload],                  # t not a number
+        [b"raw", json.dumps(_good(pad="x" * 4000)).encode(), payload],            # header too large
+        [b"raw", json.dumps(_good(dtype="packed", shape=[1], layout=[])).encode(), payload],
+    ]
+    for m in bad:
+        raw.send_multipart(m)
+    raw.send_multipart([b"raw", json.dumps(_good(seq=7)).encode(), payload])
+    got = sub.recv(2.0)
+    assert got is not None and got[1]["seq"] == 7 and got[2].tolist() == [[0, 1, 2], [3, 4, 5]]
+    assert sum(sub.errors.values()) == len(bad)
+    assert sub.received["raw"] >= 2
+    sub.close()
+    raw.close(0)
+
+
+def test_decode_gyro_layout_validation():
+    t = np.array([1.0, 2.0])
+    r = np.zeros((2, 3), "<f4")
+    h = {"v": 1, "seq": 0, "t": 2.0, "published": 2.0, "shape": [2], "dtype": "packed", "deblurred": False,
+         "layout": [["t", "<f8", [2]], ["rate", "<f4", [2, 3]]]}
+    topic, _, a = decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes()])
+    assert topic == "gyro" and a["t"].tolist() == [1.0, 2.0]
+    from thermod.publish import MessageError
+
+    with pytest.raises(MessageError, match="covers"):
+        decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes() + b"\0"])
+    h2 = dict(h, layout=[["t", "<f4", [2]], ["rate", "<f4", [2, 3]]])
+    with pytest.raises(MessageError, match="dtype"):
+        decode([b"gyro", json.dumps(h2).encode(), t.tobytes() + r.tobytes()])
+    h3 = dict(h, layout=[["t", "<f8", [2]], ["rate", "<f4", [2, 2]]])
+    with pytest.raises(MessageError, match="does not fit"):
+        decode([b"gyro", json.dumps(h3).encode(), t.tobytes() + r.tobytes()])
+
+
+def test_seq_gaps_and_restarts_are_counted():
+    ctx = zmq.Context.instance()
+    raw = ctx.socket(zmq.PUB)
+    port = raw.bind_to_random_port("tcp://127.0.0.1")
+    sub = Subscriber(f"tcp://127.0.0.1:{port}", topics=("raw",))
+    payload = np.zeros(6, "<u2").tobytes()
+    deadline = time.monotonic() + 5
+    while sub.recv(0.05) is None:
+        raw.send_multipart([b"raw", json.dumps(_good(seq=0)).encode(), payload])
+        assert time.monotonic() < deadline
+    while sub.recv(0.05) is not None:
+        pass
+    sub.gaps.clear()
+    sub.restarts.clear()
+    for s in (1, 2, 5, 6, 10, 0, 1):  # lost 3,4 and 7,8,9; then the publisher restarted at 0
+        raw.send_multipart([b"raw", json.dumps(_good(seq=s)).encode(), payload])
+    seqs = [sub.recv(2.0)[1]["seq"] for _ in range(7)]
+    assert seqs == [1, 2, 5, 6, 10, 0, 1]
+    assert sub.gaps["raw"] == 5 and sub.restarts["raw"] == 1
+    sub.close()
+    raw.close(0)
+
+
+def test_queue_drops_oldest_without_blocking():
+    p = Publisher(EP, queue_size=4)  # not started: nothing drains the queue
+    seqs = [p.publish_frame(np.zeros((2, 2), np.float32), i, frame_id=i, deblurred=True) for i in range(10)]
+    st = p.stats()
+    assert seqs == list(range(10))
+    assert st["queue_dropped"] == 6 and st["queue_depth"] == 4 and st["queued"]["frame"] == 10
+    assert [m[1]["seq"] for m in p._queue] == [6, 7, 8, 9]  # the newest survive; the gap shows up as seq
+
+
+@pytest.mark.slow
+def test_slow_subscriber_never_blocks_the_publisher():
+    p = Publisher(EP, hwm=4, queue_size=8).start()
+    try:
+        lazy = connect(p, ("frame",), rcvhwm=4)  # connected, then never reads while we publish
+        img = np.ones((256, 512), np.float32)  # 512 KiB per message
+        n = 300
+        for i in range(n):
+            p.publish_frame(img, float(i), frame_id=i, deblurred=True)
+            time.sleep(0.0005)
+        deadline = time.monotonic() + 20
+        while p.stats()["queue_depth"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        st = p.stats()
+        assert st["sent"]["frame"] + st["queue_dropped"] == n and st["send_errors"] == 0
+        got = []
+        while (m := lazy.recv(0.5)) is not None:
+            got.append(m[1]["seq"])
+        assert 0 < len(got) < n  # HWM dropped most of them (150 MiB would not fit the buffers)
+        assert lazy.gaps["frame"] == got[-1] - got[0] + 1 - len(got)
+        assert got == sorted(got)
+        lazy.close()
+    finally:
+        p.stop()
+
+
+def test_bind_errors_and_bad_input_are_clear(tmp_path):
+    with Publisher(EP) as a:
+        with pytest.raises(TransportError, match=a.endpoint.replace(".", r"\.")):
+            Publisher(a.endpoint).start()
+    with pytest.raises(TransportError, match="missing.key_secret"):
+        Publisher(EP, curve_secret_key_file=tmp_path / "missing.key_secret")
+    public, _ = zmq.auth.create_certificates(tmp_path, "srv")
+    with pytest.raises(TransportError, match="no secret key"):
+        Publisher(EP, curve_secret_key_file=public)
+    with pytest.raises(TransportError, match="needs curve_secret_key_file"):
+        Publisher(EP, authorized_keys_dir=tmp_path)
+    with pytest.raises(TransportError, match="not a directory"):
+        Publisher(EP, curve_secret_key_file=tmp_path / "srv.key_secret", authorized_keys_dir=tmp_path / "no")
+    assert issubclass(TransportError, ThermodError)
+    p = Publisher(EP)
+    with pytest.raises(ValueError, match="unknown topic"):
+        p.publish("frames", {"t": 0.0}, np.zeros(1, np.float32))
+    with pytest.raises(ValueError, match="uint16"):
+        p.publish_raw(np.zeros((2, 2), np.float32), 0.0, frame_id=0)
+    with pytest.raises(ValueError, match="not allowed"):
+        p.publish("frame", {"t": 0.0}, np.zeros((2, 2), np.complex64))
+    with pytest.raises(ValueError, match=r"\[3, 3\] to match"):
+        p.publish_gyro(np.zeros(3), np.zeros((3, 2)), seq=0)
+
+
+def _certs(tmp_path):
+    keys, auth_dir = tmp_path / "keys", tmp_path / "authorized"
+    auth_dir.mkdir()
+    keys.mkdir()
+    zmq.auth.create_certificates(keys, "server")
+    ok_public, _ = zmq.auth.create_certificates(keys, "good")
+    zmq.auth.create_certificates(keys, "evil")
+    (auth_dir / "good.key").write_bytes(open(ok_public, "rb").read())
+    return keys, auth_dir
+
+
+@pytest.mark.slow
+def test_curve_only_authorised_clients_receive(tmp_path):
+    keys, auth_dir = _certs(tmp_path)
+    p = Publisher(EP, curve_secret_key_file=keys / "server.key_secret", authorized_keys_dir=auth_dir).start()
+    try:
+        good = Subscriber(p.endpoint, ("frame",), curve_server_key=keys / "server.key",
+                          curve_client_key_file=keys / "good.key_secret")
+        evil = Subscriber(p.endpoint, ("frame",), curve_server_key=keys / "server.key",
+                          curve_client_key_file=keys / "evil.key_secret")
+        plain = Subscriber(p.endpoint, ("frame",))
+        wrong_server = Subscriber(p.endpoint, ("frame",), curve_server_key=keys / "evil.key",
+                                  curve_client_key_file=keys / "good.key_secret")
+        img = np.full((4, 4), 3.0, np.float32)
+        received = {"good": 0, "evil": 0, "plain": 0, "wrong_server": 0}
+        subs = {"good": good, "evil": evil, "plain": plain, "wrong_server": wrong_server}
+        deadline = time.monotonic() + 2.0
+        i = 0
+        while time.monotonic() < deadline:
+            p.publish_frame(img, float(i), frame_id=i, deblurred=True)
+            i += 1
+            for name, s in subs.items():
+                while (m := s.recv(0.0)) is not None:
+                    received[name] += 1
+                    assert np.all(m[2] == 3.0)
+            time.sleep(0.02)
+        assert received["good"] > 10
+        assert received["evil"] == received["plain"] == received["wrong_server"] == 0
+        for s in subs.values():
+            s.close()
+    finally:
+        p.stop()
+
+
+def test_curve_encryption_without_client_allowlist(tmp_path):
+    keys, _ = _certs(tmp_path)
+    with Publisher(EP, curve_secret_key_file=keys / "server.key_secret") as p:
+        pub_key = open(keys / "server.key", "rb").read()
+        server_public = zmq.auth.load_certificate(keys / "server.key")[0]
+        assert p.public_key == server_public and b"public-key" in pub_key
+        sub = connect(p, ("frame",), curve_server_key=server_public)  # throwaway client key pair
+        p.publish_frame(np.ones((2, 2), np.float32), 1.0, frame_id=1, deblurred=True)
+        topic, h, a = sub.recv(2.0)
+        assert topic == "frame" and h["frame_id"] == 1
+        sub.close()
