@@ -81,8 +81,8 @@ class PublishConfig:
     gyro: bool = True
     hwm: int = 100
     health_period_s: float = 1.0
-    curve_public_key: str | None = None
-    curve_secret_key: str | None = None
+    curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
+    curve_authorized_keys: str | None = None  # directory of client public certificates (needs the secret key)
 
 
 @dataclass(frozen=True)
@@ -338,11 +338,11 @@ def _publish(path: str, table: Any) -> PublishConfig:
     kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
               hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
               health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
-              curve_public_key=s.pop_file("curve_public_key", what="CURVE key file"),
-              curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"))
-    if (kw["curve_public_key"] is None) != (kw["curve_secret_key"] is None):
-        missing = "curve_secret_key" if kw["curve_secret_key"] is None else "curve_public_key"
-        raise ConfigError(f"{path}: publish.{missing}: missing (CURVE needs both key files)")
+              curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"),
+              curve_authorized_keys=s.pop_file("curve_authorized_keys", what="directory"))
+    if kw["curve_authorized_keys"] is not None and kw["curve_secret_key"] is None:
+        raise ConfigError(f"{path}: publish.curve_secret_key: missing (curve_authorized_keys needs the "
+                          "server's secret key file)")
     s.done()
     return PublishConfig(**kw)
 
@@ -425,8 +425,8 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
     if cfg.uses_sim:
         c, s = cfg.calibration, cfg.sim
         if abs(c.frame_rate_hz - s.frame_rate_hz) > 1e-9 or abs(c.rate_hz - s.gyro_rate_hz) > 1e-9:
-            raise ConfigError(f"{path}: calibration.frame_rate_hz/rate_hz: expected to match sim.frame_rate_hz "
-                              f"({s.frame_rate_hz}) and sim.gyro_rate_hz ({s.gyro_rate_hz})")
+            raise ConfigError(f"{path}: calibration.frame_rate_hz/rate_hz: expected to match "
+                              f"sim.frame_rate_hz ({s.frame_rate_hz}) and sim.gyro_rate_hz ({s.gyro_rate_hz})")
     return cfg
 
 
