@@ -1,0 +1,227 @@
+"""GigE Vision driver against the real Aravis fake camera (`arv-fake-gv-camera-0.8 -i 127.0.0.1`), a
+genuine GVCP/GVSP peer on loopback, plus unit tests of the 16-bit frame-id unwrapping."""
+
+import fcntl
+import os
+import shutil
+import subprocess
+import time
+
+import numpy as np
+import pytest
+from thermod.drivers.aravis_camera import AravisCamera, gvcp_probe
+from thermod.drivers.camera_base import FrameIdTracker, as_uint16_image
+
+from thermod.errors import DeviceError
+
+FAKE = shutil.which("arv-fake-gv-camera-0.8")
+LOCK = "/tmp/thermod-arv-fake-camera.lock"   # the fake camera can only listen on 127.0.0.1:3956
+
+
+def _gi_ok() -> bool:
+    try:
+        import gi
+
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis  # noqa: F401
+    except (ImportError, ValueError):
+        return False
+    return True
+
+
+GI_OK = _gi_ok()
+
+
+class FakeCamera:
+    """The fake GigE camera as a subprocess that tests can kill and restart."""
+
+    def __init__(self, serial: str):
+        self.serial = serial
+        self.proc = None
+
+    def start(self) -> None:
+        self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", self.serial],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            info = gvcp_probe("127.0.0.1", 0.05)
+            if info and info["serial"] == self.serial:
+                return
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        self.kill()
+        pytest.fail("arv-fake-gv-camera-0.8 did not come up on 127.0.0.1:3956 (port taken?)")
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+@pytest.fixture
+def fake_camera(require):
+    require(FAKE is not None and GI_OK, "Aravis fake GigE camera (aravis-tools, gir1.2-aravis-0.8)")
+    # Serialise across test processes: one fake camera per machine (fixed GVCP port 3956).
+    with open(LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        while gvcp_probe("127.0.0.1", 0.05) is not None:     # someone else's camera still up
+            time.sleep(0.2)
+        cam = FakeCamera(f"TH{os.getpid() % 10000:04d}")
+        cam.start()
+        try:
+            yield cam
+        finally:
+            cam.kill()
+
+
+def _collect(cam, seconds):
+    frames, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        f = cam.poll(0.2)
+        if f is not None:
+            frames.append(f)
+    return frames
+
+
+# ------------------------------------------------------------------ frame-id unwrapping (pure)
+def test_frame_id_wrap_skips_zero():
+    tr = FrameIdTracker()
+    out = [tr.update(i) for i in (65533, 65534, 65535, 1, 2)]
+    assert [fid for fid, _ in out] == [65533, 65534, 65535, 65536, 65537]
+    assert [g for _, g in out] == [0, 0, 0, 0, 0]
+    assert tr.wraps == 1 and tr.lost == 0
+
+
+def test_frame_id_gap_across_wrap():
+    tr = FrameIdTracker()
+    tr.update(65534)
+    fid, gap = tr.update(3)            # lost 65535, 1, 2
+    assert (fid, gap) == (65538, 3)
+    fid, gap = tr.update(5)            # lost 4
+    assert (fid, gap) == (65540, 1)
+    assert tr.lost == 4 and tr.gaps == 2
+
+
+def test_frame_id_invalid_and_reset():
+    tr = FrameIdTracker()
+    tr.update(100)
+    assert tr.update(0) == (101, 0)    # 0 is invalid: numbered as the expected id
+    assert tr.update(102) == (102, 0)  # and the stream continues without a phantom gap
+    assert tr.update(7) == (103, 0)    # far backwards: device counter restarted
+    assert tr.update(8) == (104, 0)
+    assert (tr.invalid, tr.resets, tr.lost) == (1, 1, 0)
+    tr.resync()                        # reconnect: unwrapped ids continue from where they were
+    assert tr.update(40000) == (105, 0)
+
+
+def test_byte_buffers_reshape_little_endian():
+    img = (np.arange(12, dtype=np.uint16) * 1000 + 7).reshape(3, 4)
+    raw = img.astype("<u2").tobytes()
+    for data in (raw, np.frombuffer(raw, np.uint8), np.frombuffer(raw, np.uint8).reshape(1, -1),
+                 np.frombuffer(raw, np.uint8).reshape(3, 8), img.reshape(1, -1)):
+        np.testing.assert_array_equal(as_uint16_image(data, 3, 4, "cam"), img)
+    with pytest.raises(DeviceError, match=r"cam: expected a 3×4 16-bit frame.*8-bit colour"):
+        as_uint16_image(np.zeros((3, 4, 3), np.uint8), 3, 4, "cam")
+
+
+def test_bad_arguments_are_device_errors():
+    with pytest.raises(DeviceError, match="exactly one of address"):
+        AravisCamera()
+    with pytest.raises(DeviceError, match="pixel_formats"):
+        AravisCamera("127.0.0.1", pixel_formats=("RGB8",))
+
+
+# ------------------------------------------------------------------ real GVCP/GVSP on loopback
+@pytest.mark.hardware
+def test_frames_at_rate_with_mapped_timestamps(fake_camera):
+    cam = AravisCamera("127.0.0.1", width=320, height=240, frame_rate_hz=40.0, packet_size=1500)
+    with cam:
+        frames = _collect(cam, 4.0)     # the fake camera starts its block ids at 65401: crosses the wrap
+        st = cam.stats()
+    assert len(frames) >= 140
+    f = frames[-1]
+    assert f.image.dtype == np.uint16 and f.image.shape == (240, 320)
+    assert f.image.max() > 0                          # the fake camera's gradient pattern, not zeros
+    assert st["pixel_format"] == "Mono16" and st["packet_size"] == 1500
+    arr = np.array([f.arrival for f in frames[5:]])
+    rate = (len(arr) - 1) / (arr[-1] - arr[0])
+    assert rate == pytest.approx(40.0, rel=0.10)
+    t = np.array([f.t for f in frames])
+    assert np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(np.median(np.diff(t)), 1 / 40.0, rtol=0.05)
+    lag = np.array([f.arrival - f.t for f in frames])
+    assert np.all(lag >= -1e-6) and np.all(lag < 0.05)   # stamped from the device clock, not the read
+    ids = np.array([f.frame_id for f in frames])
+    assert np.all(np.diff(ids) == 1) and sum(f.gap_before for f in frames) == 0
+    assert st["bad_buffers"] == 0 and st["frames_lost"] == 0
+    assert st["id_wraps"] == 1 and st["invalid_ids"] == 0
+    assert st["device"] == "127.0.0.1" and st["state"] == "streaming" and cam.stats()["state"] == "stopped"
+
+
+@pytest.mark.hardware
+def test_open_by_serial_and_rate_change(fake_camera):
+    cam = AravisCamera(device_id=fake_camera.serial, width=160, height=120, frame_rate_hz=20.0)
+    with cam:
+        frames = _collect(cam, 1.5)
+    assert cam.stats()["frame_rate_hz"] == pytest.approx(20.0)
+    arr = np.array([f.arrival for f in frames[2:]])
+    assert (len(arr) - 1) / (arr[-1] - arr[0]) == pytest.approx(20.0, rel=0.10)
+    assert frames[0].image.shape == (120, 160)
+
+
+@pytest.mark.hardware
+def test_unknown_serial_and_absent_camera_name_what_to_check(fake_camera):
+    with pytest.raises(DeviceError, match="no GigE camera with id/serial 'NOPE'"):
+        AravisCamera(device_id="NOPE").start()
+    with pytest.raises(DeviceError, match=r"frame rate 5000.0 Hz not accepted"):
+        AravisCamera("127.0.0.1", frame_rate_hz=5000.0).start()
+
+
+@pytest.mark.hardware
+@pytest.mark.slow
+def test_reconnects_after_camera_restart(fake_camera):
+    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0, backoff_s=(0.1, 0.5))
+    with cam:
+        before = _collect(cam, 0.5)
+        assert len(before) >= 15
+        fake_camera.kill()
+        t_kill = time.monotonic()
+        polls = []
+        while time.monotonic() - t_kill < 2.0:
+            t0 = time.monotonic()
+            assert cam.poll(0.2) is None
+            polls.append(time.monotonic() - t0)
+        assert max(polls) < 0.6                      # poll stays bounded while the camera is away
+        st = cam.stats()
+        assert st["state"] == "reconnecting" and st["disconnects"] == 1
+        fake_camera.start()
+        t_up = time.monotonic()
+        after = []
+        while time.monotonic() - t_up < 5.0 and len(after) < 20:
+            f = cam.poll(0.2)
+            if f is not None:
+                after.append(f)
+        st = cam.stats()
+    assert len(after) == 20 and time.monotonic() - t_up < 5.0
+    assert st["reconnects"] == 1 and st["state"] == "streaming"
+    # unwrapped ids keep increasing across the reconnect; the outage shows as a gap sized by time
+    assert after[0].frame_id > before[-1].frame_id
+    outage = after[0].t - before[-1].t
+    assert after[0].gap_before == pytest.approx(outage * 40 - 1, abs=2)
+    assert all(b.t > a.t for a, b in zip(after, after[1:], strict=False))
+
+
+@pytest.mark.hardware
+def test_no_reconnect_mode_raises(fake_camera):
+    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0, reconnect=False,
+                       stall_timeout_s=0.3)
+    cam.start()
+    try:
+        assert _collect(cam, 0.3)
+        fake_camera.kill()
+        with pytest.raises(DeviceError, match="camera lost .*GVCP probe"):
+            for _ in range(20):
+                cam.poll(0.1)
+    finally:
+        cam.stop()
