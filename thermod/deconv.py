@@ -161,7 +161,8 @@ def _shrink_lut(alpha: float, beta: float) -> np.ndarray:
         lut = _LUTS.get(key)
         if lut is None:
             v = np.linspace(0.0, _LUT_VMAX, _LUT_SIZE)
-            w = shrink_23_analytic(v, beta) if abs(alpha - 2.0 / 3.0) < 1e-9 else shrink_numeric(v, beta, alpha)
+            exact23 = abs(alpha - 2.0 / 3.0) < 1e-9
+            w = shrink_23_analytic(v, beta) if exact23 else shrink_numeric(v, beta, alpha)
             lut = _LUTS[key] = w.astype(np.float32)
     return lut
 
@@ -349,7 +350,8 @@ def _check_kernel(kernel, name="kernel"):
     w = getattr(kernel, "weights", None)
     origin = getattr(kernel, "origin", None)
     if w is None or origin is None:
-        raise DeconvError(f"{name}: expected an object with .weights and .origin, got {type(kernel).__name__}")
+        raise DeconvError(f"{name}: expected an object with .weights and .origin, "
+                          f"got {type(kernel).__name__}")
     w = np.asarray(w)
     if w.ndim != 2 or w.size == 0:
         raise DeconvError(f"{name}.weights: expected a non-empty 2-D array, got shape {w.shape}")
@@ -547,7 +549,8 @@ class Deconvolver:
         kernels = getattr(grid, "kernels", None)
         centers = getattr(grid, "centers", None)
         if kernels is None or centers is None:
-            raise DeconvError(f"grid: expected an object with .kernels and .centers, got {type(grid).__name__}")
+            raise DeconvError(f"grid: expected an object with .kernels and .centers, "
+                              f"got {type(grid).__name__}")
         centers = np.asarray(centers, dtype=np.float64)
         nr = len(kernels)
         nc = len(kernels[0]) if nr else 0
@@ -560,9 +563,11 @@ class Deconvolver:
         lo, hi = robust_range(img) if value_range is None else (float(value_range[0]), float(value_range[1]))
         wys = _tile_weights(h, centers[:, :, 0].mean(axis=1), overlap)
         wxs = _tile_weights(wd, centers[:, :, 1].mean(axis=0), overlap)
-        checked = [[_check_kernel(kernels[r][c], f"grid.kernels[{r}][{c}]") for c in range(nc)] for r in range(nr)]
-        ksize = max(max(w.shape) for row in checked for w, _ in row)
-        m = int(1.5 * ksize) + 16
+        checked = [[_check_kernel(kernels[r][c], f"grid.kernels[{r}][{c}]") for c in range(nc)]
+                   for r in range(nr)]
+        shapes = np.array([w.shape for row in checked for w, _ in row])
+        kmax = (int(shapes[:, 0].max()), int(shapes[:, 1].max()))
+        m = int(1.5 * max(kmax)) + 16
         out = np.zeros((h, wd), np.float32)
         # Same-size tiles share one FFT plan: pad every tile of a row/column class to the largest.
         boxes = {}
@@ -571,7 +576,6 @@ class Deconvolver:
                 boxes[r, c] = (max(0, ys - m), min(h, ye + m), max(0, xs - m), min(wd, xe + m))
         th = max(b[1] - b[0] for b in boxes.values())
         tw = max(b[3] - b[2] for b in boxes.values())
-        kmax = (max(w.shape[0] for row in checked for w, _ in row), max(w.shape[1] for row in checked for w, _ in row))
         pshape = self.padded_shape((th, tw), kmax)
         for r, (ys, ye, wy) in enumerate(wys):
             for c, (xs, xe, wx) in enumerate(wxs):

@@ -1,0 +1,285 @@
+"""thermod.deconv: K&F (α = 1, 2/3), Wiener, origin handling, borders, tiles, errors."""
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pytest
+
+from thermod import deconv
+from thermod.errors import ThermodError
+from thermod.kernels import Kernel, KernelGrid, blur, blur_varying
+
+
+@dataclass
+class DuckKernel:  # deconv only needs .weights and .origin
+    weights: np.ndarray
+    origin: tuple
+
+
+@pytest.fixture(scope="module")
+def scene(shared_data):
+    """A real 16-bit thermal frame (float32 counts), or a procedural one when the data is absent."""
+    path = shared_data / "thermal" / "H20T_DJI_0001_R.png"
+    if path.exists():
+        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.normal(0, 1, (512, 640)).astype(np.float32), (0, 0), 3) * 4000 + 15000
+    img[100:300:40, :] += 3000
+    return img
+
+
+def psnr(a, ref):
+    rng = float(np.percentile(ref, 99.5) - np.percentile(ref, 0.5))
+    return 10 * np.log10(rng ** 2 / np.mean((a.astype(np.float64) - ref) ** 2))
+
+
+def comet(length=31, decay=8.0, angle_deg=0.0):
+    """One-sided exponential comet (thermal-like): origin at the head, tail trailing behind."""
+    size = 2 * length + 1
+    w = np.zeros((size, size), np.float32)
+    c = length
+    a = np.deg2rad(angle_deg)
+    for s in np.linspace(0, length - 1, 8 * length):
+        x, y = c - s * np.cos(a), c - s * np.sin(a)
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx, fy = x - x0, y - y0
+        wt = np.exp(-s / decay)
+        w[y0, x0] += wt * (1 - fx) * (1 - fy)
+        w[y0, x0 + 1] += wt * fx * (1 - fy)
+        w[y0 + 1, x0] += wt * (1 - fx) * fy
+        w[y0 + 1, x0 + 1] += wt * fx * fy
+    ys, xs = np.nonzero(w)
+    w = w[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
+    return Kernel((w / w.sum()).astype(np.float32), (c - ys.min(), c - xs.min()))
+
+
+def blurred_crop(img, kernel, margin=80, noise=0.002, seed=0):
+    """Blur the whole frame and crop away the border: the crop's edges carry real off-frame content."""
+    b = blur(img, kernel)
+    crop = (slice(margin, -margin), slice(margin, -margin))
+    rng = np.random.default_rng(seed)
+    span = float(np.percentile(img, 99.5) - np.percentile(img, 0.5))
+    noisy = b[crop] + rng.normal(0, noise * span, b[crop].shape).astype(np.float32)
+    return img[crop], noisy.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------ w-step
+@pytest.mark.parametrize("beta", [1.0, 2.83, 8.0, 22.6, 64.0, 181.0])
+def test_analytic_23_root_is_the_global_minimiser(beta):
+    v = np.linspace(-1.5, 1.5, 3001)
+    w = deconv.shrink_23_analytic(v, beta)
+    cost = lambda ww: np.abs(ww) ** (2 / 3) + beta / 2 * (ww - v) ** 2  # noqa: E731
+    grid = np.linspace(-1.6, 1.6, 64001)
+    # brute force over a fine grid: nothing beats the analytic w by more than the grid's resolution
+    best = np.array([np.min(np.abs(grid) ** (2 / 3) + beta / 2 * (grid - vi) ** 2) for vi in v[::50]])
+    assert np.all(cost(w)[::50] <= best + 1e-6)
+    np.testing.assert_allclose(w, deconv.shrink_numeric(v, beta, 2 / 3), atol=1e-7)
+    tau = deconv.shrink_threshold(2 / 3, beta)
+    assert np.all(w[np.abs(v) < tau] == 0) and np.all(np.abs(w[np.abs(v) > tau * 1.001]) > 0)
+    # at the threshold the non-zero minimum sits at v/2 (K&F's root-selection rule)
+    w_tau = deconv.shrink_23_analytic(np.array([tau * (1 + 1e-9)]), beta)[0]
+    assert w_tau == pytest.approx(tau / 2, rel=1e-3)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 2 / 3, 0.5])
+def test_fused_shrink_matches_the_exact_minimiser(alpha):
+    beta = 8.0
+    v = np.concatenate([np.linspace(-5, 5, 20001), [7.3, -12.0]]).astype(np.float32)   # beyond the LUT too
+    out = np.empty_like(v)
+    mode = 0 if alpha == 1 else 1
+    lut = deconv._shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
+    tau = deconv.shrink_threshold(alpha, beta) if mode else 0.0
+    deconv._shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
+                       np.float32((deconv._LUT_SIZE - 1) / deconv._LUT_VMAX), np.float32(alpha))
+    if alpha == 1:
+        exact = np.sign(v) * np.maximum(np.abs(v) - 1 / beta, 0)
+    else:
+        exact = deconv.shrink_numeric(v.astype(np.float64), beta, alpha)
+    near_jump = np.abs(np.abs(v) - tau) < 2 * deconv._LUT_VMAX / deconv._LUT_SIZE
+    np.testing.assert_allclose(out[~near_jump], exact[~near_jump], atol=2e-5)
+
+
+def test_beta_schedule_is_kf():
+    b = deconv.beta_schedule()
+    assert b[0] == 1.0 and len(b) == 6 and b[-1] < 256
+    np.testing.assert_allclose(np.diff(np.log(b)), np.log(2 * np.sqrt(2)))
+
+
+# ------------------------------------------------------------------------- origin, exactness
+@pytest.mark.parametrize("method", ["wiener", "kf"])
+def test_off_centre_delta_kernel_is_undone_exactly(scene, method):
+    """A shift kernel whose origin is not the array centre: no displacement in the output."""
+    w = np.zeros((9, 13), np.float32)
+    w[2, 11] = 1.0                            # u = (2 − 6, 11 − 1) = (−4, +10)
+    k = DuckKernel(w, (6, 1))
+    s = scene[100:300, 100:400]
+    b = blur(s, Kernel(w, (6, 1)))
+    assert np.abs(b[20:-20, 20:-20] - np.roll(s, (-4, 10), axis=(0, 1))[20:-20, 20:-20]).max() == 0
+    out = deconv.Deconvolver(method=method, lam=1e7).run(b, k)
+    inner = (slice(12, -12), slice(16, -16))
+    span = float(s.max() - s.min())
+    assert np.abs(out[inner] - s[inner]).max() < 2e-3 * span
+
+
+def test_one_sided_comet_output_is_not_displaced(scene):
+    k = comet(40, 12.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    out = deconv.deconvolve(b, k)
+    # cross-correlation of the restored and true gradients peaks at zero shift
+    f = np.fft.rfft2(np.diff(out, axis=1)) * np.conj(np.fft.rfft2(np.diff(s, axis=1)))
+    cc = np.fft.irfft2(f, s=out[:, 1:].shape)
+    iy, ix = np.unravel_index(np.argmax(cc), cc.shape)
+    assert (iy, ix) == (0, 0)
+
+
+# ----------------------------------------------------------------------------- quality
+@pytest.mark.parametrize("method,alpha,gain", [("kf", 2 / 3, 12.0), ("kf", 1.0, 12.0), ("wiener", 1.0, 10.0)])
+def test_restores_a_real_scene(scene, method, alpha, gain):
+    k = comet(30, 10.0, 20.0)
+    s, b = blurred_crop(scene, k)
+    out = deconv.deconvolve(b, k, method=method, alpha=alpha)
+    assert out.dtype == np.float32 and out.shape == b.shape
+    p0, p1 = psnr(b, s), psnr(out, s)
+    assert p1 >= p0 + gain, (p0, p1)
+
+
+def test_kf_beats_wiener_and_both_alphas_work(scene):
+    k = comet(25, 8.0, -60.0)
+    s, b = blurred_crop(scene, k, noise=0.004)
+    p = {name: psnr(deconv.deconvolve(b, k, method=m, alpha=a), s)
+         for name, m, a in [("kf23", "kf", 2 / 3), ("kf1", "kf", 1.0), ("wiener", "wiener", 1.0)]}
+    assert p["kf23"] > p["wiener"] + 0.5 and p["kf1"] > p["wiener"] + 0.5, p
+    assert abs(p["kf23"] - p["kf1"]) < 3, p
+
+
+def test_float32_and_uint16_in_float32_counts_out_never_clipped():
+    img = np.full((120, 160), 1000.0, np.float32)
+    img[60, 80] = 30000.0                       # a hot point
+    k = comet(12, 4.0, 0.0)
+    b = blur(img, k)
+    out = deconv.deconvolve(b, k, lam=20000)
+    assert out.dtype == np.float32
+    assert out.max() > 5 * b.max() / 2 and out.max() > 20000         # peak restored above the blurry range
+    assert abs(float(np.median(out)) - 1000.0) < 5                    # counts, in the input's scale
+    out16 = deconv.deconvolve(np.round(b).astype(np.uint16), k, lam=20000)
+    assert out16.dtype == np.float32 and np.abs(out16 - out).max() < 0.02 * 30000
+
+
+def test_large_kernel_101px(scene):
+    k = comet(101, 40.0, 0.0)
+    assert k.weights.shape[1] >= 100
+    s, b = blurred_crop(scene[:, :], k, margin=110, noise=0.001)
+    out = deconv.deconvolve(b, k)
+    assert psnr(out, s) > psnr(b, s) + 8
+
+
+def test_border_ringing_is_bounded(scene):
+    """The error in a 12-px frame round the border is of the same order as inside."""
+    k = comet(35, 10.0, 45.0)
+    s, b = blurred_crop(scene, k)
+    for method in ("kf", "wiener"):
+        err = np.abs(deconv.deconvolve(b, k, method=method) - s)
+        band = np.ones_like(err, bool)
+        band[12:-12, 12:-12] = False
+        inner_err = err[40:-40, 40:-40]
+        assert np.sqrt(np.mean(err[band] ** 2)) < 2.5 * np.sqrt(np.mean(inner_err ** 2)), method
+        # and no ringing frame: the rows/columns next to the border are not worse than deeper in
+        edge = np.sqrt(np.mean(np.concatenate([err[:3].ravel(), err[-3:].ravel(),
+                                               err[:, :3].ravel(), err[:, -3:].ravel()]) ** 2))
+        assert edge < 3.0 * np.sqrt(np.mean(inner_err ** 2)), method
+
+
+def test_fft_backends_agree(scene):
+    pytest.importorskip("pyfftw")
+    k = comet(20, 6.0, 10.0)
+    s, b = blurred_crop(scene, k)
+    a = deconv.Deconvolver(fft="scipy").run(b, k)
+    c = deconv.Deconvolver(fft="fftw").run(b, k)
+    assert np.abs(a - c).max() < 1e-3 * float(s.max() - s.min())
+
+
+def test_otf_cache_reused_and_bounded(scene):
+    d = deconv.Deconvolver(cache_size=2)
+    b = scene[:128, :160]
+    for length in (5, 6, 5, 7, 8):
+        d.run(b, comet(length, 3.0))
+    assert len(d._otfs) == 2 and len(d._plans) == 1
+
+
+# ------------------------------------------------------------------------------- tiles
+def _grid(kernels, shape):
+    rows, cols = len(kernels), len(kernels[0])
+    ye = np.round(np.linspace(0, shape[0], rows + 1)).astype(int)
+    xe = np.round(np.linspace(0, shape[1], cols + 1)).astype(int)
+    centers = np.array([[((ye[i] + ye[i + 1] - 1) / 2, (xe[j] + xe[j + 1] - 1) / 2) for j in range(cols)]
+                        for i in range(rows)])
+    bounds = np.array([[(ye[i], ye[i + 1], xe[j], xe[j + 1]) for j in range(cols)] for i in range(rows)])
+    return KernelGrid(kernels, centers, bounds, np.zeros(rows), shape)
+
+
+def test_tile_weights_are_a_partition_of_unity():
+    for overlap in (0.3, 1.0):
+        ws = deconv._tile_weights(500, np.array([50.0, 200, 260, 450]), overlap)
+        total = np.zeros(500)
+        for a, b, w in ws:
+            total[a:b] += w
+        np.testing.assert_allclose(total, 1.0, atol=1e-6)
+
+
+def test_tiles_with_one_kernel_match_uniform_without_seams(scene):
+    k = comet(25, 8.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    grid = _grid([[k] * 4 for _ in range(3)], b.shape)
+    d = deconv.Deconvolver()
+    uni = d.run(b, k)
+    var = d.run_varying(b, grid)
+    span = float(s.max() - s.min())
+    assert np.sqrt(np.mean((var - uni) ** 2)) < 0.004 * span
+    assert abs(psnr(var, s) - psnr(uni, s)) < 0.3
+    # seams would show as extra jumps between columns/rows where tiles meet
+    dv = np.abs(np.diff(var - uni, axis=1)).mean(axis=0)
+    assert dv.max() < 0.002 * span
+
+
+def test_spatially_varying_beats_uniform_under_roll(scene):
+    """Blur that rotates across the frame (roll): per-tile kernels restore better than one kernel."""
+    shape = (scene.shape[0] - 160, scene.shape[1] - 160)
+    rows, cols = 3, 4
+    kernels = [[comet(22, 8.0, angle_deg=90 * (j - 1.5) / 1.5 + 40 * (i - 1)) for j in range(cols)]
+               for i in range(rows)]
+    grid_full = _grid(kernels, scene.shape)
+    b_full = blur_varying(scene, grid_full)
+    b = b_full[80:-80, 80:-80] + np.random.default_rng(1).normal(0, 20, shape).astype(np.float32)
+    s = scene[80:-80, 80:-80]
+    grid = _grid(kernels, shape)
+    d = deconv.Deconvolver()
+    var = d.run_varying(b, grid)
+    uni = d.run(b, kernels[1][1])
+    assert psnr(var, s) > psnr(uni, s) + 3.0      # measured: +8 dB
+    assert psnr(var, s) > psnr(b, s) + 4.5        # measured: +5.6 dB
+
+
+# ------------------------------------------------------------------------------- errors
+DELTA = DuckKernel(np.ones((1, 1), np.float32), (0, 0))
+
+
+@pytest.mark.parametrize("image,kernel,match", [
+    (np.zeros((4, 4, 3), np.float32), DELTA, "image: expected a 2-D"),
+    (np.full((8, 8), np.nan, np.float32), DELTA, "NaN"),
+    (np.zeros((8, 8), np.float32), DuckKernel(np.ones((3, 3), np.float32), (3, 0)), "origin"),
+    (np.zeros((8, 8), np.float32), DuckKernel(np.zeros((3, 3), np.float32), (1, 1)), "sum to a positive"),
+    (np.zeros((8, 8), np.float32), "kernel", "expected an object with .weights"),
+])
+def test_bad_input_raises_thermod_error(image, kernel, match):
+    with pytest.raises(ThermodError, match=match):
+        deconv.deconvolve(image, kernel)
+
+
+def test_bad_parameters_raise():
+    with pytest.raises(ThermodError, match="method"):
+        deconv.Deconvolver(method="blind")
+    with pytest.raises(ThermodError, match="alpha"):
+        deconv.Deconvolver(alpha=2.0)
+    with pytest.raises(ThermodError, match="lam"):
+        deconv.Deconvolver(lam=-1)
