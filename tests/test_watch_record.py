@@ -1,0 +1,281 @@
+"""`thermod watch` and `thermod record` against a real Publisher on loopback, fed with real thermal
+frames and a real gyro log from ../shared/data."""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from thermod import cli, recording
+from thermod.calibration import Calibration
+from thermod.errors import RecordingError
+from thermod.publish import Publisher, Subscriber
+from thermod.record import RecordBuilder, record, save
+from thermod.watch import PreviewWriter, WatchStats, side_by_side, stretch_u8, watch
+
+H, W = 96, 128
+
+
+def scene(shared_data) -> np.ndarray:
+    """A sharp 16-bit crop of a real DJI frame (procedural texture if the data is absent)."""
+    p = shared_data / "thermal" / "H20T_DJI_0001_R.png"
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED) if p.exists() else None
+    if img is None:
+        rng = np.random.default_rng(0)
+        img = cv2.GaussianBlur(rng.uniform(2e4, 3e4, (4 * H, 4 * W)), (0, 0), 3).astype(np.uint16)
+    y, x = img.shape[0] // 3, img.shape[1] // 3
+    return np.ascontiguousarray(img[y:y + H, x:x + W]).astype(np.uint16)
+
+
+def gyro_log(shared_data) -> tuple[np.ndarray, np.ndarray]:
+    """The real 2 kHz Betaflight log: (t s, rate rad/s float32 [n, 3]); junk head rows skipped."""
+    p = shared_data / "gyro" / "betaflight_smooth_2khz.csv"
+    if not p.exists():
+        t = np.arange(4000) * 5e-4
+        return t, (0.3 * np.sin(2 * np.pi * 3 * t)[:, None] * np.ones(3)).astype(np.float32)
+    d = np.loadtxt(p, delimiter=",", skiprows=1, max_rows=6000)
+    dt = np.diff(d[:, 0])
+    ok = (dt > 300) & (dt < 700)
+    start = next(i for i in range(len(ok) - 8) if ok[i:i + 8].all())
+    d = d[start:]
+    return (d[:, 0] - d[0, 0]) * 1e-6, np.deg2rad(d[:, 1:4]).astype(np.float32)
+
+
+def connect(pub, topics, **kw):
+    sub = Subscriber(pub.endpoint, topics=topics, **kw)
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        pub.publish_health()
+        if sub.recv(0.05) is not None:
+            while sub.recv(0.05) is not None:
+                pass
+            return sub
+    raise AssertionError("subscriber never connected")
+
+
+class Feeder(threading.Thread):
+    """What the daemon publishes, at 50 fps: raw (blurred), frame (the sharp truth), gyro, health."""
+
+    def __init__(self, pub, sharp, calib, *, n=None, not_deblurred_every=5, age_s=0.030):
+        super().__init__(daemon=True)
+        self.pub, self.sharp, self.calib, self.n = pub, sharp, calib, n
+        self.every, self.age = not_deblurred_every, age_s
+        self.blurry = cv2.GaussianBlur(sharp.astype(np.float32), (0, 0), 2.0).astype(np.uint16)
+        self.halt = threading.Event()
+
+    def run(self):
+        i = 0
+        while not self.halt.is_set() and (self.n is None or i < self.n):
+            t = time.monotonic() - self.age  # the frame was read `age` ago: latency ≥ age
+            self.pub.publish_raw(self.blurry, t, frame_id=i + 1)
+            ok = i % self.every != 0
+            self.pub.publish_frame(self.sharp.astype(np.float32), t, frame_id=i + 1, deblurred=ok,
+                                   reason=None if ok else "gyro coverage 0.80 < 0.99", kernel_size=(7, 9))
+            gt = t - 0.02 + np.arange(20) * 1e-3
+            self.pub.publish_gyro(gt, np.zeros((20, 3)), seq=20 * i)
+            if i % 10 == 0:
+                self.pub.publish_health(rates={"frame_hz": 50.0}, calibration=self.calib)
+            i += 1
+            time.sleep(0.02)
+
+
+@pytest.fixture
+def pub():
+    p = Publisher("tcp://127.0.0.1:*", queue_size=512, hwm=512).start()
+    yield p
+    p.stop()
+
+
+# ----------------------------------------------------------------------------------------- watch
+def test_watch_stats_and_previews(pub, shared_data, tmp_path):
+    sharp = scene(shared_data)
+    sub = connect(pub, ("frame", "raw", "gyro", "health"))
+    feeder = Feeder(pub, sharp, Calibration(width=W, height=H), n=50)
+    previews = PreviewWriter(tmp_path / "png", interval=0.2)
+    feeder.start()
+    lines = []
+
+    class Out:
+        def write(self, s):
+            lines.append(s)
+
+        def flush(self):
+            pass
+
+    stats = watch(sub, 2.0, interval=0.5, previews=previews, out=Out())
+    feeder.join()
+    s = stats.summary(sub.gaps)
+    assert s["frames"] == 50 and s["raw"] == 50
+    assert 40 <= s["fps"] <= 51  # from the frames' own times (sleep-paced, so a little below 50)
+    assert s["deblurred_share"] == pytest.approx(0.8)
+    assert s["reasons"] == {"gyro coverage 0.80 < 0.99": 10}
+    lp, lr = s["latency_publish_ms"], s["latency_receive_ms"]
+    assert 30.0 <= lp["p50"] <= lp["p95"] <= lp["p99"] <= lp["max"] and lp["p50"] < 1000
+    assert lr["p50"] >= lp["p50"]
+    assert s["gyro_hz"] == pytest.approx(1000, rel=0.3) and s["gyro_gap_batches"] == 0
+    assert sum(s["lost_messages"].values()) == 0
+    assert len([ln for ln in lines if "fps" in ln]) >= 3  # status lines every 0.5 s
+    table = stats.format(sub.gaps)
+    assert "not deblurred: gyro coverage 0.80 < 0.99 ×10" in table and "lost msgs    none" in table
+
+    # Previews: raw | frame with one stretch (the raw's 1st–99th percentiles).
+    assert len(previews.written) >= 3 and (tmp_path / "png" / "latest.png").exists()
+    img = cv2.imread(str(previews.written[-1]), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint8 and img.shape == (H, 2 * W + 4)
+    lo, hi = np.percentile(feeder.blurry.astype(np.float32), [1, 99])
+    assert np.array_equal(img[:, :W], stretch_u8(feeder.blurry, lo, hi))
+    assert np.array_equal(img[:, W + 4:], stretch_u8(sharp, lo, hi))
+    assert img[:, :W].std() < img[:, W + 4:].std()  # the sharp half has more contrast
+    cv2.imwrite("/tmp/thermod_watch_preview.png", cv2.resize(img, None, fx=3, fy=3,
+                                                             interpolation=cv2.INTER_NEAREST))
+    sub.close()
+
+
+def test_watch_stats_numbers_exact():
+    st = WatchStats()
+    for i in range(11):
+        t = 10 + i * 0.04
+        h = {"t": t, "published": t + 0.005 * (i + 1), "received": t + 0.1, "deblurred": i % 2 == 0,
+             "reason": None if i % 2 == 0 else "no gyro"}
+        st.add("frame", h, None)
+    s = st.summary({"frame": 3, "raw": 0})
+    assert s["fps"] == pytest.approx(25.0)
+    assert s["deblurred_share"] == pytest.approx(6 / 11) and s["reasons"] == {"no gyro": 5}
+    assert s["latency_publish_ms"]["p50"] == pytest.approx(30.0) and s["latency_publish_ms"]["max"] == \
+        pytest.approx(55.0)
+    assert s["latency_receive_ms"]["p99"] == pytest.approx(100.0)
+    assert "lost msgs    frame 3" in st.format({"frame": 3, "raw": 0})
+
+
+def test_side_by_side_without_raw_is_the_frame_alone():
+    f = np.linspace(0, 100, 64, dtype=np.float32).reshape(8, 8)
+    out = side_by_side(None, f)
+    assert out.shape == (8, 8) and out.min() == 0 and out.max() == 255
+
+
+def test_watch_cli(pub, shared_data, tmp_path, capsys):
+    feeder = Feeder(pub, scene(shared_data), Calibration(width=W, height=H))
+    feeder.start()
+    try:
+        rc = cli.main(["watch", "--endpoint", pub.endpoint, "--seconds", "1.5", "--png", str(tmp_path)])
+    finally:
+        feeder.halt.set()
+        feeder.join()
+    out = capsys.readouterr().out
+    assert rc == 0 and "fps" in out and "published−t" in out and (tmp_path / "latest.png").exists()
+
+
+def test_watch_cli_nothing_there(capsys):
+    rc = cli.main(["watch", "--endpoint", "tcp://127.0.0.1:9", "--seconds", "0.3", "--interval", "5"])
+    assert rc == 1 and "no frames from tcp://127.0.0.1:9" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------- record
+def test_record_real_data_round_trip(pub, shared_data, tmp_path):
+    """Real gyro log and real frames through the wire: the recording holds exactly what was sent,
+    frames in time order, the lost gyro batch visible as a seq jump, the calibration from health."""
+    sharp = scene(shared_data)
+    gt, gr = gyro_log(shared_data)
+    gt, gr = gt[:2000] + 100.0, gr[:2000]  # 1 s of the 2 kHz log
+    calib = Calibration(width=W, height=H, cx=63.5, cy=47.5, tau_s=0.0105, rate_hz=2000.0,
+                        bias_rad_s=(0.001, -0.002, 0.0005), time_offset_s=0.0012)
+    sub = connect(pub, ("raw", "gyro", "health"))
+    frames_t = 100.0 + np.arange(20) * 0.05
+    order = list(range(20))
+    order[4], order[5] = 5, 4  # one frame arrives late: the recording still sorts by time
+    rng = np.random.default_rng(3)
+    stack = [(sharp + rng.integers(0, 50, sharp.shape)).astype(np.uint16) for _ in range(20)]
+    pub.publish_health(calibration=calib)
+    for k in order:
+        pub.publish_raw(stack[k], frames_t[k], frame_id=k + 1)
+    pub.publish_raw(stack[7], frames_t[7], frame_id=8)  # a duplicate: dropped, counted
+    lost = range(700, 720)  # this 20-sample batch never makes it (driver overflow)
+    for s in range(0, 2000, 20):
+        if s in lost:
+            continue
+        after = s == 720
+        pub.publish_gyro(gt[s:s + 20], gr[s:s + 20], seq=5000 + s, gap_before=after, n_lost=20 * after)
+    builder = record(sub, 1.5, RecordBuilder())
+    rec = save(builder, tmp_path / "rec.h5", attrs={"endpoint": pub.endpoint})
+    back = recording.read(tmp_path / "rec.h5")
+
+    assert back.calibration == calib
+    assert back.n_frames == 20 and np.array_equal(back.t, frames_t)
+    assert np.array_equal(back.frames, np.stack(stack))
+    assert back.extras["record/frame_id"].tolist() == list(range(1, 21))
+    keep = np.r_[0:700, 720:2000]
+    assert np.array_equal(back.gyro_t, gt[keep]) and np.array_equal(back.gyro_rate, gr[keep])
+    seq = back.extras["record/gyro_seq"]
+    assert np.array_equal(seq, 5000 + keep)
+    assert np.flatnonzero(np.diff(seq) != 1).tolist() == [699] and seq[700] - seq[699] == 21
+    assert np.flatnonzero(back.extras["record/gyro_gap_before"]).tolist() == [700]
+    assert back.extra_attrs["record"]["calibration_source"] == "health"
+    assert back.extra_attrs["record"]["frames_dropped"] == 1
+    assert rec.n_frames == back.n_frames
+    sub.close()
+
+
+def test_record_calibration_fallbacks_and_rescue(shared_data, tmp_path):
+    sharp = scene(shared_data)
+    b = RecordBuilder()
+    b.add("raw", {"t": 2.0, "frame_id": 2}, sharp)
+    b.add("raw", {"t": 1.0, "frame_id": 1}, sharp)
+    rec = b.build()  # no health: defaults sized to the frames, flagged
+    assert (rec.calibration.width, rec.calibration.height) == (W, H) and rec.calibration.cx == (W - 1) / 2
+    assert rec.extra_attrs["record"]["calibration_source"] == "defaults" and rec.t.tolist() == [1.0, 2.0]
+    assert rec.gyro_t.shape == (0,) and rec.gyro_rate.shape == (0, 3)
+    cfg = Calibration(width=W, height=H, tau_s=0.02)
+    assert b.build(cfg).calibration.tau_s == 0.02 and b.build(cfg).extra_attrs["record"][
+        "calibration_source"] == "config"
+    # The daemon's calibration says 640×480 but the frames are 128×96: nothing is lost, it is rescued.
+    b.add("health", {"t": 3.0, "calibration": Calibration().as_dict()}, np.zeros(0, np.uint8))
+    with pytest.raises(RecordingError, match=r"rescue\.npz") as e:
+        save(b, tmp_path / "bad.h5")
+    assert "frame shape (96, 128) does not match" in str(e.value)
+    with np.load(tmp_path / "bad.h5.rescue.npz", allow_pickle=False) as z:
+        assert z["frames"].shape == (2, H, W) and z["t"].tolist() == [2.0, 1.0]
+    assert not (tmp_path / "bad.h5").exists()
+
+
+def test_record_cli_nothing_received(tmp_path, capsys):
+    rc = cli.main(["record", "-o", str(tmp_path / "x.h5"), "--endpoint", "tcp://127.0.0.1:9",
+                   "--seconds", "0.3"])
+    assert rc == 2 and "nothing received from tcp://127.0.0.1:9" in capsys.readouterr().err
+    assert not (tmp_path / "x.h5").exists()
+    rc = cli.main(["record", "-o", str(tmp_path / "no" / "x.h5"), "--seconds", "0.1"])
+    assert rc == 2 and "directory" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_record_cli_interrupted_still_writes(pub, shared_data, tmp_path, sig):
+    """`thermod record` in its own process, stopped by Ctrl-C / systemctl stop, keeps what it got."""
+    calib = Calibration(width=W, height=H)
+    feeder = Feeder(pub, scene(shared_data), calib)
+    feeder.start()
+    out = tmp_path / "rec.h5"
+    exe = Path(sys.executable).with_name("thermod")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([str(exe), "record", "-o", str(out), "--endpoint", pub.endpoint],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        time.sleep(2.5)
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        feeder.halt.set()
+        feeder.join()
+    assert proc.returncode == 0, stderr
+    rec = recording.read(out)
+    assert rec.n_frames >= 20 and "wrote" in stdout
+    fid = rec.extras["record/frame_id"]
+    assert np.all(np.diff(fid) == 1)  # nothing lost in between on loopback
+    assert rec.calibration == calib and rec.extra_attrs["record"]["calibration_source"] == "health"
+    assert len(rec.gyro_t) >= 20 * (rec.n_frames - 1)

@@ -1,0 +1,255 @@
+"""`thermod watch`: subscribe to a running daemon and report what arrives.
+
+Prints, every ``--interval`` seconds and at the end: frame rate (from the frames' own times),
+latency percentiles ``published − t`` (daemon-side: waiting for gyro coverage + deblurring) and
+``received − t`` (end to end; meaningful on the daemon's host only, because ``t`` is that host's
+CLOCK_MONOTONIC), messages lost (seq gaps), the deblurred share and why the other frames were not
+deblurred. With ``--png DIR`` it writes raw|deblurred side-by-side previews (one percentile stretch
+for both halves, so brightness compares) at most every ``--png-interval`` seconds.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from thermod.errors import ThermodError
+from thermod.publish import DEFAULT_ENDPOINT, Subscriber
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
+    p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
+    p.add_argument("--interval", type=float, default=1.0, help="seconds between status lines")
+    p.add_argument("--png", metavar="DIR", default=None, help="write raw|deblurred preview PNGs to DIR")
+    p.add_argument("--png-interval", type=float, default=1.0, help="seconds between previews")
+    p.add_argument("--no-raw", action="store_true", help="do not subscribe to raw frames")
+    p.add_argument("--curve-server-key", default=None, help="publisher's public certificate → CURVE")
+    p.add_argument("--curve-client-key", default=None, help="this client's *.key_secret certificate")
+
+
+class WatchStats:
+    """Accumulates what a subscriber saw; `summary()` gives the numbers, `format()` a table."""
+
+    def __init__(self):
+        self.frames = 0
+        self.deblurred = 0
+        self.reasons: collections.Counter = collections.Counter()
+        self.frame_t: list[float] = []
+        self.lat_publish: list[float] = []
+        self.lat_receive: list[float] = []
+        self.raw = 0
+        self.gyro_samples = 0
+        self.gyro_t = [np.inf, -np.inf]
+        self.gyro_gap_batches = 0
+        self.gyro_lost = 0
+        self.health: dict | None = None
+
+    def add(self, topic: str, header: dict, array) -> None:
+        if topic == "frame":
+            self.frames += 1
+            self.frame_t.append(header["t"])
+            self.lat_publish.append(header["published"] - header["t"])
+            if "received" in header:
+                self.lat_receive.append(header["received"] - header["t"])
+            if header["deblurred"]:
+                self.deblurred += 1
+            else:
+                self.reasons[str(header.get("reason") or "unspecified")] += 1
+        elif topic == "raw":
+            self.raw += 1
+        elif topic == "gyro":
+            n = len(array)
+            self.gyro_samples += n
+            if n:
+                self.gyro_t = [min(self.gyro_t[0], float(array["t"][0])), max(self.gyro_t[1], header["t"])]
+            self.gyro_gap_batches += bool(header.get("gap_before"))
+            self.gyro_lost += int(header.get("n_lost") or 0)
+        elif topic == "health":
+            self.health = header
+
+    def summary(self, gaps: dict | None = None) -> dict:
+        t = np.sort(np.asarray(self.frame_t))
+        fps = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else float("nan")
+        span = self.gyro_t[1] - self.gyro_t[0]
+        return {
+            "frames": self.frames,
+            "fps": fps,
+            "deblurred_share": self.deblurred / self.frames if self.frames else float("nan"),
+            "reasons": dict(self.reasons.most_common()),
+            "latency_publish_ms": _percentiles(self.lat_publish),
+            "latency_receive_ms": _percentiles(self.lat_receive),
+            "raw": self.raw,
+            "gyro_hz": (self.gyro_samples - 1) / span if self.gyro_samples > 1 and span > 0 else float("nan"),
+            "gyro_gap_batches": self.gyro_gap_batches,
+            "gyro_samples_lost": self.gyro_lost,
+            "lost_messages": dict(gaps or {}),
+        }
+
+    def format(self, gaps: dict | None = None) -> str:
+        s = self.summary(gaps)
+        lp, lr = s["latency_publish_ms"], s["latency_receive_ms"]
+        lines = [
+            f"frames       {s['frames']:>8d}   {s['fps']:8.2f} fps   "
+            f"deblurred {100 * s['deblurred_share']:5.1f} %",
+            "latency ms        p50      p95      p99      max",
+            "  published−t " + "".join(f"{lp[k]:9.2f}" for k in ("p50", "p95", "p99", "max")),
+            "  received−t  " + "".join(f"{lr[k]:9.2f}" for k in ("p50", "p95", "p99", "max")),
+            f"raw frames   {s['raw']:>8d}",
+            f"gyro         {self.gyro_samples:>8d} samples {s['gyro_hz']:9.1f} Hz   gap batches "
+            f"{s['gyro_gap_batches']}   samples lost {s['gyro_samples_lost']}",
+            "lost msgs    " + (", ".join(f"{k} {v}" for k, v in sorted(s["lost_messages"].items()) if v)
+                               or "none"),
+        ]
+        if s["reasons"]:
+            lines.append("not deblurred: " + ", ".join(f"{k} ×{v}" for k, v in s["reasons"].items()))
+        if self.health:
+            h = self.health
+            lines.append(f"daemon rates {_compact(h.get('rates'))}  drops {_compact(h.get('drops'))}  "
+                         f"devices {_compact(h.get('devices'))}")
+        return "\n".join(lines)
+
+    def status_line(self, gaps: dict | None = None) -> str:
+        s = self.summary(gaps)
+        lp = s["latency_publish_ms"]["p50"]
+        lr = s["latency_receive_ms"]["p50"]
+        lost = sum(s["lost_messages"].values())
+        return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % | "
+                f"latency p50 {lp:.1f}/{lr:.1f} ms | lost {lost} | gyro {s['gyro_hz']:.0f} Hz")
+
+
+def _percentiles(values) -> dict:
+    if not values:
+        return dict.fromkeys(("p50", "p95", "p99", "max"), float("nan"))
+    ms = 1e3 * np.asarray(values, dtype=np.float64)
+    p50, p95, p99 = np.percentile(ms, [50, 95, 99])
+    return {"p50": float(p50), "p95": float(p95), "p99": float(p99), "max": float(ms.max())}
+
+
+def _compact(d) -> str:
+    if not isinstance(d, dict) or not d:
+        return "-"
+    return ",".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in d.items())
+
+
+# ------------------------------------------------------------------------------------ previews
+def stretch_u8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Linear map of [lo, hi] to 0‥255 (saturating outside)."""
+    scale = 255.0 / max(hi - lo, 1e-6)
+    return np.clip((np.asarray(image, np.float32) - lo) * scale, 0, 255).astype(np.uint8)
+
+
+def side_by_side(raw: np.ndarray | None, frame: np.ndarray, gap: int = 4) -> np.ndarray:
+    """raw | frame as 8-bit, both stretched with the raw's (else the frame's) 1st–99th percentiles."""
+    ref = frame if raw is None else raw
+    lo, hi = np.percentile(ref.astype(np.float32), [1.0, 99.0])
+    right = stretch_u8(frame, lo, hi)
+    if raw is None or raw.shape != frame.shape:
+        return right
+    out = np.zeros((frame.shape[0], 2 * frame.shape[1] + gap), np.uint8)
+    out[:, : frame.shape[1]] = stretch_u8(raw, lo, hi)
+    out[:, frame.shape[1] + gap:] = right
+    return out
+
+
+class PreviewWriter:
+    """Pairs frames with their raw counterpart by frame_id and writes a PNG every `interval` s."""
+
+    def __init__(self, directory, interval: float = 1.0, keep: int = 64):
+        import cv2  # only needed with --png
+
+        self._cv2 = cv2
+        self.dir = Path(directory)
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise ThermodError(f"--png {directory}: cannot create directory ({e})") from None
+        self.interval, self.keep = interval, keep
+        self._raw: collections.OrderedDict = collections.OrderedDict()
+        self._pending: collections.OrderedDict = collections.OrderedDict()
+        self._last_write = -np.inf
+        self._last_raw_seen = -np.inf
+        self.written: list[Path] = []
+
+    def add(self, topic: str, header: dict, array: np.ndarray) -> None:
+        now = time.monotonic()
+        fid = header.get("frame_id")
+        if topic == "raw":
+            self._raw[fid] = array
+            self._last_raw_seen = now
+            _trim(self._raw, self.keep)
+            if fid in self._pending:  # the frame came first: pair it now
+                self._write(self._pending.pop(fid), array, fid)
+        elif topic == "frame" and now - self._last_write >= self.interval:
+            raw = self._raw.get(fid)
+            if raw is None and now - self._last_raw_seen < 2.0:
+                self._pending[fid] = array  # raw is flowing but this one is not here (yet)
+                _trim(self._pending, 4)
+                return
+            self._write(array, raw, fid)
+
+    def _write(self, frame, raw, fid) -> None:
+        self._last_write = time.monotonic()
+        self._pending.clear()
+        img = side_by_side(raw, frame)
+        path = self.dir / f"watch_{int(fid):08d}.png"
+        tmp = self.dir / ".latest.png.part.png"
+        if not self._cv2.imwrite(str(path), img) or not self._cv2.imwrite(str(tmp), img):
+            raise ThermodError(f"--png {self.dir}: could not write {path.name}")
+        os.replace(tmp, self.dir / "latest.png")
+        self.written.append(path)
+
+
+def _trim(d: collections.OrderedDict, keep: int) -> None:
+    while len(d) > keep:
+        d.popitem(last=False)
+
+
+# ----------------------------------------------------------------------------------------- run
+def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
+          previews: PreviewWriter | None = None, out=None) -> WatchStats:
+    """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`."""
+    out = sys.stdout if out is None else out
+    stats = WatchStats()
+    t_end = None if seconds is None else time.monotonic() + seconds
+    next_line = time.monotonic() + interval
+    try:
+        while t_end is None or time.monotonic() < t_end:
+            wait = min(next_line, t_end or np.inf) - time.monotonic()
+            msg = sub.recv(max(0.0, wait))
+            if msg is not None:
+                stats.add(*msg)
+                if previews is not None and msg[0] in ("frame", "raw"):
+                    previews.add(*msg)
+            if time.monotonic() >= next_line:
+                print(stats.status_line(sub.gaps), file=out, flush=True)
+                next_line += interval
+    except KeyboardInterrupt:
+        pass
+    return stats
+
+
+def run(args) -> int:
+    topics = ("frame", "gyro", "health") if args.no_raw else ("frame", "raw", "gyro", "health")
+    previews = PreviewWriter(args.png, args.png_interval) if args.png else None
+    with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
+                    curve_client_key_file=args.curve_client_key) as sub:
+        stats = watch(sub, args.seconds, interval=args.interval, previews=previews)
+        print(stats.format(sub.gaps), flush=True)
+        if sub.errors:
+            print(f"rejected malformed messages: {dict(sub.errors)}", flush=True)
+    if previews is not None and previews.written:
+        print(f"previews: {len(previews.written)} PNGs in {previews.dir} (latest.png = newest)", flush=True)
+    if stats.frames == 0:
+        print(f"thermod watch: no frames from {args.endpoint}; is `thermod run` up and publishing there?",
+              file=sys.stderr)
+        return 1
+    return 0
