@@ -1,0 +1,440 @@
+"""Frame scheduler → kernel renderer → deconvolution workers → in-order output.
+
+For every frame k read at t_k (camera clock) the scheduler
+
+1. waits, at most until ``max(t_k, arrival) + wait_timeout_s``, for the gyro ring to hold a sample
+   at or after t_k (gyro clock: t_k − time_offset);
+2. copies the samples covering (t_k − m·τ − readout, t_k] (Eq. 18's window, m = 5) and renders the
+   blur kernel (Eq. 16–19: thermal exponential weights, or the photon box of Eq. 17 as baseline;
+   one kernel, or a grid for spatially varying blur);
+3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener; the FFTs
+   and numba passes release the GIL, so N workers use N cores).
+
+A frame that cannot be deblurred is *passed through*: published as float32 counts with
+``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
+
+- gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``;
+- a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
+- job queue full → the OLDEST job is dropped (``overload``) and its frame passed through;
+- a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
+- the scheduler fell more than the frame ring behind → the overwritten frames are counted
+  (``frames_overrun``); they were never read, so there is nothing to publish.
+
+Outputs are released in frame order (a small reorder stage; a frame more than
+``reorder_timeout_s`` late is released out of order rather than holding the stream). Every wait
+has a timeout, every queue a bound, every drop a counter (`Pipeline.stats`).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from thermod.calibration import Calibration
+from thermod.config import DeblurConfig, PipelineConfig
+from thermod.ringbuffer import FrameRing, FrameSlot, GyroRing
+
+log = logging.getLogger(__name__)
+
+REASONS = ("disabled", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload", "worker_error")
+
+
+@dataclass
+class FrameOut:
+    """One frame ready to publish: deblurred, or the raw counts passed through with a reason."""
+
+    index: int                      # consecutive scheduler index (frame ring index)
+    image: np.ndarray               # float32 [H, W], counts; owned by the receiver
+    t: float                        # frame time (s, host monotonic, last row read)
+    frame_id: int
+    arrival: float
+    deblurred: bool
+    reason: str | None = None
+    kernel_size: tuple[int, int] | None = None
+    kernel_extent_px: float | None = None
+    coverage: float | None = None
+    n_samples: int = 0
+    camera_gap_before: int = 0
+    t_done: float = 0.0             # host monotonic when released
+
+    @property
+    def latency_s(self) -> float:
+        return self.t_done - self.t
+
+
+@dataclass
+class _Job:
+    slot: FrameSlot
+    kernel: object                  # Kernel or KernelGrid
+    info: dict
+    generation: int
+    t_queued: float = field(default_factory=time.monotonic)
+
+
+@dataclass(frozen=True)
+class _Settings:
+    calib: Calibration
+    deblur: DeblurConfig
+    generation: int
+
+
+# ------------------------------------------------------------------------------- rendering
+def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
+           deblur: DeblurConfig):
+    """The frame's blur kernel (or grid) from raw gyro samples, per the deblur settings.
+
+    Returns ``(kernel_or_grid, info)`` with info = kernel_size, kernel_extent_px, coverage (the
+    worst cell's for a grid) and n_samples.
+    """
+    from thermod import kernels  # numba start-up is paid only by processes that deblur
+
+    if deblur.mode == "grid":
+        g = kernels.render_kernel_grid(gyro_t, gyro_rate, calib, t_frame, grid=deblur.grid, kind=deblur.kernel,
+                                       psf=deblur.psf, m=deblur.m, exposure_s=deblur.exposure_s)
+        cells = [k for row in g.kernels for k in row]
+        info = dict(kernel_size=tuple(int(max(k.weights.shape[i] for k in cells)) for i in (0, 1)),
+                    kernel_extent_px=float(g.max_extent_px), coverage=float(g.coverage),
+                    n_samples=int(min(k.n_samples for k in cells)))
+        return g, info
+    if deblur.kernel == "photon":
+        exposure = deblur.exposure_s or 1.0 / calib.frame_rate_hz
+        k = kernels.render_photon_kernel(gyro_t, gyro_rate, calib, t_frame, exposure, psf=deblur.psf)
+    else:
+        k = kernels.render_thermal_kernel(gyro_t, gyro_rate, calib, t_frame, m=deblur.m, psf=deblur.psf)
+    info = dict(kernel_size=tuple(int(s) for s in k.weights.shape), kernel_extent_px=float(k.extent_px),
+                coverage=float(k.coverage), n_samples=int(k.n_samples))
+    return k, info
+
+
+def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple[float, float]:
+    """Camera-clock span the kernel of a frame read at t_frame needs: (t_k − m·τ − readout, t_k]."""
+    if deblur.kernel == "photon":
+        span = deblur.exposure_s or 1.0 / calib.frame_rate_hz
+    else:
+        span = deblur.m * calib.tau_s
+    return t_frame - span - calib.readout_s, t_frame
+
+
+def make_deconvolver(deblur: DeblurConfig):
+    from thermod.deconv import Deconvolver
+    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam)
+
+
+def default_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:   # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+# ------------------------------------------------------------------------------- pipeline
+class Pipeline:
+    """Scheduler thread + deconvolution workers between the rings and an output callback.
+
+    Parameters
+    ----------
+    gyro_ring, frame_ring : the rings the driver threads write.
+    calib, deblur, cfg : calibration, deblur and pipeline settings (`update` swaps the first two live).
+    emit : called once per frame with a `FrameOut`, in frame order, from a pipeline thread. Must not
+        block (e.g. `Publisher.publish_frame(..., copy=False)`).
+    deconvolver_factory : DeblurConfig → object with ``run(image, kernel)`` / ``run_varying(image,
+        grid)`` (default `thermod.deconv.Deconvolver`), one per worker thread.
+    renderer : same signature as `render` (default), the seam for the kernel renderer.
+    """
+
+    def __init__(self, gyro_ring: GyroRing, frame_ring: FrameRing, calib: Calibration, deblur: DeblurConfig,
+                 cfg: PipelineConfig, emit: Callable[[FrameOut], None], *,
+                 deconvolver_factory: Callable | None = None, renderer: Callable | None = None):
+        self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
+        self._settings = _Settings(calib, deblur, 0)
+        self._factory = deconvolver_factory or make_deconvolver
+        self._render = renderer or render
+        self.n_workers = cfg.workers or default_workers()
+        self.gyro_online = True           # the daemon clears this while the gyro device is down
+        self._stop = threading.Event()
+        self._jobs: collections.deque[_Job] = collections.deque()
+        self._jobs_cond = threading.Condition()
+        self._out_lock = threading.Lock()
+        self._pending: dict[int, tuple[FrameOut, float]] = {}
+        self._next_out = 0
+        self._scheduler: threading.Thread | None = None
+        self._workers: list[threading.Thread | None] = []
+        self._worker_busy_since: list[float | None] = []
+        self._next_index = 0
+        self.heartbeat: dict[str, float] = {}
+        self._latencies = collections.deque(maxlen=2048)
+        self._lat_lock = threading.Lock()
+        self.counters = collections.Counter()
+        self._prebuilt: list = []
+
+    # ------------------------------------------------------------------ lifecycle
+    def warmup(self) -> float:
+        """Compile the numba renderer and build every worker's deconvolver (LUTs, FFT plans for the
+        frame shape) before the first frame, so frame 1 is not 0.5 s late. Returns seconds spent."""
+        t0 = time.monotonic()
+        s = self._settings
+        tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
+        rate = np.tile(np.float32([0.01, 0.2, 0.0]), (len(tg), 1))
+        kernel, _ = self._render(tg, rate, s.calib, 0.0, s.deblur)
+        img = np.zeros(self.frame_ring.shape, np.float32)
+        self._prebuilt = []
+        for _ in range(self.n_workers):
+            d = self._factory(s.deblur)
+            d.run_varying(img, kernel) if hasattr(kernel, "kernels") else d.run(img, kernel)
+            self._prebuilt.append((d, s.deblur))
+        return time.monotonic() - t0
+
+    def start(self, start_index: int | None = None) -> Pipeline:
+        self._stop.clear()
+        self._next_index = self._next_out = self.frame_ring.head if start_index is None else start_index
+        self._workers = [None] * self.n_workers
+        self._worker_busy_since = [None] * self.n_workers
+        for i in range(self.n_workers):
+            self._spawn_worker(i)
+        self._scheduler = threading.Thread(target=self._schedule_loop, name="thermod-scheduler", daemon=True)
+        self._scheduler.start()
+        return self
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop accepting frames, let workers finish their current job, release what is left."""
+        self._stop.set()
+        with self._jobs_cond:
+            self._jobs_cond.notify_all()
+        deadline = time.monotonic() + timeout
+        for th in [self._scheduler, *self._workers]:
+            if th is not None:
+                th.join(max(0.0, deadline - time.monotonic()))
+        # jobs still queued were received: publish them passed through rather than lose them
+        with self._jobs_cond:
+            left = list(self._jobs)
+            self._jobs.clear()
+        for job in left:
+            self.counters["shutdown_passthrough"] += 1
+            self._passthrough(job.slot, "overload", job.info)
+        self._flush_pending(force=True)
+
+    def update(self, calib: Calibration | None = None, deblur: DeblurConfig | None = None) -> None:
+        """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
+        workers rebuild their deconvolver when the deblur settings change."""
+        s = self._settings
+        self._settings = _Settings(calib or s.calib, deblur or s.deblur, s.generation + 1)
+        self.counters["reloads"] += 1
+
+    @property
+    def calib(self) -> Calibration:
+        return self._settings.calib
+
+    @property
+    def deblur(self) -> DeblurConfig:
+        return self._settings.deblur
+
+    def alive(self) -> dict[str, bool]:
+        """Which pipeline threads are running (for the watchdog)."""
+        out = {"scheduler": self._scheduler is not None and self._scheduler.is_alive()}
+        for i, th in enumerate(self._workers):
+            out[f"worker{i}"] = th is not None and th.is_alive()
+        return out
+
+    def supervise(self) -> int:
+        """Replace dead worker threads; returns how many were restarted."""
+        n = 0
+        if self._stop.is_set():
+            return 0
+        for i, th in enumerate(self._workers):
+            if th is None or not th.is_alive():
+                self.counters["workers_replaced"] += 1
+                log.warning("deconvolution worker %d died; starting a new one", i)
+                self._spawn_worker(i)
+                n += 1
+        return n
+
+    # ------------------------------------------------------------------ scheduler
+    def _schedule_loop(self) -> None:
+        i = self._next_index
+        while not self._stop.is_set():
+            self.heartbeat["scheduler"] = time.monotonic()
+            self.supervise()
+            self._flush_pending()
+            got = self.frame_ring.get(i, timeout=0.1)
+            if got is None:
+                continue
+            if isinstance(got, int):   # overwritten before we read them: never seen, count them
+                lost = got - i
+                self.counters["frames_overrun"] += lost
+                log.warning("scheduler fell behind: %d frames overwritten in the frame ring", lost)
+                self._skip_outputs(i, got)
+                i = got
+                continue
+            try:
+                self._schedule(got)
+            except Exception:            # never let one frame kill the scheduler
+                log.exception("scheduler failed on frame %d; passing it through", got.frame_id)
+                self._passthrough(got, "kernel_error", {})
+            i += 1
+            self._next_index = i
+
+    def _schedule(self, slot: FrameSlot) -> None:
+        s = self._settings
+        self.counters["frames_in"] += 1
+        if slot.gap_before:
+            self.counters["camera_frames_lost"] += slot.gap_before
+        if not s.deblur.enabled:
+            self._passthrough(slot, "disabled", {})
+            return
+        t0_cam, t1_cam = kernel_window(s.calib, s.deblur, slot.t)
+        off = s.calib.time_offset_s
+        if self.gyro_online:
+            deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
+            self.gyro_ring.wait_until(t1_cam - off, deadline - time.monotonic())
+        margin = 2.0 / s.calib.rate_hz
+        w = self.gyro_ring.window(t0_cam - off - margin, t1_cam - off + margin, pad=2)
+        if w.gap:
+            self._passthrough(slot, "gyro_gap", {"n_samples": len(w)})
+            return
+        if len(w) < 2:
+            self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline",
+                              {"coverage": 0.0, "n_samples": len(w)})
+            return
+        try:
+            kernel, info = self._render(w.t, w.rate, s.calib, slot.t, s.deblur)
+        except Exception as e:
+            self.counters["kernel_errors"] += 1
+            log.error("kernel rendering failed for frame %d: %s", slot.frame_id, e)
+            self._passthrough(slot, "kernel_error", {"n_samples": len(w)})
+            return
+        if info["coverage"] < s.deblur.min_coverage:
+            self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
+            return
+        self._enqueue(_Job(slot, kernel, info, s.generation))
+
+    def _enqueue(self, job: _Job) -> None:
+        dropped = None
+        with self._jobs_cond:
+            if len(self._jobs) >= self.cfg.job_queue:
+                dropped = self._jobs.popleft()
+            self._jobs.append(job)
+            self._jobs_cond.notify()
+        if dropped is not None:
+            self.counters["jobs_dropped"] += 1
+            self._passthrough(dropped.slot, "overload", dropped.info)
+
+    # ------------------------------------------------------------------ workers
+    def _spawn_worker(self, i: int) -> None:
+        th = threading.Thread(target=self._work_loop, args=(i,), name=f"thermod-deconv{i}", daemon=True)
+        self._workers[i] = th
+        th.start()
+
+    def _work_loop(self, i: int) -> None:
+        name = f"worker{i}"
+        deconv, gen_deblur = self._prebuilt.pop() if self._prebuilt else (None, None)
+        while not self._stop.is_set():
+            self.heartbeat[name] = time.monotonic()
+            with self._jobs_cond:
+                if not self._jobs:
+                    self._jobs_cond.wait(0.1)
+                if not self._jobs:
+                    continue
+                job = self._jobs.popleft()
+            self._worker_busy_since[i] = time.monotonic()
+            try:
+                deblur = self._settings.deblur
+                if deconv is None or gen_deblur is not deblur:
+                    deconv, gen_deblur = self._factory(deblur), deblur
+                img = job.slot.image.astype(np.float32)
+                if hasattr(job.kernel, "kernels"):
+                    out = deconv.run_varying(img, job.kernel)
+                else:
+                    out = deconv.run(img, job.kernel)
+                out = np.asarray(out, dtype=np.float32)
+                if out.shape != img.shape:
+                    raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
+            except Exception:
+                self.counters["worker_errors"] += 1
+                log.exception("deconvolution failed on frame %d; passing it through and replacing the worker",
+                              job.slot.frame_id)
+                self._worker_busy_since[i] = None
+                self._passthrough(job.slot, "worker_error", job.info)
+                return            # this thread ends; supervise() starts a fresh one (fresh state)
+            self._worker_busy_since[i] = None
+            self.counters["deblurred"] += 1
+            self._complete(self._out(job.slot, out, True, None, job.info))
+
+    # ------------------------------------------------------------------ output (in order)
+    def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict) -> FrameOut:
+        return FrameOut(index=slot.index, image=image, t=slot.t, frame_id=slot.frame_id, arrival=slot.arrival,
+                        deblurred=deblurred, reason=reason, kernel_size=info.get("kernel_size"),
+                        kernel_extent_px=info.get("kernel_extent_px"), coverage=info.get("coverage"),
+                        n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before)
+
+    def _passthrough(self, slot: FrameSlot, reason: str, info: dict) -> None:
+        self.counters[f"passthrough_{reason}"] += 1
+        self._complete(self._out(slot, slot.image.astype(np.float32), False, reason, info))
+
+    def _skip_outputs(self, a: int, b: int) -> None:
+        with self._out_lock:
+            if self._next_out == a:
+                self._next_out = b
+        self._flush_pending()
+
+    def _complete(self, out: FrameOut) -> None:
+        with self._out_lock:
+            self._pending[out.index] = (out, time.monotonic())
+        self._flush_pending()
+
+    def _flush_pending(self, force: bool = False) -> None:
+        ready: list[FrameOut] = []
+        with self._out_lock:
+            now = time.monotonic()
+            while self._pending:
+                if self._next_out in self._pending:
+                    ready.append(self._pending.pop(self._next_out)[0])
+                    self._next_out += 1
+                    continue
+                oldest = min(self._pending)
+                if oldest < self._next_out:     # a late frame already skipped: release it now
+                    ready.append(self._pending.pop(oldest)[0])
+                    self.counters["released_out_of_order"] += 1
+                    continue
+                waited = now - self._pending[oldest][1]
+                if force or waited > self.cfg.reorder_timeout_s:
+                    self.counters["reorder_skips"] += 1
+                    self._next_out = oldest
+                    continue
+                break
+            for o in ready:
+                o.t_done = time.monotonic()
+                try:
+                    self.emit(o)
+                except Exception:
+                    self.counters["emit_errors"] += 1
+                    log.exception("output callback failed for frame %d", o.frame_id)
+                self.counters["frames_out"] += 1
+                with self._lat_lock:
+                    self._latencies.append(o.latency_s)
+
+    # ------------------------------------------------------------------ health
+    def stats(self) -> dict:
+        with self._lat_lock:
+            lat = np.array(self._latencies, dtype=np.float64)
+        with self._jobs_cond:
+            depth = len(self._jobs)
+        now = time.monotonic()
+        busy = [now - b for b in self._worker_busy_since if b is not None]
+        return {
+            "counters": dict(self.counters),
+            "job_queue_depth": depth,
+            "pending_reorder": len(self._pending),
+            "frames_behind": self.frame_ring.head - self._next_index,
+            "workers": self.n_workers,
+            "workers_alive": sum(1 for th in self._workers if th is not None and th.is_alive()),
+            "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
+            "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
+            "worker_busy_max_s": max(busy) if busy else 0.0,
+        }
