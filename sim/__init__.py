@@ -1,0 +1,13 @@
+"""The simulator: a world with known truth to test everything else against.
+
+- `scenes`     sharp scenes in raw counts (real 16-bit frames, collimator targets, textures)
+- `motion`     camera-frame angular velocity ω(t) (pan, slew, shake, vibration, a real gyro log, …)
+               and its integration into orientations R(t)
+- `detector`   the fine-time microbolometer (and photon-detector) renderer: the truth
+- `gyro_model` raw gyro samples with a realistic error budget, in the gyro frame and clock
+- `synth`      `simulate(...) -> thermod.recording.Recording` with hidden calibration effects
+- `playback`   a pre-rendered looping sequence for the real-time simulated payload
+- `cli`        `thermod sim`
+
+Submodules are imported on demand (numba compiles on first use).
+"""

@@ -1,0 +1,328 @@
+"""Fine-time detector renderer: the simulator's truth.
+
+The world is a scene texture laid on the sphere of view directions (azimuth/elevation at the
+texture's angular pixel size, mirror-tiled), seen by a pinhole camera with orientation R(t)
+(`thermod.sim.motion.Trajectory`). The sharp view at time t is S_t(p) = scene(R(t) K⁻¹ p), so two
+views are related exactly by the rotation homography of Eq. 16: S_i(p) = S_k(π(K Q_i K⁻¹ p)) with
+Q_i = R(t_k)ᵀ R(t_i), i.e. S_i(p) = S_k(p − u_i) as in DESIGN.md §1.
+
+Rendering (per frame interval, with sub-segments when the motion is very fast):
+
+1. a *canvas* (pinhole view at the orientation R(t_k) of the segment's end, enlarged to hold every
+   view of the segment) is sampled once from the sphere (cv2.remap);
+2. each fine step j is a cv2.warpPerspective of that canvas with H = K_c Q_j K⁻¹ (Eq. 16), at the
+   step's mid time;
+3. the thermal state is advanced exactly for a piecewise-constant input (Eq. 10, exact form):
+   B ← B + α (S − B), α = 1 − exp(−h/τ), with h chosen so the image moves ≤ `step_px` (0.5 px)
+   per step anywhere in the frame (Eq. 12: h ≤ IFOV / ω);
+4. rolling readout: row r of frame k is captured at t_k − T_ro·(1 − (r+1)/H) as the integration
+   passes that time, with the exact in-step exponential (no rounding to the step grid);
+5. the optical PSF (Eq. 19, Gaussian σ px) is applied to the integrated frame (it commutes with the
+   rotation warps for an isotropic PSF).
+
+The integration starts `history_tau` τ (≥ 5) before the first row of the first frame, from the
+view at that time (a settled detector). The photon-detector variant (Eq. 2) box-averages the
+views over each row's exposure window instead.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+from thermod.sim.motion import Trajectory
+from thermod.sim.scenes import COUNTS_PER_K
+
+from thermod.calibration import Calibration
+from thermod.errors import ThermodError
+
+
+@dataclass
+class Rendered:
+    frames: np.ndarray          # float32 [N, H, W]: detector output (blur, readout, PSF), noiseless
+    sharp: np.ndarray           # float32 [N, H, W]: the sharp view at each frame time (no PSF)
+    n_steps: int                # fine steps integrated
+    max_step_px: float          # largest image motion of any step (px), ≤ step_px by construction
+
+
+@njit(cache=True, nogil=True)
+def _fold(x, n):
+    """Coordinate into a mirror-tiled (reflect-101) axis of n samples."""
+    if n == 1:
+        return 0.0
+    p = 2.0 * (n - 1)
+    x = x - p * math.floor(x / p)
+    return p - x if x > n - 1 else x
+
+
+@njit(cache=True, nogil=True)
+def _sphere_maps(M, wc, hc, fxs, fys, cxs, cys, ws, hs):
+    """remap() coordinates into the scene texture for a canvas whose pixel (u, v) looks along
+    d = M (u, v, 1) in world (M = R_ref K_c⁻¹): azimuth/elevation at fxs, fys px/rad."""
+    mx = np.empty((hc, wc), np.float32)
+    my = np.empty((hc, wc), np.float32)
+    for v in range(hc):
+        for u in range(wc):
+            dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
+            dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
+            dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+            az = math.atan2(dx, dz)
+            el = math.atan2(dy, math.sqrt(dx * dx + dz * dz))
+            mx[v, u] = _fold(cxs + fxs * az, ws)
+            my[v, u] = _fold(cys + fys * el, hs)
+    return mx, my
+
+
+class SphereScene:
+    """A texture (float32 counts) on the sphere: its centre looks along the world +z axis (the
+    camera's optical axis at t_ref); `ifov_rad` per texture pixel (default: the camera's)."""
+
+    def __init__(self, texture: np.ndarray, fx: float, fy: float | None = None):
+        tex = np.asarray(texture, dtype=np.float32)
+        if tex.ndim != 2 or min(tex.shape) < 2:
+            raise ThermodError(f"scene: expected a 2-D texture, got shape {tex.shape}")
+        self.texture = np.ascontiguousarray(tex)
+        self.fx, self.fy = float(fx), float(fy if fy is not None else fx)
+        self.cx, self.cy = (tex.shape[1] - 1) / 2.0, (tex.shape[0] - 1) / 2.0
+
+    def view(self, R: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+        """The pinhole view (float32 [height, width]) at orientation R with intrinsics K."""
+        M = np.ascontiguousarray(R @ np.linalg.inv(K))
+        mx, my = _sphere_maps(M, int(width), int(height), self.fx, self.fy, self.cx, self.cy,
+                              self.texture.shape[1], self.texture.shape[0])
+        return cv2.remap(self.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+
+
+def image_speed_bound(calib: Calibration, w_abs: np.ndarray, margin_px: float = 0.0) -> float:
+    """Upper bound of the image speed (px/s) anywhere in the frame for rates |ω| = w_abs per axis:
+    the rotational flow is f(1 + ρ²)|ω_xy| + fρ|ω_z| at normalised radius ρ (corner + margin)."""
+    f = max(calib.fx, calib.fy)
+    dx = max(calib.cx, calib.width - 1 - calib.cx) + margin_px
+    dy = max(calib.cy, calib.height - 1 - calib.cy) + margin_px
+    rho = math.hypot(dx / calib.fx, dy / calib.fy)
+    return f * ((1 + rho * rho) * math.hypot(w_abs[0], w_abs[1]) + rho * abs(w_abs[2]))
+
+
+def row_times(t_frame: float, readout_s: float, height: int) -> np.ndarray:
+    """Rolling readout: row r is read at t_k − T_ro·(1 − (r+1)/H) (DESIGN.md §1)."""
+    r = np.arange(height)
+    return t_frame - readout_s * (1.0 - (r + 1) / height)
+
+
+def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
+           kind: str = "thermal", exposure_s: float | None = None, psf_sigma_px: float | None = None,
+           step_px: float = 0.5, history_tau: float = 6.0, progress=None) -> Rendered:
+    """Render blurry frames at `frame_times` (absolute s, on the trajectory's clock) with the
+    detector of `calib` (τ, readout, intrinsics, PSF). See the module docstring.
+
+    kind: "thermal" (microbolometer, Eq. 10/11) or "photon" (box average over `exposure_s`, Eq. 2;
+    default exposure = half the frame period). psf_sigma_px: None → calib.psf_sigma_px (Eq. 19).
+    progress: optional callable(n_frames_done) for a progress bar.
+    """
+    t_frames = np.asarray(frame_times, dtype=np.float64)
+    n, H, W = len(t_frames), int(calib.height), int(calib.width)
+    if n == 0:
+        raise ThermodError("detector: no frame times to render")
+    if np.any(np.diff(t_frames) <= 0):
+        raise ThermodError("detector: frame times must be strictly increasing")
+    if kind not in ("thermal", "photon"):
+        raise ThermodError(f"detector: kind must be 'thermal' or 'photon', got {kind!r}")
+    if not 0 < step_px <= 8:
+        raise ThermodError(f"detector: step_px must be in (0, 8], got {step_px}")
+    tau, ro = float(calib.tau_s), float(calib.readout_s)
+    period = float(np.min(np.diff(t_frames))) if n > 1 else math.inf
+    if ro < 0 or ro >= period:
+        raise ThermodError(f"detector: readout_s = {ro} must be ≥ 0 and shorter than the frame period "
+                           f"{period}")
+    if kind == "thermal" and (tau < 0 or history_tau < 5):
+        raise ThermodError(f"detector: need tau_s ≥ 0 and history_tau ≥ 5 (got {tau}, {history_tau})")
+    if kind == "photon":
+        exposure_s = 0.5 / calib.frame_rate_hz if exposure_s is None else float(exposure_s)
+        if not 0 < exposure_s:
+            raise ThermodError(f"detector: exposure_s must be > 0, got {exposure_s}")
+        lead = exposure_s + ro
+    else:
+        lead = history_tau * tau + ro
+    t_begin = t_frames[0] - lead - 1e-6
+    if t_begin < traj.t_start or t_frames[-1] > traj.t_end:
+        raise ThermodError(f"detector: trajectory covers [{traj.t_start}, {traj.t_end}] but rendering "
+                           f"needs [{t_begin}, {t_frames[-1]}]")
+
+    K = calib.K
+    K_inv = np.linalg.inv(K)
+    corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+    rows_t = [row_times(tk, ro, H) for tk in t_frames]
+    out = np.zeros((n, H, W), np.float32)
+    sharp = np.empty((n, H, W), np.float32)
+
+    B = scene.view(traj.R(t_begin)[0], K, W, H) if kind == "thermal" else None
+    cap_k, cap_r = 0, 0            # next (frame, row) to capture (thermal)
+    n_steps, max_step = 0, 0.0
+    tmp = np.empty((H, W), np.float32)
+
+    # Segments: frame intervals, split so one canvas never has to hold more than ~half a frame of travel.
+    edges = np.r_[t_begin, t_frames]
+    for k in range(n):
+        a0, b0 = edges[k], edges[k + 1]
+        speed = image_speed_bound(calib, traj.max_rate(a0, b0))
+        n_sub = max(1, int(math.ceil(speed * (b0 - a0) / (0.5 * min(W, H)))))
+        sub = np.linspace(a0, b0, n_sub + 1)
+        for s in range(n_sub):
+            a, b = sub[s], sub[s + 1]
+            sp = image_speed_bound(calib, traj.max_rate(a, b))
+            n_st = max(1, int(math.ceil(sp * (b - a) / step_px)))
+            tb = np.linspace(a, b, n_st + 1)
+            tm = 0.5 * (tb[:-1] + tb[1:])
+            R_ref = traj.R(b)[0]
+            Q = np.einsum("ji,njk->nik", R_ref, traj.R(tm))          # Q_j = R_refᵀ R(t_j)
+            Hs = K @ Q @ K_inv                                       # view pixel → reference-view pixel
+            pc = np.einsum("nij,jc->nic", Hs, corners)
+            pc = pc[:, :2] / pc[:, 2:3]
+            if np.any(~np.isfinite(pc)) or np.abs(pc).max() > 1e5:
+                raise ThermodError("detector: a view turned more than 90° within one frame interval; "
+                                   "raise the frame rate or slow the motion")
+            x0 = int(math.floor(min(pc[:, 0].min(), 0))) - 3
+            y0 = int(math.floor(min(pc[:, 1].min(), 0))) - 3
+            x1 = int(math.ceil(max(pc[:, 0].max(), W - 1))) + 4
+            y1 = int(math.ceil(max(pc[:, 1].max(), H - 1))) + 4
+            K_c = K.copy()
+            K_c[0, 2] -= x0
+            K_c[1, 2] -= y0
+            canvas = scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1)
+            if n_st > 1:    # image motion per step, measured at the corners
+                d = np.abs(np.diff(pc, axis=0)).max()
+                max_step = max(max_step, float(d))
+            for j in range(n_st):
+                Hj = K_c @ Q[j] @ K_inv
+                S = cv2.warpPerspective(canvas, Hj, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                        borderMode=cv2.BORDER_REPLICATE)
+                ta, tz = tb[j], tb[j + 1]
+                if kind == "thermal":
+                    # capture the rows read during (ta, tz]: exact exponential approach within the step
+                    while cap_k < n and rows_t[cap_k][cap_r] <= tz:
+                        rt = rows_t[cap_k]
+                        r1 = int(np.searchsorted(rt, tz, side="right"))
+                        g = -np.expm1(-(rt[cap_r:r1] - ta) / tau) if tau > 0 else np.ones(r1 - cap_r)
+                        g = g.astype(np.float32)[:, None]
+                        out[cap_k, cap_r:r1] = B[cap_r:r1] + g * (S[cap_r:r1] - B[cap_r:r1])
+                        cap_r = r1
+                        if cap_r >= H:
+                            cap_k, cap_r = cap_k + 1, 0
+                    alpha = -math.expm1(-(tz - ta) / tau) if tau > 0 else 1.0
+                    np.subtract(S, B, out=tmp)
+                    tmp *= np.float32(alpha)
+                    B += tmp
+                else:
+                    _photon_accumulate(out, S, rows_t, exposure_s, ta, tz, k)
+                n_steps += 1
+            if s == n_sub - 1:
+                sharp[k] = canvas[-y0:-y0 + H, -x0:-x0 + W]
+        if progress is not None:
+            progress(k + 1)
+
+    sigma = calib.psf_sigma_px if psf_sigma_px is None else float(psf_sigma_px)
+    if sigma < 0:
+        raise ThermodError(f"detector: PSF sigma must be ≥ 0 px, got {sigma}")
+    if sigma > 0:
+        for k in range(n):
+            out[k] = gaussian_psf(out[k], sigma)
+    return Rendered(out, sharp, n_steps, max_step)
+
+
+def _photon_accumulate(out, S, rows_t, exposure, ta, tz, k_seg):
+    """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz]."""
+    for k in range(max(0, k_seg - 2), min(len(rows_t), k_seg + 3)):
+        rt = rows_t[k]
+        ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
+        sel = np.flatnonzero(ov > 0)
+        if sel.size:
+            r0, r1 = sel[0], sel[-1] + 1
+            out[k, r0:r1] += S[r0:r1] * (ov[r0:r1] / exposure).astype(np.float32)[:, None]
+
+
+def gaussian_psf(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Isotropic Gaussian optical PSF (Eq. 19), ±4σ support, replicated border."""
+    r = max(1, int(math.ceil(4 * sigma_px)))
+    return cv2.GaussianBlur(img, (2 * r + 1, 2 * r + 1), sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+
+def time_compress(views: np.ndarray, h_slow: float, compression: float, tau: float,
+                  every: int = 1, initial: np.ndarray | None = None) -> np.ndarray:
+    """The paper's time-compression synthesis: a slow, sharp sequence (views `h_slow` s apart)
+    re-timed `compression`× faster and fed through the thermal IIR (Eq. 10, exact α with
+    h = h_slow / compression). Returns every `every`-th integrated frame (float32).
+    The re-timed image motion per view must stay < 1 px (Eq. 12) — the caller checks that."""
+    views = np.asarray(views, dtype=np.float32)
+    if views.ndim != 3 or len(views) == 0:
+        raise ThermodError(f"time_compress: expected views [T, H, W], got shape {views.shape}")
+    if compression <= 0 or h_slow <= 0 or every < 1:
+        raise ThermodError("time_compress: h_slow, compression must be > 0 and every ≥ 1")
+    h = h_slow / compression
+    alpha = np.float32(-math.expm1(-h / tau) if tau > 0 else 1.0)
+    B = np.array(views[0] if initial is None else initial, np.float32)
+    out = []
+    for i in range(len(views)):
+        B += alpha * (views[i] - B)
+        if (i + 1) % every == 0:
+            out.append(B.copy())
+    return np.asarray(out, dtype=np.float32).reshape(-1, *views.shape[1:])
+
+
+# ------------------------------------------------------------------ sensor (after the optics)
+
+@dataclass(frozen=True)
+class SensorEffects:
+    """What the read-out electronics add to the noiseless integrated frame (all default off).
+
+    netd_k: temporal noise (NETD, kelvin RMS); fpn_k: fixed-pattern offset (kelvin RMS; ⅔ of the
+    variance per pixel, ⅓ per column); gain_nonuniformity: per-pixel gain RMS (fraction) about
+    the reference level; nonlinearity: mild quadratic response y = m + d (1 + c d / 1000 counts),
+    d = x − m (c = 0.05 → +5 % response 25 K above the reference); quantisation_bits: 16 → integer
+    counts, 14 → multiples of 4 counts (the 16-bit stream of a 14-bit ADC). counts_per_k: responsivity.
+    """
+
+    netd_k: float = 0.0
+    fpn_k: float = 0.0
+    gain_nonuniformity: float = 0.0
+    nonlinearity: float = 0.0
+    quantisation_bits: int = 16
+    counts_per_k: float = COUNTS_PER_K
+
+    def validate(self) -> None:
+        for name in ("netd_k", "fpn_k", "gain_nonuniformity"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ThermodError(f"sensor effect {name}: expected a finite value ≥ 0, got {v!r}")
+        if not np.isfinite(self.nonlinearity) or abs(self.nonlinearity) > 1:
+            raise ThermodError("sensor effect detector_nonlinearity: expected |c| ≤ 1, "
+                               f"got {self.nonlinearity!r}")
+        if int(self.quantisation_bits) != self.quantisation_bits or not 8 <= self.quantisation_bits <= 16:
+            raise ThermodError(f"sensor effect quantisation_bits: expected an integer 8–16, "
+                               f"got {self.quantisation_bits!r}")
+
+
+def apply_sensor(frames: np.ndarray, fx: SensorEffects, rng: np.random.Generator,
+                 ref_level: float) -> np.ndarray:
+    """Noiseless float32 frames [N, H, W] → uint16 raw counts (nonlinearity, gain, FPN, NETD, ADC)."""
+    fx.validate()
+    n, h, w = frames.shape
+    cpk = fx.counts_per_k
+    gain = (1.0 + fx.gain_nonuniformity * rng.standard_normal((h, w))).astype(np.float32)
+    fpn = (fx.fpn_k * cpk * (np.sqrt(2 / 3) * rng.standard_normal((h, w))
+                             + np.sqrt(1 / 3) * rng.standard_normal((1, w)))).astype(np.float32)
+    lsb = float(2 ** (16 - int(fx.quantisation_bits)))
+    out = np.empty(frames.shape, np.uint16)
+    ref = np.float32(ref_level)
+    for k in range(n):
+        d = frames[k] - ref
+        if fx.nonlinearity:
+            d = d * (1 + np.float32(fx.nonlinearity / 1000.0) * d)
+        y = ref + gain * d + fpn
+        if fx.netd_k:
+            y = y + (fx.netd_k * cpk * rng.standard_normal((h, w))).astype(np.float32)
+        y = np.round(y / lsb) * lsb
+        out[k] = np.clip(y, 0, 65535 - (65535 % lsb)).astype(np.uint16)
+    return out

@@ -1,0 +1,221 @@
+"""`simulate(...)`: a complete recording (frames + raw gyro) with known, hidden truth.
+
+The file's attributes carry the NOMINAL calibration (what the user believes); the named
+`effects` change the TRUTH the world is rendered with — the vocabulary the discrepancy workflow
+has to explain:
+
+    time_offset            s      true gyro→camera time offset added to the nominal one
+    rolling_readout        s      true readout time T_ro (row r read at t_k − T_ro(1 − (r+1)/H))
+    gyro_bias              rad/s  scalar or 3-vector added to the nominal bias
+    gyro_scale             —      scalar or 3-vector multiplying the nominal scale
+    misalignment           rad    rotation vector composed onto R_cam_gyro (camera side)
+    time_constant          s      true detector τ
+    optical_psf            px     true Gaussian PSF σ (nominal: Eq. 19 from the optics)
+    netd                   K      temporal noise RMS
+    fpn                    K      fixed-pattern offset RMS
+    gain_nonuniformity     —      per-pixel gain RMS
+    quantisation_bits      bits   ADC resolution (16 or 14, …)
+    detector_nonlinearity  —      mild quadratic response (outside the model's vocabulary)
+    gyro_noise             rad/s  white gyro noise RMS per sample
+    clock_drift_ppm        ppm    gyro clock drift against the camera clock
+    gyro_lowpass_hz        Hz     the gyro chip's low-pass (group delay)
+
+The truth goes to `extra_attrs["truth"]` (true calibration attributes, effects, specs) and
+`extras["truth/..."]`: `frames` (float32 sharp view at each frame time, no PSF),
+`blurry_noiseless` (float32 detector output before the sensor noise), `gyro_t_camera` and
+`gyro_omega_camera` (true sampling instants on the camera clock and the true camera rate there),
+`frame_R` (R(t_k), camera→world, world = the camera at the first frame).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+
+import numpy as np
+from thermod.sim import detector as det
+from thermod.sim import motion as mo
+from thermod.sim import scenes
+from thermod.sim.gyro_model import DEG, GyroErrorModel
+
+from thermod.calibration import Calibration
+from thermod.errors import ThermodError
+from thermod.recording import Recording
+
+EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
+           "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
+           "gyro_noise", "clock_drift_ppm", "gyro_lowpass_hz")
+_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,)}
+
+
+def check_effects(effects: Mapping | None) -> dict:
+    """Validate effect names and values; returns {name: float or 3-tuple}."""
+    out = {}
+    for name, v in dict(effects or {}).items():
+        if name not in EFFECTS:
+            raise ThermodError(f"--effect {name}: unknown effect; known: {', '.join(EFFECTS)}")
+        a = np.asarray(v, dtype=np.float64).ravel() if not isinstance(v, str) else None
+        if a is None or not np.all(np.isfinite(a)):
+            raise ThermodError(f"--effect {name}={v!r}: expected a finite number")
+        sizes = _VECTOR.get(name, (1,))
+        if a.size not in sizes:
+            raise ThermodError(f"--effect {name}: expected {' or '.join(map(str, sizes))} value(s), "
+                               f"got {a.size}")
+        out[name] = float(a[0]) if a.size == 1 else tuple(float(x) for x in a)
+    for name in ("rolling_readout", "time_constant", "optical_psf", "netd", "fpn", "gain_nonuniformity",
+                 "gyro_noise", "gyro_lowpass_hz"):
+        if name in out and out[name] < 0:
+            raise ThermodError(f"--effect {name}={out[name]}: must be ≥ 0")
+    if "gyro_scale" in out and np.any(np.asarray(out["gyro_scale"]) <= 0):
+        raise ThermodError(f"--effect gyro_scale={out['gyro_scale']}: must be > 0")
+    return out
+
+
+def true_calibration(nominal: Calibration, effects: Mapping) -> Calibration:
+    """The calibration the world is rendered with: the nominal one changed by the effects."""
+    c = nominal
+    if "time_offset" in effects:
+        c = c.replace(time_offset_s=c.time_offset_s + effects["time_offset"])
+    if "rolling_readout" in effects:
+        c = c.replace(readout_s=effects["rolling_readout"])
+    if "gyro_bias" in effects:
+        b = np.asarray(c.bias_rad_s, float) + np.broadcast_to(np.asarray(effects["gyro_bias"], float), (3,))
+        c = c.replace(bias_rad_s=tuple(float(x) for x in b))
+    if "gyro_scale" in effects:
+        s = c.scale_vector * np.broadcast_to(np.asarray(effects["gyro_scale"], float), (3,))
+        c = c.replace(scale=tuple(float(x) for x in s))
+    if "misalignment" in effects:
+        c = c.with_misalignment(effects["misalignment"])
+    if "time_constant" in effects:
+        c = c.replace(tau_s=effects["time_constant"])
+    if "optical_psf" in effects:
+        c = c.with_psf_sigma_px(effects["optical_psf"]) if effects["optical_psf"] > 0 else c
+    return c
+
+
+def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Calibration | None = None,
+             effects: Mapping | None = None, seed: int = 0, frame_rate: float | None = None,
+             gyro: GyroErrorModel | None = None, progress: bool = False, *, kind: str = "thermal",
+             exposure_s: float | None = None, step_px: float = 0.5, history_tau: float = 6.0,
+             t0: float = 100.0, truth: bool = True) -> Recording:
+    """Simulate a recording (format v1 `Recording`) of `seconds` at `frame_rate` (default the
+    calibration's) of `scene` (spec, array or `detector.SphereScene`) under `motion` (spec or
+    `motion.Motion`; motion time 0 = the first frame, read at host-like time `t0`).
+
+    The gyro (`gyro`, default ideal) covers the 5τ history of the first frame and a little
+    beyond the last. kind="photon" renders a box-exposure detector (Eq. 2) for comparisons.
+    `truth=False` leaves out the float32 truth stacks (smaller files).
+    """
+    nominal = calib or Calibration()
+    if frame_rate is not None:
+        if not 0 < frame_rate <= 10000:
+            raise ThermodError(f"--fps: expected 0 < fps ≤ 10000, got {frame_rate}")
+        nominal = nominal.replace(frame_rate_hz=float(frame_rate))
+    fps = float(nominal.frame_rate_hz)
+    if not (isinstance(seconds, (int, float)) and 0 < seconds <= 3600):
+        raise ThermodError(f"--seconds: expected 0 < seconds ≤ 3600, got {seconds!r}")
+    n = int(round(seconds * fps))
+    if n < 1:
+        raise ThermodError(f"--seconds {seconds}: shorter than one frame at {fps} Hz")
+    fx = check_effects(effects)
+    truth_cal = true_calibration(nominal, fx)
+    psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
+    gyro = (gyro or GyroErrorModel())
+    gkw = {}
+    if "gyro_noise" in fx:
+        gkw["noise_rms_deg_s"] = fx["gyro_noise"] / DEG
+    if "clock_drift_ppm" in fx:
+        gkw["clock_drift_ppm"] = fx["clock_drift_ppm"]
+    if "gyro_lowpass_hz" in fx:
+        gkw["lowpass_hz"] = fx["gyro_lowpass_hz"]
+    gyro = gyro.replace(**gkw)
+    sensor = det.SensorEffects(netd_k=fx.get("netd", 0.0), fpn_k=fx.get("fpn", 0.0),
+                               gain_nonuniformity=fx.get("gain_nonuniformity", 0.0),
+                               nonlinearity=fx.get("detector_nonlinearity", 0.0),
+                               quantisation_bits=int(fx.get("quantisation_bits", 16)))
+    sensor.validate()
+
+    mot = mo.parse(motion, seed)
+    sc = _sphere_scene(scene, truth_cal, seed)
+    t_frames = t0 + np.arange(n) / fps
+    lead = (exposure_s or 1.0 / fps) if kind == "photon" else history_tau * truth_cal.tau_s
+    gyro_pre = max(0.1, lead + truth_cal.readout_s + 0.05)
+    gyro_post = 0.05
+    t_lo = t_frames[0] - gyro_pre - abs(truth_cal.time_offset_s) - 0.05
+    t_hi = t_frames[-1] + gyro_post + abs(truth_cal.time_offset_s) + 0.05
+    traj = mo.Trajectory(mot, t_frames[0], t_lo, t_hi)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=n, unit="frame", desc="thermod sim", leave=False)
+
+    def _prog(k):
+        bar.update(k - bar.n)
+
+    try:
+        r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
+                       psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau,
+                       progress=_prog if bar else None)
+    finally:
+        if bar is not None:
+            bar.close()
+
+    rng = np.random.default_rng([seed, 10])
+    frames = det.apply_sensor(r.frames, sensor, rng, float(np.median(sc.texture)))
+    gs = gyro.sample(traj.omega, t_frames[0] - gyro_pre, t_frames[-1] + gyro_post, truth_cal,
+                     np.random.default_rng([seed, 11]), t_anchor=t_frames[0])
+
+    extras, attrs = {}, {}
+    if truth:
+        extras["truth/frames"] = r.sharp
+        extras["truth/blurry_noiseless"] = r.frames
+    extras["truth/gyro_t_camera"] = gs.t_true
+    extras["truth/gyro_omega_camera"] = gs.omega_true.astype(np.float32)
+    extras["truth/frame_R"] = traj.R(t_frames)
+    true_attrs = {**truth_cal.camera_attrs(), **truth_cal.gyro_attrs()}
+    attrs = {k: np.asarray(v, dtype=np.float64) if isinstance(v, (list, tuple, np.ndarray)) else v
+             for k, v in true_attrs.items()}
+    attrs.update({
+        "psf_sigma_px": float(psf_sigma),
+        "scene": _spec_str(scene), "motion": mot.spec, "seed": int(seed), "detector": kind,
+        "step_px": float(step_px), "history_tau": float(history_tau), "t_ref": float(t_frames[0]),
+        "n_steps": int(r.n_steps), "counts_per_k": float(sensor.counts_per_k),
+        "effects_json": json.dumps(fx), "gyro_model_json": json.dumps(_jsonable(gyro)),
+        "effects": ",".join(sorted(fx)) if fx else "",
+    })
+    for k, v in fx.items():
+        attrs[f"effect_{k}"] = np.asarray(v, dtype=np.float64)
+    return Recording(frames, t_frames, gs.t, gs.rate, nominal, extras=extras, extra_attrs={"truth": attrs})
+
+
+def truth_calibration(rec: Recording) -> Calibration:
+    """The true calibration stored by `simulate` in a recording's truth attributes."""
+    a = rec.extra_attrs.get("truth")
+    if not a:
+        raise ThermodError("recording has no truth attributes (not made by thermod sim)")
+    return Calibration.from_attrs(a, a)
+
+
+def _sphere_scene(scene, calib: Calibration, seed: int) -> det.SphereScene:
+    if isinstance(scene, det.SphereScene):
+        return scene
+    H, W = int(calib.height), int(calib.width)
+    procedural = isinstance(scene, str) and scene.split(":")[0] in ("bars", "points", "texture")
+    shape = (2 * H, 2 * W) if procedural else (H, W)
+    tex = scenes.load_scene(scene, shape, seed)
+    return det.SphereScene(tex, calib.fx, calib.fy)
+
+
+def _spec_str(scene) -> str:
+    if isinstance(scene, str):
+        return scene
+    return f"<{type(scene).__name__}>"
+
+
+def _jsonable(g: GyroErrorModel) -> dict:
+    d = {}
+    for k, v in g.__dict__.items():
+        d[k] = None if v is None else (str(v) if isinstance(v, float) and not math.isfinite(v) else v)
+    return d
