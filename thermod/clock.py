@@ -164,6 +164,11 @@ class ClockMapper:
         self._add(ticks, t)
         return False
 
+    def restart(self) -> None:
+        """Forget the offset (keep the drift): the driver knows the counter lost continuity, e.g. after
+        a FIFO flush whose lost sample count is only estimated. Not counted in ``resets``."""
+        self._clear()
+
     def _start(self, ticks: int, t: float) -> None:
         self._ref = ticks
         self._a = t

@@ -1,0 +1,276 @@
+"""Gyro source contract shared by every gyro driver (docs/interfaces.md, "Devices")."""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+from thermod.clock import ClockMapper
+from thermod.errors import DeviceError
+
+
+@dataclass
+class GyroBatch:
+    """Consecutive raw gyro samples.
+
+    Attributes
+    ----------
+    t : float64 [n]
+        Host CLOCK_MONOTONIC seconds of each sample, mapped from the device counter by
+        :class:`thermod.clock.ClockMapper` (never the read time).
+    rate : float32 [n, 3]
+        Raw angular rate in rad/s, gyro frame (uncalibrated; DESIGN §2).
+    seq : int
+        Device sample index of the first sample (unwrapped, counts lost samples too).
+    gap_before : bool
+        Samples were lost just before this batch (FIFO overflow, dropped frame, reconnect).
+    n_lost : int
+        Best estimate of how many (0 when unknown or none).
+    """
+
+    t: np.ndarray
+    rate: np.ndarray
+    seq: int
+    gap_before: bool = False
+    n_lost: int = 0
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class GyroSource:
+    """Base class of gyro drivers. The daemon's driver thread calls :meth:`poll` in a loop.
+
+    Subclasses implement ``start``, ``stop`` and ``poll``; counters live in ``self._stats`` and are
+    returned (copied) by :meth:`stats`.
+    """
+
+    name: str = "gyro"
+
+    def __init__(self) -> None:
+        self._stats: dict[str, float] = {"samples": 0, "batches": 0, "overflows": 0, "gaps": 0,
+                                         "lost": 0, "crc_errors": 0, "io_errors": 0, "resets": 0}
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def poll(self, timeout: float) -> GyroBatch | None:
+        """Return the samples read since the last call, blocking at most ``timeout`` s (None if none)."""
+        raise NotImplementedError
+
+    def stats(self) -> dict:
+        """Counters: samples, batches, overflows, gaps, lost, crc_errors, io_errors, resets, …"""
+        return dict(self._stats)
+
+    def _count_batch(self, batch: GyroBatch) -> GyroBatch:
+        self._stats["samples"] += len(batch)
+        self._stats["batches"] += 1
+        if batch.gap_before:
+            self._stats["gaps"] += 1
+            self._stats["lost"] += batch.n_lost
+        return batch
+
+    def __enter__(self):
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class GyroDeviceError(DeviceError):
+    """A gyro driver's I/O or identification failure; each driver raises its own subclass."""
+
+
+class FifoGyro(GyroSource):
+    """Common FIFO-reading loop of the register-chip drivers (ICM-42688-P, MPU-6000/6050, BMI088).
+
+    A subclass supplies the register map and ``_identify``, ``_configure``, ``_fifo_status``,
+    ``_flush``, ``_read_fifo`` and ``_decode``. This class owns the timing: read the FIFO every
+    ``read_interval_s``, count samples (the unwrapped sequence number is the device clock), map
+    ``seq × period`` to host time with :class:`thermod.clock.ClockMapper` fed with the time taken
+    right after the FIFO count was read (every counted sample existed by then), flush and mark a gap
+    on overflow, and after an I/O error re-identify, re-configure and flush before reading again
+    (a replugged chip has lost its configuration).
+    """
+
+    chip = "gyro"
+    error_type: type[GyroDeviceError] = GyroDeviceError
+    fifo_size = 1024
+    full_scales_dps: tuple[float, ...] = ()
+
+    def __init__(self, bus, *, full_scale_dps: float, rate_hz: float = 1000.0, read_interval_s: float = 0.004,
+                 clock_window_s: float = 20.0, name: str | None = None):
+        super().__init__()
+        if full_scale_dps not in self.full_scales_dps:
+            raise self.error_type(f"{self.chip}: full_scale_dps={full_scale_dps!r} is not supported, "
+                                  f"expected one of {list(self.full_scales_dps)}")
+        self.bus = bus
+        self.name = name or f"{self.chip} ({bus.describe()})"
+        self.full_scale_dps = float(full_scale_dps)
+        self.rate_hz = float(rate_hz)
+        self.read_interval_s = float(read_interval_s)
+        self.clock_window_s = float(clock_window_s)
+        # rad/s per LSB: ±full scale spans the signed 16-bit range
+        self.rad_per_lsb = np.float32(np.deg2rad(self.full_scale_dps) / 32768.0)
+        self.clock = ClockMapper(1.0 / self.rate_hz, window_s=self.clock_window_s, name=self.name)
+        self._seq = 0
+        self._t_last = math.nan          # host time of the newest sample handed out
+        self._gap_pending = False
+        self._lost_pending = 0
+        self._needs_recovery = False
+        self._running = False
+        self._next_read = 0.0
+        self._stats.update(invalid=0, recoveries=0)
+
+    # -- chip hooks ------------------------------------------------------------------------------
+    def _identify(self) -> None:
+        raise NotImplementedError
+
+    def _configure(self) -> None:
+        raise NotImplementedError
+
+    def _fifo_status(self) -> tuple[int, bool]:
+        """(bytes in the FIFO, overflow flag)."""
+        raise NotImplementedError
+
+    def _flush(self) -> None:
+        raise NotImplementedError
+
+    def _read_fifo(self, nbytes: int) -> bytes:
+        raise NotImplementedError
+
+    def _decode(self, data: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+        """(raw int16 [m, 3] of the valid samples, their sample indices within ``data`` [m], samples in
+        ``data`` n ≥ m). Invalid samples still advance the sequence counter (they took a tick)."""
+        raise NotImplementedError
+
+    packet_size = 6   # bytes per FIFO record; reads are whole records
+
+    def _power_down(self) -> None:
+        pass
+
+    # -- helpers ---------------------------------------------------------------------------------
+    @contextmanager
+    def _io(self, what: str):
+        try:
+            yield
+        except OSError as e:
+            self._stats["io_errors"] += 1
+            self._needs_recovery = True
+            raise self.error_type(f"{self.name}: {what} failed: {e.strerror or e} — check wiring, power, the "
+                                  "connector and the bus (a replugged chip is re-configured on the next poll)"
+                                  ) from e
+
+    def _expect(self, reg_name: str, reg: int, value: int, mask: int = 0xFF) -> None:
+        got = self.bus.read_u8(reg)
+        if (got & mask) != (value & mask):
+            raise self.error_type(f"{self.name}: {reg_name} 0x{reg:02X} read back 0x{got:02X}, expected "
+                                  f"0x{value & mask:02X} (mask 0x{mask:02X}) — the chip did not accept the "
+                                  "configuration: check the bus signal integrity / SPI mode")
+
+    def _check_id(self, reg_name: str, reg: int, expected: int | tuple[int, ...]) -> None:
+        got = self.bus.read_u8(reg)
+        ok = expected if isinstance(expected, tuple) else (expected,)
+        if got not in ok:
+            want = " or ".join(f"0x{v:02X}" for v in ok)
+            raise self.error_type(f"{self.name}: {reg_name} 0x{reg:02X} read 0x{got:02X}, expected {want} "
+                                  "— check wiring / I²C address / bus number / SPI mode, and that this is a "
+                                  f"{self.chip}")
+
+    # -- GyroSource ------------------------------------------------------------------------------
+    def start(self) -> None:
+        with self._io("identification"):
+            self._identify()
+        with self._io("configuration"):
+            self._configure()
+            self._flush()
+        self._t_last = time.monotonic()
+        self._running = True
+        self._next_read = time.monotonic() + self.read_interval_s
+
+    def stop(self) -> None:
+        if not self._running:
+            return
+        self._running = False
+        try:
+            self._power_down()
+        except OSError:
+            pass          # unplugged: nothing left to power down
+
+    def poll(self, timeout: float) -> GyroBatch | None:
+        if not self._running:
+            raise self.error_type(f"{self.name}: poll() before start()")
+        deadline = time.monotonic() + max(0.0, timeout)
+        while True:
+            now = time.monotonic()
+            if self._next_read > now:
+                if self._next_read > deadline:
+                    time.sleep(max(0.0, deadline - now))
+                    return None
+                time.sleep(self._next_read - now)
+            self._next_read = time.monotonic() + self.read_interval_s
+            batch = self._read_once()
+            if batch is not None:
+                return self._count_batch(batch)
+            if time.monotonic() >= deadline:
+                return None
+
+    # -- the read ---------------------------------------------------------------------------------
+    def _recover(self) -> None:
+        with self._io("re-configuration after an I/O error"):
+            self._identify()
+            self._configure()
+            self._flush()
+        self._stats["recoveries"] += 1
+        self._mark_gap(time.monotonic())
+        self._needs_recovery = False
+
+    def _mark_gap(self, t_now: float) -> None:
+        # every sample between the newest one handed out and now is gone; the count is estimated
+        # from host time, so the counter-to-time fit restarts (keeping its drift)
+        n = max(0, int(round((t_now - self._t_last) * self.rate_hz)))
+        self._seq += n
+        self._t_last = t_now
+        self._gap_pending = True
+        self._lost_pending += n
+        self.clock.restart()
+
+    def _read_once(self) -> GyroBatch | None:
+        if self._needs_recovery:
+            self._recover()
+        with self._io("FIFO status read"):
+            count, overflow = self._fifo_status()
+        t_count = time.monotonic()
+        if overflow or count > self.fifo_size:
+            with self._io("FIFO flush"):
+                self._flush()
+            self._stats["overflows"] += 1
+            self._mark_gap(time.monotonic())
+            return None
+        nbytes = count - count % self.packet_size
+        if nbytes == 0:
+            return None
+        with self._io("FIFO burst read"):
+            data = self._read_fifo(nbytes)
+        raw, offsets, n = self._decode(data)
+        if n == 0:
+            return None
+        seq0 = self._seq
+        self._seq += n
+        self.clock.observe(self._seq - 1, t_count)
+        idx = seq0 + offsets
+        t = np.asarray(self.clock.to_host(idx), dtype=np.float64)
+        self._t_last = float(self.clock.to_host(self._seq - 1))
+        self._stats["invalid"] += n - len(offsets)
+        rate = raw.astype(np.float32) * self.rad_per_lsb
+        batch = GyroBatch(t=t, rate=rate, seq=seq0, gap_before=self._gap_pending, n_lost=self._lost_pending)
+        self._gap_pending, self._lost_pending = False, 0
+        return batch
