@@ -122,7 +122,8 @@ class FifoGyro(GyroSource):
         self.rad_per_lsb = np.float32(np.deg2rad(self.full_scale_dps) / 32768.0)
         self.clock = ClockMapper(1.0 / self.rate_hz, window_s=self.clock_window_s, name=self.name)
         self._seq = 0
-        self._t_last = math.nan          # host time of the newest sample handed out
+        self._t_last = math.nan          # host time of the newest sample read (mapped)
+        self._t_out = -math.inf          # newest time stamp handed out
         self._gap_pending = False
         self._lost_pending = 0
         self._needs_recovery = False
@@ -165,9 +166,9 @@ class FifoGyro(GyroSource):
         except OSError as e:
             self._stats["io_errors"] += 1
             self._needs_recovery = True
-            raise self.error_type(f"{self.name}: {what} failed: {e.strerror or e} — check wiring, power, the "
-                                  "connector and the bus (a replugged chip is re-configured on the next poll)"
-                                  ) from e
+            hint = ("check wiring / I²C address / bus number / SPI mode and power" if not self._running else
+                    "check wiring, power and the connector (a replugged chip is re-configured on the next poll)")
+            raise self.error_type(f"{self.name}: {what} failed: {e.strerror or e} — {hint}") from e
 
     def _expect(self, reg_name: str, reg: int, value: int, mask: int = 0xFF) -> None:
         got = self.bus.read_u8(reg)
@@ -268,6 +269,11 @@ class FifoGyro(GyroSource):
         self.clock.observe(self._seq - 1, t_count)
         idx = seq0 + offsets
         t = np.asarray(self.clock.to_host(idx), dtype=np.float64)
+        if len(t) and t[0] <= self._t_out:
+            # the fit lowered its offset (start-up, after a gap): keep sample times strictly increasing
+            t = np.maximum(t, self._t_out + 0.5 / self.rate_hz * np.arange(1, len(t) + 1))
+        if len(t):
+            self._t_out = float(t[-1])
         self._t_last = float(self.clock.to_host(self._seq - 1))
         self._stats["invalid"] += n - len(offsets)
         rate = raw.astype(np.float32) * self.rad_per_lsb

@@ -1,0 +1,282 @@
+"""Register-chip gyro drivers against their register-level emulators, through the real bus seam
+(smbus2 i2c_msg transactions / spidev-style xfer2), in real time (each test ≤ ~1 s)."""
+
+import errno
+import math
+import time
+
+import numpy as np
+import pytest
+
+from thermod.drivers.bus import I2CBus, SPIBus
+from thermod.drivers.gyro_base import GyroDeviceError
+from thermod.drivers.icm42688 import ICM42688, ICM42688Error
+from thermod.drivers.mpu6000 import MPU6000, MPU6000Error
+from thermod.errors import DeviceError
+from thermod.sim.emu_registers import EmuI2C, EmuSPI, ICM42688Emu, MPU6000Emu
+
+CHIPS = {"icm42688": (ICM42688, ICM42688Emu, ICM42688Error), "mpu6000": (MPU6000, MPU6000Emu, MPU6000Error)}
+
+
+def make_bus(kind, chip, address=0x68, **kw):
+    return I2CBus(EmuI2C({0x68: chip}), address, **kw) if kind == "i2c" else SPIBus(EmuSPI(chip), **kw)
+
+
+def collect(gyro, seconds, timeout=0.01):
+    out, t_end = [], time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        b = gyro.poll(timeout)
+        if b is not None:
+            out.append(b)
+    return out
+
+
+def cat(batches):
+    return np.concatenate([b.t for b in batches]), np.concatenate([b.rate for b in batches])
+
+
+def constant(w):
+    w = np.asarray(w, np.float64)
+    return lambda t: np.tile(w, (len(t), 1))
+
+
+def sawtooth_clock(t_ref, period=1.0, slope=20.0):
+    """A rate that encodes its own sample time: x = slope·((t − t_ref) mod period) − slope/2."""
+    def fn(t):
+        ph = np.mod(np.asarray(t) - t_ref, period)
+        return np.stack([slope * ph - slope / 2, np.zeros_like(ph), np.full_like(ph, 0.5)], axis=1)
+
+    def decode(rate_x, t_approx):
+        ph = (rate_x.astype(np.float64) + slope / 2) / slope
+        k = np.round((t_approx - t_ref - ph) / period)
+        return t_ref + k * period + ph
+    return fn, decode
+
+
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+@pytest.mark.parametrize("fs", [2000.0, 1000.0, 500.0, 250.0, 125.0, 62.5, 31.25, 15.625])
+def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
+    w = np.radians(fs) * np.array([0.61, -0.33, 0.97])          # within ±full scale on every axis
+    chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=fs)
+    gyro.start()
+    t, r = cat(collect(gyro, 0.06))
+    gyro.stop()
+    lsb = math.radians(fs) / 32768
+    assert r.dtype == np.float32 and t.dtype == np.float64 and r.shape == (len(t), 3)
+    assert len(t) >= 35
+    assert np.max(np.abs(r - w)) <= 0.5 * lsb * 1.0001          # exact up to quantisation
+    # full-scale and ODR codes landed in GYRO_CONFIG0 (the driver read them back too)
+    assert chip.regs[0x4F] == (ICM42688Emu.FS_DPS.index(fs) << 5) | 0x06
+    assert chip.odr_hz() == 1000.0
+    assert np.all(np.diff(t) > 0) and np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+
+
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+@pytest.mark.parametrize("fs", [250.0, 500.0, 1000.0, 2000.0])
+def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs, monkeypatch):
+    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)          # the emulator resets instantly
+    w = np.radians(fs) * np.array([-0.8, 0.45, 0.12])
+    chip = MPU6000Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = MPU6000(make_bus(bus_kind, chip), full_scale_dps=fs)
+    gyro.start()
+    t, r = cat(collect(gyro, 0.06))
+    lsb = math.radians(fs) / 32768
+    assert len(t) >= 35
+    assert np.max(np.abs(r - w)) <= 0.5 * lsb * 1.0001
+    assert (chip.regs[0x1B] >> 3) & 3 == MPU6000Emu.FS_DPS.index(fs)
+    assert chip.odr_hz() == 1000.0 and chip.regs[0x23] == 0x70
+    # SPI disables the I²C interface, as the datasheet requires for the MPU-6000
+    assert bool(chip.regs[0x6A] & 0x10) == (bus_kind == "spi")
+
+
+def test_mpu6000_sample_rate_divider(monkeypatch):
+    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
+    chip = MPU6000Emu(noise_rad_s=0.0)
+    gyro = MPU6000(make_bus("i2c", chip), rate_hz=250.0)
+    gyro.start()
+    t, _ = cat(collect(gyro, 0.2, timeout=0.02))
+    assert chip.regs[0x19] == 3 and chip.regs[0x1A] & 7 == 1
+    assert np.median(np.diff(t)) == pytest.approx(0.004, rel=1e-3)
+    with pytest.raises(MPU6000Error, match="rate_hz=300"):
+        MPU6000(make_bus("i2c", chip), rate_hz=300.0)
+
+
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+def test_icm42688_timestamps_follow_the_device_clock_not_the_read_time(bus_kind):
+    fn, decode = sawtooth_clock(time.monotonic())
+    chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0, drift_ppm=300.0)
+    gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=2000.0, read_interval_s=0.003)
+    gyro.start()
+    batches = collect(gyro, 1.2, timeout=0.01)
+    t, r = cat(batches)
+    truth = decode(r[:, 0], t)
+    err = (t - truth)[len(t) // 4:]           # after the first 0.3 s the drift has been fitted
+    # sample times, not read times: the error is the bus latency plus quantisation (20 rad/s per s
+    # at 1.07 mrad/s per LSB → 53 µs), far below the 3 ms read interval
+    assert np.std(err) < 0.15e-3
+    assert np.max(np.abs(err)) < 0.6e-3
+    assert np.all(np.diff(t) > 0)
+    seqs = [b.seq for b in batches]
+    assert seqs == list(np.cumsum([0] + [len(b) for b in batches[:-1]]))
+    assert len(t) == pytest.approx(1200 * 1.0003, abs=25)
+    # the device oscillator runs 300 ppm fast: its ticks are shorter in host seconds
+    assert gyro.clock.drift_ppm == pytest.approx(-300.0, abs=150.0)
+
+
+def test_icm42688_16_byte_packets_with_accel():
+    w = np.array([0.1, 0.2, -0.3])
+    chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = ICM42688(make_bus("spi", chip), full_scale_dps=500.0, fifo_accel=True)
+    gyro.start()
+    assert chip.record_size() == 16 and chip.regs[0x5F] & 0x03 == 0x03
+    t, r = cat(collect(gyro, 0.05))
+    assert len(t) >= 30
+    assert np.max(np.abs(r - w)) <= 0.5 * math.radians(500) / 32768 * 1.0001
+
+
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
+def test_fifo_overflow_detected_flushed_counted(name, monkeypatch):
+    Driver, Emu, _ = CHIPS[name]
+    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
+    fn, decode = sawtooth_clock(time.monotonic())
+    chip = Emu(rate_fn=fn, noise_rad_s=0.0)
+    gyro = Driver(make_bus("i2c", chip), full_scale_dps=2000.0)
+    gyro.start()
+    before = collect(gyro, 0.15)
+    time.sleep(0.45)                               # FIFO: 2048/8 = 256 (ICM) or 1024/6 = 170 (MPU) samples
+    after = collect(gyro, 0.25)
+    st = gyro.stats()
+    assert st["overflows"] == 1 and st["gaps"] == 1
+    assert chip.counters["overflows"] >= 1 and chip.counters["flushes"] >= 2
+    gap = after[0]
+    assert gap.gap_before and not any(b.gap_before for b in before + after[1:])
+    end_before = before[-1].seq + len(before[-1])
+    # the lost count is estimated from host time over the ~0.45 s stall
+    assert gap.n_lost == pytest.approx(450, abs=40)
+    assert gap.seq == end_before + gap.n_lost
+    assert st["lost"] == gap.n_lost
+    # samples after the gap are intact and correctly timed (the clock fit restarted)
+    t, r = cat(after)
+    err = t - decode(r[:, 0], t)
+    assert np.max(np.abs(err)) < 1.5e-3
+    assert np.all(np.abs(r[:, 2] - 0.5) < 1e-3)
+
+
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+def test_wrong_chip_id_refused_with_actionable_message(name, bus_kind):
+    Driver, Emu, Error = CHIPS[name]
+    gyro = Driver(make_bus(bus_kind, Emu(chip_id=0x12)))
+    with pytest.raises(Error) as e:
+        gyro.start()
+    msg = str(e.value)
+    assert "WHO_AM_I 0x75 read 0x12, expected 0x" in msg
+    assert "check wiring / I²C address / bus number / SPI mode" in msg
+    assert isinstance(e.value, GyroDeviceError) and isinstance(e.value, DeviceError)
+
+
+def test_nothing_at_the_address_names_the_bus_and_address():
+    gyro = ICM42688(make_bus("i2c", ICM42688Emu(), address=0x69))
+    with pytest.raises(ICM42688Error, match=r"address 0x69\): identification failed: .*Remote I/O error.*"
+                       "check wiring / I²C address"):
+        gyro.start()
+    assert gyro.stats()["io_errors"] == 1
+
+
+def test_config_not_accepted_is_reported():
+    class Stubborn(ICM42688Emu):                   # a chip whose GYRO_CONFIG0 keeps its reset value
+        def _on_write(self, reg, value):
+            super()._on_write(reg, value)
+            if reg == 0x4F:
+                self.regs[0x4F] = 0x06
+    gyro = ICM42688(make_bus("spi", Stubborn()), full_scale_dps=250.0)
+    with pytest.raises(ICM42688Error, match="GYRO_CONFIG0 0x4F read back 0x06, expected 0x66"):
+        gyro.start()
+
+
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
+def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name, monkeypatch):
+    Driver, Emu, Error = CHIPS[name]
+    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
+    w = np.array([0.2, 0.0, -0.1])
+    chip = Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = Driver(make_bus("i2c", chip), full_scale_dps=500.0)
+    gyro.start()
+    first = collect(gyro, 0.05)
+    chip.unplug(0.1)                               # comes back power-cycled: configuration lost
+    with pytest.raises(Error, match="FIFO status read failed: .*Remote I/O error.*check wiring"):
+        gyro.poll(0.01)
+    errors = 1
+    t_end = time.monotonic() + 0.5
+    after = []
+    while time.monotonic() < t_end and len(after) < 20:
+        try:
+            b = gyro.poll(0.01)
+        except Error:
+            errors += 1
+            time.sleep(0.01)
+            continue
+        if b is not None:
+            after.append(b)
+    st = gyro.stats()
+    assert st["io_errors"] == errors >= 2 and st["recoveries"] == 1
+    assert after and after[0].gap_before and after[0].n_lost >= 80
+    _, r = cat(after)
+    assert np.max(np.abs(r - w)) < math.radians(500) / 32768    # re-configured at the right scale
+    assert first and first[-1].seq + len(first[-1]) + after[0].n_lost == after[0].seq
+    # a single NACK glitch is one error, then reading continues
+    chip.nack(1)
+    with pytest.raises(Error):
+        gyro.poll(0.01)
+    assert collect(gyro, 0.05)
+
+
+def test_bursts_are_split_at_the_bus_limits():
+    w = np.array([0.05, 0.1, 0.15])
+    chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    i2c = EmuI2C({0x68: chip})
+    gyro = ICM42688(I2CBus(i2c, 0x68, max_read=64), read_interval_s=0.05)
+    gyro.start()
+    n0 = i2c.transactions
+    b = gyro.poll(0.2)
+    assert len(b) >= 40                            # ≥ 320 bytes → ≥ 5 chunked reads of ≤ 64 bytes
+    assert i2c.transactions - n0 >= 1 + len(b) * 8 // 64
+    assert np.max(np.abs(b.rate - w)) <= 0.5 * math.radians(2000) / 32768 * 1.0001
+    spi = EmuSPI(chip)
+    with pytest.raises(OSError) as e:
+        spi.xfer2([0xB0] + [0] * 4096)             # spidev refuses more than its 4096-byte buffer
+    assert e.value.errno == errno.EMSGSIZE
+
+
+def test_bad_parameters_rejected():
+    chip = ICM42688Emu()
+    with pytest.raises(ICM42688Error, match="full_scale_dps=300"):
+        ICM42688(make_bus("spi", chip), full_scale_dps=300)
+    with pytest.raises(ICM42688Error, match="rate_hz=1234"):
+        ICM42688(make_bus("spi", chip), rate_hz=1234)
+    with pytest.raises(ICM42688Error, match="before start"):
+        ICM42688(make_bus("spi", chip)).poll(0.0)
+
+
+def test_emulator_overflow_semantics():
+    clock = [0.0]
+    icm = ICM42688Emu(clock=lambda: clock[0], noise_rad_s=0.0)
+    for reg, v in ((0x4E, 0x0C), (0x5F, 0x02), (0x16, 0x40)):
+        icm.write(reg, bytes([v]))
+    clock[0] = 0.1005                                 # 100 ticks at 1 kHz
+    assert int.from_bytes(icm.read(0x2E, 2), "big") == 800
+    clock[0] = 1.0                                     # 1000 ticks: the 2 KB FIFO keeps the newest 256
+    st, hi, lo = icm.read(0x2D, 3)
+    assert st & 0x02 and (hi << 8 | lo) == 2048
+    assert icm.read(0x2D, 1)[0] == 0                   # INT_STATUS cleared on read
+    mpu = MPU6000Emu(clock=lambda: clock[0], noise_rad_s=0.0, rate_fn=constant([0.01, 0.02, 0.03]))
+    for reg, v in ((0x6B, 0x01), (0x1A, 0x01), (0x23, 0x70), (0x6A, 0x40)):
+        mpu.write(reg, bytes([v]))
+    clock[0] = 2.0                                      # way past 1024 bytes
+    assert mpu.read(0x3A, 1)[0] & 0x10
+    assert int.from_bytes(mpu.read(0x72, 2), "big") == 1024
+    # byte-wise overwrite: 1024 % 6 = 4, so the FIFO now starts in the middle of a record
+    first = np.frombuffer(mpu.read(0x74, 6), ">i2")
+    scale = 32768 / math.radians(250)
+    assert not np.array_equal(first, np.rint(np.array([0.01, 0.02, 0.03]) * scale))
