@@ -66,7 +66,8 @@ def scene(shape: tuple[int, int]) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------ plain NumPy/SciPy K&F
-def plain_kf(y: np.ndarray, weights: np.ndarray, origin, lam: float, alpha: float, margin: int = 8) -> np.ndarray:
+def plain_kf(y: np.ndarray, weights: np.ndarray, origin, lam: float, alpha: float,
+             margin: int = 8) -> np.ndarray:
     """The same algorithm (same padding, scaling, β schedule, w-/x-steps) in plain float64 NumPy."""
     lo, hi = deconv.robust_range(y)
     h, w = y.shape
@@ -163,7 +164,8 @@ def main(argv=None) -> int:
             out = d.run(b, k)
             ref = plain_kf(b, k.weights, k.origin, lam, 2 / 3)
             fps = fps_two_threads([b, b.copy()], k, 4 if args.quick else 10)
-            row = (f"{w}×{h}", f"{k.weights.shape[1]}×{k.weights.shape[0]}", t_kf, t_w, t_plain, t_plain / t_kf,
+            kname = f"{k.weights.shape[1]}×{k.weights.shape[0]}"
+            row = (f"{w}×{h}", kname, t_kf, t_w, t_plain, t_plain / t_kf,
                    psnr(out, truth), psnr(ref, truth), psnr(b, truth), fps)
             results.append(row)
             print(f"| {row[0]} | {row[1]} | {t_kf:.1f} | {t_w:.1f} | {t_plain:.0f} | {row[5]:.1f}× | "
