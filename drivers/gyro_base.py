@@ -166,8 +166,9 @@ class FifoGyro(GyroSource):
         except OSError as e:
             self._stats["io_errors"] += 1
             self._needs_recovery = True
-            hint = ("check wiring / I²C address / bus number / SPI mode and power" if not self._running else
-                    "check wiring, power and the connector (a replugged chip is re-configured on the next poll)")
+            hint = ("check wiring / I²C address / bus number / SPI mode and power" if not self._running
+                    else "check wiring, power and the connector (a replugged chip is re-configured on the "
+                    "next poll)")
             raise self.error_type(f"{self.name}: {what} failed: {e.strerror or e} — {hint}") from e
 
     def _expect(self, reg_name: str, reg: int, value: int, mask: int = 0xFF) -> None:
