@@ -38,8 +38,9 @@ __all__ = [
     "render_thermal_kernel_reference", "optical_psf", "blur", "blur_varying", "row_time",
 ]
 
-#: Largest spacing between consecutive splats along the path (px); < 0.5 px avoids stepping (Eq. 12).
-MAX_STEP_PX = 0.4
+#: Largest spacing between consecutive splats along the path (px); < 0.5 px avoids stepping (Eq. 12),
+#: 0.25 keeps the bilinear-splat ripple along a fast path below ~2 %.
+MAX_STEP_PX = 0.25
 #: Refuse paths needing more nodes than this (a garbage rate, not a real motion).
 MAX_NODES = 2_000_000
 
@@ -201,6 +202,7 @@ def row_time(calib: Calibration, t_frame: float, row: float) -> float:
 
 # ------------------------------------------------------------------------------------- validation
 def _check_gyro(gyro_t, gyro_rate) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes and dtypes (cheap); finiteness and ordering are checked on the window's samples only."""
     t = np.asarray(gyro_t)
     r = np.asarray(gyro_rate)
     if t.ndim != 1:
@@ -211,10 +213,14 @@ def _check_gyro(gyro_t, gyro_rate) -> tuple[np.ndarray, np.ndarray]:
         raise KernelError(f"gyro_rate: has {r.shape[0]} samples but gyro_t has {t.shape[0]}")
     if t.shape[0] == 0:
         raise KernelError("gyro_t: no gyro samples; a kernel needs at least one")
-    if not np.issubdtype(t.dtype, np.floating) and not np.issubdtype(t.dtype, np.integer):
-        raise KernelError(f"gyro_t: expected float seconds, got dtype {t.dtype}")
-    if not np.issubdtype(r.dtype, np.floating) and not np.issubdtype(r.dtype, np.integer):
-        raise KernelError(f"gyro_rate: expected float rad/s, got dtype {r.dtype}")
+    if t.dtype != np.float64:
+        if not (np.issubdtype(t.dtype, np.floating) or np.issubdtype(t.dtype, np.integer)):
+            raise KernelError(f"gyro_t: expected float seconds, got dtype {t.dtype}")
+        t = t.astype(np.float64)
+    if r.dtype != np.float32 and r.dtype != np.float64:
+        if not (np.issubdtype(r.dtype, np.floating) or np.issubdtype(r.dtype, np.integer)):
+            raise KernelError(f"gyro_rate: expected float rad/s, got dtype {r.dtype}")
+        r = r.astype(np.float64)
     return t, r
 
 
@@ -327,24 +333,47 @@ def _hat_weights(x, y, b, tau, uniform):
 
 
 @njit(cache=True, nogil=True)
-def _path_nodes(t_raw, rate_raw, offset, M, bias, a, b, tau, uniform, px_per_rad, max_step, max_nodes):
+def _path_nodes(t_all, r_all, offset, M, bias, a, b, tau, uniform, px_per_rad, max_step, max_nodes):
     """Rotations Q(s) = R(b)ᵀR(s) and normalised quadrature weights at sub-nodes of (a, b].
 
-    The rate is calibrated here (ω_cam = M (ω_gyro − bias), t + offset), piecewise linear between
-    samples and held outside them. Each stretch between consecutive samples is split into enough
-    sub-steps that the image moves ≤ max_step px per step (bound: px_per_rad · |ω| · Δs). Every
-    sub-node's Q is taken directly from the stretch's end node, Q(s) = Q(s1) exp(−½(ω(s)+ω(s1))(s1−s)),
-    so at sample times it equals `integrate_rotations` exactly.
-    Returns (times, Q, w, coverage, n_samples, status); status 1 = too many nodes.
+    Reads only the samples around the window (a whole ring may be passed). The rate is calibrated
+    here (ω_cam = M (ω_gyro − bias), at t + offset), piecewise linear between samples and held
+    outside them. Each stretch between consecutive samples is split into enough sub-steps that the
+    image moves ≤ max_step px per step (bound: px_per_rad · |ω| · Δs). Every sub-node's Q is taken
+    directly from its stretch's end node, Q(s) = Q(s1) exp(−½(ω(s)+ω(s1))(s1−s)), so at the sample
+    times it equals `integrate_rotations` exactly.
+    Returns (times, Q, w, coverage, n_samples, status); status: 0 ok, 1 too many nodes,
+    4 non-finite times, 5 times not increasing, 6 non-finite rates.
     """
-    n = t_raw.shape[0]
+    m_all = t_all.shape[0]
+    i0 = np.searchsorted(t_all, a - offset, side="right") - 1
+    i1 = np.searchsorted(t_all, b - offset, side="left") + 1
+    if i0 < 0:
+        i0 = 0
+    if i1 > m_all:
+        i1 = m_all
+    if i1 <= i0:   # all samples on one side of the window: keep the nearest one (its rate is held)
+        if i0 >= m_all - 1:
+            i0 = m_all - 1
+            i1 = m_all
+        else:
+            i0 = 0
+            i1 = 1
+    n = i1 - i0
     t = np.empty(n)
     w = np.empty((n, 3))
     for i in range(n):
-        t[i] = t_raw[i] + offset
-        d0 = rate_raw[i, 0] - bias[0]
-        d1 = rate_raw[i, 1] - bias[1]
-        d2 = rate_raw[i, 2] - bias[2]
+        ti = t_all[i0 + i]
+        if not math.isfinite(ti):
+            return np.empty(0), np.empty((0, 3, 3)), np.empty(0), 0.0, 0, 4
+        if i > 0 and not ti > t_all[i0 + i - 1]:
+            return np.empty(0), np.empty((0, 3, 3)), np.empty(0), 0.0, 0, 5
+        t[i] = ti + offset
+        d0 = r_all[i0 + i, 0] - bias[0]
+        d1 = r_all[i0 + i, 1] - bias[1]
+        d2 = r_all[i0 + i, 2] - bias[2]
+        if not (math.isfinite(d0) and math.isfinite(d1) and math.isfinite(d2)):
+            return np.empty(0), np.empty((0, 3, 3)), np.empty(0), 0.0, 0, 6
         for r in range(3):
             w[i, r] = M[r, 0] * d0 + M[r, 1] * d1 + M[r, 2] * d2
     # stretch boundaries: a, samples strictly inside (a, b), b
@@ -544,6 +573,36 @@ def _convolve_sep(k, g):
     return out
 
 
+@njit(cache=True, nogil=True)
+def _kernel_at(Q, w, px, py, fx, fy, cx, cy, max_size, g):
+    """Offsets at pixel (px, py), bilinear splat, PSF (g: 1-D taps; length 1 = none) → float32 kernel.
+
+    Returns (weights, oy, ox, status); status 2 = a ray turned behind the camera, 3 = too large.
+    """
+    u, st = _offsets(Q, px, py, fx, fy, cx, cy)
+    if st:
+        return np.zeros((1, 1), dtype=np.float32), 0, 0, 2
+    k, oy, ox, st = _splat(u, w, max_size)
+    if st:
+        return np.zeros((1, 1), dtype=np.float32), 0, 0, 3
+    r = g.shape[0] // 2
+    if r == 0:
+        return k.astype(np.float32), oy, ox, 0
+    return _convolve_sep(k, g), oy + r, ox + r, 0
+
+
+@njit(cache=True, nogil=True)
+def _render_one(t_all, r_all, offset, M, bias, a, b, tau, uniform, px_per_rad, max_step, max_nodes,
+                px, py, fx, fy, cx, cy, max_size, g):
+    """`_path_nodes` then `_kernel_at` in one call (one dispatch per kernel)."""
+    times, Q, w, cov, ns, st = _path_nodes(t_all, r_all, offset, M, bias, a, b, tau, uniform, px_per_rad,
+                                           max_step, max_nodes)
+    if st:
+        return np.zeros((1, 1), dtype=np.float32), 0, 0, cov, ns, st
+    k, oy, ox, st = _kernel_at(Q, w, px, py, fx, fy, cx, cy, max_size, g)
+    return k, oy, ox, cov, ns, st
+
+
 # ------------------------------------------------------------------------------------ public API
 @functools.lru_cache(maxsize=32)
 def _gauss_1d(sigma: float) -> np.ndarray:
@@ -577,48 +636,66 @@ def _max_size(p: _Params) -> int:
     return 2 * max(p.width, p.height) + 64
 
 
-def _px_per_rad(p: _Params, points: np.ndarray) -> float:
-    """Upper bound on image speed per rad/s at `points` (px): f_max·(1 + ρ²), ρ the normalised radius.
+def _px_per_rad(p: _Params, x: float, y: float) -> float:
+    """Upper bound on image speed per rad/s (px) at (x, y) and at the image corners: f·(1 + ρ²).
 
-    The rotational motion field at normalised (x, y) is bounded by |ω|·(1 + x² + y²); a small margin
-    covers the ray drifting outward during the window.
+    The rotational motion field at normalised (x, y) is bounded by |ω|·(1 + x² + y²); the bound is
+    taken over the whole frame (so every point of a frame gets the same sub-steps and a grid cell's
+    kernel equals the single kernel rendered there), with a margin for rays drifting outward.
     """
-    dx = (points[:, 0] - p.cx) / p.fx
-    dy = (points[:, 1] - p.cy) / p.fy
-    rho2 = float(np.max(dx * dx + dy * dy))
-    rho = math.sqrt(rho2) + 0.05
+    rx = max(abs(p.cx + 0.5) , abs(p.width - 0.5 - p.cx), abs(x - p.cx)) / p.fx
+    ry = max(abs(p.cy + 0.5), abs(p.height - 0.5 - p.cy), abs(y - p.cy)) / p.fy
+    rho = math.sqrt(rx * rx + ry * ry) + 0.05
     return max(p.fx, p.fy) * (1.0 + rho * rho) * 1.05
 
 
-def _nodes_for(t, r, p: _Params, a: float, b: float, uniform: bool, px_per_rad: float):
-    ts, rs = _window_slice(t, r, a - p.offset, b - p.offset)
+_STATUS = {
+    1: "the motion needs more than {n} path nodes (rates of thousands of rad/s?): check the gyro units/scale",
+    2: "the camera turned more than 90° within the window: check the gyro units (rad/s) and scale",
+    3: "the blur path spans more than {size} px: check the gyro units (rad/s) and scale",
+    4: "gyro_t: non-finite sample times in the window",
+    5: "gyro_t: sample times must be strictly increasing",
+    6: "gyro_rate: NaN/inf rates in the window",
+}
+
+
+def _raise_status(st: int, p: _Params, a: float, b: float, x: float, y: float):
+    msg = _STATUS[int(st)].format(n=MAX_NODES, size=_max_size(p))
+    if not msg.startswith("gyro_"):
+        msg = f"gyro_rate: at point ({x:.1f}, {y:.1f}), {msg}"
+    raise KernelError(f"{msg} (window [{a:.6f}, {b:.6f}] s, camera clock)")
+
+
+def _psf_taps(p: _Params, psf: bool) -> np.ndarray:
+    return _gauss_1d(p.psf_sigma) if psf and p.psf_sigma > 0 else _NO_PSF
+
+
+_NO_PSF = np.ones(1)
+
+
+def _nodes_for(t, r, p: _Params, a: float, b: float, uniform: bool, ppr: float, x: float, y: float):
     tau = p.tau if not uniform else 1.0
-    times, Q, w, cov, n_samples, status = _path_nodes(ts, rs, p.offset, p.M, p.bias, a, b, tau, uniform,
-                                                      px_per_rad, MAX_STEP_PX, MAX_NODES)
-    if status:
-        raise KernelError(f"gyro_rate: the motion in [{a:.6f}, {b:.6f}] s needs more than {MAX_NODES} "
-                          "path nodes (rates of thousands of rad/s?): check the gyro scale/units")
-    return times, Q, w, float(cov), int(n_samples)
+    times, Q, w, cov, ns, st = _path_nodes(t, r, p.offset, p.M, p.bias, a, b, tau, uniform, ppr,
+                                           MAX_STEP_PX, MAX_NODES)
+    if st:
+        _raise_status(st, p, a, b, x, y)
+    return times, Q, w, float(cov), int(ns)
 
 
-def _kernel_from_nodes(Q, w, cov, n_samples, p: _Params, x: float, y: float, psf: bool) -> Kernel:
-    u, st = _offsets(Q, x, y, p.fx, p.fy, p.cx, p.cy)
+def _kernel_from_nodes(Q, w, cov, n_samples, p: _Params, x: float, y: float, psf: bool, a, b) -> Kernel:
+    k, oy, ox, st = _kernel_at(Q, w, x, y, p.fx, p.fy, p.cx, p.cy, _max_size(p), _psf_taps(p, psf))
     if st:
-        raise KernelError(f"gyro_rate: the camera turned more than 90° within the kernel window at "
-                          f"point ({x:.1f}, {y:.1f}): check the gyro units (rad/s) and scale")
-    k, oy, ox, st = _splat(u, w, _max_size(p))
+        _raise_status(st, p, a, b, x, y)
+    return Kernel(k, (int(oy), int(ox)), cov, n_samples)
+
+
+def _render(t, r, p: _Params, a: float, b: float, uniform: bool, x: float, y: float, psf: bool) -> Kernel:
+    k, oy, ox, cov, ns, st = _render_one(t, r, p.offset, p.M, p.bias, a, b, p.tau if not uniform else 1.0,
+                                         uniform, _px_per_rad(p, x, y), MAX_STEP_PX, MAX_NODES,
+                                         x, y, p.fx, p.fy, p.cx, p.cy, _max_size(p), _psf_taps(p, psf))
     if st:
-        raise KernelError(f"gyro_rate: the blur path at point ({x:.1f}, {y:.1f}) spans more than "
-                          f"{_max_size(p)} px (frame {p.width}×{p.height}): check the gyro units and scale")
-    if psf and p.psf_sigma > 0:
-        g = _gauss_1d(p.psf_sigma)
-        k32 = _convolve_sep(k, g)
-        r = g.shape[0] // 2
-        oy += r
-        ox += r
-    else:
-        k32 = k.astype(np.float32)
-    return Kernel(k32, (int(oy), int(ox)), cov, n_samples)
+        _raise_status(st, p, a, b, x, y)
+    return Kernel(k, (int(oy), int(ox)), float(cov), int(ns))
 
 
 def _window(calib_p: _Params, t_frame, y: float, length: float) -> tuple[float, float]:
@@ -640,10 +717,10 @@ def render_path(gyro_t, gyro_rate, calib: Calibration, t_frame: float, *, point=
     uniform = exposure_s is not None
     length = _check_scalar("exposure_s", exposure_s, True) if uniform else _check_scalar("m", m, True) * p.tau
     a, b = _window(p, tf, y, length)
-    times, Q, w, cov, ns = _nodes_for(t, r, p, a, b, uniform, _px_per_rad(p, np.array([[x, y]])))
+    times, Q, w, cov, ns = _nodes_for(t, r, p, a, b, uniform, _px_per_rad(p, x, y), x, y)
     u, st = _offsets(Q, x, y, p.fx, p.fy, p.cx, p.cy)
     if st:
-        raise KernelError(f"gyro_rate: the camera turned more than 90° within the window at ({x}, {y})")
+        _raise_status(2, p, a, b, x, y)
     return KernelPath(times, u, w, cov, ns)
 
 
@@ -674,8 +751,7 @@ def render_thermal_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float,
     mm = _check_scalar("m", m, True)
     x, y = _check_point(point, p)
     a, b = _window(p, tf, y, mm * p.tau)
-    _, Q, w, cov, ns = _nodes_for(t, r, p, a, b, False, _px_per_rad(p, np.array([[x, y]])))
-    return _kernel_from_nodes(Q, w, cov, ns, p, x, y, psf)
+    return _render(t, r, p, a, b, False, x, y, psf)
 
 
 def render_photon_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float, exposure_s: float, *,
@@ -691,8 +767,7 @@ def render_photon_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float, 
     ex = _check_scalar("exposure_s", exposure_s, True)
     x, y = _check_point(point, p)
     a, b = _window(p, tf, y, ex)
-    _, Q, w, cov, ns = _nodes_for(t, r, p, a, b, True, _px_per_rad(p, np.array([[x, y]])))
-    return _kernel_from_nodes(Q, w, cov, ns, p, x, y, psf)
+    return _render(t, r, p, a, b, True, x, y, psf)
 
 
 def _grid_layout(h: int, w: int, rows: int, cols: int):
@@ -735,16 +810,15 @@ def render_kernel_grid(gyro_t, gyro_rate, calib: Calibration, t_frame: float, gr
     else:
         raise KernelError(f"kind: expected 'thermal' or 'photon', got {kind!r}")
     centers, bounds = _grid_layout(p.height, p.width, rows, cols)
-    pts_all = centers[..., ::-1].reshape(-1, 2)   # (x, y)
-    ppr = _px_per_rad(p, pts_all)
+    ppr = _px_per_rad(p, p.cx, p.cy)   # the frame-wide bound: same sub-steps as single kernels
     kernels = []
     times = np.empty(rows)
     for i in range(rows):
         y = float(centers[i, 0, 0])
         a, b = _window(p, tf, y, length)
         times[i] = b
-        _, Q, w, cov, ns = _nodes_for(t, r, p, a, b, uniform, ppr)
-        kernels.append([_kernel_from_nodes(Q, w, cov, ns, p, float(centers[i, j, 1]), y, psf)
+        _, Q, w, cov, ns = _nodes_for(t, r, p, a, b, uniform, ppr, p.cx, y)
+        kernels.append([_kernel_from_nodes(Q, w, cov, ns, p, float(centers[i, j, 1]), y, psf, a, b)
                         for j in range(cols)])
     return KernelGrid(kernels, centers, bounds, times, (p.height, p.width), kind)
 
@@ -867,12 +941,13 @@ def render_thermal_kernel_reference(gyro_t, gyro_rate, calib: Calibration, t_fra
     inside = (tc > a) & (tc < b)
     bt = np.r_[a, tc[inside], b]
     bQ = [None] + [Qs[i] for i in np.nonzero(inside)[0]] + [np.eye(3)]
-    ppr = _px_per_rad(p, np.array([[x, y]]))
+    ppr = _px_per_rad(p, x, y)
     times, Qn = [], []
     for k in range(len(bt) - 1):
         s0, s1 = bt[k], bt[k + 1]
         w0, w1 = rate(s0), rate(s1)
-        n = max(1, int(math.ceil(ppr * max(np.linalg.norm(w0), np.linalg.norm(w1)) * (s1 - s0) / MAX_STEP_PX)))
+        move = ppr * max(np.linalg.norm(w0), np.linalg.norm(w1)) * (s1 - s0)
+        n = max(1, int(math.ceil(move / MAX_STEP_PX)))
         for j in range(n):
             s = s0 + (s1 - s0) * j / n
             times.append(s)
