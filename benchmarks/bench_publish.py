@@ -1,0 +1,108 @@
+"""Transport speed: cost of a `publish_*` call in the daemon's threads, and loopback latency and
+throughput to one subscriber, for 640×512 frames (float32 deblurred, uint16 raw) and gyro batches.
+
+    .venv/bin/python benchmarks/bench_publish.py [--quick]
+"""
+
+import argparse
+import time
+
+import numpy as np
+
+from thermod.publish import Publisher, Subscriber
+
+H, W = 512, 640
+
+
+def connect(pub, topics):
+    sub = Subscriber(pub.endpoint, topics=(*topics, "health"), rcvhwm=1000)
+    while True:
+        pub.publish_health()
+        if sub.recv(0.05) is not None:
+            while sub.recv(0.05) is not None:
+                pass
+            return sub
+
+
+def call_cost(n):
+    """Median µs per call; the publisher is not started, so only the caller's work is timed."""
+    img = np.random.default_rng(0).normal(1e4, 100, (H, W)).astype(np.float32)
+    raw = img.astype(np.uint16)
+    gt, gr = np.arange(20) * 1e-3, np.zeros((20, 3), np.float32)
+    rows = []
+    for name, fn in [
+        ("publish_frame f32 (copy)", lambda p, i: p.publish_frame(img, i, frame_id=i, deblurred=True,
+                                                                kernel_size=(15, 15), coverage=1.0)),
+        ("publish_frame f32 (handover)", lambda p, i: p.publish_frame(img, i, frame_id=i, deblurred=True,
+                                                                    copy=False)),
+        ("publish_raw u16 (copy)", lambda p, i: p.publish_raw(raw, i, frame_id=i)),
+        ("publish_gyro 20 samples", lambda p, i: p.publish_gyro(gt, gr, seq=20 * i)),
+        ("publish_health", lambda p, i: p.publish_health(rates={"frame_hz": 50.0})),
+    ]:
+        p = Publisher("tcp://127.0.0.1:*", queue_size=8)
+        dt = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            fn(p, i)
+            dt.append(time.perf_counter() - t0)
+        rows.append((name, 1e6 * np.median(dt), 1e6 * np.percentile(dt, 99)))
+    return rows
+
+
+def latency(n, fps):
+    """Frames paced at `fps`: received − published and received − call, ms."""
+    img = np.ones((H, W), np.float32)
+    with Publisher("tcp://127.0.0.1:*", hwm=1000, queue_size=1000) as pub:
+        sub = connect(pub, ("frame",))
+        lat_send, lat_all = [], []
+        for i in range(n):
+            t = time.monotonic()
+            pub.publish_frame(img, t, frame_id=i, deblurred=True)
+            m = sub.recv(1.0)
+            lat_send.append(m[1]["received"] - m[1]["published"])
+            lat_all.append(m[1]["received"] - t)
+            time.sleep(max(0.0, 1 / fps - (time.monotonic() - t)))
+        sub.close()
+    return [np.median(lat_send) * 1e3, np.percentile(lat_send, 99) * 1e3, np.median(lat_all) * 1e3,
+            np.percentile(lat_all, 99) * 1e3]
+
+
+def throughput(n, dtype):
+    img = np.ones((H, W), dtype)
+    with Publisher("tcp://127.0.0.1:*", hwm=10000, queue_size=10000) as pub:
+        sub = connect(pub, ("frame", "raw"))
+        got = 0
+        t0 = time.monotonic()
+        for i in range(n):
+            if dtype == np.float32:
+                pub.publish_frame(img, i, frame_id=i, deblurred=True, copy=False)
+            else:
+                pub.publish_raw(img, i, frame_id=i, copy=False)
+        while got < n and sub.recv(2.0) is not None:
+            got += 1
+        dt = time.monotonic() - t0
+        lost = sum(sub.gaps.values())
+        sub.close()
+    return got / dt, got * img.nbytes / dt / 2**20, lost
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true")
+    q = ap.parse_args().quick
+    print(f"frames {W}×{H}\n")
+    print(f"{'call (caller thread)':<32}{'median µs':>12}{'p99 µs':>12}")
+    for name, med, p99 in call_cost(50 if q else 300):
+        print(f"{name:<32}{med:12.1f}{p99:12.1f}")
+    print(f"\n{'loopback latency at 50 fps, f32':<32}{'median ms':>12}{'p99 ms':>12}")
+    ls = latency(50 if q else 250, 50.0)
+    print(f"{'published → received':<32}{ls[0]:12.3f}{ls[1]:12.3f}")
+    print(f"{'publish call → received':<32}{ls[2]:12.3f}{ls[3]:12.3f}")
+    print(f"\n{'throughput, one subscriber':<32}{'frames/s':>12}{'MiB/s':>12}{'lost':>8}")
+    for name, dt in (("frame f32", np.float32), ("raw u16", np.uint16)):
+        fps, mib, lost = throughput(100 if q else 500, dt)
+        print(f"{name:<32}{fps:12.0f}{mib:12.0f}{lost:8d}")
+
+
+if __name__ == "__main__":
+    main()
