@@ -51,7 +51,7 @@ class SimConfig:
 
     scene: str = "real:1"
     motion: str = "shake:3"
-    loop_s: float = 4.0
+    loop_s: float = 2.0
     seed: int = 0
     frame_rate_hz: float = 50.0
     gyro_rate_hz: float = 1000.0

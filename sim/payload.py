@@ -1,0 +1,264 @@
+"""The simulated payload behind ``config/sim.toml``: a thermal camera and a gyro that see the SAME motion.
+
+- Camera: a loop of ``loop_s`` seconds pre-rendered by the simulator (`thermod.sim.synth.simulate`,
+  the fine-time microbolometer model, Eq. 10/11) and cached on disk as a format-v1 recording with
+  its truth. `SimCamera` plays it in real time: frame k is "read" at ``T0 + k/fps`` (host monotonic),
+  shows loop frame ``k mod N`` and is delivered when that time has come.
+- Gyro: the REAL ICM-42688-P driver (`thermod.drivers.icm42688.ICM42688`) over the SPI bus seam on
+  the register-level emulator (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at 1 kHz in
+  real time with the motion's rate at each tick: ``rate_fn(t) = R_gyro_cam · ω(t − T0)``.
+
+Both use one motion whose rate is periodic with period ``loop_s`` (a shake's sine frequencies are
+snapped to multiples of 1/loop_s; any other motion is wrapped), so the blur of every frame — also
+across the loop's seam — matches the gyro, and the deblurred stream can be checked against the
+truth: `truth_for(frame_id)` returns the sharp view of a delivered frame.
+
+Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
+raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
+overflow), reachable as ``payload.chip``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from thermod import recording
+from thermod.calibration import Calibration
+from thermod.drivers.camera_base import CameraSource, Frame
+from thermod.errors import DeviceError, RecordingError
+from thermod.sim import motion as mo
+
+log = logging.getLogger(__name__)
+
+CACHE_VERSION = 1
+
+
+class PeriodicMotion(mo.Motion):
+    """ω(t mod L): a motion made periodic so a looped recording and a live gyro agree at every time."""
+
+    def __init__(self, base: mo.Motion, period_s: float):
+        self.base, self.period_s = base, float(period_s)
+        self.spec = f"{base.spec}@{period_s:g}s"
+
+    def omega(self, t) -> np.ndarray:
+        return self.base.omega(np.mod(np.asarray(t, np.float64), self.period_s))
+
+
+def loop_motion(spec: str, period_s: float, seed: int = 0) -> mo.Motion:
+    """The payload's motion: sine motions snapped to whole cycles per loop (smooth and periodic),
+    anything else wrapped with `PeriodicMotion`."""
+    m = mo.parse(spec, seed)
+    if isinstance(m, mo.SumOfSines):
+        f = np.maximum(1.0, np.round(m.freqs * period_s)) / period_s
+        return mo.SumOfSines(f, m.amps, m.phases, spec=f"{m.spec}@{period_s:g}s")
+    return PeriodicMotion(m, period_s)
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "thermod"
+
+
+class SimPayload:
+    """Simulated camera + gyro on a common time base. `prepare` (pre-render or load the cache),
+    `start` (set T0), then hand `camera_source()` / `gyro_source()` to the daemon."""
+
+    def __init__(self, sim_cfg, calib: Calibration):
+        self.cfg, self.calib = sim_cfg, calib
+        self.motion = loop_motion(sim_cfg.motion, sim_cfg.loop_s, sim_cfg.seed)
+        key = json.dumps({"v": CACHE_VERSION, "sim": asdict(sim_cfg) | {"cache_dir": ""},
+                          "calib": calib.as_dict()}, sort_keys=True)
+        digest = hashlib.sha1(key.encode()).hexdigest()[:12]
+        cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else default_cache_dir()
+        self.cache_path = cache_dir / f"payload-{digest}.h5"
+        self.frames: np.ndarray | None = None     # uint16 [N, H, W] (the loop)
+        self.truth: np.ndarray | None = None      # float32 [N, H, W] sharp views
+        self.t0: float | None = None              # host time of loop frame 0's read, first pass
+        self.chip = None
+        self._camera: SimCamera | None = None
+        self._gyro = None
+
+    # ------------------------------------------------------------------ the loop
+    def cached(self) -> bool:
+        return self.cache_path.exists()
+
+    def prepare(self) -> None:
+        """Load the pre-rendered loop from the cache, rendering (once, slowly) if it is missing."""
+        if self.frames is not None:
+            return
+        if self.cached():
+            try:
+                rec = recording.read(self.cache_path)
+                self._adopt(rec)
+                return
+            except (RecordingError, KeyError, OSError) as e:
+                log.warning("payload cache %s unusable (%s); rendering again", self.cache_path, e)
+        self._render()
+
+    def _render(self) -> None:
+        from thermod.sim import synth
+
+        t0 = time.monotonic()
+        c = self.cfg
+        rec = synth.simulate(scene=c.scene, motion=self.motion, seconds=c.loop_s, calib=self.calib,
+                             seed=c.seed, frame_rate=c.frame_rate_hz, t0=0.0, truth=True)
+        rec.extras = {"truth/frames": rec.extras["truth/frames"].astype(np.float32)}
+        self.cache_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.cache_path.with_suffix(f".tmp{os.getpid()}.h5")
+        recording.write(tmp, rec)
+        os.replace(tmp, self.cache_path)                # atomic: a half-written cache never exists
+        log.warning("simulated payload: rendered %d frames in %.0f s → %s", rec.n_frames,
+                    time.monotonic() - t0, self.cache_path)
+        self._adopt(rec)
+
+    def _adopt(self, rec: recording.Recording) -> None:
+        n = int(round(self.cfg.loop_s * self.cfg.frame_rate_hz))
+        if rec.frames.shape != (n, self.calib.height, self.calib.width) or "truth/frames" not in rec.extras:
+            raise RecordingError(self.cache_path, "camera/frames", f"expected {n} frames of "
+                                 f"{self.calib.height}×{self.calib.width} with truth/frames")
+        self.frames = np.ascontiguousarray(rec.frames)
+        self.truth = np.asarray(rec.extras["truth/frames"], np.float32)
+
+    @property
+    def n_frames(self) -> int:
+        return 0 if self.frames is None else len(self.frames)
+
+    def truth_for(self, frame_id: int) -> np.ndarray:
+        """The sharp view (float32 counts) of delivered frame `frame_id` (ids start at 1)."""
+        return self.truth[(int(frame_id) - 1) % self.n_frames]
+
+    def frame_for(self, frame_id: int) -> np.ndarray:
+        """The blurry raw frame (uint16) delivered as `frame_id`."""
+        return self.frames[(int(frame_id) - 1) % self.n_frames]
+
+    # ------------------------------------------------------------------ live
+    def start(self, t0: float | None = None) -> None:
+        """Fix the common time base: loop frame 0 is read at host time T0 (default: now + 50 ms)."""
+        self.t0 = time.monotonic() + 0.05 if t0 is None else float(t0)
+        if self._camera is not None:
+            self._camera.t0 = self.t0
+
+    def stop(self) -> None:
+        pass
+
+    def _rate_fn(self, t: np.ndarray) -> np.ndarray:
+        # raw gyro-frame rate: ω_gyro = scale⁻¹ · R_cam_gyroᵀ · ω_cam + bias (the calibration inverted)
+        t0 = self.t0 if self.t0 is not None else 0.0
+        w_cam = self.motion.omega(np.asarray(t, np.float64) - t0)
+        c = self.calib
+        return (w_cam @ c.R_cam_gyro_matrix) / c.scale_vector + np.asarray(c.bias_rad_s)
+
+    def gyro_source(self):
+        """The real ICM-42688-P driver on its SPI register emulator, fed by the payload's motion."""
+        if self._gyro is None:
+            from thermod.drivers.bus import SPIBus
+            from thermod.drivers.icm42688 import ICM42688
+            from thermod.sim.emu_registers import EmuSPI, ICM42688Emu
+
+            self.chip = ICM42688Emu(rate_fn=self._rate_fn, noise_rad_s=self.cfg.gyro_noise_rad_s,
+                                    seed=self.cfg.seed)
+            self._gyro = ICM42688(SPIBus(EmuSPI(self.chip)), full_scale_dps=2000.0,
+                                  rate_hz=self.cfg.gyro_rate_hz, read_interval_s=0.002, name="ICM-42688-P (sim)")
+        return self._gyro
+
+    def camera_source(self) -> SimCamera:
+        if self._camera is None:
+            self._camera = SimCamera(self)
+        return self._camera
+
+
+class SimCamera(CameraSource):
+    """Plays the payload's loop in real time; frame ids start at 1 and count every frame period,
+    so frames not delivered (a stall) show up as `gap_before` like a real camera's id gaps."""
+
+    name = "sim camera"
+
+    def __init__(self, payload: SimPayload, latency_s: float = 0.002):
+        self.p = payload
+        self.latency_s = latency_s          # transfer delay after the last row is read
+        self.t0 = payload.t0
+        self._k = 0                         # next frame index to deliver
+        self._running = False
+        self._lock = threading.Lock()
+        self._stall_until = -math.inf
+        self._down_until = -math.inf
+        self._pending_gap = 0
+        self.buffer_frames = 8              # frames the "camera link" buffers for a late reader
+        self.counters = {"frames": 0, "lost": 0, "stalls": 0, "disconnects": 0, "starts": 0}
+
+    def start(self) -> None:
+        if time.monotonic() < self._down_until:
+            raise DeviceError(f"{self.name}: not responding (simulated disconnect) — check the cable")
+        self.p.prepare()
+        if self.t0 is None:
+            self.p.start()
+            self.t0 = self.p.t0
+        self._running = True
+        self.counters["starts"] += 1
+        # (re)connecting resumes at the current frame: what was missed is an id gap
+        k = max(self._k, self._index_at(time.monotonic()))
+        self._pending_gap += k - self._k
+        self._k = k
+
+    def stop(self) -> None:
+        self._running = False
+
+    def _index_at(self, now: float) -> int:
+        return max(0, int(math.floor((now - self.latency_s - self.t0) * self.p.cfg.frame_rate_hz)) + 1)
+
+    def stall(self, seconds: float) -> None:
+        """Deliver nothing for `seconds` (frames keep being 'read' and are lost)."""
+        self._stall_until = time.monotonic() + seconds
+        self.counters["stalls"] += 1
+
+    def disconnect(self, seconds: float) -> None:
+        """Every poll/start raises DeviceError for `seconds`."""
+        self._down_until = time.monotonic() + seconds
+        self.counters["disconnects"] += 1
+
+    def poll(self, timeout: float) -> Frame | None:
+        now = time.monotonic()
+        if now < self._down_until:
+            self._running = False
+            time.sleep(min(timeout, self._down_until - now))
+            raise DeviceError(f"{self.name}: connection lost (simulated) — check the cable")
+        if not self._running:
+            raise DeviceError(f"{self.name}: poll() before start()")
+        fps = self.p.cfg.frame_rate_hz
+        with self._lock:
+            k = self._k
+            t_read = self.t0 + k / fps
+            due = t_read + self.latency_s
+            if due > now:
+                if due > now + timeout:
+                    time.sleep(max(0.0, timeout))
+                    return None
+                time.sleep(due - now)
+            now = time.monotonic()
+            newest = self._index_at(now) - 1
+            if now < self._stall_until:
+                self._pending_gap += max(0, newest + 1 - k)     # read by the sensor, never sent
+                self._k = k = max(k, newest + 1)
+                return None
+            # a reader later than the link's buffer loses the oldest frames (counted as an id gap)
+            gap = self._pending_gap + max(0, newest - k - self.buffer_frames)
+            k = max(k, newest - self.buffer_frames)
+            self._pending_gap = 0
+            self._k = k + 1
+        img = self.p.frames[k % self.p.n_frames]
+        self.counters["frames"] += 1
+        self.counters["lost"] += gap
+        return Frame(image=img, t=self.t0 + k / fps, frame_id=k + 1, device_ts=k, arrival=now, gap_before=gap)
+
+    def stats(self) -> dict:
+        return dict(self.counters)
