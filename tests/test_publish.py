@@ -159,6 +159,8 @@ def test_malformed_messages_are_counted_and_skipped():
     got = sub.recv(2.0)
     assert got is not None and got[1]["seq"] == 7 and got[2].tolist() == [[0, 1, 2], [3, 4, 5]]
     assert sum(sub.errors.values()) == len(bad)
+    assert sub.errors == {"framing": 1, "topic": 1, "json": 3, "version": 1, "header": 2, "payload_size": 1,
+                          "dtype": 1, "shape": 1, "header_size": 1, "layout": 1}
     assert sub.received["raw"] >= 2
     sub.close()
     raw.close(0)

@@ -369,7 +369,13 @@ def _nbytes(payload) -> int:
 
 # -------------------------------------------------------------------------------------- subscriber
 class MessageError(ValueError):
-    """A received message violates wire v1 (counted and logged by `Subscriber`, never raised out)."""
+    """A received message violates wire v1 (counted by `kind` and logged by `Subscriber`, never raised
+    out of it). `kind`: framing, topic, header_size, json, version, header, dtype, shape, layout,
+    payload_size."""
+
+    def __init__(self, kind: str, message: str):
+        self.kind = kind
+        super().__init__(message)
 
 
 def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str] = TOPICS):
@@ -380,42 +386,44 @@ def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str]
     with fields ``t`` (<f8) and ``rate`` (<f4, 3); ``health`` to an empty uint8 array.
     """
     if len(frames) != 3:
-        raise MessageError(f"expected 3 frames [topic, header, payload], got {len(frames)}")
+        raise MessageError("framing", f"expected 3 frames [topic, header, payload], got {len(frames)}")
     raw_topic, raw_header, payload = (f.buffer if isinstance(f, zmq.Frame) else memoryview(f) for f in frames)
     topic = bytes(raw_topic).decode("ascii", "replace")
     if topic not in topics:
-        raise MessageError(f"topic {topic!r} is not one of {tuple(topics)}")
+        raise MessageError("topic", f"topic {topic!r} is not one of {tuple(topics)}")
     if raw_header.nbytes > max_header_bytes:
-        raise MessageError(f"{topic}: header is {raw_header.nbytes} bytes, limit {max_header_bytes}")
+        raise MessageError("header_size", f"{topic}: header is {raw_header.nbytes} bytes, "
+                                          f"limit {max_header_bytes}")
     try:
         header = json.loads(bytes(raw_header).decode("utf-8"), parse_constant=_reject_constant)
     except (UnicodeDecodeError, ValueError) as e:
-        raise MessageError(f"{topic}: header is not UTF-8 JSON ({e})") from None
+        raise MessageError("json", f"{topic}: header is not UTF-8 JSON ({e})") from None
     if not isinstance(header, dict):
-        raise MessageError(f"{topic}: header must be a JSON object, got {type(header).__name__}")
+        raise MessageError("json", f"{topic}: header must be a JSON object, got {type(header).__name__}")
     if header.get("v") != WIRE_VERSION:
-        raise MessageError(f"{topic}: header v={header.get('v')!r}, this subscriber speaks v{WIRE_VERSION}")
+        raise MessageError("version", f"{topic}: header v={header.get('v')!r}, expected {WIRE_VERSION}")
     seq = header.get("seq")
     if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-        raise MessageError(f"{topic}: header seq must be a non-negative integer, got {seq!r}")
+        raise MessageError("header", f"{topic}: header seq must be a non-negative integer, got {seq!r}")
     for key in ("t", "published"):
         if not _is_number(header.get(key)):
-            raise MessageError(f"{topic}: header {key!r} must be a number (s), got {header.get(key)!r}")
+            raise MessageError("header", f"{topic}: header {key!r} must be a number (s), "
+                                         f"got {header.get(key)!r}")
     if not isinstance(header.get("deblurred"), bool):
-        raise MessageError(f"{topic}: header 'deblurred' must be true/false, got {header.get('deblurred')!r}")
+        raise MessageError("header", f"{topic}: header 'deblurred' must be true/false, "
+                                     f"got {header.get('deblurred')!r}")
     shape = _shape(topic, "shape", header.get("shape"))
     dtype = header.get("dtype")
-    nbytes = payload.nbytes
     if dtype == PACKED:
         return topic, header, _decode_packed(topic, header, shape, payload)
     if dtype not in ARRAY_DTYPES:
-        raise MessageError(f"{topic}: dtype {dtype!r} not allowed (expected one of {ARRAY_DTYPES})")
-    itemsize = np.dtype(dtype).itemsize
-    if math.prod(shape) * itemsize != nbytes:
-        raise MessageError(f"{topic}: payload is {nbytes} bytes, shape {shape} × {dtype} needs "
-                           f"{math.prod(shape) * itemsize}")
+        raise MessageError("dtype", f"{topic}: dtype {dtype!r} not allowed (expected one of {ARRAY_DTYPES})")
+    need = math.prod(shape) * np.dtype(dtype).itemsize
+    if need != payload.nbytes:
+        raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, shape {shape} × "
+                                           f"{dtype} needs {need}")
     if topic in ("frame", "raw") and len(shape) != 2:
-        raise MessageError(f"{topic}: shape must be [H, W], got {shape}")
+        raise MessageError("shape", f"{topic}: shape must be [H, W], got {shape}")
     array = np.frombuffer(payload, dtype=dtype).reshape(shape)
     array.flags.writeable = False  # a view on ZeroMQ's message buffer
     return topic, header, array
@@ -424,27 +432,28 @@ def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str]
 def _decode_packed(topic: str, header: dict, shape: list, payload: memoryview) -> np.ndarray:
     layout = header.get("layout")
     if topic != "gyro" or not isinstance(layout, list) or len(shape) != 1:
-        raise MessageError(f"{topic}: packed payload needs topic 'gyro', shape [N] and a layout list")
+        raise MessageError("layout", f"{topic}: packed payload needs topic 'gyro', shape [N] and a layout")
     n = shape[0]
     parts, offset = {}, 0
     for entry in layout:
         if not (isinstance(entry, list) and len(entry) == 3):
-            raise MessageError(f"{topic}: layout entries must be [name, dtype, shape], got {entry!r}")
+            raise MessageError("layout", f"{topic}: layout entries are [name, dtype, shape], got {entry!r}")
         name, dt, sub = entry
         if GYRO_LAYOUT_DTYPES.get(name) != dt:
-            raise MessageError(f"{topic}: layout entry {name!r} must have dtype "
-                               f"{GYRO_LAYOUT_DTYPES.get(name)!r}, got {dt!r}")
+            raise MessageError("layout", f"{topic}: layout entry {name!r} must have dtype "
+                                         f"{GYRO_LAYOUT_DTYPES.get(name)!r}, got {dt!r}")
         sub = _shape(topic, f"layout[{name}]", sub)
         if not sub or sub[0] != n or (name == "rate" and sub[1:] != [3]) or (name == "t" and len(sub) != 1):
-            raise MessageError(f"{topic}: layout {name} shape {sub} does not fit {n} samples")
+            raise MessageError("layout", f"{topic}: layout {name} shape {sub} does not fit {n} samples")
         size = math.prod(sub) * np.dtype(dt).itemsize
         if offset + size > payload.nbytes:
-            raise MessageError(f"{topic}: payload is {payload.nbytes} bytes, layout needs more")
+            raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, "
+                                               "layout needs more")
         parts[name] = np.frombuffer(payload, dtype=dt, count=math.prod(sub), offset=offset).reshape(sub)
         offset += size
     if offset != payload.nbytes or set(parts) != set(GYRO_LAYOUT_DTYPES):
-        raise MessageError(f"{topic}: layout {[e[0] for e in layout]} covers {offset} of "
-                           f"{payload.nbytes} payload bytes; expected exactly t and rate")
+        raise MessageError("payload_size", f"{topic}: layout {[e[0] for e in layout]} covers {offset} of "
+                                           f"{payload.nbytes} payload bytes; expected exactly t and rate")
     out = np.empty(n, dtype=[("t", "<f8"), ("rate", "<f4", (3,))])
     out["t"], out["rate"] = parts["t"], parts["rate"]
     out.flags.writeable = False
@@ -462,7 +471,8 @@ def _is_number(x) -> bool:
 def _shape(topic, key, shape) -> list:
     if not (isinstance(shape, list) and len(shape) <= 4
             and all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**31 for s in shape)):
-        raise MessageError(f"{topic}: header {key!r} must be a list of ≤ 4 non-negative ints, got {shape!r}")
+        raise MessageError("shape", f"{topic}: header {key!r} must be a list of ≤ 4 non-negative ints, "
+                                    f"got {shape!r}")
     return shape
 
 
@@ -485,7 +495,9 @@ class Subscriber:
         Receive high-water mark (messages).
 
     Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
-    (reason → count of rejected messages), ``restarts`` (seq went backwards: publisher restarted).
+    (`MessageError.kind` → count of rejected messages), ``restarts`` (seq went backwards: the
+    publisher restarted). Each returned header gains ``received`` (host monotonic at receipt).
+    Like any ZeroMQ socket, a Subscriber belongs to one thread.
     """
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, topics: Iterable[str] = ("frame",), *,
@@ -538,8 +550,7 @@ class Subscriber:
                 topic, header, array = decode(frames, max_header_bytes=self.max_header_bytes,
                                               topics=self.topics)
             except MessageError as e:
-                reason = str(e).split(":")[0] if ":" in str(e) else "malformed"
-                self.errors[reason] += 1
+                self.errors[e.kind] += 1
                 n = sum(self.errors.values())
                 if n <= 10 or n % 1000 == 0:
                     log.warning("rejected message #%d from %s: %s", n, self.endpoint, e)
