@@ -50,10 +50,10 @@ def fourcc_str(code: float) -> str:
 def resolve_device(device: str | int | os.PathLike) -> str:
     """Resolve a camera given as index, ``videoN``, ``/dev/videoN`` or a stable ``/dev/v4l/by-id/...``
     (or ``by-path``) symlink to its ``/dev/videoN`` path. Raises DeviceError if it does not exist."""
-    if isinstance(device, int) or (isinstance(device, str) and device.isdigit()):
-        return f"/dev/video{int(device)}"
-    path = os.fspath(device)
-    if re.fullmatch(r"video\d+", path):
+    path = os.fspath(device) if not isinstance(device, int) else str(device)
+    if path.isdigit():
+        path = f"/dev/video{path}"
+    elif re.fullmatch(r"video\d+", path):
         path = "/dev/" + path
     if not os.path.exists(path):
         hint = ""
@@ -172,7 +172,10 @@ class V4L2Camera(CameraSource):
     def _open(self) -> None:
         import cv2
 
-        self.path = resolve_device(self.device) if self.factory is opencv_capture else str(self.device)
+        if self.factory is opencv_capture or os.path.lexists(str(self.device)):
+            self.path = resolve_device(self.device)     # by-id symlink → /dev/videoN
+        else:
+            self.path = str(self.device)                # an injected capture seam names its own devices
         cap = self.factory(self.path)
         if cap is None or not cap.isOpened():
             raise DeviceError(f"{self.name}: cannot open {self.path} (permissions? the video group, udev "
