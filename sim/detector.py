@@ -192,8 +192,10 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
             K_c[0, 2] -= x0
             K_c[1, 2] -= y0
             canvas = scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1)
-            if n_st > 1:    # image motion per step, measured at the corners
-                d = np.abs(np.diff(pc, axis=0)).max()
+            if n_st > 1:    # image motion between consecutive views, in the view, at the corners
+                Hrel = K @ np.einsum("nji,njk->nik", Q[:-1], Q[1:]) @ K_inv
+                pr = np.einsum("nij,jc->nic", Hrel, corners)
+                d = np.hypot(*(pr[:, :2] / pr[:, 2:3] - corners[None, :2]).transpose(1, 0, 2)).max()
                 max_step = max(max_step, float(d))
             for j in range(n_st):
                 Hj = K_c @ Q[j] @ K_inv

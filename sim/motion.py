@@ -277,9 +277,9 @@ def _parse_one(p: str, seed: int, want_duration: bool = False):
             return Static(spec=p), dur
         if want_duration:
             # every non-final part of a sequence ends with its duration: pan:50:yaw:0.5 or pan:50:0.5
-            if not args:
-                raise ThermodError(f"--motion {p!r}: a part inside a sequence needs a duration as its "
-                                   "last field (e.g. pan:50:0.5)")
+            if len(args) < 2:
+                raise ThermodError(f"--motion {p!r}: a part inside a sequence needs its rate and a duration "
+                                   "as the last field (e.g. pan:50:0.5 or pan:50:roll:0.5)")
             dur = float(args[-1])
             args = args[:-1]
         else:
