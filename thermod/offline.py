@@ -1,0 +1,205 @@
+"""`thermod deblur IN.h5 -o OUT.h5` / `thermod deblur A.h5 B.h5 … -o DIR/`: offline deblurring.
+
+For every frame the gyro samples of its 5τ history give the blur kernel (Eq. 18, thermal, or
+Eq. 17, photon baseline), and `thermod.deconv` removes it: by default spatially varying (a grid
+of kernels, deconvolved in blended tiles — camera roll makes the blur vary across the frame),
+or one kernel per frame with `--uniform` (the paper's method).
+
+The output holds the input's /camera and /gyro (and any other datasets, e.g. /truth) plus
+/deblurred/frames (float32, the input's counts) and /deblurred/t. A frame whose gyro window is
+incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
+unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
+frames were deblurred.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from thermod import recording
+from thermod.errors import RecordingError, ThermodError
+
+log = logging.getLogger(__name__)
+
+# Defaults chosen by benchmarks/bench_quality.py (several real scenes, seven speeds, roll-heavy
+# real-gyro family): K&F α = 2/3 with λ = deconv.DEFAULT_LAMBDA["kf"], spatially varying tiles.
+DEFAULT_GRID = (3, 4)
+MIN_COVERAGE = 0.99
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("inputs", nargs="+", type=Path, metavar="IN.h5", help="recording(s), format v1")
+    parser.add_argument("-o", "--output", required=True, type=Path,
+                        help="output file (one input) or directory (several inputs, or a path ending in /)")
+    parser.add_argument("--kernel", choices=("thermal", "photon"), default="thermal",
+                        help="blur model: microbolometer (Eq. 18, default) or photon-detector box (Eq. 17)")
+    parser.add_argument("--exposure", type=float, default=None, metavar="S",
+                        help="exposure of the photon kernel (s; default one frame period)")
+    parser.add_argument("--method", choices=("kf", "wiener"), default="kf",
+                        help="Krishnan–Fergus hyper-Laplacian (default) or Wiener/Tikhonov (fast)")
+    parser.add_argument("--uniform", action="store_true",
+                        help="one kernel per frame (the paper's method) instead of a kernel grid")
+    parser.add_argument("--lambda", dest="lam", type=float, default=None,
+                        help="data weight λ for a unit-range frame (K&F convention; default per method)")
+    parser.add_argument("--alpha", type=float, default=2.0 / 3.0,
+                        help="K&F prior exponent (1 or 2/3; default 2/3)")
+    parser.add_argument("--grid", type=int, nargs=2, default=list(DEFAULT_GRID), metavar=("R", "C"),
+                        help=f"kernel grid rows and columns for spatially varying deblurring "
+                             f"(default {DEFAULT_GRID[0]} {DEFAULT_GRID[1]})")
+    parser.add_argument("--no-psf", action="store_true", help="do not include the optical PSF (Eq. 19)")
+    parser.add_argument("--min-coverage", type=float, default=MIN_COVERAGE,
+                        help=f"pass a frame through when its gyro window coverage is below this "
+                             f"(default {MIN_COVERAGE})")
+
+
+def _outputs(inputs: list[Path], output: Path) -> list[Path]:
+    """Output path per input; several inputs (or -o DIR/) write DIR/<input name>."""
+    as_dir = len(inputs) > 1 or str(output).endswith(os.sep) or output.is_dir()
+    if not as_dir:
+        outs = [output]
+    else:
+        if output.exists() and not output.is_dir():
+            raise ThermodError(f"-o {output}: several inputs need an output directory, this is a file")
+        output.mkdir(parents=True, exist_ok=True)
+        outs = [output / p.name for p in inputs]
+        seen = {}
+        for p, o in zip(inputs, outs, strict=True):
+            if o in seen:
+                raise ThermodError(f"{p} and {seen[o]} would both be written to {o}: rename one")
+            seen[o] = p
+    for p, o in zip(inputs, outs, strict=True):
+        if p.exists() and o.exists() and os.path.samefile(p, o):
+            raise ThermodError(f"-o {o}: would overwrite the input {p}; choose another output")
+    return outs
+
+
+class _FrameDeblurrer:
+    """Kernel rendering + deconvolution of one frame, with the CLI's options."""
+
+    def __init__(self, args):
+        from thermod import deconv  # numba start-up only when deblurring
+
+        self.kind = args.kernel
+        self.exposure = args.exposure
+        self.uniform = args.uniform
+        self.grid = tuple(int(g) for g in args.grid)
+        self.psf = not args.no_psf
+        self.min_coverage = float(args.min_coverage)
+        if self.grid[0] < 1 or self.grid[1] < 1:
+            raise ThermodError(f"--grid {self.grid[0]} {self.grid[1]}: expected at least 1 row and 1 column")
+        if self.exposure is not None and not self.exposure > 0:
+            raise ThermodError(f"--exposure {self.exposure}: expected a positive time in seconds")
+        if not 0 <= self.min_coverage <= 1:
+            raise ThermodError(f"--min-coverage {self.min_coverage}: expected a fraction in [0, 1]")
+        self.dec = deconv.Deconvolver(method=args.method, alpha=args.alpha, lam=args.lam)
+
+    def __call__(self, rec: recording.Recording, i: int) -> tuple[np.ndarray | None, str]:
+        """(deblurred frame, "") or (None, why it was passed through)."""
+        from thermod import kernels
+
+        c = rec.calibration
+        t = float(rec.t[i])
+        exposure = self.exposure if self.exposure is not None else 1.0 / float(c.frame_rate_hz)
+        if self.uniform or self.grid == (1, 1):
+            if self.kind == "thermal":
+                k = kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, c, t, psf=self.psf)
+            else:
+                k = kernels.render_photon_kernel(rec.gyro_t, rec.gyro_rate, c, t, exposure, psf=self.psf)
+            if k.coverage < self.min_coverage:
+                return None, f"gyro coverage {k.coverage:.3f} < {self.min_coverage}"
+            return self.dec.run(rec.frames[i], k), ""
+        g = kernels.render_kernel_grid(rec.gyro_t, rec.gyro_rate, c, t, self.grid, kind=self.kind,
+                                       psf=self.psf, exposure_s=exposure if self.kind == "photon" else None)
+        if g.coverage < self.min_coverage:
+            return None, f"gyro coverage {g.coverage:.3f} < {self.min_coverage}"
+        return self.dec.run_varying(rec.frames[i], g), ""
+
+
+def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
+    rec = recording.read(src)
+    n, h, w = rec.frames.shape
+    bar.total = (bar.total or 0) + n
+    bar.refresh()
+    part = dst.with_name(dst.name + ".part")
+    base = recording.Recording(rec.frames, rec.t, rec.gyro_t, rec.gyro_rate, rec.calibration,
+                               extras=rec.extras, extra_attrs={k: v for k, v in rec.extra_attrs.items()
+                                                               if k.split("/")[0] != "deblurred"})
+    recording.write(part, base)
+    passed: list[tuple[int, str]] = []
+    times = []
+    try:
+        with h5py.File(part, "r+") as f:
+            g = f.require_group("deblurred")
+            ds = g.create_dataset("frames", shape=(n, h, w), dtype=np.float32,
+                                  chunks=(1, h, w) if n else None)
+            ok = np.zeros(n, dtype=bool)
+            for i in range(n):
+                t0 = time.perf_counter()
+                try:
+                    out, why = fd(rec, i)
+                except ThermodError as e:  # a kernel that cannot be rendered: keep the frame
+                    out, why = None, str(e)
+                times.append(time.perf_counter() - t0)
+                if out is None:
+                    passed.append((i, why))
+                    log.info("%s: frame %d passed through: %s", src, i, why)
+                    out = rec.frames[i].astype(np.float32)
+                else:
+                    ok[i] = True
+                ds[i] = out
+                bar.update(1)
+            g.create_dataset("t", data=np.asarray(rec.t, np.float64))
+            g.create_dataset("deblurred", data=ok)
+            g.attrs.update({"kernel": fd.kind, "method": fd.dec.method, "lambda": fd.dec.lam,
+                            "alpha": fd.dec.alpha, "grid": np.asarray((1, 1) if fd.uniform else fd.grid),
+                            "psf": fd.psf, "min_coverage": fd.min_coverage, "source": str(src)})
+        os.replace(part, dst)
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    return {"src": src, "dst": dst, "n": n, "passed": passed, "times": times}
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    outs = _outputs(list(args.inputs), args.output)
+    fd = _FrameDeblurrer(args)
+    reports, failed = [], []
+    t_start = time.perf_counter()
+    with tqdm(total=0, unit="frame", desc="thermod deblur", disable=None, file=sys.stderr) as bar:
+        for src, dst in zip(args.inputs, outs, strict=True):
+            try:
+                reports.append(_deblur_file(src, dst, fd, bar))
+            except RecordingError as e:
+                if len(outs) == 1:
+                    raise
+                print(f"thermod deblur: error: {e}", file=sys.stderr)  # keep going with the others
+                failed.append(src)
+    wall = time.perf_counter() - t_start
+    n_all = sum(r["n"] for r in reports)
+    n_pass = sum(len(r["passed"]) for r in reports)
+    for r in reports:
+        ms = 1e3 * float(np.median(r["times"])) if r["times"] else 0.0
+        print(f"{r['src']} → {r['dst']}: {r['n'] - len(r['passed'])} deblurred, {len(r['passed'])} passed "
+              f"through, {ms:.1f} ms/frame (median)")
+        for i, why in r["passed"][:20]:
+            print(f"  frame {i} passed through: {why}")
+        if len(r["passed"]) > 20:
+            print(f"  … and {len(r['passed']) - 20} more")
+    mode = "uniform" if fd.uniform else f"grid {fd.grid[0]}×{fd.grid[1]}"
+    print(f"total: {n_all - n_pass} frames deblurred, {n_pass} passed through, {len(reports)} file(s) in "
+          f"{wall:.1f} s ({1e3 * wall / max(n_all, 1):.1f} ms/frame; "
+          f"{fd.kind} kernel, {fd.dec.method}, {mode})")
+    if failed:
+        print(f"thermod deblur: {len(failed)} file(s) failed: {', '.join(map(str, failed))}", file=sys.stderr)
+        return 2
+    return 0
