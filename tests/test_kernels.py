@@ -594,3 +594,35 @@ def test_bad_inputs_raise_clear_errors():
     # degrees fed as rad/s: a clear error, not a hang or a 10⁵-px array
     with pytest.raises(ThermodError, match="gyro"):
         K.render_thermal_kernel(*gyro_const((0, 3000.0, 0)), CAL, 0.05)
+
+
+def test_kernel_construction_is_checked():
+    k = K.Kernel(np.ones((2, 3)) / 6, (np.int64(1), 2.0))
+    assert k.weights.dtype == np.float32 and k.origin == (1, 2) and type(k.origin[0]) is int
+    assert k.extent_px == pytest.approx(math.hypot(1, 2))
+    assert k.centroid == pytest.approx((-0.5, -1.0))
+    with pytest.raises(ThermodError, match="Kernel.origin"):
+        K.Kernel(np.ones((2, 3), np.float32), (2, 0))
+    with pytest.raises(ThermodError, match="Kernel.weights"):
+        K.Kernel(np.ones(3, np.float32), (0, 0))
+
+
+def test_coverage_at_both_ends_and_without_samples():
+    v = 30 * DEG
+    t, r = gyro_const(yaw(v), t0=0.08, t1=0.2)       # gyro starts 20 ms into the 40 ms window
+    k = K.render_thermal_kernel(t, r, CAL, 0.1, psf=False)
+    assert k.coverage == pytest.approx((1 - math.exp(-20 / 8)) / (1 - math.exp(-5)), rel=1e-9)
+    assert k.n_samples == 20
+    # the rate is held before the first sample: same kernel as a gyro that had it all along
+    # (up to the sub-step ripple: the held stretch is split differently)
+    full = K.render_thermal_kernel(*gyro_const(yaw(v), t0=0.0, t1=0.2), CAL, 0.1, psf=False)
+    np.testing.assert_allclose(k.weights, full.weights, atol=2e-4)
+    assert k.centroid[1] == pytest.approx(full.centroid[1], rel=1e-5)
+    assert full.coverage == 1.0
+    # every sample after the window: rate held from the first one, nothing covered
+    k0 = K.render_thermal_kernel(t, r, CAL, 0.05, psf=False)
+    assert k0.coverage == 0.0 and k0.n_samples == 0
+    assert k0.centroid[1] == pytest.approx(full.centroid[1], rel=1e-5)
+    # a gyro that stopped long ago: held at the last sample
+    k1 = K.render_thermal_kernel(t, r, CAL, 0.5, psf=False)
+    assert k1.coverage == 0.0 and k1.centroid[1] == pytest.approx(full.centroid[1], rel=1e-5)

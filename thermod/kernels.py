@@ -50,7 +50,7 @@ class KernelError(ThermodError, ValueError):
 
 
 # ------------------------------------------------------------------------------------------ types
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Kernel:
     """A discrete blur kernel: B(p) = Σ_u k(u) S(p − u) with k(u) = weights[oy + u_y, ox + u_x].
 
@@ -67,6 +67,21 @@ class Kernel:
     origin: tuple[int, int]
     coverage: float = 1.0
     n_samples: int = 0
+
+    def __post_init__(self):
+        w = self.weights
+        if not isinstance(w, np.ndarray) or w.dtype != np.float32:
+            w = np.asarray(w, dtype=np.float32)
+            object.__setattr__(self, "weights", w)
+        if w.ndim != 2 or w.size == 0:
+            raise KernelError(f"Kernel.weights: expected a non-empty 2-D array, got shape {w.shape}")
+        try:
+            oy, ox = (int(o) for o in self.origin)
+        except (TypeError, ValueError):
+            raise KernelError(f"Kernel.origin: expected (oy, ox) integers, got {self.origin!r}") from None
+        if not (0 <= oy < w.shape[0] and 0 <= ox < w.shape[1]):
+            raise KernelError(f"Kernel.origin: {self.origin!r} lies outside weights of shape {w.shape}")
+        object.__setattr__(self, "origin", (oy, ox))
 
     @functools.cached_property
     def extent_px(self) -> float:
@@ -89,7 +104,7 @@ class Kernel:
         return self.weights.shape
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class KernelPath:
     """The sampled image path of one pixel before splatting: node times, offsets and weights.
 
@@ -104,7 +119,7 @@ class KernelPath:
     n_samples: int
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class KernelGrid:
     """One kernel per cell of a rows × cols grid over the image (spatially varying blur).
 
@@ -836,10 +851,7 @@ def _as_image(image, name="image") -> np.ndarray:
 def _check_kernel(kernel) -> Kernel:
     if not isinstance(kernel, Kernel):
         raise KernelError(f"kernel: expected a thermod.kernels.Kernel, got {type(kernel).__name__}")
-    w = kernel.weights
-    if w.ndim != 2 or not (0 <= kernel.origin[0] < w.shape[0] and 0 <= kernel.origin[1] < w.shape[1]):
-        raise KernelError(f"kernel: origin {kernel.origin} outside weights of shape {w.shape}")
-    return kernel
+    return kernel   # shape and origin were checked when it was made
 
 
 def _filter(img: np.ndarray, kernel: Kernel, border: int) -> np.ndarray:
