@@ -24,8 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default="texture",
                    help="bars | points | texture | real[:N] | PATH to a 16-bit PNG (default texture)")
     p.add_argument("--motion", default="pan:50",
-                   help="pan:50[:axis] | roll:30 | slew:90 | shake:2 | vibration[:rms[:hz]] | sway | log[:start_s] "
-                        "| static; sequences with +, e.g. static:0.3+pan:50 (default pan:50)")
+                   help="pan:50[:axis] | roll:30 | slew:90 | shake:2 | vibration[:rms[:hz]] | sway | "
+                        "log[:start_s] | static; sequences with +, e.g. static:0.3+pan:50 (default pan:50)")
     p.add_argument("--seconds", type=float, default=1.0, help="duration (s, default 1)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE",
                    help="hidden truth effect (repeatable), e.g. time_offset=0.004, rolling_readout=0.012, "
@@ -34,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=None, help="image width (px, default 640)")
     p.add_argument("--height", type=int, default=None, help="image height (px, default 480)")
     p.add_argument("--fps", type=float, default=None, help="frame rate (Hz, default 50)")
-    p.add_argument("--tau", type=float, default=None, help="nominal detector time constant (s, default 0.008)")
+    p.add_argument("--tau", type=float, default=None,
+                   help="nominal detector time constant (s, default 0.008)")
     p.add_argument("--ifov-deg", type=float, default=None, help="angular pixel size (°, default 0.0391)")
     p.add_argument("--gyro-rate", type=float, default=None, help="gyro output rate (Hz, default 1000)")
     p.add_argument("--gyro", default="ideal", choices=("ideal", "paper"),
@@ -57,7 +58,8 @@ def parse_effects(items: list[str]) -> dict:
         try:
             vals = [float(v) for v in val.split(",")]
         except ValueError:
-            raise ThermodError(f"--effect {item!r}: value must be a number or comma-separated numbers") from None
+            raise ThermodError(f"--effect {item!r}: value must be a number or comma-separated "
+                               "numbers") from None
         if not all(math.isfinite(v) for v in vals):
             raise ThermodError(f"--effect {item!r}: value must be finite")
         out[name] = vals[0] if len(vals) == 1 else tuple(vals)
@@ -90,9 +92,10 @@ def build_calibration(args) -> Calibration:
 
 
 def run(args) -> int:
-    from thermod import recording
     from thermod.sim.gyro_model import GyroErrorModel
     from thermod.sim.synth import simulate
+
+    from thermod import recording
 
     out = Path(args.output)
     if not out.parent.exists():
@@ -102,7 +105,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
     rec = simulate(args.scene, args.motion, args.seconds, calib, effects=parse_effects(args.effect),
                    seed=args.seed, frame_rate=args.fps, gyro=gyro, progress=not args.no_progress,
-                   kind=args.detector, exposure_s=args.exposure, step_px=args.step_px, truth=not args.no_truth)
+                   kind=args.detector, exposure_s=args.exposure, step_px=args.step_px,
+                   truth=not args.no_truth)
     recording.write(out, rec)
     dt = time.perf_counter() - t0
     truth = rec.extra_attrs["truth"]

@@ -33,7 +33,7 @@ class GyroErrorModel:
     """Random and electronic gyro errors (per axis, independent). Rates in °/s as on datasheets.
 
     noise_rms_deg_s      white rate noise per sample (°/s RMS at `rate_hz`); ARW = σ/√f·60 °/√h
-    bias_instability_deg_s  B: flicker bias, one-sided PSD B²/(2πf) → Allan floor √(2 ln2/π)·B
+    bias_instability_deg_s  B: flicker bias, PSD B²/(2πf) below `bias_corner_hz` → Allan floor 0.664·B
     rate_random_walk_deg_s_sqrt_s  K: bias random walk, Allan σ(T) = K √(T/3)
     resolution_deg_s     LSB (0 = continuous)
     range_deg_s          full-scale range (± saturation)
@@ -41,6 +41,7 @@ class GyroErrorModel:
     clock_drift_ppm      the gyro clock runs slow/fast: stamps drift away from camera time
     lowpass_hz           chip's digital low-pass (2nd-order Butterworth, group delay ≈ √2/(2π f_c))
     rate_hz              output data rate (None → the calibration's rate_hz)
+    bias_corner_hz       above it the flicker bias rolls off (it never dominates the white noise)
     """
 
     noise_rms_deg_s: float = 0.0
@@ -52,6 +53,7 @@ class GyroErrorModel:
     clock_drift_ppm: float = 0.0
     lowpass_hz: float = 0.0
     rate_hz: float | None = None
+    bias_corner_hz: float = 0.1
 
     @classmethod
     def paper(cls, **kw) -> GyroErrorModel:
@@ -86,6 +88,8 @@ class GyroErrorModel:
             raise ThermodError(f"gyro model rate_hz: expected 0 < rate < 1 MHz, got {self.rate_hz!r}")
         if self.range_deg_s == 0:
             raise ThermodError("gyro model range_deg_s: must be > 0")
+        if self.bias_corner_hz <= 0:
+            raise ThermodError(f"gyro model bias_corner_hz: must be > 0, got {self.bias_corner_hz!r}")
 
     def sample(self, omega_cam, t_start: float, t_end: float, calib: Calibration,
                rng: np.random.Generator, t_anchor: float | None = None) -> GyroSamples:
@@ -121,7 +125,7 @@ class GyroErrorModel:
         if self.noise_rms_deg_s > 0:
             err += self.noise_rms_deg_s * DEG * rng.standard_normal((n, 3))
         if self.bias_instability_deg_s > 0:
-            err += flicker_noise(n, 1.0 / rate, self.bias_instability_deg_s * DEG, rng)
+            err += flicker_noise(n, 1.0 / rate, self.bias_instability_deg_s * DEG, rng, self.bias_corner_hz)
         if self.rate_random_walk_deg_s_sqrt_s > 0:
             k = self.rate_random_walk_deg_s_sqrt_s * DEG
             steps = k * math.sqrt(1.0 / rate) * rng.standard_normal((n, 3))
@@ -160,14 +164,16 @@ class GyroSamples:
     rate_hz: float
 
 
-def flicker_noise(n: int, dt: float, b: float, rng: np.random.Generator) -> np.ndarray:
-    """[n, 3] flicker (1/f) rate noise with one-sided PSD b²/(2πf), so that its Allan deviation
-    floor is √(2 ln2/π)·b ≈ 0.664 b (IEEE 952 bias instability). Spectral synthesis on 2n points
-    (first half kept, so the FFT's periodic wrap does not show)."""
+def flicker_noise(n: int, dt: float, b: float, rng: np.random.Generator, corner_hz: float = 0.1) -> np.ndarray:
+    """[n, 3] flicker (1/f) bias noise: IEEE 952 PSD B²/(2πf) (two-sided level, i.e. one-sided
+    B²/(πf)) below `corner_hz`, rolled off as 1/f³ above it so that it never masks the white noise
+    at the sample rate. Its Allan deviation floor is √(2 ln2/π)·B ≈ 0.664 B for averaging times
+    ≫ 1/(2π corner). Spectral synthesis on 2n points (first half kept: no periodic wrap)."""
     m = 2 * n
     f = np.fft.rfftfreq(m, dt)
     amp = np.zeros_like(f)
-    amp[1:] = np.sqrt(m * (b * b / (2 * np.pi * f[1:])) / (4 * dt))
+    s1 = b * b / (np.pi * f[1:]) / (1.0 + (f[1:] / corner_hz) ** 2)
+    amp[1:] = np.sqrt(m * s1 / (4 * dt))
     X = amp[:, None] * (rng.standard_normal((f.size, 3)) + 1j * rng.standard_normal((f.size, 3)))
     return np.fft.irfft(X, n=m, axis=0)[:n]
 
