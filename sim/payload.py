@@ -178,46 +178,45 @@ class SimPayload:
 
 
 class SimCamera(CameraSource):
-    """Plays the payload's loop in real time; frame ids start at 1 and count every frame period,
-    so frames not delivered (a stall) show up as `gap_before` like a real camera's id gaps."""
+    """The payload's camera: the simulator's GigE-style emulated camera (`thermod.sim.emu_camera.EmuCamera`:
+    device clock with drift, 16-bit block ids, transport latency, a buffer pool) playing the loop,
+    plus the faults the daemon must survive: `stall` (frames stop arriving) and `disconnect`.
+
+    Frame index k is read at ``T0 + k/fps`` and shows loop frame ``k mod N``; its id is k + 1.
+    """
 
     name = "sim camera"
 
-    def __init__(self, payload: SimPayload, latency_s: float = 0.002):
+    def __init__(self, payload: SimPayload, *, latency_s: float = 0.002, drift_ppm: float = 20.0):
         self.p = payload
-        self.latency_s = latency_s          # transfer delay after the last row is read
-        self.t0 = payload.t0
-        self._k = 0                         # next frame index to deliver
-        self._running = False
-        self._lock = threading.Lock()
+        self.latency_s, self.drift_ppm = latency_s, drift_ppm
+        self.emu = None
         self._stall_until = -math.inf
         self._down_until = -math.inf
-        self._pending_gap = 0
-        self.buffer_frames = 8              # frames the "camera link" buffers for a late reader
-        self.counters = {"frames": 0, "lost": 0, "stalls": 0, "disconnects": 0, "starts": 0}
+        self.counters = {"stalls": 0, "disconnects": 0, "starts": 0, "discarded_in_stall": 0}
 
     def start(self) -> None:
         if time.monotonic() < self._down_until:
             raise DeviceError(f"{self.name}: not responding (simulated disconnect) — check the cable")
         self.p.prepare()
-        if self.t0 is None:
+        if self.p.t0 is None:
             self.p.start()
-            self.t0 = self.p.t0
-        self._running = True
+        if self.emu is None:
+            from thermod.sim.emu_camera import EmuCamera
+
+            fps = self.p.cfg.frame_rate_hz
+            # EmuCamera's frame k completes at origin + (k+1)/fps; ours at T0 + k/fps
+            self.emu = EmuCamera(self.p.frames, fps, origin=self.p.t0 - 1.0 / fps, latency_s=self.latency_s,
+                                 drift_ppm=self.drift_ppm, seed=self.p.cfg.seed, name=self.name)
+        self.emu.start()
         self.counters["starts"] += 1
-        # (re)connecting resumes at the current frame: what was missed is an id gap
-        k = max(self._k, self._index_at(time.monotonic()))
-        self._pending_gap += k - self._k
-        self._k = k
 
     def stop(self) -> None:
-        self._running = False
-
-    def _index_at(self, now: float) -> int:
-        return max(0, int(math.floor((now - self.latency_s - self.t0) * self.p.cfg.frame_rate_hz)) + 1)
+        if self.emu is not None:
+            self.emu.stop()
 
     def stall(self, seconds: float) -> None:
-        """Deliver nothing for `seconds` (frames keep being 'read' and are lost)."""
+        """Deliver nothing for `seconds` (the frames are read by the sensor and lost: id gaps)."""
         self._stall_until = time.monotonic() + seconds
         self.counters["stalls"] += 1
 
@@ -229,36 +228,17 @@ class SimCamera(CameraSource):
     def poll(self, timeout: float) -> Frame | None:
         now = time.monotonic()
         if now < self._down_until:
-            self._running = False
+            if self.emu is not None:
+                self.emu.stop()
             time.sleep(min(timeout, self._down_until - now))
             raise DeviceError(f"{self.name}: connection lost (simulated) — check the cable")
-        if not self._running:
+        if self.emu is None:
             raise DeviceError(f"{self.name}: poll() before start()")
-        fps = self.p.cfg.frame_rate_hz
-        with self._lock:
-            k = self._k
-            t_read = self.t0 + k / fps
-            due = t_read + self.latency_s
-            if due > now:
-                if due > now + timeout:
-                    time.sleep(max(0.0, timeout))
-                    return None
-                time.sleep(due - now)
-            now = time.monotonic()
-            newest = self._index_at(now) - 1
-            if now < self._stall_until:
-                self._pending_gap += max(0, newest + 1 - k)     # read by the sensor, never sent
-                self._k = k = max(k, newest + 1)
-                return None
-            # a reader later than the link's buffer loses the oldest frames (counted as an id gap)
-            gap = self._pending_gap + max(0, newest - k - self.buffer_frames)
-            k = max(k, newest - self.buffer_frames)
-            self._pending_gap = 0
-            self._k = k + 1
-        img = self.p.frames[k % self.p.n_frames]
-        self.counters["frames"] += 1
-        self.counters["lost"] += gap
-        return Frame(image=img, t=self.t0 + k / fps, frame_id=k + 1, device_ts=k, arrival=now, gap_before=gap)
+        f = self.emu.poll(timeout)
+        if f is not None and time.monotonic() < self._stall_until:
+            self.counters["discarded_in_stall"] += 1
+            return None
+        return f
 
     def stats(self) -> dict:
-        return dict(self.counters)
+        return {**(self.emu.stats() if self.emu is not None else {}), **self.counters}

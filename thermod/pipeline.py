@@ -85,6 +85,14 @@ class _Settings:
     generation: int
 
 
+@dataclass
+class _WarmKernel:
+    """A box kernel (duck-typed `thermod.kernels.Kernel`) used only to build FFT plans at start-up."""
+
+    weights: np.ndarray
+    origin: tuple[int, int]
+
+
 # ------------------------------------------------------------------------------- rendering
 def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
            deblur: DeblurConfig):
@@ -175,9 +183,10 @@ class Pipeline:
         self._prebuilt: list = []
 
     # ------------------------------------------------------------------ lifecycle
-    def warmup(self) -> float:
-        """Compile the numba renderer and build every worker's deconvolver (LUTs, FFT plans for the
-        frame shape) before the first frame, so frame 1 is not 0.5 s late. Returns seconds spent."""
+    def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0) -> float:
+        """Compile the numba renderer and build every worker's deconvolver before the first frame:
+        LUTs, and the FFT plans of every padded shape a kernel up to `max_kernel_px` can need (plans
+        are per padded shape; building one mid-stream costs a frame or ten). Returns seconds spent."""
         t0 = time.monotonic()
         s = self._settings
         tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
@@ -188,6 +197,16 @@ class Pipeline:
         for _ in range(self.n_workers):
             d = self._factory(s.deblur)
             d.run_varying(img, kernel) if hasattr(kernel, "kernels") else d.run(img, kernel)
+            if hasattr(d, "padded_shape") and s.deblur.mode == "uniform":
+                sizes = {}
+                for kh in range(1, max_kernel_px + 1, 2):
+                    for kw in range(1, max_kernel_px + 1, 2):
+                        sizes.setdefault(tuple(d.padded_shape(img.shape, (kh, kw))), (kh, kw))
+                for kh, kw in sizes.values():
+                    if time.monotonic() - t0 > budget_s:
+                        break
+                    box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
+                    d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
             self._prebuilt.append((d, s.deblur))
         return time.monotonic() - t0
 

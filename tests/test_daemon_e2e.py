@@ -1,0 +1,165 @@
+"""End to end: `thermod run` as a subprocess on the simulated payload, a subscriber over TCP loopback.
+
+Checks: wire-v1 headers, no sequence gaps, 1000 ± 1 gyro samples/s and 50 frames/s held for 10 s,
+raw frames identical to what the payload's camera sent, deblurred frames closer to the simulator's
+truth than the raw ones, health carrying the calibration, SIGTERM → exit 0 within 2 s.
+"""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thermod import config
+from thermod.calibration import Calibration
+from thermod.publish import Subscriber
+from thermod.sim.payload import SimPayload
+
+REPO = Path(__file__).resolve().parents[1]
+THERMOD = Path(sys.executable).with_name("thermod")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def env():
+    e = dict(os.environ)
+    e.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
+    return e
+
+
+@pytest.fixture(scope="module")
+def payload():
+    """The same payload the daemon plays (same config → same on-disk cache), to know the truth."""
+    cfg = config.load()
+    p = SimPayload(cfg.sim, cfg.calibration)
+    p.prepare()          # renders the loop once if the cache is missing (the daemon then reuses it)
+    return cfg, p
+
+
+@pytest.mark.slow
+def test_thermod_run_end_to_end(payload):
+    cfg, pl = payload
+    ep = f"tcp://127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([str(THERMOD), "run", "--endpoint", ep, "--raw", "-v", "--seconds", "120"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env(), text=True)
+    frames, raws, healths, gyro = {}, {}, [], []
+    try:
+        with Subscriber(ep, topics=("frame", "raw", "health", "gyro")) as sub:
+            t_ready = None
+            deadline = time.monotonic() + 90
+            while time.monotonic() < deadline:
+                m = sub.recv(timeout=0.5)
+                if proc.poll() is not None:
+                    break
+                if m is None:
+                    continue
+                topic, h, a = m
+                if topic == "health" and h["ready"] and t_ready is None:
+                    t_ready = time.monotonic()
+                if t_ready is None:
+                    continue
+                if topic == "frame":
+                    frames[h["frame_id"]] = (h, a.copy() if h["deblurred"] else None)
+                elif topic == "raw":
+                    raws[h["frame_id"]] = (h, a.copy() if len(raws) < 400 else None)
+                elif topic == "health":
+                    healths.append(h)
+                elif topic == "gyro":
+                    gyro.append((h, a["t"].copy()))
+                if time.monotonic() - t_ready > 13.0:
+                    break
+            gaps = dict(sub.gaps)
+            errors = sub.errors
+        assert proc.poll() is None, proc.communicate()[1][-3000:]
+        t_sig = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=10)
+        stop_s = time.monotonic() - t_sig
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        out, err = proc.communicate()
+    assert rc == 0, err[-3000:]
+    assert stop_s < 2.0, stop_s
+    assert t_ready is not None, err[-3000:]
+    assert sum(errors.values()) == 0 and gaps == {}, (errors, gaps)   # no seq gaps on any topic
+
+    # --- wire v1 headers
+    ids = sorted(frames)
+    h0 = frames[ids[0]][0]
+    assert h0["v"] == 1 and h0["shape"] == [480, 640] and h0["dtype"] == "<f4"
+    for k in ("seq", "t", "published", "deblurred", "kernel_size", "coverage", "reason"):
+        assert k in h0
+    assert all(frames[i][0]["published"] >= frames[i][0]["t"] for i in ids)
+    # frames in order, none missing between the first and the last (every frame published)
+    assert ids == list(range(ids[0], ids[-1] + 1))
+    ts = [frames[i][0]["t"] for i in ids]
+    assert np.all(np.diff(ts) > 0)
+
+    # --- rates over a 10 s window: 1000 ± 1 gyro samples/s, 50 frames/s
+    gt = np.concatenate([t for _, t in gyro])
+    t_a = gt[0] + 1.0
+    n_g = np.count_nonzero((gt >= t_a) & (gt < t_a + 10.0))
+    assert abs(n_g / 10.0 - 1000.0) <= 1.0, n_g
+    assert np.all(np.diff(gt) > 0)                               # no duplicates, no reordering
+    seqs = [h["sample_seq"] for h, _ in gyro]
+    lens = [h["n"] for h, _ in gyro]
+    assert all(s + n == s2 for s, n, s2 in zip(seqs, lens, seqs[1:], strict=False))   # 0 samples lost
+    ft = np.array(ts)
+    n_f = np.count_nonzero((ft >= t_a) & (ft < t_a + 10.0))
+    assert abs(n_f / 10.0 - 50.0) <= 0.2, n_f
+
+    # --- raw frames are exactly what the payload's camera sent (frame id k+1 ↔ loop frame k mod N)
+    checked = 0
+    for fid, (h, a) in raws.items():
+        if a is not None:
+            np.testing.assert_array_equal(a, pl.frame_for(fid))
+            checked += 1
+    assert checked >= 100
+
+    # --- deblurring: at least some frames deblurred, and those closer to the truth than the raw input
+    deb = [i for i in ids if frames[i][0]["deblurred"]]
+    not_deb = [frames[i][0]["reason"] for i in ids if not frames[i][0]["deblurred"]]
+    assert set(not_deb) <= {"overload"}, set(not_deb)            # only overload may skip a frame
+    assert len(deb) >= 30, (len(deb), len(ids))
+    m = (slice(24, -24), slice(24, -24))
+    ratios = []
+    for i in deb[:40]:
+        truth = pl.truth_for(i)[m]
+        e_raw = np.sqrt(np.mean((pl.frame_for(i)[m].astype(np.float32) - truth) ** 2))
+        e_deb = np.sqrt(np.mean((frames[i][1][m] - truth) ** 2))
+        ratios.append(e_deb / e_raw)
+        h = frames[i][0]
+        assert h["coverage"] > 0.99 and h["kernel_size"][0] >= 1 and h["n_samples"] >= 30
+    print(f"deblurred {len(deb)}/{len(ids)} frames; RMSE to truth deblurred/raw median {np.median(ratios):.3f}")
+    assert np.median(ratios) < 0.8, np.median(ratios)
+
+    # --- health: 1 Hz, rates, drops, devices, the calibration for `thermod record`
+    assert len(healths) >= 10
+    last = healths[-1]
+    assert last["devices"]["gyro"]["state"] == "running" and last["devices"]["camera"]["state"] == "running"
+    assert abs(last["rates"]["gyro_hz"] - 1000) < 30 and abs(last["rates"]["frames_in_hz"] - 50) < 3
+    assert last["calibration"] == cfg.calibration.as_dict()
+    assert Calibration.from_dict(last["calibration"]) == cfg.calibration
+    assert last["drops"]["gyro_lost"] == 0 and last["drops"]["camera_frames_lost"] == 0
+    assert "ready: frames and gyro samples flowing" in err
+
+
+def test_bad_config_is_one_line_exit_2(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[sources.gyro]\nkind = 'sim'\n[sources.camera]\nkind = 'sim'\n[deblur]\nlambda = -1\n")
+    r = subprocess.run([str(THERMOD), "run", "--config", str(p)], capture_output=True, text=True, env=env(),
+                       timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"thermod run: error: {p}: deblur.lambda: expected a value in (0.0, 1000000000.0], got -1.0"]
