@@ -1,0 +1,187 @@
+"""Replay of a format-v1 recording as camera + gyro sources: right frames and samples, relative timing
+preserved on the re-based host timeline, paced (real time, ×speed) and as-fast-as-possible lockstep."""
+
+import math
+import threading
+import time
+
+import h5py
+import numpy as np
+import pytest
+from thermod.drivers.gyro_base import GyroBatch
+from thermod.drivers.replay import ReplayCamera, ReplayGyro, ReplaySession
+
+from thermod import recording
+from thermod.calibration import Calibration
+from thermod.errors import DeviceError, RecordingError
+
+FPS, RATE = 50.0, 1000.0
+N = 15                                   # 0.3 s of frames
+
+
+def _recording(gap=True) -> recording.Recording:
+    calib = Calibration(width=24, height=16, cx=11.5, cy=7.5, frame_rate_hz=FPS, rate_hz=RATE,
+                        time_offset_s=0.0015)
+    frames = np.stack([np.full((16, 24), 1000 + 17 * i, np.uint16) for i in range(N)])
+    frames[:, 3, 5] = np.arange(N, dtype=np.uint16)                   # every frame distinct
+    t = 100.0 + np.arange(N) / FPS
+    gyro_t = 100.0 - 0.045 + np.arange(int(0.36 * RATE)) / RATE       # 5τ before the first frame
+    if gap:
+        gyro_t = np.delete(gyro_t, np.arange(200, 205))              # 5 samples lost in the log
+    rate = np.stack([np.sin(gyro_t), np.cos(gyro_t), gyro_t - 100], axis=1).astype(np.float32)
+    return recording.Recording(frames, t, gyro_t, rate, calib)
+
+
+@pytest.fixture
+def rec_path(tmp_path):
+    rec = _recording()
+    p = tmp_path / "rec.h5"
+    recording.write(p, rec)
+    return p, rec
+
+
+def _drain(cam, gyro, seconds):
+    """Poll both sources from two threads, as the daemon's driver threads do."""
+    frames, batches = [], []
+
+    def run(src, out):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            item = src.poll(0.05)
+            if item is not None:
+                out.append(item)
+
+    threads = [threading.Thread(target=run, args=a) for a in ((cam, frames), (gyro, batches))]
+    cam.start()
+    gyro.start()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    cam.stop()
+    gyro.stop()
+    return frames, batches
+
+
+def test_real_time_replay_preserves_frames_samples_and_timing(rec_path):
+    path, rec = rec_path
+    cam, gyro = ReplayCamera(path), ReplayGyro(path)
+    assert cam.session is gyro.session                         # one timeline for both
+    frames, batches = _drain(cam, gyro, 0.6)
+    assert len(frames) == N
+    for i, f in enumerate(frames):
+        np.testing.assert_array_equal(f.image, rec.frames[i])
+        assert f.frame_id == i and f.gap_before == 0 and f.image.dtype == np.uint16
+    assert all(isinstance(b, GyroBatch) for b in batches)
+    gt = np.concatenate([b.t for b in batches])
+    gr = np.concatenate([b.rate for b in batches])
+    assert gr.dtype == np.float32 and gt.dtype == np.float64
+    np.testing.assert_array_equal(gr, rec.gyro_rate)
+    origin = cam.session.origin
+    # re-based: one offset for camera and gyro, so the relative timing (and time_offset_s) survives
+    np.testing.assert_allclose([f.t for f in frames], rec.t - rec.gyro_t[0] + origin, atol=1e-9)
+    np.testing.assert_allclose(gt, rec.gyro_t - rec.gyro_t[0] + origin, atol=1e-9)
+    # the log's 5-sample hole arrives flagged, with its size
+    flagged = [b for b in batches if b.gap_before]
+    assert len(flagged) == 1 and flagged[0].n_lost == 5 and flagged[0].seq == 200
+    assert [b.seq for b in batches] == list(np.cumsum([0] + [len(b) for b in batches[:-1]]))
+    assert gyro.stats()["gaps"] == 1 and gyro.stats()["lost"] == 5
+    # paced by the recording's clock: never early, and on time (loaded CI machine: generous bound)
+    lag = np.array([f.arrival - f.t for f in frames])
+    assert np.all(lag >= 0) and np.median(lag) < 0.02
+    glag = np.array([b.t[-1] for b in batches])
+    assert np.all(np.array([b.t[0] for b in batches]) <= time.monotonic())
+    assert np.median(np.diff(glag)) < 0.02                      # small FIFO-like batches, not one lump
+    assert cam.finished and gyro.finished
+
+
+def test_as_fast_as_possible_is_lockstep(rec_path):
+    path, rec = rec_path
+    s = ReplaySession(path, speed=math.inf, lead_s=0.05)
+    cam, gyro = s.camera(), s.gyro()
+    cam.start()
+    gyro.start()
+    t0 = time.monotonic()
+    assert cam.poll(0.0) is None              # the gyro has not covered frame 0 yet
+    events = []
+    while not (cam.finished and gyro.finished):
+        b = gyro.poll(0.0)
+        if b is not None:
+            events.append(("g", b.t[-1], cam.session.camera_next))
+        f = cam.poll(0.0)
+        if f is not None:
+            events.append(("f", f.t, None))
+        assert time.monotonic() - t0 < 5
+    elapsed = time.monotonic() - t0
+    gyro_out = -math.inf
+    n_frames = 0
+    for kind, t, cam_next in events:
+        if kind == "g":
+            assert t <= cam_next + 0.05 + 1e-9   # never more than lead_s ahead of the next frame
+            gyro_out = t
+        else:
+            n_frames += 1
+            assert gyro_out >= t - 1e-9 or gyro.finished   # the gyro covers every frame handed out
+    assert n_frames == N
+    assert elapsed < 0.3                      # 0.36 s of recording, not paced by the clock
+
+
+def test_speed_factor_paces_but_keeps_the_time_scale(rec_path):
+    path, rec = rec_path
+    cam = ReplayCamera(path, speed=4.0)
+    cam.start()
+    t0 = time.monotonic()
+    frames = []
+    while len(frames) < N:
+        f = cam.poll(0.2)
+        assert f is not None
+        frames.append(f)
+    elapsed = time.monotonic() - t0
+    assert elapsed == pytest.approx((rec.t[-1] - rec.gyro_t[0]) / 4, abs=0.04)
+    np.testing.assert_allclose(np.diff([f.t for f in frames]), 1 / FPS, atol=1e-9)   # physical time
+
+
+def test_loop_continues_ids_and_time(tmp_path):
+    rec = _recording(gap=False)
+    s = ReplaySession(rec, speed=math.inf, loop=True)
+    cam = s.camera()
+    cam.start()
+    frames = [cam.poll(0.1) for _ in range(2 * N + 3)]
+    ids = [f.frame_id for f in frames]
+    assert ids == list(range(2 * N + 3))
+    np.testing.assert_array_equal(frames[N + 2].image, rec.frames[2])
+    period = s.loop_period
+    assert period == pytest.approx(rec.gyro_t[-1] + 1 / RATE - rec.gyro_t[0])
+    assert frames[N + 2].t - frames[2].t == pytest.approx(period)
+    assert all(f.gap_before == 0 for f in frames)               # the seam is not a loss
+    assert np.all(np.diff([f.t for f in frames]) > 0)
+
+
+def test_only_camera_started_does_not_wait_for_gyro(rec_path):
+    path, _ = rec_path
+    cam = ReplaySession(path, speed=math.inf).camera()
+    cam.start()
+    assert [cam.poll(0.0).frame_id for _ in range(N)] == list(range(N))
+    assert cam.poll(0.01) is None and cam.stats()["state"] == "finished"
+
+
+def test_bad_recordings_and_arguments(tmp_path, rec_path):
+    with pytest.raises(RecordingError, match="does not exist"):
+        ReplayCamera(tmp_path / "missing.h5")
+    path, _ = rec_path
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(path.read_bytes())
+    with h5py.File(bad, "a") as f:
+        f.attrs["version"] = 2
+    with pytest.raises(RecordingError, match=r"version.*expected 1, got 2"):
+        ReplayGyro(bad)
+    with h5py.File(bad, "a") as f:
+        f.attrs["version"] = 1
+        del f["camera/t"]
+        f["camera/t"] = np.arange(N, dtype=np.float64)[::-1]
+    with pytest.raises(RecordingError, match="camera/t: time must be strictly increasing"):
+        ReplayCamera(bad)
+    with pytest.raises(DeviceError, match="speed must be > 0"):
+        ReplaySession(path, speed=0)
+    with pytest.raises(DeviceError, match="poll\\(\\) before start"):
+        ReplayCamera(path, speed=2.0).poll(0.0)
