@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -134,7 +134,6 @@ class KernelGrid:
     times: np.ndarray
     image_shape: tuple[int, int]
     kind: str = "thermal"
-    extra: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -315,7 +314,8 @@ def _so3_exp_into(px, py, pz, out):
         b = 0.5
     else:
         a = math.sin(th) / th
-        b = (1.0 - math.cos(th)) / th2
+        sh = math.sin(0.5 * th)
+        b = 2.0 * sh * sh / th2   # = (1 − cos θ)/θ² without the cancellation at small θ
     out[0, 0] = 1.0 + b * (-py * py - pz * pz)
     out[0, 1] = -a * pz + b * px * py
     out[0, 2] = a * py + b * px * pz
@@ -623,7 +623,7 @@ def _render_one(t_all, r_all, offset, M, bias, a, b, tau, uniform, px_per_rad, m
 def _gauss_1d(sigma: float) -> np.ndarray:
     """Sampled, normalised Gaussian, radius ceil(3σ) (as cv2.getGaussianKernel samples it)."""
     if sigma <= 0:
-        return np.ones(1)
+        return _NO_PSF
     r = max(1, int(math.ceil(3.0 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
     g = np.exp(-0.5 * (x / sigma) ** 2)
@@ -658,7 +658,7 @@ def _px_per_rad(p: _Params, x: float, y: float) -> float:
     taken over the whole frame (so every point of a frame gets the same sub-steps and a grid cell's
     kernel equals the single kernel rendered there), with a margin for rays drifting outward.
     """
-    rx = max(abs(p.cx + 0.5) , abs(p.width - 0.5 - p.cx), abs(x - p.cx)) / p.fx
+    rx = max(abs(p.cx + 0.5), abs(p.width - 0.5 - p.cx), abs(x - p.cx)) / p.fx
     ry = max(abs(p.cy + 0.5), abs(p.height - 0.5 - p.cy), abs(y - p.cy)) / p.fy
     rho = math.sqrt(rx * rx + ry * ry) + 0.05
     return max(p.fx, p.fy) * (1.0 + rho * rho) * 1.05
@@ -681,11 +681,12 @@ def _raise_status(st: int, p: _Params, a: float, b: float, x: float, y: float):
     raise KernelError(f"{msg} (window [{a:.6f}, {b:.6f}] s, camera clock)")
 
 
+_NO_PSF = np.ones(1)
+_NO_PSF.setflags(write=False)   # read-only like the cached Gaussians: one numba specialisation
+
+
 def _psf_taps(p: _Params, psf: bool) -> np.ndarray:
     return _gauss_1d(p.psf_sigma) if psf and p.psf_sigma > 0 else _NO_PSF
-
-
-_NO_PSF = np.ones(1)
 
 
 def _nodes_for(t, r, p: _Params, a: float, b: float, uniform: bool, ppr: float, x: float, y: float):
