@@ -97,7 +97,7 @@ def true_calibration(nominal: Calibration, effects: Mapping) -> Calibration:
 def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Calibration | None = None,
              effects: Mapping | None = None, seed: int = 0, frame_rate: float | None = None,
              gyro: GyroErrorModel | None = None, progress: bool = False, *, kind: str = "thermal",
-             exposure_s: float | None = None, step_px: float = 0.5, history_tau: float = 6.0,
+             exposure_s: float | None = None, step_px: float = 0.5, history_tau: float = 8.0,
              t0: float = 100.0, truth: bool = True) -> Recording:
     """Simulate a recording (format v1 `Recording`) of `seconds` at `frame_rate` (default the
     calibration's) of `scene` (spec, array or `detector.SphereScene`) under `motion` (spec or
