@@ -164,7 +164,8 @@ class GyroSamples:
     rate_hz: float
 
 
-def flicker_noise(n: int, dt: float, b: float, rng: np.random.Generator, corner_hz: float = 0.1) -> np.ndarray:
+def flicker_noise(n: int, dt: float, b: float, rng: np.random.Generator,
+                  corner_hz: float = 0.1) -> np.ndarray:
     """[n, 3] flicker (1/f) bias noise: IEEE 952 PSD B²/(2πf) (two-sided level, i.e. one-sided
     B²/(πf)) below `corner_hz`, rolled off as 1/f³ above it so that it never masks the white noise
     at the sample rate. Its Allan deviation floor is √(2 ln2/π)·B ≈ 0.664 B for averaging times
