@@ -6,7 +6,9 @@ Cases (the paper's camera: 640×480, IFOV 0.0391°, τ = 8 ms, 1 kHz gyro, PSF o
   uniform-40    one kernel from the 40 samples of a 5τ window, 30 °/s pan      target ≤ 50 µs
   grid-6x8      48 kernels over the frame, mixed roll/pitch/yaw motion          target ≤ 2 ms
   pan-100dps    one 100+ px kernel, 100 °/s                                     (no target)
+  ring-1h       uniform-40 read from a one-hour 1 kHz ring (only the window is touched)
   blur-640x480  the forward model with the 100 °/s kernel (cv2.filter2D)        (no target)
+  blur-varying  the spatially varying forward model over the 6×8 grid          (no target)
 Prints medians (and the 10th–90th percentile spread) and the reference/fast ratio.
 """
 
@@ -60,6 +62,9 @@ def main(argv=None) -> int:
     mixed = mixed.astype(np.float32)
     img = np.random.default_rng(0).uniform(0, 1000, (cal.height, cal.width)).astype(np.float32)
     k100 = K.render_thermal_kernel(t, pan100, cal, tf)
+    grid = K.render_kernel_grid(t, mixed, cal, tf, (6, 8))
+    t_ring = np.arange(0.0, 3600.0, 1e-3)
+    pan_ring = np.tile(np.float32([0.0, math.radians(30), 0.0]), (len(t_ring), 1))
 
     cases = [
         ("uniform-40", 50e-6,
@@ -72,7 +77,9 @@ def main(argv=None) -> int:
         ("pan-100dps", None,
          lambda: K.render_thermal_kernel(t, pan100, cal, tf),
          lambda: K.render_thermal_kernel_reference(t, pan100, cal, tf), 20),
+        ("ring-1h", 50e-6, lambda: K.render_thermal_kernel(t_ring, pan_ring, cal, 1800.0004), None, 50),
         ("blur-640x480", None, lambda: K.blur(img, k100), None, 1),
+        ("blur-varying", None, lambda: K.blur_varying(img, grid), None, 1),
     ]
     print(f"kernel renderer: {cal.width}×{cal.height}, τ = {cal.tau_s * 1e3:.0f} ms, "
           f"{cal.rate_hz:.0f} Hz gyro, PSF σ = {cal.psf_sigma_px:.3f} px, step ≤ {K.MAX_STEP_PX} px; "
