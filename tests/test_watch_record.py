@@ -17,7 +17,7 @@ from thermod import cli, recording
 from thermod.calibration import Calibration
 from thermod.errors import RecordingError
 from thermod.publish import Publisher, Subscriber
-from thermod.record import RecordBuilder, record, save
+from thermod.record import RecordWriter, record
 from thermod.watch import PreviewWriter, WatchStats, side_by_side, stretch_u8, watch
 
 H, W = 96, 128
@@ -202,8 +202,10 @@ def test_record_real_data_round_trip(pub, shared_data, tmp_path):
             continue
         after = s == 720
         pub.publish_gyro(gt[s:s + 20], gr[s:s + 20], seq=5000 + s, gap_before=after, n_lost=20 * after)
-    builder = record(sub, 1.5, RecordBuilder())
-    rec = save(builder, tmp_path / "rec.h5", attrs={"endpoint": pub.endpoint})
+    writer = record(sub, 1.5, RecordWriter(tmp_path / "rec.h5"))
+    assert writer.spool.exists() and writer.n_frames == 21  # frames went to disk as they came
+    assert writer.finish(attrs={"endpoint": pub.endpoint}) == tmp_path / "rec.h5"
+    assert not writer.spool.exists()
     back = recording.read(tmp_path / "rec.h5")
 
     assert back.calibration == calib
@@ -218,30 +220,46 @@ def test_record_real_data_round_trip(pub, shared_data, tmp_path):
     assert np.flatnonzero(back.extras["record/gyro_gap_before"]).tolist() == [700]
     assert back.extra_attrs["record"]["calibration_source"] == "health"
     assert back.extra_attrs["record"]["frames_dropped"] == 1
-    assert rec.n_frames == back.n_frames
+    assert back.extra_attrs["record"]["endpoint"] == pub.endpoint
     sub.close()
 
 
-def test_record_calibration_fallbacks_and_rescue(shared_data, tmp_path):
+def test_record_calibration_fallbacks_and_failures(shared_data, tmp_path):
     sharp = scene(shared_data)
-    b = RecordBuilder()
-    b.add("raw", {"t": 2.0, "frame_id": 2}, sharp)
-    b.add("raw", {"t": 1.0, "frame_id": 1}, sharp)
-    rec = b.build()  # no health: defaults sized to the frames, flagged
+    w = RecordWriter(tmp_path / "a.h5")
+    w.add("raw", {"t": 2.0, "frame_id": 2}, sharp)
+    w.add("raw", {"t": 1.0, "frame_id": 1}, sharp + 1)
+    w.add("raw", {"t": 3.0, "frame_id": 3}, sharp[:10])  # another size: dropped, counted
+    w.finish()  # no health: defaults sized to the frames, flagged
+    rec = recording.read(tmp_path / "a.h5")
     assert (rec.calibration.width, rec.calibration.height) == (W, H) and rec.calibration.cx == (W - 1) / 2
-    assert rec.extra_attrs["record"]["calibration_source"] == "defaults" and rec.t.tolist() == [1.0, 2.0]
+    assert rec.extra_attrs["record"]["calibration_source"] == "defaults"
+    assert rec.extra_attrs["record"]["frames_dropped"] == 1
+    assert rec.t.tolist() == [1.0, 2.0] and np.array_equal(rec.frames[0], sharp + 1)
+    assert rec.extras["record/frame_id"].tolist() == [1, 2]
     assert rec.gyro_t.shape == (0,) and rec.gyro_rate.shape == (0, 3)
-    cfg = Calibration(width=W, height=H, tau_s=0.02)
-    assert b.build(cfg).calibration.tau_s == 0.02 and b.build(cfg).extra_attrs["record"][
-        "calibration_source"] == "config"
-    # The daemon's calibration says 640×480 but the frames are 128×96: nothing is lost, it is rescued.
-    b.add("health", {"t": 3.0, "calibration": Calibration().as_dict()}, np.zeros(0, np.uint8))
-    with pytest.raises(RecordingError, match=r"rescue\.npz") as e:
-        save(b, tmp_path / "bad.h5")
+
+    w = RecordWriter(tmp_path / "b.h5")
+    w.add("gyro", {"t": 1.0, "sample_seq": 9}, np.array([(0.5, (1, 2, 3)), (1.0, (4, 5, 6))],
+                                                         dtype=[("t", "<f8"), ("rate", "<f4", (3,))]))
+    w.finish(Calibration(width=W, height=H, tau_s=0.02))  # gyro only, calibration from --config
+    rec = recording.read(tmp_path / "b.h5")
+    assert rec.calibration.tau_s == 0.02 and rec.extra_attrs["record"]["calibration_source"] == "config"
+    assert rec.frames.shape == (0, H, W) and rec.gyro_rate.tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert rec.extras["record/gyro_seq"].tolist() == [9, 10]
+
+    # The daemon's calibration says 640×480 but the frames are 128×96: the error says where the data is.
+    w = RecordWriter(tmp_path / "c.h5")
+    w.add("raw", {"t": 1.0, "frame_id": 1}, sharp)
+    w.add("health", {"t": 3.0, "calibration": Calibration().as_dict()}, np.zeros(0, np.uint8))
+    with pytest.raises(RecordingError, match=r"c\.h5\.part") as e:
+        w.finish()
     assert "frame shape (96, 128) does not match" in str(e.value)
-    with np.load(tmp_path / "bad.h5.rescue.npz", allow_pickle=False) as z:
-        assert z["frames"].shape == (2, H, W) and z["t"].tolist() == [2.0, 1.0]
-    assert not (tmp_path / "bad.h5").exists()
+    assert not (tmp_path / "c.h5").exists()
+    import h5py
+
+    with h5py.File(tmp_path / "c.h5.part", "r") as f:
+        assert np.array_equal(f["camera/frames"][0], sharp) and f["camera/t"][()].tolist() == [1.0]
 
 
 def test_record_cli_nothing_received(tmp_path, capsys):
@@ -279,3 +297,57 @@ def test_record_cli_interrupted_still_writes(pub, shared_data, tmp_path, sig):
     assert np.all(np.diff(fid) == 1)  # nothing lost in between on loopback
     assert rec.calibration == calib and rec.extra_attrs["record"]["calibration_source"] == "health"
     assert len(rec.gyro_t) >= 20 * (rec.n_frames - 1)
+
+
+# ------------------------------------------------------------------------- against the real daemon
+@pytest.mark.slow
+def test_record_and_watch_the_real_daemon(tmp_path, capsys):
+    """`thermod run` on the simulated payload, then `thermod record` and `watch` on its output."""
+    import socket
+
+    from thermod import config
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    env = dict(os.environ)
+    env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
+    proc = subprocess.Popen([str(Path(sys.executable).with_name("thermod")), "run", "--endpoint", ep, "--raw",
+                             "--seconds", "300"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                            text=True)
+    out = tmp_path / "rec.h5"
+    try:
+        with Subscriber(ep, ("health",)) as hs:  # ready = frames and samples flowing (first start renders)
+            deadline = time.monotonic() + 240
+            while time.monotonic() < deadline and proc.poll() is None:
+                m = hs.recv(0.5)
+                if m is not None and m[1].get("ready"):
+                    break
+            else:
+                err = proc.stderr.read() if proc.poll() is not None else ""
+                pytest.fail(f"daemon never became ready: {err}")
+        assert cli.main(["record", "-o", str(out), "--endpoint", ep, "--seconds", "3"]) == 0
+        with Subscriber(ep, ("frame", "raw", "gyro", "health")) as sub:
+            stats = watch(sub, 2.0, interval=10, previews=PreviewWriter(tmp_path / "png", 0.5))
+            gaps, rejected = dict(sub.gaps), dict(sub.errors)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(20)
+    cfg = config.load()
+    rec = recording.read(out)
+    assert rec.calibration == cfg.calibration and rec.frames.shape[1:] == (cfg.calibration.height,
+                                                                           cfg.calibration.width)
+    assert 125 <= rec.n_frames <= 151  # 3 s at 50 fps, less what passed before the subscription
+    assert np.all(np.diff(rec.extras["record/frame_id"]) == 1)
+    assert np.allclose(np.diff(rec.t), 0.02, atol=2e-3)
+    seq = rec.extras["record/gyro_seq"]
+    assert np.all(np.diff(seq) == 1)  # no gyro sample lost on the way
+    assert (len(rec.gyro_t) - 1) / (rec.gyro_t[-1] - rec.gyro_t[0]) == pytest.approx(1000.0, abs=1.0)
+    assert rec.gyro_t[0] < rec.t[1] and rec.gyro_t[-1] > rec.t[-2]  # the gyro covers the frames
+    s = stats.summary(gaps)
+    # The frame topic's rate depends on the machine's load (overloaded frames are still published,
+    # frames never read are not); the raw topic carries every camera frame.
+    assert s["raw"] >= 80 and s["frames"] >= 40 and 0 < s["fps"] <= 50.5 and stats.deblurred > 0
+    assert s["gyro_hz"] == pytest.approx(1000.0, abs=5) and sum(gaps.values()) == 0 and not rejected
+    assert s["latency_publish_ms"]["p50"] > 0
+    assert len(list((tmp_path / "png").glob("watch_*.png"))) >= 2

@@ -492,7 +492,8 @@ class Subscriber:
     max_header_bytes : int
         Larger headers are rejected.
     rcvhwm : int
-        Receive high-water mark (messages).
+        Receive high-water mark, in messages (ZeroMQ's default, 1000): beyond it messages are dropped
+        and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
 
     Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
     (`MessageError.kind` → count of rejected messages), ``restarts`` (seq went backwards: the
@@ -502,7 +503,7 @@ class Subscriber:
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, topics: Iterable[str] = ("frame",), *,
                  curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = 65536,
-                 rcvhwm: int = 64):
+                 rcvhwm: int = 1000):
         self.topics = tuple(topics)
         unknown = [t for t in self.topics if t not in TOPICS]
         if unknown or not self.topics:

@@ -1,24 +1,27 @@
 """`thermod record`: subscribe to ``raw``, ``gyro`` and ``health`` and write a format-v1 recording.
 
-The daemon must publish raw frames (``[publish] raw = true``). Frames are written in time order;
-gyro samples are written as received, gaps included (never interpolated): ``record/gyro_seq`` holds
-each sample's device index (a jump = lost samples) and ``record/gyro_gap_before`` marks samples the
-driver flagged as following a loss. The calibration comes from ``--config``, else from the daemon's
-``health`` messages, else defaults sized to the frames (flagged in ``record.attrs``).
+The daemon must publish raw frames (``[publish] raw = true``). Frames go to disk as they arrive
+(``<output>.part``, so memory stays flat however long the recording), and the file is renamed into
+place when it is complete. Frames end up in time order; gyro samples are kept as received, gaps
+included (never interpolated): ``record/gyro_seq`` holds each sample's device index (a jump = lost
+samples) and ``record/gyro_gap_before`` marks samples the driver flagged as following a loss;
+``record/frame_id`` the camera frame numbers. The calibration comes from ``--config``, else from
+the daemon's ``health`` messages, else defaults sized to the frames (``record.attrs`` says which).
 Whatever stops the recording — time up, Ctrl-C, SIGTERM, an error — what was received is written;
-if even that fails, the arrays go to ``<output>.rescue.npz``.
+if the recording cannot be completed, the ``.part`` file keeps the data and the error names it.
 """
 
 from __future__ import annotations
 
 import collections
-import json
 import logging
+import os
 import signal
 import sys
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from thermod import recording
@@ -38,33 +41,42 @@ def add_arguments(p) -> None:
     p.add_argument("--curve-client-key", default=None, help="this client's *.key_secret certificate")
 
 
-class RecordBuilder:
-    """Collects received messages; `build()` turns them into a `recording.Recording`."""
+class RecordWriter:
+    """Streams received messages into ``<path>.part``; `finish()` completes the format-v1 file.
 
-    def __init__(self):
-        self.frames: list[np.ndarray] = []
-        self.frame_t: list[float] = []
-        self.frame_id: list[int] = []
+    Frames are appended to disk one chunk each; gyro samples (20 bytes each) stay in memory until
+    `finish`. Frames of another size than the first one are dropped and counted.
+    """
+
+    def __init__(self, path, flush_s: float = 1.0):
+        self.path = Path(path)
+        self.spool = self.path.with_name(self.path.name + ".part")
+        try:
+            self._f = h5py.File(self.spool, "w")
+        except OSError as e:
+            raise RecordingError(self.spool, "file", f"cannot create ({e})") from None
+        self._frames = self._t = self._fid = None
+        self.n_frames = 0
+        self.dropped = collections.Counter()
         self.gyro_t: list[np.ndarray] = []
         self.gyro_rate: list[np.ndarray] = []
         self.gyro_seq: list[np.ndarray] = []
         self.gyro_gap: list[np.ndarray] = []
         self.calibration: dict | None = None
         self.health = 0
+        self._flush_s, self._last_flush = flush_s, time.monotonic()
 
     @property
     def empty(self) -> bool:
-        return not self.frames and not self.gyro_t
+        return self.n_frames == 0 and not self.gyro_t
 
     def add(self, topic: str, header: dict, array: np.ndarray) -> None:
         if topic == "raw":
-            self.frames.append(array)  # a read-only view that keeps its ZeroMQ message alive; no copy
-            self.frame_t.append(float(header["t"]))
-            self.frame_id.append(int(header.get("frame_id", -1)))
+            self._add_frame(array, float(header["t"]), int(header.get("frame_id", -1)))
         elif topic == "gyro":
             n = len(array)
-            self.gyro_t.append(array["t"])
-            self.gyro_rate.append(array["rate"])
+            self.gyro_t.append(np.array(array["t"]))
+            self.gyro_rate.append(np.array(array["rate"]))
             self.gyro_seq.append(int(header.get("sample_seq", -1)) + np.arange(n, dtype=np.int64))
             gap = np.zeros(n, bool)
             gap[:1] = bool(header.get("gap_before"))
@@ -73,51 +85,124 @@ class RecordBuilder:
             self.health += 1
             if isinstance(header.get("calibration"), dict):
                 self.calibration = header["calibration"]
+        now = time.monotonic()
+        if now - self._last_flush > self._flush_s:  # a crash then loses at most ~1 s
+            self._f.flush()
+            self._last_flush = now
 
-    def build(self, calibration: Calibration | None = None, attrs: dict | None = None) -> recording.Recording:
-        """Frames sorted by time (duplicates and off-size frames dropped with a warning), gyro samples
-        sorted by time with duplicates (same time) dropped; calibration: argument > health > defaults."""
-        source = "config"
-        if calibration is None and self.calibration is not None:
+    def _add_frame(self, image: np.ndarray, t: float, frame_id: int) -> None:
+        if self._frames is None:
+            if image.ndim != 2 or image.dtype != np.uint16:
+                self.dropped["not uint16 [H, W]"] += 1
+                return
+            h, w = image.shape
+            self._frames = self._f.create_dataset("camera/frames", (0, h, w), np.uint16,
+                                                  maxshape=(None, h, w), chunks=(1, h, w))
+            self._t = self._f.create_dataset("camera/t", (0,), np.float64, maxshape=(None,), chunks=(4096,))
+            self._fid = self._f.create_dataset("record/frame_id", (0,), np.int64, maxshape=(None,),
+                                               chunks=(4096,))
+        if image.shape != self._frames.shape[1:] or image.dtype != np.uint16:
+            self.dropped["size changed"] += 1
+            return
+        if not np.isfinite(t):
+            self.dropped["non-finite time"] += 1
+            return
+        n = self.n_frames
+        for ds in (self._frames, self._t, self._fid):
+            ds.resize(n + 1, axis=0)
+        self._frames[n] = image
+        self._t[n] = t
+        self._fid[n] = frame_id
+        self.n_frames = n + 1
+
+    # ---------------------------------------------------------------------------------- finish
+    def finish(self, calibration: Calibration | None = None, attrs: dict | None = None) -> Path:
+        """Complete the file: gyro data, calibration attributes, frames in time order; rename into
+        place. Calibration: argument > health > defaults sized to the frames. On failure the
+        ``.part`` file keeps every received frame and gyro sample and the error names it."""
+        f = self._f
+        try:
+            gt, grate, gseq, ggap = self._gyro()
+            for name, data in (("gyro/t", gt), ("gyro/rate", grate), ("record/gyro_seq", gseq),
+                               ("record/gyro_gap_before", ggap)):
+                f.create_dataset(name, data=data)
+            calibration, source = self._calibration(calibration)
+            if self._frames is None:
+                f.create_dataset("camera/frames", (0, calibration.height, calibration.width), np.uint16)
+                f.create_dataset("camera/t", (0,), np.float64)
+                f.create_dataset("record/frame_id", (0,), np.int64)
+            shape = f["camera/frames"].shape[1:]
+            if shape != (calibration.height, calibration.width):
+                raise RecordingError(self.path, "camera/frames", f"frame shape {shape} does not match the "
+                                     f"calibration's height×width {(calibration.height, calibration.width)} "
+                                     f"({source})")
+            t = f["camera/t"][()]
+            order, dup = _time_order(t)
+            if dup:
+                log.warning("dropping %d raw frames with a repeated time stamp", dup)
+            f.attrs["format"], f.attrs["version"] = recording.FORMAT, recording.VERSION
+            for k, v in calibration.camera_attrs().items():
+                f["camera"].attrs[k] = v
+            for k, v in calibration.gyro_attrs().items():
+                f["gyro"].attrs[k] = v
+            rec_attrs = {**(attrs or {}), "calibration_source": source, "health_messages": self.health,
+                         "frames_dropped": sum(self.dropped.values()) + dup}
+            for k, v in rec_attrs.items():
+                f.require_group("record").attrs[k] = v
+            if np.array_equal(order, np.arange(len(t))):
+                f.close()
+                os.replace(self.spool, self.path)
+            else:
+                self._write_reordered(order)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            self.close()
+            raise RecordingError(self.path, "file", f"could not complete the recording ({e}); the received "
+                                 f"data is in {self.spool}") from None
+        except RecordingError as e:
+            self.close()
+            raise RecordingError(self.path, e.field, f"{e.problem}; the received data is in "
+                                 f"{self.spool}") from None
+        return self.path
+
+    def _write_reordered(self, order: np.ndarray) -> None:
+        """Frames arrived out of time order (or repeated): copy them sorted into a new file."""
+        src = self._f
+        tmp = self.path.with_name(self.path.name + ".sorting")
+        with h5py.File(tmp, "w") as dst:
+            for k, v in src.attrs.items():
+                dst.attrs[k] = v
+            for group in ("camera", "gyro", "record"):
+                g = dst.create_group(group)
+                for k, v in src[group].attrs.items():
+                    g.attrs[k] = v
+            h, w = src["camera/frames"].shape[1:]
+            frames = dst.create_dataset("camera/frames", (len(order), h, w), np.uint16,
+                                        chunks=(1, h, w) if len(order) else None)
+            for j, i in enumerate(order):
+                frames[j] = src["camera/frames"][i]
+            dst["camera/t"] = src["camera/t"][()][order]
+            dst["record/frame_id"] = src["record/frame_id"][()][order]
+            for name in ("gyro/t", "gyro/rate", "record/gyro_seq", "record/gyro_gap_before"):
+                dst[name] = src[name][()]
+        src.close()
+        os.replace(tmp, self.path)
+        os.unlink(self.spool)
+
+    def _calibration(self, calibration):
+        if calibration is not None:
+            return calibration, "config"
+        if self.calibration is not None:
             try:
-                calibration, source = Calibration.from_dict(self.calibration), "health"
+                return Calibration.from_dict(self.calibration), "health"
             except (TypeError, ValueError) as e:
                 log.warning("calibration in the health messages is unusable (%s); using defaults", e)
-        frames, t, fid, dropped = self._frames()
-        if calibration is None:
-            h, w = frames.shape[1:] if len(frames) else (Calibration().height, Calibration().width)
-            calibration = Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2)
-            source = "defaults"
-            log.warning("no calibration received (no health messages) nor --config: writing defaults "
-                        "for a %dx%d camera; fix them before deblurring", w, h)
-        if not len(frames):
-            frames = np.zeros((0, calibration.height, calibration.width), np.uint16)
-        gt, grate, gseq, ggap = self._gyro()
-        extra_attrs = {"record": {**(attrs or {}), "calibration_source": source,
-                                  "frames_dropped": dropped}}
-        extras = {"record/frame_id": fid, "record/gyro_seq": gseq, "record/gyro_gap_before": ggap}
-        return recording.Recording(frames, t, gt, grate, calibration, extras=extras, extra_attrs=extra_attrs)
-
-    def _frames(self):
-        if not self.frames:
-            return np.zeros((0, 0, 0), np.uint16), np.zeros(0), np.zeros(0, np.int64), 0
-        shapes = collections.Counter(f.shape for f in self.frames)
-        shape = shapes.most_common(1)[0][0]
-        t = np.asarray(self.frame_t)
-        order = np.argsort(t, kind="stable")
-        keep, last, dropped = [], -np.inf, 0
-        for i in order:
-            if self.frames[i].shape != shape or self.frames[i].dtype != np.uint16 or not t[i] > last:
-                dropped += 1
-                continue
-            keep.append(i)
-            last = t[i]
-        if dropped:
-            log.warning("dropped %d raw frames (repeated time stamp or a size other than %s)", dropped, shape)
-        frames = np.empty((len(keep), *shape), np.uint16)
-        for j, i in enumerate(keep):
-            frames[j] = self.frames[i]
-        return frames, t[keep], np.asarray(self.frame_id, np.int64)[keep], dropped
+        if self._frames is not None:
+            h, w = self._frames.shape[1:]
+        else:
+            h, w = Calibration().height, Calibration().width
+        log.warning("no calibration received (no health messages) nor --config: writing defaults for a "
+                    "%dx%d camera; fix them before deblurring", w, h)
+        return Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2), "defaults"
 
     def _gyro(self):
         if not self.gyro_t:
@@ -136,45 +221,38 @@ class RecordBuilder:
             log.warning("dropped %d gyro samples (repeated time stamp or non-finite)", int((~keep).sum()))
         return t[keep], rate[keep], seq[keep], gap[keep]
 
-    def rescue(self, path: Path) -> Path:
-        """Last resort when a recording cannot be built/written: the raw arrays as .npz (no pickle)."""
-        out = path.with_name(path.name + ".rescue.npz")
-        shapes = {f.shape for f in self.frames}
-        frames = np.stack(self.frames) if len(shapes) == 1 else np.zeros((0,), np.uint16)
-        np.savez(out, frames=frames, t=np.asarray(self.frame_t), frame_id=np.asarray(self.frame_id),
-                 gyro_t=np.concatenate(self.gyro_t) if self.gyro_t else np.zeros(0),
-                 gyro_rate=np.concatenate(self.gyro_rate) if self.gyro_rate else np.zeros((0, 3), np.float32),
-                 gyro_seq=np.concatenate(self.gyro_seq) if self.gyro_seq else np.zeros(0, np.int64),
-                 calibration=np.asarray(json.dumps(self.calibration)))
-        return out
+    def close(self) -> None:
+        """Close the spool without completing it (the data stays in ``.part``)."""
+        try:
+            if self._f.id.valid:
+                self._f.close()
+        except (OSError, ValueError):
+            pass
+
+    def discard(self) -> None:
+        self.close()
+        self.spool.unlink(missing_ok=True)
 
 
-def record(sub: Subscriber, seconds: float | None, builder: RecordBuilder | None = None,
-           stop=lambda: False) -> RecordBuilder:
-    """Receive into `builder` until `seconds` pass, `stop()` is true or Ctrl-C."""
-    builder = builder or RecordBuilder()
+def _time_order(t: np.ndarray) -> tuple[np.ndarray, int]:
+    """Indices sorting `t`, keeping the first of equal times; and how many were dropped."""
+    order = np.argsort(t, kind="stable")
+    keep = np.ones(len(order), bool)
+    keep[1:] = np.diff(t[order]) > 0
+    return order[keep], int((~keep).sum())
+
+
+def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False) -> RecordWriter:
+    """Receive into `writer` until `seconds` pass, `stop()` is true or Ctrl-C."""
     t_end = None if seconds is None else time.monotonic() + seconds
     try:
         while not stop() and (t_end is None or time.monotonic() < t_end):
             msg = sub.recv(0.2 if t_end is None else min(0.2, max(0.0, t_end - time.monotonic())))
             if msg is not None:
-                builder.add(*msg)
+                writer.add(*msg)
     except KeyboardInterrupt:
         log.info("interrupted: writing what was received")
-    return builder
-
-
-def save(builder: RecordBuilder, path, calibration: Calibration | None = None, attrs: dict | None = None):
-    """Build and write the recording; on failure write the rescue file and re-raise with its name."""
-    path = Path(path)
-    try:
-        rec = builder.build(calibration, attrs)
-        recording.write(path, rec)
-        return rec
-    except (ThermodError, OSError, ValueError) as e:
-        rescue = builder.rescue(path)
-        raise RecordingError(path, "file", f"could not write the recording ({e}); the received data "
-                             f"is in {rescue}") from None
+    return writer
 
 
 def run(args) -> int:
@@ -193,30 +271,39 @@ def run(args) -> int:
     except ValueError:  # not the main thread: Ctrl-C/--seconds still work
         pass
     started = time.monotonic()
+    attrs = {"endpoint": args.endpoint}
+    writer = RecordWriter(out)
     try:
+        # A deep receive queue: a recorder must ride out disk stalls without losing messages.
         with Subscriber(args.endpoint, ("raw", "gyro", "health"), curve_server_key=args.curve_server_key,
-                        curve_client_key_file=args.curve_client_key) as sub:
-            builder = RecordBuilder()
+                        curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
             try:
-                record(sub, args.seconds, builder, stop=lambda: bool(stopping))
+                record(sub, args.seconds, writer, stop=lambda: bool(stopping))
             finally:
-                gaps, rejected = dict(sub.gaps), sum(sub.errors.values())
-                attrs = {"endpoint": args.endpoint, "seconds": time.monotonic() - started,
-                         "lost_raw_messages": gaps.get("raw", 0), "lost_gyro_messages": gaps.get("gyro", 0),
-                         "rejected_messages": rejected}
-                if not builder.empty:
-                    rec = save(builder, out, calibration, attrs)
+                attrs.update(seconds=time.monotonic() - started, lost_raw_messages=sub.gaps.get("raw", 0),
+                             lost_gyro_messages=sub.gaps.get("gyro", 0),
+                             rejected_messages=sum(sub.errors.values()))
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
-    if builder.empty:
+        try:
+            if writer.empty:
+                writer.discard()
+            else:  # also after an error: what was received is written
+                writer.finish(calibration, attrs)
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+    if writer.empty:
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
-    n, m = rec.n_frames, len(rec.gyro_t)
-    rate = (m - 1) / (rec.gyro_t[-1] - rec.gyro_t[0]) if m > 1 else float("nan")
-    lost = int(np.sum(np.maximum(np.diff(rec.extras["record/gyro_seq"]) - 1, 0))) if m > 1 else 0
-    print(f"wrote {out}: {n} frames {rec.frames.shape[1:]}, {m} gyro samples ({rate:.1f} Hz, {lost} lost "
-          f"in gaps), lost messages raw {attrs['lost_raw_messages']} gyro {attrs['lost_gyro_messages']}, "
-          f"calibration from {rec.extra_attrs['record']['calibration_source']}")
+    with h5py.File(out, "r") as f:
+        n, shape, m = f["camera/t"].shape[0], f["camera/frames"].shape[1:], f["gyro/t"].shape[0]
+        gt = f["gyro/t"][()]
+        seq = f["record/gyro_seq"][()]
+        source = f["record"].attrs["calibration_source"]
+    rate = (m - 1) / (gt[-1] - gt[0]) if m > 1 else float("nan")
+    lost = int(np.sum(np.maximum(np.diff(seq) - 1, 0))) if m > 1 else 0
+    print(f"wrote {out}: {n} frames {shape}, {m} gyro samples ({rate:.1f} Hz, {lost} lost in gaps), "
+          f"lost messages raw {attrs['lost_raw_messages']} gyro {attrs['lost_gyro_messages']}, "
+          f"calibration from {source}")
     if n == 0:
         print("note: no raw frames: the daemon publishes them only with [publish] raw = true",
               file=sys.stderr)
