@@ -323,3 +323,17 @@ def test_curve_encryption_without_client_allowlist(tmp_path):
         topic, h, a = sub.recv(2.0)
         assert topic == "frame" and h["frame_id"] == 1
         sub.close()
+
+
+def test_inproc_with_a_shared_context():
+    ctx = zmq.Context()
+    try:
+        with Publisher("inproc://thermod-test", context=ctx) as p:
+            sub = connect(p, ("frame",), context=ctx)
+            p.publish_frame(np.eye(3, dtype=np.float32), 5.0, frame_id=9, deblurred=True)
+            topic, h, a = sub.recv(2.0)
+            assert topic == "frame" and h["frame_id"] == 9 and np.array_equal(a, np.eye(3))
+            sub.close()
+        assert not ctx.closed  # a shared context stays the caller's
+    finally:
+        ctx.term()

@@ -123,6 +123,8 @@ class Publisher:
         Messages waiting for the sender thread; when full the OLDEST is dropped and counted.
     linger_s : float
         How long `stop` waits for queued messages to leave.
+    context : zmq.Context, optional
+        Share a context (needed for ``inproc://`` endpoints); by default the publisher owns one.
 
     `publish*` may be called from any thread and never block: they stamp ``v``, ``seq`` (per topic,
     consecutive in call order, so a queue drop shows up as a gap), ``shape`` and ``dtype`` and queue
@@ -132,11 +134,13 @@ class Publisher:
     """
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64, curve_secret_key_file=None,
-                 authorized_keys_dir=None, queue_size: int = 256, linger_s: float = 0.5):
+                 authorized_keys_dir=None, queue_size: int = 256, linger_s: float = 0.5,
+                 context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
             raise ValueError("queue_size and hwm must be at least 1")
         self.endpoint = endpoint
         self.hwm, self.queue_size, self.linger_s = int(hwm), int(queue_size), float(linger_s)
+        self._shared_ctx = context
         self._keys = None
         if curve_secret_key_file is not None:
             self._keys = _load_keypair(curve_secret_key_file, "curve_secret_key_file")
@@ -298,7 +302,7 @@ class Publisher:
 
     # -------------------------------------------------------------- sender thread
     def _run(self, ready: threading.Event, failure: list) -> None:
-        ctx = zmq.Context()
+        ctx = self._shared_ctx or zmq.Context()
         auth = sock = None
         try:
             try:
@@ -333,7 +337,8 @@ class Publisher:
                 sock.close()
             if auth is not None:
                 auth.stop()
-            ctx.term()
+            if self._shared_ctx is None:
+                ctx.term()
 
     def _drain(self, sock) -> None:
         while True:
@@ -491,6 +496,8 @@ class Subscriber:
         This client's certificate (``*.key_secret``); a throwaway key pair is made if omitted.
     max_header_bytes : int
         Larger headers are rejected.
+    context : zmq.Context, optional
+        Share a context (needed for ``inproc://`` endpoints); by default the subscriber owns one.
     rcvhwm : int
         Receive high-water mark, in messages (ZeroMQ's default, 1000): beyond it messages are dropped
         and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
@@ -503,7 +510,7 @@ class Subscriber:
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, topics: Iterable[str] = ("frame",), *,
                  curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = 65536,
-                 rcvhwm: int = 1000):
+                 rcvhwm: int = 1000, context: zmq.Context | None = None):
         self.topics = tuple(topics)
         unknown = [t for t in self.topics if t not in TOPICS]
         if unknown or not self.topics:
@@ -514,7 +521,8 @@ class Subscriber:
         self.restarts = collections.Counter()
         self.errors = collections.Counter()
         self._last_seq: dict[str, int] = {}
-        self._ctx = zmq.Context()
+        self._own_ctx = context is None
+        self._ctx = zmq.Context() if context is None else context
         self._sock = self._ctx.socket(zmq.SUB)
         try:
             self._sock.setsockopt(zmq.RCVHWM, int(rcvhwm))
@@ -579,7 +587,8 @@ class Subscriber:
     def close(self) -> None:
         if not self._sock.closed:
             self._sock.close(linger=0)
-        self._ctx.term()
+        if self._own_ctx:
+            self._ctx.term()
 
     def __enter__(self) -> Subscriber:
         return self
