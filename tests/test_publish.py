@@ -215,6 +215,16 @@ def test_queue_drops_oldest_without_blocking():
     assert seqs == list(range(10))
     assert st["queue_dropped"] == 6 and st["queue_depth"] == 4 and st["queued"]["frame"] == 10
     assert [m[1]["seq"] for m in p._queue] == [6, 7, 8, 9]  # the newest survive; the gap shows up as seq
+    # The byte bound: three 1 MiB frames fit a 2.5 MiB queue only two at a time; gyro batches still do.
+    p = Publisher(EP, queue_size=100, queue_bytes=5 << 19)
+    big = np.zeros((512, 512), np.float32)
+    for i in range(3):
+        p.publish_frame(big, i, frame_id=i, deblurred=True)
+    p.publish_gyro(np.arange(10.0), np.zeros((10, 3)), seq=0)
+    st = p.stats()
+    assert st["queue_dropped"] == 1 and st["queue_depth"] == 3
+    assert st["queue_bytes"] == 2 * big.nbytes + 10 * (8 + 12)
+    assert [m[1]["seq"] for m in p._queue] == [1, 2, 0]
 
 
 @pytest.mark.slow

@@ -119,8 +119,9 @@ class Publisher:
     authorized_keys_dir : path, optional
         Directory of client public certificates (``*.key``); only those clients are admitted.
         Without it, any CURVE client is admitted (encryption only).
-    queue_size : int
-        Messages waiting for the sender thread; when full the OLDEST is dropped and counted.
+    queue_size, queue_bytes : int
+        Bounds on the messages waiting for the sender thread (count, payload bytes); beyond either
+        the OLDEST are dropped and counted. Gyro batches are many and small, frames few and large.
     linger_s : float
         How long `stop` waits for queued messages to leave.
     context : zmq.Context, optional
@@ -134,12 +135,14 @@ class Publisher:
     """
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64, curve_secret_key_file=None,
-                 authorized_keys_dir=None, queue_size: int = 256, linger_s: float = 0.5,
+                 authorized_keys_dir=None, queue_size: int = 1024, queue_bytes: int = 64 << 20,
+                 linger_s: float = 0.5,
                  context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
             raise ValueError("queue_size and hwm must be at least 1")
         self.endpoint = endpoint
         self.hwm, self.queue_size, self.linger_s = int(hwm), int(queue_size), float(linger_s)
+        self.queue_bytes = int(queue_bytes)
         self._shared_ctx = context
         self._keys = None
         if curve_secret_key_file is not None:
@@ -161,6 +164,7 @@ class Publisher:
         self._queued = dict.fromkeys(TOPICS, 0)
         self._sent = dict.fromkeys(TOPICS, 0)
         self._queue_dropped = 0
+        self._queue_nbytes = 0
         self._send_errors = 0
         self._bytes_sent = 0
 
@@ -225,14 +229,17 @@ class Publisher:
         return self._enqueue(topic, head, array)
 
     def _enqueue(self, topic: str, head: dict, payload) -> int:
+        nbytes = _nbytes(payload)
         with self._lock:
             seq = self._seq[topic]
             self._seq[topic] = seq + 1
             head["v"], head["seq"] = WIRE_VERSION, seq
-            if len(self._queue) >= self.queue_size:
-                self._queue.popleft()
+            while self._queue and (len(self._queue) >= self.queue_size
+                                   or self._queue_nbytes + nbytes > self.queue_bytes):
+                self._queue_nbytes -= _nbytes(self._queue.popleft()[2])
                 self._queue_dropped += 1
             self._queue.append((topic, head, payload))
+            self._queue_nbytes += nbytes
             self._queued[topic] += 1
         self._wake.set()
         return seq
@@ -297,6 +304,7 @@ class Publisher:
         with self._lock:
             return {"endpoint": self.endpoint, "running": self.running, "queued": dict(self._queued),
                     "sent": dict(self._sent), "queue_depth": len(self._queue),
+                    "queue_bytes": self._queue_nbytes,
                     "queue_dropped": self._queue_dropped, "send_errors": self._send_errors,
                     "bytes_sent": self._bytes_sent}
 
@@ -346,6 +354,7 @@ class Publisher:
                 if not self._queue:
                     return
                 topic, head, payload = self._queue.popleft()
+                self._queue_nbytes -= _nbytes(payload)
             head["published"] = time.monotonic()
             try:
                 hbytes = json.dumps(_jsonable(head), separators=(",", ":"), allow_nan=False).encode()
