@@ -322,3 +322,6 @@ class SerialIMU(GyroSource):
                 g, n_lost = True, int(seq[a] - seq[a - 1] - 1)
             batches.append(GyroBatch(t=t[a:b], rate=rate[a:b], seq=int(seq[a]), gap_before=g, n_lost=n_lost))
         return batches
+
+
+SerialGyro = SerialIMU      # the name thermod.daemon builds "serial" gyro sources with

@@ -223,7 +223,7 @@ class ICM42688Emu(RegisterChip):
     name = "ICM-42688-P"
     fifo_reg = 0x30
     fifo_capacity = 2048
-    timeline_regs = (0x4E, 0x4F, 0x16, 0x5F)
+    timeline_regs = (0x4E, 0x4F)                      # power and ODR: the sample grid restarts
     FS_DPS = (2000.0, 1000.0, 500.0, 250.0, 125.0, 62.5, 31.25, 15.625)
     ODR_HZ = {1: 32000.0, 2: 16000.0, 3: 8000.0, 4: 4000.0, 5: 2000.0, 6: 1000.0, 7: 200.0, 8: 100.0,
               9: 50.0, 10: 25.0, 11: 12.5, 15: 500.0}
@@ -301,7 +301,7 @@ class MPU6000Emu(RegisterChip):
     fifo_reg = 0x74
     fifo_capacity = 1024
     drop_oldest_bytes = True
-    timeline_regs = (0x19, 0x1A, 0x1B, 0x23, 0x6B)
+    timeline_regs = (0x19, 0x1A, 0x6B)
     FS_DPS = (250.0, 500.0, 1000.0, 2000.0)
 
     def _defaults(self):
@@ -369,7 +369,7 @@ class BMI088GyroEmu(RegisterChip):
     name = "BMI088-gyro"
     fifo_reg = 0x3F
     fifo_capacity = 600
-    timeline_regs = (0x0F, 0x10, 0x11, 0x3E)
+    timeline_regs = (0x10, 0x11)
     FS_DPS = (2000.0, 1000.0, 500.0, 250.0, 125.0)
     ODR_HZ = (2000.0, 2000.0, 1000.0, 400.0, 200.0, 100.0, 200.0, 100.0)
 
@@ -407,10 +407,8 @@ class BMI088GyroEmu(RegisterChip):
             self.regs[0x0E] &= 0x7F
 
     def _read_reg(self, reg):
-        if reg == 0x0E:
-            v = (self.regs[0x0E] & 0x80) | min(len(self.fifo) // 6, 0x7F)
-            self.regs[0x0E] &= 0x7F                      # overrun clears on read
-            return v
+        if reg == 0x0E:                                  # overrun stays until FIFO_CONFIG_1 is written
+            return (self.regs[0x0E] & 0x80) | min(len(self.fifo) // 6, 0x7F)
         return self.regs[reg]
 
     def _set_overflow(self):

@@ -7,15 +7,25 @@ import time
 
 import numpy as np
 import pytest
+from thermod.drivers.bmi088 import BMI088Error, BMI088Gyro
 from thermod.drivers.bus import I2CBus, SPIBus
 from thermod.drivers.gyro_base import GyroDeviceError
 from thermod.drivers.icm42688 import ICM42688, ICM42688Error
 from thermod.drivers.mpu6000 import MPU6000, MPU6000Error
-from thermod.sim.emu_registers import EmuI2C, EmuSPI, ICM42688Emu, MPU6000Emu
+from thermod.sim.emu_registers import BMI088GyroEmu, EmuI2C, EmuSPI, ICM42688Emu, MPU6000Emu
 
 from thermod.errors import DeviceError
 
-CHIPS = {"icm42688": (ICM42688, ICM42688Emu, ICM42688Error), "mpu6000": (MPU6000, MPU6000Emu, MPU6000Error)}
+CHIPS = {"icm42688": (ICM42688, ICM42688Emu, ICM42688Error), "mpu6000": (MPU6000, MPU6000Emu, MPU6000Error),
+         "bmi088": (BMI088Gyro, BMI088GyroEmu, BMI088Error)}
+ID_REG = {"icm42688": "WHO_AM_I 0x75", "mpu6000": "WHO_AM_I 0x75", "bmi088": "GYRO_CHIP_ID 0x00"}
+
+
+@pytest.fixture(autouse=True)
+def fast_resets(monkeypatch):
+    # the emulators reset instantly; the datasheet waits (100 ms MPU, 30 ms BMI) stay in the drivers
+    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
+    monkeypatch.setattr(BMI088Gyro, "reset_wait_s", 0.002)
 
 
 def make_bus(kind, chip, address=0x68, **kw):
@@ -74,8 +84,7 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
 
 @pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
 @pytest.mark.parametrize("fs", [250.0, 500.0, 1000.0, 2000.0])
-def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs, monkeypatch):
-    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)          # the emulator resets instantly
+def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs):
     w = np.radians(fs) * np.array([-0.8, 0.45, 0.12])
     chip = MPU6000Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = MPU6000(make_bus(bus_kind, chip), full_scale_dps=fs)
@@ -90,8 +99,7 @@ def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs, monkeypatch):
     assert bool(chip.regs[0x6A] & 0x10) == (bus_kind == "spi")
 
 
-def test_mpu6000_sample_rate_divider(monkeypatch):
-    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
+def test_mpu6000_sample_rate_divider():
     chip = MPU6000Emu(noise_rad_s=0.0)
     gyro = MPU6000(make_bus("i2c", chip), rate_hz=250.0)
     gyro.start()
@@ -135,16 +143,31 @@ def test_icm42688_16_byte_packets_with_accel():
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(500) / 32768 * 1.0001
 
 
-@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
-def test_fifo_overflow_detected_flushed_counted(name, monkeypatch):
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+@pytest.mark.parametrize("fs", [2000.0, 1000.0, 500.0, 250.0, 125.0])
+def test_bmi088_rates_and_units_at_every_full_scale(bus_kind, fs):
+    w = np.radians(fs) * np.array([0.5, -0.99, 0.07])
+    chip = BMI088GyroEmu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = BMI088Gyro(make_bus(bus_kind, chip), full_scale_dps=fs)
+    gyro.start()
+    t, r = cat(collect(gyro, 0.06))
+    assert len(t) >= 35
+    assert np.max(np.abs(r - w)) <= 0.5 * math.radians(fs) / 32768 * 1.0001
+    assert chip.regs[0x0F] == BMI088GyroEmu.FS_DPS.index(fs)
+    assert chip.regs[0x10] == 0x82 and chip.odr_hz() == 1000.0      # bit 7 reads 1
+    assert chip.regs[0x3E] == 0x80                                   # stream mode, X/Y/Z
+    assert np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+
+
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
+def test_fifo_overflow_detected_flushed_counted(name):
     Driver, Emu, _ = CHIPS[name]
-    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
     fn, decode = sawtooth_clock(time.monotonic())
     chip = Emu(rate_fn=fn, noise_rad_s=0.0)
     gyro = Driver(make_bus("i2c", chip), full_scale_dps=2000.0)
     gyro.start()
     before = collect(gyro, 0.15)
-    time.sleep(0.45)                               # FIFO: 2048/8 = 256 (ICM) or 1024/6 = 170 (MPU) samples
+    time.sleep(0.45)                     # FIFO: 256 (ICM), 170 (MPU) or 100 (BMI) samples
     after = collect(gyro, 0.25)
     st = gyro.stats()
     assert st["overflows"] == 1 and st["gaps"] == 1
@@ -163,7 +186,7 @@ def test_fifo_overflow_detected_flushed_counted(name, monkeypatch):
     assert np.all(np.abs(r[:, 2] - 0.5) < 1e-3)
 
 
-@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
 @pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
 def test_wrong_chip_id_refused_with_actionable_message(name, bus_kind):
     Driver, Emu, Error = CHIPS[name]
@@ -171,7 +194,7 @@ def test_wrong_chip_id_refused_with_actionable_message(name, bus_kind):
     with pytest.raises(Error) as e:
         gyro.start()
     msg = str(e.value)
-    assert "WHO_AM_I 0x75 read 0x12, expected 0x" in msg
+    assert f"{ID_REG[name]} read 0x12, expected 0x" in msg
     assert "check wiring / I²C address / bus number / SPI mode" in msg
     assert isinstance(e.value, GyroDeviceError) and isinstance(e.value, DeviceError)
 
@@ -195,10 +218,9 @@ def test_config_not_accepted_is_reported():
         gyro.start()
 
 
-@pytest.mark.parametrize("name", ["icm42688", "mpu6000"])
-def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name, monkeypatch):
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
+def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     Driver, Emu, Error = CHIPS[name]
-    monkeypatch.setattr(MPU6000, "reset_wait_s", 0.002)
     w = np.array([0.2, 0.0, -0.1])
     chip = Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = Driver(make_bus("i2c", chip), full_scale_dps=500.0)
