@@ -45,6 +45,7 @@ from thermod.errors import ThermodError
 class Rendered:
     frames: np.ndarray          # float32 [N, H, W]: detector output (blur, readout, PSF), noiseless
     sharp: np.ndarray           # float32 [N, H, W]: the sharp view at each frame time (no PSF)
+    sharp_rolling: np.ndarray | None   # rolling readout only: each row's sharp view at its read time
     n_steps: int                # fine steps integrated
     max_step_px: float          # largest image motion of any step (px), ≤ step_px by construction
 
@@ -77,6 +78,25 @@ def _sphere_maps(M, wc, hc, fxs, fys, cxs, cys, ws, hs):
     return mx, my
 
 
+@njit(cache=True, nogil=True)
+def _sphere_maps_rows(Ms, wc, fxs, fys, cxs, cys, ws, hs):
+    """As _sphere_maps with one M = R(t_r) K⁻¹ per row (a rolling-readout view)."""
+    hc = Ms.shape[0]
+    mx = np.empty((hc, wc), np.float32)
+    my = np.empty((hc, wc), np.float32)
+    for v in range(hc):
+        M = Ms[v]
+        for u in range(wc):
+            dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
+            dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
+            dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+            az = math.atan2(dx, dz)
+            el = math.atan2(dy, math.sqrt(dx * dx + dz * dz))
+            mx[v, u] = _fold(cxs + fxs * az, ws)
+            my[v, u] = _fold(cys + fys * el, hs)
+    return mx, my
+
+
 class SphereScene:
     """A texture (float32 counts) on the sphere: its centre looks along the world +z axis (the
     camera's optical axis at t_ref); `ifov_rad` per texture pixel (default: the camera's)."""
@@ -94,6 +114,13 @@ class SphereScene:
         M = np.ascontiguousarray(R @ np.linalg.inv(K))
         mx, my = _sphere_maps(M, int(width), int(height), self.fx, self.fy, self.cx, self.cy,
                               self.texture.shape[1], self.texture.shape[0])
+        return cv2.remap(self.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+
+    def rolling_view(self, Rs: np.ndarray, K: np.ndarray, width: int) -> np.ndarray:
+        """A view whose row r is seen at orientation Rs[r] (rolling readout), float32 [len(Rs), width]."""
+        Ms = np.ascontiguousarray(Rs @ np.linalg.inv(K))
+        mx, my = _sphere_maps_rows(Ms, int(width), self.fx, self.fy, self.cx, self.cy,
+                                   self.texture.shape[1], self.texture.shape[0])
         return cv2.remap(self.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
 
 
@@ -158,6 +185,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     rows_t = [row_times(tk, ro, H) for tk in t_frames]
     out = np.zeros((n, H, W), np.float32)
     sharp = np.empty((n, H, W), np.float32)
+    sharp_rolling = np.empty((n, H, W), np.float32) if ro > 0 else None
 
     B = scene.view(traj.R(t_begin)[0], K, W, H) if kind == "thermal" else None
     cap_k, cap_r = 0, 0            # next (frame, row) to capture (thermal)
@@ -223,6 +251,8 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
                 n_steps += 1
             if s == n_sub - 1:
                 sharp[k] = canvas[-y0:-y0 + H, -x0:-x0 + W]
+                if sharp_rolling is not None:
+                    sharp_rolling[k] = scene.rolling_view(traj.R(rows_t[k]), K, W)
         if progress is not None:
             progress(k + 1)
 
@@ -232,7 +262,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     if sigma > 0:
         for k in range(n):
             out[k] = gaussian_psf(out[k], sigma)
-    return Rendered(out, sharp, n_steps, max_step)
+    return Rendered(out, sharp, sharp_rolling, n_steps, max_step)
 
 
 def _photon_accumulate(out, S, rows_t, exposure, ta, tz, k_seg):

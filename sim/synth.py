@@ -22,7 +22,8 @@ has to explain:
 
 The truth goes to `extra_attrs["truth"]` (true calibration attributes, effects, specs) and
 `extras["truth/..."]`: `frames` (float32 sharp view at each frame time, no PSF),
-`blurry_noiseless` (float32 detector output before the sensor noise), `gyro_t_camera` and
+`blurry_noiseless` (float32 detector output before the sensor noise), under rolling readout
+`frames_rolling` (float32: each row's sharp view at its own read time), `gyro_t_camera` and
 `gyro_omega_camera` (true sampling instants on the camera clock and the true camera rate there),
 `frame_R` (R(t_k), camera→world, world = the camera at the first frame).
 """
@@ -171,6 +172,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     if truth:
         extras["truth/frames"] = r.sharp
         extras["truth/blurry_noiseless"] = r.frames
+        if r.sharp_rolling is not None:
+            extras["truth/frames_rolling"] = r.sharp_rolling
     extras["truth/gyro_t_camera"] = gs.t_true
     extras["truth/gyro_omega_camera"] = gs.omega_true.astype(np.float32)
     extras["truth/frame_R"] = traj.R(t_frames)

@@ -134,17 +134,22 @@ def test_blur_matches_rotation_homography_model_with_roll():
 def test_rolling_readout_shears_rows_by_speed_times_row_delay():
     tex = scenes.texture(288, 384, seed=3)
     ro = 0.012
-    a = render_one(tex, "pan:50", SMALL, psf_sigma_px=0).frames[0]
-    b = render_one(tex, "pan:50", SMALL.replace(readout_s=ro), psf_sigma_px=0).frames[0]
+    ra = render_one(tex, "pan:50", SMALL, psf_sigma_px=0)
+    rb = render_one(tex, "pan:50", SMALL.replace(readout_s=ro), psf_sigma_px=0)
+    assert ra.sharp_rolling is None
+    np.testing.assert_array_equal(ra.sharp, rb.sharp)                # the global truth is the same
     v = SMALL.fx * 50 * DEG
-    for r0, r1 in ((0, 24), (60, 84), (120, 144)):
-        win = cv2.createHanningWindow((160, r1 - r0), cv2.CV_64F)
-        pa, pb = (x[r0:r1, 16:-16].astype(np.float64) for x in (a, b))
-        (dx, dy), _ = cv2.phaseCorrelate(pa - pa.mean(), pb - pb.mean(), win)
-        rows = np.arange(r0, r1)
-        expect = v * ro * np.mean(1 - (rows + 1) / SMALL.height)   # earlier rows saw the scene further right
-        assert dx == pytest.approx(expect, abs=0.35)
-        assert abs(dy) < 0.3
+    for a, b in ((ra.frames[0], rb.frames[0]), (ra.sharp[0], rb.sharp_rolling[0])):
+        for r0, r1 in ((0, 24), (60, 84), (120, 144)):
+            win = cv2.createHanningWindow((160, r1 - r0), cv2.CV_64F)
+            pa, pb = (x[r0:r1, 16:-16].astype(np.float64) for x in (a, b))
+            (dx, dy), _ = cv2.phaseCorrelate(pa - pa.mean(), pb - pb.mean(), win)
+            rows = np.arange(r0, r1)
+            expect = v * ro * np.mean(1 - (rows + 1) / SMALL.height)   # earlier rows: scene further right
+            assert dx == pytest.approx(expect, abs=0.35)
+            assert abs(dy) < 0.3
+    # the last row is read at t_k: the rolling truth's last row is the global truth's
+    np.testing.assert_allclose(rb.sharp_rolling[0][-1], rb.sharp[0][-1], atol=1.0)
 
 
 def test_photon_detector_is_a_box_streak():
