@@ -1,0 +1,161 @@
+"""`thermod deblur` end to end on simulated recordings (the simulator's truth is the reference)."""
+
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from thermod.sim import synth
+from thermod.sim.gyro_model import GyroErrorModel
+
+from thermod import recording
+from thermod.calibration import Calibration
+from thermod.cli import main
+
+
+def psnr8(est, truth):
+    """PSNR on the 8-bit scale: the truth's 0.5–99.5 % range mapped to 0–255."""
+    lo, hi = np.percentile(truth, (0.5, 99.5))
+    a = np.clip((est.astype(np.float64) - lo) * 255 / (hi - lo), 0, 255)
+    b = np.clip((truth.astype(np.float64) - lo) * 255 / (hi - lo), 0, 255)
+    return 10 * np.log10(255 ** 2 / np.mean((a - b) ** 2))
+
+
+@pytest.fixture(scope="module")
+def pan50(tmp_path_factory):
+    """640×480 SBTI camera panning at 50 °/s over a real scene, paper gyro, NETD 30 mK."""
+    rec = synth.simulate("real:0", "pan:50", seconds=0.08, seed=3, effects={"netd": 0.03},
+                         gyro=GyroErrorModel.paper())
+    path = tmp_path_factory.mktemp("rec") / "pan50.h5"
+    recording.write(path, rec)
+    return path
+
+
+@pytest.fixture(scope="module")
+def roll(tmp_path_factory):
+    """A smaller camera rolling at 90 °/s: the blur grows from the centre to the corners."""
+    calib = Calibration(width=320, height=240, cx=159.5, cy=119.5)
+    rec = synth.simulate("real:6", "roll:90", seconds=0.06, calib=calib, seed=4, effects={"netd": 0.03},
+                         gyro=GyroErrorModel.paper())
+    path = tmp_path_factory.mktemp("rec") / "roll.h5"
+    recording.write(path, rec)
+    return path
+
+
+def deblur(capsys, *argv):
+    rc = main(["deblur", *map(str, argv)])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def gains(path):
+    rec = recording.read(path)
+    truth = rec.extras["truth/frames"]
+    return np.array([psnr8(rec.deblurred[i], truth[i]) - psnr8(rec.frames[i].astype(np.float32), truth[i])
+                     for i in range(rec.n_frames)])
+
+
+def test_single_file_raises_psnr_by_8_db_and_keeps_everything(pan50, tmp_path, capsys):
+    out = tmp_path / "out.h5"
+    rc, text, _ = deblur(capsys, pan50, "-o", out)
+    assert rc == 0
+    src, res = recording.read(pan50), recording.read(out)
+    assert res.deblurred.dtype == np.float32 and res.deblurred.shape == src.frames.shape
+    np.testing.assert_array_equal(res.frames, src.frames)
+    np.testing.assert_array_equal(res.gyro_rate, src.gyro_rate)
+    np.testing.assert_array_equal(res.deblurred_t, src.t)
+    np.testing.assert_array_equal(res.extras["truth/frames"], src.extras["truth/frames"])
+    g = gains(out)
+    assert g.min() >= 8.0, g                      # measured ≈ +16 dB
+    # counts in the input's scale and never clipped to the blurry frame's range
+    assert abs(np.median(res.deblurred) - np.median(src.frames)) < 20
+    assert res.deblurred.max() > src.frames.max() or res.deblurred.min() < src.frames.min()
+    with h5py.File(out) as f:
+        assert f["deblurred/deblurred"][()].all()
+        assert f["deblurred"].attrs["kernel"] == "thermal"
+    assert f"{src.n_frames} deblurred, 0 passed through" in text and "ms/frame" in text
+
+
+def test_thermal_kernel_beats_photon_kernel(pan50, tmp_path, capsys):
+    assert deblur(capsys, pan50, "-o", tmp_path / "t.h5", "--uniform")[0] == 0
+    assert deblur(capsys, pan50, "-o", tmp_path / "p.h5", "--uniform", "--kernel", "photon")[0] == 0
+    gt, gp = gains(tmp_path / "t.h5"), gains(tmp_path / "p.h5")
+    assert gt.mean() > gp.mean() + 4.0, (gt, gp)
+
+
+@pytest.mark.parametrize("opts,gain", [(["--alpha", "1"], 8.0), (["--alpha", "0.6667"], 8.0),
+                                       (["--method", "wiener"], 6.0)])
+def test_methods_and_alphas_work(pan50, tmp_path, capsys, opts, gain):
+    rc, text, _ = deblur(capsys, pan50, "-o", tmp_path / "o.h5", "--uniform", *opts)
+    assert rc == 0
+    assert gains(tmp_path / "o.h5").min() >= gain
+
+
+def test_spatially_varying_default_beats_uniform_under_roll(roll, tmp_path, capsys):
+    assert deblur(capsys, roll, "-o", tmp_path / "v.h5")[0] == 0
+    assert deblur(capsys, roll, "-o", tmp_path / "u.h5", "--uniform")[0] == 0
+    gv, gu = gains(tmp_path / "v.h5"), gains(tmp_path / "u.h5")
+    assert gv.mean() > gu.mean() + 1.0 and gv.min() > 3.0, (gv, gu)
+
+
+def test_uncovered_frame_is_passed_through_not_dropped(pan50, tmp_path, capsys):
+    rec = recording.read(pan50)
+    keep = rec.gyro_t > rec.t[0] - 0.015          # frame 0 needs 5τ = 40 ms of history
+    rec.gyro_t, rec.gyro_rate = rec.gyro_t[keep], rec.gyro_rate[keep]
+    src = tmp_path / "cut.h5"
+    recording.write(src, rec)
+    rc, text, _ = deblur(capsys, src, "-o", tmp_path / "cut_out.h5")
+    assert rc == 0
+    res = recording.read(tmp_path / "cut_out.h5")
+    np.testing.assert_array_equal(res.deblurred[0], rec.frames[0].astype(np.float32))
+    assert not np.array_equal(res.deblurred[1], rec.frames[1].astype(np.float32))
+    with h5py.File(tmp_path / "cut_out.h5") as f:
+        assert f["deblurred/deblurred"][()].tolist() == [False] + [True] * (rec.n_frames - 1)
+    assert f"{rec.n_frames - 1} deblurred, 1 passed through" in text
+    assert "frame 0 passed through: gyro coverage" in text
+
+
+def test_multi_file_mode_writes_a_directory(pan50, roll, tmp_path, capsys):
+    outdir = tmp_path / "outdir"
+    rc, text, _ = deblur(capsys, pan50, roll, "-o", f"{outdir}/", "--uniform", "--method", "wiener")
+    assert rc == 0
+    for name in ("pan50.h5", "roll.h5"):
+        res = recording.read(outdir / name)
+        assert res.deblurred is not None and res.deblurred.dtype == np.float32
+    assert "2 file(s)" in text
+
+
+def test_bad_input_file_gives_recording_error_and_exit_2(tmp_path):
+    bad = tmp_path / "notes.h5"
+    bad.write_text("not an HDF5 file")
+    cmd = [sys.executable, "-m", "thermod.cli", "deblur", str(bad), "-o", str(tmp_path / "o.h5")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert f"{bad}: file: not a readable HDF5 file" in p.stderr
+    assert "Traceback" not in p.stderr and not (tmp_path / "o.h5").exists()
+
+
+def test_wrong_format_attribute_in_multi_file_mode_keeps_the_good_file(pan50, tmp_path, capsys):
+    wrong = tmp_path / "wrong.h5"
+    with h5py.File(wrong, "w") as f:
+        f.attrs["format"] = "something-else"
+    outdir = tmp_path / "o"
+    rc, text, err = deblur(capsys, wrong, pan50, "-o", outdir, "--method", "wiener", "--uniform")
+    assert rc == 2
+    assert "wrong.h5: /.attrs['format']: expected 'thermod-recording'" in err
+    assert recording.read(outdir / "pan50.h5").deblurred is not None
+    assert not (outdir / "wrong.h5").exists()
+
+
+def test_refuses_to_overwrite_its_input(pan50, tmp_path, capsys):
+    rc, _, err = deblur(capsys, pan50, "-o", pan50)
+    assert rc == 2 and "would overwrite the input" in err
+
+
+@pytest.mark.parametrize("opts,match", [(["--grid", "0", "3"], "--grid"),
+                                        (["--min-coverage", "2"], "--min-coverage"),
+                                        (["--lambda", "-5"], "lam"), (["--alpha", "3"], "alpha")])
+def test_bad_options_exit_2(pan50, tmp_path, capsys, opts, match):
+    rc, _, err = deblur(capsys, pan50, "-o", tmp_path / "x.h5", *opts)
+    assert rc == 2 and match in err
