@@ -183,6 +183,10 @@ class AravisCamera(CameraSource):
     def _open(self) -> None:
         Aravis = load_aravis()
         target = self.address
+        if target is not None and gvcp_probe(target, timeout=0.3) is None:
+            # fail fast: opening an absent camera would block for its GVCP retries (seconds)
+            raise DeviceError(f"{self.name}: no GigE Vision camera answers at {target} (GVCP discovery on "
+                              f"UDP {GVCP_PORT}); check power, cable, the camera's IP/subnet, firewall")
         try:
             if target is None:
                 target, self._resolved_address = self._resolve(Aravis)

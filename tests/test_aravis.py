@@ -39,8 +39,8 @@ class FakeCamera:
         self.serial = serial
         self.proc = None
 
-    def start(self) -> None:
-        self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", self.serial],
+    def start(self, *extra: str) -> None:
+        self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", self.serial, *extra],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
@@ -148,13 +148,15 @@ def test_frames_at_rate_with_mapped_timestamps(fake_camera):
     rate = (len(arr) - 1) / (arr[-1] - arr[0])
     assert rate == pytest.approx(40.0, rel=0.10)
     t = np.array([f.t for f in frames])
-    assert np.all(np.diff(t) > 0)
-    np.testing.assert_allclose(np.median(np.diff(t)), 1 / 40.0, rtol=0.05)
-    lag = np.array([f.arrival - f.t for f in frames])
-    assert np.all(lag >= -1e-6) and np.all(lag < 0.05)   # stamped from the device clock, not the read
     ids = np.array([f.frame_id for f in frames])
-    assert np.all(np.diff(ids) == 1) and sum(f.gap_before for f in frames) == 0
-    assert st["bad_buffers"] == 0 and st["frames_lost"] == 0
+    assert np.all(np.diff(t) > 0)
+    # device timestamps: the frame period to within 2 % (reads on a loaded host jitter far more)
+    np.testing.assert_allclose(np.median(np.diff(t) / np.diff(ids)), 1 / 40.0, rtol=0.02)
+    lag = np.array([f.arrival - f.t for f in frames])
+    assert np.all(lag >= -1e-6) and np.median(lag) < 0.01, lag   # stamped by the device, not the read
+    # on loopback nothing should be lost; under heavy load the odd frame may be, but then it is counted
+    assert np.all(np.diff(ids) == 1 + np.array([f.gap_before for f in frames[1:]]))
+    assert st["frames_lost"] == sum(f.gap_before for f in frames) <= 3, st
     assert st["id_wraps"] == 1 and st["invalid_ids"] == 0
     assert st["device"] == "127.0.0.1" and st["state"] == "streaming" and cam.stats()["state"] == "stopped"
 
@@ -176,6 +178,10 @@ def test_unknown_serial_and_absent_camera_name_what_to_check(fake_camera):
         AravisCamera(device_id="NOPE").start()
     with pytest.raises(DeviceError, match=r"frame rate 5000.0 Hz not accepted"):
         AravisCamera("127.0.0.1", frame_rate_hz=5000.0).start()
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError, match=r"no GigE Vision camera answers at 127.0.0.2 .*UDP 3956"):
+        AravisCamera("127.0.0.2").start()
+    assert time.monotonic() - t0 < 1.0
 
 
 @pytest.mark.hardware
@@ -225,3 +231,20 @@ def test_no_reconnect_mode_raises(fake_camera):
                 cam.poll(0.1)
     finally:
         cam.stop()
+
+
+@pytest.mark.hardware
+def test_incomplete_buffers_counted_and_skipped(fake_camera):
+    fake_camera.kill()
+    fake_camera.start("-r", "10")          # the fake camera drops 1 % of its GVSP packets
+    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0)
+    with cam:
+        frames = _collect(cam, 1.5)
+        st = cam.stats()
+    assert st["bad_buffers"] >= 3 and st["bad_status"].get("missing-packets", 0) >= 3
+    assert len(frames) >= 20 and all(f.image.shape == (120, 160) for f in frames)
+    # a skipped buffer is a lost frame: it shows up as a frame-id gap on the next good frame
+    assert st["frames_lost"] == sum(f.gap_before for f in frames) > 0
+    ids = [f.frame_id for f in frames]
+    assert all(b - a == 1 + f.gap_before for a, b, f in zip(ids, ids[1:], frames[1:], strict=False))
+    assert st["frames_lost"] <= st["bad_buffers"] + 3     # (+ the rare frame whose leader was lost)
