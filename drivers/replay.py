@@ -175,6 +175,22 @@ class ReplaySession:
         """Host time at which an item with re-based time ``t_rebased`` is delivered."""
         return self.origin + (t_rebased - self.origin) / self.speed
 
+    def position(self, times: np.ndarray, lap: int, i: int, catch_up_s: float = 0.1) -> tuple[int, int]:
+        """(lap, index) of the first item of ``times`` not more than ``catch_up_s`` overdue now, never
+        before (lap, i). A paced source (re)started late joins the stream where a live device would be;
+        in as-fast-as-possible mode nothing is skipped."""
+        if self.fast or not len(times):
+            return lap, i
+        target = self.origin + (time.monotonic() - self.origin) * self.speed - catch_up_s * self.speed
+        k = math.floor((target - self.origin) / self.loop_period) if self.loop else 0
+        if self.loop and k > lap:
+            lap, i = k, 0
+        r_target = target - (self.origin - self.r0) - lap * self.loop_period    # recording time
+        j = int(np.searchsorted(times, r_target, side="left"))
+        if self.loop and j >= len(times):
+            return lap + 1, 0
+        return lap, max(i, j)
+
     def camera(self) -> ReplayCamera:
         return ReplayCamera(self)
 
@@ -231,6 +247,7 @@ class ReplayCamera(CameraSource):
         s = self.session
         s.begin()
         with s.cond:
+            self._lap, self._i = s.position(s.t, self._lap, self._i)
             s.camera_active = True
             self._publish_next()
             s.cond.notify_all()
@@ -316,6 +333,7 @@ class ReplayGyro(GyroSource):
         self._lap = 0
         self._next_batch = 0.0
         self._running = False
+        self._seek_gap = 0           # samples skipped by a late (re)start: reported on the next batch
         s = self.session
         dt = np.diff(s.gyro_t)
         # index j starts a gap when the step before it exceeds 1.5 sample periods
@@ -332,6 +350,11 @@ class ReplayGyro(GyroSource):
         s = self.session
         s.begin()
         with s.cond:
+            lap, i = s.position(s.gyro_t, self._lap, self._i)
+            skipped = (lap - self._lap) * len(s.gyro_t) + i - self._i
+            if skipped:
+                self._seek_gap = skipped
+            self._lap, self._i = lap, i
             s.gyro_active = True
             self._publish_next()
             s.cond.notify_all()
@@ -385,8 +408,10 @@ class ReplayGyro(GyroSource):
                 _wait(s.cond, min(until, deadline))
             i0, lap = self._i, self._lap
             t = s.rebased(s.gyro_t[i0:j], lap)
+            n_lost = self._lost_at.get(i0, 0) + self._seek_gap
             batch = GyroBatch(t=np.asarray(t, np.float64), rate=s.gyro_rate[i0:j].copy(), seq=lap * m + i0,
-                              gap_before=i0 in self._lost_at, n_lost=self._lost_at.get(i0, 0))
+                              gap_before=i0 in self._lost_at or self._seek_gap > 0, n_lost=n_lost)
+            self._seek_gap = 0
             self._i = j
             if self._i >= m and s.loop:
                 self._i, self._lap = 0, self._lap + 1
