@@ -44,6 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="microbolometer (thermal) or box-exposure photon detector")
     p.add_argument("--exposure", type=float, default=None, help="photon detector exposure (s)")
     p.add_argument("--step-px", type=float, default=0.5, help="max image motion per fine step (px, Eq. 12)")
+    p.add_argument("--time-compression", type=float, default=None, metavar="C",
+                   help="the paper's synthesis instead of the fine-time renderer: sharp views of a camera "
+                        "C× slower, re-timed (thermal detector, no rolling readout)")
+    p.add_argument("--slow-fps", type=float, default=50.0, help="frame rate of that slow camera (Hz)")
     p.add_argument("--no-truth", action="store_true", help="leave out the float32 truth frame stacks")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -106,7 +110,9 @@ def run(args) -> int:
     rec = simulate(args.scene, args.motion, args.seconds, calib, effects=parse_effects(args.effect),
                    seed=args.seed, frame_rate=args.fps, gyro=gyro, progress=not args.no_progress,
                    kind=args.detector, exposure_s=args.exposure, step_px=args.step_px,
-                   truth=not args.no_truth)
+                   truth=not args.no_truth,
+                   method="fine" if args.time_compression is None else "time_compression",
+                   compression=args.time_compression or 20.0, slow_fps=args.slow_fps)
     recording.write(out, rec)
     dt = time.perf_counter() - t0
     truth = rec.extra_attrs["truth"]

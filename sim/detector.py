@@ -265,6 +265,61 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     return Rendered(out, sharp, sharp_rolling, n_steps, max_step)
 
 
+def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
+                           compression: float = 20.0, slow_fps: float = 50.0,
+                           psf_sigma_px: float | None = None, history_tau: float = 8.0,
+                           progress=None) -> Rendered:
+    """The paper's synthesis as a renderer: a slow camera (`slow_fps`, the motion slowed
+    `compression`×) records sharp views; re-timed `compression`× faster they are views of the fast
+    motion h = 1/(slow_fps·compression) apart, fed whole through Eq. 10 (B_j = (1−α)B_{j−1} + α S_j,
+    exact α, S_j the view at the end of step j). No sub-step motion and no rolling readout: the
+    result shows "stepping" when a step moves the image ≥ 1 px (Eq. 12), reported as max_step_px.
+    """
+    t_frames = np.asarray(frame_times, dtype=np.float64)
+    n, H, W = len(t_frames), int(calib.height), int(calib.width)
+    if not (compression > 0 and slow_fps > 0):
+        raise ThermodError(f"time compression: compression and slow_fps must be > 0 "
+                           f"(got {compression}, {slow_fps})")
+    if calib.readout_s > 0:
+        raise ThermodError("time compression: rolling readout is not supported (the paper's synthesis "
+                           "integrates whole views); use the fine-time renderer")
+    h = 1.0 / (slow_fps * compression)
+    per = np.diff(t_frames) / h
+    if n > 1 and np.abs(per - np.round(per)).max() > 1e-6:
+        raise ThermodError(f"time compression: the frame period must be a whole number of re-timed views "
+                           f"(period/h = {per[0]:.4f}; h = 1/(slow_fps·compression) = {h:.3g} s)")
+    tau = float(calib.tau_s)
+    n_hist = int(math.ceil(history_tau * tau / h))
+    t_grid = t_frames[0] + h * np.arange(-n_hist, int(round((t_frames[-1] - t_frames[0]) / h)) + 1)
+    if t_grid[0] < traj.t_start:
+        raise ThermodError("time compression: trajectory does not cover the history")
+    K = calib.K
+    K_inv = np.linalg.inv(K)
+    corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+    alpha = np.float32(-math.expm1(-h / tau) if tau > 0 else 1.0)
+    out = np.empty((n, H, W), np.float32)
+    sharp = np.empty((n, H, W), np.float32)
+    Rs = traj.R(t_grid)
+    Hrel = K @ np.einsum("nji,njk->nik", Rs[:-1], Rs[1:]) @ K_inv
+    pr = np.einsum("nij,jc->nic", Hrel, corners)
+    max_step = float(np.hypot(*(pr[:, :2] / pr[:, 2:3] - corners[None, :2]).transpose(1, 0, 2)).max())
+    B = scene.view(Rs[0], K, W, H)
+    k = 0
+    for j in range(1, len(t_grid)):
+        S = scene.view(Rs[j], K, W, H)
+        B += alpha * (S - B)
+        if k < n and abs(t_grid[j] - t_frames[k]) < 0.5 * h:
+            out[k], sharp[k] = B, S
+            k += 1
+            if progress is not None:
+                progress(k)
+    sigma = calib.psf_sigma_px if psf_sigma_px is None else float(psf_sigma_px)
+    if sigma > 0:
+        for i in range(n):
+            out[i] = gaussian_psf(out[i], sigma)
+    return Rendered(out, sharp, None, len(t_grid) - 1, max_step)
+
+
 def _photon_accumulate(out, S, rows_t, exposure, ta, tz, k_seg):
     """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz]."""
     for k in range(max(0, k_seg - 2), min(len(rows_t), k_seg + 3)):

@@ -99,7 +99,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
              effects: Mapping | None = None, seed: int = 0, frame_rate: float | None = None,
              gyro: GyroErrorModel | None = None, progress: bool = False, *, kind: str = "thermal",
              exposure_s: float | None = None, step_px: float = 0.5, history_tau: float = 8.0,
-             t0: float = 100.0, truth: bool = True) -> Recording:
+             t0: float = 100.0, truth: bool = True, method: str = "fine", compression: float = 20.0,
+             slow_fps: float = 50.0) -> Recording:
     """Simulate a recording (format v1 `Recording`) of `seconds` at `frame_rate` (default the
     calibration's) of `scene` (spec, array or `detector.SphereScene`) under `motion` (spec or
     `motion.Motion`; motion time 0 = the first frame, read at host-like time `t0`).
@@ -107,7 +108,14 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     The gyro (`gyro`, default ideal) covers the 5τ history of the first frame and a little
     beyond the last. kind="photon" renders a box-exposure detector (Eq. 2) for comparisons.
     `truth=False` leaves out the float32 truth stacks (smaller files).
+    method="time_compression": the paper's synthesis instead of the fine-time renderer — sharp views
+    of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
+    (`detector.render_time_compressed`); thermal detector only, no rolling readout.
     """
+    if method not in ("fine", "time_compression"):
+        raise ThermodError(f"simulate: method must be 'fine' or 'time_compression', got {method!r}")
+    if method == "time_compression" and kind != "thermal":
+        raise ThermodError("simulate: time compression synthesises the thermal detector only")
     nominal = calib or Calibration()
     if frame_rate is not None:
         if not 0 < frame_rate <= 10000:
@@ -156,9 +164,14 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
         bar.update(k - bar.n)
 
     try:
-        r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
-                       psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau,
-                       progress=_prog if bar else None)
+        if method == "fine":
+            r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
+                           psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau,
+                           progress=_prog if bar else None)
+        else:
+            r = det.render_time_compressed(sc, traj, t_frames, truth_cal, compression=compression,
+                                           slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
+                                           progress=_prog if bar else None)
     finally:
         if bar is not None:
             bar.close()
@@ -184,10 +197,13 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
         "psf_sigma_px": float(psf_sigma),
         "scene": _spec_str(scene), "motion": mot.spec, "seed": int(seed), "detector": kind,
         "step_px": float(step_px), "history_tau": float(history_tau), "t_ref": float(t_frames[0]),
-        "n_steps": int(r.n_steps), "counts_per_k": float(sensor.counts_per_k),
+        "n_steps": int(r.n_steps), "max_step_px": float(r.max_step_px), "method": method,
+        "counts_per_k": float(sensor.counts_per_k),
         "effects_json": json.dumps(fx), "gyro_model_json": json.dumps(_jsonable(gyro)),
         "effects": ",".join(sorted(fx)) if fx else "",
     })
+    if method == "time_compression":
+        attrs.update(compression=float(compression), slow_fps=float(slow_fps))
     for k, v in fx.items():
         attrs[f"effect_{k}"] = np.asarray(v, dtype=np.float64)
     return Recording(frames, t_frames, gs.t, gs.rate, nominal, extras=extras, extra_attrs={"truth": attrs})

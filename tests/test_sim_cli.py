@@ -114,3 +114,15 @@ def test_playback_loops_seamlessly_and_caches(tmp_path, monkeypatch):
     assert files[0].stat().st_mtime_ns == mtime
     with pytest.raises(Exception, match="not periodic"):
         playback.load(playback.PlaybackSpec(motion="pan:50", seconds=0.1, calib=cal))
+
+
+def test_sim_time_compression_option(tmp_path):
+    out = tmp_path / "tc.h5"
+    rc = main(["sim", "-o", str(out), "--scene", "points", "--motion", "pan:40", "--seconds", "0.04",
+               "--width", "96", "--height", "64", "--time-compression", "20", "--slow-fps", "50",
+               "--no-progress"])
+    assert rc == 0
+    truth = recording.read(out).extra_attrs["truth"]
+    assert truth["method"] == "time_compression" and truth["compression"] == 20.0
+    # views 1 ms apart at 40 °/s: 1.0 px per view, the Eq. 12 limit
+    assert truth["max_step_px"] == pytest.approx(Calibration().fx * 40 * DEG / 1000, rel=0.02)

@@ -326,3 +326,22 @@ def test_gyro_log_replay(shared_data, require):
     np.testing.assert_allclose(log.omega(0.0)[0] / DEG, [5, 0, 2])
     m = motion.parse("log:10")
     assert m.omega(0.0)[0] == pytest.approx(log.omega(10.0)[0])
+
+
+def test_simulate_time_compression_option_matches_fine_render():
+    kw = dict(seed=4, effects={"optical_psf": 0.0})
+    fine = synth.simulate("texture", "pan:30", 0.04, SMALL, **kw)
+    tc = synth.simulate("texture", "pan:30", 0.04, SMALL, method="time_compression", compression=40,
+                        slow_fps=50, **kw)
+    a, b = fine.extras["truth/blurry_noiseless"], tc.extras["truth/blurry_noiseless"]
+    blur = a - fine.extras["truth/frames"]
+    res = (b - a)[:, 8:-8, 8:-8]
+    # views 0.5 ms apart at 30 °/s move 0.38 px: below Eq. 12's 1 px, so no stepping
+    assert tc.extra_attrs["truth"]["max_step_px"] == pytest.approx(SMALL.fx * 30 * DEG / 2000, rel=0.02)
+    assert np.sqrt(np.mean(res**2)) < 0.05 * np.sqrt(np.mean(blur[:, 8:-8, 8:-8] ** 2))
+    np.testing.assert_allclose(tc.extras["truth/frames"], fine.extras["truth/frames"], atol=1.0)
+    with pytest.raises(ThermodError, match="whole number"):
+        synth.simulate("texture", "pan:30", 0.04, SMALL, method="time_compression", compression=7.3)
+    with pytest.raises(ThermodError, match="rolling readout"):
+        synth.simulate("texture", "pan:30", 0.04, SMALL, method="time_compression",
+                       effects={"rolling_readout": 0.01})
