@@ -87,10 +87,15 @@ class FrameIdTracker:
         self.invalid = 0
         self.resets = 0
         self.wraps = 0
+        self.extended = False
 
     def update(self, raw: int) -> tuple[int, int]:
         raw = int(raw)
         self.frames += 1
+        if raw > self.modulus and self.modulus == 0xFFFF and raw < 1 << 64:
+            # GigE Vision 2 extended ids (64-bit block ids, no practical wrap): widen once
+            self.modulus = (1 << 64) - 1
+            self.extended = True
         if raw == 0 or raw > self.modulus or raw < 0:
             self.invalid += 1
             self.frame_id += 1

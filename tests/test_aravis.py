@@ -115,6 +115,13 @@ def test_frame_id_invalid_and_reset():
     assert tr.update(40000) == (105, 0)
 
 
+def test_extended_64bit_block_ids():
+    tr = FrameIdTracker()
+    tr.update(65534)
+    assert tr.update(65536) == (65536, 1)   # a GEV 2 camera with 64-bit ids: 65535 was lost
+    assert tr.extended and tr.update(1 << 40) == (1 << 40, (1 << 40) - 65537)
+
+
 def test_byte_buffers_reshape_little_endian():
     img = (np.arange(12, dtype=np.uint16) * 1000 + 7).reshape(3, 4)
     raw = img.astype("<u2").tobytes()
