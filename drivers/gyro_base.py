@@ -128,6 +128,7 @@ class FifoGyro(GyroSource):
         self._lost_pending = 0
         self._needs_recovery = False
         self._running = False
+        self._started = False
         self._next_read = 0.0
         self._stats.update(invalid=0, recoveries=0)
 
@@ -194,7 +195,12 @@ class FifoGyro(GyroSource):
         with self._io("configuration"):
             self._configure()
             self._flush()
-        self._t_last = time.monotonic()
+        if self._started:
+            self._mark_gap(time.monotonic())     # a restart: what the chip sampled meanwhile is gone
+        else:
+            self._t_last = time.monotonic()
+        self._started = True
+        self._needs_recovery = False
         self._running = True
         self._next_read = time.monotonic() + self.read_interval_s
 

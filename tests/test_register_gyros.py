@@ -254,6 +254,24 @@ def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     assert collect(gyro, 0.05)
 
 
+def test_stop_start_cycle_continues_the_sequence_with_a_gap():
+    # the daemon restarts a failing source with stop() + start(): counting and timing must carry on
+    fn, decode = sawtooth_clock(time.monotonic())
+    chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0)
+    gyro = ICM42688(make_bus("spi", chip))
+    gyro.start()
+    first = collect(gyro, 0.1)
+    gyro.stop()
+    time.sleep(0.2)
+    gyro.start()
+    second = collect(gyro, 0.1)
+    assert second[0].gap_before and second[0].n_lost == pytest.approx(200, abs=25)
+    assert second[0].seq == first[-1].seq + len(first[-1]) + second[0].n_lost
+    t, r = cat(second)
+    assert t[0] > first[-1].t[-1]
+    assert np.max(np.abs(t - decode(r[:, 0], t))) < 1.5e-3
+
+
 def test_bursts_are_split_at_the_bus_limits():
     w = np.array([0.05, 0.1, 0.15])
     chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
