@@ -5,7 +5,7 @@ A scene is a texture laid on the sphere of view directions at the camera's angul
 an undefined border.
 
     bars       the paper's collimator targets: 4-bar groups (hot bars on a uniform background),
-               horizontal and vertical, several bar widths
+               tiled, horizontal and vertical, bar widths 2–8 px
     points     point sources (hot pinholes) on a uniform background, on a jittered grid
     texture    a seeded procedural scene: 1/f clutter plus warm objects with sharp edges
     real[:N]   the N-th real 16-bit frame of shared/data/thermal (sorted by name), default 0
@@ -122,34 +122,35 @@ def _pad_to(img: np.ndarray, h: int, w: int) -> np.ndarray:
 def _box(img, y0, y1, x0, x1, val):
     """Add `val` over [y0, y1) × [x0, x1) with exact fractional (area) coverage at the edges."""
     h, w = img.shape
-    ys, xs = np.arange(h), np.arange(w)
+    r0, r1 = max(0, int(np.floor(y0))), min(h, int(np.ceil(y1)))
+    c0, c1 = max(0, int(np.floor(x0))), min(w, int(np.ceil(x1)))
+    if r1 <= r0 or c1 <= c0:
+        return
+    ys, xs = np.arange(r0, r1), np.arange(c0, c1)
     cy = np.clip(np.minimum(ys + 1, y1) - np.maximum(ys, y0), 0, 1)
     cx = np.clip(np.minimum(xs + 1, x1) - np.maximum(xs, x0), 0, 1)
-    img += val * np.outer(cy, cx).astype(np.float32)
+    img[r0:r1, c0:c1] += val * np.outer(cy, cx).astype(np.float32)
 
 
-def bars(h: int, w: int, seed: int = 0, delta_k: float = 5.0) -> np.ndarray:
-    """Collimator 4-bar targets: groups of 4 hot bars (length 5× the width, 1:1 duty) with bar
-    widths 2–8 px, vertical bars in the top half and horizontal bars in the bottom half."""
+def bars(h: int, w: int, seed: int = 0, delta_k: float = 5.0, cell: int = 96) -> np.ndarray:
+    """Collimator 4-bar targets tiled over the scene: one group of 4 hot bars (1:1 duty, length
+    5× the bar width) per `cell`×`cell` px, bar widths cycling through 2, 3, 4, 6, 8 px and the
+    orientation alternating vertical/horizontal, on a uniform background (exact area coverage at
+    sub-pixel edges). Anywhere the camera looks it sees every width in both orientations."""
     img = np.full((h, w), BACKGROUND, np.float32)
     val = delta_k * COUNTS_PER_K
     widths = [2, 3, 4, 6, 8]
-    for half, vertical in ((0, True), (1, False)):
-        y_mid = h * (0.25 + 0.5 * half)
-        x = w * 0.06
-        for bw in widths:
-            length = 5 * bw
-            span = 7 * bw                       # 4 bars + 3 gaps
-            if x + span > w * 0.97:
-                break
-            for i in range(4):
+    for i, yc in enumerate(np.arange(cell / 2, h - cell / 4, cell)):
+        for j, xc in enumerate(np.arange(cell / 2, w - cell / 4, cell)):
+            bw = widths[(i + 2 * j) % len(widths)]
+            vertical = (i + j) % 2 == 0
+            length, span = 5 * bw, 7 * bw                 # 4 bars + 3 gaps
+            for b in range(4):
+                o = -span / 2 + 2 * b * bw
                 if vertical:
-                    xb = x + 2 * i * bw
-                    _box(img, y_mid - length / 2, y_mid + length / 2, xb, xb + bw, val)
+                    _box(img, yc - length / 2, yc + length / 2, xc + o, xc + o + bw, val)
                 else:
-                    _box(img, y_mid - span / 2 + 2 * i * bw, y_mid - span / 2 + 2 * i * bw + bw,
-                         x, x + length, val)
-            x += max(span, length) + max(24, 3 * bw)
+                    _box(img, yc + o, yc + o + bw, xc - length / 2, xc + length / 2, val)
     return img
 
 

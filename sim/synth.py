@@ -47,6 +47,7 @@ from thermod.recording import Recording
 EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
            "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
            "gyro_noise", "clock_drift_ppm", "gyro_lowpass_hz")
+MAX_BYTES = 6e9          # the whole recording is built in memory
 _VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,)}
 
 
@@ -127,6 +128,12 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     n = int(round(seconds * fps))
     if n < 1:
         raise ThermodError(f"--seconds {seconds}: shorter than one frame at {fps} Hz")
+    pixels = int(nominal.width) * int(nominal.height)
+    per_frame = pixels * (2 + 4 * (3 if truth else 1))          # uint16 out + float32 render/truth stacks
+    if n * per_frame > MAX_BYTES:
+        raise ThermodError(f"--seconds {seconds}: {n} frames need ~{n * per_frame / 1e9:.1f} GB in memory "
+                           f"(limit {MAX_BYTES / 1e9:.0f} GB); shorten the run, shrink the frame or use "
+                           "--no-truth")
     fx = check_effects(effects)
     truth_cal = true_calibration(nominal, fx)
     psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
