@@ -129,11 +129,10 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     if n < 1:
         raise ThermodError(f"--seconds {seconds}: shorter than one frame at {fps} Hz")
     pixels = int(nominal.width) * int(nominal.height)
-    per_frame = pixels * (2 + 4 * (3 if truth else 1))          # uint16 out + float32 render/truth stacks
+    per_frame = pixels * (2 + 4 * 3)            # uint16 out + float32 render, sharp (+ rolling) stacks
     if n * per_frame > MAX_BYTES:
         raise ThermodError(f"--seconds {seconds}: {n} frames need ~{n * per_frame / 1e9:.1f} GB in memory "
-                           f"(limit {MAX_BYTES / 1e9:.0f} GB); shorten the run, shrink the frame or use "
-                           "--no-truth")
+                           f"(limit {MAX_BYTES / 1e9:.0f} GB); shorten the run or shrink the frame")
     fx = check_effects(effects)
     truth_cal = true_calibration(nominal, fx)
     psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
