@@ -274,16 +274,18 @@ class FifoGyro(GyroSource):
         seq0 = self._seq
         self._seq += n
         self.clock.observe(self._seq - 1, t_count)
+        self._stats["invalid"] += n - len(offsets)
+        if len(offsets) == 0:
+            return None                          # only not-yet-valid samples (sensor start-up)
         idx = seq0 + offsets
         t = np.asarray(self.clock.to_host(idx), dtype=np.float64)
-        if len(t) and t[0] <= self._t_out:
+        if t[0] <= self._t_out:
             # the fit lowered its offset (start-up, after a gap): keep sample times strictly increasing
             t = np.maximum(t, self._t_out + 0.5 / self.rate_hz * np.arange(1, len(t) + 1))
-        if len(t):
-            self._t_out = float(t[-1])
+        self._t_out = float(t[-1])
         self._t_last = float(self.clock.to_host(self._seq - 1))
-        self._stats["invalid"] += n - len(offsets)
         rate = raw.astype(np.float32) * self.rad_per_lsb
-        batch = GyroBatch(t=t, rate=rate, seq=seq0, gap_before=self._gap_pending, n_lost=self._lost_pending)
+        batch = GyroBatch(t=t, rate=rate, seq=int(idx[0]), gap_before=self._gap_pending,
+                          n_lost=self._lost_pending)
         self._gap_pending, self._lost_pending = False, 0
         return batch

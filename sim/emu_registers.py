@@ -55,6 +55,7 @@ class RegisterChip:
         self._unplugged_until = -math.inf
         self._power_cycle_pending = False
         self._nacks = 0
+        self.invalid_samples = 0       # the next n samples read -32768 (ICM: "not valid yet")
         self.counters = {"generated": 0, "dropped": 0, "overflows": 0, "popped": 0, "flushes": 0}
         self._power_on()
 
@@ -135,6 +136,10 @@ class RegisterChip:
             rate = rate + self._rng.normal(0.0, self.noise_rad_s, rate.shape)
         lsb_per_rad = 32768.0 / math.radians(self.full_scale_dps())
         raw = np.clip(np.rint(rate * lsb_per_rad), -32767, 32767).astype(np.int16)
+        if self.invalid_samples > 0:                     # sensor still starting: the chip's invalid marker
+            m = min(n, self.invalid_samples)
+            raw[:m] = -32768
+            self.invalid_samples -= m
         self._k = k_now
         self.counters["generated"] += n
         self._push(self._pack(raw, t), size)

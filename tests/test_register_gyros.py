@@ -254,6 +254,21 @@ def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     assert collect(gyro, 0.05)
 
 
+def test_invalid_startup_samples_are_dropped_but_keep_their_ticks():
+    fn, decode = sawtooth_clock(time.monotonic())
+    chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0)
+    chip.invalid_samples = 7                       # the first samples after the gyro powers on
+    gyro = ICM42688(make_bus("spi", chip))
+    gyro.start()
+    batches = collect(gyro, 0.3)
+    assert gyro.stats()["invalid"] == 7 and batches[0].seq == 7
+    t, r = cat(batches)
+    assert len(t) == sum(len(b) for b in batches) and np.all(r != -np.radians(2000))
+    assert np.all(np.diff(t) > 0)
+    err = t - decode(r[:, 0], t)
+    assert np.median(np.abs(err[-100:])) < 0.3e-3
+
+
 def test_stop_start_cycle_continues_the_sequence_with_a_gap():
     # the daemon restarts a failing source with stop() + start(): counting and timing must carry on
     fn, decode = sawtooth_clock(time.monotonic())
