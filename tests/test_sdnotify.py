@@ -1,6 +1,7 @@
 """sd_notify over a REAL AF_UNIX datagram socket, as systemd's manager would receive it."""
 
 import os
+import signal
 import socket
 import struct
 import subprocess
@@ -115,3 +116,55 @@ def test_service_process_pings_within_its_watchdog(tmp_path):
     assert 4 <= len(pings) <= 7  # 1.2 s at WATCHDOG_USEC/2 = 0.2 s intervals
     assert max(b - a for a, b in zip(pings, pings[1:], strict=False)) < 0.4  # never let the watchdog expire
     s.close()
+
+
+@pytest.mark.slow
+def test_thermod_run_speaks_the_protocol_systemd_expects(tmp_path):
+    """`thermod run` (simulated payload) started as systemd would start thermod.service: READY=1 only
+    once data flows, WATCHDOG=1 well within WatchdogSec, all from the main pid (NotifyAccess=main),
+    STOPPING=1 on SIGTERM."""
+    import socket as so
+    from pathlib import Path
+
+    with so.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    path = str(tmp_path / "notify")
+    lst = _listener(path)
+    lst.settimeout(240)  # the first start may render the simulator's loop
+    env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="5000000")  # WatchdogSec=5 in the unit
+    env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
+    exe = Path(sys.executable).with_name("thermod")
+    proc = subprocess.Popen([str(exe), "run", "--endpoint", ep, "--seconds", "120"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    msgs = []
+    try:
+        while True:
+            lines, pid = _recv(lst)
+            msgs.append((time.monotonic(), lines, pid))
+            if "READY=1" in lines:
+                t_ready = time.monotonic()
+                lst.settimeout(5.0)
+            if any(m[1] == ["WATCHDOG=1"] for m in msgs) and time.monotonic() - t_ready > 6.0:
+                break
+        proc.send_signal(signal.SIGTERM)
+        while True:
+            lines, pid = _recv(lst)
+            msgs.append((time.monotonic(), lines, pid))
+            if "STOPPING=1" in lines:
+                break
+        assert proc.wait(20) == 0, proc.stderr.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        lst.close()
+    assert {pid for _, _, pid in msgs} == {proc.pid}
+    first = [i for i, (_, lines, _) in enumerate(msgs) if "READY=1" in lines][0]
+    assert not any("WATCHDOG=1" in lines for _, lines, _ in msgs[:first])  # no pings before ready
+    ready_status = [ln for ln in msgs[first][1] if ln.startswith("STATUS=")]
+    assert ready_status and "gyro" in ready_status[0]
+    pings = [t for t, lines, _ in msgs if lines == ["WATCHDOG=1"]]
+    assert len(pings) >= 3
+    assert max(b - a for a, b in zip([t_ready, *pings], pings, strict=False)) < 2.5  # ≤ WatchdogSec/2
+    assert any(ln.startswith("STATUS=") and "fps" in ln for _, lines, _ in msgs for ln in lines)
