@@ -248,6 +248,22 @@ class Sequence(Motion):
         return out
 
 
+def static() -> Static:
+    return Static()
+
+
+def gyro_log(path: str | os.PathLike | None = None, start_s: float = 0.0) -> GyroLog:
+    """The real gyro log (default shared/data/gyro/betaflight_smooth_2khz.csv) from `start_s`."""
+    return load_gyro_log(path, start_s)
+
+
+def sequence(parts: list[tuple[Motion, float | None]]) -> Sequence:
+    """[(motion, duration_s), …, (last_motion, None)] played one after another."""
+    if not parts or any(d is None or d <= 0 for _, d in parts[:-1]):
+        raise ThermodError("motion sequence: every part but the last needs a duration > 0")
+    return Sequence(list(parts), spec="+".join(m.spec for m, _ in parts))
+
+
 def parse(spec: str | Motion, seed: int = 0) -> Motion:
     """Parse a motion spec ("pan:50", "static:0.3+pan:50", …); bad specs raise ThermodError."""
     if isinstance(spec, Motion):
@@ -379,14 +395,15 @@ def _interp_R(Rg, wg, g0, dt, tq):
 class Trajectory:
     """Orientation R(t) of a motion over absolute times [t_start, t_end], with R(t_ref) = I.
 
-    Motion time is `t − t_ref`. ω is sampled on a uniform grid (`dt`, default 50 µs) and
-    integrated with the trapezoid rule, the same rate semantics as the renderers
-    (thermod.geometry.integrate_rotations).
+    Motion time is `t − t_ref`. ω is sampled on a uniform grid (`dt`, default 50 µs, coarsened for
+    spans over 200 s to keep the grid ≤ 4 M points) and integrated with the trapezoid rule, the
+    same rate semantics as the renderers (thermod.geometry.integrate_rotations).
     """
 
     def __init__(self, motion: Motion, t_ref: float, t_start: float, t_end: float, dt: float = 5e-5):
         if not t_start <= t_ref <= t_end:
             t_start, t_end = min(t_start, t_ref), max(t_end, t_ref)
+        dt = max(dt, (t_end - t_start) / 4e6)
         self.motion, self.t_ref, self.dt = motion, float(t_ref), float(dt)
         n0 = int(math.ceil((t_ref - t_start) / dt)) + 2
         n1 = int(math.ceil((t_end - t_ref) / dt)) + 2

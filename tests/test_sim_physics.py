@@ -345,3 +345,11 @@ def test_simulate_time_compression_option_matches_fine_render():
     with pytest.raises(ThermodError, match="rolling readout"):
         synth.simulate("texture", "pan:30", 0.04, SMALL, method="time_compression",
                        effects={"rolling_readout": 0.01})
+
+
+def test_contract_constructors():
+    seq = motion.sequence([(motion.static(), 0.1), (motion.pan(20, "pitch"), None)])
+    np.testing.assert_allclose(seq.omega(np.array([0.05, 0.2])), [[0, 0, 0], [20 * DEG, 0, 0]])
+    assert seq.spec == "static+pan:20:pitch"
+    with pytest.raises(ThermodError, match="duration"):
+        motion.sequence([(motion.static(), None), (motion.pan(), None)])
