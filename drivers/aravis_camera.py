@@ -175,9 +175,14 @@ class AravisCamera(CameraSource):
             self._running = True
 
     def stop(self) -> None:
+        """Stop acquisition and release the camera. Never blocks on a camera that has gone away (the
+        supervisor restarts sources that stall: a register write to a dead camera would hang ~5 s)."""
         with self._lock:
             self._running = False
-            self._teardown()
+            addr = self._resolved_address
+            alive = self._cam is not None and not self._lost.is_set() and (
+                addr is None or gvcp_probe(addr, 0.2) is not None)     # < 1 ms when it answers
+            self._teardown(stop_device=alive)
             self.state = "stopped"
 
     def _open(self) -> None:

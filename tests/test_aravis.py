@@ -255,3 +255,24 @@ def test_incomplete_buffers_counted_and_skipped(fake_camera):
     ids = [f.frame_id for f in frames]
     assert all(b - a == 1 + f.gap_before for a, b, f in zip(ids, ids[1:], frames[1:], strict=False))
     assert st["frames_lost"] <= st["bad_buffers"] + 3     # (+ the rare frame whose leader was lost)
+
+
+@pytest.mark.hardware
+def test_stop_after_silent_loss_does_not_block(fake_camera):
+    # the daemon restarts a stalled source with stop() + start(): neither may hang on a dead camera
+    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0)
+    cam.start()
+    assert _collect(cam, 0.3)
+    fake_camera.kill()
+    time.sleep(0.1)                        # loss not yet detected by the driver (no poll since)
+    t0 = time.monotonic()
+    cam.stop()
+    with pytest.raises(DeviceError, match="no GigE Vision camera answers"):
+        cam.start()
+    assert time.monotonic() - t0 < 1.5
+    fake_camera.start()
+    cam.start()
+    try:
+        assert len(_collect(cam, 0.5)) >= 10
+    finally:
+        cam.stop()
