@@ -353,3 +353,34 @@ def test_contract_constructors():
     assert seq.spec == "static+pan:20:pitch"
     with pytest.raises(ThermodError, match="duration"):
         motion.sequence([(motion.static(), None), (motion.pan(), None)])
+
+
+def test_gyro_side_effects_through_simulate():
+    mot = "pan:40:pitch"
+    fx = {"gyro_scale": (1.05, 1.0, 0.97), "misalignment": (0.0, 0.0, 0.02),
+          "gyro_bias": (0.001, -0.002, 0.0)}
+    rec = synth.simulate("bars", mot, 0.04, SMALL, effects=fx, truth=False)
+    true = synth.truth_calibration(rec)
+    w_true = rec.extras["truth/gyro_omega_camera"]
+    np.testing.assert_allclose(true.gyro_to_camera(rec.gyro_t, rec.gyro_rate)[1], w_true, atol=1e-5)
+    _, w_nom = rec.calibration.gyro_to_camera(rec.gyro_t, rec.gyro_rate)
+    # raw = scale⁻¹ Rᵀ ω + bias: the nominal model sees pitch/1.05 and 2 % of it leaking into yaw
+    w0 = 40 * DEG
+    assert np.median(w_nom[:, 0]) == pytest.approx(w0 * math.cos(0.02) / 1.05 + 0.001, rel=1e-4)
+    assert np.median(w_nom[:, 1]) == pytest.approx(-math.sin(0.02) * w0 - 0.002, rel=2e-3)
+    assert "truth/frames" not in rec.extras
+    # clock drift: stamps run away from camera time at the drift rate; noise: the per-sample RMS
+    rec = synth.simulate("bars", "static", 0.5, SMALL,
+                         effects={"clock_drift_ppm": 200.0, "gyro_noise": 0.002})
+    lag = rec.extras["truth/gyro_t_camera"] - rec.gyro_t
+    assert np.polyfit(rec.gyro_t, lag, 1)[0] == pytest.approx(200e-6, rel=1e-3)
+    assert np.std(rec.gyro_rate) == pytest.approx(0.002, rel=0.05)
+    # the chip's low-pass delays a ramp by its group delay √2/(2π f_c)
+    rec = synth.simulate("bars", "slew:90:yaw:0.2:0.1", 0.3, SMALL, effects={"gyro_lowpass_hz": 50.0},
+                         truth=False)
+    t, w = rec.gyro_t, rec.gyro_rate[:, 1].astype(np.float64)
+    ramp = (t > rec.t[0] + 0.07) & (t < rec.t[0] + 0.13)                   # middle of the ramp-up
+    lagged = np.interp(t[ramp], rec.extras["truth/gyro_t_camera"],
+                       rec.extras["truth/gyro_omega_camera"][:, 1])
+    slope = np.gradient(lagged, t[ramp])
+    assert np.median((lagged - w[ramp]) / slope) == pytest.approx(math.sqrt(2) / (2 * math.pi * 50), rel=0.05)
