@@ -192,7 +192,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     n_steps, max_step = 0, 0.0
     tmp = np.empty((H, W), np.float32)
 
-    # Segments: frame intervals, split so one canvas never has to hold more than ~half a frame of travel.
+    # Segments: frame intervals, split so that no canvas has to span more than half the image of travel.
     edges = np.r_[t_begin, t_frames]
     for k in range(n):
         a0, b0 = edges[k], edges[k + 1]

@@ -52,7 +52,7 @@ def test_comet_tail_decays_as_exp_minus_x_over_v_tau(tau):
     xn = (x - calib.cx) / calib.fx
     v = calib.fx * 50 * DEG * (1 + xn * xn)                 # yaw flow at this column (px/s)
     L = fit_decay(prof)
-    assert L == pytest.approx(v * tau, rel=0.02)
+    assert L == pytest.approx(v * tau, rel=0.01)                 # measured: 0.1 % low
     # the tail is on the side the scene came from; nothing ahead of the head
     y = int(np.argmax(r.sharp[0].max(axis=1)))
     ahead = r.frames[0][y - 4:y + 5, x - 10:x - 3] - BACKGROUND
@@ -89,8 +89,8 @@ def test_eq12_step_rule_removes_stepping():
         ripple[step] = float(np.std(prof[4:30] / fit - 1))
         if step == 0.5:
             assert r.max_step_px <= 0.5
-    assert ripple[0.5] < 0.02
-    assert ripple[6.0] > 5 * ripple[0.5]
+    assert ripple[0.5] < 0.005                                  # measured 0.07 %
+    assert ripple[6.0] > 100 * ripple[0.5]                      # 6 px steps: a comb of dots
 
 
 def reference_blur(sharp_k, t_k, traj, calib, m=8.0, n=4000):
@@ -124,7 +124,7 @@ def test_blur_matches_rotation_homography_model_with_roll():
     res = (r.frames[0] - ref)[m:-m, m:-m]
     blur = (r.frames[0] - r.sharp[0])[m:-m, m:-m]
     assert np.sqrt(np.mean(blur**2)) > 10                    # there is real blur to explain …
-    assert np.sqrt(np.mean(res**2)) < 0.05 * np.sqrt(np.mean(blur**2))   # … and the model explains it
+    assert np.sqrt(np.mean(res**2)) < 0.02 * np.sqrt(np.mean(blur**2))   # … the model explains it (0.3 %)
     # a wrong sign (the blur running the other way) does not
     traj_rev = motion.Trajectory(motion.Pan(tuple(-np.array(mot.rate))), 10.0, 9.8, 10.05)
     wrong = reference_blur(r.sharp[0], 10.0, traj_rev, calib)
