@@ -1,6 +1,6 @@
 """Deblurring quality on the paper's SBTI protocol, plus a roll-heavy family from the real gyro log.
 
-    .venv/bin/python benchmarks/bench_quality.py [--quick] [--scenes 3] [--frames 2]
+    .venv/bin/python benchmarks/bench_quality.py [--quick] [--scenes 6] [--frames 2]
 
 Simulated with `thermod.sim` (fine-time microbolometer, the truth): 640×480 at 50 Hz, IFOV
 0.0391°, τ = 8 ms, 1 kHz gyro with the paper's Table 1 errors (0.05 °/s RMS noise, 0.0076 °/s
@@ -199,8 +199,8 @@ def plot(sbti: dict, methods, path: Path) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="2 scenes × 1 frame per level (about a minute)")
-    ap.add_argument("--scenes", type=int, default=None, help="real scenes per level (default 3, quick 2)")
+    ap.add_argument("--quick", action="store_true", help="2 scenes × 1 frame per level (under a minute)")
+    ap.add_argument("--scenes", type=int, default=None, help="real scenes per level (default 6, quick 2)")
     ap.add_argument("--frames", type=int, default=None, help="frames evaluated per simulation (default 2)")
     ap.add_argument("--lam", type=float, default=None, help="K&F λ (default deconv.DEFAULT_LAMBDA)")
     ap.add_argument("--grid", type=int, nargs=2, default=None,
@@ -211,7 +211,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     from thermod.offline import DEFAULT_GRID
 
-    n_sc = args.scenes or (2 if args.quick else 3)
+    n_sc = min(args.scenes or (2 if args.quick else 6), len(SCENES))
     n_fr = args.frames or (1 if args.quick else 2)
     opts = Options(lam=args.lam, grid=tuple(args.grid or DEFAULT_GRID), overlap=args.overlap,
                    skimage=not args.no_skimage)

@@ -66,6 +66,8 @@ BETA_RATE = 2.0 * math.sqrt(2.0)
 DEFAULT_LAMBDA = {"kf": 6000.0, "wiener": 300.0}
 DEFAULT_ALPHA = 2.0 / 3.0
 RANGE_PERCENTILES = (0.5, 99.5)
+PLANNING_TIMELIMIT_S = 0.25   # per FFTW plan (two per padded shape)
+MAX_PLANS = 8                 # padded shapes kept (LRU), each with its buffers
 # 4096 float32 entries (16 kB, stays in L1) over |∇x| ≤ 2 of a unit-range frame; beyond: Newton.
 _LUT_VMAX = 2.0
 _LUT_SIZE = 4096
@@ -316,9 +318,12 @@ class _Plan:
             self.cin = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
             self.rout = pyfftw.empty_aligned(shape, "float32")
             flags = ("FFTW_MEASURE",)
-            self._f = pyfftw.FFTW(self.rin, self.cout, axes=(0, 1), flags=flags, threads=workers)
+            # measuring is worth ~25 % per transform; the time limit bounds the first frame's wait
+            self._f = pyfftw.FFTW(self.rin, self.cout, axes=(0, 1), flags=flags, threads=workers,
+                                  planning_timelimit=PLANNING_TIMELIMIT_S)
             self._b = pyfftw.FFTW(self.cin, self.rout, axes=(0, 1), direction="FFTW_BACKWARD",
-                                  flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers)
+                                  flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers,
+                                  planning_timelimit=PLANNING_TIMELIMIT_S)
         else:
             self.rin = np.empty(shape, np.float32)
             self.cin = np.empty((hp, wp // 2 + 1), np.complex64)
@@ -345,17 +350,18 @@ class _Plan:
 
 
 def _fast_len(n: int) -> int:
-    """Smallest m ≥ n of the form 2^a·3^b·5^c with a ≥ 2: FFTW and pocketfft are both quick there
-    (odd powers such as 729 = 3⁶ measured 2× slower than 720 with FFTW)."""
-    m = max(4, int(n) + (-int(n)) % 4)
+    """Smallest m ≥ n with m = 16·k, k = 2^a·3^b·5^c: quick for FFTW and pocketfft alike (odd
+    sizes such as 729 = 3⁶ measured 2× slower than 720), and a coarse ladder, so that kernels of
+    slightly different sizes frame to frame share one FFT plan instead of planning anew."""
+    k = max(1, -(-int(n) // 16))
     while True:
-        k = m // 4
+        r = k
         for p in (2, 3, 5):
-            while k % p == 0:
-                k //= p
-        if k == 1:
-            return m
-        m += 4
+            while r % p == 0:
+                r //= p
+        if r == 1:
+            return 16 * k
+        k += 1
 
 
 def _check_kernel(kernel, name="kernel"):
@@ -434,6 +440,7 @@ def _tile_weights(n: int, centers: np.ndarray, overlap: float) -> list[tuple[int
             mid, half = (a + b) / 2, overlap * (b - a) / 2
             s = np.clip((idx - (mid - half)) / max(2 * half, 1e-9), 0, 1)
             w *= np.cos(0.5 * np.pi * s) ** 2
+        w[w < 1e-9] = 0.0   # cos(π/2)² is 4e-33 in floating point, not 0: keep the support compact
         nz = np.flatnonzero(w > 0)
         start, stop = int(nz[0]), int(nz[-1]) + 1
         out.append((start, stop, w[start:stop].astype(np.float32)))
@@ -472,7 +479,7 @@ class Deconvolver:
             raise DeconvError(f"fft: expected 'auto', 'scipy' or 'fftw' (pyFFTW installed), got {fft!r}")
         self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
-        self._plans: dict[tuple[int, int], _Plan] = {}
+        self._plans: OrderedDict[tuple[int, int], _Plan] = OrderedDict()
         self._otfs: OrderedDict = OrderedDict()
         self._betas = beta_schedule()
         if method == "kf" and alpha < 1:
@@ -490,6 +497,10 @@ class Deconvolver:
         p = self._plans.get(shape)
         if p is None:
             p = self._plans[shape] = _Plan(shape, self.fft, self.workers)
+            while len(self._plans) > MAX_PLANS:
+                self._plans.popitem(last=False)
+        else:
+            self._plans.move_to_end(shape)
         return p
 
     def _otf(self, plan: _Plan, w: np.ndarray, origin) -> tuple[np.ndarray, np.ndarray]:
