@@ -145,6 +145,8 @@ def test_malformed_messages_are_counted_and_skipped():
         [b"raw", b"[1, 2, 3]", payload],                                          # not an object
         [b"raw", b'{"v": 1, "seq": NaN}', payload],                               # NaN constant
         [b"raw", json.dumps(_good(v=2)).encode(), payload],                       # future version
+        [b"raw", json.dumps(_good(v=True)).encode(), payload],                    # true is not 1
+        [b"raw", b"[" * 2000, payload],                                           # nesting bomb
         [b"raw", json.dumps(_good(seq=-1)).encode(), payload],                    # bad seq
         [b"raw", json.dumps(_good(shape=[2, 4])).encode(), payload],              # payload length
         [b"raw", json.dumps(_good(dtype="|O")).encode(), payload],                # object dtype
@@ -159,7 +161,7 @@ def test_malformed_messages_are_counted_and_skipped():
     got = sub.recv(2.0)
     assert got is not None and got[1]["seq"] == 7 and got[2].tolist() == [[0, 1, 2], [3, 4, 5]]
     assert sum(sub.errors.values()) == len(bad)
-    assert sub.errors == {"framing": 1, "topic": 1, "json": 3, "version": 1, "header": 2, "payload_size": 1,
+    assert sub.errors == {"framing": 1, "topic": 1, "json": 4, "version": 2, "header": 2, "payload_size": 1,
                           "dtype": 1, "shape": 1, "header_size": 1, "layout": 1}
     assert sub.received["raw"] >= 2
     sub.close()

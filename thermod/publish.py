@@ -410,11 +410,13 @@ def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str]
                                           f"limit {max_header_bytes}")
     try:
         header = json.loads(bytes(raw_header).decode("utf-8"), parse_constant=_reject_constant)
+    except RecursionError:  # "[[[[…": the bound on header bytes does not bound the nesting
+        raise MessageError("json", f"{topic}: header JSON is nested too deeply") from None
     except (UnicodeDecodeError, ValueError) as e:
         raise MessageError("json", f"{topic}: header is not UTF-8 JSON ({e})") from None
     if not isinstance(header, dict):
         raise MessageError("json", f"{topic}: header must be a JSON object, got {type(header).__name__}")
-    if header.get("v") != WIRE_VERSION:
+    if type(header.get("v")) is not int or header["v"] != WIRE_VERSION:  # true == 1 in Python
         raise MessageError("version", f"{topic}: header v={header.get('v')!r}, expected {WIRE_VERSION}")
     seq = header.get("seq")
     if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
