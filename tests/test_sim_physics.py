@@ -384,3 +384,28 @@ def test_gyro_side_effects_through_simulate():
                        rec.extras["truth/gyro_omega_camera"][:, 1])
     slope = np.gradient(lagged, t[ramp])
     assert np.median((lagged - w[ramp]) / slope) == pytest.approx(math.sqrt(2) / (2 * math.pi * 50), rel=0.05)
+
+
+def test_scenes(tmp_path, monkeypatch, shared_data):
+    b = scenes.load_scene("bars", (192, 256))
+    assert b.dtype == np.float32 and b.shape == (192, 256)
+    assert b.min() == BACKGROUND and b.max() == pytest.approx(BACKGROUND + 5 * scenes.COUNTS_PER_K)  # 5 K bars
+    assert 0.02 < np.mean(b > BACKGROUND) < 0.3
+    p = scenes.load_scene("points", (192, 256), seed=1)
+    assert np.sum(p > BACKGROUND + 100) > 4
+    t1, t2 = scenes.load_scene("texture", (96, 128), seed=1), scenes.load_scene("texture", (96, 128), seed=2)
+    assert np.array_equal(t1, scenes.load_scene("texture", (96, 128), seed=1)) and not np.array_equal(t1, t2)
+    # a 16-bit PNG path, mirror-padded to the requested size
+    img = (np.arange(40 * 50).reshape(40, 50) + 17000).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "s.png"), img)
+    s = scenes.load_scene(str(tmp_path / "s.png"), (60, 50))
+    assert s.shape == (60, 50) and np.array_equal(s[10:50], img.astype(np.float32))
+    if (shared_data / "thermal").is_dir():
+        r = scenes.load_scene("real:0", (480, 640))
+        assert r.shape == (512, 640) and 17000 < np.median(r) < 19000
+    # without shared/data, "real" falls back to the procedural texture
+    monkeypatch.setenv("THERMOD_SHARED_DATA", str(tmp_path / "nothing"))
+    assert scenes.shared_data_dir() is None
+    np.testing.assert_array_equal(scenes.load_scene("real", (96, 128), seed=1), t1)
+    with pytest.raises(ThermodError, match="--scene"):
+        scenes.load_scene(str(tmp_path / "missing.png"), (96, 128))
