@@ -389,7 +389,7 @@ def test_gyro_side_effects_through_simulate():
 def test_scenes(tmp_path, monkeypatch, shared_data):
     b = scenes.load_scene("bars", (192, 256))
     assert b.dtype == np.float32 and b.shape == (192, 256)
-    assert b.min() == BACKGROUND and b.max() == pytest.approx(BACKGROUND + 5 * scenes.COUNTS_PER_K)  # 5 K bars
+    assert b.min() == BACKGROUND and b.max() == pytest.approx(BACKGROUND + 5 * scenes.COUNTS_PER_K)  # 5 K
     assert 0.02 < np.mean(b > BACKGROUND) < 0.3
     p = scenes.load_scene("points", (192, 256), seed=1)
     assert np.sum(p > BACKGROUND + 100) > 4
