@@ -148,7 +148,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     sensor = det.SensorEffects(netd_k=fx.get("netd", 0.0), fpn_k=fx.get("fpn", 0.0),
                                gain_nonuniformity=fx.get("gain_nonuniformity", 0.0),
                                nonlinearity=fx.get("detector_nonlinearity", 0.0),
-                               quantisation_bits=int(fx.get("quantisation_bits", 16)))
+                               quantisation_bits=fx.get("quantisation_bits", 16))
     sensor.validate()
 
     mot = mo.parse(motion, seed)
