@@ -122,6 +122,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
         if not 0 < frame_rate <= 10000:
             raise ThermodError(f"--fps: expected 0 < fps ≤ 10000, got {frame_rate}")
         nominal = nominal.replace(frame_rate_hz=float(frame_rate))
+    _check_calibration(nominal)
     fps = float(nominal.frame_rate_hz)
     if not (isinstance(seconds, (int, float)) and 0 < seconds <= 3600):
         raise ThermodError(f"--seconds: expected 0 < seconds ≤ 3600, got {seconds!r}")
@@ -221,6 +222,16 @@ def truth_calibration(rec: Recording) -> Calibration:
     if not a:
         raise ThermodError("recording has no truth attributes (not made by thermod sim)")
     return Calibration.from_attrs(a, a)
+
+
+def _check_calibration(c: Calibration) -> None:
+    checks = (("width", c.width >= 8), ("height", c.height >= 8), ("fx", c.fx > 0), ("fy", c.fy > 0),
+              ("tau_s", c.tau_s >= 0), ("frame_rate_hz", c.frame_rate_hz > 0), ("rate_hz", c.rate_hz > 0),
+              ("readout_s", c.readout_s >= 0))
+    for name, ok in checks:
+        v = getattr(c, name)
+        if not (ok and math.isfinite(v)):
+            raise ThermodError(f"calibration {name} = {v!r}: out of range for a simulation")
 
 
 def _sphere_scene(scene, calib: Calibration, seed: int) -> det.SphereScene:
