@@ -82,20 +82,22 @@ def test_transport_loss_and_invalid_ids(stack):
     with cam:
         frames = _frames(cam, 8)
         st = cam.stats()
-    assert [f.frame_id for f in frames] == [1, 2, 3, 6, 7, 8, 9, 10]
-    assert [f.gap_before for f in frames] == [0, 0, 0, 2, 0, 0, 0, 0]
-    assert st["frames_lost"] == 2 == st["lost_transport"] and st["invalid_ids"] == 1
+    assert st["lost_transport"] == 2 and st["invalid_ids"] == 1
+    assert st["frames_lost"] == 2 + st["lost_overrun"] == sum(f.gap_before for f in frames)
+    if st["lost_overrun"] == 0:            # (a reader stalled > 80 ms by a loaded machine loses more)
+        assert [f.frame_id for f in frames] == [1, 2, 3, 6, 7, 8, 9, 10]
+        assert [f.gap_before for f in frames] == [0, 0, 0, 2, 0, 0, 0, 0]
 
 
 def test_slow_consumer_overruns_the_buffer_pool(stack):
     cam = EmuCamera(stack, fps=100.0, n_buffers=4)
     with cam:
-        _frames(cam, 2)
+        pre = _frames(cam, 2)
         time.sleep(0.2)                                            # ~20 frames while only 4 buffers
         frames = _frames(cam, 10)
         st = cam.stats()
     assert st["lost_overrun"] >= 10
-    assert sum(f.gap_before for f in frames) == st["lost_overrun"] == st["frames_lost"]
+    assert sum(f.gap_before for f in pre + frames) == st["lost_overrun"] == st["frames_lost"]
     assert [f.gap_before > 0 for f in frames[:5]] == [False, False, False, False, True]  # 4 old, then gap
 
 

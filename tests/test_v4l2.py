@@ -125,14 +125,15 @@ def test_dropped_and_overrun_frames_counted_from_timestamps(scene):
     dev = EmuV4L2Device(scene, fps_modes=(60.0,), drop=[3], n_buffers=4)
     with V4L2Camera("/dev/video0", frame_rate_hz=60.0, capture_factory=dev.open) as cam:
         first = _frames(cam, 5)
-        assert [f.gap_before for f in first] == [0, 0, 0, 1, 0]
+        overrun_first = dev.captures[-1].timeline.lost_overrun
         time.sleep(0.25)                               # a stalled reader: ~15 frames, 4 buffers
         late = _frames(cam, 8)
         st = cam.stats()
-    gaps = [f.gap_before for f in late]
+    if overrun_first == 0:                             # (unless a loaded machine stalled the reader)
+        assert [f.gap_before for f in first] == [0, 0, 0, 1, 0]
     cap = dev.captures[-1]
-    assert sum(gaps) == cap.timeline.lost_overrun >= 8
-    assert st["frames_lost"] == 1 + cap.timeline.lost_overrun
+    assert cap.timeline.lost_transport == 1 and cap.timeline.lost_overrun >= 8
+    assert st["frames_lost"] == sum(f.gap_before for f in first + late) == 1 + cap.timeline.lost_overrun
     ids = [f.frame_id for f in first + late]
     assert all(b - a == 1 + f.gap_before for a, b, f in zip(ids, ids[1:], (first + late)[1:], strict=False))
 
