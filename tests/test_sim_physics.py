@@ -413,3 +413,21 @@ def test_scenes(tmp_path, monkeypatch, shared_data):
     np.testing.assert_array_equal(scenes.load_scene("real", (96, 128), seed=1), t1)
     with pytest.raises(ThermodError, match="--scene"):
         scenes.load_scene(str(tmp_path / "missing.png"), (96, 128))
+
+
+@pytest.mark.parametrize("mot, tol", [("pan:50", 0.03), ("shake:1", 0.03), ("roll:60", 0.06)])
+def test_thermod_kernels_explain_the_simulation(mot, tol):
+    """DESIGN §1 end to end: kernels rendered from the simulated RAW gyro with the true calibration,
+    applied to the sharp truth, reproduce the simulated blurry frame (measured: 1.9 %, 2.2 % and, with
+    the kernel grid's interpolation across a rolling view, 4.2 % of the blur's RMS; the kernels cut
+    the exponential at 5τ)."""
+    from thermod import kernels
+    rec = synth.simulate("texture", mot, 0.06, SMALL, seed=1)
+    k = rec.n_frames - 1
+    sharp, blurry = rec.extras["truth/frames"][k], rec.extras["truth/blurry_noiseless"][k]
+    grid = kernels.render_kernel_grid(rec.gyro_t, rec.gyro_rate, synth.truth_calibration(rec), rec.t[k],
+                                      grid=(12, 16))
+    m = 24
+    res = (blurry - kernels.blur_varying(sharp, grid))[m:-m, m:-m]
+    blur = (blurry - sharp)[m:-m, m:-m]
+    assert np.sqrt(np.mean(res**2)) < tol * np.sqrt(np.mean(blur**2))
