@@ -418,9 +418,9 @@ def test_scenes(tmp_path, monkeypatch, shared_data):
 @pytest.mark.parametrize("mot, tol", [("pan:50", 0.03), ("shake:1", 0.03), ("roll:60", 0.06)])
 def test_thermod_kernels_explain_the_simulation(mot, tol):
     """DESIGN §1 end to end: kernels rendered from the simulated RAW gyro with the true calibration,
-    applied to the sharp truth, reproduce the simulated blurry frame (measured: 1.9 %, 2.2 % and, with
-    the kernel grid's interpolation across a rolling view, 4.2 % of the blur's RMS; the kernels cut
-    the exponential at 5τ)."""
+    applied to the sharp truth, reproduce the simulated blurry frame (measured: 1.9 %, 2.2 % and 4.2 %
+    of the blur's RMS — under roll the blur varies within each grid cell; the kernels also cut the
+    exponential at 5τ)."""
     from thermod import kernels
     rec = synth.simulate("texture", mot, 0.06, SMALL, seed=1)
     k = rec.n_frames - 1
