@@ -106,8 +106,10 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     calibration's) of `scene` (spec, array or `detector.SphereScene`) under `motion` (spec or
     `motion.Motion`; motion time 0 = the first frame, read at host-like time `t0`).
 
-    The gyro (`gyro`, default ideal) covers the 5τ history of the first frame and a little
-    beyond the last. kind="photon" renders a box-exposure detector (Eq. 2) for comparisons.
+    The gyro (`gyro`, default ideal; `GyroErrorModel.paper()` for Table 1) covers at least 0.1 s and
+    the `history_tau`·τ history before the first frame (so its 5τ kernel is complete) and 50 ms
+    after the last. Random streams are seeded: scene, motion, sensor noise and gyro noise all follow
+    `seed`. kind="photon" renders a box-exposure detector (Eq. 2) for comparisons.
     `truth=False` leaves out the float32 truth stacks (smaller files).
     method="time_compression": the paper's synthesis instead of the fine-time renderer — sharp views
     of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
