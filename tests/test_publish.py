@@ -48,7 +48,7 @@ def test_round_trip_all_topics(pub):
     assert pub.publish_frame(img, 12.25, frame_id=7, deblurred=True, kernel_size=(9, 11),
                              kernel_extent_px=4.5, coverage=0.99) == 0
     assert pub.publish_frame(img, 12.27, frame_id=8, deblurred=False, reason="gyro gap") == 1
-    assert pub.publish_gyro(gt, gr, seq=4242, gap_before=True, n_lost=3) == 0
+    pub.publish_gyro(gt, gr, seq=4242, gap_before=True, n_lost=3)  # coalesced for ≤ 10 ms, then sent
     got = [sub.recv(2.0) for _ in range(4)]
     assert all(m is not None for m in got)
     by = {}
@@ -68,7 +68,8 @@ def test_round_trip_all_topics(pub):
     assert h1["deblurred"] is False and h1["reason"] == "gyro gap" and [h0["seq"], h1["seq"]] == [0, 1]
 
     (h, a), = by["gyro"]
-    assert h["n"] == 7 and h["sample_seq"] == 4242 and h["gap_before"] is True and h["n_lost"] == 3
+    assert h["seq"] == 0 and h["n"] == 7 and h["sample_seq"] == 4242
+    assert h["gap_before"] is True and h["n_lost"] == 3
     assert h["t"] == gt[-1] and h["layout"] == [["t", "<f8", [7]], ["rate", "<f4", [7, 3]]]
     assert np.array_equal(a["t"], gt) and np.array_equal(a["rate"], gr) and a["rate"].dtype == np.float32
     assert sum(sub.gaps.values()) == 0 and sum(sub.errors.values()) == 0
@@ -218,7 +219,7 @@ def test_queue_drops_oldest_without_blocking():
     assert st["queue_dropped"] == 6 and st["queue_depth"] == 4 and st["queued"]["frame"] == 10
     assert [m[1]["seq"] for m in p._queue] == [6, 7, 8, 9]  # the newest survive; the gap shows up as seq
     # The byte bound: three 1 MiB frames fit a 2.5 MiB queue only two at a time; gyro batches still do.
-    p = Publisher(EP, queue_size=100, queue_bytes=5 << 19)
+    p = Publisher(EP, queue_size=100, queue_bytes=5 << 19, gyro_batch_s=0)
     big = np.zeros((512, 512), np.float32)
     for i in range(3):
         p.publish_frame(big, i, frame_id=i, deblurred=True)
@@ -349,3 +350,38 @@ def test_inproc_with_a_shared_context():
         assert not ctx.closed  # a shared context stays the caller's
     finally:
         ctx.term()
+
+
+def test_gyro_batches_are_coalesced_but_never_across_a_gap():
+    p = Publisher(EP, gyro_batch_s=5.0).start()  # long: only contiguity and stop() decide here
+    try:
+        sub = connect(p, ("gyro",))
+        t = 50.0 + np.arange(40) * 1e-3
+        rate = np.arange(120, dtype=np.float32).reshape(40, 3)
+        for s in range(0, 20, 2):  # 10 driver batches of 2 contiguous samples
+            assert p.publish_gyro(t[s:s + 2], rate[s:s + 2], seq=1000 + s) is None
+        # 5 samples lost in the driver: the pending 20 go out as one message, the rest start a new one
+        assert p.publish_gyro(t[25:27], rate[25:27], seq=1025, gap_before=True, n_lost=5) == 0
+        assert p.publish_gyro(t[27:40], rate[27:40], seq=1027) is None
+        _, h0, a0 = sub.recv(2.0)
+        assert (h0["seq"], h0["n"], h0["sample_seq"], h0["gap_before"]) == (0, 20, 1000, False)
+        assert np.array_equal(a0["t"], t[:20]) and np.array_equal(a0["rate"], rate[:20]) and h0["t"] == t[19]
+        assert sub.recv(0.3) is None  # the second one is still being coalesced
+    finally:
+        p.stop()  # flushes what is pending
+    _, h1, a1 = sub.recv(2.0)
+    assert (h1["seq"], h1["n"], h1["sample_seq"], h1["gap_before"], h1["n_lost"]) == (1, 15, 1025, True, 5)
+    assert np.array_equal(a1["t"], t[25:]) and np.array_equal(a1["rate"], rate[25:])
+    sub.close()
+
+
+def test_gyro_coalescing_flushes_on_time():
+    with Publisher(EP, gyro_batch_s=0.05) as p:
+        sub = connect(p, ("gyro",))
+        p.publish_gyro(np.array([1.0, 1.001]), np.zeros((2, 3)), seq=0)  # and then the gyro goes quiet
+        m = sub.recv(2.0)
+        assert m is not None and m[1]["n"] == 2
+        assert m[1]["published"] - m[1]["t"] > 0  # sent by the timer, not by a following batch
+        sub.close()
+    with Publisher(EP, gyro_batch_s=0) as p:  # no coalescing: one message per call
+        assert [p.publish_gyro(np.array([float(i)]), np.zeros((1, 3)), seq=i) for i in range(3)] == [0, 1, 2]

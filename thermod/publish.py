@@ -122,6 +122,9 @@ class Publisher:
     queue_size, queue_bytes : int
         Bounds on the messages waiting for the sender thread (count, payload bytes); beyond either
         the OLDEST are dropped and counted. Gyro batches are many and small, frames few and large.
+    gyro_batch_s : float
+        Consecutive gyro batches are coalesced into one message for up to this long (0: one
+        message per `publish_gyro` call). See `publish_gyro`.
     linger_s : float
         How long `stop` waits for queued messages to leave.
     context : zmq.Context, optional
@@ -136,13 +139,15 @@ class Publisher:
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64, curve_secret_key_file=None,
                  authorized_keys_dir=None, queue_size: int = 1024, queue_bytes: int = 64 << 20,
-                 linger_s: float = 0.5,
-                 context: zmq.Context | None = None):
+                 gyro_batch_s: float = 0.01, linger_s: float = 0.5, context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
             raise ValueError("queue_size and hwm must be at least 1")
         self.endpoint = endpoint
         self.hwm, self.queue_size, self.linger_s = int(hwm), int(queue_size), float(linger_s)
         self.queue_bytes = int(queue_bytes)
+        self.gyro_batch_s = float(gyro_batch_s)
+        self._gyro: dict | None = None
+        self._gyro_lock = threading.Lock()
         self._shared_ctx = context
         self._keys = None
         if curve_secret_key_file is not None:
@@ -272,24 +277,59 @@ class Publisher:
         return self.publish("raw", header, image, copy=copy)
 
     def publish_gyro(self, t: np.ndarray, rate: np.ndarray, *, seq: int, gap_before: bool = False,
-                     n_lost: int = 0, **extra) -> int:
+                     n_lost: int = 0, **extra) -> int | None:
         """A batch of raw gyro samples (gyro clock mapped to host time, gyro frame, rad/s).
 
         Payload: ``t`` as <f8 [N] followed by ``rate`` as <f4 [N, 3] (header ``layout``). ``seq`` is the
         device index of the first sample and goes into ``sample_seq`` (the header's ``seq`` is the
-        message counter, as on every topic).
+        message counter, as on every topic). Consecutive batches (contiguous ``seq``, no gap) are
+        coalesced for up to ``gyro_batch_s``: drivers deliver a few samples every millisecond or two,
+        and hundreds of tiny messages a second would fill subscribers' HWMs. Returns the message's
+        ``seq`` when this call queued one, else None (the samples wait for the next message).
         """
-        t = np.ascontiguousarray(t, dtype="<f8").ravel()
-        rate = np.ascontiguousarray(rate, dtype="<f4")
+        t = np.array(t, dtype="<f8").ravel()
+        rate = np.array(rate, dtype="<f4")
         n = len(t)
         if rate.shape != (n, 3):
             raise ValueError(f"gyro rate must be [{n}, 3] to match t, got {rate.shape}")
         if n == 0:
             raise ValueError("empty gyro batch")
-        header = dict(extra, t=float(t[-1]), deblurred=False, shape=[n], dtype=PACKED, n=n,
-                      layout=[["t", "<f8", [n]], ["rate", "<f4", [n, 3]]], sample_seq=int(seq),
-                      gap_before=bool(gap_before), n_lost=int(n_lost))
+        now = time.monotonic()
+        with self._gyro_lock:
+            p = self._gyro
+            out = None
+            if p is not None and (gap_before or int(seq) != p["seq"] + p["n"] or extra != p["extra"]):
+                out = self._flush_gyro_locked()
+                p = None
+            if p is None:
+                self._gyro = p = {"t": [], "rate": [], "seq": int(seq), "n": 0, "since": now,
+                                  "gap_before": bool(gap_before), "n_lost": int(n_lost), "extra": extra}
+            p["t"].append(t)
+            p["rate"].append(rate)
+            p["n"] += n
+            if now - p["since"] >= self.gyro_batch_s or p["n"] >= 4096:
+                out = self._flush_gyro_locked()
+        if self._gyro is not None:
+            self._wake.set()  # the sender thread flushes it if no batch follows in time
+        return out
+
+    def _flush_gyro_locked(self, older_than: float | None = None) -> int | None:
+        p = self._gyro
+        if p is None or (older_than is not None and time.monotonic() - p["since"] < older_than):
+            return None
+        self._gyro = None
+        t = np.concatenate(p["t"]) if len(p["t"]) > 1 else p["t"][0]
+        rate = np.concatenate(p["rate"]) if len(p["rate"]) > 1 else p["rate"][0]
+        n = p["n"]
+        header = dict(p["extra"], t=float(t[-1]), deblurred=False, shape=[n], dtype=PACKED, n=n,
+                      layout=[["t", "<f8", [n]], ["rate", "<f4", [n, 3]]], sample_seq=p["seq"],
+                      gap_before=p["gap_before"], n_lost=p["n_lost"])
         return self._enqueue("gyro", header, t.tobytes() + rate.tobytes())
+
+    def flush_gyro(self) -> int | None:
+        """Queue the coalesced gyro samples now (also done by `stop` and after ``gyro_batch_s``)."""
+        with self._gyro_lock:
+            return self._flush_gyro_locked()
 
     def publish_health(self, *, rates: dict | None = None, drops: dict | None = None,
                        devices: dict | None = None, calibration=None, t: float | None = None, **extra) -> int:
@@ -334,10 +374,13 @@ class Publisher:
             log.info("publishing wire v%d on %s%s", WIRE_VERSION, self.endpoint,
                      " (CURVE)" if self._keys else "")
             while True:
-                self._wake.wait(0.2)
+                self._wake.wait(0.2 if self._gyro is None else max(self.gyro_batch_s, 1e-3))
                 self._wake.clear()
+                stopping = self._stopping.is_set()
+                with self._gyro_lock:
+                    self._flush_gyro_locked(older_than=None if stopping else self.gyro_batch_s)
                 self._drain(sock)
-                if self._stopping.is_set():
+                if stopping:
                     self._drain(sock)
                     break
         finally:
