@@ -37,15 +37,16 @@ def add_arguments(p) -> None:
 
 
 class WatchStats:
-    """Accumulates what a subscriber saw; `summary()` gives the numbers, `format()` a table."""
+    """Accumulates what a subscriber saw; `summary()` gives the numbers, `format()` a table.
+    Latency percentiles cover the last `window` frames (memory stays bounded when left running)."""
 
-    def __init__(self):
+    def __init__(self, window: int = 30000):
         self.frames = 0
         self.deblurred = 0
         self.reasons: collections.Counter = collections.Counter()
-        self.frame_t: list[float] = []
-        self.lat_publish: list[float] = []
-        self.lat_receive: list[float] = []
+        self.frame_t = [np.inf, -np.inf]
+        self.lat_publish: collections.deque = collections.deque(maxlen=window)
+        self.lat_receive: collections.deque = collections.deque(maxlen=window)
         self.raw = 0
         self.gyro_samples = 0
         self.gyro_t = [np.inf, -np.inf]
@@ -56,7 +57,7 @@ class WatchStats:
     def add(self, topic: str, header: dict, array) -> None:
         if topic == "frame":
             self.frames += 1
-            self.frame_t.append(header["t"])
+            self.frame_t = [min(self.frame_t[0], header["t"]), max(self.frame_t[1], header["t"])]
             self.lat_publish.append(header["published"] - header["t"])
             if "received" in header:
                 self.lat_receive.append(header["received"] - header["t"])
@@ -77,8 +78,8 @@ class WatchStats:
             self.health = header
 
     def summary(self, gaps: dict | None = None) -> dict:
-        t = np.sort(np.asarray(self.frame_t))
-        fps = (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else float("nan")
+        t0, t1 = self.frame_t
+        fps = (self.frames - 1) / (t1 - t0) if self.frames > 1 and t1 > t0 else float("nan")
         span = self.gyro_t[1] - self.gyro_t[0]
         return {
             "frames": self.frames,
