@@ -194,7 +194,7 @@ class RecordWriter:
         if self.calibration is not None:
             try:
                 return Calibration.from_dict(self.calibration), "health"
-            except (TypeError, ValueError) as e:
+            except (TypeError, ValueError, KeyError) as e:
                 log.warning("calibration in the health messages is unusable (%s); using defaults", e)
         if self._frames is not None:
             h, w = self._frames.shape[1:]
