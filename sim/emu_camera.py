@@ -85,6 +85,7 @@ class _Timeline:
         self.filled: deque[int] = deque()
         self.lost_transport = 0
         self.lost_overrun = 0
+        self.dropped: deque[int] = deque(maxlen=100_000)   # indices of the most recent lost frames (truth)
 
     def completes(self, k: int) -> float:
         return self.origin + (k + 1) / self.fps
@@ -104,10 +105,16 @@ class _Timeline:
             self.produced += 1
             if k in self.drop or (self.drop_prob and self.rng.random() < self.drop_prob):
                 self.lost_transport += 1
+                self.dropped.append(k)
             elif len(self.filled) < self.n_buffers:
                 self.filled.append(k)
             else:
                 self.lost_overrun += 1
+                self.dropped.append(k)
+
+    def lost_between(self, a: int, b: int) -> int:
+        """Frames lost (transport or overrun) with index in (a, b): the truth for gap counting."""
+        return sum(1 for k in self.dropped if a < k < b)
 
     def take(self, now: float) -> int | None:
         self._advance(now)

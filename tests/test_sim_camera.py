@@ -62,11 +62,12 @@ def test_real_time_delivery_at_fps(stack):
 
 def test_drift_is_tracked_by_the_clock_mapper(stack):
     drift = 800.0          # ppm, a cheap oscillator; device runs fast
-    cam = EmuCamera(stack, fps=50.0, drift_ppm=drift, device_offset_ns=123_456_789_000, latency_s=0.002)
+    cam = EmuCamera(stack, fps=50.0, drift_ppm=drift, device_offset_ns=123_456_789_000, latency_s=0.002,
+                    n_buffers=128)
     with cam:
         frames = _frames(cam, 90)                                  # 1.8 s
         st = cam.stats()
-    dts = np.diff([f.device_ts for f in frames])
+    dts = np.diff([f.device_ts for f in frames]) / np.diff([f.frame_id for f in frames])
     np.testing.assert_allclose(dts, 0.02 * (1 + drift * 1e-6) * 1e9, atol=1)
     assert st["clock_drift_ppm"] == pytest.approx(-drift, abs=250)  # host s per device s, minus one
     err = np.array([f.t - cam.true_time(_k(cam, f)) for f in frames[40:]])
@@ -97,7 +98,11 @@ def test_slow_consumer_overruns_the_buffer_pool(stack):
         frames = _frames(cam, 10)
         st = cam.stats()
     assert st["lost_overrun"] >= 10
-    assert sum(f.gap_before for f in pre + frames) == st["lost_overrun"] == st["frames_lost"]
+    seen = pre + frames
+    assert sum(f.gap_before for f in seen) == st["frames_lost"]
+    # every gap is exactly the frames the device dropped between the two delivered ones
+    for a, b in zip(seen, seen[1:], strict=False):
+        assert b.gap_before == cam.timeline.lost_between(_k(cam, a), _k(cam, b))
     assert [f.gap_before > 0 for f in frames[:5]] == [False, False, False, False, True]  # 4 old, then gap
 
 
