@@ -19,7 +19,7 @@ def small_recording(n=4, h=6, w=8, m=50):
         gyro_t=0.001 * np.arange(m),
         gyro_rate=rng.normal(size=(m, 3)).astype(np.float32),
         calibration=calib,
-        extras={"truth/frames": np.zeros((n, h, w), np.float32)},
+        extras={"truth/frames": np.zeros((n, h, w), np.float32), "camera/frame_id": np.arange(n)},
         extra_attrs={"truth": {"time_offset_s": 0.004}},
     )
 
@@ -37,6 +37,7 @@ def test_roundtrip(rec_path):
     assert np.array_equal(a.t, b.t) and np.array_equal(a.gyro_t, b.gyro_t)
     assert np.array_equal(a.gyro_rate, b.gyro_rate) and b.gyro_rate.dtype == np.float32
     assert b.calibration == a.calibration
+    assert np.array_equal(b.extras["camera/frame_id"], np.arange(4))  # optional datasets survive
     assert "truth/frames" in b.extras and b.extra_attrs["truth"]["time_offset_s"] == 0.004
     with h5py.File(rec_path) as f:  # layout of DESIGN.md §3
         assert f.attrs["format"] == "thermod-recording" and f.attrs["version"] == 1

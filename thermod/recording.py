@@ -139,10 +139,11 @@ def read(path: str | os.PathLike) -> Recording:
             deb_t = np.asarray(_read_dataset(path, f, "deblurred/t"), dtype=np.float64)
         extras, extra_attrs = {}, {}
 
+        known = {"camera/frames", "camera/t", "gyro/t", "gyro/rate", "deblurred/frames", "deblurred/t"}
+
         def visit(name, obj):
-            top = name.split("/")[0]
-            if top in ("camera", "gyro", "deblurred"):
-                return
+            if name in known or name in ("camera", "gyro", "deblurred"):
+                return  # the v1 core, read above (optional datasets beside it are kept as extras)
             if isinstance(obj, h5py.Dataset):
                 extras[name] = obj[()]
             elif len(obj.attrs):
