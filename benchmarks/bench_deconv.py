@@ -158,10 +158,10 @@ def main(argv=None) -> int:
             dw = deconv.Deconvolver(method="wiener")
             t_kf = median_ms(lambda: d.run(b, k), reps)  # noqa: B023
             t_w = median_ms(lambda: dw.run(b, k), reps)  # noqa: B023
-            lam = deconv.DEFAULT_LAMBDA["kf"]
+            out = d.run(b, k)
+            lam = d.last_lam   # the noise-adaptive λ thermod chose: the plain version uses the same
             preps = max(2, reps // (3 if h < 1000 else 6))
             t_plain = median_ms(lambda: plain_kf(b, k.weights, k.origin, lam, 2 / 3), preps)  # noqa: B023
-            out = d.run(b, k)
             ref = plain_kf(b, k.weights, k.origin, lam, 2 / 3)
             fps = fps_two_threads([b, b.copy()], k, 4 if args.quick else 10)
             kname = f"{k.weights.shape[1]}×{k.weights.shape[0]}"

@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uniform", action="store_true",
                         help="one kernel per frame (the paper's method) instead of a kernel grid")
     parser.add_argument("--lambda", dest="lam", type=float, default=None,
-                        help="data weight λ for a unit-range frame (K&F convention; default per method)")
+                        help="data weight λ for a unit-range frame (K&F convention); default: adapted to "
+                             "each frame's noise (thermod.deconv.NOISE_LAMBDA / σ)")
     parser.add_argument("--alpha", type=float, default=2.0 / 3.0,
                         help="K&F prior exponent (1 or 2/3; default 2/3)")
     parser.add_argument("--grid", type=int, nargs=2, default=list(DEFAULT_GRID), metavar=("R", "C"),
@@ -135,6 +136,7 @@ def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
     recording.write(part, base)
     passed: list[tuple[int, str]] = []
     times = []
+    lams = np.full(n, np.nan)
     try:
         with h5py.File(part, "r+") as f:
             g = f.require_group("deblurred")
@@ -154,18 +156,21 @@ def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
                     out = rec.frames[i].astype(np.float32)
                 else:
                     ok[i] = True
+                    lams[i] = fd.dec.last_lam
                 ds[i] = out
                 bar.update(1)
             g.create_dataset("t", data=np.asarray(rec.t, np.float64))
             g.create_dataset("deblurred", data=ok)
-            g.attrs.update({"kernel": fd.kind, "method": fd.dec.method, "lambda": fd.dec.lam,
+            g.create_dataset("lambda", data=lams)    # per frame (noise-adaptive unless --lambda)
+            g.attrs.update({"kernel": fd.kind, "method": fd.dec.method,
+                            "lambda_mode": "adaptive" if fd.dec.lam is None else "fixed",
                             "alpha": fd.dec.alpha, "grid": np.asarray((1, 1) if fd.uniform else fd.grid),
                             "psf": fd.psf, "min_coverage": fd.min_coverage, "source": str(src)})
         os.replace(part, dst)
     except BaseException:
         part.unlink(missing_ok=True)
         raise
-    return {"src": src, "dst": dst, "n": n, "passed": passed, "times": times}
+    return {"src": src, "dst": dst, "n": n, "passed": passed, "times": times, "lams": lams}
 
 
 def run(args) -> int:
@@ -189,8 +194,9 @@ def run(args) -> int:
     n_pass = sum(len(r["passed"]) for r in reports)
     for r in reports:
         ms = 1e3 * float(np.median(r["times"])) if r["times"] else 0.0
+        lam = float(np.nanmedian(r["lams"])) if np.isfinite(r["lams"]).any() else float("nan")
         print(f"{r['src']} → {r['dst']}: {r['n'] - len(r['passed'])} deblurred, {len(r['passed'])} passed "
-              f"through, {ms:.1f} ms/frame (median)")
+              f"through, {ms:.1f} ms/frame (median), λ {lam:.0f} (median)")
         for i, why in r["passed"][:20]:
             print(f"  frame {i} passed through: {why}")
         if len(r["passed"]) > 20:
