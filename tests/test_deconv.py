@@ -305,7 +305,9 @@ def test_noise_sigma_measures_added_noise_and_sets_lambda(scene):
         assert est == pytest.approx(sigma, rel=0.15), (sigma, est)
         d.run(b, k)
         lams.append(d.last_lam)
-        assert d.last_lam == pytest.approx(deconv.NOISE_LAMBDA["kf"] / deconv.noise_sigma(b), rel=1e-6)
+        sig = deconv.noise_sigma(b)
+        assert d.last_lam == pytest.approx(deconv.NOISE_LAMBDA["kf"] / (sig * (1 + sig / deconv.NOISE_KNEE)),
+                                           rel=1e-6)
     assert lams[0] > 3 * lams[1]                  # 4× the noise → a much weaker data term
     fixed = deconv.Deconvolver(lam=1234.0)
     fixed.run(b0, k)

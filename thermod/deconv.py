@@ -67,11 +67,13 @@ except ImportError:  # pragma: no cover - depends on the installation
 BETA_START = 1.0
 BETA_MAX = 256.0
 BETA_RATE = 2.0 * math.sqrt(2.0)
-# lam=None: λ = NOISE_LAMBDA[method] / σ̂ (σ̂ the frame's noise in unit range, `noise_sigma`),
-# clamped to LAMBDA_RANGE. Fitted on simulated SBTI recordings of six real scenes at 12.5 and
-# 75 °/s (best λ per case: K&F 3000 at σ̂ = 0.005 … 100000+ at σ̂ = 0.0003; benchmarks/).
-NOISE_LAMBDA = {"kf": 20.0, "wiener": 0.4}
-LAMBDA_RANGE = {"kf": (1000.0, 200000.0), "wiener": (10.0, 10000.0)}
+# lam=None: λ = NOISE_LAMBDA[method] / (σ̂ (1 + σ̂/NOISE_KNEE)), σ̂ the frame's noise in unit range
+# (`noise_sigma`), clamped to LAMBDA_RANGE: ∝ 1/σ̂ for quiet frames, ∝ 1/σ̂² (the MAP weight) for
+# noisy ones. Fitted on simulated SBTI recordings of six real scenes at 12.5 and 75 °/s (best K&F
+# λ 3000–6000 at σ̂ = 0.005, 50000–100000 at σ̂ = 0.0005, 100+ at σ̂ = 0.05; benchmarks/).
+NOISE_LAMBDA = {"kf": 30.0, "wiener": 0.6}
+NOISE_KNEE = 0.006
+LAMBDA_RANGE = {"kf": (30.0, 300000.0), "wiener": (3.0, 30000.0)}
 DEFAULT_LAMBDA = {"kf": 6000.0, "wiener": 300.0}   # λ at a typical σ̂ ≈ 0.003 (reference only)
 DEFAULT_ALPHA = 2.0 / 3.0
 RANGE_PERCENTILES = (0.5, 99.5)
@@ -495,8 +497,8 @@ class Deconvolver:
     method : "kf" (hyper-Laplacian, default) or "wiener" (one Tikhonov solve).
     alpha : prior exponent for "kf": 1 (soft threshold), 2/3 (default, analytic LUT) or any in (0, 1).
     lam : data weight λ for a unit-range frame (K&F convention). None (default): adapted to each
-        frame's noise, λ = NOISE_LAMBDA[method] / σ̂ (a MAP data weight scales as 1/σ²; 1/σ fits
-        the measured optima across scenes better, since quiet scenes also have strong edges).
+        frame's noise σ̂, λ = NOISE_LAMBDA[method] / (σ̂ (1 + σ̂/NOISE_KNEE)) — the MAP weight 1/σ²
+        for noisy frames, 1/σ for quiet ones, where the measured optima flatten out.
     fft : "auto" (pyFFTW if installed), "fftw" or "scipy".
     workers : FFT threads (1 = one core; run several Deconvolvers in threads for throughput).
     margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
@@ -569,12 +571,13 @@ class Deconvolver:
 
     # -------------------------------------------------------------------------- solvers
     def lam_for(self, img: np.ndarray, lo: float, hi: float) -> float:
-        """λ for this frame: the fixed one, or NOISE_LAMBDA / σ̂ clamped to LAMBDA_RANGE."""
+        """λ for this frame: the fixed one, or NOISE_LAMBDA / (σ̂ (1 + σ̂/NOISE_KNEE)), clamped."""
         if self.lam is not None:
             return self.lam
         sigma = noise_sigma(img, (lo, hi))
         a, b = LAMBDA_RANGE[self.method]
-        return float(min(max(NOISE_LAMBDA[self.method] / max(sigma, 1e-9), a), b))
+        sigma = max(sigma, 1e-9)
+        return float(min(max(NOISE_LAMBDA[self.method] / (sigma * (1 + sigma / NOISE_KNEE)), a), b))
 
     def _solve(self, img, box, w, origin, lo, hi, lam, pshape=None) -> np.ndarray:
         """Deconvolve img[y0:y1, x0:x1] (unit-scaled with lo/hi) → float32 counts of that box."""
