@@ -33,16 +33,24 @@ from thermod.calibration import Calibration
 __all__ = ["ForwardModel", "downsample", "orientations", "predict_frames"]
 
 
-def downsample(frames: np.ndarray, scale: float) -> np.ndarray:
-    """Area-average frames [.., H, W] to `scale` × their size (float32), matching `Intrinsics.scaled`."""
+def downsample(frames: np.ndarray, scale: float, smooth_px: float = 0.0) -> np.ndarray:
+    """Area-average frames [.., H, W] to `scale` × their size (float32), matching `Intrinsics.scaled`.
+
+    `smooth_px` > 0 adds a Gaussian low-pass (σ in output pixels) that removes the aliased
+    frequencies, so that warping the small image and shrinking a warped big one agree.
+    """
     frames = np.asarray(frames, dtype=np.float32)
-    if scale == 1.0:
-        return frames.copy()
     one = frames.ndim == 2
     stack = frames[None] if one else frames
     h, w = stack.shape[-2:]
     size = (int(round(w * scale)), int(round(h * scale)))
-    out = np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in stack])
+    out = []
+    for f in stack:
+        g = f.copy() if scale == 1.0 else cv2.resize(f, size, interpolation=cv2.INTER_AREA)
+        if smooth_px > 0:
+            g = cv2.GaussianBlur(g, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
+        out.append(g)
+    out = np.stack(out)
     return out[0] if one else out
 
 
@@ -155,6 +163,15 @@ class ForwardModel:
         self._cache_ok = n * self.h * self.w * 2 * 4 / 1e6 <= cache_mb
         yy, xx = np.mgrid[0:self.h, 0:self.w]
         self._pix = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], axis=0)
+
+    def set_reference(self, reference, fpn=None, *, prescaled: bool = False) -> None:
+        """Replace the reference (and FPN) keeping the time grid; drops the cached views."""
+        ref = np.asarray(reference, np.float32) if prescaled else downsample(reference, self.scale)
+        if fpn is not None:
+            fpn = np.asarray(fpn, np.float32) if prescaled else downsample(fpn, self.scale)
+        self.fpn = fpn
+        self.reference = ref if fpn is None else ref - fpn
+        self._views, self._cache_key = None, None
 
     # ------------------------------------------------------------------ geometry
     def _max_pixel_speed(self, calib: Calibration) -> float:
