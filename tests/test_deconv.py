@@ -312,3 +312,13 @@ def test_noise_sigma_measures_added_noise_and_sets_lambda(scene):
     fixed = deconv.Deconvolver(lam=1234.0)
     fixed.run(b0, k)
     assert fixed.last_lam == 1234.0
+
+
+def test_fftw_wisdom_is_saved_to_the_cache_dir(tmp_path, monkeypatch):
+    pyfftw = pytest.importorskip("pyfftw")
+    monkeypatch.setenv("THERMOD_CACHE_DIR", str(tmp_path / "cache"))
+    assert deconv.wisdom_path() == tmp_path / "cache" / "fftw_wisdom_float32"
+    deconv._Plan((48, 80), "fftw", 1)
+    deconv._save_wisdom()
+    data = deconv.wisdom_path().read_bytes()
+    assert data.startswith(b"(fftw") and pyfftw.import_wisdom((b"", data, b""))[1]

@@ -148,6 +148,11 @@ def test_wrong_format_attribute_in_multi_file_mode_keeps_the_good_file(pan50, tm
     assert not (outdir / "wrong.h5").exists()
 
 
+def test_unwritable_output_is_a_one_line_error(pan50, tmp_path, capsys):
+    rc, _, err = deblur(capsys, pan50, "-o", tmp_path / "missing-dir" / "o.h5", "--uniform")
+    assert rc == 2 and "missing-dir/o.h5: cannot write the output" in err
+
+
 def test_refuses_to_overwrite_its_input(pan50, tmp_path, capsys):
     rc, _, err = deblur(capsys, pan50, "-o", pan50)
     assert rc == 2 and "would overwrite the input" in err

@@ -126,6 +126,13 @@ class _FrameDeblurrer:
 
 def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
     rec = recording.read(src)
+    try:
+        return _deblur_recording(rec, src, dst, fd, bar)
+    except OSError as e:  # output side: full disk, permissions, missing directory …
+        raise ThermodError(f"{dst}: cannot write the output ({e})") from None
+
+
+def _deblur_recording(rec: recording.Recording, src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
     n, h, w = rec.frames.shape
     bar.total = (bar.total or 0) + n
     bar.refresh()
