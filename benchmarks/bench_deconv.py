@@ -135,17 +135,30 @@ def psnr(a, ref):
     return 10 * math.log10(r * r / float(np.mean((a.astype(np.float64) - ref) ** 2)))
 
 
+LINES: list[str] = []
+
+
+def emit(text: str = "") -> None:
+    print(text, flush=True)
+    LINES.append(text)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions and sizes")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "deconv.md",
+                    help="markdown copy of the tables (default benchmarks/results/deconv.md)")
     args = ap.parse_args(argv)
     sizes = [(256, 320), (480, 640)] + ([] if args.quick else [(1024, 1280)])
     klens = [17, 65] if args.quick else [17, 33, 65]
-    reps = 5 if args.quick else 15
-    print(f"FFT back end: {deconv.Deconvolver().fft}; numba threads unused (one core per Deconvolver)\n")
-    print("| frame | kernel | K&F α=2/3 ms | Wiener ms | plain K&F ms | speed-up | PSNR thermod / plain (dB) "
-          "| blurry dB | fps, 2 threads |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    reps = 5 if args.quick else 25
+    emit("# Deconvolution speed\n")
+    emit(f"`benchmarks/bench_deconv.py{' --quick' if args.quick else ''}`: FFT back end "
+         f"{deconv.Deconvolver().fft}, one core per Deconvolver, medians of {reps} runs; load average "
+         f"before the run {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (the machine is shared).\n")
+    emit("| frame | kernel | K&F α=2/3 ms | Wiener ms | plain K&F ms | speed-up | PSNR thermod / plain (dB) "
+         "| blurry dB | fps, 2 threads |")
+    emit("|---|---|---|---|---|---|---|---|---|")
     results = []
     for h, w in sizes:
         big = scene((h, w))
@@ -166,14 +179,14 @@ def main(argv=None) -> int:
             t_plain = median_ms(lambda: plain_kf(b, k.weights, k.origin, lam, 2 / 3), preps)  # noqa: B023
             ref = plain_kf(b, k.weights, k.origin, lam, 2 / 3)
             fps = fps_two_threads([b, b.copy()], k, 4 if args.quick else 10)
-            kname = f"{k.weights.shape[1]}×{k.weights.shape[0]}"
+            kname = f"{L} px ({k.weights.shape[1]}×{k.weights.shape[0]})"
             row = (f"{w}×{h}", kname, t_kf, t_w, t_plain, t_plain / t_kf,
                    psnr(out, truth), psnr(ref, truth), psnr(b, truth), fps)
             results.append(row)
-            print(f"| {row[0]} | {row[1]} | {t_kf:.1f} | {t_w:.1f} | {t_plain:.0f} | {row[5]:.1f}× | "
-                  f"{row[6]:.2f} / {row[7]:.2f} | {row[8]:.2f} | {fps:.0f} |", flush=True)
+            emit(f"| {row[0]} | {row[1]} | {t_kf:.1f} | {t_w:.1f} | {t_plain:.0f} | {row[5]:.1f}× | "
+                 f"{row[6]:.2f} / {row[7]:.2f} | {row[8]:.2f} | {fps:.0f} |")
     # FFT back ends on the same solver
-    print("\n| FFT back end | 640×480, 65 px K&F ms |\n|---|---|")
+    emit("\n| FFT back end | 640×480, 65 px K&F ms |\n|---|---|")
     big = scene((480, 640))
     k = comet(65)
     b = blur(big, k)[80:560, 80:720]
@@ -181,15 +194,17 @@ def main(argv=None) -> int:
         try:
             d = deconv.Deconvolver(fft=fft)
         except deconv.DeconvError as e:
-            print(f"| {fft} | unavailable ({e}) |")
+            emit(f"| {fft} | unavailable ({e}) |")
             continue
-        print(f"| {fft} | {median_ms(lambda: d.run(b, k), reps):.1f} |")  # noqa: B023
-    target = [r for r in results if r[0] == "640×480" and r[1].startswith("65")]
+        emit(f"| {fft} | {median_ms(lambda: d.run(b, k), reps):.1f} |")  # noqa: B023
+    target = [r for r in results if r[0] == "640×480" and r[1].startswith("65 px")]
     if target:
         r = target[0]
         ok = r[2] <= 15 and r[5] >= 8
-        print(f"\ntarget 640×480 / 65 px: {r[2]:.1f} ms (≤ 15), {r[5]:.1f}× plain (≥ 8): "
-              f"{'met' if ok else 'NOT met'}")
+        emit(f"\ntarget 640×480 / 65 px: {r[2]:.1f} ms (≤ 15), {r[5]:.1f}× plain (≥ 8): "
+             f"{'met' if ok else 'NOT met'}; load average after the run {os.getloadavg()[0]:.1f}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(LINES) + "\n")
     return 0
 
 
