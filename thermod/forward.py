@@ -130,11 +130,12 @@ class ForwardModel:
         Head-room on the gyro rate when choosing the step, so candidate scales stay sub-pixel.
     cache_mb : float
         Memory allowed for cached warped views (skipped when larger).
+    interpolation : "cubic" (default: least resampling blur) or "linear" (≈ 2× faster warps).
     """
 
     def __init__(self, reference, frame_t, gyro_t, gyro_rate, calib: Calibration, *, t_ref: float,
                  scale: float = 1.0, fpn=None, max_step_px: float = 0.5, max_rate_factor: float = 1.3,
-                 tau_min_s: float | None = None, cache_mb: float = 400.0):
+                 tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic"):
         self.calib0 = calib
         self.scale = float(scale)
         self.intr = calib.intrinsics.scaled(self.scale)
@@ -151,13 +152,16 @@ class ForwardModel:
         # Fixed time grid: from t_ref (detector settled on the reference) to the last frame.
         speed = self._max_pixel_speed(calib) * max_rate_factor
         tau_min = tau_min_s if tau_min_s is not None else calib.tau_s / 3.0
-        h_max = max(tau_min, 1e-4) / 8.0   # keep α small enough that the IIR is smooth in time
+        h_max = max(tau_min, 1e-4) / 4.0   # α ≤ 0.22: rows read between grid points interpolate well
         self.dt = min(h_max, max_step_px / speed) if speed > 0 else h_max
         t_end = float(self.frame_t.max()) if len(self.frame_t) else self.t_ref
         n = max(1, int(math.ceil((t_end - self.t_ref) / self.dt)))
         self.dt = (t_end - self.t_ref) / n if t_end > self.t_ref else self.dt
         self.t_grid = self.t_ref + self.dt * np.arange(n + 1)
         self.t_mid = 0.5 * (self.t_grid[1:] + self.t_grid[:-1])
+        if interpolation not in ("linear", "cubic"):
+            raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
+        self._interp = cv2.INTER_LINEAR if interpolation == "linear" else cv2.INTER_CUBIC
         self._cache_key = None
         self._views = None
         self._cache_ok = n * self.h * self.w * 2 * 4 / 1e6 <= cache_mb
@@ -201,7 +205,7 @@ class ForwardModel:
         Hs = self.homographies(calib, self.t_mid)
         src = np.dstack([self.reference, np.ones_like(self.reference)])
         out = np.empty((len(Hs), self.h, self.w, 2), np.float32)
-        flags = cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
+        flags = self._interp | cv2.WARP_INVERSE_MAP
         for j, H in enumerate(Hs):
             cv2.warpPerspective(src, H, (self.w, self.h), dst=out[j], flags=flags,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -259,8 +263,9 @@ class ForwardModel:
         np.divide(out2[..., 0], m, out=out, where=m > 0.5)
         if extra_psf_px > 0:
             s = float(extra_psf_px) * self.scale
+            g = cv2.getGaussianKernel(2 * int(math.ceil(4 * s)) + 1, s, cv2.CV_32F)   # ±4σ, sums to 1
             for k in range(n):
-                out[k] = cv2.GaussianBlur(out[k], (0, 0), s, borderType=cv2.BORDER_REPLICATE)
+                out[k] = cv2.sepFilter2D(out[k], -1, g, g, borderType=cv2.BORDER_REPLICATE)
         if self.fpn is not None:
             out += self.fpn[None]
         return out, valid
