@@ -193,6 +193,7 @@ class SimCamera(CameraSource):
         self.emu = None
         self._stall_until = -math.inf
         self._down_until = -math.inf
+        self._undelivered = 0
         self.counters = {"stalls": 0, "disconnects": 0, "starts": 0, "discarded_in_stall": 0}
 
     def start(self) -> None:
@@ -235,9 +236,15 @@ class SimCamera(CameraSource):
         if self.emu is None:
             raise DeviceError(f"{self.name}: poll() before start()")
         f = self.emu.poll(timeout)
-        if f is not None and time.monotonic() < self._stall_until:
-            self.counters["discarded_in_stall"] += 1
+        if f is None:
             return None
+        if time.monotonic() < self._stall_until:
+            self.counters["discarded_in_stall"] += 1
+            self._undelivered += 1 + f.gap_before
+            return None
+        if self._undelivered:                 # frames the sensor read but never sent: an id gap
+            f.gap_before += self._undelivered
+            self._undelivered = 0
         return f
 
     def stats(self) -> dict:

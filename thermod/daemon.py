@@ -329,7 +329,10 @@ class Daemon:
         self.counters = collections.Counter()
         self._ready = False
         self._last_health = 0.0
+        self._last_ping = 0.0
+        self._ping_every = min(1.0, self.notifier.watchdog_interval() or 1.0)
         self._prev: dict = {}
+        self._rates: dict = {"gyro_hz": 0.0, "frames_in_hz": 0.0, "frames_out_hz": 0.0, "deblurred_hz": 0.0}
         self._health_seq = 0
         self.last_health: dict = {}
 
@@ -461,7 +464,9 @@ class Daemon:
             self._ready = True
             log.info("ready: frames and gyro samples flowing")
             self.notifier.ready(self._status_line())
-        if self._ready and all(self.critical_alive().values()):
+        # WATCHDOG=1 at half systemd's timeout (≤ 1 s), and only while every critical thread checks in
+        if self._ready and now - self._last_ping >= self._ping_every and all(self.critical_alive().values()):
+            self._last_ping = now
             self.notifier.watchdog()
         if now - self._last_health >= self.cfg.publish.health_period_s:
             self.publish_health(now)
@@ -472,18 +477,19 @@ class Daemon:
                 f"deblurred {h.get('deblurred_hz', 0):.1f} fps, gyro {self.gyro_state.state}, "
                 f"camera {self.camera_state.state}")
 
-    def health(self, now: float | None = None) -> dict:
+    def health(self, now: float | None = None, *, update_rates: bool = False) -> dict:
         now = time.monotonic() if now is None else now
         ps = self.pipeline.stats()
         pc = ps["counters"]
         totals = {"gyro_samples": self.gyro_state.items, "frames_in": self.camera_state.items,
                   "frames_out": pc.get("frames_out", 0), "deblurred": pc.get("deblurred", 0)}
-        dt = now - self._prev.get("_t", now - 1.0) if self._prev else None
-        rates = {}
-        for k, name in (("gyro_samples", "gyro_hz"), ("frames_in", "frames_in_hz"), ("frames_out", "frames_out_hz"),
-                        ("deblurred", "deblurred_hz")):
-            rates[name] = round((totals[k] - self._prev.get(k, 0)) / dt, 3) if dt else 0.0
-        self._prev = {**totals, "_t": now}
+        if update_rates:    # rates are per health period; other callers see the last period's
+            dt = now - self._prev["_t"] if self._prev else None
+            self._rates = {name: round((totals[k] - self._prev.get(k, 0)) / dt, 3) if dt else 0.0
+                           for k, name in (("gyro_samples", "gyro_hz"), ("frames_in", "frames_in_hz"),
+                                           ("frames_out", "frames_out_hz"), ("deblurred", "deblurred_hz"))}
+            self._prev = {**totals, "_t": now}
+        rates = dict(self._rates)
         drops = {k: v for k, v in pc.items() if k.startswith(("passthrough_", "jobs_dropped", "frames_overrun",
                                                                "worker_errors", "camera_frames_lost"))}
         drops.update(gyro_gaps=self.counters["gyro_gaps"], gyro_lost=self.counters["gyro_lost"],
@@ -511,7 +517,7 @@ class Daemon:
     def publish_health(self, now: float | None = None) -> dict:
         now = time.monotonic() if now is None else now
         self._last_health = now
-        h = self.health(now)
+        h = self.health(now, update_rates=True)
         self.last_health = h
         self.publisher.publish_health(rates=h["rates"], drops=h["drops"], devices=h["devices"],
                                       calibration=self.pipeline.calib.as_dict(), t=now,
