@@ -25,18 +25,17 @@ import json
 import logging
 import math
 import os
-import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from thermod.drivers.camera_base import CameraSource, Frame
+from thermod.sim import motion as mo
 
 from thermod import recording
 from thermod.calibration import Calibration
-from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.errors import DeviceError, RecordingError
-from thermod.sim import motion as mo
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +167,8 @@ class SimPayload:
             self.chip = ICM42688Emu(rate_fn=self._rate_fn, noise_rad_s=self.cfg.gyro_noise_rad_s,
                                     seed=self.cfg.seed)
             self._gyro = ICM42688(SPIBus(EmuSPI(self.chip)), full_scale_dps=2000.0,
-                                  rate_hz=self.cfg.gyro_rate_hz, read_interval_s=0.002, name="ICM-42688-P (sim)")
+                                  rate_hz=self.cfg.gyro_rate_hz, read_interval_s=0.002,
+                                  name="ICM-42688-P (sim)")
         return self._gyro
 
     def camera_source(self) -> SimCamera:

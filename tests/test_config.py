@@ -73,7 +73,8 @@ def test_frozen_and_values(tmp_path):
 @pytest.mark.parametrize("extra, message", [
     ("[deblur]\nlambda = -3\n", r"deblur\.lambda: expected a value in \(0\.0, 1000000000\.0\], got -3"),
     ("[deblur]\nlambda = 'big'\n", r"deblur\.lambda: expected a number, got 'big'"),
-    ("[deblur]\nmethod = 'richardson'\n", r"deblur\.method: expected one of 'kf', 'wiener', got 'richardson'"),
+    ("[deblur]\nmethod = 'richardson'\n",
+     r"deblur\.method: expected one of 'kf', 'wiener', got 'richardson'"),
     ("[deblur]\nalpha = 0.5\n", r"deblur\.alpha: expected 1 or 2/3"),
     ("[deblur]\ngrid = [3]\n", r"deblur\.grid: expected \[rows, cols\]"),
     ("[deblur]\nlamda = 3\n", r"deblur\.lamda: unknown key"),
@@ -86,7 +87,8 @@ def test_frozen_and_values(tmp_path):
     ("[pipeline]\njob_queue = 0\n", r"pipeline\.job_queue: expected a value in \[1, 64\]"),
     ("[calibration]\ntau_s = 0\n", r"calibration\.tau_s: expected a value in \(0\.0, 1\.0\]"),
     ("[calibration]\nbias_rad_s = [0, 0]\n", r"calibration\.bias_rad_s: expected an array of 3 numbers"),
-    ("[calibration]\nR_cam_gyro = [[1,0,0],[0,1,0],[0,0,2]]\n", r"calibration\.R_cam_gyro: expected a rotation"),
+    ("[calibration]\nR_cam_gyro = [[1,0,0],[0,1,0],[0,0,2]]\n",
+     r"calibration\.R_cam_gyro: expected a rotation"),
     ("[calibration]\nR_cam_gyro = [[1,0],[0,1]]\n", r"calibration\.R_cam_gyro: expected a 3×3 array"),
     ("[calibration]\nframe_rate_hz = 60.0\n", r"calibration\.frame_rate_hz/rate_hz: expected to match sim"),
     ("[calibration]\nreadout_s = 0.05\n", r"calibration\.readout_s: expected a value in \[0\.0, 0\.02\]"),
@@ -119,17 +121,18 @@ def test_source_errors(tmp_path):
         _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_i2c'\ndevice = '/dev/i2c-77'\n"
                          "[sources.camera]\nkind = 'sim'\n")
         config.load(tmp_path / "t.toml")
-    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'nothere.h5'\n[sources.camera]\nkind = 'sim'\n")
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'nothere.h5'\n"
+                         "[sources.camera]\nkind = 'sim'\n")
     with pytest.raises(ConfigError, match=r"sources\.gyro\.path: recording '.*nothere\.h5' does not exist"):
         config.load(p)
     # a recording path is relative to the config file
     (tmp_path / "rec.h5").write_bytes(b"")
-    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n[sources.camera]\nkind = 'replay'\n"
-                         "path = 'rec.h5'\nspeed = 2\n")
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n"
+                         "[sources.camera]\nkind = 'replay'\npath = 'rec.h5'\nspeed = 2\n")
     cfg = config.load(p)
     assert cfg.gyro.device == str(tmp_path / "rec.h5") and cfg.camera.options["speed"] == 2.0
-    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n[sources.camera]\nkind = 'replay'\n"
-                         "path = 'rec.h5'\n[sim]\nseed = 1\n")
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'replay'\npath = 'rec.h5'\n"
+                         "[sources.camera]\nkind = 'replay'\npath = 'rec.h5'\n[sim]\nseed = 1\n")
     with pytest.raises(ConfigError, match=r"sim: only allowed when a source has kind = 'sim'"):
         config.load(p)
 

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from thermod.sim.payload import SimPayload
 
 from thermod import config
 from thermod.calibration import Calibration
 from thermod.publish import Subscriber
-from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
 THERMOD = Path(sys.executable).with_name("thermod")
@@ -121,7 +121,7 @@ def test_thermod_run_end_to_end(payload):
 
     # --- raw frames are exactly what the payload's camera sent (frame id k+1 ↔ loop frame k mod N)
     checked = 0
-    for fid, (h, a) in raws.items():
+    for fid, (_, a) in raws.items():
         if a is not None:
             np.testing.assert_array_equal(a, pl.frame_for(fid))
             checked += 1
@@ -141,7 +141,8 @@ def test_thermod_run_end_to_end(payload):
         ratios.append(e_deb / e_raw)
         h = frames[i][0]
         assert h["coverage"] > 0.99 and h["kernel_size"][0] >= 1 and h["n_samples"] >= 30
-    print(f"deblurred {len(deb)}/{len(ids)} frames; RMSE to truth deblurred/raw median {np.median(ratios):.3f}")
+    print(f"deblurred {len(deb)}/{len(ids)} frames; RMSE to truth deblurred/raw median "
+          f"{np.median(ratios):.3f}")
     assert np.median(ratios) < 0.8, np.median(ratios)
 
     # --- health: 1 Hz, rates, drops, devices, the calibration for `thermod record`

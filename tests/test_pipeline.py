@@ -170,7 +170,7 @@ def test_gap_inside_window_passes_through(sharp):
         now = time.monotonic()
         seq = gyro_until(gr, now - 0.2, now - 0.03)
         gyro_until(gr, now - 0.02, now + 0.2, seq + 10, gap=True)   # FIFO overflow: 10 samples lost
-        fr.write(sharp.astype(np.uint16), now, frame_id=1, arrival=now)        # gap 20–30 ms before: inside 5τ
+        fr.write(sharp.astype(np.uint16), now, frame_id=1, arrival=now)        # gap 20–30 ms before: in 5τ
         fr.write(sharp.astype(np.uint16), now + 0.1, frame_id=2, arrival=now)  # window after the gap
         outs = col.wait(2)
     finally:

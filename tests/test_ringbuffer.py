@@ -58,7 +58,7 @@ def test_gap_flags_inside_window():
     assert r.window(0.070, 0.090).gap is False          # window entirely after the gap
     assert r.window(0.010, 0.030).gap is False          # entirely before (the gap is 10 samples later)
     assert r.window(0.030, 0.070).gap is True           # spans it
-    assert r.window(0.020, 0.0395, pad=0).gap is True   # ends where the next sample is the first after the gap
+    assert r.window(0.020, 0.0395, pad=0).gap is True   # the next sample is the first after the gap
     assert r.window(0.020, 0.030, pad=0).gap is False
 
 
@@ -131,7 +131,8 @@ def test_gyro_ring_writer_and_readers_hammering():
                     and np.array_equal(w.rate, _rates(w.seq))):
                 errors.append((w.seq[:3], w.t[:3]))
 
-    threads = [threading.Thread(target=writer)] + [threading.Thread(target=reader, args=(k,)) for k in range(2)]
+    threads = [threading.Thread(target=writer)]
+    threads += [threading.Thread(target=reader, args=(k,)) for k in range(2)]
     for th in threads:
         th.start()
     for th in threads:

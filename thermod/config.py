@@ -426,7 +426,8 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
         c, s = cfg.calibration, cfg.sim
         if abs(c.frame_rate_hz - s.frame_rate_hz) > 1e-9 or abs(c.rate_hz - s.gyro_rate_hz) > 1e-9:
             raise ConfigError(f"{path}: calibration.frame_rate_hz/rate_hz: expected to match "
-                              f"sim.frame_rate_hz ({s.frame_rate_hz}) and sim.gyro_rate_hz ({s.gyro_rate_hz})")
+                              f"sim.frame_rate_hz ({s.frame_rate_hz}) and sim.gyro_rate_hz "
+                              f"({s.gyro_rate_hz})")
     return cfg
 
 

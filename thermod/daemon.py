@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import ipaddress
 import logging
 import math
@@ -90,6 +91,23 @@ def run(args) -> int:
 # ------------------------------------------------------------------------------------ sources
 def build_gyro(cfg: configmod.Config, payload=None):
     """The configured gyro source (driver modules are imported only here)."""
+    try:
+        return _build_gyro(cfg, payload)
+    except ImportError as e:
+        raise ConfigError(f"{cfg.path}: sources.gyro.kind: the {cfg.gyro.kind!r} driver is not available "
+                          f"({e})") from None
+
+
+def build_camera(cfg: configmod.Config, payload=None):
+    """The configured camera source."""
+    try:
+        return _build_camera(cfg, payload)
+    except ImportError as e:
+        raise ConfigError(f"{cfg.path}: sources.camera.kind: the {cfg.camera.kind!r} driver is not available "
+                          f"({e})") from None
+
+
+def _build_gyro(cfg: configmod.Config, payload=None):
     g = cfg.gyro
     o = dict(g.options)
     rate = float(cfg.calibration.rate_hz)
@@ -117,12 +135,12 @@ def build_gyro(cfg: configmod.Config, payload=None):
         from thermod.drivers.iio import IIOGyro
         return IIOGyro(g.device, rate_hz=o["rate_hz"] or rate, buffer_length=o["buffer_length"])
     if g.kind == "serial":
-        from thermod.drivers.serial_imu import SerialGyro
-        return SerialGyro(g.device, baud=o["baud"], low_latency=o["low_latency"])
+        from thermod.drivers.serial_imu import SerialIMU
+        return SerialIMU(g.device, baud=o["baud"], rate_hz=rate, low_latency=o["low_latency"])
     raise ConfigError(f"{cfg.path}: sources.gyro.kind: no driver for {g.kind!r}")
 
 
-def build_camera(cfg: configmod.Config, payload=None):
+def _build_camera(cfg: configmod.Config, payload=None):
     c = cfg.camera
     o = dict(c.options)
     if c.kind == "sim":
@@ -205,7 +223,8 @@ class _DriverThread(threading.Thread):
                  on_down=None, on_up=None):
         super().__init__(name=f"thermod-{kind}", daemon=True)
         self.kind, self.source, self.sink, self.st, self.stop_ev = kind, source, sink, state, stop
-        self.poll_timeout, self.priority, self.retry_max_s, self.stall_s = poll_timeout, priority, retry_max_s, stall_s
+        self.poll_timeout, self.priority = poll_timeout, priority
+        self.retry_max_s, self.stall_s = retry_max_s, stall_s
         self.on_down, self.on_up = on_down, on_up
         self.started_source = False
 
@@ -429,7 +448,7 @@ class Daemon:
             log.warning("reload: changes to %s need a restart; applied calibration and deblur only",
                         ", ".join(restart_needed))
         self.pipeline.update(calib=new.calibration, deblur=new.deblur)
-        self.cfg = configmod.Config(**{**self.cfg.__dict__, "calibration": new.calibration, "deblur": new.deblur})
+        self.cfg = dataclasses.replace(self.cfg, calibration=new.calibration, deblur=new.deblur)
         self.counters["reloads"] += 1
         log.info("reloaded calibration and deblur settings from %s", new.path)
         self.notifier.ready(self._status_line())
@@ -490,8 +509,8 @@ class Daemon:
                                            ("frames_out", "frames_out_hz"), ("deblurred", "deblurred_hz"))}
             self._prev = {**totals, "_t": now}
         rates = dict(self._rates)
-        drops = {k: v for k, v in pc.items() if k.startswith(("passthrough_", "jobs_dropped", "frames_overrun",
-                                                               "worker_errors", "camera_frames_lost"))}
+        drop_keys = ("passthrough_", "jobs_dropped", "frames_overrun", "worker_errors", "camera_frames_lost")
+        drops = {k: v for k, v in pc.items() if k.startswith(drop_keys)}
         drops.update(gyro_gaps=self.counters["gyro_gaps"], gyro_lost=self.counters["gyro_lost"],
                      gyro_ring_clock_jumps=self.gyro_ring.clock_jumps,
                      camera_frames_lost=self.counters["camera_frames_lost"])
@@ -510,7 +529,7 @@ class Daemon:
             "rates": rates, "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
             "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},
             "threads": self.critical_alive(), "ready": self._ready, "gyro_online": self.pipeline.gyro_online,
-            "publisher": {k: v for k, v in pub.items() if k in ("queue_depth", "queue_dropped", "send_errors")},
+            "publisher": {k: pub[k] for k in ("queue_depth", "queue_dropped", "send_errors") if k in pub},
             "daemon": dict(self.counters),
         }
 
@@ -521,7 +540,8 @@ class Daemon:
         self.last_health = h
         self.publisher.publish_health(rates=h["rates"], drops=h["drops"], devices=h["devices"],
                                       calibration=self.pipeline.calib.as_dict(), t=now,
-                                      **{k: v for k, v in h.items() if k not in ("rates", "drops", "devices")})
+                                      **{k: v for k, v in h.items() if k not in ("rates", "drops",
+                                                                                  "devices")})
         if self._ready:
             self.notifier.status(self._status_line())
         return h

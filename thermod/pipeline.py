@@ -43,7 +43,8 @@ from thermod.ringbuffer import FrameRing, FrameSlot, GyroRing
 
 log = logging.getLogger(__name__)
 
-REASONS = ("disabled", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload", "worker_error")
+REASONS = ("disabled", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
+           "worker_error")
 
 
 @dataclass
@@ -104,8 +105,9 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
     from thermod import kernels  # numba start-up is paid only by processes that deblur
 
     if deblur.mode == "grid":
-        g = kernels.render_kernel_grid(gyro_t, gyro_rate, calib, t_frame, grid=deblur.grid, kind=deblur.kernel,
-                                       psf=deblur.psf, m=deblur.m, exposure_s=deblur.exposure_s)
+        g = kernels.render_kernel_grid(gyro_t, gyro_rate, calib, t_frame, grid=deblur.grid,
+                                       kind=deblur.kernel, psf=deblur.psf, m=deblur.m,
+                                       exposure_s=deblur.exposure_s)
         cells = [k for row in g.kernels for k in row]
         info = dict(kernel_size=tuple(int(max(k.weights.shape[i] for k in cells)) for i in (0, 1)),
                     kernel_extent_px=float(g.max_extent_px), coverage=float(g.coverage),

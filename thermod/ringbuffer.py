@@ -79,9 +79,11 @@ class GyroRing:
             return 0
         if len(rate) != n or not np.all(np.isfinite(t)):
             self.batches_rejected += 1
-            raise ValueError(f"gyro batch: {n} times (finite: {bool(np.all(np.isfinite(t)))}) vs {len(rate)} rates")
+            raise ValueError(f"gyro batch: {n} times (all finite: {bool(np.all(np.isfinite(t)))}) vs "
+                             f"{len(rate)} rates")
         if n > self.capacity:   # keep the newest; the dropped head of the batch is a gap
-            t, rate, seq0, gap_before = t[-self.capacity:], rate[-self.capacity:], seq0 + n - self.capacity, True
+            t, rate = t[-self.capacity:], rate[-self.capacity:]
+            seq0, gap_before = seq0 + n - self.capacity, True
             n = self.capacity
         jump = not np.all(np.diff(t) > 0)
         if self._head > self._epoch_start:
@@ -147,7 +149,8 @@ class GyroRing:
             lo, hi = self._bounds()
             if hi <= lo:
                 e = np.empty(0)
-                return GyroWindow(e, np.empty((0, 3), np.float32), np.empty(0, np.int64), False, np.nan, np.nan)
+                return GyroWindow(e, np.empty((0, 3), np.float32), np.empty(0, np.int64), False,
+                                  np.nan, np.nan)
             a = max(lo, self._search(lo, hi, t0) - pad)
             b = min(hi, self._search(a, hi, t1) + pad)
             idx = np.arange(a, min(b + 1, hi)) % self.capacity   # one extra to see a gap right after

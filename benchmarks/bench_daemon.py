@@ -1,0 +1,207 @@
+"""The real-time daemon on the simulated payload: `thermod run` as a subprocess, measured from a subscriber.
+
+Targets (2 cores, 640×480, 1 kHz gyro, sustained): every frame published, ≥ 99 % deblurred,
+latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro samples lost — at 50 and at
+60 fps; the simulated payload alone ≤ 0.5 core; `--soak 600`: RSS growth < 5 MB, no thread deaths.
+
+    .venv/bin/python benchmarks/bench_daemon.py [--seconds 60] [--quick] [--soak 600] [--methods kf,wiener]
+
+Latency is the publisher's ``published`` stamp minus the frame's ``t`` (both host CLOCK_MONOTONIC,
+the same clock for daemon and subscriber on one machine). The first 3 s after READY are not
+counted (plan caches, clock fits settling).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+THERMOD = Path(sys.executable).with_name("thermod")
+WARM_S = 3.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def rss_kb(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    return 0
+
+
+def cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> dict:
+    from thermod.publish import Subscriber
+
+    ep = f"tcp://127.0.0.1:{free_port()}"
+    cmd = [str(THERMOD), "run", "--endpoint", ep, "--set", f"deblur.method={method}",
+           "--set", f"sim.frame_rate_hz={fps}", "--set", f"calibration.frame_rate_hz={fps}"]
+    env = dict(os.environ)
+    env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
+    err_lines: list[str] = []
+    threading.Thread(target=lambda: err_lines.extend(proc.stderr), daemon=True).start()
+    frames, gyro, health, rss = [], [], [], []
+    t_ready = None
+    try:
+        with Subscriber(ep, topics=("frame", "gyro", "health"), rcvhwm=100000) as sub:
+            deadline = time.monotonic() + 300
+            next_rss = 0.0
+            while time.monotonic() < deadline and proc.poll() is None:
+                m = sub.recv(timeout=0.5)
+                now = time.monotonic()
+                if m is None:
+                    continue
+                topic, h, a = m
+                if topic == "health" and h.get("ready") and t_ready is None:
+                    t_ready = now
+                if t_ready is None:
+                    continue
+                if now - t_ready < WARM_S:
+                    continue
+                if now >= next_rss:
+                    rss.append((now, rss_kb(proc.pid)))
+                    next_rss = now + (10.0 if soak else 1.0)
+                if topic == "frame":
+                    frames.append((h["frame_id"], h["deblurred"], h["published"] - h["t"], h["reason"]))
+                elif topic == "gyro":
+                    gyro.append((h["sample_seq"], h["n"], h["gap_before"]))
+                else:
+                    health.append(h)
+                if now - t_ready > WARM_S + seconds:
+                    break
+            sub_gaps = dict(sub.gaps)
+        cpu = cpu_s(proc.pid)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    if not frames:
+        raise SystemExit("no frames received; daemon said:\n" + "".join(err_lines[-30:]))
+    ids = np.array([f[0] for f in frames])
+    lat = np.array([f[2] for f in frames]) * 1e3
+    deb = np.array([f[1] for f in frames])
+    expected = ids[-1] - ids[0] + 1
+    g_lost = sum(1 for a, b in zip(gyro, gyro[1:], strict=False) if a[0] + a[1] != b[0])
+    g_lost_n = sum(b[0] - (a[0] + a[1]) for a, b in zip(gyro, gyro[1:], strict=False))
+    last = health[-1] if health else {}
+    threads = last.get("threads", {})
+    pc = last.get("pipeline", {}).get("counters", {})
+    reasons: dict[str, int] = {}
+    for f in frames:
+        if not f[1]:
+            reasons[f[3]] = reasons.get(f[3], 0) + 1
+    rss_growth = (rss[-1][1] - rss[min(len(rss) - 1, 3)][1]) / 1024 if len(rss) > 4 else float("nan")
+    return {
+        "fps": fps, "method": method, "seconds": seconds, "frames": len(frames), "expected": int(expected),
+        "published_all": len(frames) == expected and not sub_gaps.get("frame"),
+        "deblurred_pct": 100.0 * deb.mean(), "p50_ms": float(np.percentile(lat, 50)),
+        "p99_ms": float(np.percentile(lat, 99)), "gyro_gap_events": g_lost, "gyro_lost": int(g_lost_n),
+        "gyro_hz": float(np.median([h["rates"]["gyro_hz"] for h in health])) if health else float("nan"),
+        "rss_growth_mb": rss_growth, "threads_alive": all(threads.values()) if threads else False,
+        "workers_replaced": pc.get("workers_replaced", 0), "reasons": reasons, "cpu_s": cpu,
+    }
+
+
+def payload_cpu(seconds: float) -> dict:
+    """The simulated payload alone (camera loop + ICM-42688-P driver on its emulator), no pipeline."""
+    from thermod.sim.payload import SimPayload
+
+    from thermod import config
+
+    cfg = config.load()
+    p = SimPayload(cfg.sim, cfg.calibration)
+    p.prepare()
+    p.start()
+    gyro, cam = p.gyro_source(), p.camera_source()
+    gyro.start()
+    cam.start()
+    counts = {"gyro": 0, "frames": 0}
+    stop = threading.Event()
+
+    def loop(src, key, timeout):
+        while not stop.is_set():
+            item = src.poll(timeout)
+            if item is not None:
+                counts[key] += len(item) if key == "gyro" else 1
+
+    ths = [threading.Thread(target=loop, args=(gyro, "gyro", 0.002)),
+           threading.Thread(target=loop, args=(cam, "frames", 0.05))]
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0 = time.monotonic()
+    for th in ths:
+        th.start()
+    time.sleep(seconds)
+    stop.set()
+    for th in ths:
+        th.join()
+    wall = time.monotonic() - t0
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return {"cores": cpu / wall, "gyro_hz": counts["gyro"] / wall, "fps": counts["frames"] / wall}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--quick", action="store_true", help="15 s runs")
+    ap.add_argument("--soak", type=float, default=0.0, help="also a soak run of this many seconds (50 fps)")
+    ap.add_argument("--methods", default="kf,wiener")
+    ap.add_argument("--fps", default="50,60")
+    args = ap.parse_args(argv)
+    seconds = 15.0 if args.quick else args.seconds
+
+    pc = payload_cpu(10.0 if args.quick else 20.0)
+    print("simulated payload alone (target ≤ 0.5 core, 1000 gyro samples/s, 50 fps)")
+    print(f"| cores | gyro samples/s | frames/s |\n|---|---|---|\n| {pc['cores']:.3f} | {pc['gyro_hz']:.1f} "
+          f"| {pc['fps']:.2f} |\n")
+
+    rows = []
+    for method in args.methods.split(","):
+        for fps in (float(f) for f in args.fps.split(",")):
+            print(f"running {method} at {fps:g} fps for {seconds:g} s …", file=sys.stderr, flush=True)
+            rows.append(run_daemon(fps, seconds, method))
+    if args.soak:
+        print(f"soak: {args.soak:g} s …", file=sys.stderr, flush=True)
+        rows.append(run_daemon(50.0, args.soak, args.methods.split(",")[0], soak=True))
+
+    print("daemon, 640×480, 1 kHz gyro (targets: all published, ≥ 99 % deblurred, p50 ≤ 30 ms, p99 ≤ 60 ms, "
+          "0 gyro lost; soak: RSS growth < 5 MB, no thread deaths)")
+    print("| method | fps | s | frames | all published | deblurred % | latency p50 ms | p99 ms | gyro Hz "
+          "| gyro lost | RSS growth MB | threads ok | not deblurred |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['method']} | {r['fps']:g} | {r['seconds']:g} | {r['frames']}/{r['expected']} | "
+              f"{'yes' if r['published_all'] else 'NO'} | {r['deblurred_pct']:.1f} | {r['p50_ms']:.1f} | "
+              f"{r['p99_ms']:.1f} | {r['gyro_hz']:.1f} | {r['gyro_lost']} | {r['rss_growth_mb']:.1f} | "
+              f"{'yes' if r['threads_alive'] and not r['workers_replaced'] else 'NO'} | "
+              f"{r['reasons'] or '-'} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
