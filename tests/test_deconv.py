@@ -91,7 +91,8 @@ def test_fused_shrink_matches_the_exact_minimiser(alpha):
     lut = deconv._shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
     tau = deconv.shrink_threshold(alpha, beta) if mode else 0.0
     deconv._shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
-                       np.float32((deconv._LUT_SIZE - 1) / deconv._LUT_VMAX), np.float32(alpha))
+                       np.float32((deconv._LUT_SIZE - 1) / deconv._LUT_VMAX), np.float32(alpha),
+                       np.empty(v.size, np.int32))
     if alpha == 1:
         exact = np.sign(v) * np.maximum(np.abs(v) - 1 / beta, 0)
     else:
