@@ -247,5 +247,10 @@ class SimCamera(CameraSource):
             self._undelivered = 0
         return f
 
+    @property
+    def clock(self):
+        """The emulated camera's device-clock → host mapping (its fit residuals go into health)."""
+        return None if self.emu is None else self.emu.clock
+
     def stats(self) -> dict:
         return {**(self.emu.stats() if self.emu is not None else {}), **self.counters}

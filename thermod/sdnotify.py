@@ -68,6 +68,8 @@ class Notifier:
             try:
                 if self._sock is None:
                     self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                    # never block the caller (the daemon's main loop) on a full receive queue
+                    self._sock.setblocking(False)
                 self._sock.sendto(msg, _address(self.socket_path))
             except OSError as e:
                 self.errors += 1
