@@ -146,6 +146,28 @@ def test_clean_recording_adds_nothing():
     assert ana.noise_floor < ana.gap_initial < 1.2 * ana.noise_floor + 0.05
 
 
+@pytest.mark.slow
+def test_fixed_pattern_noise_is_estimated_not_blamed_on_the_model():
+    import cv2
+
+    from thermod.forward import downsample
+
+    rec = record({"fpn": 0.1})                     # 4 counts RMS, twice the temporal noise
+    d = D.prepare(rec, NOMINAL, name="fpn")
+    ana = D.analyse([d], D.Model(NOMINAL))
+    assert ana.steps == [] and not ana.unexplained
+    # Without the FPN estimate the pattern, moved with the scene, would look like a model error.
+    d2 = D.prepare(rec, NOMINAL, name="fpn")
+    ana2 = D.analyse([d2], D.Model(NOMINAL), fpn=False, candidates=())
+    assert ana2.gap_initial > 1.5 * ana.gap_initial
+    # The estimate is the sensor's pattern: static mean − noiseless static view, high-passed.
+    true_static = downsample(rec.extras["truth/blurry_noiseless"][: d.n_static], d.fm.scale).mean(axis=0)
+    pattern = d.static_mean - true_static
+    hp = pattern - cv2.GaussianBlur(pattern, (0, 0), 1.5)
+    m = d.mask.any(axis=0)
+    assert np.corrcoef(d.fpn[m], hp[m])[0, 1] > 0.8
+
+
 def _high_contrast_scene():
     """The real scene stretched to a 30 K span (a hot vehicle on a cool field), on the sphere."""
     tex = sim_scenes.load_scene("real:1", (240, 320), 0)
@@ -178,6 +200,22 @@ def test_common_optical_psf_is_not_misnamed():
     rec, ana = analysed("psf", {"optical_psf": 1.2})
     assert ana.steps == []
     assert not ana.unexplained
+
+
+@pytest.mark.slow
+def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
+    # A yaw-only pan excites scale[1] alone: the others must be reported, not invented.
+    motion = mo.sequence([(mo.static(), 0.2), (Ramped(mo.pan(20.0, "yaw"), 0.04), None)])
+    rec = simulate("real:1", motion, 0.5, NOMINAL, {"netd": 0.05, "gyro_scale": 1.05}, seed=2)
+    ana = D.analyse([D.prepare(rec, NOMINAL)], D.Model(NOMINAL), candidates=("gyro_scale", "misalignment"))
+    assert [s["effect"] for s in ana.steps] == ["gyro_scale"]
+    s = ana.model.calib.scale_vector
+    assert s[1] == pytest.approx(1.05, rel=0.02)
+    assert s[0] == 1.0 and s[2] == 1.0
+    assert ana.unobservable == {"gyro_scale": ["scale[0]", "scale[2]"]}
+    rep = D.write_report(ana, tmp_path, ["pan.h5"])
+    assert rep["unobservable"] == {"gyro_scale": ["scale[0]", "scale[2]"]}
+    assert "Not observable with this motion" in (tmp_path / "report.md").read_text()
 
 
 # ------------------------------------------------------------------ deblurring with the fitted model
@@ -214,12 +252,19 @@ def test_cli_two_recordings_share_parameters(tmp_path):
 
     paths = []
     for i, (scene, seed) in enumerate((("real:1", 5), ("texture", 6))):
-        rec = simulate(scene, rich_motion(seed), 0.5, NOMINAL, {"netd": 0.05, "time_offset": -0.004}, seed=seed)
+        rec = simulate(scene, rich_motion(seed), 0.5, NOMINAL, {"netd": 0.05, "time_offset": -0.004},
+                       seed=seed)
         p = tmp_path / f"rec{i}.h5"
         recording.write(p, rec)
         paths.append(str(p))
+    # The model under test comes from a full thermod configuration (the payload's), so model.toml is
+    # that configuration with the fitted [calibration]: ready for `thermod run --config model.toml`.
+    from thermod import config
+
+    full = tmp_path / "payload.toml"
+    full.write_text(D.replace_calibration_table(config.default_path().read_text(), NOMINAL))
     out = tmp_path / "report"
-    assert main(["discrepancy", *paths, "--out", str(out)]) == 0
+    assert main(["discrepancy", *paths, "--out", str(out), "--config", str(full)]) == 0
     rep = json.loads((out / "report.json").read_text())
     assert {"gap_initial", "gap_final", "noise_floor", "steps", "unexplained", "model"} <= set(rep)
     assert [s["effect"] for s in rep["steps"]] == ["time_offset"]
@@ -229,22 +274,35 @@ def test_cli_two_recordings_share_parameters(tmp_path):
     assert step["gap_after"] < 0.7 * step["gap_before"]
     assert rep["model"]["time_offset_s"] == pytest.approx(step["params"]["time_offset_s"])
     assert set(rep["model"]) == set(NOMINAL.as_dict())
-    # model.toml is a [calibration] table thermod's config loader accepts.
-    from thermod import config
-
-    cal = config.load(out / "model.toml", check_devices=False).calibration
-    assert cal.time_offset_s == pytest.approx(step["params"]["time_offset_s"])
-    assert cal.as_dict()["fx"] == pytest.approx(NOMINAL.fx)
+    cfg = config.load(out / "model.toml", check_devices=False)
+    assert cfg.calibration.time_offset_s == pytest.approx(step["params"]["time_offset_s"])
+    assert cfg.calibration.replace(time_offset_s=0.0) == NOMINAL
+    assert cfg.publish == config.load(full, check_devices=False).publish   # the rest is carried over
     md = (out / "report.md").read_text()
     assert "time_offset" in md and "residual_maps.png" in md
     for f in ("residual_maps.png", "gap_per_step.png", "diagnostics_step1_time_offset.png"):
         assert (out / f).stat().st_size > 1000
-    # --config supplies the model under test: feeding back the fitted one leaves nothing to add.
+    # Feeding the fitted model back leaves nothing to add.
     out2 = tmp_path / "again"
     assert main(["discrepancy", paths[0], "--out", str(out2), "--config", str(out / "model.toml")]) == 0
     rep2 = json.loads((out2 / "report.json").read_text())
     assert rep2["steps"] == []
-    assert rep2["gap_initial"] < rep["gap_initial"]
+    assert rep2["gap_initial"] < 0.5 * rep["gap_initial"]
+
+
+def test_calibration_only_toml_round_trips(tmp_path):
+    cal = NOMINAL.replace(time_offset_s=0.0042, readout_s=0.011, bias_rad_s=(0.01, -0.02, 0.003))
+    p = tmp_path / "model.toml"
+    p.write_text(D.calibration_toml(cal))
+    got, text = D.load_model(str(p), [], [])
+    assert text is None
+    assert got == cal
+    p.write_text("[calibration]\nreadout_s = 0.5\n")           # longer than a 50 Hz frame
+    with pytest.raises(ConfigError, match="readout_s"):
+        D.load_model(str(p), [], [])
+    p.write_text("[calibration]\n[deblur]\n")
+    with pytest.raises(ConfigError, match=r"only\s+a \[calibration\] table"):
+        D.load_model(str(p), [], [])
 
 
 def test_static_only_recording_is_rejected_with_the_file_named(tmp_path):

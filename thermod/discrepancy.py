@@ -47,9 +47,9 @@ from scipy import optimize
 
 from thermod import recording as recording_io
 from thermod.calibration import Calibration
-from thermod.errors import ConfigError, RecordingError, ThermodError
+from thermod.errors import ConfigError, RecordingError
 from thermod.forward import ForwardModel, downsample
-from thermod.geometry import so3_exp, so3_log
+from thermod.geometry import so3_log
 
 log = logging.getLogger("thermod.discrepancy")
 
@@ -94,6 +94,7 @@ class RecData:
     gyro_t: np.ndarray
     gyro_rate: np.ndarray
     static_gyro_mean: np.ndarray | None
+    static_gyro_sem: np.ndarray | None    # standard error of that mean (rad/s)
     motion_rms_rad_s: np.ndarray  # per gyro axis, bias-removed
     fpn: np.ndarray | None = None
     mask: np.ndarray | None = None
@@ -128,6 +129,14 @@ def detect_static(gyro_t, gyro_rate, *, head_s: float = 0.05, min_rate: float = 
     static = t < t_onset - smooth_s
     mean = r[static].mean(axis=0) if static.sum() >= 5 else None
     return t_onset, mean
+
+
+def _static_sem(gyro_t, gyro_rate, t_onset_gyro):
+    r = np.asarray(gyro_rate, np.float64)[np.asarray(gyro_t) < t_onset_gyro - 0.005]
+    if len(r) < 5:
+        return None
+    # white-noise σ from differences (immune to slow drift), /√n for the mean
+    return np.std(np.diff(r, axis=0), axis=0) / math.sqrt(2.0) / math.sqrt(len(r))
 
 
 def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<recording>",
@@ -176,7 +185,8 @@ def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<re
     base = static_mean_rate if static_mean_rate is not None else np.zeros(3)
     motion_rms = np.sqrt(np.mean((rec.gyro_rate[gm] - base) ** 2, axis=0)) if gm.any() else np.zeros(3)
     return RecData(name, fm, measured, frame_t, static_mean, ref_full, noise_var, n_static, t_ref, t_onset,
-                   rec.gyro_t, rec.gyro_rate, static_mean_rate, motion_rms)
+                   rec.gyro_t, rec.gyro_rate, static_mean_rate, _static_sem(rec.gyro_t, rec.gyro_rate, t_on_g),
+                   motion_rms)
 
 
 # ----------------------------------------------------------------------------------------- cost
@@ -194,6 +204,8 @@ class Problem:
     def __init__(self, recs: list[RecData]):
         self.recs = recs
         self.n_evals = 0
+        # SSR of one independent χ² unit: residual variance × pixels per independent sample (set per step)
+        self.chi2_scale = 1.0
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1
@@ -313,46 +325,56 @@ def _scalar_fit(problem: Problem, model: Model, make, grid, lo, hi, refine_width
     return float(grid[i]), float(costs[i])
 
 
-def _vector_fit(problem: Problem, model: Model, make, x0s, unit, bound, iters: int = 6, h: float = 0.25):
+def _vector_fit(problem: Problem, model: Model, make, x0s, unit, bound, iters: int = 6, h: float = 0.25,
+                prior=None):
     """Levenberg–Marquardt on the residual vector from the best of several starts (x in `unit`s).
 
     The Jacobian is a forward difference with a step of `h` units: the forward model is only
     smooth down to its resampling precision, so steps must move the image by a good fraction of
-    a pixel, not by float rounding.
+    a pixel, not by float rounding. `prior` = (x_p, w): an independent measurement x_p of x with
+    weight w (SSR units per unit²) appended as extra residuals √w (x − x_p). Returns the fitted
+    parameters and the image SSR alone (what the selection compares).
     """
+    def pres(x):
+        return np.zeros(0) if prior is None else np.sqrt(prior[1]) * (x - prior[0])
+
+    def cost(x):
+        p = pres(x)
+        return problem.evaluate(make(x * unit)).ssr + float(p @ p)
+
     best = None
     for x0 in x0s:
         x0 = np.clip(np.asarray(x0, float), -bound, bound)
-        c = problem.evaluate(make(x0 * unit)).ssr
+        c = cost(x0)
         if best is None or c < best[1]:
             best = (x0, c)
     x, c = best
     if len(x) == 0:
-        return x * unit, c
+        return x * unit, problem.evaluate(make(x * unit)).ssr
     lam = 1e-3
     for _ in range(iters):
-        r0 = problem.residual_vector(make(x * unit))
+        r0 = np.concatenate([problem.residual_vector(make(x * unit)), pres(x)])
         c = float(r0 @ r0)
         J = np.empty((len(r0), len(x)))
         for i in range(len(x)):
             e = np.zeros(len(x))
             e[i] = h if x[i] + h <= bound else -h
-            J[:, i] = (problem.residual_vector(make((x + e) * unit)) - r0) / e[i]
+            r1 = np.concatenate([problem.residual_vector(make((x + e) * unit)), pres(x + e)])
+            J[:, i] = (r1 - r0) / e[i]
         g = J.T @ r0
         A = J.T @ J
         improved = False
         for _ in range(4):
             step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
             xn = np.clip(x + step, -bound, bound)
-            cn = problem.evaluate(make(xn * unit)).ssr
+            cn = cost(xn)
             if cn < c:
                 x, lam, improved = xn, lam / 3, True
                 break
             lam *= 10
         if not improved or np.max(np.abs(step)) < 0.02:
             break
-    c = problem.evaluate(make(x * unit)).ssr
-    return x * unit, c
+    return x * unit, problem.evaluate(make(x * unit)).ssr
 
 
 def fit_time_offset(problem, model, recs, max_offset_s=0.03):
@@ -400,23 +422,35 @@ def fit_optical_psf(problem, model, recs):
                                         "extra_sigma_px": m.extra_psf_px}, ssr)
 
 
-def _axis_observable(recs, min_rms=math.radians(1.0), rel=0.1):
+def _axis_observable(recs, min_rms=0.0175, rel=0.1):
+    """Gyro axes whose motion RMS (rad/s) is ≥ min_rms (1 °/s) and ≥ rel × the strongest axis."""
     rms = np.sqrt(np.mean([d.motion_rms_rad_s**2 for d in recs], axis=0))
     return (rms >= min_rms) & (rms >= rel * rms.max())
 
 
-def fit_gyro_bias(problem, model, recs):
+def fit_gyro_bias(problem, model, recs, bias_stability_rad_s: float = math.radians(0.05)):
+    """Bias: the static segment measures it directly (the camera is still, the gyro reads its bias),
+    so its mean enters as a prior with its standard error ⊕ `bias_stability_rad_s` (drift between
+    the static and the moving part); the images refine it. The prior's weight puts both on the
+    same χ² scale: image SSR / (residual variance × pixels per independent sample)."""
     c0 = model.calib
     b0 = np.asarray(c0.bias_rad_s, float)
     unit = math.radians(0.2)
     starts = [np.zeros(3)]
+    prior = None
     sm = [d.static_gyro_mean for d in recs if d.static_gyro_mean is not None]
     if sm:
-        starts.append((np.mean(sm, axis=0) - b0) / unit)
+        xs = (np.mean(sm, axis=0) - b0) / unit
+        starts.append(xs)
+        sem = [d.static_gyro_sem for d in recs if d.static_gyro_sem is not None]
+        sem = np.sqrt(np.mean(np.square(sem), axis=0) / len(sem)) if sem else np.zeros(3)
+        sigma = np.sqrt(sem**2 + bias_stability_rad_s**2) / unit          # in units
+        w = problem.chi2_scale / sigma**2
+        prior = (xs, w)
 
     def make(x):
         return Model(c0.replace(bias_rad_s=tuple(float(v) for v in b0 + x)), model.extra_psf_px)
-    x, ssr = _vector_fit(problem, model, make, starts, unit, bound=100.0)   # ±20 °/s
+    x, ssr = _vector_fit(problem, model, make, starts, unit, bound=100.0, prior=prior)   # ±20 °/s
     m = make(x)
     return FitResult("gyro_bias", m, {"bias_rad_s": list(m.calib.bias_rad_s)}, ssr, n_params=3)
 
@@ -581,7 +615,8 @@ class Analysis:
             "model": self.model.final_calibration().as_dict(),
             "nominal": self.nominal.final_calibration().as_dict(),
             "unobservable": self.unobservable, "candidates": self.candidates_tried,
-            "definition": "gap = ||measured - predicted|| / ||measured - static reference|| over pixels valid "
+            "definition": "gap = ||measured - predicted|| / ||measured - static reference|| over pixels "
+                          "valid "
                           "in every view of the working-resolution motion frames; noise_floor = the gap of a "
                           "perfect model given the static segment's temporal noise",
             "seconds": self.seconds,
@@ -610,7 +645,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     resampling and interpolation at the working resolution, measured at 0.01–0.05 of the motion
     signal on simulator recordings; largest for sharp-edged scenes). Candidates are tried when
     ``SSR > noise·(1 + structured_excess) + (½ model_tol·‖signal‖)²`` and the rest is called
-    unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``. `min_explained`: a candidate must remove at least this
+    unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``.
+    `min_explained`: a candidate must remove at least this
     fraction of the excess SSR. `bic_min`: decisive BIC gain on effective samples.
     """
     say = progress or (lambda msg: None)
@@ -639,6 +675,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             break
         area = effective_area(ev.residuals)
         n_eff = ev.n / area
+        # χ² unit at the noise level (not the current residual's): a wrong model must not drown priors
+        problem.chi2_scale = noise_ss / max(ev.n, 1) * area
         diag = diagnostics(problem, model, ev)
         fits = []
         for name in remaining:
@@ -647,7 +685,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             dbic = n_eff * math.log(ev.ssr / max(f.ssr, 1e-30)) - f.n_params * math.log(n_eff)
             frac = (ev.ssr - f.ssr) / max(ev.ssr - noise_ss, 1e-30)
             fits.append((f, dbic, frac))
-            ana.candidates_tried.append({"step": len(ana.steps) + 1, "effect": name, "params": _jsonable(f.params),
+            ana.candidates_tried.append({"step": len(ana.steps) + 1, "effect": name,
+                                         "params": _jsonable(f.params),
                                          "gap": _gap(problem, f.ssr), "delta_bic": dbic,
                                          "excess_explained": frac, "unobservable": f.unobservable})
             say(f"  {name:16s} gap {_gap(problem, f.ssr):.4f}  explains {100 * frac:5.1f} % of the excess  "
@@ -664,10 +703,19 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             # The FPN estimate under the old model absorbed part of this effect: refit once with the new one.
             ref = FITTERS[best.effect](problem, model, recs)
             if ref.ssr < problem.evaluate(model).ssr:
-                best = FitResult(best.effect, ref.model, _merge_params(best.effect, nominal, ref.model), ref.ssr,
+                best = FitResult(best.effect, ref.model, _merge_params(best.effect, nominal, ref.model),
+                                 ref.ssr,
                                  ref.unobservable, ref.n_params)
                 model = best.model
                 problem.refresh(model, fpn=fpn)
+        # Effects named earlier absorbed part of this one: refit each once with it in the model.
+        for st in ana.steps:
+            f = FITTERS[st["effect"]](problem, model, recs)
+            if f.ssr < problem.evaluate(model).ssr:
+                model = f.model
+                st["params"] = _jsonable(_merge_params(st["effect"], nominal, model))
+                problem.refresh(model, fpn=fpn)
+                say(f"  refit {st['effect']}: {_fmt_params(st['params'])}")
         ev = problem.evaluate(model, keep=True)
         gap_after = _gap(problem, ev.ssr)
         ana.steps.append({"effect": best.effect, "params": _jsonable(best.params), "gap_before": gap_before,
@@ -677,7 +725,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             ana.unobservable[best.effect] = best.unobservable
         ana.diags.append((best.effect, diag))
         ana.snapshots.append((best.effect, _mean_residual_map(ev, problem), gap_after))
-        ana.gaps.append((best.effect, gap_after, math.sqrt(problem.noise_ss() / max(problem.signal_ss(), 1e-30))))
+        floor_now = math.sqrt(problem.noise_ss() / max(problem.signal_ss(), 1e-30))
+        ana.gaps.append((best.effect, gap_after, floor_now))
         say(f"→ {best.effect}: {_fmt_params(best.params)}; gap {gap_before:.4f} → {gap_after:.4f}")
         remaining.remove(best.effect)
     if polish and len(ana.steps) > 1:
@@ -749,7 +798,8 @@ def calibration_toml(calib: Calibration) -> str:
         if k in ("width", "height"):
             lines.append(f"{k} = {int(v)}")
         elif isinstance(v, list) and v and isinstance(v[0], list):
-            lines.append(f"{k} = [" + ", ".join("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in v)
+            rows = ("[" + ", ".join(repr(float(x)) for x in row) + "]" for row in v)
+            lines.append(f"{k} = [" + ", ".join(rows)
                          + "]")
         elif isinstance(v, list):
             lines.append(f"{k} = [" + ", ".join(repr(float(x)) for x in v) + "]")
@@ -836,8 +886,12 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     plt.close(fig)
 
 
-def write_report(ana: Analysis, out: str | Path, inputs: list[str]) -> dict:
-    """DIR/report.json, report.md, model.toml and the figures; returns the JSON report."""
+def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str | None = None) -> dict:
+    """DIR/report.json, report.md, model.toml and the figures; returns the JSON report.
+
+    model.toml is `config_text` (a full thermod configuration) with its [calibration] table replaced,
+    or just the [calibration] table when there is none.
+    """
     out = Path(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -846,11 +900,15 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str]) -> dict:
     rep = _jsonable(ana.report())
     rep["inputs"] = [str(p) for p in inputs]
     (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=True) + "\n")
-    (out / "model.toml").write_text(calibration_toml(ana.model.final_calibration()))
+    final = ana.model.final_calibration()
+    (out / "model.toml").write_text(calibration_toml(final) if config_text is None
+                                    else replace_calibration_table(config_text, final))
     figs = _figures(ana, out)
     md = ["# thermod discrepancy report", "", f"Inputs: {', '.join(rep['inputs'])}", "",
-          f"- gap: {ana.gap_initial:.4f} (nominal) → {ana.gap_final:.4f} (final); noise floor {ana.noise_floor:.4f}",
-          "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the motion frames",
+          f"- gap: {ana.gap_initial:.4f} (nominal) → {ana.gap_final:.4f} (final); "
+          f"noise floor {ana.noise_floor:.4f}",
+          "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the "
+          "motion frames",
           f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**", "",
           "| step | effect | parameters | gap before | gap after | ΔBIC | excess explained |",
           "|---|---|---|---|---|---|---|"]
@@ -868,23 +926,73 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str]) -> dict:
         md.append(f"| {c['step']} | {c['effect']} | {c['gap']:.4f} | {c['delta_bic']:.0f} | "
                   f"{100 * c['excess_explained']:.0f} % | {_fmt_params(c['params'])} |")
     md += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
-    md += ["", "The updated model is in `model.toml` (`thermod run --config model.toml`, `thermod deblur`).", ""]
+    md += ["", "The updated model is in `model.toml` (`thermod run --config model.toml`, `thermod deblur`).",
+           ""]
     (out / "report.md").write_text("\n".join(md))
     return rep
 
 
 # ----------------------------------------------------------------------------------------- CLI
-def load_model(config: str | None, recs: list, paths: list[str]) -> Calibration:
-    """The model under test: `--config` TOML's [calibration], else the first recording's attributes."""
-    if config is not None:
-        from thermod import config as cfgmod
+def _config_calibration(path: str) -> tuple[Calibration, str | None]:
+    """[calibration] of a thermod TOML, validated by `thermod.config`; also the file's text when it is a
+    full configuration (so model.toml can be the same configuration with the table replaced).
 
-        return cfgmod.load(config, check_devices=False).calibration
+    A file holding only a [calibration] table (like the model.toml this command writes without
+    `--config`) is validated by slotting it into the packaged default configuration.
+    """
+    import tomllib
+
+    from thermod import config as cfgmod
+
+    try:
+        text = Path(path).read_text()
+        raw = tomllib.loads(text)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such configuration file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    if "sources" in raw:
+        return cfgmod.load(path, check_devices=False).calibration, text
+    other = sorted(set(raw) - {"calibration"})
+    if other or "calibration" not in raw:
+        raise ConfigError(f"{path}: expected a full thermod configuration (with [sources]) or a file with only "
+                          f"a [calibration] table; found tables {sorted(raw)}")
+    cal = raw["calibration"]
+    base = tomllib.loads(cfgmod.default_path().read_text())
+    base["calibration"] = cal
+    if isinstance(cal, dict):   # the simulated default checks that its rates match the calibration's
+        for ck, sk in (("frame_rate_hz", "frame_rate_hz"), ("rate_hz", "gyro_rate_hz")):
+            if isinstance(cal.get(ck), (int, float)) and not isinstance(cal.get(ck), bool):
+                base.setdefault("sim", {})[sk] = cal[ck]
+    return cfgmod.parse(base, str(path), check_devices=False).calibration, None
+
+
+def replace_calibration_table(text: str, calib: Calibration) -> str:
+    """`text` (a thermod TOML) with its [calibration] table replaced by `calib` (appended if absent)."""
+    table = calibration_toml(calib).split("\n", 1)[1]          # drop the header comment
+    lines = text.splitlines(keepends=True)
+    start = next((i for i, ln in enumerate(lines) if ln.strip().split("#")[0].strip() == "[calibration]"), None)
+    if start is None:
+        return text.rstrip("\n") + "\n\n" + table
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
+    return "".join(lines[:start]) + table + ("\n" if end < len(lines) else "") + "".join(lines[end:])
+
+
+def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibration, str | None]:
+    """The model under test: `--config` TOML's [calibration], else the first recording's attributes.
+
+    Returns (calibration, text of the configuration file when it is a full one, else None).
+    """
+    if config is not None:
+        return _config_calibration(config)
     calib = recs[0].calibration
     for p, r in zip(paths[1:], recs[1:], strict=True):
         if r.calibration.as_dict() != calib.as_dict():
-            log.warning("%s: calibration attributes differ from %s; testing the first one's model", p, paths[0])
-    return calib
+            log.warning("%s: calibration attributes differ from %s; testing the first one's model",
+                        p, paths[0])
+    return calib, None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -914,7 +1022,7 @@ def run(args) -> int:
         print(msg, flush=True)
 
     recs = [recording_io.read(p) for p in args.recordings]
-    calib = load_model(args.config, recs, args.recordings)
+    calib, config_text = load_model(args.config, recs, args.recordings)
     data = []
     for p, r in zip(args.recordings, recs, strict=True):
         d = prepare(r, calib, name=p, work_width=args.work_width)
@@ -923,7 +1031,7 @@ def run(args) -> int:
         data.append(d)
     ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
                   progress=say)
-    write_report(ana, args.out, args.recordings)
+    write_report(ana, args.out, args.recordings, config_text)
     say(f"report: {Path(args.out) / 'report.md'}; model: {Path(args.out) / 'model.toml'}")
     return 0
 
