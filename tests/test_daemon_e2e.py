@@ -81,6 +81,9 @@ def test_thermod_run_end_to_end(payload):
             gaps = dict(sub.gaps)
             errors = sub.errors
         assert proc.poll() is None, proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGHUP)          # reload calibration + deblur settings, keep running
+        time.sleep(0.5)
+        assert proc.poll() is None
         t_sig = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         rc = proc.wait(timeout=10)
@@ -130,7 +133,10 @@ def test_thermod_run_end_to_end(payload):
     # --- deblurring: at least some frames deblurred, and those closer to the truth than the raw input
     deb = [i for i in ids if frames[i][0]["deblurred"]]
     not_deb = [frames[i][0]["reason"] for i in ids if not frames[i][0]["deblurred"]]
-    assert set(not_deb) <= {"overload"}, set(not_deb)            # only overload may skip a frame
+    # overload (deconvolution slower than the frame rate) may skip frames; a gyro sample later than
+    # pipeline.wait_timeout_s only on a starved machine, rarely
+    assert set(not_deb) <= {"overload", "gyro_incomplete"}, set(not_deb)
+    assert not_deb.count("gyro_incomplete") <= 0.02 * len(ids), not_deb.count("gyro_incomplete")
     assert len(deb) >= 30, (len(deb), len(ids))
     m = (slice(24, -24), slice(24, -24))
     ratios = []
@@ -154,6 +160,7 @@ def test_thermod_run_end_to_end(payload):
     assert Calibration.from_dict(last["calibration"]) == cfg.calibration
     assert last["drops"]["gyro_lost"] == 0 and last["drops"]["camera_frames_lost"] == 0
     assert "ready: frames and gyro samples flowing" in err
+    assert "reloaded calibration and deblur settings" in err
 
 
 def test_bad_config_is_one_line_exit_2(tmp_path):

@@ -227,6 +227,8 @@ class _DriverThread(threading.Thread):
         self.retry_max_s, self.stall_s = retry_max_s, stall_s
         self.on_down, self.on_up = on_down, on_up
         self.started_source = False
+        self._sink_errors: set[str] = set()
+        self.sink_drops = 0
 
     def _down(self, why: str, state: str = "error") -> None:
         self.st.errors += 1
@@ -299,8 +301,13 @@ class _DriverThread(threading.Thread):
             self._up()
             try:
                 self.sink(item)
-            except Exception:
-                log.exception("%s: storing an item failed", self.kind)
+            except Exception as e:      # e.g. a frame of the wrong size: counted, logged once per kind
+                self.st.errors += 1
+                self.st.last_error = msg = f"{type(e).__name__}: {e}"
+                if msg not in self._sink_errors:
+                    self._sink_errors.add(msg)
+                    log.error("%s: item dropped: %s", self.kind, msg)
+                self.sink_drops += 1
         if self.started_source:
             try:
                 self.source.stop()
@@ -511,6 +518,8 @@ class Daemon:
         rates = dict(self._rates)
         drop_keys = ("passthrough_", "jobs_dropped", "frames_overrun", "worker_errors", "camera_frames_lost")
         drops = {k: v for k, v in pc.items() if k.startswith(drop_keys)}
+        for th in self._threads:
+            drops[f"{th.kind}_items_rejected"] = th.sink_drops
         drops.update(gyro_gaps=self.counters["gyro_gaps"], gyro_lost=self.counters["gyro_lost"],
                      gyro_ring_clock_jumps=self.gyro_ring.clock_jumps,
                      camera_frames_lost=self.counters["camera_frames_lost"])
