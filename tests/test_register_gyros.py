@@ -340,3 +340,10 @@ def test_emulator_overflow_semantics():
     first = np.frombuffer(mpu.read(0x74, 6), ">i2")
     scale = 32768 / math.radians(250)
     assert not np.array_equal(first, np.rint(np.array([0.01, 0.02, 0.03]) * scale))
+
+
+def test_missing_bus_device_files_are_named():
+    with pytest.raises(DeviceError, match=r"/dev/i2c-97: cannot open .*i2c-dev"):
+        I2CBus(97, 0x68)
+    with pytest.raises(DeviceError, match=r"/dev/spidev9\.7: cannot open .*dtparam=spi=on"):
+        SPIBus((9, 7))
