@@ -14,8 +14,9 @@ by half-quadratic splitting: auxiliary ``w ≈ ∇x`` with penalty ``(β/2)||w �
 
 - w-step: per pixel ``min_w |w|^α + (β/2)(w − v)²``. α = 1: soft threshold at 1/β. α = 2/3: the
   analytic root of K&F's quartic ``w⁴ − 3vw³ + 3v²w² − v³w + 8/(27β³) = 0`` (Ferrari), tabulated
-  once per β into a lookup table that a fused numba pass interpolates. Other α in (0, 1) are
-  tabulated by Newton's method.
+  once per β into a lookup table that a fused numba pass interpolates — only for the few
+  gradients above the threshold τ(β) (below it w = 0). Other α in (0, 1) are tabulated by
+  Newton's method.
 - x-step: closed form in the Fourier domain,
   ``X = (K̄·Y + (β/λ) F(∇ᵀw)) / (|K|² + (β/λ)(|F∂x|² + |F∂y|²))``.
 
@@ -32,9 +33,10 @@ raised cosine, zero slope at both joins), so circular convolution sees no jump a
 frame appears at the borders. Padding is at least the kernel size per axis, so any kernel size
 (100+ px) works.
 
-FFTs: pyFFTW (float32 plans, FFTW_MEASURE, cached per shape) when importable, else scipy.fft.
-Measured on this machine (benchmarks/bench_deconv.py) FFTW's float32 r2c/c2r pair is ~20 %
-faster than scipy.fft's at 640×480-with-padding; both give identical results.
+FFTs: pyFFTW (float32 plans, FFTW_MEASURE, cached per shape) when importable, else scipy.fft
+(`workers=`). Measured (benchmarks/bench_deconv.py, 640×480 with a 65 px kernel, one core) the
+whole K&F solve takes 13 ms with FFTW and 17 ms with scipy.fft — FFTW's float32 r2c/c2r pair is
+~25 % faster — with identical results, so FFTW is the default.
 
 Spatially varying blur (`deconvolve_varying`): each cell of a kernel grid is deconvolved in its
 own tile (the cell's blending support plus a margin of real neighbouring pixels), and tiles are
