@@ -290,6 +290,8 @@ def test_bad_parameters_raise():
         deconv.Deconvolver(alpha=2.0)
     with pytest.raises(ThermodError, match="lam"):
         deconv.Deconvolver(lam=-1)
+    with pytest.raises(ThermodError, match="value_range"):
+        deconv.Deconvolver().run(np.zeros((8, 8), np.float32), DELTA, value_range=(5, 5))
 
 
 # ------------------------------------------------------------------------- adaptive λ

@@ -470,6 +470,18 @@ def _check_image(image):
     return a
 
 
+def _value_range(img, value_range) -> tuple[float, float]:
+    if value_range is None:
+        return robust_range(img)
+    try:
+        lo, hi = (float(v) for v in value_range)
+    except (TypeError, ValueError):
+        raise DeconvError(f"value_range: expected (lo, hi) counts, got {value_range!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise DeconvError(f"value_range: expected finite lo < hi, got {(lo, hi)}")
+    return lo, hi
+
+
 def robust_range(image: np.ndarray) -> tuple[float, float]:
     """(lo, hi) counts mapped to 0 and 1 internally: the 0.5/99.5 percentiles of a subsample."""
     step = max(1, int(math.sqrt(image.size / 40000)))
@@ -664,7 +676,7 @@ class Deconvolver:
         """
         img = _check_image(image)
         w, origin = _check_kernel(kernel)
-        lo, hi = robust_range(img) if value_range is None else (float(value_range[0]), float(value_range[1]))
+        lo, hi = _value_range(img, value_range)
         lam = self.last_lam = self.lam_for(img, lo, hi)
         return self._solve(img, (0, img.shape[0], 0, img.shape[1]), w, origin, lo, hi, lam)
 
@@ -694,7 +706,7 @@ class Deconvolver:
         if not 0 < overlap <= 1:
             raise DeconvError(f"overlap: expected a fraction in (0, 1], got {overlap}")
         h, wd = img.shape
-        lo, hi = robust_range(img) if value_range is None else (float(value_range[0]), float(value_range[1]))
+        lo, hi = _value_range(img, value_range)
         lam = self.last_lam = self.lam_for(img, lo, hi)   # one λ for every tile: consistent blending
         checked = [[_check_kernel(kernels[r][c], f"grid.kernels[{r}][{c}]") for c in range(nc)]
                    for r in range(nr)]
