@@ -90,7 +90,8 @@ class AravisCamera(CameraSource):
         IP address (or host name) of the camera; opened directly, no discovery broadcast needed.
     device_id
         Alternatively an Aravis device id, serial number or user-defined name, resolved after
-        ``Aravis.update_device_list()``.
+        ``Aravis.update_device_list()`` (a discovery broadcast: ~1 s). After a loss the last address
+        is probed; a new discovery (the camera may come back on another IP) is tried every 10 s.
     width, height, offset_x, offset_y
         Region of interest; None keeps the camera's current width/height.
     frame_rate_hz
@@ -153,6 +154,8 @@ class AravisCamera(CameraSource):
         self._resolved_address: str | None = address
         self._next_attempt = 0.0
         self._delay = self.backoff[0]
+        self.rediscover_s = 10.0
+        self._lost_since = self._last_discovery = -math.inf
         self._last_arrival = math.nan
         self._last_t = math.nan
         self._recent = deque(maxlen=64)       # arrival times for the measured rate
@@ -188,6 +191,13 @@ class AravisCamera(CameraSource):
     def _open(self) -> None:
         Aravis = load_aravis()
         target = self.address
+        if target is None and self._resolved_address is not None:
+            # reopening by id: the last address is a cheap first guess if the same camera answers there
+            # (a discovery broadcast over every interface takes a second or more)
+            info = gvcp_probe(self._resolved_address, timeout=0.3)
+            if info and info["serial"] and (self.device_id == info["serial"]
+                                            or self.device_id.endswith("-" + info["serial"])):
+                target = self._resolved_address
         if target is not None and gvcp_probe(target, timeout=0.3) is None:
             # fail fast: opening an absent camera would block for its GVCP retries (seconds)
             raise DeviceError(f"{self.name}: no GigE Vision camera answers at {target} (GVCP discovery on "
@@ -304,7 +314,7 @@ class AravisCamera(CameraSource):
             raise DeviceError(f"{self.name}: camera lost ({why}); check power, cable and IP")
         self.state = "reconnecting"
         self._delay = self.backoff[0]
-        self._next_attempt = time.monotonic()
+        self._next_attempt = self._lost_since = time.monotonic()
 
     def _try_reconnect(self, deadline: float) -> bool:
         now = time.monotonic()
@@ -313,21 +323,24 @@ class AravisCamera(CameraSource):
             return False
         self.counters["reconnect_attempts"] += 1
         addr = self._resolved_address
-        alive = gvcp_probe(addr, timeout=min(0.1, max(0.01, deadline - now))) if addr else True
-        ok = False
+        alive = addr is not None and gvcp_probe(addr, timeout=min(0.1, max(0.01, deadline - now))) is not None
+        if not alive and self.device_id is not None and \
+                now - max(self._lost_since, self._last_discovery) >= self.rediscover_s:
+            # opened by id and silent at its last address for a while: it may have come back on another
+            # IP. A discovery broadcast blocks ~1 s, so it is tried only every `rediscover_s`.
+            self._last_discovery = now
+            self._resolved_address = None
+            alive = True
         if alive:
             try:
                 self._open()
-                ok = True
+                self.counters["reconnects"] += 1
+                return True
             except DeviceError as e:
                 self.last_error = str(e)
-        if ok:
-            self.counters["reconnects"] += 1
-            return True
+                self._resolved_address = self._resolved_address or addr   # keep probing where it was
         self._next_attempt = time.monotonic() + self._delay
         self._delay = min(self._delay * 2.0, self.backoff[1])
-        if self.device_id is not None and not alive:
-            self._resolved_address = None       # it may come back on another IP: rediscover next time
         return False
 
     # -- frames --------------------------------------------------------------------------------

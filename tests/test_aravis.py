@@ -210,8 +210,10 @@ def test_unknown_serial_and_absent_camera_name_what_to_check(fake_camera):
 
 @pytest.mark.hardware
 @pytest.mark.slow
-def test_reconnects_after_camera_restart(fake_camera):
-    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0, backoff_s=(0.1, 0.5))
+@pytest.mark.parametrize("by", ["address", "serial"])
+def test_reconnects_after_camera_restart(fake_camera, by):
+    where = {"address": "127.0.0.1"} if by == "address" else {"device_id": fake_camera.serial}
+    cam = AravisCamera(**where, width=160, height=120, frame_rate_hz=40.0, backoff_s=(0.1, 0.5))
     with cam:
         before = _collect(cam, 0.5)
         assert len(before) >= 15
