@@ -275,6 +275,11 @@ class SerialIMU(GyroSource):
 
     def _batches(self, frames, t_arrival: float) -> list[GyroBatch]:
         seq32 = np.array([f[0] for f in frames], np.int64)
+        back = np.flatnonzero((np.diff(seq32) & 0xFFFFFFFF) - 1 >= 2**31 - 1)
+        if len(back):
+            # the device rebooted inside this read: each side is its own epoch
+            k = int(back[0]) + 1
+            return self._batches(frames[:k], t_arrival) + self._batches(frames[k:], t_arrival)
         tus32 = np.array([f[1] for f in frames], np.int64)
         rate = np.array([f[2] for f in frames], np.float32).reshape(-1, 3)
         gap, lost = self._gap_pending, self._lost_pending
@@ -288,7 +293,8 @@ class SerialIMU(GyroSource):
             if dseq == 0 or dseq >= 2**31 or dtus >= 2**31 or dtus > 4 * elapsed_us + 1e6:
                 # the device restarted (counters went back or jumped): new epoch, keep counting
                 self._stats["resets"] += 1
-                est = max(1, int(round((t_arrival - self._t_host_last) * self.rate_hz)) - len(frames))
+                # samples since the newest one handed out (mapped time) minus those in this read
+                est = max(1, int(round((t_arrival - self._t_out) * self.rate_hz)) - len(frames) + 1)
                 seq0 = self._seq_last + est
                 tus0 = self._tus_last + int(est * 1e6 / self.rate_hz)
                 gap, lost = True, lost + est - 1

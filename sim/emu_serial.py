@@ -117,6 +117,12 @@ class SerialIMUEmulator:
             self._offline_until = self.clock() + seconds
             self._reset_on_return = reset_counters
 
+    def reboot(self) -> None:
+        """Restart the device's counters (seq and time at 0) without dropping the link."""
+        with self._lock:
+            self._seq0 = -self._k
+            self._t_us0 = -int(round(self._k * 1e6 / self.rate_hz))
+
     # -- writer ------------------------------------------------------------------------------------
     def _run(self) -> None:
         period = 1.0 / (self.rate_hz * (1.0 + self.drift_ppm * 1e-6))
