@@ -62,6 +62,20 @@ def test_gap_flags_inside_window():
     assert r.window(0.020, 0.030, pad=0).gap is False
 
 
+def test_hole_in_time_is_a_gap():
+    r = GyroRing(200, max_step_s=0.004)
+    s = np.arange(0, 30)
+    r.write(s * 1e-3 - 0.5, _rates(s), 0)                 # a batch stamped 0.5 s early …
+    s2 = np.arange(30, 80)
+    r.write(s2 * 1e-3, _rates(s2), 30)                    # … then correct times: seq has no gap, time has
+    assert r.time_holes == 1 and r.gaps_marked == 0
+    assert r.window(0.035, 0.045).gap is False
+    w = r.window(0.0, 0.01)
+    assert w.gap is True and w.seq[0] == 29                 # the early sample is padding
+    r.write(np.array([0.080, 0.0805, 0.090]), _rates([80, 81, 82]), 80)   # a hole inside a batch
+    assert r.time_holes == 2 and r.window(0.085, 0.095, pad=0).gap is True
+
+
 def test_clock_jump_starts_new_epoch():
     r = GyroRing(100)
     s = np.arange(30)

@@ -345,7 +345,9 @@ class Daemon:
             notifier = Notifier()
         self.notifier = notifier
         c = cfg.calibration
-        self.gyro_ring = GyroRing(int(cfg.pipeline.gyro_ring_s * c.rate_hz * 1.1) + 64)
+        # a step of more than 4 sample periods without a device-counter gap is a hole in time too
+        self.gyro_ring = GyroRing(int(cfg.pipeline.gyro_ring_s * c.rate_hz * 1.1) + 64,
+                                  max_step_s=4.0 / c.rate_hz)
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit)
         self._stop = threading.Event()
@@ -522,6 +524,7 @@ class Daemon:
             drops[f"{th.kind}_items_rejected"] = th.sink_drops
         drops.update(gyro_gaps=self.counters["gyro_gaps"], gyro_lost=self.counters["gyro_lost"],
                      gyro_ring_clock_jumps=self.gyro_ring.clock_jumps,
+                     gyro_ring_time_holes=self.gyro_ring.time_holes,
                      camera_frames_lost=self.counters["camera_frames_lost"])
         pub = self.publisher.stats() if hasattr(self.publisher, "stats") else {}
         drops["publish_queue_dropped"] = pub.get("queue_dropped", 0)

@@ -46,13 +46,16 @@ class GyroWindow:
 class GyroRing:
     """Ring of gyro samples: time (s, host monotonic), raw rate [3] (rad/s), device seq, gap flag.
 
-    ``gap[i]`` means samples were lost just before sample i (FIFO overflow, dropped packet).
+    ``gap[i]`` means samples were lost just before sample i (FIFO overflow, dropped packet), or
+    that it follows its predecessor by more than `max_step_s` (a hole in time the device counter
+    did not show, e.g. a glitch of the clock mapping): a kernel must not interpolate across it.
     """
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, max_step_s: float | None = None):
         if capacity < 2:
             raise ValueError("capacity must be at least 2")
         self.capacity = int(capacity)
+        self.max_step_s = max_step_s
         self._t = np.full(self.capacity, np.nan)
         self._rate = np.zeros((self.capacity, 3), np.float32)
         self._seq = np.zeros(self.capacity, np.int64)
@@ -65,6 +68,7 @@ class GyroRing:
         self.samples_written = 0
         self.gaps_marked = 0
         self.batches_rejected = 0
+        self.time_holes = 0
 
     # -------------------------------------------------------------------- writer
     def write(self, t: np.ndarray, rate: np.ndarray, seq0: int, gap_before: bool = False) -> int:
@@ -86,9 +90,8 @@ class GyroRing:
             seq0, gap_before = seq0 + n - self.capacity, True
             n = self.capacity
         jump = not np.all(np.diff(t) > 0)
-        if self._head > self._epoch_start:
-            last = self._t[(self._head - 1) % self.capacity]
-            jump = jump or t[0] <= last
+        last = self._t[(self._head - 1) % self.capacity] if self._head > self._epoch_start else np.nan
+        jump = jump or t[0] <= last
         if jump:
             # discontinuous time: history (and this batch up to its last backward step) is unusable
             back = np.flatnonzero(np.diff(t) <= 0)
@@ -108,6 +111,12 @@ class GyroRing:
         if gap_before:
             self._gap[idx[0]] = True
             self.gaps_marked += 1
+        if self.max_step_s is not None:
+            steps = np.diff(t, prepend=last if not jump else np.nan)
+            holes = np.flatnonzero(steps > self.max_step_s)
+            if len(holes):
+                self._gap[idx[holes]] = True
+                self.time_holes += len(holes)
         self._head = h + n
         self.samples_written += n
         with self._cond:
@@ -142,8 +151,7 @@ class GyroRing:
     def window(self, t0: float, t1: float, *, pad: int = 1) -> GyroWindow:
         """Samples with t0 < t ≤ t1, plus up to `pad` samples either side (for interpolation).
 
-        `gap` is True when a gap flag lies on any returned sample after the first, or on the first
-        sample after the window (the loss happened between the last returned sample and it).
+        `gap` is True when lost samples (or a hole in time) overlap (t0, t1].
         """
         for _ in range(_RETRIES):
             lo, hi = self._bounds()
@@ -157,8 +165,10 @@ class GyroRing:
             t, rate, seq, gap = self._t[idx], self._rate[idx], self._seq[idx], self._gap[idx]
             newest, oldest = self._t[(hi - 1) % self.capacity], self._t[lo % self.capacity]
             if self._claimed - self.capacity <= a and self._epoch_start <= a:
+                # a gap flag on sample j marks a hole (t[j-1], t[j]); it matters if it overlaps (t0, t1]
                 m = b - a
-                has_gap = bool(gap[1:m].any()) or (len(gap) > m and bool(gap[m]))
+                tj, prev = t[: len(gap)], np.concatenate(([-np.inf], t[: len(gap) - 1]))
+                has_gap = bool(np.any(gap & (tj > t0) & (prev < t1)))
                 return GyroWindow(t[:m].copy(), rate[:m].copy(), seq[:m].copy(), has_gap,
                                   float(newest), float(oldest))
         raise RuntimeError("gyro ring: writer lapped the reader repeatedly (ring far too small)")
