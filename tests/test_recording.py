@@ -57,7 +57,7 @@ def _replace(f, name, data):
 
 @pytest.mark.parametrize("damage, field, expected", [
     (lambda f: f.attrs.__setitem__("format", "other"), "format", "thermod-recording"),
-    (lambda f: f.attrs.__setitem__("version", 2), "version", "expected 1"),
+    (lambda f: f.attrs.__setitem__("version", 2), "version", "expected 1, got 2"),
     (lambda f: f.__delitem__("gyro/rate"), "gyro/rate", "missing"),
     (lambda f: f.__delitem__("camera/t"), "camera/t", "missing"),
     (lambda f: f["camera"].attrs.__delitem__("tau_s"), "tau_s", "missing"),

@@ -119,7 +119,8 @@ def read(path: str | os.PathLike) -> Recording:
         if fmt != FORMAT:
             raise RecordingError(path, "/.attrs['format']", f"expected {FORMAT!r}, got {fmt!r}")
         ver = f.attrs.get("version")
-        if ver is None or int(ver) != VERSION:
+        ver = ver.item() if isinstance(ver, np.generic) else ver
+        if not isinstance(ver, (int, float)) or int(ver) != VERSION:
             raise RecordingError(path, "/.attrs['version']", f"expected {VERSION}, got {ver!r}")
         cam = _read_attrs(path, f, "camera", REQUIRED_CAMERA_ATTRS)
         gyr = _read_attrs(path, f, "gyro", REQUIRED_GYRO_ATTRS)
