@@ -110,13 +110,15 @@ def test_kernel_buffer_overflow_shows_as_a_gap():
         after = collect(gyro, 0.2)
         gyro.stop()
     assert emu.counters["dropped"] > 150
-    gaps = [b for b in after if b.gap_before]
-    assert len(gaps) == 1
-    assert gaps[0].n_lost == pytest.approx(emu.counters["dropped"], abs=2)
-    assert gyro.stats()["lost"] == gaps[0].n_lost
+    # one big hole from the stall (a starved writer thread on a loaded machine may add small ones):
+    # the kernel time stamps account for every dropped record, and the sequence stays consistent
     everything = before + after
-    prev = everything[next(i for i, b in enumerate(everything) if b is gaps[0]) - 1]
-    assert gaps[0].seq == prev.seq + len(prev) + gaps[0].n_lost
+    gaps = [b for b in everything if b.gap_before]
+    assert gaps and max(b.n_lost for b in gaps) > 150
+    assert sum(b.n_lost for b in gaps) == pytest.approx(emu.counters["dropped"], abs=len(gaps))
+    assert gyro.stats()["lost"] == sum(b.n_lost for b in gaps)
+    for prev, b in zip(everything[:-1], everything[1:], strict=True):
+        assert b.seq == prev.seq + len(prev) + b.n_lost
     t = np.concatenate([b.t for b in after])
     r = np.concatenate([b.rate for b in after])
     assert np.max(np.abs(t - decode(r[:, 0], t))) < 1.5e-3
