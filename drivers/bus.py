@@ -17,6 +17,8 @@ OSError from the bus propagates unchanged; the driver wraps it in its own except
 
 from __future__ import annotations
 
+import re
+
 from thermod.errors import DeviceError
 
 
@@ -50,14 +52,19 @@ class RegisterBus:
 
 
 class I2CBus(RegisterBus):
-    """A chip at ``address`` on an I²C bus: ``bus`` is a bus number (/dev/i2c-N) or an SMBus-like object.
+    """A chip at ``address`` on an I²C bus: ``bus`` is a bus number or "/dev/i2c-N", or an SMBus-like object.
 
     ``max_read`` bounds one ``i2c_rdwr`` read message (Linux i2c-dev refuses more than 8192 bytes).
     """
 
-    def __init__(self, bus: int | object = 1, address: int = 0x68, *, max_read: int = 4096):
+    def __init__(self, bus: int | str | object = 1, address: int = 0x68, *, max_read: int = 4096):
         from smbus2 import i2c_msg  # pure Python; importing it never touches hardware
 
+        if isinstance(bus, str):
+            m = re.fullmatch(r"(?:/dev/i2c-)?(\d+)", bus)
+            if not m:
+                raise DeviceError(f"I²C bus {bus!r}: expected /dev/i2c-N or a bus number")
+            bus = int(m.group(1))
         self._msg = i2c_msg
         self.address = int(address)
         self.max_read = int(max_read)
@@ -93,14 +100,19 @@ class I2CBus(RegisterBus):
 
 
 class SPIBus(RegisterBus):
-    """A chip on SPI: ``device`` is ``(bus, chip_select)`` (/dev/spidevB.C) or a SpiDev-like object.
+    """A chip on SPI: ``device`` is ``(bus, chip_select)`` or "/dev/spidevB.C", or a SpiDev-like object.
 
     ``mode`` 3 and ``max_speed_hz`` 8 MHz suit the InvenSense parts (≤ 1 MHz for MPU-6000 registers,
     which the driver does not exceed). The read flag is bit 7 of the address byte.
     """
 
-    def __init__(self, device: tuple[int, int] | object = (0, 0), *, max_speed_hz: int = 8_000_000,
+    def __init__(self, device: tuple[int, int] | str | object = (0, 0), *, max_speed_hz: int = 8_000_000,
                  mode: int = 3, max_transfer: int = 4096, read_flag: int = 0x80):
+        if isinstance(device, str):
+            m = re.fullmatch(r"/dev/spidev(\d+)\.(\d+)", device)
+            if not m:
+                raise DeviceError(f"SPI device {device!r}: expected /dev/spidevB.C")
+            device = (int(m.group(1)), int(m.group(2)))
         self.read_flag = read_flag
         self.max_read = int(max_transfer) - 1           # one byte of every transfer is the address
         self._owns = isinstance(device, tuple)

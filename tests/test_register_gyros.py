@@ -347,3 +347,11 @@ def test_missing_bus_device_files_are_named():
         I2CBus(97, 0x68)
     with pytest.raises(DeviceError, match=r"/dev/spidev9\.7: cannot open .*dtparam=spi=on"):
         SPIBus((9, 7))
+    with pytest.raises(DeviceError, match=r"/dev/i2c-96: cannot open"):
+        I2CBus("/dev/i2c-96")
+    with pytest.raises(DeviceError, match=r"/dev/spidev9\.6: cannot open"):
+        SPIBus("/dev/spidev9.6")
+    with pytest.raises(DeviceError, match="expected /dev/spidevB.C"):
+        SPIBus("/dev/ttyUSB0")
+    with pytest.raises(DeviceError, match="expected /dev/i2c-N"):
+        I2CBus("i2c1")
