@@ -102,8 +102,9 @@ class I2CBus(RegisterBus):
 class SPIBus(RegisterBus):
     """A chip on SPI: ``device`` is ``(bus, chip_select)`` or "/dev/spidevB.C", or a SpiDev-like object.
 
-    ``mode`` 3 and ``max_speed_hz`` 8 MHz suit the InvenSense parts (≤ 1 MHz for MPU-6000 registers,
-    which the driver does not exceed). The read flag is bit 7 of the address byte.
+    ``mode`` 3 and ``max_speed_hz`` 8 MHz suit the ICM-42688-P and BMI088; the MPU-6000 accepts
+    register writes only up to 1 MHz, so open it with ``max_speed_hz=1_000_000``. The read flag is
+    bit 7 of the address byte.
     """
 
     def __init__(self, device: tuple[int, int] | str | object = (0, 0), *, max_speed_hz: int = 8_000_000,
