@@ -185,7 +185,8 @@ def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<re
     base = static_mean_rate if static_mean_rate is not None else np.zeros(3)
     motion_rms = np.sqrt(np.mean((rec.gyro_rate[gm] - base) ** 2, axis=0)) if gm.any() else np.zeros(3)
     return RecData(name, fm, measured, frame_t, static_mean, ref_full, noise_var, n_static, t_ref, t_onset,
-                   rec.gyro_t, rec.gyro_rate, static_mean_rate, _static_sem(rec.gyro_t, rec.gyro_rate, t_on_g),
+                   rec.gyro_t, rec.gyro_rate, static_mean_rate,
+                   _static_sem(rec.gyro_t, rec.gyro_rate, t_on_g),
                    motion_rms)
 
 
@@ -554,16 +555,17 @@ def _centroid_lag(d: RecData, calib: Calibration, res: np.ndarray, pred: np.ndar
 
 def diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
     """Residual vs row, time, angular rate and acceleration, spectrum and centroid lag (all recordings)."""
-    rows, rows_n, times, frame_rms, speeds, accs, lags = None, None, [], [], [], [], []
+    rows, rows_sig, times, frame_rel, speeds, accs, lags = None, None, [], [], [], [], []
     spec, spec_noise = None, 0.0
     for d, r, p in zip(problem.recs, ev.residuals, ev.predicted, strict=True):
         m = d.mask
-        cnt = m.sum(axis=(0, 2))
+        # relative to the motion signal, so scene content does not masquerade as structure
+        sig = ((d.measured - d.static_mean) * m).astype(np.float64) ** 2
         ss = np.sum(r.astype(np.float64) ** 2, axis=(0, 2))
         rows = ss if rows is None else rows + ss
-        rows_n = cnt if rows_n is None else rows_n + cnt
-        fr = np.sqrt(np.sum(r.astype(np.float64) ** 2, axis=(1, 2)) / np.maximum(m.sum(axis=(1, 2)), 1))
-        frame_rms.append(fr)
+        rows_sig = sig.sum(axis=(0, 2)) if rows_sig is None else rows_sig + sig.sum(axis=(0, 2))
+        fr = np.sqrt(np.sum(r.astype(np.float64) ** 2, axis=(1, 2)) / np.maximum(sig.sum(axis=(1, 2)), 1e-12))
+        frame_rel.append(fr)
         times.append(d.frame_t - d.t_onset)
         rate, acc = _frame_rates(d, model.calib)
         speeds.append(np.degrees(np.linalg.norm(rate, axis=1)))
@@ -582,8 +584,8 @@ def diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
     noise_sd = math.sqrt(sum(d.noise_var for d in problem.recs) / nrec)
     lag = np.concatenate(lags)
     return {
-        "row_rms": np.sqrt(rows / np.maximum(rows_n, 1)), "noise_sd": noise_sd,
-        "t": np.concatenate(times), "frame_rms": np.concatenate(frame_rms),
+        "row_gap": np.sqrt(rows / np.maximum(rows_sig, 1e-12)), "noise_sd": noise_sd,
+        "t": np.concatenate(times), "frame_gap": np.concatenate(frame_rel),
         "speed_deg_s": np.concatenate(speeds), "accel_deg_s2": np.concatenate(accs),
         "lag_s": lag, "lag_median_s": float(np.nanmedian(lag)) if np.any(np.isfinite(lag)) else float("nan"),
         "spectrum": spec / nrec, "spectrum_noise": spec_noise / nrec,
@@ -720,7 +722,9 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         gap_after = _gap(problem, ev.ssr)
         ana.steps.append({"effect": best.effect, "params": _jsonable(best.params), "gap_before": gap_before,
                           "gap_after": gap_after, "delta_bic": dbic, "excess_explained": frac,
-                          "n_params": best.n_params, "unobservable": best.unobservable})
+                          "n_params": best.n_params, "unobservable": best.unobservable,
+                          "diagnostic": DIAGNOSTIC_FOR[best.effect],
+                          "centroid_lag_median_s": diag["lag_median_s"]})
         if best.unobservable:
             ana.unobservable[best.effect] = best.unobservable
         ana.diags.append((best.effect, diag))
@@ -852,18 +856,17 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
     ax = axes.ravel()
     panels = {}
-    ax[0].plot(dg["row_rms"], lw=1)
-    ax[0].axhline(dg["noise_sd"], color="k", ls="--", lw=0.8)
-    ax[0].set(xlabel="image row (working res.)", ylabel="residual RMS", title="vs row (rolling readout)")
+    ax[0].plot(dg["row_gap"], lw=1)
+    ax[0].set(xlabel="image row (working res.)", ylabel="gap", title="gap vs row (rolling readout)")
     panels["row"] = ax[0]
-    ax[1].plot(dg["t"], dg["frame_rms"], "o-", ms=3)
-    ax[1].set(xlabel="time since motion onset (s)", ylabel="residual RMS", title="vs time (bias drift)")
+    ax[1].plot(dg["t"], dg["frame_gap"], "o-", ms=3)
+    ax[1].set(xlabel="time since motion onset (s)", ylabel="gap", title="gap vs time (bias drift)")
     panels["time"] = ax[1]
-    ax[2].plot(dg["speed_deg_s"], dg["frame_rms"], "o", ms=3)
-    ax[2].set(xlabel="|ω| (°/s)", ylabel="residual RMS", title="vs angular rate (scale, misalignment)")
+    ax[2].plot(dg["speed_deg_s"], dg["frame_gap"], "o", ms=3)
+    ax[2].set(xlabel="|ω| (°/s)", ylabel="gap", title="vs angular rate (scale, misalignment)")
     panels["rate"] = ax[2]
-    ax[3].plot(dg["accel_deg_s2"], dg["frame_rms"], "o", ms=3)
-    ax[3].set(xlabel="|dω/dt| (°/s²)", ylabel="residual RMS", title="vs angular acceleration (τ)")
+    ax[3].plot(dg["accel_deg_s2"], dg["frame_gap"], "o", ms=3)
+    ax[3].set(xlabel="|dω/dt| (°/s²)", ylabel="gap", title="vs angular acceleration (τ)")
     panels["accel"] = ax[3]
     ax[4].semilogy(dg["spectrum_freq"], dg["spectrum"], "o-", label="residual")
     ax[4].axhline(max(dg["spectrum_noise"], 1e-12), color="k", ls="--", lw=0.8, label="white noise")
@@ -917,6 +920,14 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
                   f"{s['gap_after']:.4f} | {s['delta_bic']:.0f} | {100 * s['excess_explained']:.0f} % |")
     if not ana.steps:
         md.append("| – | nothing added | | | | | |")
+    md += ["", "Notes:", "",
+           "- The reference is the mean of the static frames, so it already carries the optics' PSF and the "
+           "fixed-pattern noise: a PSF shared by static and moving frames leaves no gap and cannot be "
+           "estimated here; `optical_psf` fits only blur that the moving frames have *in addition*.",
+           "- FPN is estimated as the high-passed temporal mean of the motion residual (it stays on the "
+           "sensor while the scene moves) and added back to every prediction.",
+           "- A gyro bias hypothesis uses the static segment's mean raw rate as a prior (the camera is "
+           "still there), refined by the images."]
     if ana.unobservable:
         md += ["", "Not observable with this motion (left at their previous values):"]
         md += [f"- {k}: {', '.join(v)}" for k, v in ana.unobservable.items()]
@@ -957,7 +968,8 @@ def _config_calibration(path: str) -> tuple[Calibration, str | None]:
         return cfgmod.load(path, check_devices=False).calibration, text
     other = sorted(set(raw) - {"calibration"})
     if other or "calibration" not in raw:
-        raise ConfigError(f"{path}: expected a full thermod configuration (with [sources]) or a file with only "
+        raise ConfigError(f"{path}: expected a full thermod configuration (with [sources]) or a file with "
+                          "only "
                           f"a [calibration] table; found tables {sorted(raw)}")
     cal = raw["calibration"]
     base = tomllib.loads(cfgmod.default_path().read_text())
@@ -973,7 +985,7 @@ def replace_calibration_table(text: str, calib: Calibration) -> str:
     """`text` (a thermod TOML) with its [calibration] table replaced by `calib` (appended if absent)."""
     table = calibration_toml(calib).split("\n", 1)[1]          # drop the header comment
     lines = text.splitlines(keepends=True)
-    start = next((i for i, ln in enumerate(lines) if ln.strip().split("#")[0].strip() == "[calibration]"), None)
+    start = next((i for i, ln in enumerate(lines) if ln.split("#")[0].strip() == "[calibration]"), None)
     if start is None:
         return text.rstrip("\n") + "\n\n" + table
     end = next((i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
