@@ -128,3 +128,16 @@ def test_errors_name_the_device():
         ClockMapper(0.0)
     with pytest.raises(DeviceError, match="finite"):
         ClockMapper(1e-3).observe(1, float("nan"))
+
+
+def test_growing_backlog_cannot_fake_an_impossible_drift():
+    # An overloaded reader falling 30 ms further behind every second tilts the lower envelope by
+    # 30 000 ppm; no oscillator drifts that much, so the slope stays within max_drift_ppm and the
+    # line stays at or below every arrival (never stamps a sample later than it was received).
+    reads, t0, period = fifo_reads(6.0, drift_ppm=0.0, p_late=0.0, seed=4)
+    m = ClockMapper(1e-3, window_s=5.0, max_drift_ppm=2000.0)
+    for s, a in reads:
+        a_late = a + 0.030 * (a - t0)
+        m.observe(s, a_late)
+        assert m.to_host(s) <= a_late + 1e-9
+    assert abs(m.drift_ppm) <= 2000.0 + 1e-6

@@ -220,8 +220,15 @@ class ClockMapper:
             while i < len(hull) - 2 and xs[hull[i + 1]] <= xm:
                 i += 1
             j, k = hull[i], hull[i + 1]
-            self._slope = (ys[k] - ys[j]) / (xs[k] - xs[j])
-            self._a = ys[j] - self._slope * xs[j]
+            slope = (ys[k] - ys[j]) / (xs[k] - xs[j])
+            if abs(slope) <= self.max_drift:
+                self._slope = slope
+                self._a = ys[j] - slope * xs[j]
+            else:
+                # No oscillator drifts this much: a steadily growing backlog (an overloaded reader)
+                # tilts the lower envelope. Keep the bounded slope and touch the lowest point.
+                self._slope = float(np.clip(slope, -self.max_drift, self.max_drift))
+                self._a = min(yy - self._slope * xx for xx, yy in zip(xs, ys, strict=True))
             self._fitted = True
         if len(xs) >= 3:
             r = np.asarray(ys) - (self._a + self._slope * np.asarray(xs))
