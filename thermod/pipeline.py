@@ -134,7 +134,8 @@ def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> t
 
 def make_deconvolver(deblur: DeblurConfig):
     from thermod.deconv import Deconvolver
-    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam)
+    # live kernels never repeat: an OTF cache would only hold ~3 MB per entry of dead weight
+    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1)
 
 
 def default_workers() -> int:
@@ -182,6 +183,7 @@ class Pipeline:
         self._latencies = collections.deque(maxlen=2048)
         self._lat_lock = threading.Lock()
         self.counters = collections.Counter()
+        self._count_lock = threading.Lock()
         self._prebuilt: list = []
 
     # ------------------------------------------------------------------ lifecycle
@@ -237,7 +239,7 @@ class Pipeline:
             left = list(self._jobs)
             self._jobs.clear()
         for job in left:
-            self.counters["shutdown_passthrough"] += 1
+            self._count("shutdown_passthrough", 1)
             self._passthrough(job.slot, "overload", job.info)
         self._flush_pending(force=True)
 
@@ -246,7 +248,7 @@ class Pipeline:
         workers rebuild their deconvolver when the deblur settings change."""
         s = self._settings
         self._settings = _Settings(calib or s.calib, deblur or s.deblur, s.generation + 1)
-        self.counters["reloads"] += 1
+        self._count("reloads", 1)
 
     @property
     def calib(self) -> Calibration:
@@ -270,7 +272,7 @@ class Pipeline:
             return 0
         for i, th in enumerate(self._workers):
             if th is None or not th.is_alive():
-                self.counters["workers_replaced"] += 1
+                self._count("workers_replaced", 1)
                 log.warning("deconvolution worker %d died; starting a new one", i)
                 self._spawn_worker(i)
                 n += 1
@@ -288,7 +290,7 @@ class Pipeline:
                 continue
             if isinstance(got, int):   # overwritten before we read them: never seen, count them
                 lost = got - i
-                self.counters["frames_overrun"] += lost
+                self._count("frames_overrun", lost)
                 log.warning("scheduler fell behind: %d frames overwritten in the frame ring", lost)
                 self._skip_outputs(i, got)
                 i = got
@@ -303,9 +305,9 @@ class Pipeline:
 
     def _schedule(self, slot: FrameSlot) -> None:
         s = self._settings
-        self.counters["frames_in"] += 1
+        self._count("frames_in", 1)
         if slot.gap_before:
-            self.counters["camera_frames_lost"] += slot.gap_before
+            self._count("camera_frames_lost", slot.gap_before)
         if not s.deblur.enabled:
             self._passthrough(slot, "disabled", {})
             return
@@ -326,7 +328,7 @@ class Pipeline:
         try:
             kernel, info = self._render(w.t, w.rate, s.calib, slot.t, s.deblur)
         except Exception as e:
-            self.counters["kernel_errors"] += 1
+            self._count("kernel_errors", 1)
             log.error("kernel rendering failed for frame %d: %s", slot.frame_id, e)
             self._passthrough(slot, "kernel_error", {"n_samples": len(w)})
             return
@@ -343,7 +345,7 @@ class Pipeline:
             self._jobs.append(job)
             self._jobs_cond.notify()
         if dropped is not None:
-            self.counters["jobs_dropped"] += 1
+            self._count("jobs_dropped", 1)
             self._passthrough(dropped.slot, "overload", dropped.info)
 
     # ------------------------------------------------------------------ workers
@@ -377,14 +379,14 @@ class Pipeline:
                 if out.shape != img.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
             except Exception:
-                self.counters["worker_errors"] += 1
+                self._count("worker_errors", 1)
                 log.exception("deconvolution failed on frame %d; passing it through and replacing the worker",
                               job.slot.frame_id)
                 self._worker_busy_since[i] = None
                 self._passthrough(job.slot, "worker_error", job.info)
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
             self._worker_busy_since[i] = None
-            self.counters["deblurred"] += 1
+            self._count("deblurred", 1)
             self._complete(self._out(job.slot, out, True, None, job.info))
 
     # ------------------------------------------------------------------ output (in order)
@@ -395,7 +397,7 @@ class Pipeline:
                         n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before)
 
     def _passthrough(self, slot: FrameSlot, reason: str, info: dict) -> None:
-        self.counters[f"passthrough_{reason}"] += 1
+        self._count(f"passthrough_{reason}", 1)
         self._complete(self._out(slot, slot.image.astype(np.float32), False, reason, info))
 
     def _skip_outputs(self, a: int, b: int) -> None:
@@ -421,11 +423,11 @@ class Pipeline:
                 oldest = min(self._pending)
                 if oldest < self._next_out:     # a late frame already skipped: release it now
                     ready.append(self._pending.pop(oldest)[0])
-                    self.counters["released_out_of_order"] += 1
+                    self._count("released_out_of_order", 1)
                     continue
                 waited = now - self._pending[oldest][1]
                 if force or waited > self.cfg.reorder_timeout_s:
-                    self.counters["reorder_skips"] += 1
+                    self._count("reorder_skips", 1)
                     self._next_out = oldest
                     continue
                 break
@@ -434,22 +436,29 @@ class Pipeline:
                 try:
                     self.emit(o)
                 except Exception:
-                    self.counters["emit_errors"] += 1
+                    self._count("emit_errors", 1)
                     log.exception("output callback failed for frame %d", o.frame_id)
-                self.counters["frames_out"] += 1
+                self._count("frames_out", 1)
                 with self._lat_lock:
                     self._latencies.append(o.latency_s)
 
     # ------------------------------------------------------------------ health
+    def _count(self, key: str, n: int = 1) -> None:
+        # workers, scheduler and the daemon's thread bump the same counters: += alone can lose counts
+        with self._count_lock:
+            self.counters[key] += n
+
     def stats(self) -> dict:
         with self._lat_lock:
             lat = np.array(self._latencies, dtype=np.float64)
+        with self._count_lock:
+            counters = dict(self.counters)
         with self._jobs_cond:
             depth = len(self._jobs)
         now = time.monotonic()
         busy = [now - b for b in self._worker_busy_since if b is not None]
         return {
-            "counters": dict(self.counters),
+            "counters": counters,
             "job_queue_depth": depth,
             "pending_reorder": len(self._pending),
             "frames_behind": self.frame_ring.head - self._next_index,
