@@ -101,7 +101,8 @@ class _FrameDeblurrer:
             raise ThermodError(f"--exposure {self.exposure}: expected a positive time in seconds")
         if not 0 <= self.min_coverage <= 1:
             raise ThermodError(f"--min-coverage {self.min_coverage}: expected a fraction in [0, 1]")
-        self.dec = deconv.Deconvolver(method=args.method, alpha=args.alpha, lam=args.lam)
+        # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
+        self.dec = deconv.Deconvolver(method=args.method, alpha=args.alpha, lam=args.lam, cache_size=2)
 
     def __call__(self, rec: recording.Recording, i: int) -> tuple[np.ndarray | None, str]:
         """(deblurred frame, "") or (None, why it was passed through)."""
