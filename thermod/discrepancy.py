@@ -637,7 +637,7 @@ def _mean_residual_map(ev: Evaluation, problem: Problem) -> np.ndarray:
 def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_steps: int = 4,
             bic_min: float = 10.0, min_explained: float = 0.3, structured_excess: float = 0.3,
             unexplained_excess: float = 1.0, model_tol: float = 0.05, fpn: bool = True,
-            polish: bool = True, progress=None) -> Analysis:
+            polish: bool = True, min_pixels: int = 2000, progress=None) -> Analysis:
     """Greedy search for the missing effects (see the module docstring for the criteria).
 
     `structured_excess`: candidates are tried while SSR exceeds the noise expectation by this
@@ -659,6 +659,11 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     problem = Problem(recs)
     nominal = model
     problem.refresh(model, fpn=fpn)
+    for d in recs:
+        if d.mask.sum() < min_pixels:
+            raise RecordingError(d.name, "camera/frames", f"only {int(d.mask.sum())} pixels of the motion "
+                                 f"frames stay inside the static reference view (need ≥ {min_pixels}); "
+                                 "record a smaller motion or start it from the middle of the scene")
     ev = problem.evaluate(model, keep=True)
     gap0 = _gap(problem, ev.ssr)
     floor = math.sqrt(problem.noise_ss() / max(problem.signal_ss(), 1e-30))
