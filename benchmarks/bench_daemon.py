@@ -66,7 +66,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
     t_ready = None
     try:
         with Subscriber(ep, topics=("frame", "gyro", "health"), rcvhwm=100000) as sub:
-            deadline = time.monotonic() + 300
+            deadline = time.monotonic() + seconds + 180      # start-up (first render) + warm-up
             next_rss = 0.0
             while time.monotonic() < deadline and proc.poll() is None:
                 m = sub.recv(timeout=0.5)
