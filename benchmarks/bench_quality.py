@@ -216,7 +216,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="2 scenes × 1 frame per level (under a minute)")
     ap.add_argument("--scenes", type=int, default=None, help="real scenes per level (default 6, quick 2)")
     ap.add_argument("--frames", type=int, default=None, help="frames evaluated per simulation (default 2)")
-    ap.add_argument("--lam", type=float, default=None, help="K&F λ (default deconv.DEFAULT_LAMBDA)")
+    ap.add_argument("--lam", type=float, default=None, help="fixed K&F λ (default: noise-adaptive)")
     ap.add_argument("--grid", type=int, nargs=2, default=None,
                     help="kernel grid (default offline.DEFAULT_GRID)")
     ap.add_argument("--overlap", type=float, default=1.0)

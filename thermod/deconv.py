@@ -82,7 +82,6 @@ BETA_RATE = 2.0 * math.sqrt(2.0)
 NOISE_LAMBDA = {"kf": 30.0, "wiener": 0.6}
 NOISE_KNEE = 0.006
 LAMBDA_RANGE = {"kf": (30.0, 300000.0), "wiener": (3.0, 30000.0)}
-DEFAULT_LAMBDA = {"kf": 6000.0, "wiener": 300.0}   # λ at a typical σ̂ ≈ 0.003 (reference only)
 DEFAULT_ALPHA = 2.0 / 3.0
 RANGE_PERCENTILES = (0.5, 99.5)
 # FFTW_MEASURE takes ~0.7 s per plan at 640×480; cut short, its plans ran 45 % slower (measured),

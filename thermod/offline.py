@@ -9,7 +9,7 @@ The output holds the input's /camera and /gyro (and any other datasets, e.g. /tr
 /deblurred/frames (float32, the input's counts) and /deblurred/t. A frame whose gyro window is
 incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
 unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
-frames were deblurred.
+frames were deblurred and /deblurred/lambda (float64 [N]) the data weight each one used.
 """
 
 from __future__ import annotations
