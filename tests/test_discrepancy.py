@@ -120,18 +120,30 @@ def test_single_hidden_effect_is_named_recovered_and_closes_the_gap(effect):
     assert ana.unobservable == {}
 
 
+PAIRS = {
+    "offset+bias": {"time_offset": -0.005, "gyro_bias": (0.02, -0.015, 0.01)},
+    "offset+readout": {"time_offset": 0.008, "rolling_readout": 0.010},   # strongly coupled timing pair
+}
+
+
 @pytest.mark.slow
-def test_two_hidden_effects_are_both_found():
-    eff = {"time_offset": -0.005, "gyro_bias": (0.02, -0.015, 0.01)}
-    rec, ana = analysed("offset+bias", eff)
+@pytest.mark.parametrize("pair", list(PAIRS))
+def test_two_hidden_effects_are_both_found(pair):
+    eff = PAIRS[pair]
+    rec, ana = analysed(pair, eff)
     truth = truth_calibration(rec)
     names = [s["effect"] for s in ana.steps]
-    assert sorted(names) == ["gyro_bias", "time_offset"], names
+    expect = {"time_offset": "time_offset", "gyro_bias": "gyro_bias", "rolling_readout": "rolling_readout"}
+    assert sorted(names) == sorted(expect[k] for k in eff), names
     c = ana.model.calib
     assert abs(c.time_offset_s - truth.time_offset_s) < 1e-3
     assert np.all(np.abs(np.subtract(c.bias_rad_s, truth.bias_rad_s)) < 0.3 * DEG)
+    if "rolling_readout" in eff:
+        assert abs(c.readout_s - truth.readout_s) < 0.2 * truth.readout_s
     assert excess(ana.gap_final, ana.noise_floor) <= 0.5 * excess(ana.gap_initial, ana.noise_floor)
     assert not ana.unexplained
+    # the report carries the final values of every named effect
+    assert ana.steps[names.index("time_offset")]["params"]["time_offset_s"] == pytest.approx(c.time_offset_s)
 
 
 @pytest.mark.slow

@@ -17,7 +17,9 @@ by motion. The workflow
    misalignment, time_constant, optical_psf): coarse search, then bounded refinement. A candidate is
    accepted only if its BIC gain on *effective* independent residual samples (pixel correlation
    measured from the residual's autocorrelation) is decisive and it removes a sizeable fraction of
-   the gap's excess over the noise floor; the best one is added to the model and the loop repeats;
+   the gap's excess over the noise floor; the best one is added to the model, the effects named
+   before it are refitted with it in place (they may have absorbed part of it), and the loop repeats;
+   the gyro bias also uses the static segment's mean raw rate as a prior (a direct measurement);
 5. says ``unexplained: true`` when the remaining residual is still well above the noise floor but no
    candidate explains it, rather than naming a wrong effect.
 
@@ -25,7 +27,13 @@ Fixed-pattern noise (FPN) sits still on the sensor while the scene moves, so it 
 temporal mean of the motion residual and added back to every prediction (and removed from the
 reference before warping). The optical PSF of the static frames is in the reference already: the
 `optical_psf` candidate fits the *extra* blur σ_e of motion frames and reports the model's Eq. 19 σ
-as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one).
+as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one). A PSF that static and
+moving frames share is therefore *unobservable* from this comparison — the workflow leaves it alone.
+Parameters the motion does not excite (a gyro axis that barely turns; misalignment directions about
+the only rotation axis) are not fitted and are listed under `unobservable`.
+
+The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
+signal on simulator data) is allowed for by `model_tol` in both the search and the verdict.
 
 Outputs: DIR/report.json, DIR/report.md, DIR/model.toml and PNG figures (residual maps before and
 after every step, gap per step, the diagnostic panel that pointed at each effect).
@@ -205,8 +213,12 @@ class Problem:
     def __init__(self, recs: list[RecData]):
         self.recs = recs
         self.n_evals = 0
-        # SSR of one independent χ² unit: residual variance × pixels per independent sample (set per step)
+        # Set per step by `analyse`: SSR of one independent χ² unit (noise variance × pixels per
+        # independent sample), the effective sample count, and the least SSR gain worth a parameter.
         self.chi2_scale = 1.0
+        self.n_eff = 1000.0
+        self.min_gain = 0.0
+        self.named: list[str] = []
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1
@@ -390,14 +402,29 @@ def fit_time_offset(problem, model, recs, max_offset_s=0.03):
 
 
 def fit_rolling_readout(problem, model, recs):
+    """Readout time T_ro ∈ [0, frame period]. Rows are read T_ro/2 early on average, so a time offset
+    fitted before the readout has absorbed that shift: once `time_offset` is in the model the readout is
+    also tried with the offset moved by −ΔT_ro/2 (mid-frame timing kept), and the better one is kept."""
     c0 = model.calib
     hi = 1.0 / c0.frame_rate_hz
     grid = np.linspace(0.0, hi, 11)
 
     def make(x):
         return Model(c0.replace(readout_s=float(x)), model.extra_psf_px)
+
+    def make_centred(x):
+        off = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
+        return Model(c0.replace(readout_s=float(x), time_offset_s=off), model.extra_psf_px)
+
     x, ssr = _scalar_fit(problem, model, make, grid, 0.0, hi, None)
-    return FitResult("rolling_readout", make(x), {"readout_s": x}, ssr)
+    best = FitResult("rolling_readout", make(x), {"readout_s": x}, ssr)
+    if "time_offset" in problem.named:
+        xc, ssrc = _scalar_fit(problem, model, make_centred, grid, 0.0, hi, None)
+        if ssrc < ssr:
+            m = make_centred(xc)
+            best = FitResult("rolling_readout", m, {"readout_s": xc, "time_offset_s": m.calib.time_offset_s},
+                             ssrc)
+    return best
 
 
 def fit_time_constant(problem, model, recs):
@@ -456,21 +483,40 @@ def fit_gyro_bias(problem, model, recs, bias_stability_rad_s: float = math.radia
     return FitResult("gyro_bias", m, {"bias_rad_s": list(m.calib.bias_rad_s)}, ssr, n_params=3)
 
 
-def fit_gyro_scale(problem, model, recs):
+def fit_gyro_scale(problem, model, recs, bic_min: float = 10.0):
+    """Scale factor: one common factor first, per-axis factors only if the BIC on effective samples
+    prefers the two extra parameters (Occam: a common error is the usual case and the per-axis fit of
+    a weakly excited axis, typically roll, is noisy). Axes the motion barely excites are not fitted."""
     c0 = model.calib
     s0 = c0.scale_vector
     obs = _axis_observable(recs)
     idx = np.flatnonzero(obs)
     unit = 0.01
+    un = [f"scale[{a}]" for a in range(3) if not obs[a]]
 
-    def make(x):
+    def make_common(x):
+        s = s0.copy()
+        s[idx] = s0[idx] * (1.0 + float(np.asarray(x).ravel()[0]))
+        return Model(c0.replace(scale=tuple(float(v) for v in s)), model.extra_psf_px)
+
+    def make_axes(x):
         s = s0.copy()
         s[idx] = s0[idx] * (1.0 + np.asarray(x))
         return Model(c0.replace(scale=tuple(float(v) for v in s)), model.extra_psf_px)
-    x, ssr = _vector_fit(problem, model, lambda y: make(y), [np.zeros(len(idx))], unit, bound=20.0)
-    m = make(x)
-    un = [f"scale[{a}]" for a in range(3) if not obs[a]]
-    return FitResult("gyro_scale", m, {"scale": list(m.calib.scale)}, ssr, unobservable=un, n_params=len(idx))
+
+    if len(idx) == 0:
+        return FitResult("gyro_scale", model, {"scale": list(c0.scale)}, problem.evaluate(model).ssr,
+                         unobservable=un, n_params=0)
+    x1, ssr1 = _vector_fit(problem, model, make_common, [np.zeros(1)], unit, bound=20.0)
+    best, n_par = (make_common(x1), ssr1), 1
+    if len(idx) > 1:
+        x3, ssr3 = _vector_fit(problem, model, make_axes, [np.full(len(idx), x1[0] / unit)], unit, bound=20.0)
+        n_eff = problem.n_eff
+        dbic = n_eff * math.log(ssr1 / max(ssr3, 1e-30)) - (len(idx) - 1) * math.log(n_eff)
+        if dbic > bic_min and ssr1 - ssr3 >= problem.min_gain:
+            best, n_par = (make_axes(x3), ssr3), len(idx)
+    m, ssr = best
+    return FitResult("gyro_scale", m, {"scale": list(m.calib.scale)}, ssr, unobservable=un, n_params=n_par)
 
 
 def fit_misalignment(problem, model, recs):
@@ -647,7 +693,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     resampling and interpolation at the working resolution, measured at 0.01–0.05 of the motion
     signal on simulator recordings; largest for sharp-edged scenes). Candidates are tried when
     ``SSR > noise·(1 + structured_excess) + (½ model_tol·‖signal‖)²`` and the rest is called
-    unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``.
+    unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``; a candidate
+    must also remove at least (½ model_tol·‖signal‖)² of SSR.
     `min_explained`: a candidate must remove at least this
     fraction of the excess SSR. `bic_min`: decisive BIC gain on effective samples.
     """
@@ -684,6 +731,11 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         n_eff = ev.n / area
         # χ² unit at the noise level (not the current residual's): a wrong model must not drown priors
         problem.chi2_scale = noise_ss / max(ev.n, 1) * area
+        problem.n_eff = n_eff
+        problem.named = [st["effect"] for st in ana.steps]
+        # Practical significance too: what a candidate explains must exceed the forward model's own
+        # imprecision (½ model_tol of the motion signal), or it is fitting resampling error.
+        problem.min_gain = min_gain = (0.5 * model_tol) ** 2 * problem.signal_ss()
         diag = diagnostics(problem, model, ev)
         fits = []
         for name in remaining:
@@ -698,7 +750,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
                                          "excess_explained": frac, "unobservable": f.unobservable})
             say(f"  {name:16s} gap {_gap(problem, f.ssr):.4f}  explains {100 * frac:5.1f} % of the excess  "
                 f"ΔBIC {dbic:9.1f}  {_fmt_params(f.params)}  ({time.monotonic() - t0:.1f} s)")
-        ok = [x for x in fits if x[0].n_params > 0 and x[1] > bic_min and x[2] >= min_explained]
+        ok = [x for x in fits if x[0].n_params > 0 and x[1] > bic_min and x[2] >= min_explained
+              and ev.ssr - x[0].ssr >= min_gain]
         if not ok:
             say("  no candidate is significant")
             break
@@ -749,6 +802,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
                 st["params"] = _jsonable(f.params)
                 say(f"  refit {st['effect']}: {_fmt_params(f.params)}; gap {_gap(problem, ev.ssr):.4f}")
     ana.model = model
+    for st in ana.steps:     # report every named effect's final value (refits may have moved it)
+        st["params"] = _jsonable(_merge_params(st["effect"], nominal, model))
     ana.gap_final = _gap(problem, ev.ssr)
     ana.noise_floor = math.sqrt(problem.noise_ss() / max(problem.signal_ss(), 1e-30))
     ana.unexplained = bool(ev.ssr > allowance(unexplained_excess, model_tol))
@@ -767,7 +822,7 @@ def _merge_params(effect: str, nominal: Model, model: Model) -> dict:
     if effect == "time_offset":
         return {"time_offset_s": c.time_offset_s}
     if effect == "rolling_readout":
-        return {"readout_s": c.readout_s}
+        return {"readout_s": c.readout_s, "time_offset_s": c.time_offset_s}
     if effect == "gyro_bias":
         return {"bias_rad_s": list(c.bias_rad_s)}
     if effect == "gyro_scale":
