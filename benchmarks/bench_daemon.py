@@ -59,6 +59,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
            "--set", f"sim.frame_rate_hz={fps}", "--set", f"calibration.frame_rate_hz={fps}"]
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
+    t_start = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
     err_lines: list[str] = []
     threading.Thread(target=lambda: err_lines.extend(proc.stderr), daemon=True).start()
@@ -93,6 +94,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
                     break
             sub_gaps = dict(sub.gaps)
         cpu = cpu_s(proc.pid)
+        wall = time.monotonic() - t_start
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -115,6 +117,10 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
     for f in frames:
         if not f[1]:
             reasons[f[3]] = reasons.get(f[3], 0) + 1
+    drops = last.get("drops", {})
+    lost_where = {"camera": drops.get("camera_frames_lost", 0), "ring_overrun": pc.get("frames_overrun", 0),
+                  "publisher_queue": drops.get("publish_queue_dropped", 0),
+                  "subscriber": sub_gaps.get("frame", 0)}
     rss_growth = (rss[-1][1] - rss[min(len(rss) - 1, 3)][1]) / 1024 if len(rss) > 4 else float("nan")
     return {
         "fps": fps, "method": method, "seconds": seconds, "frames": len(frames), "expected": int(expected),
@@ -123,7 +129,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
         "p99_ms": float(np.percentile(lat, 99)), "gyro_gap_events": g_lost, "gyro_lost": int(g_lost_n),
         "gyro_hz": float(np.median([h["rates"]["gyro_hz"] for h in health])) if health else float("nan"),
         "rss_growth_mb": rss_growth, "threads_alive": all(threads.values()) if threads else False,
-        "workers_replaced": pc.get("workers_replaced", 0), "reasons": reasons, "cpu_s": cpu,
+        "workers_replaced": pc.get("workers_replaced", 0), "reasons": reasons, "cpu_s": cpu, "wall_s": wall,
+        "lost_where": {k: v for k, v in lost_where.items() if v},
     }
 
 
@@ -192,14 +199,14 @@ def main(argv=None) -> int:
     print("daemon, 640×480, 1 kHz gyro (targets: all published, ≥ 99 % deblurred, p50 ≤ 30 ms, p99 ≤ 60 ms, "
           "0 gyro lost; soak: RSS growth < 5 MB, no thread deaths)")
     print("| method | fps | s | frames | all published | deblurred % | latency p50 ms | p99 ms | gyro Hz "
-          "| gyro lost | RSS growth MB | threads ok | not deblurred |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| gyro lost | RSS growth MB | threads ok | not deblurred | frames lost at | daemon CPU cores |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['method']} | {r['fps']:g} | {r['seconds']:g} | {r['frames']}/{r['expected']} | "
               f"{'yes' if r['published_all'] else 'NO'} | {r['deblurred_pct']:.1f} | {r['p50_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_hz']:.1f} | {r['gyro_lost']} | {r['rss_growth_mb']:.1f} | "
               f"{'yes' if r['threads_alive'] and not r['workers_replaced'] else 'NO'} | "
-              f"{r['reasons'] or '-'} |")
+              f"{r['reasons'] or '-'} | {r['lost_where'] or '-'} | {r['cpu_s'] / r['wall_s']:.2f} |")
     return 0
 
 
