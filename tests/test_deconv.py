@@ -325,3 +325,20 @@ def test_fftw_wisdom_is_saved_to_the_cache_dir(tmp_path, monkeypatch):
     deconv._save_wisdom()
     data = deconv.wisdom_path().read_bytes()
     assert data.startswith(b"(fftw") and pyfftw.import_wisdom((b"", data, b""))[1]
+
+
+def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(scene):
+    """A daemon worker meeting a new FFT size mid-stream must not stop ~0.7 s to measure a plan."""
+    import pyfftw  # a test dependency; the scipy backend has no planning step at all
+    pyfftw.forget_wisdom()
+    k = comet(length=23, decay=6.0, angle_deg=20.0)
+    sharp, blurry = blurred_crop(scene[:200, :300], k, margin=20)
+    rt = deconv.Deconvolver(fft="fftw", lam=3000.0, realtime=True)
+    out_rt = rt.run(blurry, k)
+    assert rt.estimated_plans == 1
+    ref = deconv.Deconvolver(fft="scipy", lam=3000.0).run(blurry, k)
+    span = float(np.ptp(sharp))
+    assert np.max(np.abs(out_rt - ref)) < 1e-3 * span  # same answer, only the plan differs
+    measured = deconv.Deconvolver(fft="fftw", lam=3000.0)  # offline: measures (and saves wisdom)
+    measured.run(blurry, k)
+    assert measured.estimated_plans == 0

@@ -361,8 +361,9 @@ class _Plan:
     Results live in plan-owned buffers (FFTW) and are overwritten by the next call.
     """
 
-    def __init__(self, shape, backend, workers):
+    def __init__(self, shape, backend, workers, measure_unseen=True):
         self.shape = shape
+        self.estimated = False  # planned with FFTW_ESTIMATE (no wisdom, real-time caller)
         hp, wp = shape
         self.backend = backend
         self.workers = workers
@@ -374,14 +375,16 @@ class _Plan:
             self.cout = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
             self.cin = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
             self.rout = pyfftw.empty_aligned(shape, "float32")
-            flags = ("FFTW_MEASURE",)
             t0 = time.perf_counter()
-            self._f = pyfftw.FFTW(self.rin, self.cout, axes=(0, 1), flags=flags, threads=workers,
-                                  planning_timelimit=PLANNING_TIMELIMIT_S)
-            self._b = pyfftw.FFTW(self.cin, self.rout, axes=(0, 1), direction="FFTW_BACKWARD",
-                                  flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers,
-                                  planning_timelimit=PLANNING_TIMELIMIT_S)
-            if time.perf_counter() - t0 > 0.05:  # planned anew (not from wisdom): remember it
+            try:
+                # A real-time caller cannot wait ~0.7 s for a measured plan mid-stream (it would hold
+                # up the frame queue): take the saved wisdom if it has this size, else estimate.
+                flags = ("FFTW_MEASURE",) if measure_unseen else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+                self._make_fftw(flags, workers)
+            except RuntimeError:
+                self.estimated = True
+                self._make_fftw(("FFTW_ESTIMATE",), workers)
+            if not self.estimated and time.perf_counter() - t0 > 0.05:  # planned anew: remember it
                 _save_wisdom()
         else:
             self.rin = np.empty(shape, np.float32)
@@ -395,6 +398,13 @@ class _Plan:
         self.idx = np.empty(wp, np.int32)
         self.div = self.rin  # the w-step writes its divergence straight into the FFT input
         self.spec = np.empty((hp, wp // 2 + 1), np.complex64)
+
+    def _make_fftw(self, flags, workers) -> None:
+        self._f = pyfftw.FFTW(self.rin, self.cout, axes=(0, 1), flags=flags, threads=workers,
+                              planning_timelimit=PLANNING_TIMELIMIT_S)
+        self._b = pyfftw.FFTW(self.cin, self.rout, axes=(0, 1), direction="FFTW_BACKWARD",
+                              flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers,
+                              planning_timelimit=PLANNING_TIMELIMIT_S)
 
     def fwd(self) -> np.ndarray:
         if self.backend == "fftw":
@@ -564,13 +574,17 @@ class Deconvolver:
     fft : "auto" (pyFFTW if installed), "fftw" or "scipy".
     workers : FFT threads (1 = one core; run several Deconvolvers in threads for throughput).
     margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
+    realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
+        estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
+        For the daemon's workers, which warm up the common sizes before going live.
 
     One instance is not thread-safe (it owns its buffers); numba passes and FFTs release the GIL,
     so one instance per thread scales across cores.
     """
 
     def __init__(self, method: str = "kf", alpha: float = DEFAULT_ALPHA, lam: float | None = None,
-                 fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16):
+                 fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16,
+                 realtime: bool = False):
         if method not in NOISE_LAMBDA:
             raise DeconvError(f"method: expected one of {sorted(NOISE_LAMBDA)}, got {method!r}")
         alpha = float(alpha)
@@ -587,6 +601,8 @@ class Deconvolver:
         self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
         self.last_lam = float("nan")   # λ used for the last frame (adaptive when lam is None)
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
+        self.realtime = bool(realtime)
+        self.estimated_plans = 0
         self._plans: OrderedDict[tuple[int, int], _Plan] = OrderedDict()
         self._otfs: OrderedDict = OrderedDict()
         self._betas = beta_schedule()
@@ -605,7 +621,8 @@ class Deconvolver:
     def _plan(self, shape) -> _Plan:
         p = self._plans.get(shape)
         if p is None:
-            p = self._plans[shape] = _Plan(shape, self.fft, self.workers)
+            p = self._plans[shape] = _Plan(shape, self.fft, self.workers, measure_unseen=not self.realtime)
+            self.estimated_plans += p.estimated
             while len(self._plans) > MAX_PLANS:
                 self._plans.popitem(last=False)
         else:

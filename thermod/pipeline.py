@@ -135,7 +135,9 @@ def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> t
 def make_deconvolver(deblur: DeblurConfig):
     from thermod.deconv import Deconvolver
     # live kernels never repeat: an OTF cache would only hold ~3 MB per entry of dead weight
-    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1)
+    # realtime: an FFT size first seen mid-stream is estimated, not measured (a measured plan would
+    # stall the queue ~0.7 s on a machine without wisdom); warmup() measures the common sizes first.
+    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True)
 
 
 def default_workers() -> int:
@@ -200,6 +202,8 @@ class Pipeline:
         self._prebuilt = []
         for _ in range(self.n_workers):
             d = self._factory(s.deblur)
+            live = getattr(d, "realtime", False)
+            d.realtime = False  # measure plans now, while no frame is waiting
             d.run_varying(img, kernel) if hasattr(kernel, "kernels") else d.run(img, kernel)
             if hasattr(d, "padded_shape") and s.deblur.mode == "uniform":
                 sizes = {}
@@ -211,6 +215,7 @@ class Pipeline:
                         break
                     box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
                     d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
+            d.realtime = live
             self._prebuilt.append((d, s.deblur))
         return time.monotonic() - t0
 
