@@ -89,7 +89,7 @@ class PublishConfig:
 class PipelineConfig:
     workers: int = 0                 # deconvolution threads; 0 = one per core
     job_queue: int = 2               # deblur jobs waiting for a worker (overload drops the oldest)
-    frame_ring: int = 16             # frames buffered between the camera thread and the scheduler
+    frame_ring: int = 32             # frames buffered between the camera thread and the scheduler (~0.6 s)
     gyro_ring_s: float = 10.0        # seconds of gyro history kept
     wait_timeout_s: float = 0.05     # max wait after a frame's time for the gyro to cover it
     reorder_timeout_s: float = 0.5   # max wait to publish frames in order
