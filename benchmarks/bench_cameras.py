@@ -20,10 +20,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from thermod.drivers.camera_base import as_uint16_image
 
 from thermod import recording
 from thermod.calibration import Calibration
+from thermod.drivers.camera_base import as_uint16_image
 
 
 def bench_aravis(rates, seconds):

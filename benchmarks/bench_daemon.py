@@ -136,9 +136,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
 
 def payload_cpu(seconds: float) -> dict:
     """The simulated payload alone (camera loop + ICM-42688-P driver on its emulator), no pipeline."""
-    from thermod.sim.payload import SimPayload
-
     from thermod import config
+    from thermod.sim.payload import SimPayload
 
     cfg = config.load()
     p = SimPayload(cfg.sim, cfg.calibration)

@@ -38,12 +38,12 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1]
 import numpy as np  # noqa: E402
 from skimage import restoration  # noqa: E402
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # noqa: E402
-from thermod.sim import motion as mo  # noqa: E402
-from thermod.sim import synth  # noqa: E402
-from thermod.sim.gyro_model import GyroErrorModel  # noqa: E402
 
 from thermod import deconv, kernels  # noqa: E402
 from thermod.calibration import Calibration  # noqa: E402
+from thermod.sim import motion as mo  # noqa: E402
+from thermod.sim import synth  # noqa: E402
+from thermod.sim.gyro_model import GyroErrorModel  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 SPEEDS = (6.25, 9.375, 12.5, 25.0, 50.0, 75.0, 100.0)

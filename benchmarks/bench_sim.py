@@ -23,9 +23,9 @@ from pathlib import Path
 os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".numba_cache"))
 
 import numpy as np  # noqa: E402
-from thermod.sim import detector, motion, scenes  # noqa: E402
 
 from thermod.calibration import Calibration  # noqa: E402
+from thermod.sim import detector, motion, scenes  # noqa: E402
 
 
 def timeit(fn, repeats: int) -> np.ndarray:

@@ -22,9 +22,8 @@ import threading
 import time
 from collections import deque
 
-from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker, as_uint16_image
-
 from thermod.clock import ClockMapper
+from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker, as_uint16_image
 from thermod.errors import DeviceError
 
 GVCP_PORT = 3956

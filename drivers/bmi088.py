@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from thermod.drivers.gyro_base import FifoGyro, GyroDeviceError
 
 # Gyroscope register map (BST-BMI088-DS001 §10). Values are addresses.

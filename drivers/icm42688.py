@@ -16,6 +16,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from thermod.drivers.gyro_base import FifoGyro, GyroDeviceError
 
 # Register map, user bank 0 (DS-000347 §14). Values are addresses.

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 
 from thermod.clock import ClockMapper
+from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 
 TYPE_RE = re.compile(r"^(be|le):([su])(\d+)/(\d+)(?:X(\d+))?>>(\d+)$")
 AXES = ("x", "y", "z")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from thermod.drivers.bus import SPIBus
 from thermod.drivers.gyro_base import FifoGyro, GyroDeviceError
 

@@ -31,11 +31,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from thermod.drivers.camera_base import CameraSource, Frame
-from thermod.drivers.gyro_base import GyroBatch, GyroSource
 
 from thermod import recording as recmod
 from thermod.calibration import Calibration
+from thermod.drivers.camera_base import CameraSource, Frame
+from thermod.drivers.gyro_base import GyroBatch, GyroSource
 from thermod.errors import DeviceError, RecordingError
 
 _SESSIONS: weakref.WeakValueDictionary = weakref.WeakValueDictionary()

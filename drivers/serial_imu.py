@@ -32,9 +32,9 @@ import struct
 import time
 
 import numpy as np
-from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 
 from thermod.clock import ClockMapper
+from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 from thermod.errors import DeviceError
 
 SYNC = b"\xa5\x5a"

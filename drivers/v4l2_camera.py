@@ -27,9 +27,9 @@ from collections import deque
 from collections.abc import Callable
 
 import numpy as np
-from thermod.drivers.camera_base import CameraSource, Frame, as_uint16_image
 
 from thermod.clock import ClockMapper
+from thermod.drivers.camera_base import CameraSource, Frame, as_uint16_image
 from thermod.errors import DeviceError
 
 FOURCC_Y16 = "Y16 "

@@ -96,10 +96,9 @@ def build_calibration(args) -> Calibration:
 
 
 def run(args) -> int:
+    from thermod import recording
     from thermod.sim.gyro_model import GyroErrorModel
     from thermod.sim.synth import simulate
-
-    from thermod import recording
 
     out = Path(args.output)
     if not out.parent.exists():

@@ -34,11 +34,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numba import njit
-from thermod.sim.motion import Trajectory
-from thermod.sim.scenes import COUNTS_PER_K
 
 from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.sim.motion import Trajectory
+from thermod.sim.scenes import COUNTS_PER_K
 
 
 @dataclass

@@ -23,9 +23,9 @@ from collections import deque
 from collections.abc import Callable, Sequence
 
 import numpy as np
-from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker
 
 from thermod.clock import ClockMapper
+from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker
 from thermod.errors import DeviceError
 
 FrameProvider = Callable[[float], np.ndarray]

@@ -29,6 +29,7 @@ import tty
 from collections.abc import Callable
 
 import numpy as np
+
 from thermod.drivers.serial_imu import encode_frame
 
 

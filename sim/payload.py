@@ -30,12 +30,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from thermod.drivers.camera_base import CameraSource, Frame
-from thermod.sim import motion as mo
 
 from thermod import recording
 from thermod.calibration import Calibration
+from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.errors import DeviceError, RecordingError
+from thermod.sim import motion as mo
 
 log = logging.getLogger(__name__)
 

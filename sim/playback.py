@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from thermod.sim import motion as mo
 
 from thermod import recording
 from thermod.calibration import Calibration
 from thermod.errors import RecordingError, ThermodError
+from thermod.sim import motion as mo
 
 log = logging.getLogger(__name__)
 CACHE_VERSION = 1

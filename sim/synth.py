@@ -35,14 +35,14 @@ import math
 from collections.abc import Mapping
 
 import numpy as np
-from thermod.sim import detector as det
-from thermod.sim import motion as mo
-from thermod.sim import scenes
-from thermod.sim.gyro_model import DEG, GyroErrorModel
 
 from thermod.calibration import Calibration
 from thermod.errors import ThermodError
 from thermod.recording import Recording
+from thermod.sim import detector as det
+from thermod.sim import motion as mo
+from thermod.sim import scenes
+from thermod.sim.gyro_model import DEG, GyroErrorModel
 
 EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
            "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",

@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 import pytest
+
 from thermod.drivers.aravis_camera import AravisCamera, gvcp_probe
 from thermod.drivers.camera_base import FrameIdTracker, as_uint16_image
-
 from thermod.errors import DeviceError
 
 FAKE = shutil.which("arv-fake-gv-camera-0.8")

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from thermod.sim.payload import SimPayload
 
 from thermod import config
 from thermod.calibration import Calibration
 from thermod.publish import Subscriber
+from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
 THERMOD = Path(sys.executable).with_name("thermod")

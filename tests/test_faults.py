@@ -11,12 +11,12 @@ import time
 import numpy as np
 import pytest
 import zmq
-from thermod.sim.payload import SimPayload
 
 from thermod import config
 from thermod.daemon import Daemon
 from thermod.publish import Subscriber
 from thermod.sdnotify import Notifier
+from thermod.sim.payload import SimPayload
 
 pytestmark = pytest.mark.slow
 

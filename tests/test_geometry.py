@@ -1,8 +1,15 @@
 import numpy as np
 import pytest
 
-from thermod.geometry import (Intrinsics, apply_homography, integrate_rotations, rotation_homography, skew,
-                              so3_exp, so3_log)
+from thermod.geometry import (
+    Intrinsics,
+    apply_homography,
+    integrate_rotations,
+    rotation_homography,
+    skew,
+    so3_exp,
+    so3_log,
+)
 
 
 def test_so3_exp_log_roundtrip():

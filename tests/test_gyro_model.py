@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 from scipy import signal
-from thermod.sim import motion
-from thermod.sim.gyro_model import DEG, GyroErrorModel, allan_deviation, flicker_noise
 
 from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.sim import motion
+from thermod.sim.gyro_model import DEG, GyroErrorModel, allan_deviation, flicker_noise
 
 
 def zero(t):

@@ -4,6 +4,7 @@ import time
 
 import numpy as np
 import pytest
+
 from thermod.drivers.iio import IIOError, IIOGyro, extract, layout, parse_type
 from thermod.sim.emu_iio import IIOEmulator
 

@@ -6,12 +6,12 @@ import sys
 import h5py
 import numpy as np
 import pytest
-from thermod.sim import synth
-from thermod.sim.gyro_model import GyroErrorModel
 
 from thermod import recording
 from thermod.calibration import Calibration
 from thermod.cli import main
+from thermod.sim import synth
+from thermod.sim.gyro_model import GyroErrorModel
 
 
 def psnr8(est, truth):

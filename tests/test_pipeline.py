@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-from thermod.sim.scenes import load_scene
 
 from thermod import kernels
 from thermod.calibration import Calibration
@@ -15,6 +14,7 @@ from thermod.config import DeblurConfig, PipelineConfig
 from thermod.deconv import Deconvolver
 from thermod.pipeline import Pipeline, kernel_window
 from thermod.ringbuffer import FrameRing, GyroRing
+from thermod.sim.scenes import load_scene
 
 H, W = 120, 160
 CAL = Calibration(width=W, height=H, fx=366.0, fy=366.0, cx=79.5, cy=59.5)

@@ -7,14 +7,14 @@ import time
 
 import numpy as np
 import pytest
+
 from thermod.drivers.bmi088 import BMI088Error, BMI088Gyro
 from thermod.drivers.bus import I2CBus, SPIBus
 from thermod.drivers.gyro_base import GyroDeviceError
 from thermod.drivers.icm42688 import ICM42688, ICM42688Error
 from thermod.drivers.mpu6000 import MPU6000, MPU6000Error
-from thermod.sim.emu_registers import BMI088GyroEmu, EmuI2C, EmuSPI, ICM42688Emu, MPU6000Emu
-
 from thermod.errors import DeviceError
+from thermod.sim.emu_registers import BMI088GyroEmu, EmuI2C, EmuSPI, ICM42688Emu, MPU6000Emu
 
 CHIPS = {"icm42688": (ICM42688, ICM42688Emu, ICM42688Error), "mpu6000": (MPU6000, MPU6000Emu, MPU6000Error),
          "bmi088": (BMI088Gyro, BMI088GyroEmu, BMI088Error)}

@@ -8,11 +8,11 @@ import time
 import h5py
 import numpy as np
 import pytest
-from thermod.drivers.gyro_base import GyroBatch
-from thermod.drivers.replay import ReplayCamera, ReplayGyro, ReplaySession
 
 from thermod import recording
 from thermod.calibration import Calibration
+from thermod.drivers.gyro_base import GyroBatch
+from thermod.drivers.replay import ReplayCamera, ReplayGyro, ReplaySession
 from thermod.errors import DeviceError, RecordingError
 
 FPS, RATE = 50.0, 1000.0

@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+
 from thermod.drivers.serial_imu import SYNC, FrameParser, SerialIMU, SerialIMUError, crc16_ccitt, encode_frame
 from thermod.sim.emu_serial import SerialIMUEmulator
 

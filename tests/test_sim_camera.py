@@ -5,10 +5,10 @@ import time
 
 import numpy as np
 import pytest
-from thermod.drivers.camera_base import CameraSource
-from thermod.sim.emu_camera import EmuCamera, make_provider
 
+from thermod.drivers.camera_base import CameraSource
 from thermod.errors import DeviceError
+from thermod.sim.emu_camera import EmuCamera, make_provider
 
 
 def _frames(cam, n, timeout=0.5):

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from thermod.sim import detector, motion, playback, synth
 
 from thermod import recording
 from thermod.calibration import Calibration
 from thermod.cli import main
+from thermod.sim import detector, motion, playback, synth
 
 DEG = math.pi / 180
 

@@ -6,13 +6,13 @@ import math
 import cv2
 import numpy as np
 import pytest
-from thermod.sim import detector, motion, scenes, synth
-from thermod.sim.scenes import BACKGROUND
 
 from thermod import recording
 from thermod.calibration import Calibration
 from thermod.errors import ThermodError
 from thermod.geometry import integrate_rotations
+from thermod.sim import detector, motion, scenes, synth
+from thermod.sim.scenes import BACKGROUND
 
 SMALL = Calibration(width=192, height=144, cx=95.5, cy=71.5)     # paper IFOV, τ = 8 ms, 50 Hz
 DEG = math.pi / 180

@@ -3,6 +3,7 @@
 import os
 
 import pytest
+
 from thermod.drivers.usb_lookup import (
     by_id_links,
     find_tty,
@@ -11,7 +12,6 @@ from thermod.drivers.usb_lookup import (
     list_usb_devices,
     parse_usb_spec,
 )
-
 from thermod.errors import DeviceError
 
 

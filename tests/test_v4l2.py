@@ -7,10 +7,10 @@ import time
 import cv2
 import numpy as np
 import pytest
-from thermod.drivers.v4l2_camera import V4L2Camera, fourcc_code, fourcc_str, resolve_device
-from thermod.sim.emu_camera import EmuV4L2Device
 
+from thermod.drivers.v4l2_camera import V4L2Camera, fourcc_code, fourcc_str, resolve_device
 from thermod.errors import DeviceError
+from thermod.sim.emu_camera import EmuV4L2Device
 
 H, W = 512, 640
 

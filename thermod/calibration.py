@@ -84,7 +84,8 @@ class Calibration:
 
     def gyro_to_camera(self, t_gyro: np.ndarray, rate_gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw gyro samples → (camera-clock times, calibrated camera-frame rates, float64)."""
-        rate = (np.asarray(rate_gyro, np.float64) - np.asarray(self.bias_rad_s)) @ self.gyro_to_camera_matrix.T
+        unbiased = np.asarray(rate_gyro, np.float64) - np.asarray(self.bias_rad_s)
+        rate = unbiased @ self.gyro_to_camera_matrix.T
         return np.asarray(t_gyro, np.float64) + self.time_offset_s, rate
 
     def replace(self, **changes) -> Calibration:
