@@ -1,17 +1,17 @@
 """The simulated payload behind ``config/sim.toml``: a thermal camera and a gyro that see the SAME motion.
 
-- Camera: a loop of ``loop_s`` seconds pre-rendered by the simulator (`thermod.sim.synth.simulate`,
-  the fine-time microbolometer model, Eq. 10/11) and cached on disk as a format-v1 recording with
-  its truth. `SimCamera` plays it in real time: frame k is "read" at ``T0 + k/fps`` (host monotonic),
-  shows loop frame ``k mod N`` and is delivered when that time has come.
+- Camera: a loop of ``loop_s`` seconds pre-rendered once by the simulator and cached on disk
+  (`thermod.sim.playback`, the fine-time microbolometer model, Eq. 10/11). `SimCamera` plays it in
+  real time: frame k is "read" at ``T0 + k/fps`` (host monotonic), shows loop frame ``k mod N`` and
+  is delivered when that time has come.
 - Gyro: the REAL ICM-42688-P driver (`thermod.drivers.icm42688.ICM42688`) over the SPI bus seam on
   the register-level emulator (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at 1 kHz in
-  real time with the motion's rate at each tick: ``rate_fn(t) = R_gyro_cam · ω(t − T0)``.
+  real time with the loop motion's raw rate at each tick (`Playback.rate_gyro(t − T0)`).
 
-Both use one motion whose rate is periodic with period ``loop_s`` (a shake's sine frequencies are
-snapped to multiples of 1/loop_s; any other motion is wrapped), so the blur of every frame — also
-across the loop's seam — matches the gyro, and the deblurred stream can be checked against the
-truth: `truth_for(frame_id)` returns the sharp view of a delivered frame.
+The loop motion returns to its start orientation after ``loop_s`` (sway, or a shake's sine
+frequencies snapped to whole cycles per loop), so the blur of every frame — also across the loop's
+seam — matches the gyro, and the deblurred stream can be checked against the truth:
+`truth_for(frame_id)` returns the sharp view of a delivered frame.
 
 Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
 raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
@@ -20,52 +20,19 @@ overflow), reachable as ``payload.chip``.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import math
-import os
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from thermod import recording
 from thermod.calibration import Calibration
 from thermod.drivers.camera_base import CameraSource, Frame
-from thermod.errors import DeviceError, RecordingError
-from thermod.sim import motion as mo
+from thermod.errors import DeviceError
+from thermod.sim import playback
 
 log = logging.getLogger(__name__)
-
-CACHE_VERSION = 1
-
-
-class PeriodicMotion(mo.Motion):
-    """ω(t mod L): a motion made periodic so a looped recording and a live gyro agree at every time."""
-
-    def __init__(self, base: mo.Motion, period_s: float):
-        self.base, self.period_s = base, float(period_s)
-        self.spec = f"{base.spec}@{period_s:g}s"
-
-    def omega(self, t) -> np.ndarray:
-        return self.base.omega(np.mod(np.asarray(t, np.float64), self.period_s))
-
-
-def loop_motion(spec: str, period_s: float, seed: int = 0) -> mo.Motion:
-    """The payload's motion: sine motions snapped to whole cycles per loop (smooth and periodic),
-    anything else wrapped with `PeriodicMotion`."""
-    m = mo.parse(spec, seed)
-    if isinstance(m, mo.SumOfSines):
-        f = np.maximum(1.0, np.round(m.freqs * period_s)) / period_s
-        return mo.SumOfSines(f, m.amps, m.phases, spec=f"{m.spec}@{period_s:g}s")
-    return PeriodicMotion(m, period_s)
-
-
-def default_cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "thermod"
 
 
 class SimPayload:
@@ -74,12 +41,12 @@ class SimPayload:
 
     def __init__(self, sim_cfg, calib: Calibration):
         self.cfg, self.calib = sim_cfg, calib
-        self.motion = loop_motion(sim_cfg.motion, sim_cfg.loop_s, sim_cfg.seed)
-        key = json.dumps({"v": CACHE_VERSION, "sim": asdict(sim_cfg) | {"cache_dir": ""},
-                          "calib": calib.as_dict()}, sort_keys=True)
-        digest = hashlib.sha1(key.encode()).hexdigest()[:12]
-        cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else default_cache_dir()
-        self.cache_path = cache_dir / f"payload-{digest}.h5"
+        self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
+                                          seed=sim_cfg.seed,
+                                          calib=calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz))
+        self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None
+        self.cache_path = playback.cache_path(self.spec, self._cache_dir)
+        self.loop: playback.Playback | None = None
         self.frames: np.ndarray | None = None     # uint16 [N, H, W] (the loop)
         self.truth: np.ndarray | None = None      # float32 [N, H, W] sharp views
         self.t0: float | None = None              # host time of loop frame 0's read, first pass
@@ -93,40 +60,14 @@ class SimPayload:
 
     def prepare(self) -> None:
         """Load the pre-rendered loop from the cache, rendering (once, slowly) if it is missing."""
-        if self.frames is not None:
+        if self.loop is not None:
             return
-        if self.cached():
-            try:
-                rec = recording.read(self.cache_path)
-                self._adopt(rec)
-                return
-            except (RecordingError, KeyError, OSError) as e:
-                log.warning("payload cache %s unusable (%s); rendering again", self.cache_path, e)
-        self._render()
-
-    def _render(self) -> None:
-        from thermod.sim import synth
-
         t0 = time.monotonic()
-        c = self.cfg
-        rec = synth.simulate(scene=c.scene, motion=self.motion, seconds=c.loop_s, calib=self.calib,
-                             seed=c.seed, frame_rate=c.frame_rate_hz, t0=0.0, truth=True)
-        rec.extras = {"truth/frames": rec.extras["truth/frames"].astype(np.float32)}
-        self.cache_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.cache_path.with_suffix(f".tmp{os.getpid()}.h5")
-        recording.write(tmp, rec)
-        os.replace(tmp, self.cache_path)                # atomic: a half-written cache never exists
-        log.warning("simulated payload: rendered %d frames in %.0f s → %s", rec.n_frames,
-                    time.monotonic() - t0, self.cache_path)
-        self._adopt(rec)
-
-    def _adopt(self, rec: recording.Recording) -> None:
-        n = int(round(self.cfg.loop_s * self.cfg.frame_rate_hz))
-        if rec.frames.shape != (n, self.calib.height, self.calib.width) or "truth/frames" not in rec.extras:
-            raise RecordingError(self.cache_path, "camera/frames", f"expected {n} frames of "
-                                 f"{self.calib.height}×{self.calib.width} with truth/frames")
-        self.frames = np.ascontiguousarray(rec.frames)
-        self.truth = np.asarray(rec.extras["truth/frames"], np.float32)
+        self.loop = playback.load(self.spec, self._cache_dir)
+        self.frames = np.ascontiguousarray(self.loop.frames)
+        self.truth = np.asarray(self.loop.truth, np.float32)
+        log.info("simulated payload: %d-frame loop ready in %.1f s (%s)", len(self.frames),
+                 time.monotonic() - t0, self.cache_path)
 
     @property
     def n_frames(self) -> int:
@@ -151,11 +92,9 @@ class SimPayload:
         pass
 
     def _rate_fn(self, t: np.ndarray) -> np.ndarray:
-        # raw gyro-frame rate: ω_gyro = scale⁻¹ · R_cam_gyroᵀ · ω_cam + bias (the calibration inverted)
+        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock
         t0 = self.t0 if self.t0 is not None else 0.0
-        w_cam = self.motion.omega(np.asarray(t, np.float64) - t0)
-        c = self.calib
-        return (w_cam @ c.R_cam_gyro_matrix) / c.scale_vector + np.asarray(c.bias_rad_s)
+        return self.loop.rate_gyro(np.asarray(t, np.float64) - t0)
 
     def gyro_source(self):
         """The real ICM-42688-P driver on its SPI register emulator, fed by the payload's motion."""

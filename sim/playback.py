@@ -106,6 +106,11 @@ def cache_dir() -> Path:
     return Path(env) if env else Path.home() / ".cache" / "thermod"
 
 
+def cache_path(spec: PlaybackSpec, directory: str | os.PathLike | None = None) -> Path:
+    """Where the loop for `spec` is (or will be) cached."""
+    return (Path(directory) if directory is not None else cache_dir()) / f"playback-{spec.key()}.h5"
+
+
 def load(spec: PlaybackSpec | None = None, directory: str | os.PathLike | None = None,
          progress: bool = False) -> Playback:
     """The cached loop for `spec` (default `PlaybackSpec()`), rendering and caching it first if needed."""
@@ -117,8 +122,8 @@ def load(spec: PlaybackSpec | None = None, directory: str | os.PathLike | None =
     n = round(spec.seconds * spec.calib.frame_rate_hz)
     loop_s = n / spec.calib.frame_rate_hz
     motion = loop_motion(spec.motion, loop_s, spec.seed)
-    d = Path(directory) if directory is not None else cache_dir()
-    path = d / f"playback-{spec.key()}.h5"
+    path = cache_path(spec, directory)
+    d = path.parent
     if path.exists():
         try:
             rec = recording.read(path)

@@ -56,7 +56,7 @@ class SimConfig:
     frame_rate_hz: float = 50.0
     gyro_rate_hz: float = 1000.0
     gyro_noise_rad_s: float = 0.002
-    cache_dir: str = ""              # "" = $XDG_CACHE_HOME/thermod (or ~/.cache/thermod)
+    cache_dir: str = ""              # "" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback
 
 
 @dataclass(frozen=True)
