@@ -694,7 +694,7 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     signal on simulator recordings; largest for sharp-edged scenes). Candidates are tried when
     ``SSR > noise·(1 + structured_excess) + (½ model_tol·‖signal‖)²`` and the rest is called
     unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``; a candidate
-    must also remove at least (½ model_tol·‖signal‖)² of SSR.
+    must also remove at least (model_tol·‖signal‖)² of SSR.
     `min_explained`: a candidate must remove at least this
     fraction of the excess SSR. `bic_min`: decisive BIC gain on effective samples.
     """
@@ -734,8 +734,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         problem.n_eff = n_eff
         problem.named = [st["effect"] for st in ana.steps]
         # Practical significance too: what a candidate explains must exceed the forward model's own
-        # imprecision (½ model_tol of the motion signal), or it is fitting resampling error.
-        problem.min_gain = min_gain = (0.5 * model_tol) ** 2 * problem.signal_ss()
+        # imprecision (model_tol of the motion signal), or it is fitting resampling error.
+        problem.min_gain = min_gain = model_tol ** 2 * problem.signal_ss()
         diag = diagnostics(problem, model, ev)
         fits = []
         for name in remaining:
