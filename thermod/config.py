@@ -262,16 +262,18 @@ def _source(path: str, prefix: str, table: Any, kinds: tuple, schema: dict, chec
 
 
 # ------------------------------------------------------------------------------ sections
-def _calibration(path: str, table: Any) -> Calibration:
+def _calibration(path: str, table: Any, base: Calibration | None = None) -> Calibration:
+    """Validate a [calibration] table; keys it omits keep `base`'s values (default: the paper camera)."""
     s = _Section(path, "calibration", table)
-    d = Calibration()
+    d = base or Calibration()
     kw: dict[str, Any] = {}
     kw["width"] = s.pop("width", d.width, int, lo=8, hi=16384)
     kw["height"] = s.pop("height", d.height, int, lo=8, hi=16384)
     for k in ("fx", "fy"):
         kw[k] = s.pop(k, getattr(d, k), float, lo=0.0, lo_open=True)
-    kw["cx"] = s.pop("cx", (kw["width"] - 1) / 2.0, float, lo=-kw["width"], hi=2.0 * kw["width"])
-    kw["cy"] = s.pop("cy", (kw["height"] - 1) / 2.0, float, lo=-kw["height"], hi=2.0 * kw["height"])
+    cx0, cy0 = (d.cx, d.cy) if base is not None else ((kw["width"] - 1) / 2.0, (kw["height"] - 1) / 2.0)
+    kw["cx"] = s.pop("cx", cx0, float, lo=-kw["width"], hi=2.0 * kw["width"])
+    kw["cy"] = s.pop("cy", cy0, float, lo=-kw["height"], hi=2.0 * kw["height"])
     kw["tau_s"] = s.pop("tau_s", d.tau_s, float, lo=0.0, lo_open=True, hi=1.0)
     kw["frame_rate_hz"] = s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=0.0, lo_open=True, hi=10000.0)
     kw["wavelength_um"] = s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0)
@@ -296,6 +298,8 @@ def _calibration(path: str, table: Any) -> Calibration:
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
             raise s.fail("R_cam_gyro", "a rotation matrix (orthonormal, det +1)", v)
         kw["R_cam_gyro"] = tuple(tuple(float(x) for x in row) for row in R)
+    else:
+        kw["R_cam_gyro"] = d.R_cam_gyro
     s.done()
     return Calibration(**kw)
 
@@ -440,19 +444,34 @@ def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None
     configuration on another machine); recordings and key files are always checked.
     """
     p = default_path() if path is None else Path(path)
+    name, raw = str(p), _read_toml(p)
+    for k, v in (overrides or {}).items():
+        _apply_override(name, raw, k, v)
+    return parse(raw, name, check_devices=check_devices)
+
+
+def load_calibration(path: str | os.PathLike, base: Calibration | None = None) -> Calibration:
+    """The [calibration] table of a TOML file (a full configuration, or the `model.toml` written by
+    `thermod discrepancy`), validated as in `load`; keys it omits keep `base`'s values (e.g. the
+    calibration stored in the recording being processed). Other tables are ignored."""
+    p = Path(path)
+    raw = _read_toml(p)
+    if "calibration" not in raw:
+        raise ConfigError(f"{p}: no [calibration] table")
+    return _calibration(str(p), raw["calibration"], base)
+
+
+def _read_toml(p: Path) -> dict:
     name = str(p)
     try:
         with open(p, "rb") as f:
-            raw = tomllib.load(f)
+            return tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError(f"{name}: no such configuration file") from None
     except OSError as e:
         raise ConfigError(f"{name}: cannot read: {e.strerror}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{name}: not valid TOML: {e}") from None
-    for k, v in (overrides or {}).items():
-        _apply_override(name, raw, k, v)
-    return parse(raw, name, check_devices=check_devices)
 
 
 def parse_override(text: str) -> tuple[str, Any]:

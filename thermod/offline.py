@@ -57,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"kernel grid rows and columns for spatially varying deblurring "
                              f"(default {DEFAULT_GRID[0]} {DEFAULT_GRID[1]})")
     parser.add_argument("--no-psf", action="store_true", help="do not include the optical PSF (Eq. 19)")
+    parser.add_argument("--config", type=Path, default=None, metavar="TOML",
+                        help="take the calibration from this file's [calibration] table (e.g. the "
+                             "model.toml of `thermod discrepancy`); keys it omits keep the recording's")
     parser.add_argument("--min-coverage", type=float, default=MIN_COVERAGE,
                         help=f"pass a frame through when its gyro window coverage is below this "
                              f"(default {MIN_COVERAGE})")
@@ -126,8 +129,16 @@ class _FrameDeblurrer:
         return self.dec.run_varying(rec.frames[i], g), ""
 
 
-def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
+def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar, config: Path | None = None) -> dict:
     rec = recording.read(src)
+    if config is not None:
+        from thermod.config import load_calibration
+
+        c = load_calibration(config, base=rec.calibration)
+        if (c.height, c.width) != rec.frames.shape[1:]:
+            raise ThermodError(f"{config}: calibration is {c.width}×{c.height} but {src} has "
+                               f"{rec.frames.shape[2]}×{rec.frames.shape[1]} frames")
+        rec.calibration = c  # deblur with it; the output's /camera and /gyro attrs record it too
     try:
         return _deblur_recording(rec, src, dst, fd, bar)
     except OSError as e:  # output side: full disk, permissions, missing directory …
@@ -192,7 +203,7 @@ def run(args) -> int:
     with tqdm(total=0, unit="frame", desc="thermod deblur", disable=None, file=sys.stderr) as bar:
         for src, dst in zip(args.inputs, outs, strict=True):
             try:
-                reports.append(_deblur_file(src, dst, fd, bar))
+                reports.append(_deblur_file(src, dst, fd, bar, args.config))
             except RecordingError as e:
                 if len(outs) == 1:
                     raise
