@@ -16,11 +16,11 @@ import statistics
 import time
 
 import numpy as np
-from thermod.sim import motion as mo
-from thermod.sim.synth import simulate
 
 from thermod import discrepancy as D
 from thermod.calibration import Calibration
+from thermod.sim import motion as mo
+from thermod.sim.synth import simulate
 
 
 class _Ramped(mo.Motion):
