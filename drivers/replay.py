@@ -33,7 +33,6 @@ import h5py
 import numpy as np
 
 from thermod import recording as recmod
-from thermod.calibration import Calibration
 from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.drivers.gyro_base import GyroBatch, GyroSource
 from thermod.errors import DeviceError, RecordingError
@@ -66,43 +65,8 @@ class _LazyFrames:
 
 def _load(path: Path):
     """Times, gyro samples and calibration in memory; frames lazily. Validated like recording.read."""
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise RecordingError(path, "file", "does not exist") from None
-    except OSError as e:
-        raise RecordingError(path, "file", f"not a readable HDF5 file ({e})") from None
-    with f:
-        fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        if fmt != recmod.FORMAT:
-            raise RecordingError(path, "/.attrs['format']", f"expected {recmod.FORMAT!r}, got {fmt!r}")
-        ver = f.attrs.get("version")
-        ver = ver.item() if isinstance(ver, np.generic) else ver
-        if not isinstance(ver, int | float) or ver != recmod.VERSION:
-            raise RecordingError(path, "/.attrs['version']", f"expected {recmod.VERSION}, got {ver!r}")
-        for name in ("camera/frames", "camera/t", "gyro/t", "gyro/rate"):
-            if name not in f or not isinstance(f[name], h5py.Dataset):
-                raise RecordingError(path, name, "dataset missing")
-        cam = dict(f["camera"].attrs)
-        gyr = dict(f["gyro"].attrs)
-        for group, attrs, keys in (("camera", cam, recmod.REQUIRED_CAMERA_ATTRS),
-                                   ("gyro", gyr, recmod.REQUIRED_GYRO_ATTRS)):
-            for k in keys:
-                if k not in attrs:
-                    raise RecordingError(path, f"{group}.attrs['{k}']", "attribute missing")
-        try:
-            calib = Calibration.from_attrs(cam, gyr)
-        except (ValueError, TypeError) as e:
-            raise RecordingError(path, "camera/gyro attrs", str(e)) from None
-        t = np.asarray(f["camera/t"][()], np.float64)
-        gyro_t = np.asarray(f["gyro/t"][()], np.float64)
-        gyro_rate = np.asarray(f["gyro/rate"][()])
-        fshape, fdtype = f["camera/frames"].shape, f["camera/frames"].dtype
-    # The checks of a full read, with a zero-stride stand-in of the right shape and dtype for the frames.
-    stub = np.broadcast_to(np.zeros((), fdtype), fshape)
-    recmod.Recording(stub, t, gyro_t, gyro_rate, calib).validate(path)
-    return t, gyro_t, gyro_rate.astype(np.float32, copy=False), calib
+    t, gyro_t, gyro_rate, calib = recmod.read_timeline(path)
+    return t, gyro_t, gyro_rate, calib
 
 
 class ReplaySession:

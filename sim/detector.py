@@ -61,26 +61,10 @@ def _fold(x, n):
 
 
 @njit(cache=True, nogil=True)
-def _sphere_maps(M, wc, hc, fxs, fys, cxs, cys, ws, hs):
-    """remap() coordinates into the scene texture for a canvas whose pixel (u, v) looks along
-    d = M (u, v, 1) in world (M = R_ref K_c⁻¹): azimuth/elevation at fxs, fys px/rad."""
-    mx = np.empty((hc, wc), np.float32)
-    my = np.empty((hc, wc), np.float32)
-    for v in range(hc):
-        for u in range(wc):
-            dx = M[0, 0] * u + M[0, 1] * v + M[0, 2]
-            dy = M[1, 0] * u + M[1, 1] * v + M[1, 2]
-            dz = M[2, 0] * u + M[2, 1] * v + M[2, 2]
-            az = math.atan2(dx, dz)
-            el = math.atan2(dy, math.sqrt(dx * dx + dz * dz))
-            mx[v, u] = _fold(cxs + fxs * az, ws)
-            my[v, u] = _fold(cys + fys * el, hs)
-    return mx, my
-
-
-@njit(cache=True, nogil=True)
 def _sphere_maps_rows(Ms, wc, fxs, fys, cxs, cys, ws, hs):
-    """As _sphere_maps with one M = R(t_r) K⁻¹ per row (a rolling-readout view)."""
+    """remap() coordinates into the scene texture for a canvas whose pixel (u, v) of row v looks
+    along d = Ms[v] (u, v, 1) in world (Ms[v] = R(t_v) K_c⁻¹: one matrix per row for a rolling-readout
+    view, the same one for a global view): azimuth/elevation at fxs, fys px/rad."""
     hc = Ms.shape[0]
     mx = np.empty((hc, wc), np.float32)
     my = np.empty((hc, wc), np.float32)
@@ -111,9 +95,9 @@ class SphereScene:
 
     def view(self, R: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
         """The pinhole view (float32 [height, width]) at orientation R with intrinsics K."""
-        M = np.ascontiguousarray(R @ np.linalg.inv(K))
-        mx, my = _sphere_maps(M, int(width), int(height), self.fx, self.fy, self.cx, self.cy,
-                              self.texture.shape[1], self.texture.shape[0])
+        Ms = np.repeat((R @ np.linalg.inv(K))[None], int(height), axis=0)  # one M for every row
+        mx, my = _sphere_maps_rows(Ms, int(width), self.fx, self.fy, self.cx, self.cy,
+                                   self.texture.shape[1], self.texture.shape[0])
         return cv2.remap(self.texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
 
     def rolling_view(self, Rs: np.ndarray, K: np.ndarray, width: int) -> np.ndarray:

@@ -104,8 +104,8 @@ def _read_dataset(path, f, name):
     return f[name][()]
 
 
-def read(path: str | os.PathLike) -> Recording:
-    """Read and validate a format-v1 recording."""
+def open_file(path: str | os.PathLike) -> h5py.File:
+    """Open a recording read-only after checking that it is format v1 (caller closes it)."""
     path = Path(path)
     try:
         f = h5py.File(path, "r")
@@ -113,33 +113,59 @@ def read(path: str | os.PathLike) -> Recording:
         raise RecordingError(path, "file", "does not exist") from None
     except OSError as e:
         raise RecordingError(path, "file", f"not a readable HDF5 file ({e})") from None
-    with f:
-        fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        if fmt != FORMAT:
-            raise RecordingError(path, "/.attrs['format']", f"expected {FORMAT!r}, got {fmt!r}")
-        ver = f.attrs.get("version")
-        ver = ver.item() if isinstance(ver, np.generic) else ver
-        if not isinstance(ver, (int, float)) or int(ver) != VERSION:
-            raise RecordingError(path, "/.attrs['version']", f"expected {VERSION}, got {ver!r}")
-        cam = _read_attrs(path, f, "camera", REQUIRED_CAMERA_ATTRS)
-        gyr = _read_attrs(path, f, "gyro", REQUIRED_GYRO_ATTRS)
-        try:
-            calib = Calibration.from_attrs(cam, gyr)
-        except (ValueError, TypeError) as e:
-            raise RecordingError(path, "camera/gyro attrs", str(e)) from None
+    fmt = f.attrs.get("format")
+    fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+    ver = f.attrs.get("version")
+    ver = ver.item() if isinstance(ver, np.generic) else ver
+    if fmt != FORMAT:
+        f.close()
+        raise RecordingError(path, "/.attrs['format']", f"expected {FORMAT!r}, got {fmt!r}")
+    if not isinstance(ver, (int, float)) or int(ver) != VERSION:
+        f.close()
+        raise RecordingError(path, "/.attrs['version']", f"expected {VERSION}, got {ver!r}")
+    return f
+
+
+def _read_timeline(path, f):
+    cam = _read_attrs(path, f, "camera", REQUIRED_CAMERA_ATTRS)
+    gyr = _read_attrs(path, f, "gyro", REQUIRED_GYRO_ATTRS)
+    try:
+        calib = Calibration.from_attrs(cam, gyr)
+    except (ValueError, TypeError) as e:
+        raise RecordingError(path, "camera/gyro attrs", str(e)) from None
+    t = np.asarray(_read_dataset(path, f, "camera/t"), dtype=np.float64)
+    gyro_t = np.asarray(_read_dataset(path, f, "gyro/t"), dtype=np.float64)
+    gyro_rate = _read_dataset(path, f, "gyro/rate")
+    if gyro_rate.dtype != np.float32 and np.issubdtype(gyro_rate.dtype, np.floating):
+        gyro_rate = gyro_rate.astype(np.float32)
+    return calib, t, gyro_t, gyro_rate
+
+
+def read_timeline(path: str | os.PathLike):
+    """(frame times, gyro times, gyro rates, calibration) of a recording, validated as by `read`,
+    without loading the frames (for replay, which reads them one at a time)."""
+    path = Path(path)
+    with open_file(path) as f:
+        calib, t, gyro_t, gyro_rate = _read_timeline(path, f)
+        if "camera/frames" not in f or not isinstance(f["camera/frames"], h5py.Dataset):
+            raise RecordingError(path, "camera/frames", "dataset missing")
+        frames = f["camera/frames"]
+        stand_in = np.broadcast_to(np.zeros((), frames.dtype), frames.shape)  # shape and dtype only
+    Recording(stand_in, t, gyro_t, gyro_rate, calib).validate(path)
+    return t, gyro_t, gyro_rate, calib
+
+
+def read(path: str | os.PathLike) -> Recording:
+    """Read and validate a format-v1 recording."""
+    path = Path(path)
+    with open_file(path) as f:
+        calib, t, gyro_t, gyro_rate = _read_timeline(path, f)
         frames = _read_dataset(path, f, "camera/frames")
-        t = np.asarray(_read_dataset(path, f, "camera/t"), dtype=np.float64)
-        gyro_t = np.asarray(_read_dataset(path, f, "gyro/t"), dtype=np.float64)
-        gyro_rate = _read_dataset(path, f, "gyro/rate")
-        if gyro_rate.dtype != np.float32 and np.issubdtype(gyro_rate.dtype, np.floating):
-            gyro_rate = gyro_rate.astype(np.float32)
         deb = deb_t = None
         if "deblurred" in f:
             deb = _read_dataset(path, f, "deblurred/frames")
             deb_t = np.asarray(_read_dataset(path, f, "deblurred/t"), dtype=np.float64)
         extras, extra_attrs = {}, {}
-
         known = {"camera/frames", "camera/t", "gyro/t", "gyro/rate", "deblurred/frames", "deblurred/t"}
 
         def visit(name, obj):
