@@ -228,6 +228,11 @@ def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
     rep = D.write_report(ana, tmp_path, ["pan.h5"])
     assert rep["unobservable"] == {"gyro_scale": ["scale[0]", "scale[2]"]}
     assert "Not observable with this motion" in (tmp_path / "report.md").read_text()
+    # model.toml is a whole configuration: `thermod run --config` and `thermod deblur --config` take it
+    from thermod import config
+    fitted = config.load(tmp_path / "model.toml", check_devices=False).calibration
+    assert fitted.scale_vector[1] == pytest.approx(s[1]) and fitted.width == NOMINAL.width
+    assert config.load_calibration(tmp_path / "model.toml") == fitted
 
 
 # ------------------------------------------------------------------ deblurring with the fitted model

@@ -952,8 +952,9 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
 def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str | None = None) -> dict:
     """DIR/report.json, report.md, model.toml and the figures; returns the JSON report.
 
-    model.toml is `config_text` (a full thermod configuration) with its [calibration] table replaced,
-    or just the [calibration] table when there is none.
+    model.toml is `config_text` (a full thermod configuration; default: the packaged simulated-payload
+    configuration) with its [calibration] table replaced, so it is ready for `thermod run --config`
+    as well as `thermod deblur --config` (which reads only the table).
     """
     out = Path(out)
     try:
@@ -964,8 +965,10 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     rep["inputs"] = [str(p) for p in inputs]
     (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=True) + "\n")
     final = ana.model.final_calibration()
-    (out / "model.toml").write_text(calibration_toml(final) if config_text is None
-                                    else replace_calibration_table(config_text, final))
+    if config_text is None:
+        from thermod.config import default_path
+        config_text = default_path().read_text()
+    (out / "model.toml").write_text(replace_calibration_table(config_text, final))
     figs = _figures(ana, out)
     md = ["# thermod discrepancy report", "", f"Inputs: {', '.join(rep['inputs'])}", "",
           f"- gap: {ana.gap_initial:.4f} (nominal) → {ana.gap_final:.4f} (final); "
