@@ -161,3 +161,16 @@ def test_overrides_are_validated_like_the_file():
     assert config.parse_override("publish.raw=true") == ("publish.raw", True)
     with pytest.raises(ConfigError, match="expected KEY=VALUE"):
         config.parse_override("deblur.method")
+
+
+def test_v4l2_telemetry_rows_and_clock_reach_the_driver():
+    from thermod.daemon import build_camera
+
+    over = {"sources.camera.telemetry_top": 2, "sources.camera.timestamp_clock": "device"}
+    cfg = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False, overrides=over)
+    cam = build_camera(cfg)                   # constructing opens nothing: start() does
+    assert (cam.top, cam.bottom, cam.raw_height) == (2, 0, 514)
+    assert cam.timestamp_clock == "device"
+    with pytest.raises(ConfigError, match="sources.camera.timestamp_clock"):
+        config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False,
+                    overrides={"sources.camera.timestamp_clock": "wall"})

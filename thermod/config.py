@@ -203,7 +203,7 @@ _FS = (125, 250, 500, 1000, 2000)
 _GYRO_SCHEMA: dict[str, tuple[str | None, dict]] = {
     "sim": (None, {}),
     "replay": ("recording", {"loop": (bool, True, None, None, None),
-                             "speed": (float, 1.0, 0.01, 100.0, None)}),
+                             "speed": (float, 1.0, 0.01, float("inf"), None)}),  # inf = as fast as possible
     "icm42688_spi": ("device file", {"speed_hz": (int, 10_000_000, 100_000, 24_000_000, None),
                                      "odr_hz": (int, 1000, None, None, _ODR),
                                      "full_scale_dps": (int, 2000, None, None, _FS)}),
@@ -226,7 +226,7 @@ _GYRO_SCHEMA: dict[str, tuple[str | None, dict]] = {
 _CAMERA_SCHEMA: dict[str, tuple[str | None, dict]] = {
     "sim": (None, {}),
     "replay": ("recording", {"loop": (bool, True, None, None, None),
-                             "speed": (float, 1.0, 0.01, 100.0, None)}),
+                             "speed": (float, 1.0, 0.01, float("inf"), None)}),  # inf = as fast as possible
     # Aravis opens by device id or IP address: not a file.
     "aravis": ("id", {"pixel_format": (str, "Mono16", None, None, ("Mono16", "Mono14", "Mono12")),
                       "packet_size": (int, 0, 0, 9000, None),
@@ -234,7 +234,12 @@ _CAMERA_SCHEMA: dict[str, tuple[str | None, dict]] = {
                       "stream_timeout_s": (float, 1.0, 0.01, 60.0, None)}),
     "v4l2": ("device file", {"width": (int, 640, 1, 8192, None), "height": (int, 480, 1, 8192, None),
                              "fourcc": (str, "Y16 ", None, None, None),
-                             "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None)}),
+                             "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None),
+                             # rows the camera adds to each image (FLIR Boson telemetry: 2), stripped
+                             "telemetry_top": (int, 0, 0, 64, None),
+                             "telemetry_bottom": (int, 0, 0, 64, None),
+                             "timestamp_clock": (str, "auto", None, None, ("auto", "monotonic", "device")),
+                             "timestamp_offset_s": (float, 0.0, -1.0, 1.0, None)}),
 }
 
 

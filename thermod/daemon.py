@@ -161,7 +161,9 @@ def _build_camera(cfg: configmod.Config, payload=None):
     if c.kind == "v4l2":
         from thermod.drivers.v4l2_camera import V4L2Camera
         return V4L2Camera(c.device, width=o["width"], height=o["height"], fourcc=o["fourcc"],
-                          frame_rate_hz=o["frame_rate_hz"] or None)
+                          frame_rate_hz=o["frame_rate_hz"] or None,
+                          telemetry_rows=(o["telemetry_top"], o["telemetry_bottom"]),
+                          timestamp_clock=o["timestamp_clock"], timestamp_offset_s=o["timestamp_offset_s"])
     raise ConfigError(f"{cfg.path}: sources.camera.kind: no driver for {c.kind!r}")
 
 
