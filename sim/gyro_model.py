@@ -119,8 +119,7 @@ class GyroErrorModel:
             w_cam = self._lowpassed(omega_cam, t_true, rate)
         else:
             w_cam = np.asarray(omega_cam(t_true), dtype=np.float64).reshape(n, 3)
-        M = calib.gyro_to_camera_matrix
-        w_gyro = np.linalg.solve(M, w_cam.T).T + np.asarray(calib.bias_rad_s, float)
+        w_gyro = calib.camera_to_gyro(w_cam)
         err = np.zeros((n, 3))
         if self.noise_rms_deg_s > 0:
             err += self.noise_rms_deg_s * DEG * rng.standard_normal((n, 3))

@@ -98,7 +98,7 @@ class Playback:
         with the TRUE calibration), for a real-time emulator to sample and add its own noise to."""
         c = self.true_calib
         w = self.omega_camera(t)
-        return np.linalg.solve(c.gyro_to_camera_matrix, w.T).T + np.asarray(c.bias_rad_s)
+        return c.camera_to_gyro(w)
 
 
 def cache_dir() -> Path:

@@ -21,6 +21,15 @@ def test_gyro_to_camera_applies_bias_scale_rotation_offset():
     assert np.allclose(w[0], [0.0, 1.0, 0.0], atol=1e-12)  # (0.6−0.1)·2 about gyro x → camera y
 
 
+def test_camera_to_gyro_inverts_gyro_to_camera():
+    c = Calibration(bias_rad_s=(0.01, -0.02, 0.005), scale=(1.02, 0.97, 1.1))
+    c = c.with_misalignment([0.02, -0.01, 0.3])
+    w_cam = np.random.default_rng(0).normal(size=(7, 3))
+    _, back = c.gyro_to_camera(np.zeros(7), c.camera_to_gyro(w_cam))
+    assert np.allclose(back, w_cam, atol=1e-12)
+    assert c.camera_to_gyro(w_cam[0]).shape == (3,)
+
+
 def test_attrs_roundtrip():
     c = Calibration(readout_s=0.01, scale=(1.0, 1.01, 0.99), bias_rad_s=(1e-3, 2e-3, 3e-3)).with_misalignment(
         [0.01, 0.0, -0.02])

@@ -88,6 +88,13 @@ class Calibration:
         rate = unbiased @ self.gyro_to_camera_matrix.T
         return np.asarray(t_gyro, np.float64) + self.time_offset_s, rate
 
+    def camera_to_gyro(self, rate_cam: np.ndarray) -> np.ndarray:
+        """Inverse of the rate part of `gyro_to_camera`: what an ideal gyro reads (gyro frame, with
+        its bias) for camera-frame rates [n, 3] — ω_gyro = (R_cam_gyro · scale)⁻¹ ω_cam + bias."""
+        w = np.asarray(rate_cam, np.float64)
+        g = np.linalg.solve(self.gyro_to_camera_matrix, w.reshape(-1, 3).T).T + np.asarray(self.bias_rad_s)
+        return g.reshape(w.shape)
+
     def replace(self, **changes) -> Calibration:
         return dataclasses.replace(self, **changes)
 
