@@ -495,6 +495,19 @@ def _offsets(Q, px, py, fx, fy, cx, cy):
 
 
 @njit(cache=True, nogil=True)
+def _cell(v):
+    """(integer cell, fraction) of a coordinate, snapped so that exact integers give a single cell,
+    not a zero-weight neighbour."""
+    fl = math.floor(v)
+    f = v - fl
+    if f > 1.0 - 1e-9:
+        return int(fl) + 1, 0.0
+    if f < 1e-9:
+        return int(fl), 0.0
+    return int(fl), f
+
+
+@njit(cache=True, nogil=True)
 def _splat(u, w, max_size):
     """Bilinear splat of weights w at offsets u into a tight float64 array; returns (k, oy, ox, status)."""
     n = u.shape[0]
@@ -507,24 +520,8 @@ def _splat(u, w, max_size):
     xmax = -(1 << 40)
     ymax = -(1 << 40)
     for i in range(n):
-        fl = math.floor(u[i, 0])
-        f = u[i, 0] - fl
-        if f > 1.0 - 1e-9:   # snap so that exact integers give a single cell, not a zero neighbour
-            fl += 1.0
-            f = 0.0
-        elif f < 1e-9:
-            f = 0.0
-        ix[i] = int(fl)
-        fxs[i] = f
-        fl = math.floor(u[i, 1])
-        f = u[i, 1] - fl
-        if f > 1.0 - 1e-9:
-            fl += 1.0
-            f = 0.0
-        elif f < 1e-9:
-            f = 0.0
-        iy[i] = int(fl)
-        fys[i] = f
+        ix[i], fxs[i] = _cell(u[i, 0])
+        iy[i], fys[i] = _cell(u[i, 1])
         if w[i] == 0.0:
             continue
         xmin = min(xmin, ix[i])
