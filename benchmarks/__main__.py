@@ -29,7 +29,9 @@ def main(argv=None) -> int:
         return 2
     failed = []
     for name in args.names or list(available):
-        cmd = [sys.executable, str(available[name])] + (["--quick"] if args.quick else [])
+        script = available[name]
+        quick = args.quick and "--quick" in script.read_text()  # only suites that define the option
+        cmd = [sys.executable, str(script)] + (["--quick"] if quick else [])
         print(f"\n## {name}\n", flush=True)
         t0 = time.monotonic()
         rc = subprocess.call(cmd, cwd=HERE.parent)
