@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.drivers.camera_base import as_uint16_image
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 
 
 def bench_aravis(rates, seconds):

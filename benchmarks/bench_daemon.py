@@ -52,7 +52,7 @@ def cpu_s(pid: int) -> float:
 
 
 def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> dict:
-    from thermod.publish import Subscriber
+    from thermod.runtime.publish import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
     cmd = [str(THERMOD), "run", "--endpoint", ep, "--set", f"deblur.method={method}",
@@ -136,7 +136,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False) -> d
 
 def payload_cpu(seconds: float) -> dict:
     """The simulated payload alone (camera loop + ICM-42688-P driver on its emulator), no pipeline."""
-    from thermod import config
+    from thermod.runtime import config
     from thermod.sim.payload import SimPayload
 
     cfg = config.load()

@@ -1,4 +1,4 @@
-"""Deconvolution speed: thermod.deconv beside a plain NumPy/SciPy K&F of the same algorithm.
+"""Deconvolution speed: thermod.physics.deconv beside a plain NumPy/SciPy K&F of the same algorithm.
 
     .venv/bin/python benchmarks/bench_deconv.py [--quick]
 
@@ -27,8 +27,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.fft  # noqa: E402
 
-from thermod import deconv  # noqa: E402
-from thermod.kernels import Kernel, blur  # noqa: E402
+from thermod.physics import deconv  # noqa: E402
+from thermod.physics.kernels import Kernel, blur  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "thermal"
 

@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from thermod import discrepancy as D
-from thermod.calibration import Calibration
+from thermod.calib import discrepancy as D
+from thermod.physics.calibration import Calibration
 from thermod.sim import motion as mo
 from thermod.sim.synth import simulate
 

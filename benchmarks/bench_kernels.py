@@ -23,8 +23,8 @@ os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(os.path.dirname(__file__),
 
 import numpy as np  # noqa: E402
 
-from thermod import kernels as K  # noqa: E402
-from thermod.calibration import Calibration  # noqa: E402
+from thermod.physics import kernels as K  # noqa: E402
+from thermod.physics.calibration import Calibration  # noqa: E402
 
 
 def timeit(fn, repeats: int, inner: int = 1) -> np.ndarray:

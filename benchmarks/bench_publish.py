@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from thermod.publish import Publisher, Subscriber
+from thermod.runtime.publish import Publisher, Subscriber
 
 H, W = 512, 640
 

@@ -39,8 +39,11 @@ import numpy as np  # noqa: E402
 from skimage import restoration  # noqa: E402
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # noqa: E402
 
-from thermod import deconv, kernels  # noqa: E402
-from thermod.calibration import Calibration  # noqa: E402
+from thermod.physics import (
+    deconv,  # noqa: E402
+    kernels,
+)
+from thermod.physics.calibration import Calibration  # noqa: E402
 from thermod.sim import motion as mo  # noqa: E402
 from thermod.sim import synth  # noqa: E402
 from thermod.sim.gyro_model import GyroErrorModel  # noqa: E402
@@ -223,7 +226,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-skimage", action="store_true", help="skip the scikit-image baselines")
     ap.add_argument("--out", type=Path, default=HERE / "results", help="directory for quality.md/png")
     args = ap.parse_args(argv)
-    from thermod.offline import DEFAULT_GRID
+    from thermod.cli.deblur import DEFAULT_GRID
 
     n_sc = min(args.scenes or (2 if args.quick else 6), len(SCENES))
     n_fr = args.frames or (1 if args.quick else 2)

@@ -24,7 +24,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(os.path.dirname(__file__),
 
 import numpy as np  # noqa: E402
 
-from thermod.calibration import Calibration  # noqa: E402
+from thermod.physics.calibration import Calibration  # noqa: E402
 from thermod.sim import detector, motion, scenes  # noqa: E402
 
 

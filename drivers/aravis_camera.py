@@ -3,7 +3,7 @@
 Opens by IP address or by device id/serial (after ``Aravis.update_device_list()``), sets Mono16 (or
 Mono14 in 16-bit containers), region, frame rate and GVSP packet size explicitly, and streams into a
 buffer pool sized for bursts. Device timestamps (``ArvBuffer.get_timestamp()``, ns) are mapped to host
-CLOCK_MONOTONIC by :class:`thermod.clock.ClockMapper`; 16-bit block ids are unwrapped and gaps counted;
+CLOCK_MONOTONIC by `ClockMapper`; 16-bit block ids are unwrapped and gaps counted;
 buffers whose status is not SUCCESS are counted and dropped.
 
 Loss of the camera (``control-lost`` from the heartbeat, or a silent stream that no longer answers a
@@ -22,9 +22,9 @@ import threading
 import time
 from collections import deque
 
-from thermod.clock import ClockMapper
 from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker, as_uint16_image
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 GVCP_PORT = 3956
 _GVCP_DISCOVERY_CMD = 0x0002

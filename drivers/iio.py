@@ -13,7 +13,7 @@ largest element; ``*_type`` is ``[be|le]:[s|u]bits/storagebits[Xrepeat]>>shift``
 (rad/s; per-channel ``in_anglvel_x_scale`` wins when present).
 
 Timing: samples are counted (sequence = device clock) and mapped to host time by
-:class:`thermod.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
+:class:`thermod.runtime.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
 (the data-ready interrupt time, never earlier than the sample) or, without a timestamp channel,
 the time the read returned. The kernel drops new samples silently when its buffer is full; the
 timestamps show the hole (``gap_before``, ``n_lost``). Both roots are injectable (``sysfs_root``,
@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.clock import ClockMapper
 from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
+from thermod.runtime.clock import ClockMapper
 
 TYPE_RE = re.compile(r"^(be|le):([su])(\d+)/(\d+)(?:X(\d+))?>>(\d+)$")
 AXES = ("x", "y", "z")

@@ -32,10 +32,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod import recording as recmod
 from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.drivers.gyro_base import GyroBatch, GyroSource
 from thermod.errors import DeviceError, RecordingError
+from thermod.io import recording as recmod
 
 _SESSIONS: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
 _SESSIONS_LOCK = threading.Lock()
@@ -75,7 +75,7 @@ class ReplaySession:
     Parameters
     ----------
     source
-        A recording path, or an in-memory :class:`thermod.recording.Recording`.
+        A recording path, or an in-memory :class:`thermod.io.recording.Recording`.
     speed
         Pacing factor (1 = real time; ``math.inf`` = as fast as possible, lockstep).
     loop

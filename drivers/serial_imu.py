@@ -17,7 +17,7 @@ A frame is accepted only when its CRC matches; a bad CRC counts ``crc_errors`` a
 the next sync resumes one byte after the rejected sync (a corrupted length must not swallow good
 frames). Bytes that are not part of a frame count as ``garbage_bytes``. Gaps in ``seq`` are lost
 frames (``gap_before``, ``n_lost``). Sample times come from the device timestamps (unwrapped µs)
-mapped to host time by :class:`thermod.clock.ClockMapper`, fed with the time each read returned.
+mapped to host time by :class:`thermod.runtime.clock.ClockMapper`, fed with the time each read returned.
 
 The port is a path (``/dev/serial/by-id/usb-FTDI_…-if00-port0`` survives re-enumeration; so does
 ``usb:VID:PID[:SERIAL]``, resolved through :mod:`thermod.drivers.usb_lookup` at every (re)open).
@@ -33,9 +33,9 @@ import time
 
 import numpy as np
 
-from thermod.clock import ClockMapper
 from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 SYNC = b"\xa5\x5a"
 TYPE_F32, TYPE_I16 = 1, 2
@@ -330,4 +330,4 @@ class SerialIMU(GyroSource):
         return batches
 
 
-SerialGyro = SerialIMU      # the name thermod.daemon builds "serial" gyro sources with
+SerialGyro = SerialIMU      # the name thermod.runtime.daemon builds "serial" gyro sources with

@@ -9,11 +9,11 @@ Setup order matters for 16-bit raw: FOURCC ``"Y16 "`` first, then ``CONVERT_RGB 
 converts to 8-bit BGR), then width/height/fps, each read back. Some OpenCV builds hand Y16 frames over
 as flat uint8 bytes ([1, 2N], [H, 2W], ...): :func:`~thermod.drivers.camera_base.as_uint16_image`
 reshapes them. ``CAP_PROP_POS_MSEC`` is the V4L2 buffer timestamp (kernel clock, ms): mapped to host
-CLOCK_MONOTONIC by :class:`thermod.clock.ClockMapper`. V4L2 sequence numbers are not exposed by OpenCV,
+CLOCK_MONOTONIC by `ClockMapper`. V4L2 sequence numbers are not exposed by OpenCV,
 so lost frames are counted from timestamp gaps. Most V4L2 drivers stamp buffers on CLOCK_MONOTONIC
 (``V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC``): then the timestamp already is host time and is used as is
 (``timestamp_clock="auto"`` detects this on the first frame); otherwise (UVC hardware clock, another
-clock) it is mapped by :class:`thermod.clock.ClockMapper`. Cameras with telemetry lines (FLIR Boson 640×514 =
+clock) it is mapped by `ClockMapper`. Cameras with telemetry lines (FLIR Boson 640×514 =
 640×512 image + 2 telemetry rows) have them stripped: ``telemetry_rows=(top, bottom)``.
 """
 
@@ -28,9 +28,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from thermod.clock import ClockMapper
 from thermod.drivers.camera_base import CameraSource, Frame, as_uint16_image
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 FOURCC_Y16 = "Y16 "
 

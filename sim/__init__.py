@@ -5,7 +5,7 @@
                and its integration into orientations R(t)
 - `detector`   the fine-time microbolometer (and photon-detector) renderer: the truth
 - `gyro_model` raw gyro samples with a realistic error budget, in the gyro frame and clock
-- `synth`      `simulate(...) -> thermod.recording.Recording` with hidden calibration effects
+- `synth`      `simulate(...) -> thermod.io.recording.Recording` with hidden calibration effects
 - `playback`   a pre-rendered looping sequence for the real-time simulated payload
 - `cli`        `thermod sim`
 

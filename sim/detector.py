@@ -35,8 +35,8 @@ import cv2
 import numpy as np
 from numba import njit
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.physics.calibration import Calibration
 from thermod.sim.motion import Trajectory
 from thermod.sim.scenes import COUNTS_PER_K
 

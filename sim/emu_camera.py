@@ -24,9 +24,9 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from thermod.clock import ClockMapper
 from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 FrameProvider = Callable[[float], np.ndarray]
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.physics.calibration import Calibration
 
 DEG = math.pi / 180.0
 

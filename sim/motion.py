@@ -397,7 +397,7 @@ class Trajectory:
 
     Motion time is `t − t_ref`. ω is sampled on a uniform grid (`dt`, default 50 µs, coarsened for
     spans over 200 s to keep the grid ≤ 4 M points) and integrated with the trapezoid rule, the
-    same rate semantics as the renderers (thermod.geometry.integrate_rotations).
+    same rate semantics as the renderers (thermod.physics.geometry.integrate_rotations).
     """
 
     def __init__(self, motion: Motion, t_ref: float, t_start: float, t_end: float, dt: float = 5e-5):

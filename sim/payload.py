@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.calibration import Calibration
 from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.errors import DeviceError
+from thermod.physics.calibration import Calibration
 from thermod.sim import playback
 
 log = logging.getLogger(__name__)

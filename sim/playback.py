@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.errors import RecordingError, ThermodError
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 from thermod.sim import motion as mo
 
 log = logging.getLogger(__name__)

@@ -36,9 +36,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
-from thermod.recording import Recording
+from thermod.io.recording import Recording
+from thermod.physics.calibration import Calibration
 from thermod.sim import detector as det
 from thermod.sim import motion as mo
 from thermod.sim import scenes

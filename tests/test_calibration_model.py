@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from thermod.calibration import Calibration
-from thermod.geometry import so3_exp
-from thermod.model import iir_alpha, photon_average, thermal_response, thermal_weights
+from thermod.physics.calibration import Calibration
+from thermod.physics.detector import iir_alpha, photon_average, thermal_response, thermal_weights
+from thermod.physics.geometry import so3_exp
 
 
 def test_psf_sigma_matches_design_example():

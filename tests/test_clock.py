@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from thermod.clock import ClockMapper
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 
 def fifo_reads(seconds, *, drift_ppm=250.0, p_late=0.01, t0=500.0, seed=0, latency=60e-6):

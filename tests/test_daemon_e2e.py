@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from thermod import config
-from thermod.calibration import Calibration
-from thermod.publish import Subscriber
+from thermod.physics.calibration import Calibration
+from thermod.runtime import config
+from thermod.runtime.publish import Subscriber
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
@@ -192,7 +192,7 @@ def _wait_ready(ep, proc, timeout=90):
 @pytest.mark.slow
 def test_record_output_deblurs_with_thermod_deblur(payload, tmp_path):
     """`thermod record` of the running daemon → `thermod deblur` → sharper than recorded, vs the truth."""
-    from thermod import recording
+    from thermod.io import recording
 
     _, pl = payload
     ep = f"tcp://127.0.0.1:{free_port()}"
@@ -230,7 +230,7 @@ def test_record_output_deblurs_with_thermod_deblur(payload, tmp_path):
 
 def test_replay_recording_through_the_daemon(payload, tmp_path):
     """A format-v1 recording (the payload's own loop, with its simulated gyro) replayed as both sources."""
-    from thermod.daemon import Daemon
+    from thermod.runtime.daemon import Daemon
 
     _, pl = payload
     cfg_path = tmp_path / "replay.toml"

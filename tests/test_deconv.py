@@ -1,4 +1,4 @@
-"""thermod.deconv: K&F (α = 1, 2/3), Wiener, origin handling, borders, tiles, errors."""
+"""thermod.physics.deconv: K&F (α = 1, 2/3), Wiener, origin handling, borders, tiles, errors."""
 
 from dataclasses import dataclass
 
@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from thermod import deconv
 from thermod.errors import ThermodError
-from thermod.kernels import Kernel, KernelGrid, blur, blur_varying
+from thermod.physics import deconv
+from thermod.physics.kernels import Kernel, KernelGrid, blur, blur_varying
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """The discrepancy workflow on simulator recordings with hidden effects.
 
 Every recording here is rendered by the simulator's own fine-time renderer (`thermod.sim.synth`),
-never by `thermod.forward`: 320×240, 0.2 s static then 0.3 s of three-axis hand-held shake with a
+never by `thermod.calib.forward`: 320×240, 0.2 s static then 0.3 s of three-axis hand-held shake with a
 smooth 40 ms onset (a real payload does not jump from rest to 30 °/s between two gyro samples),
 NETD 50 mK. The nominal model is what the file's attributes say; the truth is hidden in the
 simulator's truth attributes.
@@ -15,10 +15,11 @@ import math
 import numpy as np
 import pytest
 
-from thermod import discrepancy as D
-from thermod.calibration import Calibration
+from thermod.calib import discrepancy as D
+from thermod.cli import discrepancy as discrepancy_cli
 from thermod.errors import ConfigError, RecordingError
-from thermod.geometry import so3_log
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import so3_log
 
 sim_ok = True
 try:
@@ -162,7 +163,7 @@ def test_clean_recording_adds_nothing():
 def test_fixed_pattern_noise_is_estimated_not_blamed_on_the_model():
     import cv2
 
-    from thermod.forward import downsample
+    from thermod.calib.forward import downsample
 
     rec = record({"fpn": 0.1})                     # 4 counts RMS, twice the temporal noise
     d = D.prepare(rec, NOMINAL, name="fpn")
@@ -229,7 +230,7 @@ def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
     assert rep["unobservable"] == {"gyro_scale": ["scale[0]", "scale[2]"]}
     assert "Not observable with this motion" in (tmp_path / "report.md").read_text()
     # model.toml is a whole configuration: `thermod run --config` and `thermod deblur --config` take it
-    from thermod import config
+    from thermod.runtime import config
     fitted = config.load(tmp_path / "model.toml", check_devices=False).calibration
     assert fitted.scale_vector[1] == pytest.approx(s[1]) and fitted.width == NOMINAL.width
     assert config.load_calibration(tmp_path / "model.toml") == fitted
@@ -239,10 +240,10 @@ def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
 @pytest.mark.slow
 def test_deblurring_with_updated_model_beats_nominal(require):
     try:
-        from thermod import deconv, kernels
+        from thermod.physics import deconv, kernels
     except ImportError:
         deconv = kernels = None
-    require(deconv is not None and hasattr(kernels, "render_thermal_kernel"), "thermod.kernels/deconv")
+    require(deconv is not None and hasattr(kernels, "render_thermal_kernel"), "physics.kernels/deconv")
     rec, ana = analysed("time_offset", CASES["time_offset"][0])
     cals = {"nominal": NOMINAL, "fitted": ana.model.final_calibration(), "truth": truth_calibration(rec)}
     truth_sharp = rec.extras["truth/frames"]
@@ -265,8 +266,8 @@ def test_deblurring_with_updated_model_beats_nominal(require):
 # ------------------------------------------------------------------ CLI, several recordings, errors
 @pytest.mark.slow
 def test_cli_two_recordings_share_parameters(tmp_path):
-    from thermod import recording
     from thermod.cli import main
+    from thermod.io import recording
 
     paths = []
     for i, (scene, seed) in enumerate((("real:1", 5), ("real:1", 6))):
@@ -277,7 +278,7 @@ def test_cli_two_recordings_share_parameters(tmp_path):
         paths.append(str(p))
     # The model under test comes from a full thermod configuration (the payload's), so model.toml is
     # that configuration with the fitted [calibration]: ready for `thermod run --config model.toml`.
-    from thermod import config
+    from thermod.runtime import config
 
     full = tmp_path / "payload.toml"
     full.write_text(D.replace_calibration_table(config.default_path().read_text(), NOMINAL))
@@ -312,15 +313,15 @@ def test_calibration_only_toml_round_trips(tmp_path):
     cal = NOMINAL.replace(time_offset_s=0.0042, readout_s=0.011, bias_rad_s=(0.01, -0.02, 0.003))
     p = tmp_path / "model.toml"
     p.write_text(D.calibration_toml(cal))
-    got, text = D.load_model(str(p), [], [])
+    got, text = discrepancy_cli.load_model(str(p), [], [])
     assert text is None
     assert got == cal
     p.write_text("[calibration]\nreadout_s = 0.5\n")           # longer than a 50 Hz frame
     with pytest.raises(ConfigError, match="readout_s"):
-        D.load_model(str(p), [], [])
+        discrepancy_cli.load_model(str(p), [], [])
     p.write_text("[calibration]\n[deblur]\n")
     with pytest.raises(ConfigError, match=r"only\s+a \[calibration\] table"):
-        D.load_model(str(p), [], [])
+        discrepancy_cli.load_model(str(p), [], [])
 
 
 def test_static_only_recording_is_rejected_with_the_file_named(tmp_path):

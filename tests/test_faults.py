@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import zmq
 
-from thermod import config
-from thermod.daemon import Daemon
-from thermod.publish import Subscriber
-from thermod.sdnotify import Notifier
+from thermod.runtime import config
+from thermod.runtime.daemon import Daemon
+from thermod.runtime.publish import Subscriber
+from thermod.runtime.sdnotify import Notifier
 from thermod.sim.payload import SimPayload
 
 pytestmark = pytest.mark.slow

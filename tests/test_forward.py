@@ -1,4 +1,4 @@
-"""The fast forward model (thermod.forward): geometry, thermal response, readout, and the simulator."""
+"""The fast forward model (thermod.calib.forward): geometry, thermal response, readout, and the simulator."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from thermod.calibration import Calibration
-from thermod.forward import ForwardModel, downsample, orientations, predict_frames
-from thermod.geometry import integrate_rotations
+from thermod.calib.forward import ForwardModel, downsample, orientations, predict_frames
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import integrate_rotations
 
 CAL = Calibration(width=200, height=160, fx=500.0, fy=500.0, cx=99.5, cy=79.5, tau_s=0.008)
 

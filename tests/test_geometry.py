@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from thermod.geometry import (
+from thermod.physics.geometry import (
     Intrinsics,
     apply_homography,
     integrate_rotations,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.physics.calibration import Calibration
 from thermod.sim import motion
 from thermod.sim.gyro_model import DEG, GyroErrorModel, allan_deviation, flicker_noise
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from scipy import integrate, ndimage
 
-from thermod import kernels as K
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
-from thermod.geometry import integrate_rotations, so3_exp
+from thermod.physics import kernels as K
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import integrate_rotations, so3_exp
 
 DEG = math.pi / 180.0
 CAL = Calibration()                        # the paper's camera: IFOV 0.0391°, τ = 8 ms

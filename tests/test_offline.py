@@ -7,9 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.cli import main
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 from thermod.sim import synth
 from thermod.sim.gyro_model import GyroErrorModel
 

@@ -8,12 +8,12 @@ import time
 import numpy as np
 import pytest
 
-from thermod import kernels
-from thermod.calibration import Calibration
-from thermod.config import DeblurConfig, PipelineConfig
-from thermod.deconv import Deconvolver
-from thermod.pipeline import Pipeline, kernel_window
-from thermod.ringbuffer import FrameRing, GyroRing
+from thermod.physics import kernels
+from thermod.physics.calibration import Calibration
+from thermod.physics.deconv import Deconvolver
+from thermod.runtime.config import DeblurConfig, PipelineConfig
+from thermod.runtime.pipeline import Pipeline, kernel_window
+from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
 
 H, W = 120, 160

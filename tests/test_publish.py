@@ -9,7 +9,7 @@ import zmq
 import zmq.auth
 
 from thermod.errors import ThermodError
-from thermod.publish import Publisher, Subscriber, TransportError, decode
+from thermod.runtime.publish import Publisher, Subscriber, TransportError, decode
 
 EP = "tcp://127.0.0.1:*"
 
@@ -79,7 +79,7 @@ def test_round_trip_all_topics(pub):
 
 
 def test_health_carries_calibration_and_rates(pub):
-    from thermod.calibration import Calibration
+    from thermod.physics.calibration import Calibration
 
     sub = connect(pub, ())
     cal = Calibration(width=320, height=256, tau_s=0.011, bias_rad_s=(0.01, -0.02, 0.0))
@@ -176,7 +176,7 @@ def test_decode_gyro_layout_validation():
          "layout": [["t", "<f8", [2]], ["rate", "<f4", [2, 3]]]}
     topic, _, a = decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes()])
     assert topic == "gyro" and a["t"].tolist() == [1.0, 2.0]
-    from thermod.publish import MessageError
+    from thermod.runtime.publish import MessageError
 
     with pytest.raises(MessageError, match="covers"):
         decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes() + b"\0"])

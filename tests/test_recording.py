@@ -4,9 +4,9 @@ import h5py
 import numpy as np
 import pytest
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.errors import RecordingError
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 
 
 def small_recording(n=4, h=6, w=8, m=50):

@@ -9,11 +9,11 @@ import h5py
 import numpy as np
 import pytest
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.drivers.gyro_base import GyroBatch
 from thermod.drivers.replay import ReplayCamera, ReplayGyro, ReplaySession
 from thermod.errors import DeviceError, RecordingError
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 
 FPS, RATE = 50.0, 1000.0
 N = 15                                   # 0.3 s of frames

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from thermod.ringbuffer import FrameRing, GyroRing
+from thermod.runtime.rings import FrameRing, GyroRing
 
 
 def _rates(seq):

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from thermod.sdnotify import Notifier
+from thermod.runtime.sdnotify import Notifier
 
 
 def _listener(address):
@@ -82,7 +82,7 @@ def test_watchdog_usec_rules():
 
 CHILD = """
 import time
-from thermod.sdnotify import Notifier
+from thermod.runtime.sdnotify import Notifier
 n = Notifier()
 interval = n.watchdog_interval()
 n.ready(status="started")

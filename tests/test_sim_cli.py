@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.cli import main
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
 from thermod.sim import detector, motion, playback, synth
 
 DEG = math.pi / 180

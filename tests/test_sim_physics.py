@@ -7,10 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
-from thermod.geometry import integrate_rotations
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import integrate_rotations
 from thermod.sim import detector, motion, scenes, synth
 from thermod.sim.scenes import BACKGROUND
 
@@ -311,7 +311,7 @@ def test_sway_returns_to_start_and_trajectory_matches_geometry():
     traj = motion.Trajectory(m, 0.0, -0.1, 1.1)
     assert np.abs(traj.R(1.0)[0] - np.eye(3)).max() < 1e-6
     th = m.theta(0.37)[0]
-    from thermod.geometry import so3_exp
+    from thermod.physics.geometry import so3_exp
     R0 = so3_exp(m.theta(0.0)[0])
     np.testing.assert_allclose(traj.R(0.37)[0], R0.T @ so3_exp(th), atol=1e-7)
     # geometry.integrate_rotations on the same rates agrees (Q = R(t_ref)ᵀ R(t_i))
@@ -421,7 +421,7 @@ def test_thermod_kernels_explain_the_simulation(mot, tol):
     applied to the sharp truth, reproduce the simulated blurry frame (measured: 1.9 %, 2.2 % and 4.2 %
     of the blur's RMS — under roll the blur varies within each grid cell; the kernels also cut the
     exponential at 5τ)."""
-    from thermod import kernels
+    from thermod.physics import kernels
     rec = synth.simulate("texture", mot, 0.06, SMALL, seed=1)
     k = rec.n_frames - 1
     sharp, blurry = rec.extras["truth/frames"][k], rec.extras["truth/blurry_noiseless"][k]

@@ -234,11 +234,12 @@ def test_execstart_is_a_valid_thermod_command_line():
     """The unit's ExecStart arguments parse with the real `thermod run` parser."""
     import argparse
 
-    from thermod import cli, daemon
+    from thermod import cli
+    from thermod.cli import run
 
     argv = shlex.split(unit_settings()["Service.ExecStart"][-1])
-    assert argv[1] == "thermod" and argv[2] in cli.COMMANDS and cli.COMMANDS[argv[2]][0] == "thermod.daemon"
+    assert argv[1] == "thermod" and argv[2] in cli.COMMANDS and cli.COMMANDS[argv[2]][0] == "thermod.cli.run"
     parser = argparse.ArgumentParser(prog="thermod run")
-    daemon.add_arguments(parser)
+    run.add_arguments(parser)
     args = parser.parse_args(argv[3:])
     assert args.config == "/etc/thermod/thermod.toml"

@@ -13,12 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
-from thermod import cli, recording
-from thermod.calibration import Calibration
+from thermod import cli
+from thermod.cli.record import RecordWriter, record
+from thermod.cli.watch import PreviewWriter, WatchStats, side_by_side, stretch_u8, watch
 from thermod.errors import RecordingError
-from thermod.publish import Publisher, Subscriber
-from thermod.record import RecordWriter, record
-from thermod.watch import PreviewWriter, WatchStats, side_by_side, stretch_u8, watch
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
+from thermod.runtime.publish import Publisher, Subscriber
 
 H, W = 96, 128
 
@@ -305,7 +306,7 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
     """`thermod run` on the simulated payload, then `thermod record` and `watch` on its output."""
     import socket
 
-    from thermod import config
+    from thermod.runtime import config
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

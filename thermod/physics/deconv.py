@@ -3,7 +3,7 @@
 Forward model (DESIGN.md §1, Eq. 11/18): ``B(p) = Σ_u k(u) S(p − u)`` with the kernel given as
 ``weights[oy + u_y, ox + u_x]`` and ``origin = (oy, ox)`` the index of zero displacement (not the
 array centre: comet-tail kernels are one-sided). Any object with ``weights`` and ``origin``
-works (duck-typed ``thermod.kernels.Kernel``).
+works (duck-typed ``thermod.physics.kernels.Kernel``).
 
 Krishnan & Fergus 2009, "Fast image deconvolution using hyper-Laplacian priors" (K&F)::
 

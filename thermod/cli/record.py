@@ -24,10 +24,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod import recording
-from thermod.calibration import Calibration
 from thermod.errors import RecordingError, ThermodError
-from thermod.publish import DEFAULT_ENDPOINT, Subscriber
+from thermod.io import recording
+from thermod.physics.calibration import Calibration
+from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +258,7 @@ def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=la
 def run(args) -> int:
     calibration = None
     if args.config:
-        from thermod import config
+        from thermod.runtime import config
 
         calibration = config.load(args.config, check_devices=False).calibration
     out = Path(args.output)

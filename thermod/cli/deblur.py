@@ -1,7 +1,7 @@
 """`thermod deblur IN.h5 -o OUT.h5` / `thermod deblur A.h5 B.h5 … -o DIR/`: offline deblurring.
 
 For every frame the gyro samples of its 5τ history give the blur kernel (Eq. 18, thermal, or
-Eq. 17, photon baseline), and `thermod.deconv` removes it: by default spatially varying (a grid
+Eq. 17, photon baseline), and `thermod.physics.deconv` removes it: by default spatially varying (a grid
 of kernels, deconvolved in blended tiles — camera roll makes the blur vary across the frame),
 or one kernel per frame with `--uniform` (the paper's method).
 
@@ -24,8 +24,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod import recording
 from thermod.errors import RecordingError, ThermodError
+from thermod.io import recording
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="one kernel per frame (the paper's method) instead of a kernel grid")
     parser.add_argument("--lambda", dest="lam", type=float, default=None,
                         help="data weight λ for a unit-range frame (K&F convention); default: adapted to "
-                             "each frame's noise (see thermod.deconv.Deconvolver)")
+                             "each frame's noise (see thermod.physics.deconv.Deconvolver)")
     parser.add_argument("--alpha", type=float, default=2.0 / 3.0,
                         help="K&F prior exponent (1 or 2/3; default 2/3)")
     parser.add_argument("--grid", type=int, nargs=2, default=list(DEFAULT_GRID), metavar=("R", "C"),
@@ -90,7 +90,7 @@ class _FrameDeblurrer:
     """Kernel rendering + deconvolution of one frame, with the CLI's options."""
 
     def __init__(self, args):
-        from thermod import deconv  # numba start-up only when deblurring
+        from thermod.physics import deconv  # numba start-up only when deblurring
 
         self.kind = args.kernel
         self.exposure = args.exposure
@@ -109,7 +109,7 @@ class _FrameDeblurrer:
 
     def __call__(self, rec: recording.Recording, i: int) -> tuple[np.ndarray | None, str]:
         """(deblurred frame, "") or (None, why it was passed through)."""
-        from thermod import kernels
+        from thermod.physics import kernels
 
         c = rec.calibration
         t = float(rec.t[i])
@@ -132,7 +132,7 @@ class _FrameDeblurrer:
 def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar, config: Path | None = None) -> dict:
     rec = recording.read(src)
     if config is not None:
-        from thermod.config import load_calibration
+        from thermod.runtime.config import load_calibration
 
         c = load_calibration(config, base=rec.calibration)
         if (c.height, c.width) != rec.frames.shape[1:]:

@@ -37,9 +37,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from thermod.calibration import Calibration
-from thermod.config import DeblurConfig, PipelineConfig
-from thermod.ringbuffer import FrameRing, FrameSlot, GyroRing
+from thermod.physics.calibration import Calibration
+from thermod.runtime.config import DeblurConfig, PipelineConfig
+from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class _Settings:
 
 @dataclass
 class _WarmKernel:
-    """A box kernel (duck-typed `thermod.kernels.Kernel`) used only to build FFT plans at start-up."""
+    """A box kernel (duck-typed `thermod.physics.kernels.Kernel`) used only to build FFT plans at start-up."""
 
     weights: np.ndarray
     origin: tuple[int, int]
@@ -102,7 +102,7 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
     Returns ``(kernel_or_grid, info)`` with info = kernel_size, kernel_extent_px, coverage (the
     worst cell's for a grid) and n_samples.
     """
-    from thermod import kernels  # numba start-up is paid only by processes that deblur
+    from thermod.physics import kernels  # numba start-up is paid only by processes that deblur
 
     if deblur.mode == "grid":
         g = kernels.render_kernel_grid(gyro_t, gyro_rate, calib, t_frame, grid=deblur.grid,
@@ -133,7 +133,7 @@ def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> t
 
 
 def make_deconvolver(deblur: DeblurConfig):
-    from thermod.deconv import Deconvolver
+    from thermod.physics.deconv import Deconvolver
     # live kernels never repeat: an OTF cache would only hold ~3 MB per entry of dead weight
     # realtime: an FFT size first seen mid-stream is estimated, not measured (a measured plan would
     # stall the queue ~0.7 s on a machine without wisdom); warmup() measures the common sizes first.
@@ -158,7 +158,7 @@ class Pipeline:
     emit : called once per frame with a `FrameOut`, in frame order, from a pipeline thread. Must not
         block (e.g. `Publisher.publish_frame(..., copy=False)`).
     deconvolver_factory : DeblurConfig → object with ``run(image, kernel)`` / ``run_varying(image,
-        grid)`` (default `thermod.deconv.Deconvolver`), one per worker thread.
+        grid)`` (default `thermod.physics.deconv.Deconvolver`), one per worker thread.
     renderer : same signature as `render` (default), the seam for the kernel renderer.
     """
 

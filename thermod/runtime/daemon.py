@@ -1,4 +1,4 @@
-"""`thermod run`: the supervisor. Builds the sources from the configuration, runs one driver thread
+"""The supervisor behind `thermod run`. Builds the sources from the configuration, runs one driver thread
 per device (``source.poll(timeout)`` in a loop → ring buffer), the pipeline (scheduler + deconvolution
 workers), the publisher, and a 1 Hz health report; handles signals, sd_notify and device faults.
 
@@ -6,7 +6,7 @@ Threads and what they own:
 
 - ``thermod-gyro`` / ``thermod-camera``: the only threads with real-time priority (SCHED_FIFO, when
   ``realtime_priority`` > 0 and permitted). They never block on anything but their device.
-- pipeline threads (`thermod.pipeline`), the publisher's socket thread (`thermod.publish`).
+- pipeline threads (`thermod.runtime.pipeline`), the publisher's socket thread (`thermod.runtime.publish`).
 - the main thread: signals, health, watchdog, SIGHUP reload.
 
 Faults: a gyro I/O error (NACK, unplug) is retried with exponential back-off; meanwhile the
@@ -21,71 +21,24 @@ source/publish changes need a restart and are reported as such.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import dataclasses
 import ipaddress
 import logging
 import math
 import os
-import signal
 import threading
 import time
 from dataclasses import dataclass, field
 
-from thermod import config as configmod
 from thermod.errors import ConfigError, DeviceError
-from thermod.pipeline import FrameOut, Pipeline
-from thermod.ringbuffer import FrameRing, GyroRing
+from thermod.runtime import config as configmod
+from thermod.runtime.pipeline import FrameOut, Pipeline
+from thermod.runtime.rings import FrameRing, GyroRing
 
-log = logging.getLogger("thermod.daemon")
+log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
-
-
-# ------------------------------------------------------------------------------------ CLI
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", "-c", metavar="FILE", help="TOML configuration (default: the packaged "
-                        "sim.toml, the simulated payload)")
-    parser.add_argument("--endpoint", metavar="EP", help="override publish.endpoint, e.g. tcp://127.0.0.1:5600")
-    parser.add_argument("--raw", action="store_true", help="also publish raw frames (publish.raw = true)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override any configuration key, e.g. --set deblur.method=wiener (repeatable)")
-    parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
-
-
-def _overrides(args) -> dict:
-    ov = dict(configmod.parse_override(s) for s in args.overrides)
-    if args.endpoint:
-        ov["publish.endpoint"] = args.endpoint
-    if args.raw:
-        ov["publish.raw"] = True
-    return ov
-
-
-def run(args) -> int:
-    ov = _overrides(args)
-    cfg = configmod.load(args.config, ov)
-    logging.getLogger("thermod").setLevel(cfg.logging.level.upper())
-    if not logging.getLogger().handlers:
-        logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
-    d = Daemon(cfg, overrides=ov)
-    stop = threading.Event()
-    reload_req = threading.Event()
-
-    def on_term(signum, frame):
-        log.info("%s: shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
-    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
-    try:
-        d.start()
-        d.serve(stop, reload_req, seconds=args.seconds)
-    finally:
-        d.stop()
-    return 0
 
 
 # ------------------------------------------------------------------------------------ sources
@@ -337,13 +290,13 @@ class Daemon:
         self.gyro = gyro if gyro is not None else build_gyro(cfg, self.payload)
         self.camera = camera if camera is not None else build_camera(cfg, self.payload)
         if publisher is None:
-            from thermod.publish import Publisher
+            from thermod.runtime.publish import Publisher
             p = cfg.publish
             publisher = Publisher(p.endpoint, hwm=p.hwm, curve_secret_key_file=p.curve_secret_key,
                                   authorized_keys_dir=p.curve_authorized_keys)
         self.publisher = publisher
         if notifier is None:
-            from thermod.sdnotify import Notifier
+            from thermod.runtime.sdnotify import Notifier
             notifier = Notifier()
         self.notifier = notifier
         c = cfg.calibration

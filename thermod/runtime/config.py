@@ -7,7 +7,7 @@ payload). `overrides` ({dotted key: value}) are applied on top of the file befor
 command-line settings get the same checks as the file.
 
 Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
-``[calibration]`` (→ `thermod.calibration.Calibration`), ``[deblur]``, ``[publish]``,
+``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
 ``[pipeline]``, ``[logging]``.
 """
 
@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from thermod.calibration import Calibration
 from thermod.errors import ConfigError
+from thermod.physics.calibration import Calibration
 
 GYRO_KINDS = ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088", "iio", "serial")
 CAMERA_KINDS = ("sim", "replay", "aravis", "v4l2")
@@ -63,7 +63,7 @@ class SimConfig:
 class DeblurConfig:
     enabled: bool = True
     method: str = "kf"               # kf | wiener
-    lam: float | None = None         # data weight (K&F convention); None = thermod.deconv default
+    lam: float | None = None         # data weight (K&F convention); None = thermod.physics.deconv default
     alpha: float = 2.0 / 3.0         # hyper-Laplacian exponent: 1 or 2/3
     kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate

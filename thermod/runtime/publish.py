@@ -7,7 +7,7 @@ C-contiguous array bytes. `Publisher` owns that socket in one thread and never b
 
 Example (a subscriber on the same host)::
 
-    from thermod.publish import Subscriber
+    from thermod.runtime.publish import Subscriber
 
     with Subscriber("tcp://127.0.0.1:5555", topics=("frame", "health")) as sub:
         for topic, header, array in sub:          # array is read-only, owned by the message

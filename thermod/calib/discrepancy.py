@@ -8,7 +8,7 @@ by motion. The workflow
 1. builds a **reference scene** from the static frames (their mean: the detector is settled and the
    camera still, so this is the sharp view, with the static optical PSF and the fixed-pattern noise);
 2. **predicts** every motion frame from the reference, the raw gyro and the current model with
-   `thermod.forward.ForwardModel` (Eq. 16 homographies, Eq. 10/11 thermal IIR at sub-pixel steps,
+   `thermod.calib.forward.ForwardModel` (Eq. 16 homographies, Eq. 10/11 thermal IIR at sub-pixel steps,
    rolling readout, extra Gaussian PSF) at a reduced working resolution;
 3. measures the **gap**: ``gap = ‖measured − predicted‖ / ‖measured − reference‖`` over the pixels
    valid in every view (1 = the model explains nothing of the motion signal, 0 = everything), with
@@ -41,11 +41,9 @@ after every step, gap per step, the diagnostic panel that pointed at each effect
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,16 +51,15 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize
 
-from thermod import recording as recording_io
-from thermod.calibration import Calibration
+from thermod.calib.forward import ForwardModel, downsample
 from thermod.errors import ConfigError, RecordingError
-from thermod.forward import ForwardModel, downsample
-from thermod.geometry import so3_log
+from thermod.io import recording as recording_io
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import so3_log
 
-log = logging.getLogger("thermod.discrepancy")
+log = logging.getLogger("thermod.calib.discrepancy")
 
-__all__ = ["CANDIDATES", "Analysis", "Model", "analyse", "load_model", "prepare", "write_report",
-           "add_arguments", "run"]
+__all__ = ["CANDIDATES", "Analysis", "Model", "analyse", "prepare", "write_report"]
 
 CANDIDATES = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment",
               "time_constant", "optical_psf")
@@ -872,6 +869,17 @@ def calibration_toml(calib: Calibration) -> str:
     return "\n".join(lines) + "\n"
 
 
+def replace_calibration_table(text: str, calib: Calibration) -> str:
+    """`text` (a thermod TOML) with its [calibration] table replaced by `calib` (appended if absent)."""
+    table = calibration_toml(calib).split("\n", 1)[1]          # drop the header comment
+    lines = text.splitlines(keepends=True)
+    start = next((i for i, ln in enumerate(lines) if ln.split("#")[0].strip() == "[calibration]"), None)
+    if start is None:
+        return text.rstrip("\n") + "\n\n" + table
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
+    return "".join(lines[:start]) + table + ("\n" if end < len(lines) else "") + "".join(lines[end:])
+
+
 def _figures(ana: Analysis, out: Path) -> list[str]:
     import matplotlib
     matplotlib.use("Agg")
@@ -966,7 +974,7 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=True) + "\n")
     final = ana.model.final_calibration()
     if config_text is None:
-        from thermod.config import default_path
+        from thermod.runtime.config import default_path
         config_text = default_path().read_text()
     (out / "model.toml").write_text(replace_calibration_table(config_text, final))
     figs = _figures(ana, out)
@@ -1004,114 +1012,3 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
            ""]
     (out / "report.md").write_text("\n".join(md))
     return rep
-
-
-# ----------------------------------------------------------------------------------------- CLI
-def _config_calibration(path: str) -> tuple[Calibration, str | None]:
-    """[calibration] of a thermod TOML, validated by `thermod.config`; also the file's text when it is a
-    full configuration (so model.toml can be the same configuration with the table replaced).
-
-    A file holding only a [calibration] table (like the model.toml this command writes without
-    `--config`) is validated by slotting it into the packaged default configuration.
-    """
-    import tomllib
-
-    from thermod import config as cfgmod
-
-    try:
-        text = Path(path).read_text()
-        raw = tomllib.loads(text)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such configuration file") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid TOML: {e}") from None
-    if "sources" in raw:
-        return cfgmod.load(path, check_devices=False).calibration, text
-    other = sorted(set(raw) - {"calibration"})
-    if other or "calibration" not in raw:
-        raise ConfigError(f"{path}: expected a full thermod configuration (with [sources]) or a file with "
-                          "only "
-                          f"a [calibration] table; found tables {sorted(raw)}")
-    cal = raw["calibration"]
-    base = tomllib.loads(cfgmod.default_path().read_text())
-    base["calibration"] = cal
-    if isinstance(cal, dict):   # the simulated default checks that its rates match the calibration's
-        for ck, sk in (("frame_rate_hz", "frame_rate_hz"), ("rate_hz", "gyro_rate_hz")):
-            if isinstance(cal.get(ck), (int, float)) and not isinstance(cal.get(ck), bool):
-                base.setdefault("sim", {})[sk] = cal[ck]
-    return cfgmod.parse(base, str(path), check_devices=False).calibration, None
-
-
-def replace_calibration_table(text: str, calib: Calibration) -> str:
-    """`text` (a thermod TOML) with its [calibration] table replaced by `calib` (appended if absent)."""
-    table = calibration_toml(calib).split("\n", 1)[1]          # drop the header comment
-    lines = text.splitlines(keepends=True)
-    start = next((i for i, ln in enumerate(lines) if ln.split("#")[0].strip() == "[calibration]"), None)
-    if start is None:
-        return text.rstrip("\n") + "\n\n" + table
-    end = next((i for i in range(start + 1, len(lines)) if lines[i].lstrip().startswith("[")), len(lines))
-    return "".join(lines[:start]) + table + ("\n" if end < len(lines) else "") + "".join(lines[end:])
-
-
-def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibration, str | None]:
-    """The model under test: `--config` TOML's [calibration], else the first recording's attributes.
-
-    Returns (calibration, text of the configuration file when it is a full one, else None).
-    """
-    if config is not None:
-        return _config_calibration(config)
-    calib = recs[0].calibration
-    for p, r in zip(paths[1:], recs[1:], strict=True):
-        if r.calibration.as_dict() != calib.as_dict():
-            log.warning("%s: calibration attributes differ from %s; testing the first one's model",
-                        p, paths[0])
-    return calib, None
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recordings", nargs="+", metavar="REC.h5",
-                        help="format-v1 recordings: a static segment followed by motion")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output directory for the report")
-    parser.add_argument("--config", metavar="TOML", help="thermod TOML whose [calibration] is the model to "
-                        "test (default: the first recording's attributes)")
-    parser.add_argument("--candidates", default=",".join(CANDIDATES),
-                        help=f"comma-separated effects to try (default: all: {','.join(CANDIDATES)})")
-    parser.add_argument("--work-width", type=int, default=160,
-                        help="approximate working image width in pixels (default 160; frames are halved "
-                             "until within 1.5× of it)")
-    parser.add_argument("--max-steps", type=int, default=4, help="most effects to add (default 4)")
-    parser.add_argument("--no-fpn", action="store_true", help="do not estimate fixed-pattern noise")
-
-
-def run(args) -> int:
-    cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
-    bad = [c for c in cands if c not in FITTERS]
-    if bad:
-        raise ConfigError(f"--candidates: unknown effect(s) {', '.join(bad)}; known: {', '.join(CANDIDATES)}")
-    if args.work_width < 32:
-        raise ConfigError(f"--work-width: expected ≥ 32 pixels, got {args.work_width}")
-
-    def say(msg):
-        print(msg, flush=True)
-
-    recs = [recording_io.read(p) for p in args.recordings]
-    calib, config_text = load_model(args.config, recs, args.recordings)
-    data = []
-    for p, r in zip(args.recordings, recs, strict=True):
-        d = prepare(r, calib, name=p, work_width=args.work_width)
-        say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
-            f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
-        data.append(d)
-    ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
-                  progress=say)
-    write_report(ana, args.out, args.recordings, config_text)
-    say(f"report: {Path(args.out) / 'report.md'}; model: {Path(args.out) / 'model.toml'}")
-    return 0
-
-
-if __name__ == "__main__":   # pragma: no cover
-    from thermod.cli import main
-
-    sys.exit(main(["discrepancy", *sys.argv[1:]]))

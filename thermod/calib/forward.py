@@ -4,7 +4,7 @@ The physics is the simulator's, written for speed instead of fidelity to a high-
 
 * the view at time s is the reference warped by the rotation-only homography (Eq. 16)
   ``H(s) = K Q(s) K⁻¹`` with ``Q(s) = R(t_ref)ᵀ R(s)`` integrated from the calibrated gyro with the
-  piecewise-linear rate semantics of `thermod.geometry.integrate_rotations`;
+  piecewise-linear rate semantics of `thermod.physics.geometry.integrate_rotations`;
 * the detector is the first-order thermal low-pass (Eq. 10/11), run as an exact IIR over sub-pixel
   time steps (Eq. 12: the image moves < `max_step_px` per step), so each frame is the exponential
   average of the views over its past (≥ 5τ of weight, Eq. 18);
@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from thermod.calibration import Calibration
+from thermod.physics.calibration import Calibration
 
 __all__ = ["ForwardModel", "downsample", "orientations", "predict_frames"]
 

@@ -6,7 +6,7 @@ past (Eq. 11), so for a pure camera rotation it is the sharp view at t_k blurred
     B(p) = Σ_u k(u) S_k(p − u),   k(u) = ∫ w(s) δ(u − u(s)) ds,   w(s) ∝ exp(−(t_k − s)/τ),
 
 with u(s) = p − π(K Q(s) K⁻¹ p) and Q(s) = R(t_k)ᵀ R(s) (Eq. 16). The gyro gives ω at ~1 kHz;
-between samples the rate is piecewise linear (exactly `thermod.geometry.integrate_rotations`).
+between samples the rate is piecewise linear (exactly `thermod.physics.geometry.integrate_rotations`).
 The path is subdivided so that consecutive splats are < 0.5 px apart — splatting only at the gyro
 stamps would give a dotted kernel at high rates ("stepping", Eq. 12) — and each sub-interval's
 weight is the exact integral of the exponential (or of the box, for a photon detector, Eq. 17)
@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 from numba import njit
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
-from thermod.geometry import apply_homography, integrate_rotations, so3_exp
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import apply_homography, integrate_rotations, so3_exp
 
 __all__ = [
     "Kernel", "KernelGrid", "KernelPath", "KernelError",
@@ -173,7 +173,7 @@ class _Params:
 
 def _make_params(calib: Calibration) -> _Params:
     if not isinstance(calib, Calibration):
-        raise KernelError(f"calib: expected a thermod.calibration.Calibration, got {type(calib).__name__}")
+        raise KernelError(f"calib: expected a Calibration, got {type(calib).__name__}")
     M = np.ascontiguousarray(calib.gyro_to_camera_matrix, dtype=np.float64)
     bias = np.ascontiguousarray(np.asarray(calib.bias_rad_s, dtype=np.float64).ravel())
     if M.shape != (3, 3) or not np.isfinite(M).all():
@@ -306,7 +306,7 @@ def _rate_at(t, w, s, out):
 
 @njit(cache=True, nogil=True)
 def _so3_exp_into(px, py, pz, out):
-    """Rodrigues exp([φ]×) into out[3, 3] (series near 0, as thermod.geometry.so3_exp)."""
+    """Rodrigues exp([φ]×) into out[3, 3] (series near 0, as thermod.physics.geometry.so3_exp)."""
     th2 = px * px + py * py + pz * pz
     th = math.sqrt(th2)
     if th < 1e-8:
@@ -848,7 +848,7 @@ def _as_image(image, name="image") -> np.ndarray:
 
 def _check_kernel(kernel) -> Kernel:
     if not isinstance(kernel, Kernel):
-        raise KernelError(f"kernel: expected a thermod.kernels.Kernel, got {type(kernel).__name__}")
+        raise KernelError(f"kernel: expected a thermod.physics.kernels.Kernel, got {type(kernel).__name__}")
     return kernel   # shape and origin were checked when it was made
 
 
@@ -899,7 +899,7 @@ def blur_varying(image, grid: KernelGrid) -> np.ndarray:
     """
     img = _as_image(image)
     if not isinstance(grid, KernelGrid):
-        raise KernelError(f"grid: expected a thermod.kernels.KernelGrid, got {type(grid).__name__}")
+        raise KernelError(f"grid: expected a thermod.physics.kernels.KernelGrid, got {type(grid).__name__}")
     h, w = img.shape
     if tuple(grid.image_shape) != (h, w):
         raise KernelError(f"grid: rendered for images of shape {tuple(grid.image_shape)}, image is {(h, w)}")
@@ -931,7 +931,7 @@ def render_thermal_kernel_reference(gyro_t, gyro_rate, calib: Calibration, t_fra
                                     m: float = 5.0, psf: bool = True) -> Kernel:
     """Plain NumPy re-implementation of `render_thermal_kernel` (same signature, same result).
 
-    Rotations at the samples come from `thermod.geometry.integrate_rotations` (the reference rate
+    Rotations at the samples come from `thermod.physics.geometry.integrate_rotations` (the reference rate
     semantics), sub-steps from `so3_exp`, offsets from `apply_homography`, weights from the
     closed-form exponential integrals, the splat from `np.add.at`. Slow; for tests and benchmarks.
     """

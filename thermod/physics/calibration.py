@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from thermod.geometry import Intrinsics, so3_exp
+from thermod.physics.geometry import Intrinsics, so3_exp
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um",
                "f_number", "psf_beta", "pixel_pitch_um", "readout_s")

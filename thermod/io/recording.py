@@ -13,8 +13,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod.calibration import CAMERA_KEYS, Calibration
 from thermod.errors import RecordingError
+from thermod.physics.calibration import CAMERA_KEYS, Calibration
 
 FORMAT = "thermod-recording"
 VERSION = 1

@@ -15,8 +15,8 @@ import math
 import time
 from pathlib import Path
 
-from thermod.calibration import Calibration
 from thermod.errors import ThermodError
+from thermod.physics.calibration import Calibration
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -96,7 +96,7 @@ def build_calibration(args) -> Calibration:
 
 
 def run(args) -> int:
-    from thermod import recording
+    from thermod.io import recording
     from thermod.sim.gyro_model import GyroErrorModel
     from thermod.sim.synth import simulate
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
-from thermod.publish import DEFAULT_ENDPOINT, Subscriber
+from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
 
 log = logging.getLogger(__name__)
 

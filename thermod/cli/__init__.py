@@ -14,13 +14,13 @@ import sys
 from thermod.errors import ThermodError
 
 COMMANDS = {
-    "run": ("thermod.daemon", "run the acquisition and deblurring daemon (default: simulated payload)"),
-    "watch": ("thermod.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
-    "record": ("thermod.record", "subscribe to raw frames and gyro samples and write a recording"),
-    "deblur": ("thermod.offline", "deblur recordings offline"),
-    "sim": ("thermod.sim.cli", "simulate a recording with known truth"),
-    "discrepancy": ("thermod.discrepancy", "compare simulation with a recording and fix the model"),
-    "bench": ("thermod.bench", "run the benchmark suites and print their tables"),
+    "run": ("thermod.cli.run", "run the acquisition and deblurring daemon (default: simulated payload)"),
+    "watch": ("thermod.cli.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
+    "record": ("thermod.cli.record", "subscribe to raw frames and gyro samples and write a recording"),
+    "deblur": ("thermod.cli.deblur", "deblur recordings offline"),
+    "sim": ("thermod.cli.sim", "simulate a recording with known truth"),
+    "discrepancy": ("thermod.cli.discrepancy", "compare simulation with a recording and fix the model"),
+    "bench": ("thermod.cli.bench", "run the benchmark suites and print their tables"),
 }
 
 
@@ -60,6 +60,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,5 @@
+import sys
+
+from thermod.cli import main
+
+sys.exit(main())

@@ -1,0 +1,61 @@
+"""`thermod run`: the daemon (default: the simulated payload of the packaged sim.toml).
+
+SIGTERM/SIGINT stop it cleanly; SIGHUP reloads calibration and deblur settings (see
+`thermod.runtime.daemon`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import threading
+
+from thermod.runtime import config
+from thermod.runtime.daemon import Daemon
+
+log = logging.getLogger("thermod.runtime.daemon")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", "-c", metavar="FILE", help="TOML configuration (default: the packaged "
+                        "sim.toml, the simulated payload)")
+    parser.add_argument("--endpoint", metavar="EP", help="override publish.endpoint, e.g. tcp://127.0.0.1:5600")
+    parser.add_argument("--raw", action="store_true", help="also publish raw frames (publish.raw = true)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override any configuration key, e.g. --set deblur.method=wiener (repeatable)")
+    parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
+
+
+def _overrides(args) -> dict:
+    ov = dict(config.parse_override(s) for s in args.overrides)
+    if args.endpoint:
+        ov["publish.endpoint"] = args.endpoint
+    if args.raw:
+        ov["publish.raw"] = True
+    return ov
+
+
+def run(args) -> int:
+    ov = _overrides(args)
+    cfg = config.load(args.config, ov)
+    logging.getLogger("thermod").setLevel(cfg.logging.level.upper())
+    if not logging.getLogger().handlers:
+        logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
+    d = Daemon(cfg, overrides=ov)
+    stop = threading.Event()
+    reload_req = threading.Event()
+
+    def on_term(signum, frame):
+        log.info("%s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)
+    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    try:
+        d.start()
+        d.serve(stop, reload_req, seconds=args.seconds)
+    finally:
+        d.stop()
+    return 0
