@@ -8,6 +8,7 @@ import pytest
 
 from thermod.errors import ThermodError
 from thermod.physics import deconv
+from thermod.physics.deconv import plans, tiles, wstep
 from thermod.physics.kernels import Kernel, KernelGrid, blur, blur_varying
 
 
@@ -88,16 +89,16 @@ def test_fused_shrink_matches_the_exact_minimiser(alpha):
     v = np.concatenate([np.linspace(-5, 5, 20001), [7.3, -12.0]]).astype(np.float32)   # beyond the LUT too
     out = np.empty_like(v)
     mode = 0 if alpha == 1 else 1
-    lut = deconv._shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
+    lut = wstep.shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
     tau = deconv.shrink_threshold(alpha, beta) if mode else 0.0
-    deconv._shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
-                       np.float32((deconv._LUT_SIZE - 1) / deconv._LUT_VMAX), np.float32(alpha),
+    wstep.shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
+                       np.float32((wstep.LUT_SIZE - 1) / wstep.LUT_VMAX), np.float32(alpha),
                        np.empty(v.size, np.int32))
     if alpha == 1:
         exact = np.sign(v) * np.maximum(np.abs(v) - 1 / beta, 0)
     else:
         exact = deconv.shrink_numeric(v.astype(np.float64), beta, alpha)
-    near_jump = np.abs(np.abs(v) - tau) < 2 * deconv._LUT_VMAX / deconv._LUT_SIZE
+    near_jump = np.abs(np.abs(v) - tau) < 2 * wstep.LUT_VMAX / wstep.LUT_SIZE
     np.testing.assert_allclose(out[~near_jump], exact[~near_jump], atol=2e-5)
 
 
@@ -223,7 +224,7 @@ def _grid(kernels, shape):
 
 def test_tile_weights_are_a_partition_of_unity():
     for overlap in (0.3, 1.0):
-        ws = deconv._tile_weights(500, np.array([50.0, 200, 260, 450]), overlap)
+        ws = tiles.tile_weights(500, np.array([50.0, 200, 260, 450]), overlap)
         total = np.zeros(500)
         for a, b, w in ws:
             total[a:b] += w
@@ -321,8 +322,8 @@ def test_fftw_wisdom_is_saved_to_the_cache_dir(tmp_path, monkeypatch):
     import pyfftw  # a test dependency: fail, never skip, if it is missing
     monkeypatch.setenv("THERMOD_CACHE_DIR", str(tmp_path / "cache"))
     assert deconv.wisdom_path() == tmp_path / "cache" / "fftw_wisdom_float32"
-    deconv._Plan((48, 80), "fftw", 1)
-    deconv._save_wisdom()
+    plans.Plan((48, 80), "fftw", 1)
+    plans.save_wisdom()
     data = deconv.wisdom_path().read_bytes()
     assert data.startswith(b"(fftw") and pyfftw.import_wisdom((b"", data, b""))[1]
 
