@@ -42,9 +42,11 @@ class NoiseLambda:
     def default(cls, method: str) -> NoiseLambda:
         return cls(NOISE_LAMBDA[method], NOISE_KNEE, *LAMBDA_RANGE[method])
 
-    def __call__(self, sigma: float) -> float:
-        sigma = max(float(sigma), 1e-9)
-        return float(min(max(self.scale / (sigma * (1 + sigma / self.knee)), self.lo), self.hi))
+    def __call__(self, sigma):
+        """λ for σ̂ (a float, or an array of σ̂ → an array of λ)."""
+        sigma = np.maximum(np.asarray(sigma, dtype=np.float64), 1e-9)
+        lam = np.clip(self.scale / (sigma * (1 + sigma / self.knee)), self.lo, self.hi)
+        return float(lam) if lam.ndim == 0 else lam
 
 
 def value_range_of(img, value_range) -> tuple[float, float]:
