@@ -336,6 +336,10 @@ def test_bad_parameters_raise():
         deconv.Deconvolver(alpha=2.0)
     with pytest.raises(ThermodError, match="lam"):
         deconv.Deconvolver(lam=-1)
+    with pytest.raises(ThermodError, match="NoiseLambda"):
+        deconv.NoiseLambda(scale=30.0, knee=0.0, lo=30.0, hi=3e5)
+    with pytest.raises(ThermodError, match="lam_rule"):
+        deconv.Deconvolver(lam_rule=30.0)
     with pytest.raises(ThermodError, match="value_range"):
         deconv.Deconvolver().run(np.zeros((8, 8), np.float32), DELTA, value_range=(5, 5))
 

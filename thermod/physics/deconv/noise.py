@@ -2,7 +2,7 @@
 
 Raw counts are mapped to a unit range by the frame's robust range (0.5–99.5 percentiles → 0–1,
 `robust_range`); `noise_sigma` measures the temporal noise σ̂ in that range, and
-`lambda_for_noise` turns it into the K&F data weight.
+`NoiseLambda` turns it into the K&F data weight λ.
 """
 
 from __future__ import annotations
@@ -37,6 +37,11 @@ class NoiseLambda:
     knee: float
     lo: float
     hi: float
+
+    def __post_init__(self):
+        ok = all(math.isfinite(v) for v in (self.scale, self.knee, self.lo, self.hi))
+        if not (ok and self.scale > 0 and self.knee > 0 and 0 < self.lo <= self.hi):
+            raise DeconvError(f"NoiseLambda: expected scale > 0, knee > 0 and 0 < lo ≤ hi, got {self}")
 
     @classmethod
     def default(cls, method: str) -> NoiseLambda:
