@@ -29,8 +29,7 @@ import scipy.fft  # noqa: E402
 
 from thermod.physics import deconv  # noqa: E402
 from thermod.physics.kernels import Kernel, blur  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "thermal"
+from thermod.sim.scenes import shared_data_dir, texture  # noqa: E402
 
 
 def comet(length: int, angle_deg: float = 30.0) -> Kernel:
@@ -53,16 +52,17 @@ def comet(length: int, angle_deg: float = 30.0) -> Kernel:
     return Kernel((w / w.sum()).astype(np.float32), (c - ys.min(), c - xs.min()))
 
 
-def scene(shape: tuple[int, int]) -> np.ndarray:
+def scene(shape: tuple[int, int]) -> tuple[np.ndarray, str]:
+    """(frame of `shape` + 160 px, its name): a real DJI frame, else the procedural texture."""
     h, w = shape
     name = "H30T_DJI_0001_R.png" if w > 640 else "H20T_DJI_0002_R.png"
-    path = DATA / name
-    if path.exists():
+    data = shared_data_dir()
+    path = data / "thermal" / name if data else None
+    if path is not None and path.exists():
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
-    else:  # procedural fallback
-        rng = np.random.default_rng(0)
-        img = cv2.GaussianBlur(rng.normal(0, 1, (h + 200, w + 200)).astype(np.float32), (0, 0), 2) * 3e3 + 2e4
-    return cv2.resize(img, (w + 160, h + 160), interpolation=cv2.INTER_AREA)
+    else:
+        img, name = texture(h + 160, w + 160, seed=0), "procedural texture (no shared/data)"
+    return cv2.resize(img, (w + 160, h + 160), interpolation=cv2.INTER_AREA), name
 
 
 # ------------------------------------------------------------------------ plain NumPy/SciPy K&F
@@ -159,12 +159,13 @@ def main(argv=None) -> int:
     emit(f"`benchmarks/bench_deconv.py{' --quick' if args.quick else ''}`: FFT back end "
          f"{deconv.Deconvolver().fft}, one core per Deconvolver, medians of {reps} runs; load average "
          f"before the run {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (the machine is shared).\n")
+    emit("Scenes: " + "; ".join(f"{w}×{h} {scene((h, w))[1]}" for h, w in sizes) + ".\n")
     emit("| frame | kernel | K&F α=2/3 ms (fastest) | Wiener ms | plain K&F ms | speed-up | "
          "PSNR thermod / plain (dB) | blurry dB | fps, 2 threads |")
     emit("|---|---|---|---|---|---|---|---|---|")
     results = []
     for h, w in sizes:
-        big = scene((h, w))
+        big, _ = scene((h, w))
         for L in klens:
             k = comet(L)
             truth = big[80:80 + h, 80:80 + w]
@@ -191,7 +192,7 @@ def main(argv=None) -> int:
                  f"{row[5]:.1f}× | {row[6]:.2f} / {row[7]:.2f} | {row[8]:.2f} | {fps:.0f} |")
     # FFT back ends on the same solver, timed alternately so that load from other processes hits both
     emit("\n| FFT back end | 640×480, 65 px K&F ms (interleaved runs) |\n|---|---|")
-    big = scene((480, 640))
+    big, _ = scene((480, 640))
     k = comet(65)
     b = blur(big, k)[80:560, 80:720]
     decs = {}

@@ -17,6 +17,7 @@ Counts: background 18000 (like the real DJI frames), responsivity `COUNTS_PER_K`
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import cv2
@@ -26,6 +27,10 @@ from thermod.errors import ThermodError
 
 BACKGROUND = 18000.0
 COUNTS_PER_K = 40.0          # ~25 mK/count, a typical 16-bit radiometric microbolometer stream
+
+
+class SceneFallbackWarning(UserWarning):
+    """A "real" scene was asked for but shared/data is absent: the procedural texture stands in."""
 
 
 def shared_data_dir() -> Path | None:
@@ -53,7 +58,7 @@ def load_scene(spec: str | os.PathLike | np.ndarray, shape: tuple[int, int] = (9
     """Scene texture (float32 counts, at least `shape` = (rows, cols)) from a spec (see module doc).
 
     Real or file scenes smaller than `shape` are mirror-padded; procedural ones are drawn at `shape`.
-    "real" falls back to "texture" when shared/data is absent.
+    "real" falls back to "texture" when shared/data is absent, with a `SceneFallbackWarning`.
     """
     h, w = int(shape[0]), int(shape[1])
     if h < 8 or w < 8:
@@ -72,6 +77,9 @@ def load_scene(spec: str | os.PathLike | np.ndarray, shape: tuple[int, int] = (9
     if name == "real":
         frames = real_frames()
         if not frames:
+            msg = (f"--scene {s!r}: no real frames (shared/data not found; set THERMOD_SHARED_DATA), "
+                   "using the procedural 'texture' scene instead")
+            warnings.warn(msg, SceneFallbackWarning, stacklevel=2)
             return texture(h, w, seed)
         try:
             i = int(arg) if arg else 0
@@ -172,9 +180,9 @@ def points(h: int, w: int, seed: int = 0, delta_k: float = 50.0, spacing: int = 
     return img
 
 
-def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
-    """Seeded procedural thermal scene: 1/f ("pink") clutter of ~2 K RMS plus warm and cool
-    objects (discs and rectangles, 2–15 K) with sharp, anti-aliased edges."""
+def texture(h: int, w: int, seed: int = 0, clutter_k: float = 2.0) -> np.ndarray:
+    """Seeded procedural thermal scene: 1/f ("pink") clutter of `clutter_k` kelvin RMS plus warm
+    and cool objects (discs and rectangles, 2–15 K) with sharp, anti-aliased edges."""
     rng = np.random.default_rng([seed, 4])
     fy = np.fft.fftfreq(h)[:, None]
     fx = np.fft.rfftfreq(w)[None, :]
@@ -183,7 +191,7 @@ def texture(h: int, w: int, seed: int = 0) -> np.ndarray:
     spec = (rng.standard_normal(f.shape) + 1j * rng.standard_normal(f.shape)) / f
     spec[0, 0] = 0
     clutter = np.fft.irfft2(spec, s=(h, w))
-    clutter *= 2.0 * COUNTS_PER_K / clutter.std()
+    clutter *= clutter_k * COUNTS_PER_K / clutter.std()
     img = (BACKGROUND + clutter).astype(np.float32)
     n_obj = max(8, int(h * w / 12000))
     ss = 4                                    # supersampled masks: anti-aliased edges

@@ -6,8 +6,12 @@ from pathlib import Path
 
 import pytest
 
+from thermod.sim.scenes import shared_data_dir
+
 STRICT = os.environ.get("THERMOD_STRICT") == "1"
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+# $THERMOD_SHARED_DATA, else the first shared/data above the checkout (the lookup thermod.sim uses);
+# a path that does not exist when there is none, so `.exists()` checks and `require` skip.
+SHARED_DATA = shared_data_dir() or Path(os.environ.get("THERMOD_SHARED_DATA") or "/nonexistent/shared/data")
 
 
 def _require(ok: bool, what: str) -> None:
@@ -25,5 +29,5 @@ def require():
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """../shared/data (real thermal frames and gyro log), when present."""
+    """shared/data (real thermal frames and gyro log); check `.exists()` before use."""
     return SHARED_DATA

@@ -1,5 +1,6 @@
 """thermod.physics.deconv: K&F (α = 1, 2/3), Wiener, origin handling, borders, tiles, errors."""
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -8,7 +9,9 @@ import pytest
 
 from thermod.errors import ThermodError
 from thermod.physics import deconv
+from thermod.physics.deconv import plans, tiles, wstep
 from thermod.physics.kernels import Kernel, KernelGrid, blur, blur_varying
+from thermod.sim import scenes
 
 
 @dataclass
@@ -17,16 +20,38 @@ class DuckKernel:  # deconv only needs .weights and .origin
     origin: tuple
 
 
+REAL_FRAME = "H20T_DJI_0001_R.png"
+
+
+@functools.cache
+def synthetic_frame() -> np.ndarray:
+    """The self-made scene (float32 counts, 512×640 like the real frame): warm and cool objects of
+    2–15 K with sharp edges on 0.5 K of 1/f clutter — piecewise smooth, as real thermal scenes are.
+    (With 2 K of clutter, the scenes module's default, the gradients are white noise-like
+    clutter, where no sparse prior can help: K&F and Wiener then tie.)"""
+    return scenes.texture(512, 640, seed=0, clutter_k=0.5)
+
+
+@functools.cache
+def _real_frame(path) -> np.ndarray:
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
+
+
 @pytest.fixture(scope="module")
-def scene(shared_data):
-    """A real 16-bit thermal frame (float32 counts), or a procedural one when the data is absent."""
-    path = shared_data / "thermal" / "H20T_DJI_0001_R.png"
-    if path.exists():
-        return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
-    rng = np.random.default_rng(3)
-    img = cv2.GaussianBlur(rng.normal(0, 1, (512, 640)).astype(np.float32), (0, 0), 3) * 4000 + 15000
-    img[100:300:40, :] += 3000
-    return img
+def scene():
+    """The self-made scene: every test that does not name the real frame uses it."""
+    return synthetic_frame()
+
+
+@pytest.fixture(params=["synthetic", "real"])
+def named_scene(request, shared_data, require):
+    """(name, frame): the self-made scene, and the real DJI frame (skipped on a bare clone, failed
+    under THERMOD_STRICT=1 when ../shared/data is missing). Thresholds are measured per scene."""
+    if request.param == "synthetic":
+        return "synthetic", synthetic_frame()
+    path = shared_data / "thermal" / REAL_FRAME
+    require(path.exists(), f"real thermal frame {path}")
+    return "real", _real_frame(path)
 
 
 def psnr(a, ref):
@@ -88,16 +113,16 @@ def test_fused_shrink_matches_the_exact_minimiser(alpha):
     v = np.concatenate([np.linspace(-5, 5, 20001), [7.3, -12.0]]).astype(np.float32)   # beyond the LUT too
     out = np.empty_like(v)
     mode = 0 if alpha == 1 else 1
-    lut = deconv._shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
+    lut = wstep.shrink_lut(alpha, beta) if mode else np.zeros(2, np.float32)
     tau = deconv.shrink_threshold(alpha, beta) if mode else 0.0
-    deconv._shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
-                       np.float32((deconv._LUT_SIZE - 1) / deconv._LUT_VMAX), np.float32(alpha),
+    wstep.shrink_row(v, out, mode, np.float32(1 / beta), np.float32(tau), lut,
+                       np.float32((wstep.LUT_SIZE - 1) / wstep.LUT_VMAX), np.float32(alpha),
                        np.empty(v.size, np.int32))
     if alpha == 1:
         exact = np.sign(v) * np.maximum(np.abs(v) - 1 / beta, 0)
     else:
         exact = deconv.shrink_numeric(v.astype(np.float64), beta, alpha)
-    near_jump = np.abs(np.abs(v) - tau) < 2 * deconv._LUT_VMAX / deconv._LUT_SIZE
+    near_jump = np.abs(np.abs(v) - tau) < 2 * wstep.LUT_VMAX / wstep.LUT_SIZE
     np.testing.assert_allclose(out[~near_jump], exact[~near_jump], atol=2e-5)
 
 
@@ -135,25 +160,40 @@ def test_one_sided_comet_output_is_not_displaced(scene):
 
 
 # ----------------------------------------------------------------------------- quality
-@pytest.mark.parametrize("method,alpha,gain", [("kf", 2 / 3, 12.0), ("kf", 1.0, 12.0), ("wiener", 1.0, 10.0)])
-def test_restores_a_real_scene(scene, method, alpha, gain):
+# PSNR gain over the blurry input, measured (synthetic / real): K&F 2/3 16.8 / 20.7 dB, K&F 1
+# 16.4 / 20.5 dB, Wiener 13.3 / 19.8 dB.
+RESTORE_GAIN_DB = {("synthetic", "kf", 2 / 3): 16.0, ("synthetic", "kf", 1.0): 15.5,
+                   ("synthetic", "wiener", 1.0): 12.5,
+                   ("real", "kf", 2 / 3): 20.0, ("real", "kf", 1.0): 20.0, ("real", "wiener", 1.0): 19.0}
+
+
+@pytest.mark.parametrize("method,alpha", [("kf", 2 / 3), ("kf", 1.0), ("wiener", 1.0)])
+def test_restores_a_scene(named_scene, method, alpha):
+    name, frame = named_scene
     k = comet(30, 10.0, 20.0)
-    s, b = blurred_crop(scene, k)
+    s, b = blurred_crop(frame, k)
     out = deconv.deconvolve(b, k, method=method, alpha=alpha)
     assert out.dtype == np.float32 and out.shape == b.shape
     p0, p1 = psnr(b, s), psnr(out, s)
-    assert p1 >= p0 + gain, (p0, p1)
+    assert p1 >= p0 + RESTORE_GAIN_DB[name, method, alpha], (p0, p1)
 
 
-def test_kf_beats_wiener_and_both_alphas_work(scene):
+# (K&F 2/3 over Wiener, both K&F over blurry) in dB; measured synthetic +3.2, +14.6 (2/3) and
+# +13.7 (α = 1); real +0.9, +18.4 and +17.4.
+KF_MARGINS_DB = {"synthetic": (2.5, 13.0), "real": (0.5, 17.0)}
+
+
+def test_kf_beats_wiener_and_both_alphas_work(named_scene):
+    name, frame = named_scene
     k = comet(25, 8.0, -60.0)
-    s, b = blurred_crop(scene, k, noise=0.004)
-    p = {name: psnr(deconv.deconvolve(b, k, method=m, alpha=a), s)
-         for name, m, a in [("kf23", "kf", 2 / 3), ("kf1", "kf", 1.0), ("wiener", "wiener", 1.0)]}
+    s, b = blurred_crop(frame, k, noise=0.004)
+    p = {key: psnr(deconv.deconvolve(b, k, method=m, alpha=a), s)
+         for key, m, a in [("kf23", "kf", 2 / 3), ("kf1", "kf", 1.0), ("wiener", "wiener", 1.0)]}
     blurry = psnr(b, s)
-    assert p["kf23"] > p["wiener"] + 0.3, p       # the hyper-Laplacian prior pays off (measured +0.8 dB)
-    assert p["kf1"] > blurry + 10 and p["kf23"] > blurry + 10, (blurry, p)
-    assert abs(p["kf23"] - p["kf1"]) < 3, p
+    over_wiener, over_blurry = KF_MARGINS_DB[name]
+    assert p["kf23"] > p["wiener"] + over_wiener, p       # the hyper-Laplacian prior pays off
+    assert p["kf1"] > blurry + over_blurry and p["kf23"] > blurry + over_blurry, (blurry, p)
+    assert p["kf23"] > p["kf1"], p                        # sparse gradients: α = 2/3 fits them better
 
 
 def test_float32_and_uint16_in_float32_counts_out_never_clipped():
@@ -172,9 +212,9 @@ def test_float32_and_uint16_in_float32_counts_out_never_clipped():
 def test_large_kernel_101px(scene):
     k = comet(101, 40.0, 0.0)
     assert k.weights.shape[1] >= 100
-    s, b = blurred_crop(scene[:, :], k, margin=110, noise=0.001)
+    s, b = blurred_crop(scene, k, margin=110, noise=0.001)
     out = deconv.deconvolve(b, k)
-    assert psnr(out, s) > psnr(b, s) + 8
+    assert psnr(out, s) > psnr(b, s) + 19.0        # measured +19.6 dB
 
 
 def test_border_ringing_is_bounded(scene):
@@ -223,7 +263,7 @@ def _grid(kernels, shape):
 
 def test_tile_weights_are_a_partition_of_unity():
     for overlap in (0.3, 1.0):
-        ws = deconv._tile_weights(500, np.array([50.0, 200, 260, 450]), overlap)
+        ws = tiles.tile_weights(500, np.array([50.0, 200, 260, 450]), overlap)
         total = np.zeros(500)
         for a, b, w in ws:
             total[a:b] += w
@@ -249,22 +289,28 @@ def test_tiles_with_one_kernel_match_uniform_without_seams(scene):
         assert jumps.max() < 0.001 * span, axis
 
 
-def test_spatially_varying_beats_uniform_under_roll(scene):
+# (varying over uniform, varying over blurry) in dB; measured synthetic +4.2, +6.3; real +8.1, +5.5.
+ROLL_MARGINS_DB = {"synthetic": (3.5, 5.5), "real": (7.0, 5.0)}
+
+
+def test_spatially_varying_beats_uniform_under_roll(named_scene):
     """Blur that rotates across the frame (roll): per-tile kernels restore better than one kernel."""
-    shape = (scene.shape[0] - 160, scene.shape[1] - 160)
+    name, frame = named_scene
+    shape = (frame.shape[0] - 160, frame.shape[1] - 160)
     rows, cols = 3, 4
     kernels = [[comet(22, 8.0, angle_deg=90 * (j - 1.5) / 1.5 + 40 * (i - 1)) for j in range(cols)]
                for i in range(rows)]
-    grid_full = _grid(kernels, scene.shape)
-    b_full = blur_varying(scene, grid_full)
+    grid_full = _grid(kernels, frame.shape)
+    b_full = blur_varying(frame, grid_full)
     b = b_full[80:-80, 80:-80] + np.random.default_rng(1).normal(0, 20, shape).astype(np.float32)
-    s = scene[80:-80, 80:-80]
+    s = frame[80:-80, 80:-80]
     grid = _grid(kernels, shape)
     d = deconv.Deconvolver()
     var = d.run_varying(b, grid)
     uni = d.run(b, kernels[1][1])
-    assert psnr(var, s) > psnr(uni, s) + 3.0      # measured: +8 dB
-    assert psnr(var, s) > psnr(b, s) + 4.5        # measured: +5.6 dB
+    over_uniform, over_blurry = ROLL_MARGINS_DB[name]
+    assert psnr(var, s) > psnr(uni, s) + over_uniform
+    assert psnr(var, s) > psnr(b, s) + over_blurry
 
 
 # ------------------------------------------------------------------------------- errors
@@ -290,46 +336,74 @@ def test_bad_parameters_raise():
         deconv.Deconvolver(alpha=2.0)
     with pytest.raises(ThermodError, match="lam"):
         deconv.Deconvolver(lam=-1)
+    with pytest.raises(ThermodError, match="NoiseLambda"):
+        deconv.NoiseLambda(scale=30.0, knee=0.0, lo=30.0, hi=3e5)
+    with pytest.raises(ThermodError, match="lam_rule"):
+        deconv.Deconvolver(lam_rule=30.0)
     with pytest.raises(ThermodError, match="value_range"):
         deconv.Deconvolver().run(np.zeros((8, 8), np.float32), DELTA, value_range=(5, 5))
 
 
 # ------------------------------------------------------------------------- adaptive λ
-def test_noise_sigma_measures_added_noise_and_sets_lambda(scene):
+def test_noise_sigma_measures_added_noise(scene):
+    k = comet(30, 10.0, 20.0)
+    _, b0 = blurred_crop(scene, k, noise=0.0)
+    lo, hi = deconv.robust_range(b0)
+    rng = np.random.default_rng(5)
+    for sigma in (0.002, 0.008):                  # measured 0.00214, 0.00801
+        b = b0 + rng.normal(0, sigma * (hi - lo), b0.shape).astype(np.float32)
+        assert deconv.noise_sigma(b, (lo, hi)) == pytest.approx(sigma, rel=0.1)
+
+
+def test_lambda_adapts_to_the_noise(scene):
+    """10× the noise: a weaker data term, and each frame's own λ beats the λ chosen for the other."""
     k = comet(30, 10.0, 20.0)
     s, b0 = blurred_crop(scene, k, noise=0.0)
     lo, hi = deconv.robust_range(b0)
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(6)
+    quiet, noisy = (b0 + rng.normal(0, sigma * (hi - lo), b0.shape).astype(np.float32)
+                    for sigma in (0.001, 0.01))
     d = deconv.Deconvolver()
-    lams = []
-    for sigma in (0.002, 0.008):
-        b = b0 + rng.normal(0, sigma * (hi - lo), b0.shape).astype(np.float32)
-        est = deconv.noise_sigma(b, (lo, hi))
-        assert est == pytest.approx(sigma, rel=0.15), (sigma, est)
-        d.run(b, k)
-        lams.append(d.last_lam)
-        sig = deconv.noise_sigma(b)
-        assert d.last_lam == pytest.approx(deconv.NOISE_LAMBDA["kf"] / (sig * (1 + sig / deconv.NOISE_KNEE)),
-                                           rel=1e-6)
-    assert lams[0] > 3 * lams[1]                  # 4× the noise → a much weaker data term
+    own_quiet = psnr(d.run(quiet, k), s)
+    lam_quiet = d.last_lam
+    own_noisy = psnr(d.run(noisy, k), s)
+    lam_noisy = d.last_lam
+    assert lam_quiet > 10 * lam_noisy                                # measured 18×
+    assert own_noisy > psnr(deconv.Deconvolver(lam=lam_quiet).run(noisy, k), s) + 15.0   # measured +17.4 dB
+    assert own_quiet > psnr(deconv.Deconvolver(lam=lam_noisy).run(quiet, k), s) + 4.5    # measured +5.2 dB
     fixed = deconv.Deconvolver(lam=1234.0)
-    fixed.run(b0, k)
+    fixed.run(noisy, k)
     assert fixed.last_lam == 1234.0
+
+
+@pytest.mark.parametrize("method,loss_db", [("kf", 3.5), ("wiener", 2.2)])
+def test_lambda_ten_times_too_small_or_too_large_loses(scene, method, loss_db):
+    """At NETD-like noise (0.3 % of the range) the adaptive λ sits near the optimum: λ ÷ 10 lets the
+    noise through and λ × 10 over-smooths, both measurably (measured ÷ 10: −4.0 dB K&F, −2.7 dB
+    Wiener; × 10: −8.8 dB K&F, −2.6 dB Wiener)."""
+    k = comet(30, 10.0, 20.0)
+    s, b = blurred_crop(scene, k, noise=0.003, seed=7)
+    d = deconv.Deconvolver(method=method)
+    best = psnr(d.run(b, k), s)
+    for factor in (0.1, 10.0):
+        off = psnr(deconv.Deconvolver(method=method, lam=d.last_lam * factor).run(b, k), s)
+        assert best > off + loss_db, (factor, best, off)
 
 
 def test_fftw_wisdom_is_saved_to_the_cache_dir(tmp_path, monkeypatch):
     import pyfftw  # a test dependency: fail, never skip, if it is missing
     monkeypatch.setenv("THERMOD_CACHE_DIR", str(tmp_path / "cache"))
     assert deconv.wisdom_path() == tmp_path / "cache" / "fftw_wisdom_float32"
-    deconv._Plan((48, 80), "fftw", 1)
-    deconv._save_wisdom()
+    plans.Plan((48, 80), "fftw", 1)
+    plans.save_wisdom()
     data = deconv.wisdom_path().read_bytes()
     assert data.startswith(b"(fftw") and pyfftw.import_wisdom((b"", data, b""))[1]
 
 
-def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(scene):
+def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(scene, tmp_path, monkeypatch):
     """A daemon worker meeting a new FFT size mid-stream must not stop ~0.7 s to measure a plan."""
     import pyfftw  # a test dependency; the scipy backend has no planning step at all
+    monkeypatch.setenv("THERMOD_CACHE_DIR", str(tmp_path))   # no wisdom on disk either
     pyfftw.forget_wisdom()
     k = comet(length=23, decay=6.0, angle_deg=20.0)
     sharp, blurry = blurred_crop(scene[:200, :300], k, margin=20)
@@ -338,7 +412,10 @@ def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(sce
     assert rt.estimated_plans == 1
     ref = deconv.Deconvolver(fft="scipy", lam=3000.0).run(blurry, k)
     span = float(np.ptp(sharp))
-    assert np.max(np.abs(out_rt - ref)) < 1e-3 * span  # same answer, only the plan differs
+    # same answer, only the plan differs: float32 rounding may move a gradient across the w-step's
+    # threshold, so a few pixels differ by up to 0.2 % of the range (measured 2 px; RMS 1.5e-5)
+    err = np.abs(out_rt - ref)
+    assert np.sqrt(np.mean(err ** 2)) < 1e-4 * span and err.max() < 5e-3 * span, (err.max(), span)
     measured = deconv.Deconvolver(fft="fftw", lam=3000.0)  # offline: measures (and saves wisdom)
     measured.run(blurry, k)
     assert measured.estimated_plans == 0

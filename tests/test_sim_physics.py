@@ -410,7 +410,8 @@ def test_scenes(tmp_path, monkeypatch, shared_data):
     # without shared/data, "real" falls back to the procedural texture
     monkeypatch.setenv("THERMOD_SHARED_DATA", str(tmp_path / "nothing"))
     assert scenes.shared_data_dir() is None
-    np.testing.assert_array_equal(scenes.load_scene("real", (96, 128), seed=1), t1)
+    with pytest.warns(scenes.SceneFallbackWarning, match="texture"):
+        np.testing.assert_array_equal(scenes.load_scene("real", (96, 128), seed=1), t1)
     with pytest.raises(ThermodError, match="--scene"):
         scenes.load_scene(str(tmp_path / "missing.png"), (96, 128))
 

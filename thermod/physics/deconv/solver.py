@@ -1,0 +1,243 @@
+"""The deconvolver: K&F half-quadratic splitting (or one Wiener solve) over cached plans and OTFs,
+whole-frame or in tiles, and the module-level one-call functions."""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+
+import numpy as np
+import scipy.fft
+
+from .checks import DeconvError, check_image, check_kernel
+from .noise import NOISE_LAMBDA, NoiseLambda, noise_sigma, value_range_of
+from .plans import MAX_PLANS, Plan, fast_len, pyfftw
+from .tiles import max_moment_deviation, tile_weights
+from .wstep import LUT_SIZE, LUT_VMAX, beta_schedule, shrink_lut, shrink_threshold, wstep_div
+from .xstep import conj_mul, finish, prepare, wiener_solve, xstep
+
+DEFAULT_ALPHA = 2.0 / 3.0
+
+
+class Deconvolver:
+    """Reusable deconvolver: caches FFT plans per padded shape and OTFs per (shape, kernel).
+
+    Parameters
+    ----------
+    method : "kf" (hyper-Laplacian, default) or "wiener" (one Tikhonov solve).
+    alpha : prior exponent for "kf": 1 (soft threshold), 2/3 (default, analytic LUT) or any in (0, 1).
+    lam : data weight λ for a unit-range frame (K&F convention). None (default): adapted to each
+        frame's noise σ̂ (`noise_sigma`) by `lam_rule`.
+    lam_rule : the `NoiseLambda` used when lam is None (default: `NoiseLambda.default(method)`).
+    fft : "auto" (pyFFTW if installed), "fftw" or "scipy".
+    workers : FFT threads (1 = one core; run several Deconvolvers in threads for throughput).
+    margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
+    realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
+        estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
+        For the daemon's workers, which warm up the common sizes before going live.
+
+    One instance is not thread-safe (it owns its buffers); numba passes and FFTs release the GIL,
+    so one instance per thread scales across cores.
+    """
+
+    def __init__(self, method: str = "kf", alpha: float = DEFAULT_ALPHA, lam: float | None = None,
+                 fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16,
+                 realtime: bool = False, *, lam_rule: NoiseLambda | None = None):
+        if method not in NOISE_LAMBDA:
+            raise DeconvError(f"method: expected one of {sorted(NOISE_LAMBDA)}, got {method!r}")
+        alpha = float(alpha)
+        if not 0 < alpha <= 1:
+            raise DeconvError(f"alpha: expected a prior exponent in (0, 1], got {alpha}")
+        if lam is not None:
+            lam = float(lam)
+            if not (lam > 0 and math.isfinite(lam)):
+                raise DeconvError(f"lam: expected a positive data weight, got {lam}")
+        if fft == "auto":
+            fft = "fftw" if pyfftw is not None else "scipy"
+        if fft not in ("fftw", "scipy") or (fft == "fftw" and pyfftw is None):
+            raise DeconvError(f"fft: expected 'auto', 'scipy' or 'fftw' (pyFFTW installed), got {fft!r}")
+        if lam_rule is not None and not isinstance(lam_rule, NoiseLambda):
+            raise DeconvError(f"lam_rule: expected a NoiseLambda, got {type(lam_rule).__name__}")
+        self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
+        self.lam_rule = lam_rule or NoiseLambda.default(method)
+        self.last_lam = float("nan")   # λ used for the last frame (adaptive when lam is None)
+        self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
+        self.realtime = bool(realtime)
+        self.estimated_plans = 0
+        self._plans: OrderedDict[tuple[int, int], Plan] = OrderedDict()
+        self._otfs: OrderedDict = OrderedDict()
+        self._betas = beta_schedule()
+        if method == "kf" and alpha < 1:
+            self._luts = [shrink_lut(alpha, b) for b in self._betas]
+            self._taus = [shrink_threshold(alpha, b) for b in self._betas]
+        else:
+            self._luts = [np.zeros(2, np.float32)] * len(self._betas)
+            self._taus = [0.0] * len(self._betas)
+
+    # -------------------------------------------------------------------------- caches
+    def padded_shape(self, shape, kshape) -> tuple[int, int]:
+        """FFT size for a frame (or tile) of `shape` blurred by a kernel of `kshape`."""
+        return (fast_len(shape[0] + kshape[0] + self.margin), fast_len(shape[1] + kshape[1] + self.margin))
+
+    def _plan(self, shape) -> Plan:
+        p = self._plans.get(shape)
+        if p is None:
+            p = self._plans[shape] = Plan(shape, self.fft, self.workers, measure_unseen=not self.realtime)
+            self.estimated_plans += p.estimated
+            while len(self._plans) > MAX_PLANS:
+                self._plans.popitem(last=False)
+        else:
+            self._plans.move_to_end(shape)
+        return p
+
+    def _otf(self, plan: Plan, w: np.ndarray, origin) -> tuple[np.ndarray, np.ndarray]:
+        """(K, |K|²) with the kernel's origin moved to index (0, 0), so the output is not displaced."""
+        key = (plan.shape, origin, w.shape, hash(w.tobytes()))
+        hit = self._otfs.get(key)
+        if hit is not None:
+            self._otfs.move_to_end(key)
+            return hit
+        hp, wp = plan.shape
+        psf = np.zeros(plan.shape, np.float32)
+        kh, kw = w.shape
+        rows = (np.arange(kh) - origin[0]) % hp
+        cols = (np.arange(kw) - origin[1]) % wp
+        psf[np.ix_(rows, cols)] = w
+        K = scipy.fft.rfft2(psf, workers=self.workers).astype(np.complex64)
+        K2 = (K.real * K.real + K.imag * K.imag).astype(np.float32)
+        self._otfs[key] = (K, K2)
+        while len(self._otfs) > self.cache_size:
+            self._otfs.popitem(last=False)
+        return K, K2
+
+    # -------------------------------------------------------------------------- solvers
+    def lam_for(self, img: np.ndarray, lo: float, hi: float) -> float:
+        """λ for this frame: the fixed one, or `lam_rule` of the frame's noise."""
+        if self.lam is not None:
+            return self.lam
+        return self.lam_rule(noise_sigma(img, (lo, hi)))
+
+    def _solve(self, img, box, w, origin, lo, hi, lam, pshape=None) -> np.ndarray:
+        """Deconvolve img[y0:y1, x0:x1] (unit-scaled with lo/hi) → float32 counts of that box."""
+        y0, y1, x0, x1 = box
+        hh, ww = y1 - y0, x1 - x0
+        plan = self._plan(pshape or self.padded_shape((hh, ww), w.shape))
+        rng = hi - lo
+        prepare(img, y0, x0, hh, ww, np.float32(lo), np.float32(1.0 / rng), plan.rin)
+        K, K2 = self._otf(plan, w, origin)
+        kty = plan.spec
+        conj_mul(K, plan.fwd(), kty)
+        if self.method == "wiener":
+            wiener_solve(kty, K2, plan.g2, np.float32(1.0 / lam), plan.norm, plan.cin)
+            x = plan.inv()
+        else:
+            x = plan.rin  # the w-step reads x fully before writing div into the same buffer
+            mode = 0 if self.alpha == 1.0 else 1
+            inv_step = np.float32((LUT_SIZE - 1) / LUT_VMAX)
+            for beta, lut, tau in zip(self._betas, self._luts, self._taus, strict=True):
+                wstep_div(x, mode, np.float32(1.0 / beta), np.float32(tau), lut, inv_step,
+                           np.float32(self.alpha), plan.wx, plan.wy, plan.div, plan.idx)
+                xstep(kty, K2, plan.g2, plan.fwd(), np.float32(beta / lam), plan.norm, plan.cin)
+                x = plan.inv()
+        out = np.empty((hh, ww), np.float32)
+        finish(x, hh, ww, np.float32(lo), np.float32(rng), out)
+        return out
+
+    def run(self, image: np.ndarray, kernel, *, value_range: tuple[float, float] | None = None) -> np.ndarray:
+        """Deconvolve a whole frame with one kernel (the paper's method). Counts in, float32 counts out.
+
+        `value_range` (lo, hi) overrides the robust range used for unit scaling (and so λ's scale).
+        """
+        img = check_image(image)
+        w, origin = check_kernel(kernel)
+        lo, hi = value_range_of(img, value_range)
+        lam = self.last_lam = self.lam_for(img, lo, hi)
+        return self._solve(img, (0, img.shape[0], 0, img.shape[1]), w, origin, lo, hi, lam)
+
+    def run_varying(self, image: np.ndarray, grid, *, overlap: float = 1.0, uniform_tol_px: float = 0.5,
+                    value_range: tuple[float, float] | None = None) -> np.ndarray:
+        """Spatially varying deconvolution over a kernel grid (``grid.kernels[r][c]``,
+        ``grid.centers[r][c] = (y, x)``): one tile per cell, raised-cosine partition-of-unity blend.
+
+        Each tile is its cell's blending support plus a margin of real pixels (the kernel size + 8)
+        so that the tile's own boundary effects fall outside the pixels it contributes. When every
+        kernel's centroid and spread lie within `uniform_tol_px` of the central kernel's (no roll,
+        narrow field of view) the blur is uniform for all practical purposes and the frame is
+        solved once with the central kernel (0 disables the shortcut).
+        """
+        img = check_image(image)
+        kernels = getattr(grid, "kernels", None)
+        centers = getattr(grid, "centers", None)
+        if kernels is None or centers is None:
+            raise DeconvError(f"grid: expected an object with .kernels and .centers, "
+                              f"got {type(grid).__name__}")
+        centers = np.asarray(centers, dtype=np.float64)
+        nr = len(kernels)
+        nc = len(kernels[0]) if nr else 0
+        if nr == 0 or nc == 0 or any(len(row) != nc for row in kernels) or centers.shape != (nr, nc, 2):
+            raise DeconvError(f"grid: expected R×C kernels and centers of shape (R, C, 2), got {nr} rows "
+                              f"and centers of shape {centers.shape}")
+        if not 0 < overlap <= 1:
+            raise DeconvError(f"overlap: expected a fraction in (0, 1], got {overlap}")
+        h, wd = img.shape
+        lo, hi = value_range_of(img, value_range)
+        lam = self.last_lam = self.lam_for(img, lo, hi)   # one λ for every tile: consistent blending
+        checked = [[check_kernel(kernels[r][c], f"grid.kernels[{r}][{c}]") for c in range(nc)]
+                   for r in range(nr)]
+        d2 = ((centers - np.array([(h - 1) / 2, (wd - 1) / 2])) ** 2).sum(axis=2)
+        rc, cc = np.unravel_index(int(np.argmin(d2)), d2.shape)
+        if uniform_tol_px > 0 and max_moment_deviation(checked, checked[rc][cc]) <= uniform_tol_px:
+            w, origin = checked[rc][cc]
+            return self._solve(img, (0, h, 0, wd), w, origin, lo, hi, lam)
+        wys = tile_weights(h, centers[:, :, 0].mean(axis=1), overlap)
+        wxs = tile_weights(wd, centers[:, :, 1].mean(axis=0), overlap)
+        shapes = np.array([w.shape for row in checked for w, _ in row])
+        kmax = (int(shapes[:, 0].max()), int(shapes[:, 1].max()))
+        m = max(kmax) + 8
+        out = np.zeros((h, wd), np.float32)
+        boxes = {}
+        for r, (ys, ye, _) in enumerate(wys):
+            for c, (xs, xe, _) in enumerate(wxs):
+                boxes[r, c] = (max(0, ys - m), min(h, ye + m), max(0, xs - m), min(wd, xe + m))
+        # every tile padded to one shape: one FFT plan for the frame
+        th = max(b[1] - b[0] for b in boxes.values())
+        tw = max(b[3] - b[2] for b in boxes.values())
+        pshape = self.padded_shape((th, tw), kmax)
+        for r, (ys, ye, wy) in enumerate(wys):
+            for c, (xs, xe, wx) in enumerate(wxs):
+                w, origin = checked[r][c]
+                by0, by1, bx0, bx1 = boxes[r, c]
+                tile = self._solve(img, boxes[r, c], w, origin, lo, hi, lam, pshape)
+                out[ys:ye, xs:xe] += tile[ys - by0:ye - by0, xs - bx0:xe - bx0] * wy[:, None] * wx[None, :]
+        return out
+
+
+_DEFAULT: dict = {}
+_DEFAULT_LOCK = threading.Lock()
+
+
+def _shared(method, alpha, lam) -> Deconvolver:
+    key = (threading.get_ident(), method, float(alpha), lam)
+    with _DEFAULT_LOCK:
+        d = _DEFAULT.get(key)
+        if d is None:
+            d = _DEFAULT[key] = Deconvolver(method=method, alpha=alpha, lam=lam)
+    return d
+
+
+def deconvolve(blurry: np.ndarray, kernel, *, method: str = "kf", alpha: float = DEFAULT_ALPHA,
+               lam: float | None = None) -> np.ndarray:
+    """Deconvolve one frame with one kernel (Eq. 18 kernel, K&F or Wiener). Counts in → float32 counts.
+
+    Uses a per-thread cached `Deconvolver`; see its docstring for the parameters.
+    """
+    return _shared(method, alpha, lam).run(blurry, kernel)
+
+
+def deconvolve_varying(blurry: np.ndarray, grid, *, method: str = "kf", alpha: float = DEFAULT_ALPHA,
+                       lam: float | None = None, overlap: float = 1.0,
+                       uniform_tol_px: float = 0.5) -> np.ndarray:
+    """Spatially varying deconvolution in overlapping tiles, one kernel per grid cell (float32 counts)."""
+    dec = _shared(method, alpha, lam)
+    return dec.run_varying(blurry, grid, overlap=overlap, uniform_tol_px=uniform_tol_px)

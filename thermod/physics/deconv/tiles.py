@@ -1,0 +1,53 @@
+"""Tiles for spatially varying blur: a raised-cosine partition of unity over the kernel grid, and
+the kernel moments that decide when a grid is uniform for all practical purposes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def tile_weights(n: int, centers: np.ndarray, overlap: float) -> list[tuple[int, int, np.ndarray]]:
+    """Separable raised-cosine partition of unity along one axis of length n.
+
+    Returns per cell (start, stop, weights[stop−start]); Σ over cells = 1 at every index. The
+    ramp between adjacent centres spans `overlap` × their distance, centred on the midpoint.
+    """
+    idx = np.arange(n, dtype=np.float64)
+    out = []
+    m = len(centers)
+    for c in range(m):
+        w = np.ones(n)
+        if c > 0:
+            a, b = centers[c - 1], centers[c]
+            mid, half = (a + b) / 2, overlap * (b - a) / 2
+            s = np.clip((idx - (mid - half)) / max(2 * half, 1e-9), 0, 1)
+            w *= np.sin(0.5 * np.pi * s) ** 2
+        if c < m - 1:
+            a, b = centers[c], centers[c + 1]
+            mid, half = (a + b) / 2, overlap * (b - a) / 2
+            s = np.clip((idx - (mid - half)) / max(2 * half, 1e-9), 0, 1)
+            w *= np.cos(0.5 * np.pi * s) ** 2
+        w[w < 1e-9] = 0.0   # cos(π/2)² is 4e-33 in floating point, not 0: keep the support compact
+        nz = np.flatnonzero(w > 0)
+        start, stop = int(nz[0]), int(nz[-1]) + 1
+        out.append((start, stop, w[start:stop].astype(np.float32)))
+    return out
+
+
+def _moments(w: np.ndarray, origin) -> np.ndarray:
+    """(mean u_y, mean u_x, std u_y, std u_x) of a kernel (px)."""
+    iy, ix = np.indices(w.shape)
+    uy = (iy - origin[0]).ravel()
+    ux = (ix - origin[1]).ravel()
+    p = w.ravel().astype(np.float64)
+    p = p / p.sum()
+    my, mx = p @ uy, p @ ux
+    return np.array([my, mx, math.sqrt(max(p @ (uy - my) ** 2, 0)), math.sqrt(max(p @ (ux - mx) ** 2, 0))])
+
+
+def max_moment_deviation(checked, ref) -> float:
+    m0 = _moments(*ref)
+    return max(float(np.abs(_moments(w, o) - m0).max()) for row in checked for w, o in row)
+
