@@ -26,6 +26,7 @@ import math
 
 import cv2
 import numpy as np
+
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import iir_alpha, row_read_time
 from thermod.physics.geometry import integrate_rotations
