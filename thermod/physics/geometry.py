@@ -95,9 +95,11 @@ def so3_exp_many(rotvecs) -> np.ndarray:
     px, py, pz = w[:, 0], w[:, 1], w[:, 2]
     th2 = px * px + py * py + pz * pz
     series = th2 < _SERIES_THETA_SQ
-    th = np.sqrt(np.where(series, 1.0, th2))
+    th2_safe = np.where(series, 1.0, th2)
+    th = np.sqrt(th2_safe)
+    sh = np.sin(0.5 * th)
     a = np.where(series, 1.0 - th2 / 6.0, np.sin(th) / th)
-    b = np.where(series, 0.5 - th2 / 24.0, 2.0 * np.sin(0.5 * th) ** 2 / (th * th))
+    b = np.where(series, 0.5 - th2 / 24.0, 2.0 * sh * sh / th2_safe)
     R = np.empty((len(w), 3, 3))
     R[:, 0, 0] = 1.0 - b * (py * py + pz * pz)
     R[:, 0, 1] = -a * pz + b * px * py
