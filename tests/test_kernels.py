@@ -49,6 +49,19 @@ def yaw(rate):
 
 
 # ----------------------------------------------------------------------------------- reference
+def test_jitted_core_arguments_follow_their_named_layouts():
+    """The renderer passes plain tuples (fast numba dispatch); the core reads them by field name."""
+    from thermod.physics.kernels import core, params, render
+    p = params.params(CAL)
+    win, smp = render._path_args(p, 0.1, 0.14, False, 1500.0)
+    assert core.PathWindow(*win) == core.PathWindow(start=0.1, end=0.14, tau=CAL.tau_s, box=False)
+    assert core.PathSampling(*smp) == core.PathSampling(px_per_rad=1500.0, max_step_px=K.MAX_STEP_PX,
+                                                        max_nodes=K.MAX_NODES, max_size_px=p.max_size_px)
+    win, _ = render._path_args(p, 0.1, 0.14, True, 1500.0)
+    assert core.PathWindow(*win).box and core.PathWindow(*win).tau == 1.0
+    assert core.Pinhole(*p.camera) == core.Pinhole(fx=CAL.fx, fy=CAL.fy, cx=CAL.cx, cy=CAL.cy)
+
+
 @pytest.mark.parametrize("case", ["yaw_fast", "mixed_offcentre", "psf", "coverage", "calib", "readout"])
 def test_numba_matches_numpy_reference(case):
     rng = np.random.default_rng(1)

@@ -30,11 +30,10 @@ def row_read_time(t_frame, row, readout_s: float, height: int):
     """Rolling readout: row `row` (may be fractional) of the frame read at t_frame is read at
     t_frame − readout_s·(1 − (row+1)/height); the last row at t_frame (DESIGN.md §1).
 
-    Broadcasts over array `t_frame` and `row`; float for scalars.
+    Broadcasts over NumPy arrays `t_frame` and `row`; plain arithmetic, so scalars stay cheap
+    (the kernel renderer calls it once per kernel).
     """
-    t = np.asarray(t_frame, dtype=np.float64) - float(readout_s) * (
-        1.0 - (np.asarray(row, dtype=np.float64) + 1.0) / float(height))
-    return float(t) if t.ndim == 0 else t
+    return t_frame - readout_s * (1.0 - (row + 1.0) / height)
 
 
 def default_photon_exposure_s(frame_rate_hz: float) -> float:

@@ -1,9 +1,9 @@
 """The numba core of the kernel renderer: gyro path → nodes and weights → offsets → splat → PSF.
 
 Scalar arguments travel in plain tuples whose layouts are the NamedTuples below (`PathWindow`,
-`PathSampling`, `Pinhole`): numba types a plain tuple of scalars as fast as loose arguments, a
-NamedTuple instance ~15 µs slower per call, so callers pass ``tuple(PathWindow(...))`` and the
-jitted code names the fields again with ``PathWindow(*window)``. Every entry point returns a
+`PathSampling`, `Pinhole`): numba types a plain tuple of scalars as fast as loose arguments but a
+NamedTuple instance ~15 µs slower per call, so callers pass plain tuples in field order and the
+jitted code names the fields with ``PathWindow(*window)``. Every entry point returns a
 `PathStatus` value (an int at the boundary: boxing the enum member costs ~5 µs).
 """
 
@@ -16,9 +16,9 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from thermod.physics.geometry import jit_cores, trapezoid_step_into
+from thermod.physics.geometry import jit_cores, so3_exp_into
 
-jit_cores()   # the geometry's Rodrigues and trapezoid step, callable from the jitted code below
+jit_cores()   # the geometry's Rodrigues map, callable from the jitted code below
 
 
 class PathStatus(IntEnum):
@@ -104,7 +104,7 @@ def _hat_weights(x, y, b, tau, box):
 
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _calibrated_samples(t_all, r_all, M, bias, offset, a, b):
     """The samples around [a, b] (camera clock) plus one neighbour each side, calibrated:
     times t + offset and rates ω_cam = M (ω_gyro − bias). Returns (t, ω, status)."""
@@ -133,7 +133,7 @@ def _calibrated_samples(t_all, r_all, M, bias, offset, a, b):
     return t, w, PathStatus.OK.value
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _stretches(t, w, a, b):
     """Stretch boundaries a, the samples strictly inside (a, b), b, with their rates; and the
     number of samples in (a, b]."""
@@ -159,7 +159,7 @@ def _stretches(t, w, a, b):
     return bt, bw, n_samples
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _substeps(bt, bw, sampling):
     """Sub-steps per stretch so the image moves ≤ max_step_px per step (bound: px_per_rad·|ω|·Δs);
     returns (counts, total nodes, status)."""
@@ -180,12 +180,15 @@ def _substeps(bt, bw, sampling):
 @njit(cache=True, nogil=True)
 def _node_rotations(bt, bw, nsub, total):
     """Node times and Q(s) = R(b)ᵀR(s), every sub-node taken from its stretch's end node s1 by one
-    trapezoid step Q(s) = Q(s1) exp(−½(ω(s)+ω(s1))(s1−s)), so at the samples Q equals
-    `integrate_rotations` exactly."""
+    trapezoid step Q(s) = Q(s1) exp(½(ω(s)+ω(s1))(s−s1)), so at the samples Q equals
+    `integrate_rotations` exactly (tests/test_kernels.py checks it).
+
+    This is `geometry.trapezoid_step_into` written on scalars: passing array views per node costs
+    ~25 % of the renderer's time here. The Rodrigues map is the geometry's `so3_exp_into`.
+    """
     times = np.empty(total)
     Q = np.empty((total, 3, 3))
     E = np.empty((3, 3))
-    ws = np.empty(3)
     idx = total - 1
     times[idx] = bt[bt.shape[0] - 1]
     Q[idx] = np.eye(3)
@@ -196,15 +199,19 @@ def _node_rotations(bt, bw, nsub, total):
         for jj in range(nsub[k] - 1, -1, -1):
             s = s0 + (s1 - s0) * jj / nsub[k]
             f = (s - s0) / (s1 - s0)
-            for c in range(3):
-                ws[c] = bw[k, c] + f * (bw[k + 1, c] - bw[k, c])
+            h = 0.5 * (s - s1)
+            so3_exp_into(h * (bw[k, 0] + f * (bw[k + 1, 0] - bw[k, 0]) + bw[k + 1, 0]),
+                         h * (bw[k, 1] + f * (bw[k + 1, 1] - bw[k, 1]) + bw[k + 1, 1]),
+                         h * (bw[k, 2] + f * (bw[k + 1, 2] - bw[k, 2]) + bw[k + 1, 2]), E)
             idx -= 1
             times[idx] = s
-            trapezoid_step_into(Q[end], bw[k + 1], ws, s - s1, E, Q[idx])
+            for r in range(3):
+                for c in range(3):
+                    Q[idx, r, c] = Q[end, r, 0] * E[0, c] + Q[end, r, 1] * E[1, c] + Q[end, r, 2] * E[2, c]
     return times, Q
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _node_weights(times, win):
     """Quadrature weights: each sub-interval's window weight against the hats at its ends, sum 1."""
     wt = np.zeros(times.shape[0])
@@ -219,7 +226,7 @@ def _node_weights(times, win):
     return wt
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _coverage(t, win):
     """Share of the window's weight inside [first sample, last sample]."""
     a, b, tau = win.start, win.end, win.tau

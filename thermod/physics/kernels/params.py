@@ -10,7 +10,7 @@ import numpy as np
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import row_read_time
-from thermod.physics.kernels.core import PathStatus, Pinhole
+from thermod.physics.kernels.core import PathStatus
 from thermod.physics.kernels.types import KernelError
 
 #: Largest spacing between consecutive splats along the path (px); < 0.5 px avoids stepping (Eq. 12),
@@ -27,28 +27,25 @@ class RendererParams:
     M: np.ndarray        # ω_cam = M (ω_gyro − bias)
     bias: np.ndarray
     offset: float        # camera time = gyro time + offset
-    camera: tuple        # plain `Pinhole` (fx, fy, cx, cy)
+    fx: float
+    fy: float
+    cx: float
+    cy: float
     width: int
     height: int
     tau: float
     readout: float
     psf_sigma: float
 
-    @property
-    def fx(self) -> float:
-        return self.camera[0]
+    @functools.cached_property
+    def camera(self) -> tuple:
+        """(fx, fy, cx, cy) as the plain tuple the jitted core reads as a `Pinhole`."""
+        return (self.fx, self.fy, self.cx, self.cy)
 
-    @property
-    def fy(self) -> float:
-        return self.camera[1]
-
-    @property
-    def cx(self) -> float:
-        return self.camera[2]
-
-    @property
-    def cy(self) -> float:
-        return self.camera[3]
+    @functools.cached_property
+    def max_size_px(self) -> int:
+        """Largest kernel side: a blur wider than twice the frame is no real motion (refused, not cropped)."""
+        return 2 * max(self.width, self.height) + 64
 
 
 def make_params(calib: Calibration) -> RendererParams:
@@ -73,8 +70,8 @@ def make_params(calib: Calibration) -> RendererParams:
     if not (math.isfinite(sigma) and sigma >= 0):
         raise KernelError(f"calib: optical PSF σ (Eq. 19) must be finite and ≥ 0, got {sigma!r} px "
                           "(check wavelength_um, f_number, psf_beta, pixel_pitch_um)")
-    camera = tuple(Pinhole(float(calib.fx), float(calib.fy), float(calib.cx), float(calib.cy)))
-    return RendererParams(M, bias, float(calib.time_offset_s), camera, int(calib.width), int(calib.height),
+    return RendererParams(M, bias, float(calib.time_offset_s), float(calib.fx), float(calib.fy),
+                          float(calib.cx), float(calib.cy), int(calib.width), int(calib.height),
                           float(calib.tau_s), float(calib.readout_s), sigma)
 
 
@@ -95,11 +92,6 @@ def window(p: RendererParams, t_frame: float, y: float, length: float) -> tuple[
     """(a, b]: the `length` s before the read time b of image row y (rolling readout)."""
     b = row_read_time(t_frame, y, p.readout, p.height)
     return b - length, b
-
-
-def max_size(p: RendererParams) -> int:
-    """Largest kernel side: a blur wider than twice the frame is no real motion (refused, not cropped)."""
-    return 2 * max(p.width, p.height) + 64
 
 
 def px_per_rad(p: RendererParams, x: float, y: float) -> float:
@@ -129,7 +121,7 @@ _STATUS_MESSAGES = {
 
 def raise_status(st: int, p: RendererParams, a: float, b: float, x: float, y: float):
     """Raise the KernelError a jitted renderer's status stands for."""
-    msg = _STATUS_MESSAGES[PathStatus(st)].format(n=MAX_NODES, size=max_size(p))
+    msg = _STATUS_MESSAGES[PathStatus(st)].format(n=MAX_NODES, size=p.max_size_px)
     if not msg.startswith("gyro_"):
         msg = f"gyro_rate: at point ({x:.1f}, {y:.1f}), {msg}"
     raise KernelError(f"{msg} (window [{a:.6f}, {b:.6f}] s, camera clock)")

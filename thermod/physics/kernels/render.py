@@ -10,9 +10,6 @@ import numpy as np
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s
 from thermod.physics.kernels.core import (
-    PathSampling,
-    PathStatus,
-    PathWindow,
     kernel_at,
     path_nodes,
     path_offsets,
@@ -25,7 +22,6 @@ from thermod.physics.kernels.params import (
     check_gyro,
     check_point,
     check_scalar,
-    max_size,
     params,
     px_per_rad,
     raise_status,
@@ -69,25 +65,28 @@ def _psf_taps(p: RendererParams, psf: bool) -> np.ndarray:
 
 
 def _path_args(p: RendererParams, a: float, b: float, box: bool, ppr: float) -> tuple[tuple, tuple]:
-    """Plain-tuple `PathWindow` and `PathSampling` for the jitted core (box windows ignore τ)."""
-    win = PathWindow(start=float(a), end=float(b), tau=1.0 if box else p.tau, box=bool(box))
-    smp = PathSampling(px_per_rad=float(ppr), max_step_px=MAX_STEP_PX, max_nodes=MAX_NODES,
-                       max_size_px=max_size(p))
-    return tuple(win), tuple(smp)
+    """`PathWindow` and `PathSampling` as plain tuples for the jitted core (box windows ignore τ).
+
+    Built in field order without the NamedTuple classes: this runs once per kernel, where a few
+    µs matter; tests/test_kernels.py checks the order against the classes.
+    """
+    win = (a, b, 1.0 if box else p.tau, box)          # a, b, ppr: floats; box: bool (one numba signature)
+    smp = (ppr, MAX_STEP_PX, MAX_NODES, p.max_size_px)
+    return win, smp
 
 
 def _nodes_for(t, r, p: RendererParams, a: float, b: float, box: bool, ppr: float, x: float, y: float):
     win, smp = _path_args(p, a, b, box, ppr)
     times, Q, w, cov, ns, st = path_nodes(t, r, p.M, p.bias, p.offset, win, smp)
-    if st != PathStatus.OK:
+    if st:   # PathStatus.OK is 0
         raise_status(st, p, a, b, x, y)
     return times, Q, w, float(cov), int(ns)
 
 
 def _kernel_from_nodes(Q, w, cov, n_samples, p: RendererParams, x: float, y: float, psf: bool,
                        a: float, b: float) -> Kernel:
-    k, oy, ox, st = kernel_at(Q, w, (x, y), p.camera, max_size(p), _psf_taps(p, psf))
-    if st != PathStatus.OK:
+    k, oy, ox, st = kernel_at(Q, w, (x, y), p.camera, p.max_size_px, _psf_taps(p, psf))
+    if st:   # PathStatus.OK is 0
         raise_status(st, p, a, b, x, y)
     return Kernel(k, (int(oy), int(ox)), cov, n_samples)
 
@@ -96,7 +95,7 @@ def _render(t, r, p: RendererParams, a: float, b: float, box: bool, x: float, y:
     win, smp = _path_args(p, a, b, box, px_per_rad(p, x, y))
     k, oy, ox, cov, ns, st = render_one(t, r, p.M, p.bias, p.offset, win, smp, (x, y), p.camera,
                                          _psf_taps(p, psf))
-    if st != PathStatus.OK:
+    if st:   # PathStatus.OK is 0
         raise_status(st, p, a, b, x, y)
     return Kernel(k, (int(oy), int(ox)), float(cov), int(ns))
 
@@ -117,7 +116,7 @@ def render_path(gyro_t, gyro_rate, calib: Calibration, t_frame: float, *, point=
     a, b = window(p, tf, y, length)
     times, Q, w, cov, ns = _nodes_for(t, r, p, a, b, box, px_per_rad(p, x, y), x, y)
     u, st = path_offsets(Q, (x, y), p.camera)
-    if st != PathStatus.OK:
+    if st:   # PathStatus.OK is 0
         raise_status(st, p, a, b, x, y)
     return KernelPath(times, u, w, cov, ns)
 
