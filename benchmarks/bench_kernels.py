@@ -1,5 +1,7 @@
 """Speed of the blur-kernel renderer (Eq. 18) against its plain NumPy reference, same run.
 
+The reference is tests/reference_kernels.py (independent of the renderer's code).
+
     .venv/bin/python benchmarks/bench_kernels.py [--repeats N]
 
 Cases (the paper's camera: 640×480, IFOV 0.0391°, τ = 8 ms, 1 kHz gyro, PSF on):
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 
 os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".numba_cache"))
@@ -25,6 +28,9 @@ import numpy as np  # noqa: E402
 
 from thermod.physics import kernels as K  # noqa: E402
 from thermod.physics.calibration import Calibration  # noqa: E402
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
+from reference_kernels import render_thermal_kernel_reference  # noqa: E402
 
 
 def timeit(fn, repeats: int, inner: int = 1) -> np.ndarray:
@@ -69,14 +75,14 @@ def main(argv=None) -> int:
     cases = [
         ("uniform-40", 50e-6,
          lambda: K.render_thermal_kernel(t, pan30, cal, tf),
-         lambda: K.render_thermal_kernel_reference(t, pan30, cal, tf), 50),
+         lambda: render_thermal_kernel_reference(t, pan30, cal, tf), 50),
         ("grid-6x8", 2e-3,
          lambda: K.render_kernel_grid(t, mixed, cal, tf, (6, 8)),
-         lambda: [K.render_thermal_kernel_reference(t, mixed, cal, tf, point=(x, y))
+         lambda: [render_thermal_kernel_reference(t, mixed, cal, tf, point=(x, y))
                   for y in np.linspace(39.5, 439.5, 6) for x in np.linspace(39.5, 599.5, 8)], 2),
         ("pan-100dps", None,
          lambda: K.render_thermal_kernel(t, pan100, cal, tf),
-         lambda: K.render_thermal_kernel_reference(t, pan100, cal, tf), 20),
+         lambda: render_thermal_kernel_reference(t, pan100, cal, tf), 20),
         ("ring-1h", 50e-6, lambda: K.render_thermal_kernel(t_ring, pan_ring, cal, 1800.0004), None, 50),
         ("blur-640x480", None, lambda: K.blur(img, k100), None, 1),
         ("blur-varying", None, lambda: K.blur_varying(img, grid), None, 1),

@@ -37,6 +37,7 @@ from numba import njit
 
 from thermod.errors import ThermodError
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import default_photon_exposure_s, iir_alpha, row_read_time
 from thermod.sim.motion import Trajectory
 from thermod.sim.scenes import COUNTS_PER_K
 
@@ -118,12 +119,6 @@ def image_speed_bound(calib: Calibration, w_abs: np.ndarray, margin_px: float = 
     return f * ((1 + rho * rho) * math.hypot(w_abs[0], w_abs[1]) + rho * abs(w_abs[2]))
 
 
-def row_times(t_frame: float, readout_s: float, height: int) -> np.ndarray:
-    """Rolling readout: row r is read at t_k − T_ro·(1 − (r+1)/H) (DESIGN.md §1)."""
-    r = np.arange(height)
-    return t_frame - readout_s * (1.0 - (r + 1) / height)
-
-
 def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
            kind: str = "thermal", exposure_s: float | None = None, psf_sigma_px: float | None = None,
            step_px: float = 0.5, history_tau: float = 8.0, progress=None) -> Rendered:
@@ -131,7 +126,8 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     detector of `calib` (τ, readout, intrinsics, PSF). See the module docstring.
 
     kind: "thermal" (microbolometer, Eq. 10/11) or "photon" (box average over `exposure_s`, Eq. 2;
-    default exposure = half the frame period). psf_sigma_px: None → calib.psf_sigma_px (Eq. 19).
+    default exposure = one frame period, `default_photon_exposure_s`).
+    psf_sigma_px: None → calib.psf_sigma_px (Eq. 19).
     progress: optional callable(n_frames_done) for a progress bar.
     """
     t_frames = np.asarray(frame_times, dtype=np.float64)
@@ -152,7 +148,9 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     if kind == "thermal" and (tau < 0 or history_tau < 5):
         raise ThermodError(f"detector: need tau_s ≥ 0 and history_tau ≥ 5 (got {tau}, {history_tau})")
     if kind == "photon":
-        exposure_s = 0.5 / calib.frame_rate_hz if exposure_s is None else float(exposure_s)
+        if exposure_s is None:
+            exposure_s = default_photon_exposure_s(calib.frame_rate_hz)
+        exposure_s = float(exposure_s)
         if not 0 < exposure_s:
             raise ThermodError(f"detector: exposure_s must be > 0, got {exposure_s}")
         lead = exposure_s + ro
@@ -166,7 +164,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     K = calib.K
     K_inv = np.linalg.inv(K)
     corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
-    rows_t = [row_times(tk, ro, H) for tk in t_frames]
+    rows_t = row_read_time(t_frames[:, None], np.arange(H)[None, :], ro, H)   # [n, H]
     out = np.zeros((n, H, W), np.float32)
     sharp = np.empty((n, H, W), np.float32)
     sharp_rolling = np.empty((n, H, W), np.float32) if ro > 0 else None
@@ -220,18 +218,17 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
                     while cap_k < n and rows_t[cap_k][cap_r] <= tz:
                         rt = rows_t[cap_k]
                         r1 = int(np.searchsorted(rt, tz, side="right"))
-                        g = -np.expm1(-(rt[cap_r:r1] - ta) / tau) if tau > 0 else np.ones(r1 - cap_r)
-                        g = g.astype(np.float32)[:, None]
+                        g = iir_alpha(rt[cap_r:r1] - ta, tau).astype(np.float32)[:, None]
                         out[cap_k, cap_r:r1] = B[cap_r:r1] + g * (S[cap_r:r1] - B[cap_r:r1])
                         cap_r = r1
                         if cap_r >= H:
                             cap_k, cap_r = cap_k + 1, 0
-                    alpha = -math.expm1(-(tz - ta) / tau) if tau > 0 else 1.0
+                    alpha = iir_alpha(tz - ta, tau)
                     np.subtract(S, B, out=tmp)
                     tmp *= np.float32(alpha)
                     B += tmp
                 else:
-                    _photon_accumulate(out, S, rows_t, exposure_s, ta, tz, k)
+                    _photon_accumulate(out, S, rows_t, exposure_s, ta, tz)
                 n_steps += 1
             if s == n_sub - 1:
                 sharp[k] = canvas[-y0:-y0 + H, -x0:-x0 + W]
@@ -280,7 +277,7 @@ def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, ca
     K = calib.K
     K_inv = np.linalg.inv(K)
     corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
-    alpha = np.float32(-math.expm1(-h / tau) if tau > 0 else 1.0)
+    alpha = np.float32(iir_alpha(h, tau))
     out = np.empty((n, H, W), np.float32)
     sharp = np.empty((n, H, W), np.float32)
     Rs = traj.R(t_grid)
@@ -304,9 +301,15 @@ def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, ca
     return Rendered(out, sharp, None, len(t_grid) - 1, max_step)
 
 
-def _photon_accumulate(out, S, rows_t, exposure, ta, tz, k_seg):
-    """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz]."""
-    for k in range(max(0, k_seg - 2), min(len(rows_t), k_seg + 3)):
+def _photon_accumulate(out, S, rows_t, exposure, ta, tz):
+    """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz].
+
+    rows_t [n, H] are the rows' read times; every frame whose rows can overlap is visited (an
+    exposure longer than the frame period spans several frames).
+    """
+    k0 = int(np.searchsorted(rows_t[:, -1], ta, side="right"))          # last row read after ta
+    k1 = int(np.searchsorted(rows_t[:, 0] - exposure, tz, side="left"))  # first row's window opens before tz
+    for k in range(k0, k1):
         rt = rows_t[k]
         ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
         sel = np.flatnonzero(ov > 0)
@@ -333,7 +336,7 @@ def time_compress(views: np.ndarray, h_slow: float, compression: float, tau: flo
     if compression <= 0 or h_slow <= 0 or every < 1:
         raise ThermodError("time_compress: h_slow, compression must be > 0 and every ≥ 1")
     h = h_slow / compression
-    alpha = np.float32(-math.expm1(-h / tau) if tau > 0 else 1.0)
+    alpha = np.float32(iir_alpha(h, tau))
     B = np.array(views[0] if initial is None else initial, np.float32)
     out = []
     for i in range(len(views)):

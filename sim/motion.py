@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from thermod.errors import ThermodError
+from thermod.physics.geometry import integrate_rotations, jit_cores, trapezoid_step_into
 
 DEG = math.pi / 180.0
 AXES = {"pitch": 0, "x": 0, "yaw": 1, "y": 1, "roll": 2, "z": 2}
@@ -334,61 +335,23 @@ def _axis(a: str) -> int:
 
 # --------------------------------------------------------------------------- orientation R(t)
 
-@njit(cache=True, nogil=True)
-def _exp(wx, wy, wz):
-    th2 = wx * wx + wy * wy + wz * wz
-    if th2 < 1e-16:
-        a, b = 1.0, 0.5
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    R = np.empty((3, 3))
-    R[0, 0] = 1 - b * (wy * wy + wz * wz)
-    R[1, 1] = 1 - b * (wx * wx + wz * wz)
-    R[2, 2] = 1 - b * (wx * wx + wy * wy)
-    R[0, 1] = -a * wz + b * wx * wy
-    R[1, 0] = a * wz + b * wx * wy
-    R[0, 2] = a * wy + b * wx * wz
-    R[2, 0] = -a * wy + b * wx * wz
-    R[1, 2] = -a * wx + b * wy * wz
-    R[2, 1] = a * wx + b * wy * wz
-    return R
-
-
-@njit(cache=True, nogil=True)
-def _integrate_grid(w, dt, i0):
-    """R on a uniform grid with R[i0] = I; trapezoid rule (piecewise-linear ω), as in
-    geometry.integrate_rotations."""
-    n = w.shape[0]
-    R = np.empty((n, 3, 3))
-    R[i0] = np.eye(3)
-    for i in range(i0, n - 1):
-        m = 0.5 * dt
-        R[i + 1] = R[i] @ _exp(m * (w[i, 0] + w[i + 1, 0]), m * (w[i, 1] + w[i + 1, 1]),
-                               m * (w[i, 2] + w[i + 1, 2]))
-    for i in range(i0, 0, -1):
-        m = -0.5 * dt
-        R[i - 1] = R[i] @ _exp(m * (w[i, 0] + w[i - 1, 0]), m * (w[i, 1] + w[i - 1, 1]),
-                               m * (w[i, 2] + w[i - 1, 2]))
-    return R
+jit_cores()   # the geometry's scalar cores, callable from _interp_R
 
 
 @njit(cache=True, nogil=True)
 def _interp_R(Rg, wg, g0, dt, tq):
+    """R at times tq between grid points: a partial trapezoid step from the grid point before."""
     out = np.empty((tq.size, 3, 3))
     n = Rg.shape[0]
+    w = np.empty(3)
+    E = np.empty((3, 3))
     for k in range(tq.size):
-        x = (tq[k] - g0) / dt
-        i = int(math.floor(x))
-        i = min(max(i, 0), n - 2)
+        i = min(max(int(math.floor((tq[k] - g0) / dt)), 0), n - 2)
         s = tq[k] - (g0 + i * dt)
         f = s / dt
-        # ω linear on the interval: mean over [t_i, t_i + s] is ω_i + (ω_{i+1} − ω_i) f/2
-        m = s
-        wx = wg[i, 0] + 0.5 * f * (wg[i + 1, 0] - wg[i, 0])
-        wy = wg[i, 1] + 0.5 * f * (wg[i + 1, 1] - wg[i, 1])
-        wz = wg[i, 2] + 0.5 * f * (wg[i + 1, 2] - wg[i, 2])
-        out[k] = Rg[i] @ _exp(m * wx, m * wy, m * wz)
+        for a in range(3):
+            w[a] = wg[i, a] + f * (wg[i + 1, a] - wg[i, a])   # ω linear on the interval
+        trapezoid_step_into(Rg[i], wg[i], w, s, E, out[k])
     return out
 
 
@@ -396,8 +359,8 @@ class Trajectory:
     """Orientation R(t) of a motion over absolute times [t_start, t_end], with R(t_ref) = I.
 
     Motion time is `t − t_ref`. ω is sampled on a uniform grid (`dt`, default 50 µs, coarsened for
-    spans over 200 s to keep the grid ≤ 4 M points) and integrated with the trapezoid rule, the
-    same rate semantics as the renderers (thermod.physics.geometry.integrate_rotations).
+    spans over 200 s to keep the grid ≤ 4 M points) and integrated with
+    `thermod.physics.geometry.integrate_rotations`: the same rate semantics as the renderers.
     """
 
     def __init__(self, motion: Motion, t_ref: float, t_start: float, t_end: float, dt: float = 5e-5):
@@ -412,7 +375,7 @@ class Trajectory:
         self.wg = np.ascontiguousarray(motion.omega(tg - t_ref), dtype=np.float64)
         if not np.all(np.isfinite(self.wg)):
             raise ThermodError(f"motion {motion.spec!r}: ω(t) is not finite")
-        self.Rg = _integrate_grid(self.wg, dt, n0)
+        self.Rg = integrate_rotations(tg, self.wg, tg[n0])   # R(t_ref) = I
         self.t_start, self.t_end = float(tg[0]), float(tg[-1])
 
     def omega(self, t) -> np.ndarray:

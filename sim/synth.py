@@ -39,6 +39,7 @@ import numpy as np
 from thermod.errors import ThermodError
 from thermod.io.recording import Recording
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import default_photon_exposure_s
 from thermod.sim import detector as det
 from thermod.sim import motion as mo
 from thermod.sim import scenes
@@ -157,7 +158,10 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     mot = mo.parse(motion, seed)
     sc = _sphere_scene(scene, truth_cal, seed)
     t_frames = t0 + np.arange(n) / fps
-    lead = (exposure_s or 1.0 / fps) if kind == "photon" else history_tau * truth_cal.tau_s
+    if kind == "photon":
+        lead = exposure_s or default_photon_exposure_s(fps)
+    else:
+        lead = history_tau * truth_cal.tau_s
     gyro_pre = max(0.1, lead + truth_cal.readout_s + 0.05)
     gyro_post = 0.05
     t_lo = t_frames[0] - gyro_pre - abs(truth_cal.time_offset_s) - 0.05

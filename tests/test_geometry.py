@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -8,6 +10,7 @@ from thermod.physics.geometry import (
     rotation_homography,
     skew,
     so3_exp,
+    so3_exp_many,
     so3_log,
 )
 
@@ -71,3 +74,41 @@ def test_intrinsics_scaled_keeps_angles():
     assert Kh.fx == pytest.approx(500.0)
     # pixel centres map consistently: centre of the image stays the centre
     assert Kh.cx == pytest.approx((320 - 1) / 2)
+
+
+@pytest.mark.parametrize("theta", [1e-12, 1e-9, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3, 0.1, 3.0])
+def test_so3_exp_is_accurate_at_small_angles(theta):
+    """exp([φ]×) = I + a[φ]× + b[φ]×², a = sin θ/θ, b = (1 − cos θ)/θ² = 2 sin²(θ/2)/θ². Written
+    naively, 1 − cos θ cancels: b is off by ~1e-16/θ² relative (2e-4 at θ = 1e-6), which shows in
+    the off-diagonal entries at 1e-10 relative."""
+    axis = np.array([0.3, -0.5, 0.81])
+    w = theta * axis / np.linalg.norm(axis)
+    W = skew(w)
+    a_true = math.sin(theta) / theta
+    b_true = 2.0 * math.sin(theta / 2) ** 2 / theta**2 if theta > 1e-4 else 0.5 - theta**2 / 24
+    expect = np.eye(3) + a_true * W + b_true * (W @ W)
+    off = ~np.eye(3, dtype=bool)
+    for R in (so3_exp(w), so3_exp_many(w[None])[0]):
+        np.testing.assert_allclose(R[off], expect[off], rtol=1e-13, atol=0)
+        np.testing.assert_allclose(np.diag(R), np.diag(expect), rtol=0, atol=3e-16)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-15)
+
+
+def test_so3_exp_many_matches_the_scalar_core():
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(200, 3)) * np.exp(rng.uniform(-30, 1, (200, 1)))
+    many = so3_exp_many(w)
+    for i in range(len(w)):
+        np.testing.assert_allclose(many[i], so3_exp(w[i]), rtol=0, atol=2e-16)
+
+
+def test_integrate_rotations_holds_the_rate_outside_the_samples():
+    t = np.array([0.0, 0.01, 0.02])
+    omega = np.array([[0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0.0, 3.0, 0.0]])
+    Q = integrate_rotations(t, omega, t_ref=0.05)   # after the last sample: ω = 3 held
+    np.testing.assert_allclose(Q[2], so3_exp([0.0, -3.0 * 0.03, 0.0]), atol=1e-15)
+    np.testing.assert_allclose(Q[1], Q[2] @ so3_exp([0.0, -2.5 * 0.01, 0.0]), atol=1e-15)
+    Q = integrate_rotations(t, omega, t_ref=-0.02)  # before the first: ω = 1 held, samples ahead
+    np.testing.assert_allclose(Q[0], so3_exp([0.0, 1.0 * 0.02, 0.0]), atol=1e-15)
+    np.testing.assert_allclose(Q[2], Q[0] @ so3_exp([0.0, 1.5 * 0.01, 0.0]) @ so3_exp([0.0, 2.5 * 0.01, 0.0]),
+                               atol=1e-15)

@@ -7,6 +7,8 @@ give the same frame to within 1 % of the scene's contrast.
 """
 
 import math
+import os
+import sys
 
 import cv2
 import numpy as np
@@ -16,7 +18,11 @@ from scipy import integrate, ndimage
 from thermod.errors import ThermodError
 from thermod.physics import kernels as K
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import row_read_time
 from thermod.physics.geometry import integrate_rotations, so3_exp
+
+sys.path.insert(0, os.path.dirname(__file__))   # the independent NumPy reference beside this file
+from reference_kernels import render_thermal_kernel_reference  # noqa: E402
 
 DEG = math.pi / 180.0
 CAL = Calibration()                        # the paper's camera: IFOV 0.0391°, τ = 8 ms
@@ -43,6 +49,19 @@ def yaw(rate):
 
 
 # ----------------------------------------------------------------------------------- reference
+def test_jitted_core_arguments_follow_their_named_layouts():
+    """The renderer passes plain tuples (fast numba dispatch); the core reads them by field name."""
+    from thermod.physics.kernels import core, params, render
+    p = params.params(CAL)
+    win, smp = render._path_args(p, 0.1, 0.14, False, 1500.0)
+    assert core.PathWindow(*win) == core.PathWindow(start=0.1, end=0.14, tau=CAL.tau_s, box=False)
+    assert core.PathSampling(*smp) == core.PathSampling(px_per_rad=1500.0, max_step_px=K.MAX_STEP_PX,
+                                                        max_nodes=K.MAX_NODES, max_size_px=p.max_size_px)
+    win, _ = render._path_args(p, 0.1, 0.14, True, 1500.0)
+    assert core.PathWindow(*win).box and core.PathWindow(*win).tau == 1.0
+    assert core.Pinhole(*p.camera) == core.Pinhole(fx=CAL.fx, fy=CAL.fy, cx=CAL.cx, cy=CAL.cy)
+
+
 @pytest.mark.parametrize("case", ["yaw_fast", "mixed_offcentre", "psf", "coverage", "calib", "readout"])
 def test_numba_matches_numpy_reference(case):
     rng = np.random.default_rng(1)
@@ -63,7 +82,7 @@ def test_numba_matches_numpy_reference(case):
     elif case == "readout":
         cal, point = CAL.replace(readout_s=0.012), (50.0, 10.0)
     k = K.render_thermal_kernel(t, r, cal, tf, point=point, psf=psf)
-    ref = K.render_thermal_kernel_reference(t, r, cal, tf, point=point, psf=psf)
+    ref = render_thermal_kernel_reference(t, r, cal, tf, point=point, psf=psf)
     assert k.weights.dtype == np.float32
     assert k.weights.shape == ref.weights.shape and k.origin == ref.origin
     np.testing.assert_allclose(k.weights, ref.weights, atol=1e-5)
@@ -283,7 +302,7 @@ def test_rolling_readout_shifts_per_row_kernels():
         y = g.centers[i, 0, 0]
         t_row = tf - 0.015 * (1 - (y + 1) / H)
         assert g.times[i] == pytest.approx(t_row)
-        assert t_row == pytest.approx(K.row_time(cal, tf, y))
+        assert t_row == pytest.approx(row_read_time(tf, y, cal.readout_s, cal.height))
         same = K.render_thermal_kernel(t, r, CAL, t_row, point=(g.centers[i, 0, 1], y), psf=False)
         np.testing.assert_allclose(g.kernels[i][0].weights, same.weights, atol=1e-6)
         # mean offset = f ∫ w(Δ) (ω(t_row)Δ − ½·2Δ²) dΔ / ∫ w ≈ f·(ω(t_row)·E[Δ] − E[Δ²])
@@ -350,6 +369,8 @@ def test_kernel_grid_layout_and_roll_variation():
     kp = K.render_photon_kernel(t, r, CAL, 0.0605, 1 / CAL.frame_rate_hz, point=gp.centers[0, 0][::-1],
                                 psf=False)
     np.testing.assert_array_equal(gp.kernels[0][0].weights, kp.weights)
+    default = K.render_photon_kernel(t, r, CAL, 0.0605, point=gp.centers[0, 0][::-1], psf=False)
+    np.testing.assert_array_equal(default.weights, kp.weights)
 
 
 # --------------------------------------------------------------------------------- forward model
@@ -539,7 +560,7 @@ def test_real_gyro_log_kernels(shared_data, require):
     extents = []
     for tf in rng.uniform(1.0, t[-1] - 1.0, 8):
         k = K.render_thermal_kernel(t, r, cal, tf)
-        ref = K.render_thermal_kernel_reference(t, r, cal, tf)
+        ref = render_thermal_kernel_reference(t, r, cal, tf)
         assert k.weights.shape == ref.weights.shape
         np.testing.assert_allclose(k.weights, ref.weights, atol=1e-5)
         assert k.n_samples == np.count_nonzero((t > tf - 5 * TAU) & (t <= tf)) >= 76   # 40 ms at 2 kHz

@@ -164,6 +164,29 @@ def test_photon_detector_is_a_box_streak():
     assert prof[int(v * exposure) + 3:].max() < 0.01 * flat.mean()
 
 
+@pytest.mark.parametrize("readout_s", [0.0, 0.012])
+def test_photon_exposure_longer_than_the_frame_period_keeps_a_static_scene_level(readout_s):
+    """A 100 ms exposure at 50 Hz spans five frame periods: each row still integrates the whole
+    window, so a static scene comes out at its own level (the box average of identical views)."""
+    calib = SMALL.replace(readout_s=readout_s)
+    tex = np.full((288, 384), 1000.0, np.float32)
+    frames = 10.0 + np.arange(4) / calib.frame_rate_hz
+    r = render_one(tex, "static", calib, t_frames=tuple(frames), psf_sigma_px=0, kind="photon",
+                   exposure_s=0.1)
+    np.testing.assert_allclose(r.frames, 1000.0, rtol=1e-5)
+    textured = scenes.texture(288, 384, seed=2)
+    r = render_one(textured, "static", calib, t_frames=tuple(frames), psf_sigma_px=0, kind="photon",
+                   exposure_s=0.1)
+    np.testing.assert_allclose(r.frames, r.sharp, rtol=1e-4, atol=0.05)
+
+
+def test_photon_default_exposure_is_one_frame_period():
+    r_default = render_one(single_point(), "pan:50", psf_sigma_px=0, kind="photon")
+    r_period = render_one(single_point(), "pan:50", psf_sigma_px=0, kind="photon",
+                          exposure_s=1.0 / SMALL.frame_rate_hz)
+    np.testing.assert_array_equal(r_default.frames, r_period.frames)
+
+
 def test_time_compression_matches_fine_time_render():
     """The paper's synthesis (slow sharp views re-timed c× faster through Eq. 10) equals the
     fine-time render of the fast motion."""

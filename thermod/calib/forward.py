@@ -26,9 +26,10 @@ import math
 
 import cv2
 import numpy as np
-from numba import njit
 
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import iir_alpha, row_read_time
+from thermod.physics.geometry import integrate_rotations
 
 __all__ = ["ForwardModel", "downsample", "orientations", "predict_frames"]
 
@@ -54,42 +55,11 @@ def downsample(frames: np.ndarray, scale: float, smooth_px: float = 0.0) -> np.n
     return out[0] if one else out
 
 
-@njit(cache=True, nogil=True)
-def _chain(steps: np.ndarray, j_ref: int) -> np.ndarray:
-    """Cumulative products of per-interval rotations around the anchor index j_ref (Q[j_ref] = I).
-
-    steps[i] is the rotation from sample i to i+1 (exp of the mean rate × Δt); going backward
-    Q_i = Q_{i+1} · steps[i]ᵀ, forward Q_{i+1} = Q_i · steps[i].
-    """
-    n = steps.shape[0] + 1
-    Q = np.empty((n, 3, 3))
-    Q[j_ref] = np.eye(3)
-    for i in range(j_ref - 1, -1, -1):
-        Q[i] = Q[i + 1] @ steps[i].T
-    for i in range(j_ref, n - 1):
-        Q[i + 1] = Q[i] @ steps[i]
-    return Q
-
-
-def _so3_exp_many(w: np.ndarray) -> np.ndarray:
-    """Vectorised Rodrigues formula for [n, 3] rotation vectors."""
-    th = np.linalg.norm(w, axis=1)
-    x, y, z = w[:, 0], w[:, 1], w[:, 2]
-    W = np.zeros((len(w), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 0] = -z, y, z
-    W[:, 1, 2], W[:, 2, 0], W[:, 2, 1] = -x, -y, x
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5, (1.0 - np.cos(ths)) / ths**2)
-    return np.eye(3)[None] + a[:, None, None] * W + b[:, None, None] * (W @ W)
-
-
 def orientations(t_query: np.ndarray, t_cam: np.ndarray, omega_cam: np.ndarray, t_ref: float) -> np.ndarray:
     """Q(t) = R(t_ref)ᵀ R(t) at arbitrary times, same semantics as `geometry.integrate_rotations`.
 
     The rate is piecewise linear between gyro samples and held constant outside them; query times
-    and t_ref are merged into the sample times, so each sub-interval is integrated by the trapezoid.
+    and t_ref are merged into the sample times, and `integrate_rotations` integrates the lot.
     """
     t_query = np.asarray(t_query, dtype=np.float64)
     lo = min(t_query.min(), t_ref)
@@ -100,9 +70,7 @@ def orientations(t_query: np.ndarray, t_cam: np.ndarray, omega_cam: np.ndarray, 
         ww = np.repeat(omega_cam[:1], len(tt), axis=0)
     else:
         ww = np.stack([np.interp(tt, t_cam, omega_cam[:, a]) for a in range(3)], axis=1)
-    steps = _so3_exp_many(0.5 * (ww[1:] + ww[:-1]) * np.diff(tt)[:, None])
-    Q = _chain(steps, int(inv[len(t_query)]))
-    return Q[inv[: len(t_query)]]
+    return integrate_rotations(tt, ww, t_ref)[inv[: len(t_query)]]
 
 
 class ForwardModel:
@@ -215,10 +183,8 @@ class ForwardModel:
 
     def row_times(self, calib: Calibration) -> np.ndarray:
         """Read time of every working row of every frame: [n_frames, h]."""
-        H = calib.height
         y_full = (np.arange(self.h) + 0.5) / self.scale - 0.5
-        lag = calib.readout_s * (1.0 - (y_full + 1.0) / H)
-        return self.frame_t[:, None] - lag[None, :]
+        return row_read_time(self.frame_t[:, None], y_full[None, :], calib.readout_s, calib.height)
 
     # ------------------------------------------------------------------ detector
     def predict(self, calib: Calibration, extra_psf_px: float = 0.0, valid_min: float = 0.99):
@@ -241,7 +207,7 @@ class ForwardModel:
         order = np.argsort(jj, axis=None, kind="stable")
         jflat = jj.ravel()[order]
         bounds = np.searchsorted(jflat, np.arange(len(self.t_grid) + 1))
-        alpha = np.float32(-math.expm1(-self.dt / max(calib.tau_s, 1e-6)))
+        alpha = np.float32(iir_alpha(self.dt, calib.tau_s))
         B = np.dstack([self.reference, np.ones_like(self.reference)])
         prev = B.copy()
         out2 = np.empty((n, h, w, 2), np.float32)

@@ -2,18 +2,51 @@
 
 Heat balance τ dΔT/dt + ΔT = R_th η Φ(t) (τ = C_th R_th). Discretised at step h:
 backward Euler (Eq. 10) α = h/(τ+h), or exact for a piecewise-constant input α = 1 − exp(−h/τ).
+Also the detector's timing: the rolling-readout row time and the photon baseline's exposure.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from thermod.errors import ThermodError
 
-def iir_alpha(h: float, tau: float, exact: bool = True) -> float:
-    """Blend weight α of B_k = (1 − α) B_{k−1} + α S_k (Eq. 10); exact form by default."""
+
+def iir_alpha(h, tau: float, exact: bool = True):
+    """Blend weight α of B_k = (1 − α) B_{k−1} + α S_k over a step h (s); float, or array for array h.
+
+    exact (default): α = 1 − exp(−h/τ), exact for an input constant over the step (Eq. 11);
+    otherwise backward Euler α = h/(τ+h) (Eq. 10). τ ≤ 0 (no thermal lag) gives α = 1.
+    """
+    h = np.asarray(h, dtype=np.float64)
     if tau <= 0:
-        return 1.0
-    return float(-np.expm1(-h / tau)) if exact else float(h / (tau + h))
+        a = np.ones_like(h)
+    else:
+        a = -np.expm1(-h / tau) if exact else h / (tau + h)
+    return float(a) if a.ndim == 0 else a
+
+
+def row_read_time(t_frame, row, readout_s: float, height: int):
+    """Rolling readout: row `row` (may be fractional) of the frame read at t_frame is read at
+    t_frame − readout_s·(1 − (row+1)/height); the last row at t_frame (DESIGN.md §1).
+
+    Broadcasts over NumPy arrays `t_frame` and `row`; plain arithmetic, so scalars stay cheap
+    (the kernel renderer calls it once per kernel).
+    """
+    return t_frame - readout_s * (1.0 - (row + 1.0) / height)
+
+
+def default_photon_exposure_s(frame_rate_hz: float) -> float:
+    """Exposure of the photon-detector baseline (Eq. 2/17) when none is given: one frame period 1/f.
+
+    A CCD/CMOS running at f frames/s integrates at most 1/f per frame; the baseline kernel takes
+    that longest (100 % duty) exposure, the box that spans the same frame period a microbolometer's
+    frame summarises. Shorter exposures are a choice of the camera and must be given explicitly.
+    """
+    f = float(frame_rate_hz)
+    if not f > 0:
+        raise ThermodError(f"frame_rate_hz: expected > 0, got {frame_rate_hz!r}")
+    return 1.0 / f
 
 
 def thermal_response(views: np.ndarray, h: float, tau: float, exact: bool = True,

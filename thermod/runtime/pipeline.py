@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import default_photon_exposure_s
 from thermod.runtime.config import DeblurConfig, PipelineConfig
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 
@@ -114,7 +115,7 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
                     n_samples=int(min(k.n_samples for k in cells)))
         return g, info
     if deblur.kernel == "photon":
-        exposure = deblur.exposure_s or 1.0 / calib.frame_rate_hz
+        exposure = deblur.exposure_s or default_photon_exposure_s(calib.frame_rate_hz)
         k = kernels.render_photon_kernel(gyro_t, gyro_rate, calib, t_frame, exposure, psf=deblur.psf)
     else:
         k = kernels.render_thermal_kernel(gyro_t, gyro_rate, calib, t_frame, m=deblur.m, psf=deblur.psf)
@@ -126,7 +127,7 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
 def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple[float, float]:
     """Camera-clock span the kernel of a frame read at t_frame needs: (t_k − m·τ − readout, t_k]."""
     if deblur.kernel == "photon":
-        span = deblur.exposure_s or 1.0 / calib.frame_rate_hz
+        span = deblur.exposure_s or default_photon_exposure_s(calib.frame_rate_hz)
     else:
         span = deblur.m * calib.tau_s
     return t_frame - span - calib.readout_s, t_frame
