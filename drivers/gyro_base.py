@@ -46,10 +46,12 @@ class GyroSource:
     """Base class of gyro drivers. The daemon's driver thread calls :meth:`poll` in a loop.
 
     Subclasses implement ``start``, ``stop`` and ``poll``; counters live in ``self._stats`` and are
-    returned (copied) by :meth:`stats`.
+    returned (copied) by :meth:`stats`. Every source offers ``name``, ``clock`` (its device-clock
+    mapping, or None when its times need none, e.g. a replay) and ``stats()``.
     """
 
     name: str = "gyro"
+    clock: ClockMapper | None = None
 
     def __init__(self) -> None:
         self._stats: dict[str, float] = {"samples": 0, "batches": 0, "overflows": 0, "gaps": 0,

@@ -9,8 +9,9 @@ configured full scale. A FIFO that is not read overflows as the datasheet says (
 oldest data lost; the MPU's byte-wise overwrite leaves it misaligned, as the real part does).
 
 Front ends present the chips the way the drivers see real hardware:
-:class:`EmuI2C` is an ``smbus2.SMBus`` stand-in (``i2c_rdwr`` with real ``smbus2.i2c_msg`` objects,
-``read_byte_data``/``write_byte_data``; unknown addresses NACK with ``OSError(EREMOTEIO)``) and
+:class:`EmuI2C` is an ``smbus2.SMBus`` stand-in offering what :class:`thermod.drivers.bus.I2CBus`
+calls (``i2c_rdwr`` with real ``smbus2.i2c_msg`` objects, ``write_byte_data``; unknown addresses
+NACK with ``OSError(EREMOTEIO)``) and
 :class:`EmuSPI` a ``spidev.SpiDev`` stand-in (``xfer2``, bit 7 of the first byte = read, 4096-byte cap).
 
 Fault injection: ``unplug(seconds)`` (every access raises OSError, then the chip comes back
@@ -104,10 +105,6 @@ class RegisterChip:
     def period_s(self) -> float:
         """True sample period of this oscillator (nominal 1/ODR, shortened by +drift)."""
         return 1.0 / (self.odr_hz() * (1.0 + self.drift_ppm * 1e-6))
-
-    def sample_time(self, k) -> np.ndarray:
-        """Host time of the k-th ODR tick since the last configuration change."""
-        return self._epoch + (np.asarray(k, np.float64) + 1.0) * self.period_s()
 
     def _advance(self) -> None:
         now = self.clock()
@@ -459,19 +456,9 @@ class EmuI2C:
                 if len(buf) > 1:
                     chip.write(buf[0], buf[1:])
 
-    def read_byte_data(self, addr: int, reg: int) -> int:
-        self.transactions += 1
-        return self._chip(addr).read(reg, 1)[0]
-
     def write_byte_data(self, addr: int, reg: int, value: int) -> None:
         self.transactions += 1
         self._chip(addr).write(reg, bytes([value & 0xFF]))
-
-    def read_i2c_block_data(self, addr: int, reg: int, length: int) -> list[int]:
-        if length > 32:
-            raise ValueError("Desired block length over 32 bytes")     # what smbus2 says
-        self.transactions += 1
-        return list(self._chip(addr).read(reg, length))
 
     def close(self) -> None:
         pass

@@ -140,3 +140,42 @@ def test_lookup_and_errors(tmp_path):
     with pytest.raises(IIOError, match="cannot open .*missing"):
         with IIOEmulator() as emu2:
             IIOGyro("icm42688", sysfs_root=emu2.sysfs_root, dev_path=str(tmp_path / "missing")).start()
+
+
+STAMP_FAULTS = {
+    "huge": lambda emu: emu.corrupt_timestamps([2**62]),
+    "zero": lambda emu: emu.corrupt_timestamps([0]),
+    "negative": lambda emu: emu.corrupt_timestamps([-5]),
+    "one-back": lambda emu: emu.corrupt_timestamps([int((time.monotonic() - 10.0) * 1e9)]),
+    "base-back": lambda emu: emu.shift_timestamps(-100.0),
+    "base-ahead": lambda emu: emu.shift_timestamps(+1000.0),
+}
+
+
+@pytest.mark.parametrize("fault", list(STAMP_FAULTS))
+def test_implausible_time_stamps_start_an_epoch_and_lose_nothing(fault):
+    fn, decode = sawtooth(time.monotonic())
+    with IIOEmulator(rate_fn=fn) as emu:
+        gyro = IIOGyro("icm42688", sysfs_root=emu.sysfs_root, dev_path=emu.dev_path)
+        gyro.start()
+        before = collect(gyro, 0.3)
+        STAMP_FAULTS[fault](emu)
+        after = collect(gyro, 0.5)
+        gyro.stop()
+        t_end = time.monotonic()
+    batches = before + after
+    st = gyro.stats()
+    # one epoch per change of time base: a single stamp back then forward again is two
+    assert 1 <= st["resets"] <= (2 if fault == "one-back" else 1)
+    assert emu.counters["dropped"] == 0
+    assert st["lost"] <= 10 * st["resets"]          # host time bounds the estimate: never 4.6e12
+    for prev, b in zip(batches[:-1], batches[1:], strict=True):
+        assert b.seq == prev.seq + len(prev) + b.n_lost
+    t = np.concatenate([b.t for b in batches])
+    r = np.concatenate([b.rate for b in batches])
+    assert np.all(np.isfinite(t)) and np.all(np.diff(t) > 0) and t[-1] < t_end
+    # every sample kept, once, with its rate, near its true time (not 4.6e9 s or 100 s away)
+    truth = decode(r[:, 0], t)
+    assert np.all(np.diff(np.rint((truth - truth[0]) * 1000.0)) == 1)
+    assert np.max(np.abs(t - truth)) < 0.1
+    assert np.all(np.abs(r[:, 1] - 0.25) <= emu.axis_scale[1])
