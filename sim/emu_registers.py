@@ -15,8 +15,9 @@ NACK with ``OSError(EREMOTEIO)``) and
 :class:`EmuSPI` a ``spidev.SpiDev`` stand-in (``xfer2``, bit 7 of the first byte = read, 4096-byte cap).
 
 Fault injection: ``unplug(seconds)`` (every access raises OSError, then the chip comes back
-power-cycled, configuration lost), ``nack(n)`` (the next n transactions fail), ``chip_id=`` (a
-wrong WHO_AM_I), and simply not reading (overflow).
+power-cycled, configuration lost), ``nack(n)`` (the next n transactions fail), ``glitch(n)`` (the
+next n reads return all ones, as an undriven data line does, while the chip clocks its data out),
+``chip_id=`` (a wrong WHO_AM_I), and simply not reading (overflow).
 
 Cheap at 1 kHz: a poll costs a few tens of µs (one vectorised ``rate_fn`` call per batch).
 """
@@ -56,6 +57,8 @@ class RegisterChip:
         self._unplugged_until = -math.inf
         self._power_cycle_pending = False
         self._nacks = 0
+        self._glitches = 0
+        self._glitch_reg: int | None = None
         self.invalid_samples = 0       # the next n samples read -32768 (ICM: "not valid yet")
         self.counters = {"generated": 0, "dropped": 0, "overflows": 0, "popped": 0, "flushes": 0}
         self._power_on()
@@ -175,6 +178,12 @@ class RegisterChip:
         """Fail the next ``n`` bus transactions with OSError (glitches; state is kept)."""
         self._nacks += int(n)
 
+    def glitch(self, n: int = 1, reg: int | None = None) -> None:
+        """The next ``n`` reads (of register ``reg`` only, if given) return 0xFF bytes; the chip's FIFO
+        still pops what it clocked out."""
+        self._glitches += int(n)
+        self._glitch_reg = reg
+
     def check_present(self) -> None:
         """Called by the front ends once per transaction: raises OSError while unplugged."""
         now = self.clock()
@@ -192,11 +201,15 @@ class RegisterChip:
         with self._lock:
             self._advance()
             if reg == self.fifo_reg:
-                return self._pop(n)
-            out = bytearray()
-            for i in range(n):
-                a = (reg + i) & 0x7F
-                out.append(self._pop(1)[0] if a == self.fifo_reg else self._read_reg(a))
+                out = self._pop(n)
+            else:
+                out = bytearray()
+                for i in range(n):
+                    a = (reg + i) & 0x7F
+                    out.append(self._pop(1)[0] if a == self.fifo_reg else self._read_reg(a))
+            if self._glitches > 0 and self._glitch_reg in (None, reg):
+                self._glitches -= 1
+                return b"\xff" * n
             return bytes(out)
 
     def write(self, reg: int, data: bytes) -> None:
