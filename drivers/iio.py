@@ -165,6 +165,7 @@ class IIOGyro(GyroSource):
         self._pending = b""
         self._seq = 0
         self._t_out = -float("inf")
+        self._t_enabled = -float("inf")
         self._last_tns: int | None = None      # newest usable kernel time stamp (ns)
         self._after_ref = 0                     # records read since that stamp
         self._bad_stamps = False                # the newest stamp was not a sample time
@@ -239,6 +240,7 @@ class IIOGyro(GyroSource):
         except OSError as e:
             raise IIOError(f"{self.name}: cannot open {dev}: {e.strerror or e} — check permissions "
                            "(udev rule) and that no other process holds the buffer") from e
+        self._t_enabled = time.monotonic()
         self._write("buffer/enable", 1)               # last: the layout is frozen from here on
         self._running = True
 
@@ -320,24 +322,26 @@ class IIOGyro(GyroSource):
         the last record's stamp is good)].
 
         A hole (the full kernel buffer dropped records) shows as a forward step of the stamps. A stamp
-        that cannot be a CLOCK_MONOTONIC sample time (zero or negative, later than the read that
-        returned it, or more than a period before the newest good stamp) starts an epoch; its records
+        that cannot be a CLOCK_MONOTONIC sample time (zero or negative, before the buffer was
+        enabled, later than the read that returned it, or more than a period before the newest good
+        stamp) starts an epoch; its records
         are timed by the read, as without a timestamp channel, until the stamps make sense again. A
         hole longer than the host time since the last sample handed out allows starts an epoch too,
         with the lost count estimated from host time: never more samples than could have been taken.
         """
         rate = self.rate_hz
         future = t_arrival * 1e9 + self._future_slack_ns()
+        past = self._t_enabled * 1e9 - self._future_slack_ns()    # no record predates the buffer
         back_tol = 1e9 / rate
         n = len(tns)
-        since = (t_arrival - self._t_out) * rate if math.isfinite(self._t_out) else math.inf
+        since = (t_arrival - max(self._t_out, self._t_enabled)) * rate
         budget = since + max(2.0, 0.02 * rate)      # mapping error of the newest sample handed out
         ref, after_ref, bad = self._last_tns, self._after_ref, self._bad_stamps
         used = 0                                     # samples (records and holes) since then
         segs: list[list] = []
         for i, ts in enumerate(tns):
             lost, epoch = 0, False
-            if ts <= 0 or ts > future or (ref is not None and ts < ref - back_tol):
+            if ts < past or ts > future or (ref is not None and ts < ref - back_tol):
                 epoch, bad = not bad, True           # the first of a run of bad stamps
                 after_ref += 1
             else:
@@ -345,7 +349,7 @@ class IIOGyro(GyroSource):
                     lost = max(0, round((ts - ref) * 1e-9 * rate) - 1 - after_ref)
                     if used + lost + 1 > budget:
                         epoch = True
-                        lost = max(0, round(since) - used - (n - i)) if math.isfinite(since) else 0
+                        lost = max(0, round(since) - used - (n - i))
                 ref, after_ref, bad = ts, 0, False
             if i == 0 or lost or epoch:
                 segs.append([i, i + 1, lost, epoch, not bad])

@@ -76,6 +76,7 @@ class IIOEmulator:
         self.rate_hz, self.scale, self.batch_s = float(rate_hz), float(scale), float(batch_s)
         self.rate_fn, self.drift_ppm, self.irq_latency_s = rate_fn, drift_ppm, irq_latency_s
         self.pipe_size = pipe_size
+        self._fd = -1                                  # the writer's end of the FIFO, once started
         self._rng = np.random.default_rng(seed)
         self.counters = {"records": 0, "dropped": 0, "enables": 0}
         self.truth: list[tuple[float, np.ndarray]] = []   # (true time, rate) of every record written

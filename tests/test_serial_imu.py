@@ -31,6 +31,33 @@ def run(gyro, seconds, timeout=0.01, tolerate=()):
     return out, errors
 
 
+def run_timed(gyro, seconds, timeout=0.01, tolerate=()):
+    """Batches, and for each the host time its poll returned (never earlier than its read)."""
+    out, returned, t_end = [], [], time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        try:
+            b = gyro.poll(timeout)
+        except tolerate:
+            continue
+        if b is not None:
+            out.append(b)
+            returned.append(time.monotonic())
+    return out, np.array(returned)
+
+
+def true_times(batches):
+    """Sample times the z rate encodes (0.05 · (t mod 7), float32: ~1 µs resolution)."""
+    t = np.concatenate([b.t for b in batches])
+    z = np.concatenate([b.rate for b in batches])[:, 2].astype(np.float64) / 0.05
+    return 7.0 * np.round((t - z) / 7.0) + z
+
+
+def lateness_of(batches, returned):
+    """How long after its true time the newest sample of each batch was in hand (this run's read
+    jitter: a fit on the lower envelope of the reads is never later than that)."""
+    return returned - np.array([true_times([b])[-1] for b in batches])
+
+
 def seqs_of(batches):
     return np.concatenate([b.seq + np.arange(len(b)) for b in batches])
 
@@ -68,9 +95,7 @@ def test_every_good_frame_received_every_bad_one_counted_none_accepted(int16_sca
     with emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        batches, _ = run(gyro, 1.0)
-        time.sleep(0.02)
-        batches += run(gyro, 0.03)[0]
+        batches, returned = run_timed(gyro, 1.0)
         gyro.stop()
     got = seqs_of(batches)
     good = np.array(emu.log["good"])
@@ -100,11 +125,16 @@ def test_every_good_frame_received_every_bad_one_counted_none_accepted(int16_sca
     assert r.dtype == np.float32
     tol = 1e-6 if int16_scale is None else int16_scale / 2 + 1e-6
     assert np.max(np.abs(r - rates(t_true))) <= tol
-    # times come from the device clock: close to the truth, not to the 5 ms write bursts
+    # times come from the device clock, not the 5 ms write bursts: the error spreads far less than
+    # read-time stamps would in this run, and sits at the lower envelope of the reads
     t = np.concatenate([b.t for b in batches])
     assert np.all(np.diff(t) > 0)
-    err = (t - t_true)[len(t) // 2:]
-    assert abs(np.median(err)) < 1.0e-3 and np.std(err) < 0.5e-3
+    half = len(t) // 2
+    err = (t - t_true)[half:]
+    by_read = (np.repeat(returned, [len(b) for b in batches]) - t_true)[half:]
+    lateness = returned - np.array([emu.truth_t[b.seq + len(b) - 1] for b in batches])
+    assert np.std(err) < 0.3 * np.std(by_read)
+    assert -0.1e-3 <= np.median(err) <= np.percentile(lateness, 10) + 0.1e-3
 
 
 def frame_with_rates(seq, x, y, z, scale=None):
@@ -140,13 +170,13 @@ def test_implausible_device_times_start_an_epoch_and_stay_on_time(glitch):
     with SerialIMUEmulator(rate_fn=rates, t_us0=10**9, seed=5) as emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        first, _ = run(gyro, 0.3)
+        first, ret1 = run_timed(gyro, 0.3)
         emu.glitch_times(TIME_GLITCHES[glitch] or [emu._t_us0 + 300_000] * 3)   # time stands still
-        after, errors = run(gyro, 0.4)
+        after, ret2 = run_timed(gyro, 0.4)
         gyro.stop()
         t_end = time.monotonic()
     st = gyro.stats()
-    assert errors == 0 and 1 <= st["resets"] <= 3
+    assert 1 <= st["resets"] <= 3
     batches = first + after
     for prev, b in zip(batches[:-1], batches[1:], strict=True):
         assert b.seq >= prev.seq + len(prev) + b.n_lost
@@ -154,11 +184,11 @@ def test_implausible_device_times_start_an_epoch_and_stay_on_time(glitch):
     assert st["lost"] <= 20 * st["resets"]
     t = np.concatenate([b.t for b in batches])
     assert np.all(np.isfinite(t)) and np.all(np.diff(t) > 0) and t[-1] < t_end
-    # every frame kept once, at its true time (the z rate encodes it: 0.05 · (t mod 7))
-    z = np.concatenate([b.rate for b in batches])[:, 2].astype(np.float64) / 0.05
-    truth = 7.0 * np.round((t - z) / 7.0) + z
+    # every frame kept once, near its true time: never later than this run's reads delivered it
+    truth = true_times(batches)
     assert np.all(np.diff(np.rint((truth - truth[0]) * 1000.0)) == 1)
-    assert np.max(np.abs(t - truth)) < 0.1
+    err = t - truth
+    assert err.min() > -0.5e-3 and err.max() <= lateness_of(batches, np.concatenate([ret1, ret2])).max()
 
 
 def test_disconnect_raises_once_then_reopens_with_a_gap():
@@ -190,42 +220,46 @@ def test_counter_wrap_and_device_reset():
         gyro.start()
         first, _ = run(gyro, 0.5)
         emu.disconnect(0.1, reset_counters=True)
-        after, errors = run(gyro, 0.5, tolerate=SerialIMUError)
+        with pytest.raises(SerialIMUError, match="disconnected"):
+            for _ in range(50):
+                gyro.poll(0.01)
+        after, returned = run_timed(gyro, 0.5, tolerate=SerialIMUError)
         gyro.stop()
     s = seqs_of(first)
     assert s[0] >= 2**32 - 300 and s[-1] > 2**32 + 100 and np.all(np.diff(s) == 1)   # unwrapped
     t = np.concatenate([b.t for b in first + after])
     assert np.all(np.diff(t) > 0)
-    assert errors == 1 and gyro.stats()["resets"] == 1
+    assert gyro.stats()["resets"] == 1
     assert after[0].gap_before and after[0].seq > s[-1]
     assert np.all(np.diff(seqs_of(after)) == 1)
-    # the mapping restarted on the new device clock: times still track the truth, which the z rate
-    # encodes (0.05 · (t mod 7), float32: ~1 µs resolution)
-    t_after = np.concatenate([b.t for b in after])
-    z = np.concatenate([b.rate for b in after])[:, 2].astype(np.float64) / 0.05
-    truth = 7.0 * np.round((t_after - z) / 7.0) + z
-    assert np.median(np.abs(t_after - truth)[-200:]) < 1.5e-3
+    # the mapping restarted on the new device clock: times track the truth (the z rate encodes it),
+    # at the lower envelope of this run's reads
+    err = (np.concatenate([b.t for b in after]) - true_times(after))[-200:]
+    assert -0.1e-3 < np.median(err) <= np.percentile(lateness_of(after, returned), 10) + 0.1e-3
 
 
 def test_device_reboot_without_disconnect():
     with SerialIMUEmulator(rate_fn=rates, seq0=5000, t_us0=10**9, batch_s=0.02, seed=4) as emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        first, _ = run(gyro, 0.3)
+        first, ret1 = run_timed(gyro, 0.3)
         emu.reboot()                                    # counters restart at 0 mid-stream
-        after, errors = run(gyro, 0.4)
+        after, ret2 = run_timed(gyro, 0.4)
         gyro.stop()
-    assert errors == 0 and gyro.stats()["resets"] == 1
+    assert gyro.stats()["resets"] == 1
     batches = first + after
     s = seqs_of(batches)
     assert np.all(np.diff(s) >= 1)                      # the unwrapped sequence keeps increasing
-    gaps = [b for b in batches if b.gap_before]
-    assert len(gaps) == 1 and gaps[0].n_lost <= 5       # nothing was lost: the host-time estimate is close
+    returned = np.concatenate([ret1, ret2])
+    lateness = lateness_of(batches, returned)
+    gaps = [i for i, b in enumerate(batches) if b.gap_before]
+    # nothing was lost: the count is estimated from host time, so it is off by at most how late
+    # the read that saw the reboot came back
+    assert len(gaps) == 1 and batches[gaps[0]].n_lost <= round(lateness[gaps[0]] * 1000) + 1
     t = np.concatenate([b.t for b in batches])
     assert np.all(np.diff(t) > 0)
-    z = np.concatenate([b.rate for b in batches])[:, 2].astype(np.float64) / 0.05
-    truth = 7.0 * np.round((t - z) / 7.0) + z
-    assert np.median(np.abs(t - truth)[-100:]) < 1.5e-3
+    err = (t - true_times(batches))[-100:]
+    assert -0.1e-3 < np.median(err) <= np.percentile(lateness_of(after, ret2), 10) + 0.1e-3
 
 
 def test_open_errors_name_the_port(tmp_path):
