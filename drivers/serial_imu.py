@@ -305,11 +305,17 @@ class SerialIMU(GyroSource):
     def _batches(self, frames, t_arrival: float) -> list[GyroBatch]:
         seq32 = np.array([f[0] for f in frames], np.int64)
         tus32 = np.array([f[1] for f in frames], np.int64)
-        broken = np.flatnonzero(~self._consistent(np.diff(seq32) & 0xFFFFFFFF, np.diff(tus32) & 0xFFFFFFFF))
-        if len(broken):
-            # a reboot, or a counter that jumped, inside this read: each side is its own epoch
-            k = int(broken[0]) + 1
-            return self._batches(frames[:k], t_arrival) + self._batches(frames[k:], t_arrival)
+        # a reboot, or a counter that jumped, inside this read: each run of consistent frames is
+        # checked against the one before it (and becomes its own epoch)
+        broken = (np.flatnonzero(~self._consistent(np.diff(seq32) & 0xFFFFFFFF, np.diff(tus32) & 0xFFFFFFFF))
+                  + 1).tolist()
+        out = []
+        for a, b in zip([0, *broken], [*broken, len(frames)], strict=True):
+            out += self._run_batches(frames[a:b], seq32[a:b], tus32[a:b], t_arrival)
+        return out
+
+    def _run_batches(self, frames, seq32: np.ndarray, tus32: np.ndarray, t_arrival: float) -> list[GyroBatch]:
+        """Batches of frames whose counters follow each other (one run of a read)."""
         rate = np.array([f[2] for f in frames], np.float32).reshape(-1, 3)
         gap, lost = self._gap_pending, self._lost_pending
         if self._seq_last is None:
