@@ -324,10 +324,10 @@ class IIOGyro(GyroSource):
         A hole (the full kernel buffer dropped records) shows as a forward step of the stamps. A stamp
         that cannot be a CLOCK_MONOTONIC sample time (zero or negative, before the buffer was
         enabled, later than the read that returned it, or more than a period before the newest good
-        stamp) starts an epoch; its records
-        are timed by the read, as without a timestamp channel, until the stamps make sense again. A
-        hole longer than the host time since the last sample handed out allows starts an epoch too,
-        with the lost count estimated from host time: never more samples than could have been taken.
+        stamp) starts an epoch; its records are timed by the read, as without a timestamp channel,
+        until the stamps make sense again. A hole longer than the host time since the last sample
+        handed out allows starts an epoch too, with the lost count estimated from host time: never
+        more samples than could have been taken.
         """
         rate = self.rate_hz
         future = t_arrival * 1e9 + self._future_slack_ns()
