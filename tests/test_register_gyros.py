@@ -208,19 +208,24 @@ def test_fifo_overflow_detected_flushed_counted(name):
     time.sleep(0.45)                     # FIFO: 256 (ICM), 170 (MPU) or 100 (BMI) samples
     after, returned = collect_timed(gyro, 0.25)
     st = gyro.stats()
-    assert st["overflows"] == 1 and st["gaps"] == 1
     assert chip.counters["overflows"] >= 1 and chip.counters["flushes"] >= 2
-    gap = after[0]
-    assert gap.gap_before and not any(b.gap_before for b in before + after[1:])
-    end_before = before[-1].seq + len(before[-1])
-    # the lost count is estimated from host time over the ~0.45 s stall; the truth is in the rates
-    t_last_true = decode(before[-1].rate[-1:, 0], before[-1].t[-1:])[0]
-    t_next_true = decode(gap.rate[:1, 0], gap.t[:1])[0]
-    true_lost = round((t_next_true - t_last_true) * 1000) - 1
-    assert true_lost > 400 and abs(gap.n_lost - true_lost) <= 2
-    assert gap.seq == end_before + gap.n_lost
-    assert st["lost"] == gap.n_lost
-    # samples after the gap are intact and correctly timed (the clock fit restarted): never before
+    # the stall is one overflow; a reader preempted for longer than the FIFO lasts (a loaded
+    # machine, BMI088: 100 ms) makes more, each of which must be accounted just as well
+    batches = before + after
+    gaps = [i for i, b in enumerate(batches) if b.gap_before]
+    assert after[0].gap_before and st["gaps"] == len(gaps) and st["overflows"] >= len(gaps)
+    assert st["lost"] == sum(batches[i].n_lost for i in gaps)
+    for prev, b in zip(batches[:-1], batches[1:], strict=True):
+        assert b.seq == prev.seq + len(prev) + b.n_lost
+    # the lost count is estimated from host time; the truth is in the rates
+    for i in gaps:
+        t_last_true = decode(batches[i - 1].rate[-1:, 0], batches[i - 1].t[-1:])[0]
+        t_next_true = decode(batches[i].rate[:1, 0], batches[i].t[:1])[0]
+        true_lost = round((t_next_true - t_last_true) * 1000) - 1
+        assert abs(batches[i].n_lost - true_lost) <= 2
+        if batches[i] is after[0]:
+            assert true_lost > 400                   # the 0.45 s stall
+    # samples after a gap are intact and correctly timed (the clock fit restarted): never before
     # their true time, never later than the reads of this run delivered them
     t, r = cat(after)
     err = t - decode(r[:, 0], t)
