@@ -17,6 +17,7 @@ OSError from the bus propagates unchanged; the driver wraps it in its own except
 
 from __future__ import annotations
 
+import errno
 import re
 
 from thermod.errors import DeviceError
@@ -32,11 +33,17 @@ class RegisterBus:
         out = bytearray()
         while len(out) < n:
             k = min(self.max_read, n - len(out))
-            out += self._read(reg if fifo else reg + len(out), k)
+            out += self._checked_read(reg if fifo else reg + len(out), k)
         return bytes(out)
 
     def read_u8(self, reg: int) -> int:
-        return self._read(reg, 1)[0]
+        return self._checked_read(reg, 1)[0]
+
+    def _checked_read(self, reg: int, n: int) -> bytes:
+        data = self._read(reg, n)
+        if len(data) != n:          # a transfer cut short: an I/O error like any other for the driver
+            raise OSError(errno.EIO, f"short read at register 0x{reg:02X}: {len(data)} of {n} bytes")
+        return data
 
     def write(self, reg: int, value: int) -> None:
         raise NotImplementedError

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.errors import DeviceError
+from thermod.runtime.clock import ClockMapper
 
 FRAME_ID_BITS = 16   # GigE Vision block ids (GVSP) and most USB cameras: 16 bits, 0 reserved as "invalid"
 
@@ -44,9 +45,12 @@ class CameraSource(abc.ABC):
     """A source of :class:`Frame`; ``poll`` blocks at most ``timeout`` seconds and returns None on timeout.
 
     I/O failures raise :class:`thermod.errors.DeviceError` with a message saying what to check.
+    Every source offers ``name``, ``clock`` (its device-clock mapping, or None when its times need
+    none, e.g. a replay) and ``stats()``.
     """
 
     name: str = "camera"
+    clock: ClockMapper | None = None
 
     @abc.abstractmethod
     def start(self) -> None: ...

@@ -46,10 +46,12 @@ class GyroSource:
     """Base class of gyro drivers. The daemon's driver thread calls :meth:`poll` in a loop.
 
     Subclasses implement ``start``, ``stop`` and ``poll``; counters live in ``self._stats`` and are
-    returned (copied) by :meth:`stats`.
+    returned (copied) by :meth:`stats`. Every source offers ``name``, ``clock`` (its device-clock
+    mapping, or None when its times need none, e.g. a replay) and ``stats()``.
     """
 
     name: str = "gyro"
+    clock: ClockMapper | None = None
 
     def __init__(self) -> None:
         self._stats: dict[str, float] = {"samples": 0, "batches": 0, "overflows": 0, "gaps": 0,
@@ -97,8 +99,9 @@ class FifoGyro(GyroSource):
     ``read_interval_s``, count samples (the unwrapped sequence number is the device clock), map
     ``seq × period`` to host time with :class:`thermod.runtime.clock.ClockMapper` fed with the time taken
     right after the FIFO count was read (every counted sample existed by then), flush and mark a gap
-    on overflow, and after an I/O error re-identify, re-configure and flush before reading again
-    (a replugged chip has lost its configuration).
+    on overflow or an impossible FIFO count (``overflows``, ``bad_counts``), and after an I/O error
+    (a NACK, a short transfer: ``io_errors``, raised once as the driver's DeviceError) re-identify,
+    re-configure and flush before reading again (a replugged chip has lost its configuration).
     """
 
     chip = "gyro"
@@ -127,10 +130,11 @@ class FifoGyro(GyroSource):
         self._gap_pending = False
         self._lost_pending = 0
         self._needs_recovery = False
+        self._queue: list[GyroBatch] = []     # batches split off a read at invalid samples
         self._running = False
         self._started = False
         self._next_read = 0.0
-        self._stats.update(invalid=0, recoveries=0)
+        self._stats.update(invalid=0, recoveries=0, bad_counts=0)
 
     # -- chip hooks ------------------------------------------------------------------------------
     def _identify(self) -> None:
@@ -151,7 +155,8 @@ class FifoGyro(GyroSource):
 
     def _decode(self, data: bytes) -> tuple[np.ndarray, np.ndarray, int]:
         """(raw int16 [m, 3] of the valid samples, their sample indices within ``data`` [m], samples in
-        ``data`` n ≥ m). Invalid samples still advance the sequence counter (they took a tick)."""
+        ``data`` n ≥ m). Invalid samples still advance the sequence counter (they took a tick) and
+        show as lost samples (``gap_before``, ``n_lost``) in front of the next valid one."""
         raise NotImplementedError
 
     packet_size = 6   # bytes per FIFO record; reads are whole records
@@ -217,6 +222,8 @@ class FifoGyro(GyroSource):
         if not self._running:
             raise self.error_type(f"{self.name}: poll() before start()")
         deadline = time.monotonic() + max(0.0, timeout)
+        if self._queue:
+            return self._count_batch(self._queue.pop(0))
         while True:
             now = time.monotonic()
             if self._next_read > now:
@@ -257,10 +264,12 @@ class FifoGyro(GyroSource):
         with self._io("FIFO status read"):
             count, overflow = self._fifo_status()
         t_count = time.monotonic()
-        if overflow or count > self.fifo_size:
+        if overflow or not 0 <= count <= self.fifo_size:
+            # an overflow, or a count no FIFO can hold (a bus glitch reads all ones): the content
+            # cannot be trusted, so flush it and estimate what was lost from host time
             with self._io("FIFO flush"):
                 self._flush()
-            self._stats["overflows"] += 1
+            self._stats["overflows" if overflow else "bad_counts"] += 1
             self._mark_gap(time.monotonic())
             return None
         nbytes = count - count % self.packet_size
@@ -276,7 +285,9 @@ class FifoGyro(GyroSource):
         self.clock.observe(self._seq - 1, t_count)
         self._stats["invalid"] += n - len(offsets)
         if len(offsets) == 0:
-            return None                          # only not-yet-valid samples (sensor start-up)
+            self._lost_pending += n                  # a read of invalid samples only: they are missing
+            self._gap_pending = True
+            return None
         idx = seq0 + offsets
         t = np.asarray(self.clock.to_host(idx), dtype=np.float64)
         if t[0] <= self._t_out:
@@ -285,7 +296,15 @@ class FifoGyro(GyroSource):
         self._t_out = float(t[-1])
         self._t_last = float(self.clock.to_host(self._seq - 1))
         rate = raw.astype(np.float32) * self.rad_per_lsb
-        batch = GyroBatch(t=t, rate=rate, seq=int(idx[0]), gap_before=self._gap_pending,
-                          n_lost=self._lost_pending)
-        self._gap_pending, self._lost_pending = False, 0
-        return batch
+        # invalid samples keep their ticks but are missing: they split the read like lost samples
+        bounds = [0, *(np.flatnonzero(np.diff(offsets) != 1) + 1).tolist(), len(offsets)]
+        batches = []
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            missing = int(offsets[a] - (offsets[a - 1] + 1 if a else 0))
+            lost = missing + (self._lost_pending if a == 0 else 0)
+            gap = missing > 0 or (self._gap_pending if a == 0 else False)
+            batches.append(GyroBatch(t=t[a:b], rate=rate[a:b], seq=int(idx[a]), gap_before=gap, n_lost=lost))
+        trailing = n - 1 - int(offsets[-1])
+        self._gap_pending, self._lost_pending = trailing > 0, trailing
+        self._queue.extend(batches[1:])
+        return batches[0]

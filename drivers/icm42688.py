@@ -133,7 +133,9 @@ class ICM42688(FifoGyro):
         return raw[valid], valid, n
 
     def _decode_mixed(self, buf: np.ndarray):
-        # unexpected layouts (a reconfiguration in flight, an empty marker): walk the headers
+        # unexpected layouts (a reconfiguration in flight, an empty marker, a bus glitch): walk the
+        # headers; what follows an unreadable header was read out of the FIFO all the same, so its
+        # packets keep their ticks and count as invalid
         rows, offsets, i, k = [], [], 0, 0
         while i < len(buf):
             size = packet_size(int(buf[i]))
@@ -147,5 +149,6 @@ class ICM42688(FifoGyro):
                     offsets.append(k)
                 k += 1
             i += size
+        k += (len(buf) - i) // self.packet_size
         raw = np.array(rows, np.int16).reshape(-1, 3)
         return raw, np.array(offsets, np.int64), k

@@ -16,12 +16,16 @@ Timing: samples are counted (sequence = device clock) and mapped to host time by
 :class:`thermod.runtime.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
 (the data-ready interrupt time, never earlier than the sample) or, without a timestamp channel,
 the time the read returned. The kernel drops new samples silently when its buffer is full; the
-timestamps show the hole (``gap_before``, ``n_lost``). Both roots are injectable (``sysfs_root``,
+timestamps show the hole (``gap_before``, ``n_lost``). A stamp that cannot be a sample time (zero,
+negative, later than the read, backwards) or a hole longer than the host time allows starts a new
+epoch: counted in ``resets``, the clock fit restarts, records with bad stamps are timed by the
+read, and a lost count is never more than host time allows. Both roots are injectable (``sysfs_root``,
 ``dev_path``) so the emulator in ``thermod.sim.emu_iio`` runs this exact code on a temp directory and a FIFO.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import select
@@ -34,7 +38,7 @@ import numpy as np
 from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 from thermod.runtime.clock import ClockMapper
 
-TYPE_RE = re.compile(r"^(be|le):([su])(\d+)/(\d+)(?:X(\d+))?>>(\d+)$")
+TYPE_RE = re.compile(r"^(be|le):([su])(\d{1,3})/(\d{1,3})(?:X(\d{1,3}))?>>(\d{1,3})$", re.ASCII)
 AXES = ("x", "y", "z")
 
 
@@ -72,6 +76,8 @@ def parse_type(text: str, where: str = "*_type") -> ScanType:
     if st.storage_bits not in (8, 16, 32, 64) or not 0 < st.bits <= st.storage_bits - st.shift:
         raise IIOError(f"{where}: scan type {text.strip()!r} is inconsistent (bits + shift must fit the "
                        "8/16/32/64-bit storage)")
+    if not 1 <= st.repeat <= 64:
+        raise IIOError(f"{where}: scan type {text.strip()!r} repeats {st.repeat} times, expected 1 to 64")
     return st
 
 
@@ -159,7 +165,10 @@ class IIOGyro(GyroSource):
         self._pending = b""
         self._seq = 0
         self._t_out = -float("inf")
-        self._last_tns: int | None = None
+        self._t_enabled = -float("inf")
+        self._last_tns: int | None = None      # newest usable kernel time stamp (ns)
+        self._after_ref = 0                     # records read since that stamp
+        self._bad_stamps = False                # the newest stamp was not a sample time
         self._queue: list[GyroBatch] = []
         self._running = False
         self.channels: list[Channel] = []
@@ -231,6 +240,7 @@ class IIOGyro(GyroSource):
         except OSError as e:
             raise IIOError(f"{self.name}: cannot open {dev}: {e.strerror or e} — check permissions "
                            "(udev rule) and that no other process holds the buffer") from e
+        self._t_enabled = time.monotonic()
         self._write("buffer/enable", 1)               # last: the layout is frozen from here on
         self._running = True
 
@@ -238,9 +248,13 @@ class IIOGyro(GyroSource):
         for f in (f"in_anglvel_{axis}_scale", "in_anglvel_scale"):
             if (self.dir / f).exists():
                 try:
-                    return float(self._read(f))
+                    scale = float(self._read(f))
                 except ValueError as e:
                     raise IIOError(f"{self.name}: {self.dir / f} is not a number") from e
+                if not (math.isfinite(scale) and scale > 0):
+                    raise IIOError(f"{self.name}: {self.dir / f} reads {scale!r}, expected a positive "
+                                   "finite rad/s per LSB")
+                return scale
         raise IIOError(f"{self.name}: no in_anglvel_scale in {self.dir}")
 
     def stop(self) -> None:
@@ -275,6 +289,10 @@ class IIOGyro(GyroSource):
         if not data:
             time.sleep(min(timeout, 0.001))            # writer side closed (emulator restart): no busy loop
             return None
+        return self._ingest(data, t_arrival)
+
+    def _ingest(self, data: bytes, t_arrival: float) -> GyroBatch | None:
+        """Decode the bytes of one read that returned at ``t_arrival``: the first batch, the rest queued."""
         self._stats["bytes"] += len(data)
         buf = self._pending + data
         n = len(buf) // self.record_size
@@ -286,28 +304,67 @@ class IIOGyro(GyroSource):
         rate = (raw * self.scale).astype(np.float32)
         ts = self._by_name.get("in_timestamp")
         if ts is None:
-            return self._count_batch(self._emit(np.arange(n), rate, t_arrival, None))
-        # kernel time stamps (ns, monotonic) reveal samples the full kernel buffer dropped
-        tns = extract(rec, ts)[:, 0]
-        steps = np.diff(np.concatenate([[self._last_tns], tns])) if self._last_tns is not None else None
-        if steps is None:
-            skip = np.zeros(n, np.int64)
-        else:
-            skip = np.maximum(0, np.rint(steps * 1e-9 * self.rate_hz).astype(np.int64) - 1)
-        self._last_tns = int(tns[-1])
-        offs = np.arange(n) + np.cumsum(skip)
-        cuts = [0, *np.flatnonzero(skip > 0).tolist(), n]
+            return self._count_batch(self._emit(np.arange(n), rate, t_arrival, 0, False))
+        tns = extract(rec, ts)[:, 0].tolist()
         batches = []
-        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
-            if a == b:
-                continue
-            batches.append(self._emit(offs[a:b] - offs[a], rate[a:b], tns[b - 1] * 1e-9, int(skip[a])))
+        for a, b, lost, epoch, stamped in self._segments(tns, t_arrival):
+            t_obs = tns[b - 1] * 1e-9 if stamped else t_arrival
+            batches.append(self._emit(np.arange(b - a), rate[a:b], t_obs, lost, epoch))
         self._queue.extend(batches[1:])
         return self._count_batch(batches[0])
 
-    def _emit(self, offs: np.ndarray, rate: np.ndarray, t_obs: float, lost: int | None) -> GyroBatch:
-        """A batch of consecutive samples (sample offsets ``offs``), ``lost`` samples missing before it."""
-        lost = lost or 0
+    def _future_slack_ns(self) -> float:
+        # a kernel stamp is taken before the read returns; interpolating drivers may run a little ahead
+        return max(0.01, 4.0 / self.rate_hz) * 1e9
+
+    def _segments(self, tns: list[int], t_arrival: float) -> list[tuple[int, int, int, bool, bool]]:
+        """Split one read's records by their kernel time stamps: [(start, end, lost before, new epoch,
+        the last record's stamp is good)].
+
+        A hole (the full kernel buffer dropped records) shows as a forward step of the stamps. A stamp
+        that cannot be a CLOCK_MONOTONIC sample time (zero or negative, before the buffer was
+        enabled, later than the read that returned it, or more than a period before the newest good
+        stamp) starts an epoch; its records are timed by the read, as without a timestamp channel,
+        until the stamps make sense again. A hole longer than the host time since the last sample
+        handed out allows starts an epoch too, with the lost count estimated from host time: never
+        more samples than could have been taken.
+        """
+        rate = self.rate_hz
+        future = t_arrival * 1e9 + self._future_slack_ns()
+        past = self._t_enabled * 1e9 - self._future_slack_ns()    # no record predates the buffer
+        back_tol = 1e9 / rate
+        n = len(tns)
+        since = (t_arrival - max(self._t_out, self._t_enabled)) * rate
+        budget = since + max(2.0, 0.02 * rate)      # mapping error of the newest sample handed out
+        ref, after_ref, bad = self._last_tns, self._after_ref, self._bad_stamps
+        used = 0                                     # samples (records and holes) since then
+        segs: list[list] = []
+        for i, ts in enumerate(tns):
+            lost, epoch = 0, False
+            if ts < past or ts > future or (ref is not None and ts < ref - back_tol):
+                epoch, bad = not bad, True           # the first of a run of bad stamps
+                after_ref += 1
+            else:
+                if ref is not None:
+                    lost = max(0, round((ts - ref) * 1e-9 * rate) - 1 - after_ref)
+                    if used + lost + 1 > budget:
+                        epoch = True
+                        lost = max(0, round(since) - used - (n - i))
+                ref, after_ref, bad = ts, 0, False
+            if i == 0 or lost or epoch:
+                segs.append([i, i + 1, lost, epoch, not bad])
+            else:
+                segs[-1][1], segs[-1][4] = i + 1, not bad
+            used += lost + 1
+        self._last_tns, self._after_ref, self._bad_stamps = ref, after_ref, bad
+        return [tuple(s) for s in segs]
+
+    def _emit(self, offs: np.ndarray, rate: np.ndarray, t_obs: float, lost: int, epoch: bool) -> GyroBatch:
+        """A batch of consecutive samples (sample offsets ``offs``), ``lost`` samples missing before it;
+        ``epoch``: the time base changed before it, so the clock fit restarts."""
+        if epoch:
+            self._stats["resets"] += 1
+            self.clock.restart()
         seq0 = self._seq + lost
         self._seq = seq0 + int(offs[-1]) + 1
         self.clock.observe(self._seq - 1, t_obs)   # newest sample: kernel IRQ time, or read time
@@ -315,4 +372,4 @@ class IIOGyro(GyroSource):
         if t[0] <= self._t_out:
             t = np.maximum(t, self._t_out + 0.5 / self.rate_hz * np.arange(1, len(t) + 1))
         self._t_out = float(t[-1])
-        return GyroBatch(t=t, rate=rate, seq=seq0, gap_before=lost > 0, n_lost=lost)
+        return GyroBatch(t=t, rate=rate, seq=seq0, gap_before=lost > 0 or epoch, n_lost=lost)

@@ -15,8 +15,12 @@ Wire protocol "thermod serial IMU v1" (all multi-byte fields little-endian)::
 
 A frame is accepted only when its CRC matches; a bad CRC counts ``crc_errors`` and the search for
 the next sync resumes one byte after the rejected sync (a corrupted length must not swallow good
-frames). Bytes that are not part of a frame count as ``garbage_bytes``. Gaps in ``seq`` are lost
-frames (``gap_before``, ``n_lost``). Sample times come from the device timestamps (unwrapped µs)
+frames). Bytes that are not part of a frame count as ``garbage_bytes``. A frame with a good CRC whose
+rates are NaN, infinite or beyond ``max_rate_rad_s`` is dropped and counted as ``invalid``. Gaps in
+``seq`` are lost frames (``gap_before``, ``n_lost``). Device counters that cannot follow each other
+(seq or time going back or standing still, or a time step that does not match the seq step)
+start a new epoch, counted in ``resets``: the clock fit restarts and the samples lost meanwhile
+are estimated from host time. Sample times come from the device timestamps (unwrapped µs)
 mapped to host time by :class:`thermod.runtime.clock.ClockMapper`, fed with the time each read returned.
 
 The port is a path (``/dev/serial/by-id/usb-FTDI_…-if00-port0`` survives re-enumeration; so does
@@ -28,6 +32,7 @@ A disconnect raises :class:`SerialIMUError` once; later polls try to reopen the 
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 
@@ -78,13 +83,23 @@ def encode_frame(seq: int, t_us: int, rate, *, int16_scale: float | None = None)
     return SYNC + body + struct.pack("<H", crc16_ccitt(body))
 
 
-class FrameParser:
-    """Incremental frame parser: ``feed(bytes)`` → list of (seq32, t_us32, rate[3]) of good frames."""
+MAX_RATE_RAD_S = math.radians(4000.0)   # the widest full scale of MEMS gyros (ICM-45686: ±4000 °/s)
 
-    def __init__(self):
+
+class FrameParser:
+    """Incremental frame parser: ``feed(bytes)`` → list of (seq32, t_us32, rate[3]) of good frames.
+
+    A frame whose CRC matches but whose rates cannot be a gyro reading (NaN, ±inf, beyond
+    ``max_rate_rad_s``, or a type-2 scale that is not a positive finite number) is dropped and
+    counted in ``invalid_rates``; its seq then shows as lost.
+    """
+
+    def __init__(self, max_rate_rad_s: float = MAX_RATE_RAD_S):
         self.buf = bytearray()
+        self.max_rate = float(max_rate_rad_s)
         self.crc_errors = 0
         self.garbage_bytes = 0
+        self.invalid_rates = 0
         self.frames = 0
 
     def feed(self, data: bytes) -> list[tuple[int, int, tuple[float, float, float]]]:
@@ -118,14 +133,20 @@ class FrameParser:
                 self.crc_errors += 1
                 i += 1                                   # the next sync may lie inside this frame
                 continue
+            i = end
             if ftype == TYPE_F32:
                 _, _, seq, t_us, x, y, z = struct.unpack("<BBII3f", body)
+                ok = True
             else:
                 _, _, seq, t_us, qx, qy, qz, scale = struct.unpack("<BBII3hf", body)
+                ok = math.isfinite(scale) and scale > 0
                 x, y, z = qx * scale, qy * scale, qz * scale
+            # NaN fails every comparison, so "not within range" also catches it
+            if not (ok and abs(x) <= self.max_rate and abs(y) <= self.max_rate and abs(z) <= self.max_rate):
+                self.invalid_rates += 1
+                continue
             out.append((seq, t_us, (x, y, z)))
             self.frames += 1
-            i = end
         del buf[:i]
         return out
 
@@ -151,7 +172,7 @@ class SerialIMU(GyroSource):
 
     def __init__(self, port: str, *, baud: int = 921600, rate_hz: float = 1000.0, low_latency: bool = True,
                  reopen_interval_s: float = 0.2, clock_window_s: float = 20.0, name: str | None = None,
-                 sysfs_root: str = "/sys", dev_root: str = "/dev"):
+                 sysfs_root: str = "/sys", dev_root: str = "/dev", max_rate_rad_s: float = MAX_RATE_RAD_S):
         super().__init__()
         self.port_spec = port
         self.baud = int(baud)
@@ -162,7 +183,7 @@ class SerialIMU(GyroSource):
         self._sysfs_root, self._dev_root = sysfs_root, dev_root
         self.clock = ClockMapper(1e-6, window_s=clock_window_s, name=self.name)
         self._ser = None
-        self._parser = FrameParser()
+        self._parser = FrameParser(max_rate_rad_s)
         self._running = False
         self._connected = False
         self._next_reopen = 0.0
@@ -175,7 +196,7 @@ class SerialIMU(GyroSource):
         self._lost_pending = 0
         self._t_out = -float("inf")            # newest time stamp handed out
         self._queue: list[GyroBatch] = []      # batches split off a read at lost frames
-        self._stats.update(garbage_bytes=0, frames=0, reconnects=0, disconnects=0, low_latency=0,
+        self._stats.update(garbage_bytes=0, frames=0, invalid=0, reconnects=0, disconnects=0, low_latency=0,
                            connected=0)
 
     # -- port handling ---------------------------------------------------------------------------
@@ -205,7 +226,7 @@ class SerialIMU(GyroSource):
                 self._stats["low_latency"] = 0           # not an FTDI/serial-core port (pty, CDC-ACM)
         ser.reset_input_buffer()
         self._ser = ser
-        self._parser = FrameParser()
+        self._parser.buf.clear()                         # a partial frame from before the reopen
         self._connected = True
         self._stats["connected"] = 1
 
@@ -267,20 +288,34 @@ class SerialIMU(GyroSource):
             self._stats["crc_errors"] = self._parser.crc_errors
             self._stats["garbage_bytes"] = self._parser.garbage_bytes
             self._stats["frames"] = self._parser.frames
+            self._stats["invalid"] = self._parser.invalid_rates
             if frames:
                 self._queue.extend(self._batches(frames, t_arrival))
                 return self._count_batch(self._queue.pop(0))
             if time.monotonic() >= deadline:
                 return None
 
+    def _consistent(self, dseq, dtus):
+        """Whether steps of the two device counters (mod 2**32) can follow each other: both forward,
+        and the time step within 4× (plus 0.1 s) of what the sample step takes at ``rate_hz``."""
+        period_us = 1e6 / self.rate_hz
+        return ((dseq >= 1) & (dseq < 2**31) & (dtus >= 1) & (dtus < 2**31)
+                & (dtus <= 4 * dseq * period_us + 1e5) & (4 * dtus >= dseq * period_us - 4e5))
+
     def _batches(self, frames, t_arrival: float) -> list[GyroBatch]:
         seq32 = np.array([f[0] for f in frames], np.int64)
-        back = np.flatnonzero((np.diff(seq32) & 0xFFFFFFFF) - 1 >= 2**31 - 1)
-        if len(back):
-            # the device rebooted inside this read: each side is its own epoch
-            k = int(back[0]) + 1
-            return self._batches(frames[:k], t_arrival) + self._batches(frames[k:], t_arrival)
         tus32 = np.array([f[1] for f in frames], np.int64)
+        # a reboot, or a counter that jumped, inside this read: each run of consistent frames is
+        # checked against the one before it (and becomes its own epoch)
+        broken = (np.flatnonzero(~self._consistent(np.diff(seq32) & 0xFFFFFFFF, np.diff(tus32) & 0xFFFFFFFF))
+                  + 1).tolist()
+        out = []
+        for a, b in zip([0, *broken], [*broken, len(frames)], strict=True):
+            out += self._run_batches(frames[a:b], seq32[a:b], tus32[a:b], t_arrival)
+        return out
+
+    def _run_batches(self, frames, seq32: np.ndarray, tus32: np.ndarray, t_arrival: float) -> list[GyroBatch]:
+        """Batches of frames whose counters follow each other (one run of a read)."""
         rate = np.array([f[2] for f in frames], np.float32).reshape(-1, 3)
         gap, lost = self._gap_pending, self._lost_pending
         if self._seq_last is None:
@@ -290,8 +325,9 @@ class SerialIMU(GyroSource):
             dseq = (int(seq32[0]) - self._seq_raw_last) & 0xFFFFFFFF
             dtus = (int(tus32[0]) - self._tus_raw_last) & 0xFFFFFFFF
             elapsed_us = (t_arrival - self._t_host_last) * 1e6
-            if dseq == 0 or dseq >= 2**31 or dtus >= 2**31 or dtus > 4 * elapsed_us + 1e6:
-                # the device restarted (counters went back or jumped): new epoch, keep counting
+            if not self._consistent(dseq, dtus) or dtus > 4 * elapsed_us + 1e6:
+                # the device restarted or a counter jumped (back, or further than host time allows):
+                # new epoch, keep counting
                 self._stats["resets"] += 1
                 # samples since the newest one handed out (mapped time) minus those in this read
                 est = max(1, int(round((t_arrival - self._t_out) * self.rate_hz)) - len(frames) + 1)

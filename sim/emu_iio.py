@@ -12,6 +12,8 @@ implementation of the ABI rules (each element aligned to its storage size, recor
 largest), stamps the timestamp channel with the CLOCK_MONOTONIC ns of the data-ready interrupt
 (true sample time + ``irq_latency_s`` jitter), and writes them to the FIFO. A full FIFO drops new
 records like the kernel's kfifo (counted in ``dropped``); ``pipe_size`` shrinks it to make that easy.
+Time stamp faults: ``corrupt_timestamps(values)`` (the next records carry these stamps instead) and
+``shift_timestamps(seconds)`` (every later stamp is off by that much: a changed time base).
 
 Layouts (``layout=``): "s16" (le:s16/16>>0 gyro, 16-byte records with the timestamp), "be20"
 (be:s20/32>>4 gyro with per-axis scales, 24-byte records: 12 bytes of gyro padded to the 8-byte
@@ -74,11 +76,15 @@ class IIOEmulator:
         self.rate_hz, self.scale, self.batch_s = float(rate_hz), float(scale), float(batch_s)
         self.rate_fn, self.drift_ppm, self.irq_latency_s = rate_fn, drift_ppm, irq_latency_s
         self.pipe_size = pipe_size
+        self._fd = -1                                  # the writer's end of the FIFO, once started
         self._rng = np.random.default_rng(seed)
         self.counters = {"records": 0, "dropped": 0, "enables": 0}
         self.truth: list[tuple[float, np.ndarray]] = []   # (true time, rate) of every record written
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._ts_lock = threading.Lock()
+        self._ts_override: list[int] = []
+        self._ts_shift_ns = 0
         self._build(layout)
 
     # -- the tree ----------------------------------------------------------------------------------
@@ -140,6 +146,16 @@ class IIOEmulator:
     def __exit__(self, *exc):
         self.stop()
 
+    def corrupt_timestamps(self, values) -> None:
+        """The next ``len(values)`` records carry these time stamps (ns) instead of their own."""
+        with self._ts_lock:
+            self._ts_override.extend(int(v) for v in values)
+
+    def shift_timestamps(self, seconds: float) -> None:
+        """Every record from now on is stamped ``seconds`` off its true interrupt time."""
+        with self._ts_lock:
+            self._ts_shift_ns += int(round(seconds * 1e9))
+
     # -- writer ------------------------------------------------------------------------------------
     def _freeze(self):
         """Scan configuration at buffer enable: [(element, offset, endian, signed, bits, storage, shift)]."""
@@ -192,7 +208,9 @@ class IIOEmulator:
                     lim = (1 << (bits - 1)) if signed else (1 << bits)
                     v = max(-lim, min(lim - 1, v)) if signed else max(0, min(lim - 1, v))
                 elif el == "in_timestamp":
-                    v = int(round(irq[i] * 1e9))
+                    with self._ts_lock:
+                        bad = self._ts_override.pop(0) if self._ts_override else None
+                        v = int(round(irq[i] * 1e9)) + self._ts_shift_ns if bad is None else bad
                 elif el == "in_temp":
                     v = 1234
                 else:

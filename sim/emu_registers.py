@@ -9,13 +9,15 @@ configured full scale. A FIFO that is not read overflows as the datasheet says (
 oldest data lost; the MPU's byte-wise overwrite leaves it misaligned, as the real part does).
 
 Front ends present the chips the way the drivers see real hardware:
-:class:`EmuI2C` is an ``smbus2.SMBus`` stand-in (``i2c_rdwr`` with real ``smbus2.i2c_msg`` objects,
-``read_byte_data``/``write_byte_data``; unknown addresses NACK with ``OSError(EREMOTEIO)``) and
+:class:`EmuI2C` is an ``smbus2.SMBus`` stand-in offering what :class:`thermod.drivers.bus.I2CBus`
+calls (``i2c_rdwr`` with real ``smbus2.i2c_msg`` objects, ``write_byte_data``; unknown addresses
+NACK with ``OSError(EREMOTEIO)``) and
 :class:`EmuSPI` a ``spidev.SpiDev`` stand-in (``xfer2``, bit 7 of the first byte = read, 4096-byte cap).
 
 Fault injection: ``unplug(seconds)`` (every access raises OSError, then the chip comes back
-power-cycled, configuration lost), ``nack(n)`` (the next n transactions fail), ``chip_id=`` (a
-wrong WHO_AM_I), and simply not reading (overflow).
+power-cycled, configuration lost), ``nack(n)`` (the next n transactions fail), ``glitch(n)`` (the
+next n reads return all ones, as an undriven data line does, while the chip clocks its data out),
+``chip_id=`` (a wrong WHO_AM_I), and simply not reading (overflow).
 
 Cheap at 1 kHz: a poll costs a few tens of µs (one vectorised ``rate_fn`` call per batch).
 """
@@ -55,6 +57,8 @@ class RegisterChip:
         self._unplugged_until = -math.inf
         self._power_cycle_pending = False
         self._nacks = 0
+        self._glitches = 0
+        self._glitch_reg: int | None = None
         self.invalid_samples = 0       # the next n samples read -32768 (ICM: "not valid yet")
         self.counters = {"generated": 0, "dropped": 0, "overflows": 0, "popped": 0, "flushes": 0}
         self._power_on()
@@ -104,10 +108,6 @@ class RegisterChip:
     def period_s(self) -> float:
         """True sample period of this oscillator (nominal 1/ODR, shortened by +drift)."""
         return 1.0 / (self.odr_hz() * (1.0 + self.drift_ppm * 1e-6))
-
-    def sample_time(self, k) -> np.ndarray:
-        """Host time of the k-th ODR tick since the last configuration change."""
-        return self._epoch + (np.asarray(k, np.float64) + 1.0) * self.period_s()
 
     def _advance(self) -> None:
         now = self.clock()
@@ -178,6 +178,12 @@ class RegisterChip:
         """Fail the next ``n`` bus transactions with OSError (glitches; state is kept)."""
         self._nacks += int(n)
 
+    def glitch(self, n: int = 1, reg: int | None = None) -> None:
+        """The next ``n`` reads (of register ``reg`` only, if given) return 0xFF bytes; the chip's FIFO
+        still pops what it clocked out."""
+        self._glitches += int(n)
+        self._glitch_reg = reg
+
     def check_present(self) -> None:
         """Called by the front ends once per transaction: raises OSError while unplugged."""
         now = self.clock()
@@ -195,11 +201,15 @@ class RegisterChip:
         with self._lock:
             self._advance()
             if reg == self.fifo_reg:
-                return self._pop(n)
-            out = bytearray()
-            for i in range(n):
-                a = (reg + i) & 0x7F
-                out.append(self._pop(1)[0] if a == self.fifo_reg else self._read_reg(a))
+                out = self._pop(n)
+            else:
+                out = bytearray()
+                for i in range(n):
+                    a = (reg + i) & 0x7F
+                    out.append(self._pop(1)[0] if a == self.fifo_reg else self._read_reg(a))
+            if self._glitches > 0 and self._glitch_reg in (None, reg):
+                self._glitches -= 1
+                return b"\xff" * n
             return bytes(out)
 
     def write(self, reg: int, data: bytes) -> None:
@@ -459,19 +469,9 @@ class EmuI2C:
                 if len(buf) > 1:
                     chip.write(buf[0], buf[1:])
 
-    def read_byte_data(self, addr: int, reg: int) -> int:
-        self.transactions += 1
-        return self._chip(addr).read(reg, 1)[0]
-
     def write_byte_data(self, addr: int, reg: int, value: int) -> None:
         self.transactions += 1
         self._chip(addr).write(reg, bytes([value & 0xFF]))
-
-    def read_i2c_block_data(self, addr: int, reg: int, length: int) -> list[int]:
-        if length > 32:
-            raise ValueError("Desired block length over 32 bytes")     # what smbus2 says
-        self.transactions += 1
-        return list(self._chip(addr).read(reg, length))
 
     def close(self) -> None:
         pass

@@ -11,9 +11,11 @@ Faults (probabilities per frame, seeded): ``garbage_prob`` (1–16 junk bytes, n
 frame), ``drop_prob`` (the frame is not sent; its seq is skipped), ``corrupt_prob`` (one bit flipped
 after the header: a CRC error), and ``disconnect(seconds)`` (both pty ends closed, like pulling the
 cable; frames produced meanwhile are lost; ``reset_counters=True`` restarts seq and time at 0 as a
-rebooted device would). Every produced frame is logged in ``log`` (``good``, ``dropped``,
-``corrupted``, ``offline`` seq lists; ``garbage_bytes``, ``garbage_before`` {seq: bytes}) as the
-truth a test compares against.
+rebooted device would). ``bad_rate_prob``: the frame carries a NaN, ±inf or out-of-range rate (type
+2: a NaN, infinite, zero or negative scale) under a valid CRC. ``glitch_times(values)``: the next
+frames carry these device times (µs) instead of their own. Every produced frame is logged in ``log``
+(``good``, ``dropped``, ``corrupted``, ``bad_rate``, ``offline`` seq lists; ``garbage_bytes``,
+``garbage_before`` {seq: bytes}) as the truth a test compares against.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import contextlib
 import errno
 import math
 import os
+import struct
 import tempfile
 import threading
 import time
@@ -30,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from thermod.drivers.serial_imu import encode_frame
+from thermod.drivers.serial_imu import PAYLOAD_LEN, SYNC, TYPE_I16, crc16_ccitt, encode_frame
 
 
 class SerialIMUEmulator:
@@ -39,13 +42,15 @@ class SerialIMUEmulator:
     def __init__(self, *, rate_hz: float = 1000.0, batch_s: float = 0.005,
                  rate_fn: Callable[[np.ndarray], np.ndarray] | None = None, noise_rad_s: float = 0.0,
                  drift_ppm: float = 0.0, int16_scale: float | None = None, garbage_prob: float = 0.0,
-                 drop_prob: float = 0.0, corrupt_prob: float = 0.0, seed: int = 0,
+                 drop_prob: float = 0.0, corrupt_prob: float = 0.0, bad_rate_prob: float = 0.0, seed: int = 0,
                  link_dir: str | None = None, serial_number: str = "EMU0001", t_us0: int | None = None,
                  seq0: int = 0, clock: Callable[[], float] = time.monotonic):
         self.rate_hz, self.batch_s = float(rate_hz), float(batch_s)
         self.rate_fn, self.noise_rad_s, self.drift_ppm = rate_fn, noise_rad_s, drift_ppm
         self.int16_scale = int16_scale
         self.garbage_prob, self.drop_prob, self.corrupt_prob = garbage_prob, drop_prob, corrupt_prob
+        self.bad_rate_prob = bad_rate_prob
+        self._time_glitches: list[int] = []
         self.clock = clock
         self._rng = np.random.default_rng(seed)
         self._tmp = None if link_dir else tempfile.TemporaryDirectory(prefix="thermod-emu-serial-")
@@ -53,8 +58,8 @@ class SerialIMUEmulator:
         self.link = os.path.join(self.link_dir, f"usb-thermod_emu_IMU_{serial_number}-if00-port0")
         self._seq0 = seq0
         self._t_us0 = int(self._rng.integers(0, 2**32)) if t_us0 is None else int(t_us0)
-        self.log = {"good": [], "dropped": [], "corrupted": [], "offline": [], "garbage_bytes": 0,
-                    "garbage_before": {}, "overrun_bytes": 0, "writes": 0}
+        self.log = {"good": [], "dropped": [], "corrupted": [], "bad_rate": [], "offline": [],
+                    "garbage_bytes": 0, "garbage_before": {}, "overrun_bytes": 0, "writes": 0}
         self.truth_t: dict[int, float] = {}       # seq → true host time (good frames only)
         self._lock = threading.Lock()
         self._master = self._slave = -1
@@ -124,6 +129,11 @@ class SerialIMUEmulator:
             self._seq0 = -self._k
             self._t_us0 = -int(round(self._k * 1e6 / self.rate_hz))
 
+    def glitch_times(self, t_us_values) -> None:
+        """The next ``len(t_us_values)`` frames carry these device times (µs, mod 2**32)."""
+        with self._lock:
+            self._time_glitches.extend(int(v) for v in t_us_values)
+
     # -- writer ------------------------------------------------------------------------------------
     def _run(self) -> None:
         period = 1.0 / (self.rate_hz * (1.0 + self.drift_ppm * 1e-6))
@@ -165,6 +175,7 @@ class SerialIMUEmulator:
         if self.noise_rad_s:
             rate = rate + self._rng.normal(0, self.noise_rad_s, rate.shape)
         u = self._rng.random((n, 3))
+        u_bad = self._rng.random(n) if self.bad_rate_prob else np.ones(n)    # same stream without it
         out = bytearray()
         for i in range(n):
             seq = int(self._seq0 + k[i])
@@ -178,6 +189,12 @@ class SerialIMUEmulator:
             if u[i, 1] < self.drop_prob:
                 self.log["dropped"].append(seq)
                 continue
+            if self._time_glitches:
+                t_us = self._time_glitches.pop(0)
+            if u_bad[i] < self.bad_rate_prob:
+                out += self._bad_rate_frame(seq, t_us)
+                self.log["bad_rate"].append(seq)
+                continue
             frame = bytearray(encode_frame(seq, t_us, rate[i], int16_scale=self.int16_scale))
             if u[i, 2] < self.corrupt_prob:
                 pos = int(self._rng.integers(4, len(frame)))
@@ -188,6 +205,17 @@ class SerialIMUEmulator:
                 self.truth_t[seq] = float(t[i])
             out += frame
         return bytes(out)
+
+    def _bad_rate_frame(self, seq: int, t_us: int) -> bytes:
+        bad = [math.nan, math.inf, -math.inf, 1e4][int(self._rng.integers(0, 4))]
+        if self.int16_scale is None:
+            rate = [0.1, 0.1, 0.1]
+            rate[int(self._rng.integers(0, 3))] = bad
+            return encode_frame(seq, t_us, rate)
+        scale = [math.nan, math.inf, 0.0, -self.int16_scale][int(self._rng.integers(0, 4))]
+        body = struct.pack("<BBII3hf", PAYLOAD_LEN[TYPE_I16], TYPE_I16, seq & 0xFFFFFFFF, t_us & 0xFFFFFFFF,
+                           100, -100, 5, scale)
+        return SYNC + body + struct.pack("<H", crc16_ccitt(body))
 
     def _write(self, data: bytes) -> None:
         buf = self._pending + data

@@ -41,6 +41,37 @@ def collect(gyro, seconds, timeout=0.01):
     return out
 
 
+def collect_samples(gyro, n, timeout_s=5.0):
+    """Batches until at least ``n`` samples are in hand (a slow machine just takes longer)."""
+    out, t_end = [], time.monotonic() + timeout_s
+    while sum(len(b) for b in out) < n and time.monotonic() < t_end:
+        b = gyro.poll(0.01)
+        if b is not None:
+            out.append(b)
+    return out
+
+
+def collect_timed(gyro, seconds, timeout=0.01):
+    """Batches, and for each the host time its poll returned (never earlier than its FIFO read)."""
+    out, returned, t_end = [], [], time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        b = gyro.poll(timeout)
+        if b is not None:
+            out.append(b)
+            returned.append(time.monotonic())
+    return out, np.array(returned)
+
+
+def read_lateness(batches, returned, decode):
+    """How long after its true time the newest sample of each batch was in hand: the read-time
+    jitter of this run, which the clock fit's lower envelope must not follow."""
+    newest = np.array([decode(b.rate[-1:, 0], b.t[-1:])[0] for b in batches])
+    return returned - newest
+
+
+LSB_S_2000DPS = math.radians(2000) / 32768 / 20.0    # sawtooth_clock: one LSB of the x rate in seconds
+
+
 def cat(batches):
     return np.concatenate([b.t for b in batches]), np.concatenate([b.rate for b in batches])
 
@@ -70,7 +101,7 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect(gyro, 0.06))
+    t, r = cat(collect_samples(gyro, 40))
     gyro.stop()
     lsb = math.radians(fs) / 32768
     assert r.dtype == np.float32 and t.dtype == np.float64 and r.shape == (len(t), 3)
@@ -89,7 +120,7 @@ def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = MPU6000Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = MPU6000(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect(gyro, 0.06))
+    t, r = cat(collect_samples(gyro, 40))
     lsb = math.radians(fs) / 32768
     assert len(t) >= 35
     assert np.max(np.abs(r - w)) <= 0.5 * lsb * 1.0001
@@ -116,18 +147,25 @@ def test_icm42688_timestamps_follow_the_device_clock_not_the_read_time(bus_kind)
     chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0, drift_ppm=300.0)
     gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=2000.0, read_interval_s=0.003)
     gyro.start()
-    batches = collect(gyro, 1.2, timeout=0.01)
+    batches, returned = collect_timed(gyro, 1.2, timeout=0.01)
     t, r = cat(batches)
     truth = decode(r[:, 0], t)
-    err = (t - truth)[len(t) // 4:]           # after the first 0.3 s the drift has been fitted
-    # sample times, not read times: the error is the bus latency plus quantisation (20 rad/s per s
-    # at 1.07 mrad/s per LSB → 53 µs), far below the 3 ms read interval
-    assert np.std(err) < 0.15e-3
-    assert np.max(np.abs(err)) < 0.6e-3
+    skip = len(t) // 4                        # after the first 0.3 s the drift has been fitted
+    err = (t - truth)[skip:]
+    # what stamping each sample with its read time would err by, in this run on this machine
+    by_read = np.repeat(returned, [len(b) for b in batches])[skip:] - truth[skip:]
+    lateness = read_lateness(batches, returned, decode)
+    # sample times, not read times: the spread of the error is quantisation (20 rad/s per s at
+    # 1.07 mrad/s per LSB → 53 µs) and drift tracking, a small part of the read-time spread (which
+    # a 3 ms read interval alone makes ~0.9 ms); the offset is the lower envelope of the reads,
+    # never later than the typical read
+    q = LSB_S_2000DPS
+    assert np.std(err) < 0.2 * np.std(by_read)
+    assert -2 * q <= np.median(err) <= np.percentile(lateness, 10) + 2 * q
     assert np.all(np.diff(t) > 0)
     seqs = [b.seq for b in batches]
     assert seqs == list(np.cumsum([0] + [len(b) for b in batches[:-1]]))
-    assert len(t) == pytest.approx(1200 * 1.0003, abs=25)
+    assert len(t) == chip.counters["popped"] // 8            # every sample the chip clocked out
     # the device oscillator runs 300 ppm fast: its ticks are shorter in host seconds
     assert gyro.clock.drift_ppm == pytest.approx(-300.0, abs=150.0)
 
@@ -138,7 +176,7 @@ def test_icm42688_16_byte_packets_with_accel():
     gyro = ICM42688(make_bus("spi", chip), full_scale_dps=500.0, fifo_accel=True)
     gyro.start()
     assert chip.record_size() == 16 and chip.regs[0x5F] & 0x03 == 0x03
-    t, r = cat(collect(gyro, 0.05))
+    t, r = cat(collect_samples(gyro, 30))
     assert len(t) >= 30
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(500) / 32768 * 1.0001
 
@@ -150,7 +188,7 @@ def test_bmi088_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = BMI088GyroEmu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = BMI088Gyro(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect(gyro, 0.06))
+    t, r = cat(collect_samples(gyro, 40))
     assert len(t) >= 35
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(fs) / 32768 * 1.0001
     assert chip.regs[0x0F] == BMI088GyroEmu.FS_DPS.index(fs)
@@ -168,24 +206,31 @@ def test_fifo_overflow_detected_flushed_counted(name):
     gyro.start()
     before = collect(gyro, 0.15)
     time.sleep(0.45)                     # FIFO: 256 (ICM), 170 (MPU) or 100 (BMI) samples
-    after = collect(gyro, 0.25)
+    after, returned = collect_timed(gyro, 0.25)
     st = gyro.stats()
-    assert st["overflows"] == 1 and st["gaps"] == 1
     assert chip.counters["overflows"] >= 1 and chip.counters["flushes"] >= 2
-    gap = after[0]
-    assert gap.gap_before and not any(b.gap_before for b in before + after[1:])
-    end_before = before[-1].seq + len(before[-1])
-    # the lost count is estimated from host time over the ~0.45 s stall; the truth is in the rates
-    t_last_true = decode(before[-1].rate[-1:, 0], before[-1].t[-1:])[0]
-    t_next_true = decode(gap.rate[:1, 0], gap.t[:1])[0]
-    true_lost = round((t_next_true - t_last_true) * 1000) - 1
-    assert true_lost > 400 and abs(gap.n_lost - true_lost) <= 2
-    assert gap.seq == end_before + gap.n_lost
-    assert st["lost"] == gap.n_lost
-    # samples after the gap are intact and correctly timed (the clock fit restarted)
+    # the stall is one overflow; a reader preempted for longer than the FIFO lasts (a loaded
+    # machine, BMI088: 100 ms) makes more, each of which must be accounted just as well
+    batches = before + after
+    gaps = [i for i, b in enumerate(batches) if b.gap_before]
+    assert after[0].gap_before and st["gaps"] == len(gaps) and st["overflows"] >= len(gaps)
+    assert st["lost"] == sum(batches[i].n_lost for i in gaps)
+    for prev, b in zip(batches[:-1], batches[1:], strict=True):
+        assert b.seq == prev.seq + len(prev) + b.n_lost
+    # the lost count is estimated from host time; the truth is in the rates
+    for i in gaps:
+        t_last_true = decode(batches[i - 1].rate[-1:, 0], batches[i - 1].t[-1:])[0]
+        t_next_true = decode(batches[i].rate[:1, 0], batches[i].t[:1])[0]
+        true_lost = round((t_next_true - t_last_true) * 1000) - 1
+        assert abs(batches[i].n_lost - true_lost) <= 2
+        if batches[i] is after[0]:
+            assert true_lost > 400                   # the 0.45 s stall
+    # samples after a gap are intact and correctly timed (the clock fit restarted): never before
+    # their true time, never later than the reads of this run delivered them
     t, r = cat(after)
     err = t - decode(r[:, 0], t)
-    assert np.max(np.abs(err)) < 1.5e-3
+    q = LSB_S_2000DPS
+    assert -q <= err.min() and err.max() <= read_lateness(after, returned, decode).max() + q
     assert np.all(np.abs(r[:, 2] - 0.5) < 1e-3)
 
 
@@ -257,19 +302,23 @@ def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     assert collect(gyro, 0.05)
 
 
-def test_invalid_startup_samples_are_dropped_but_keep_their_ticks():
+def test_invalid_samples_are_dropped_but_keep_their_ticks():
     fn, decode = sawtooth_clock(time.monotonic())
     chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0)
-    chip.invalid_samples = 7                       # the first samples after the gyro powers on
     gyro = ICM42688(make_bus("spi", chip))
     gyro.start()
-    batches = collect(gyro, 0.3)
+    chip.invalid_samples = 7                       # the first samples after the gyro powers on
+    batches, returned = collect_timed(gyro, 0.3)
     assert gyro.stats()["invalid"] == 7 and batches[0].seq == 7
+    assert batches[0].gap_before and batches[0].n_lost == 7 == gyro.stats()["lost"]
     t, r = cat(batches)
     assert len(t) == sum(len(b) for b in batches) and np.all(r != -np.radians(2000))
     assert np.all(np.diff(t) > 0)
-    err = t - decode(r[:, 0], t)
-    assert np.median(np.abs(err[-100:])) < 0.3e-3
+    err = np.median((t - decode(r[:, 0], t))[-100:])
+    # with the drift unresolved over 0.3 s the fit is the earliest read (lower envelope): the error
+    # is the smallest read lateness of the run; 7 ticks miscounted would put it 7 ms off
+    q = LSB_S_2000DPS
+    assert -q <= err <= np.min(read_lateness(batches, returned, decode)) + q
 
 
 def test_stop_start_cycle_continues_the_sequence_with_a_gap():
@@ -282,14 +331,16 @@ def test_stop_start_cycle_continues_the_sequence_with_a_gap():
     gyro.stop()
     time.sleep(0.2)
     gyro.start()
-    second = collect(gyro, 0.1)
+    second, returned = collect_timed(gyro, 0.1)
     true_lost = round((decode(second[0].rate[:1, 0], second[0].t[:1])[0]
                        - decode(first[-1].rate[-1:, 0], first[-1].t[-1:])[0]) * 1000) - 1
     assert second[0].gap_before and true_lost >= 200 and abs(second[0].n_lost - true_lost) <= 2
     assert second[0].seq == first[-1].seq + len(first[-1]) + second[0].n_lost
     t, r = cat(second)
     assert t[0] > first[-1].t[-1]
-    assert np.max(np.abs(t - decode(r[:, 0], t))) < 1.5e-3
+    err = t - decode(r[:, 0], t)
+    q = LSB_S_2000DPS
+    assert -q <= err.min() and err.max() <= read_lateness(second, returned, decode).max() + q
 
 
 def test_bursts_are_split_at_the_bus_limits():
@@ -355,3 +406,39 @@ def test_missing_bus_device_files_are_named():
         SPIBus("/dev/ttyUSB0")
     with pytest.raises(DeviceError, match="expected /dev/i2c-N"):
         I2CBus("i2c1")
+
+
+@pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
+@pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
+def test_bus_glitches_reading_all_ones_are_counted_not_raised(name, bus_kind):
+    # an undriven data line reads 0xFF: an overflow flag, a FIFO count no FIFO holds, ICM headers
+    # that say "empty". None is an I/O error; each is counted and the stream carries on.
+    Driver, Emu, _ = CHIPS[name]
+    w = np.array([0.2, -0.1, 0.05])
+    chip = Emu(rate_fn=constant(w), noise_rad_s=0.0)
+    gyro = Driver(make_bus(bus_kind, chip), full_scale_dps=500.0)
+    gyro.start()
+    batches = []
+    for k in range(12):
+        batches += collect(gyro, 0.02)
+        chip.glitch(1 + k % 3, reg=chip.fifo_reg if k % 2 else None)
+    batches += collect(gyro, 0.05)
+    st = gyro.stats()
+    assert st["io_errors"] == 0 and st["overflows"] + st["bad_counts"] + st["invalid"] >= 1
+    assert st["gaps"] >= 1 and st["lost"] >= st["invalid"]       # invalid samples are missing ones
+    for prev, b in zip(batches[:-1], batches[1:], strict=True):
+        assert b.seq == prev.seq + len(prev) + b.n_lost
+    t, r = cat(batches)
+    assert np.all(np.diff(t) > 0)
+    if name == "icm42688":                     # its packet headers tell garbage from data
+        assert st["invalid"] >= 1 and np.max(np.abs(r - w)) <= 0.5 * math.radians(500) / 32768 * 1.0001
+
+
+def test_short_transfers_are_io_errors():
+    class Short(EmuSPI):                       # a SpiDev-like device that returns fewer bytes
+        def xfer2(self, data):
+            rx = super().xfer2(data)
+            return rx[:-1] if data[0] & 0x80 else rx
+    gyro = ICM42688(SPIBus(Short(ICM42688Emu())))
+    with pytest.raises(ICM42688Error, match="short read at register 0x75: 0 of 1"):
+        gyro.start()

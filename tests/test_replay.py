@@ -209,3 +209,27 @@ def test_late_start_joins_the_stream_like_a_live_device(tmp_path):
     f = cam.poll(0.5)
     assert f.frame_id > first.frame_id + 1 and f.gap_before == f.frame_id - first.frame_id - 1
     np.testing.assert_array_equal(f.image, rec.frames[f.frame_id % N])
+
+
+def test_every_source_offers_name_clock_and_stats():
+    # the runtime reads these three from any camera or gyro source, without probing for them
+    from thermod.drivers.bus import SPIBus
+    from thermod.drivers.icm42688 import ICM42688
+    from thermod.drivers.iio import IIOGyro
+    from thermod.drivers.serial_imu import SerialIMU
+    from thermod.drivers.v4l2_camera import V4L2Camera
+    from thermod.runtime.clock import ClockMapper
+    from thermod.sim.emu_camera import EmuCamera
+    from thermod.sim.emu_registers import EmuSPI, ICM42688Emu
+
+    rec = _recording()
+    session = ReplaySession(rec)
+    sources = [ReplayCamera(rec, session=session), ReplayGyro(rec, session=session),
+               ICM42688(SPIBus(EmuSPI(ICM42688Emu()))), IIOGyro("icm42688"), SerialIMU("/dev/null"),
+               V4L2Camera("/dev/video99"), EmuCamera(rec.frames)]
+    for src in sources:
+        assert isinstance(src.name, str) and src.name
+        assert src.clock is None or isinstance(src.clock, ClockMapper)
+        assert isinstance(src.stats(), dict)
+    assert sources[0].clock is None and sources[1].clock is None      # replayed times need no mapping
+    assert all(isinstance(s.clock, ClockMapper) for s in sources[2:5])
