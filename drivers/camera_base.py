@@ -10,10 +10,14 @@ from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from thermod.errors import DeviceError
+
+if TYPE_CHECKING:
+    from thermod.runtime.clock import ClockMapper
 
 FRAME_ID_BITS = 16   # GigE Vision block ids (GVSP) and most USB cameras: 16 bits, 0 reserved as "invalid"
 
@@ -47,6 +51,7 @@ class CameraSource(abc.ABC):
     """
 
     name: str = "camera"
+    clock: ClockMapper | None = None     # device clock → host mapping, if the driver fits one
 
     @abc.abstractmethod
     def start(self) -> None: ...

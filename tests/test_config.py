@@ -164,7 +164,7 @@ def test_overrides_are_validated_like_the_file():
 
 
 def test_v4l2_telemetry_rows_and_clock_reach_the_driver():
-    from thermod.runtime.daemon import build_camera
+    from thermod.runtime.sources import build_camera
 
     over = {"sources.camera.telemetry_top": 2, "sources.camera.timestamp_clock": "device"}
     cfg = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False, overrides=over)

@@ -252,7 +252,7 @@ endpoint = "tcp://127.0.0.1:{free_port()}"
     d.pipeline.emit = got.append           # observe the pipeline's output directly (no publisher needed)
     d.start()
     try:
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + 120          # a bound for a stuck daemon, not a speed requirement
         while time.monotonic() < deadline and len(got) < 60:
             d.tick()
             time.sleep(0.02)

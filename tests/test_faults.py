@@ -136,7 +136,7 @@ def rig(tmp_path_factory):
     frames.start()
     frames.ready.wait(5)
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and not d._ready:
+    while time.monotonic() < deadline and not d.ready:
         time.sleep(0.05)
     time.sleep(1.5)
     fields = "d payload gyro camera frames notify stop reload cfg_path serve t_start"
