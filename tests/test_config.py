@@ -288,3 +288,25 @@ def test_reload_survives_an_unexpected_exception(daemon, monkeypatch):
     monkeypatch.setattr(config, "load", broken)
     assert d.reload() is False
     assert d.health()["reload"]["error"] == "RuntimeError: disk on fire"
+
+
+def test_every_source_class_offers_the_source_protocol():
+    """name, clock and stats() are what health reads: each driver class has them, without probing."""
+    import importlib
+
+    from thermod.drivers.camera_base import CameraSource
+    from thermod.drivers.gyro_base import GyroSource
+
+    classes = [GyroSource, CameraSource]
+    for mod, name in [("thermod.drivers.replay", "ReplayGyro"), ("thermod.drivers.replay", "ReplayCamera"),
+                      ("thermod.drivers.icm42688", "ICM42688"), ("thermod.drivers.mpu6000", "MPU6000"),
+                      ("thermod.drivers.bmi088", "BMI088Gyro"), ("thermod.drivers.iio", "IIOGyro"),
+                      ("thermod.drivers.serial_imu", "SerialIMU"),
+                      ("thermod.drivers.v4l2_camera", "V4L2Camera"),
+                      ("thermod.sim.payload", "SimCamera")]:
+        classes.append(getattr(importlib.import_module(mod), name))
+    for cls in classes:
+        for attr in ("name", "clock", "stats", "start", "stop", "poll"):
+            assert hasattr(cls, attr), (cls.__name__, attr)
+    from thermod.drivers.replay import ReplayGyro
+    assert ReplayGyro.clock is None                       # a replay has no device clock to report
