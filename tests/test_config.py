@@ -310,3 +310,16 @@ def test_every_source_class_offers_the_source_protocol():
             assert hasattr(cls, attr), (cls.__name__, attr)
     from thermod.drivers.replay import ReplayGyro
     assert ReplayGyro.clock is None                       # a replay has no device clock to report
+
+
+def test_register_gyro_device_names_are_checked_with_file_and_key(tmp_path):
+    from thermod.runtime import sources
+
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_spi'\ndevice = '/dev/ttyS0'\n"
+                         "[sources.camera]\nkind = 'sim'\n")
+    cfg = config.load(p, check_devices=False)
+    with pytest.raises(ConfigError, match=r"t\.toml: sources\.gyro\.device: expected /dev/spidevB\.C"):
+        sources.build_gyro(cfg)
+    cfg = config.load(p, {"sources.gyro.kind": "icm42688_i2c"}, check_devices=False)
+    with pytest.raises(ConfigError, match=r"t\.toml: sources\.gyro\.device: expected /dev/i2c-N"):
+        sources.build_gyro(cfg)

@@ -68,29 +68,28 @@ class Driver:
 
 
 # ------------------------------------------------------------------------------------ constructors
-def _spi_numbers(dev: str) -> tuple[int, int]:
-    base = os.path.basename(dev)          # /dev/spidevB.C
+def _bus_numbers(cfg: Config, spi: bool) -> tuple[int, ...]:
+    """(bus, chip select) of /dev/spidevB.C, or (bus,) of /dev/i2c-N."""
+    dev = os.path.realpath(cfg.gyro.device)       # a udev symlink (/dev/thermod/...) names the node
+    base = os.path.basename(dev)
     try:
-        b, c = base.removeprefix("spidev").split(".")
-        return int(b), int(c)
+        if spi:
+            b, c = base.removeprefix("spidev").split(".")
+            return int(b), int(c)
+        return (int(base.removeprefix("i2c-")),)
     except ValueError:
-        raise ConfigError(f"sources.gyro.device: expected /dev/spidevB.C, got {dev!r}") from None
-
-
-def _i2c_number(dev: str) -> int:
-    try:
-        return int(os.path.basename(dev).removeprefix("i2c-"))
-    except ValueError:
-        raise ConfigError(f"sources.gyro.device: expected /dev/i2c-N, got {dev!r}") from None
+        want = "/dev/spidevB.C" if spi else "/dev/i2c-N"
+        raise ConfigError(f"{cfg.path}: sources.gyro.device: expected {want} (or a link to it), got "
+                          f"{cfg.gyro.device!r}") from None
 
 
 def _register_bus(cfg: Config, spi: bool):
     from thermod.drivers.bus import I2CBus, SPIBus
 
-    g, o = cfg.gyro, cfg.gyro.options
+    o = cfg.gyro.options
     if spi:
-        return SPIBus(_spi_numbers(g.device), max_speed_hz=o["speed_hz"])
-    return I2CBus(_i2c_number(g.device), o["address"])
+        return SPIBus(_bus_numbers(cfg, True), max_speed_hz=o["speed_hz"])
+    return I2CBus(_bus_numbers(cfg, False)[0], o["address"])
 
 
 def _chip_kw(cfg: Config) -> dict:
