@@ -180,6 +180,16 @@ def test_bad_config_is_one_line_exit_2(tmp_path):
         f"thermod run: error: {p}: deblur.lambda: expected a value in (0.0, 1000000000.0], got -1.0"]
 
 
+def test_non_utf8_config_is_one_line_exit_2(tmp_path):
+    p = tmp_path / "latin1.toml"
+    p.write_bytes(b"# r\xe9glage\n[sources.gyro]\nkind = 'sim'\n[sources.camera]\nkind = 'sim'\n")
+    r = subprocess.run([str(THERMOD), "run", "--config", str(p)], capture_output=True, text=True, env=env(),
+                       timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        f"thermod run: error: {p}: line 1: expected UTF-8 text, got byte 0xe9 at offset 3"]
+
+
 def _start(args, **kw):
     return subprocess.Popen([str(THERMOD), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env(),
                             text=True, **kw)
