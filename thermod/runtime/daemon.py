@@ -141,12 +141,12 @@ class Daemon:
         frame_period = 1.0 / cfg.calibration.frame_rate_hz
         self.driver_threads = [
             DriverThread("gyro", self.gyro, self._on_gyro, self.gyro_state, self._stop,
-                          poll_timeout=cfg.gyro.poll_timeout_s, priority=cfg.gyro.realtime_priority,
-                          retry_max_s=cfg.gyro.retry_max_s, stall_s=0.5,
-                          on_down=self._gyro_down, on_up=self._gyro_up),
+                         poll_timeout=cfg.gyro.poll_timeout_s, priority=cfg.gyro.realtime_priority,
+                         retry_max_s=cfg.gyro.retry_max_s, stall_s=0.5,
+                         on_down=self._gyro_down, on_up=self._gyro_up),
             DriverThread("camera", self.camera, self._on_frame, self.camera_state, self._stop,
-                          poll_timeout=cfg.camera.poll_timeout_s, priority=cfg.camera.realtime_priority,
-                          retry_max_s=cfg.camera.retry_max_s, stall_s=max(STALL_MIN_S, 10 * frame_period)),
+                         poll_timeout=cfg.camera.poll_timeout_s, priority=cfg.camera.realtime_priority,
+                         retry_max_s=cfg.camera.retry_max_s, stall_s=max(STALL_MIN_S, 10 * frame_period)),
         ]
         for th in self.driver_threads:
             th.start()
