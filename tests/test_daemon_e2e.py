@@ -24,11 +24,13 @@ from thermod.runtime.publish import Subscriber
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
-# median RMSE(deblurred, truth) / RMSE(raw, truth) on the simulated payload, measured over 3 runs on a
-# loaded 2-core machine: live (40 frames) 0.312–0.320, `thermod record` + `thermod deblur` (every 8th
-# frame of 1.5 s) 0.290–0.385 (the procedural scene, without ../shared: 0.256 and 0.257); the limits
-# keep a ~40 % / ~30 % margin above the worst run
-E2E_RATIO_LIMIT = 0.45
+# median RMSE(deblurred, truth) / RMSE(raw, truth) on the simulated payload. Which loop frames get
+# deblurred depends on the machine's load (overload passes frames through), and the ratio depends on
+# the frame (≈ 1 where the shake is momentarily still, 0.2 where it blurs most), so the median is taken
+# over every deblurred frame. Measured on a loaded 2-core machine: live 0.31–0.38 (5 runs; 0.26 on
+# the procedural scene without ../shared), `thermod record` + `thermod deblur` 0.29–0.39 (4 runs);
+# the limits keep ~30 % above the worst run.
+E2E_RATIO_LIMIT = 0.5
 RECORD_RATIO_LIMIT = 0.5
 TIMEOUT_STOP_S = 15.0          # systemd/thermod.service TimeoutStopSec
 THERMOD = Path(sys.executable).with_name("thermod")
@@ -143,7 +145,7 @@ def test_thermod_run_end_to_end(payload):
     assert len(deb) >= 30, (len(deb), len(ids))
     m = (slice(24, -24), slice(24, -24))
     ratios = []
-    for i in deb[:40]:
+    for i in deb:
         truth = pl.truth_for(i)[m]
         e_raw = np.sqrt(np.mean((pl.frame_for(i)[m].astype(np.float32) - truth) ** 2))
         e_deb = np.sqrt(np.mean((frames[i][1][m] - truth) ** 2))
