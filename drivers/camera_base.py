@@ -50,7 +50,7 @@ class CameraSource(abc.ABC):
     """
 
     name: str = "camera"
-    clock: ClockMapper | None = None
+    clock: ClockMapper | None = None     # device clock → host mapping, if the driver fits one
 
     @abc.abstractmethod
     def start(self) -> None: ...

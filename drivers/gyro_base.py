@@ -51,7 +51,7 @@ class GyroSource:
     """
 
     name: str = "gyro"
-    clock: ClockMapper | None = None
+    clock: ClockMapper | None = None     # device clock → host mapping, if the driver fits one
 
     def __init__(self) -> None:
         self._stats: dict[str, float] = {"samples": 0, "batches": 0, "overflows": 0, "gaps": 0,

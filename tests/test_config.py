@@ -164,7 +164,7 @@ def test_overrides_are_validated_like_the_file():
 
 
 def test_v4l2_telemetry_rows_and_clock_reach_the_driver():
-    from thermod.runtime.daemon import build_camera
+    from thermod.runtime.sources import build_camera
 
     over = {"sources.camera.telemetry_top": 2, "sources.camera.timestamp_clock": "device"}
     cfg = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False, overrides=over)
@@ -174,3 +174,152 @@ def test_v4l2_telemetry_rows_and_clock_reach_the_driver():
     with pytest.raises(ConfigError, match="sources.camera.timestamp_clock"):
         config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False,
                     overrides={"sources.camera.timestamp_clock": "wall"})
+
+
+def test_non_utf8_byte_is_a_config_error_naming_the_line(tmp_path):
+    p = tmp_path / "t.toml"
+    p.write_bytes(BASE.encode() + b"[deblur]\n# caf\xe9\nmethod = 'kf'\n")
+    with pytest.raises(ConfigError, match=r"t\.toml: line 7: expected UTF-8 text, got byte 0xe9"):
+        config.load(p)
+    with pytest.raises(ConfigError, match=r"t\.toml: line 7: expected UTF-8"):
+        config.load_calibration(p)
+
+
+def test_calibration_own_checks_become_config_errors_naming_the_file(tmp_path, monkeypatch):
+    """Whatever Calibration refuses on construction reaches the user as a ConfigError with file and key."""
+    from thermod.errors import ThermodError
+
+    class Refused(ThermodError, ValueError):
+        field, problem = "fx", "expected a focal length giving a sane field of view"
+
+    real = config.Calibration
+
+    def self_validating(**kw):             # what Calibration's own checks do with a 1e-3 px focal length
+        if kw.get("fx", 1.0) < 1.0:
+            raise Refused("fx: expected a focal length giving a sane field of view")
+        return real(**kw)
+
+    monkeypatch.setattr(config, "Calibration", self_validating)
+    p = _write(tmp_path, BASE + "[calibration]\nfx = 1e-3\n")
+    with pytest.raises(ConfigError, match=r"^.*t\.toml: calibration\.fx: expected a focal length"):
+        config.load(p)
+    with pytest.raises(ConfigError, match=r"t\.toml: calibration\.fx: "):
+        config.load_calibration(p)
+
+
+def test_registry_is_the_one_list_of_kinds():
+    from thermod.runtime import sources
+
+    assert tuple(sources.GYROS) == ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088",
+                                    "iio", "serial")
+    assert tuple(sources.CAMERAS) == ("sim", "replay", "aravis", "v4l2")
+    # an option's schema in the registry is what the loader enforces
+    lo = sources.GYROS["serial"].options["baud"].lo
+    p = {"sources": {"gyro": {"kind": "serial", "device": "/dev/ttyUSB9", "baud": lo - 1},
+                     "camera": {"kind": "sim"}}}
+    with pytest.raises(ConfigError, match=rf"sources\.gyro\.baud: expected a value in \[{lo}, "):
+        config.parse(p, "x.toml", check_devices=False)
+
+
+def test_daemon_reaches_the_simulator_only_through_the_registry():
+    import ast
+
+    src = (Path(__file__).resolve().parents[1] / "thermod/runtime").glob("*.py")
+    for f in src:
+        if f.name == "sources.py":
+            continue
+        tree = ast.parse(f.read_text())
+        mods = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)] + \
+               [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        assert not any(m and m.startswith("thermod.sim") for m in mods), f.name
+
+
+# ------------------------------------------------------------------------------ SIGHUP reload
+@pytest.fixture
+def daemon(tmp_path):
+    """A daemon on the simulated payload, constructed (sources, rings, pipeline) but not started:
+    reload touches only the configuration and the pipeline's settings."""
+    from thermod.runtime.daemon import Daemon
+    from thermod.runtime.sdnotify import Notifier
+
+    p = tmp_path / "sim.toml"
+    p.write_text(config.default_path().read_text())
+    d = Daemon(config.load(p), notifier=Notifier(env={}))
+    yield d, p
+
+
+def test_reload_applies_a_good_file(daemon):
+    d, p = daemon
+    p.write_text(p.read_text().replace("tau_s = 0.008", "tau_s = 0.009"))
+    assert d.reload() is True
+    assert d.pipeline.calib.tau_s == 0.009 and d.cfg.calibration.tau_s == 0.009
+    assert d.health()["reload"]["ok"] is True and d.counters["reloads"] == 1
+
+
+@pytest.mark.parametrize("damage, why", [
+    (lambda b: b.replace(b"tau_s = 0.008", b"tau_s = 0.008 # \xff"), r"expected UTF-8 text, got byte 0xff"),
+    (lambda b: b.replace(b"tau_s = 0.008", b"tau_s = -1"), r"calibration\.tau_s: expected a value"),
+    (lambda b: b + b"\n[deblur\n", r"not valid TOML"),
+    (lambda b: b.replace(b"width = 640", b"width = 320"),
+     r"calibration\.width/height: expected the running camera's frame size 640×480, got 320×480"),
+    (None, r"no such configuration file"),
+])
+def test_reload_failure_keeps_running_on_the_old_configuration(daemon, damage, why):
+    d, p = daemon
+    before = d.pipeline.calib, d.pipeline.deblur, d.cfg
+    if damage is None:
+        p.unlink()
+    else:
+        p.write_bytes(damage(p.read_bytes()))
+    assert d.reload() is False
+    assert (d.pipeline.calib, d.pipeline.deblur, d.cfg) == before
+    h = d.health()["reload"]
+    assert h["ok"] is False and h["at"] is not None
+    assert h["error"].startswith(str(p)) and __import__("re").search(why, h["error"]), h["error"]
+    assert d.counters["reload_errors"] == 1 and d.counters["reloads"] == 0
+
+
+def test_reload_survives_an_unexpected_exception(daemon, monkeypatch):
+    d, _ = daemon
+
+    def broken(*a, **kw):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(config, "load", broken)
+    assert d.reload() is False
+    assert d.health()["reload"]["error"] == "RuntimeError: disk on fire"
+
+
+def test_every_source_class_offers_the_source_protocol():
+    """name, clock and stats() are what health reads: each driver class has them, without probing."""
+    import importlib
+
+    from thermod.drivers.camera_base import CameraSource
+    from thermod.drivers.gyro_base import GyroSource
+
+    classes = [GyroSource, CameraSource]
+    for mod, name in [("thermod.drivers.replay", "ReplayGyro"), ("thermod.drivers.replay", "ReplayCamera"),
+                      ("thermod.drivers.icm42688", "ICM42688"), ("thermod.drivers.mpu6000", "MPU6000"),
+                      ("thermod.drivers.bmi088", "BMI088Gyro"), ("thermod.drivers.iio", "IIOGyro"),
+                      ("thermod.drivers.serial_imu", "SerialIMU"),
+                      ("thermod.drivers.v4l2_camera", "V4L2Camera"),
+                      ("thermod.sim.payload", "SimCamera")]:
+        classes.append(getattr(importlib.import_module(mod), name))
+    for cls in classes:
+        for attr in ("name", "clock", "stats", "start", "stop", "poll"):
+            assert hasattr(cls, attr), (cls.__name__, attr)
+    from thermod.drivers.replay import ReplayGyro
+    assert ReplayGyro.clock is None                       # a replay has no device clock to report
+
+
+def test_register_gyro_device_names_are_checked_with_file_and_key(tmp_path):
+    from thermod.runtime import sources
+
+    p = _write(tmp_path, "[sources.gyro]\nkind = 'icm42688_spi'\ndevice = '/dev/ttyS0'\n"
+                         "[sources.camera]\nkind = 'sim'\n")
+    cfg = config.load(p, check_devices=False)
+    with pytest.raises(ConfigError, match=r"t\.toml: sources\.gyro\.device: expected /dev/spidevB\.C"):
+        sources.build_gyro(cfg)
+    cfg = config.load(p, {"sources.gyro.kind": "icm42688_i2c"}, check_devices=False)
+    with pytest.raises(ConfigError, match=r"t\.toml: sources\.gyro\.device: expected /dev/i2c-N"):
+        sources.build_gyro(cfg)

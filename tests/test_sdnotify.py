@@ -55,8 +55,8 @@ def test_abstract_socket():
     name = f"@thermod-test-{os.getpid()}-{time.monotonic_ns()}"
     s = _listener(b"\0" + name[1:].encode())
     n = Notifier(env={"NOTIFY_SOCKET": name})
-    n.watchdog_trigger()
-    assert _recv(s)[0] == ["WATCHDOG=trigger"]
+    n.watchdog()
+    assert _recv(s)[0] == ["WATCHDOG=1"]
     n.close()
     s.close()
 

@@ -75,6 +75,8 @@ def test_unit_contract():
     assert "Service.MemoryDenyWriteExecute" not in s
     assert one["Service.CacheDirectory"] == "thermod"
     assert "NUMBA_CACHE_DIR=%C/thermod/numba" in s["Service.Environment"]
+    # /etc/thermod is root:thermod from tmpfiles; ConfigurationDirectory= would make it root:root 0750
+    assert "Service.ConfigurationDirectory" not in s and "Service.SupplementaryGroups" not in s
     # Real-time priority per sensor thread: a limit for the process, not a policy.
     assert int(one["Service.LimitRTPRIO"]) >= 20
     assert "Service.CPUSchedulingPolicy" not in s and "Service.RestrictRealtime" not in s
@@ -106,15 +108,22 @@ def test_sysusers_and_tmpfiles_apply_to_a_scratch_root(require, tmp_path):
     groups = {ln.split(":")[0]: ln.split(":") for ln in (root / "etc/group").read_text().splitlines()}
     uid, gid, home = int(users["thermod"][2]), int(users["thermod"][3]), users["thermod"][5]
     assert 0 < uid < 1000 and home == "/var/lib/thermod" and users["thermod"][6].endswith("nologin")
-    for g in ("i2c", "spi", "dialout", "video", "plugdev"):
-        assert "thermod" in groups[g][3].split(","), g
+    member_of = {g for g, f in groups.items() if "thermod" in f[3].split(",")}
+    assert member_of == {"i2c", "spi", "dialout", "video"}   # the device groups it opens, nothing more
     assert groups["dialout"][2] == "20"  # existing groups are reused, not recreated
+    # an installed configuration with a too-open mode is brought to 0640 root:thermod
+    (root / "etc/thermod").mkdir()
+    conf = root / "etc/thermod/thermod.toml"
+    conf.write_text("[sources.gyro]\nkind = 'sim'\n")
+    conf.chmod(0o666)
     r = subprocess.run([tmpfiles, f"--root={root}", "--create", str(SYSTEMD / "thermod.tmpfiles.conf")],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     etc, cache = (root / "etc/thermod").stat(), (root / "var/cache/thermod/numba").stat()
     assert (etc.st_uid, etc.st_gid, etc.st_mode & 0o777) == (0, gid, 0o750)
     assert (cache.st_uid, cache.st_gid, cache.st_mode & 0o777) == (uid, gid, 0o750)
+    c = conf.stat()
+    assert (c.st_uid, c.st_gid, c.st_mode & 0o777) == (0, gid, 0o640)
 
 
 # ------------------------------------------------------------------------------------ udev rules

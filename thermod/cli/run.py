@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
+import stat
 import threading
 
 from thermod.runtime import config
@@ -36,12 +38,25 @@ def _overrides(args) -> dict:
     return ov
 
 
+def _warn_if_open(path: str) -> None:
+    """The configuration names devices, endpoints and key files: root's to edit, the daemon's to read."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return
+    if mode & (stat.S_IWGRP | stat.S_IWOTH | stat.S_IROTH):
+        log.warning("%s: mode %03o lets others read or change it; install it 0640 root:thermod "
+                    "(systemd/thermod.tmpfiles.conf does)", path, stat.S_IMODE(mode))
+
+
 def run(args) -> int:
     ov = _overrides(args)
     cfg = config.load(args.config, ov)
     logging.getLogger("thermod").setLevel(cfg.logging.level.upper())
     if not logging.getLogger().handlers:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
+    if args.config:
+        _warn_if_open(args.config)
     d = Daemon(cfg, overrides=ov)
     stop = threading.Event()
     reload_req = threading.Event()

@@ -115,13 +115,6 @@ class ClockMapper:
     def residual_std_s(self) -> float:
         return self._resid_std
 
-    @property
-    def offset_s(self) -> float:
-        """Host time of tick 0 under the current fit (may be far in the past for large counters)."""
-        if self._ref is None:
-            return math.nan
-        return self._a - self._ref * self.period * (1.0 + self._slope)
-
     # -- observations --------------------------------------------------------------------------
     def observe(self, device_ticks: int, host_arrival: float) -> bool:
         """Add one observation: a counter value and a host time known to be no earlier than it.

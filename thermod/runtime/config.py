@@ -24,11 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from thermod.errors import ConfigError
+from thermod.errors import ConfigError, ThermodError
 from thermod.physics.calibration import Calibration
-
-GYRO_KINDS = ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088", "iio", "serial")
-CAMERA_KINDS = ("sim", "replay", "aravis", "v4l2")
+from thermod.runtime import sources
 
 
 # ------------------------------------------------------------------------------ dataclasses
@@ -177,6 +175,8 @@ class _Section:
         if not os.path.isabs(p) and not p.startswith("/dev/"):
             p = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(self.path)), p)) \
                 if not self.path.startswith("<") else os.path.abspath(p)
+        if "\0" in p:
+            raise self.fail(k, "a path without NUL characters", v)
         if must_exist and not os.path.exists(p):
             raise ConfigError(f"{self.path}: {self.key(k)}: {what} {p!r} does not exist")
         return p
@@ -197,56 +197,12 @@ def _describe(kind) -> str:
 
 
 # ------------------------------------------------------------------------------ sources
-# Kind → device key semantics and the options it accepts: name → (type, default, lo, hi, choices).
-_ODR = (1000, 2000, 4000, 8000)
-_FS = (125, 250, 500, 1000, 2000)
-_GYRO_SCHEMA: dict[str, tuple[str | None, dict]] = {
-    "sim": (None, {}),
-    "replay": ("recording", {"loop": (bool, True, None, None, None),
-                             "speed": (float, 1.0, 0.01, float("inf"), None)}),  # inf = as fast as possible
-    "icm42688_spi": ("device file", {"speed_hz": (int, 10_000_000, 100_000, 24_000_000, None),
-                                     "odr_hz": (int, 1000, None, None, _ODR),
-                                     "full_scale_dps": (int, 2000, None, None, _FS)}),
-    "icm42688_i2c": ("device file", {"address": (int, 0x68, None, None, (0x68, 0x69)),
-                                     "odr_hz": (int, 1000, None, None, _ODR),
-                                     "full_scale_dps": (int, 2000, None, None, _FS)}),
-    "mpu6000": ("device file", {"speed_hz": (int, 1_000_000, 100_000, 20_000_000, None),
-                                "odr_hz": (int, 1000, None, None, (1000, 8000)),
-                                "full_scale_dps": (int, 2000, None, None, (250, 500, 1000, 2000))}),
-    "bmi088": ("device file", {"bus": (str, "spi", None, None, ("spi", "i2c")),
-                               "address": (int, 0x68, None, None, (0x68, 0x69)),
-                               "speed_hz": (int, 10_000_000, 100_000, 10_000_000, None),
-                               "odr_hz": (int, 1000, None, None, (1000, 2000)),
-                               "full_scale_dps": (int, 2000, None, None, _FS)}),
-    "iio": ("device file", {"buffer_length": (int, 256, 2, 65536, None),
-                            "rate_hz": (float, 1000.0, 1.0, 32000.0, None)}),
-    "serial": ("device file", {"baud": (int, 921600, 1200, 12_000_000, None),
-                               "low_latency": (bool, True, None, None, None)}),
-}
-_CAMERA_SCHEMA: dict[str, tuple[str | None, dict]] = {
-    "sim": (None, {}),
-    "replay": ("recording", {"loop": (bool, True, None, None, None),
-                             "speed": (float, 1.0, 0.01, float("inf"), None)}),  # inf = as fast as possible
-    # Aravis opens by device id or IP address: not a file.
-    "aravis": ("id", {"pixel_format": (str, "Mono16", None, None, ("Mono16", "Mono14", "Mono12")),
-                      "packet_size": (int, 0, 0, 9000, None),
-                      "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None),
-                      "stream_timeout_s": (float, 1.0, 0.01, 60.0, None)}),
-    "v4l2": ("device file", {"width": (int, 640, 1, 8192, None), "height": (int, 480, 1, 8192, None),
-                             "fourcc": (str, "Y16 ", None, None, None),
-                             "frame_rate_hz": (float, 0.0, 0.0, 1000.0, None),
-                             # rows the camera adds to each image (FLIR Boson telemetry: 2), stripped
-                             "telemetry_top": (int, 0, 0, 64, None),
-                             "telemetry_bottom": (int, 0, 0, 64, None),
-                             "timestamp_clock": (str, "auto", None, None, ("auto", "monotonic", "device")),
-                             "timestamp_offset_s": (float, 0.0, -1.0, 1.0, None)}),
-}
-
-
-def _source(path: str, prefix: str, table: Any, kinds: tuple, schema: dict, check_devices: bool):
-    s = _Section(path, prefix, table)
-    kind = s.pop("kind", None, str, choices=kinds, required=True)
-    dev_kind, opts_schema = schema[kind]
+def _source(path: str, role: str, table: Any, check_devices: bool):
+    """One ``[sources.<role>]`` table, checked against the driver registry's schema for its kind."""
+    drivers = sources.REGISTRY[role]
+    s = _Section(path, f"sources.{role}", table)
+    kind = s.pop("kind", None, str, choices=tuple(drivers), required=True)
+    dev_kind = drivers[kind].device
     device = None
     if dev_kind == "device file":
         device = s.pop_file("device", required=True, must_exist=check_devices, what="device")
@@ -255,8 +211,8 @@ def _source(path: str, prefix: str, table: Any, kinds: tuple, schema: dict, chec
     elif dev_kind == "id":
         device = s.pop("device", None, str, required=True)
     opts = {}
-    for name, (typ, default, lo, hi, choices) in opts_schema.items():
-        opts[name] = s.pop(name, default, typ, lo=lo, hi=hi, choices=choices)
+    for name, o in drivers[kind].options.items():
+        opts[name] = s.pop(name, o.default, o.type, lo=o.lo, hi=o.hi, choices=o.choices)
     common = dict(
         poll_timeout_s=s.pop("poll_timeout_s", 0.005, float, lo=0.0005, hi=1.0),
         realtime_priority=s.pop("realtime_priority", 0, int, lo=0, hi=99),
@@ -293,11 +249,11 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     kw["scale"] = sc * 3 if len(sc) == 1 else sc
     if s.has("R_cam_gyro"):
         v = s.t.pop("R_cam_gyro")
-        try:
-            R = np.asarray(v, dtype=np.float64)
-            ok = R.shape == (3, 3) and np.all(np.isfinite(R))
-        except (TypeError, ValueError):
-            ok = False
+        ok = isinstance(v, list) and len(v) == 3 and all(
+            isinstance(row, list) and len(row) == 3 and all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in row) for row in v)
+        R = np.asarray(v, dtype=np.float64) if ok else None
+        ok = ok and bool(np.all(np.isfinite(R)))
         if not ok:
             raise s.fail("R_cam_gyro", "a 3×3 array of numbers", v)
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
@@ -306,7 +262,13 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     else:
         kw["R_cam_gyro"] = d.R_cam_gyro
     s.done()
-    return Calibration(**kw)
+    try:
+        return Calibration(**kw)
+    except (ThermodError, ValueError, TypeError) as e:
+        # Calibration checks itself (constraints across keys, e.g. the field of view): name the file
+        key = getattr(e, "field", None)
+        problem = getattr(e, "problem", None) or str(e)
+        raise ConfigError(f"{path}: calibration{'.' + key if key else ''}: {problem}") from None
 
 
 def _deblur(path: str, table: Any) -> DeblurConfig:
@@ -415,8 +377,8 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
     if not src.has("gyro") or not src.has("camera"):
         missing = "sources.gyro" if not src.has("gyro") else "sources.camera"
         raise ConfigError(f"{path}: {missing}: missing (expected a table with `kind = ...`)")
-    gyro = _source(path, "sources.gyro", src.t.pop("gyro"), GYRO_KINDS, _GYRO_SCHEMA, check_devices)
-    camera = _source(path, "sources.camera", src.t.pop("camera"), CAMERA_KINDS, _CAMERA_SCHEMA, check_devices)
+    gyro = _source(path, "gyro", src.t.pop("gyro"), check_devices)
+    camera = _source(path, "camera", src.t.pop("camera"), check_devices)
     src.done()
     if top.has("sim") and "sim" not in (gyro.kind, camera.kind):
         raise ConfigError(f"{path}: sim: only allowed when a source has kind = 'sim'")
@@ -469,14 +431,29 @@ def load_calibration(path: str | os.PathLike, base: Calibration | None = None) -
 def _read_toml(p: Path) -> dict:
     name = str(p)
     try:
-        with open(p, "rb") as f:
-            return tomllib.load(f)
+        data = p.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{name}: no such configuration file") from None
     except OSError as e:
-        raise ConfigError(f"{name}: cannot read: {e.strerror}") from None
+        raise ConfigError(f"{name}: cannot read: {e.strerror or e}") from None
+    return loads(data, name)
+
+
+def loads(data: bytes | str, name: str = "<memory>") -> dict:
+    """Parse TOML text (bytes must be UTF-8); every problem is a ConfigError naming `name` and where."""
+    if isinstance(data, bytes):
+        try:
+            data = data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            line = data[:e.start].count(b"\n") + 1
+            raise ConfigError(f"{name}: line {line}: expected UTF-8 text, got byte 0x{data[e.start]:02x} "
+                              f"at offset {e.start}") from None
+    try:
+        return tomllib.loads(data)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{name}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ConfigError(f"{name}: not valid TOML: arrays or tables nested too deeply") from None
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -487,6 +464,6 @@ def parse_override(text: str) -> tuple[str, Any]:
     k = k.strip()
     try:
         val = tomllib.loads(f"v = {v.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):
         val = v.strip()
     return k, val

@@ -184,19 +184,6 @@ class GyroRing:
                 self._cond.wait(left)
         return True
 
-    def latest(self, n: int) -> GyroWindow:
-        """The newest `n` samples (consistent copy)."""
-        for _ in range(_RETRIES):
-            lo, hi = self._bounds()
-            a = max(lo, hi - n)
-            idx = np.arange(a, hi) % self.capacity
-            t, rate, seq, gap = self._t[idx], self._rate[idx], self._seq[idx], self._gap[idx]
-            if self._claimed - self.capacity <= a and self._epoch_start <= a:
-                nan = float("nan")
-                return GyroWindow(t, rate, seq, bool(gap[1:].any()), float(t[-1]) if len(t) else nan,
-                                  float(t[0]) if len(t) else nan)
-        raise RuntimeError("gyro ring: writer lapped the reader repeatedly (ring far too small)")
-
 
 @dataclass
 class FrameSlot:

@@ -93,10 +93,6 @@ class Notifier:
         """WATCHDOG=1: call only while every critical thread is alive."""
         return self.notify("WATCHDOG=1")
 
-    def watchdog_trigger(self) -> bool:
-        """WATCHDOG=trigger: ask systemd to act as if the watchdog expired (a thread is wedged)."""
-        return self.notify("WATCHDOG=trigger")
-
     def stopping(self, status: str | None = None) -> bool:
         extra = {"STATUS": _one_line(status)} if status is not None else {}
         return self.notify("STOPPING=1", **extra)
@@ -105,11 +101,8 @@ class Notifier:
         return self.notify("RELOADING=1")
 
     def extend_timeout(self, seconds: float) -> bool:
-        """EXTEND_TIMEOUT_USEC: e.g. while waiting for a slow camera during start-up."""
+        """EXTEND_TIMEOUT_USEC: e.g. while the simulated payload pre-renders its loop at first start."""
         return self.notify(EXTEND_TIMEOUT_USEC=int(seconds * 1e6))
-
-    def mainpid(self, pid: int | None = None) -> bool:
-        return self.notify(MAINPID=os.getpid() if pid is None else int(pid))
 
     def watchdog_usec(self) -> int | None:
         """$WATCHDOG_USEC if the watchdog is meant for this process (sd_watchdog_enabled(3)), else None."""

@@ -1,0 +1,96 @@
+"""The 1 Hz health message (wire topic ``health``): rates over the last period, every drop counter
+under its reason, device and clock state, thread liveness, the last reload's outcome.
+
+Sources are read through the `thermod.runtime.sources.Source` protocol (``name``, ``clock``,
+``stats()``); a driver whose ``stats()`` raises is reported, never allowed to stop the message.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from thermod.runtime.sources import Source
+
+if TYPE_CHECKING:
+    from thermod.runtime.daemon import Daemon
+
+# pipeline counters that are frames not deblurred or not delivered, reported under their reason
+_DROP_PREFIXES = ("passthrough_", "jobs_dropped", "frames_overrun", "worker_errors", "camera_frames_lost")
+_RATES = (("gyro_samples", "gyro_hz"), ("frames_in", "frames_in_hz"), ("frames_out", "frames_out_hz"),
+          ("deblurred", "deblurred_hz"))
+
+
+def source_stats(src: Source) -> dict:
+    """The scalar entries of ``src.stats()`` (health must not die with a driver's stats)."""
+    try:
+        return {k: v for k, v in src.stats().items() if isinstance(v, (int, float, str, bool)) or v is None}
+    except Exception as e:  # noqa: BLE001
+        return {"stats_error": f"{type(e).__name__}: {e}"}
+
+
+def source_clock(src: Source) -> dict | None:
+    """Fit quality of the source's device-clock mapping, or None when it has none."""
+    clk = src.clock
+    if clk is None:
+        return None
+    return {"residual_std_s": _finite(clk.residual_std_s), "drift_ppm": _finite(clk.drift_ppm),
+            "resets": int(clk.resets)}
+
+
+class Health:
+    """Builds the health message of one daemon; keeps the totals of the previous period for rates."""
+
+    def __init__(self) -> None:
+        self._prev: dict = {}
+        self.rates: dict = {name: 0.0 for _, name in _RATES}
+
+    def _update_rates(self, totals: dict, now: float) -> None:
+        dt = now - self._prev["_t"] if self._prev else None
+        self.rates = {name: round((totals[k] - self._prev.get(k, 0)) / dt, 3) if dt else 0.0
+                      for k, name in _RATES}
+        self._prev = {**totals, "_t": now}
+
+    def message(self, d: Daemon, now: float, *, update_rates: bool = False) -> dict:
+        """The health message of `d` at host time `now`; `update_rates` closes a rate period (the
+        1 Hz publisher does, other callers see the last period's rates)."""
+        ps = d.pipeline.stats()
+        pc = ps["counters"]
+        totals = {"gyro_samples": d.gyro_state.items, "frames_in": d.camera_state.items,
+                  "frames_out": pc.get("frames_out", 0), "deblurred": pc.get("deblurred", 0)}
+        if update_rates:
+            self._update_rates(totals, now)
+        drops = {k: v for k, v in pc.items() if k.startswith(_DROP_PREFIXES)}
+        for th in d.driver_threads:
+            drops[f"{th.kind}_items_rejected"] = th.sink_drops
+        drops.update(gyro_gaps=d.counters["gyro_gaps"], gyro_lost=d.counters["gyro_lost"],
+                     gyro_ring_clock_jumps=d.gyro_ring.clock_jumps,
+                     gyro_ring_time_holes=d.gyro_ring.time_holes,
+                     camera_frames_lost=d.counters["camera_frames_lost"])
+        pub = d.publisher.stats()
+        drops["publish_queue_dropped"] = pub.get("queue_dropped", 0)
+        devices, clocks = {}, {}
+        for role, src, st in (("gyro", d.gyro, d.gyro_state), ("camera", d.camera, d.camera_state)):
+            devices[role] = {**st.as_dict(now), "stats": source_stats(src)}
+            clk = source_clock(src)
+            if clk is not None:
+                clocks[role] = clk
+        return {
+            "rates": dict(self.rates), "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
+            "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},
+            "threads": d.critical_alive(), "ready": d.ready, "gyro_online": d.pipeline.gyro_online,
+            "publisher": {k: pub[k] for k in ("queue_depth", "queue_dropped", "send_errors") if k in pub},
+            "daemon": dict(d.counters),
+            "reload": dict(d.reload_status),
+        }
+
+
+def status_line(h: dict, gyro_state: str, camera_state: str) -> str:
+    """The one-line STATUS= for systemd."""
+    r = h.get("rates", {})
+    return (f"gyro {r.get('gyro_hz', 0):.0f} Hz, frames {r.get('frames_in_hz', 0):.1f} fps, "
+            f"deblurred {r.get('deblurred_hz', 0):.1f} fps, gyro {gyro_state}, camera {camera_state}")
+
+
+def _finite(v) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
