@@ -17,5 +17,5 @@ def test_every_package_directory_is_listed_in_pyproject():
         for init in base.rglob("__init__.py"):
             rel = init.parent.relative_to(base)
             found.add(".".join((pkg, *rel.parts)) if rel.parts else pkg)
-    assert found - listed == set(), f"package directories missing from pyproject.toml: {sorted(found - listed)}"
-    assert listed - found == set(), f"pyproject.toml lists packages with no directory: {sorted(listed - found)}"
+    assert found - listed == set(), f"missing from pyproject.toml packages: {sorted(found - listed)}"
+    assert listed - found == set(), f"listed packages with no directory: {sorted(listed - found)}"
