@@ -2,6 +2,7 @@
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,7 +10,8 @@ import zmq
 import zmq.auth
 
 from thermod.errors import ThermodError
-from thermod.runtime.publish import Publisher, Subscriber, TransportError, decode
+from thermod.io.wire import MessageError, decode
+from thermod.runtime.publish import Publisher, Subscriber, TransportError
 
 EP = "tcp://127.0.0.1:*"
 
@@ -176,7 +178,7 @@ def test_decode_gyro_layout_validation():
          "layout": [["t", "<f8", [2]], ["rate", "<f4", [2, 3]]]}
     topic, _, a = decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes()])
     assert topic == "gyro" and a["t"].tolist() == [1.0, 2.0]
-    from thermod.runtime.publish import MessageError
+
 
     with pytest.raises(MessageError, match="covers"):
         decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes() + b"\0"])
@@ -262,7 +264,8 @@ def test_bind_errors_and_bad_input_are_clear(tmp_path):
             Publisher(a.endpoint).start()
     with pytest.raises(TransportError, match="missing.key_secret"):
         Publisher(EP, curve_secret_key_file=tmp_path / "missing.key_secret")
-    public, _ = zmq.auth.create_certificates(tmp_path, "srv")
+    public, secret = zmq.auth.create_certificates(tmp_path, "srv")
+    Path(secret).chmod(0o600)
     with pytest.raises(TransportError, match="no secret key"):
         Publisher(EP, curve_secret_key_file=public)
     with pytest.raises(TransportError, match="needs curve_secret_key_file"):
@@ -288,6 +291,8 @@ def _certs(tmp_path):
     zmq.auth.create_certificates(keys, "server")
     ok_public, _ = zmq.auth.create_certificates(keys, "good")
     zmq.auth.create_certificates(keys, "evil")
+    for secret in keys.glob("*.key_secret"):
+        secret.chmod(0o600)  # create_certificates leaves them at the umask; the publisher refuses that
     (auth_dir / "good.key").write_bytes(open(ok_public, "rb").read())
     return keys, auth_dir
 

@@ -293,7 +293,10 @@ class Daemon:
             from thermod.runtime.publish import Publisher
             p = cfg.publish
             publisher = Publisher(p.endpoint, hwm=p.hwm, curve_secret_key_file=p.curve_secret_key,
-                                  authorized_keys_dir=p.curve_authorized_keys)
+                                  authorized_keys_dir=p.curve_authorized_keys,
+                                  allow_insecure_remote=p.allow_insecure_remote,
+                                  max_queue_bytes=int(p.max_queue_mb * 2**20),
+                                  max_message_bytes=cfg.calibration.width * cfg.calibration.height * 4)
         self.publisher = publisher
         if notifier is None:
             from thermod.runtime.sdnotify import Notifier
@@ -350,13 +353,13 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
         cfg = self.cfg
+        self.publisher.start()  # first: a taken endpoint fails here, before seconds of payload preparation
+        log.info("publishing on %s", getattr(self.publisher, "endpoint", cfg.publish.endpoint))
         if self.payload is not None:
             if not self.payload.cached():
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
                             "this takes a while once", cfg.sim.loop_s, self.payload.cache_path)
             self.payload.prepare()
-        self.publisher.start()
-        log.info("publishing on %s", getattr(self.publisher, "endpoint", cfg.publish.endpoint))
         dt = self.pipeline.warmup()
         log.info("renderer and %d deconvolution workers ready (%.2f s)", self.pipeline.n_workers, dt)
         if self.payload is not None:
@@ -483,6 +486,7 @@ class Daemon:
                      camera_frames_lost=self.counters["camera_frames_lost"])
         pub = self.publisher.stats() if hasattr(self.publisher, "stats") else {}
         drops["publish_queue_dropped"] = pub.get("queue_dropped", 0)
+        drops["publish_budget_dropped"] = pub.get("budget_dropped_total", 0)
         devices = {"gyro": {**self.gyro_state.as_dict(now), "stats": _safe_stats(self.gyro)},
                    "camera": {**self.camera_state.as_dict(now), "stats": _safe_stats(self.camera)}}
         clocks = {}
@@ -496,7 +500,9 @@ class Daemon:
             "rates": rates, "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
             "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},
             "threads": self.critical_alive(), "ready": self._ready, "gyro_online": self.pipeline.gyro_online,
-            "publisher": {k: pub[k] for k in ("queue_depth", "queue_dropped", "send_errors") if k in pub},
+            "publisher": {k: pub[k] for k in ("queue_depth", "queue_dropped", "send_errors", "hwm",
+                                              "held_bytes", "held_peak_bytes", "budget_dropped", "warnings")
+                          if k in pub},
             "daemon": dict(self.counters),
         }
 
