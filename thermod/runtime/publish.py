@@ -607,7 +607,8 @@ class Subscriber:
         and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
 
     Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
-    (`MessageError.kind` → count of rejected messages), ``restarts`` (seq went backwards: the
+    (`MessageError.kind` → count of rejected messages), ``disconnects`` (connections dropped, e.g. by a
+    frame above ``max_message_bytes``; each is redialled), ``restarts`` (seq went backwards: the
     publisher restarted). Each returned header gains ``received`` (host monotonic at receipt).
     Like any ZeroMQ socket, a Subscriber belongs to one thread.
     """
@@ -632,6 +633,10 @@ class Subscriber:
         self._own_ctx = context is None
         self._ctx = zmq.Context() if context is None else context
         self._sock = self._ctx.socket(zmq.SUB)
+        self._monitor = None
+        self._poller = zmq.Poller()
+        self.disconnects = 0
+        self._redial_pending = False
         try:
             self._sock.setsockopt(zmq.RCVHWM, int(rcvhwm))
             # checked per frame against its size prefix; the header is bounded by max_header_bytes
@@ -647,6 +652,9 @@ class Subscriber:
             for t in self.topics:
                 self._sock.setsockopt(zmq.SUBSCRIBE, t.encode())
             self._sock.connect(endpoint)
+            self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            self._poller.register(self._sock, zmq.POLLIN)
+            self._poller.register(self._monitor, zmq.POLLIN)
         except zmq.ZMQError as e:
             self.close()
             raise TransportError(f"cannot connect subscriber to {endpoint}: {e}") from None
@@ -660,7 +668,12 @@ class Subscriber:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             wait_ms = 200 if deadline is None else max(0, int((deadline - time.monotonic()) * 1000))
-            if not self._sock.poll(wait_ms):
+            ready = dict(self._poller.poll(wait_ms))
+            if self._monitor in ready:
+                self._count_disconnects()
+            if self._sock not in ready:
+                if self._redial_pending:  # only when idle: libzmq aborts if a pipe goes mid-message
+                    self._redial()
                 if deadline is not None and time.monotonic() >= deadline:
                     return None
                 continue
@@ -677,6 +690,27 @@ class Subscriber:
             header["received"] = time.monotonic()
             self._track(topic, header["seq"])
             return topic, header, array
+
+    def _count_disconnects(self) -> None:
+        while self._monitor.poll(0):
+            self._monitor.recv_multipart()
+            self.disconnects += 1
+            self._redial_pending = True
+
+    def _redial(self) -> None:
+        """The connection dropped. ZeroMQ retries by itself after a network fault, but not after a
+        protocol error such as a frame above MAXMSGSIZE; dial again in both cases, replacing its
+        retry so that exactly one connection remains."""
+        self._redial_pending = False
+        if self.disconnects <= 10 or self.disconnects % 1000 == 0:
+            log.warning("connection to %s dropped (#%d: a frame above max_message_bytes=%d, or the "
+                        "publisher went away); reconnecting", self.endpoint, self.disconnects,
+                        self.max_message_bytes)
+        try:
+            self._sock.disconnect(self.endpoint)
+        except zmq.ZMQError:
+            pass  # already gone
+        self._sock.connect(self.endpoint)
 
     def _track(self, topic: str, seq: int) -> None:
         last = self._last_seq.get(topic)
@@ -695,6 +729,10 @@ class Subscriber:
                 yield msg
 
     def close(self) -> None:
+        if self._monitor is not None and not self._sock.closed:
+            self._sock.disable_monitor()
+            self._monitor.close(linger=0)
+            self._monitor = None
         if not self._sock.closed:
             self._sock.close(linger=0)
         if self._own_ctx:
