@@ -519,6 +519,7 @@ class Publisher:
                 stopping = self._stopping.is_set()
                 with self._gyro_lock:
                     self._flush_gyro_locked(older_than=None if stopping else self.gyro_batch_s)
+                sock.getsockopt(zmq.EVENTS)  # lets the socket finish closed subscribers' pipes (frees queues)
                 self._drain(sock)
                 if stopping:
                     self._drain(sock)
