@@ -635,3 +635,21 @@ def test_a_subscriber_follows_a_restarted_publisher_on_one_connection():
         assert sub.recv(0.3) is None            # once: no second connection delivers a duplicate
     assert sub.disconnects >= 1
     sub.close()
+
+
+@pytest.mark.parametrize("kind", ["tcp", "ipc"])
+def test_a_second_daemon_fails_on_a_taken_endpoint_before_preparing_its_payload(tmp_path, kind):
+    from thermod.runtime.daemon import Daemon
+    ep = EP if kind == "tcp" else f"ipc://{tmp_path / 'pub.sock'}"
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with Publisher(ep) as first:
+        cfg = config.load(None, {"publish.endpoint": first.endpoint, "sim.cache_dir": str(cache)})
+        d = Daemon(cfg)
+        try:
+            with pytest.raises(TransportError, match="second thermod"):
+                d.start()
+            assert d.payload.loop is None and list(cache.iterdir()) == []   # nothing was rendered
+        finally:
+            d.stop()
+        assert first.running
