@@ -22,9 +22,10 @@ also admits only clients whose public keys are in that directory.
 Memory: ZeroMQ keeps a send queue per subscriber. ``max_queue_bytes`` bounds the bytes of sent
 messages that ZeroMQ still holds, summed over every subscriber (tracked per message); a message that
 would exceed it is not sent and is counted in ``stats()["budget_dropped"]``. The per-subscriber
-SNDHWM is sized so that `BUDGETED_STALLED_SUBSCRIBERS` subscribers that never read fit in the budget
+SNDHWM is sized so that `BUDGETED_STALLED_SUBSCRIBERS` subscriber that stops reading fits in the budget
 with room to spare for the others; more stalled subscribers than that make the publisher drop (and
-count) messages instead of growing.
+count) messages instead of growing, until ZMTP heartbeats (unanswered for ``stall_timeout_s``)
+disconnect the stalled ones and free what they pinned.
 """
 
 from __future__ import annotations
@@ -69,9 +70,11 @@ log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 DEFAULT_MAX_QUEUE_BYTES = 64 << 20
-# The SNDHWM leaves room in the byte budget for this many subscribers that connect and never read
-# (each holds a full send queue of its own messages); beyond them, new messages are dropped and counted.
-BUDGETED_STALLED_SUBSCRIBERS = 4
+# The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
+# full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
+# dropped and counted until then.
+BUDGETED_STALLED_SUBSCRIBERS = 1
+DEFAULT_STALL_TIMEOUT_S = 5.0
 MIN_HWM = 2
 
 
@@ -229,6 +232,10 @@ class Publisher:
     authorized_keys_dir : path, optional
         Directory of client public certificates (``*.key``); only those clients are admitted.
         Without it, any CURVE client is admitted (encryption only).
+    stall_timeout_s : float
+        A subscriber whose connection answers no ZMTP heartbeat for this long (it stopped reading:
+        its queues are full) is disconnected, releasing the messages it pinned. Needs peers with
+        ZMTP 3.1 (libzmq ≥ 4.2).
     allow_insecure_remote : bool
         Permit a non-loopback bind without CURVE (logged as a warning and listed in ``stats()["warnings"]``).
     queue_size, queue_bytes : int
@@ -252,6 +259,7 @@ class Publisher:
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64,
                  max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES, max_message_bytes: int | None = None,
                  curve_secret_key_file=None, authorized_keys_dir=None, allow_insecure_remote: bool = False,
+                 stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
                  queue_size: int = 1024, queue_bytes: int = 64 << 20, gyro_batch_s: float = 0.01,
                  linger_s: float = 0.5, context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
@@ -260,6 +268,9 @@ class Publisher:
             raise ValueError("max_queue_bytes and max_message_bytes must be positive")
         self.endpoint = check_endpoint(endpoint)
         self.max_queue_bytes = int(max_queue_bytes)
+        if not stall_timeout_s > 0:
+            raise ValueError("stall_timeout_s must be positive")
+        self.stall_timeout_s = float(stall_timeout_s)
         self.hwm = int(hwm)
         if max_message_bytes is not None:
             # a stalled subscriber holds SNDHWM messages plus the one its connection is writing;
@@ -494,6 +505,10 @@ class Publisher:
                     auth.configure_curve(domain="*", location=os.fspath(self.authorized_keys_dir))
                 sock = ctx.socket(zmq.PUB)
                 sock.setsockopt(zmq.SNDHWM, self.hwm)
+                # ZMTP heartbeats: a subscriber that stops reading stops answering them too, so its
+                # connection (and the queue it pins) is dropped after stall_timeout_s
+                sock.setsockopt(zmq.HEARTBEAT_IVL, max(1, int(self.stall_timeout_s * 1000 / 3)))
+                sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, max(1, int(self.stall_timeout_s * 1000)))
                 sock.setsockopt(zmq.LINGER, int(self.linger_s * 1000))
                 if self._keys is not None:
                     sock.curve_server = True
@@ -618,6 +633,7 @@ class Subscriber:
                  curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = MAX_HEADER_BYTES,
                  max_message_bytes: int = MAX_PAYLOAD_BYTES, rcvhwm: int = 1000,
                  context: zmq.Context | None = None):
+        check_endpoint(endpoint, "subscriber endpoint")
         self.topics = tuple(topics)
         unknown = [t for t in self.topics if t not in TOPICS]
         if unknown or not self.topics:
