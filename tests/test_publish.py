@@ -685,3 +685,16 @@ def test_a_second_daemon_fails_on_a_taken_endpoint_before_preparing_its_payload(
         finally:
             d.stop()
         assert first.running
+
+
+def test_an_insecure_remote_bind_is_reported_in_the_daemon_health(tmp_path):
+    from thermod.runtime.daemon import Daemon
+    cfg = config.load(None, {"publish.endpoint": "tcp://0.0.0.0:*", "publish.allow_insecure_remote": True,
+                             "sim.cache_dir": str(tmp_path)})
+    d = Daemon(cfg)
+    try:
+        h = d.health()
+        assert any("insecure_remote" in w for w in h["publisher"]["warnings"])
+        assert h["drops"]["publish_budget_dropped"] == 0 and h["publisher"]["hwm"] >= 2
+    finally:
+        d.stop()
