@@ -96,3 +96,11 @@ def test_the_fuzz_targets_accept_valid_messages():
     """The mutations start from messages that decode; otherwise the fuzzing above tests nothing."""
     assert _decode_or_message_error(_valid_frame()) == "frame"
     assert _decode_or_message_error(_valid_gyro()) == "gyro"
+
+
+def test_the_codec_imports_no_transport():
+    import subprocess
+    import sys
+    code = "import sys, thermod.io.wire; print(sorted(m for m in sys.modules if m.split('.')[0] == 'zmq'))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
