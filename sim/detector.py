@@ -385,31 +385,24 @@ def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, ca
     t_grid = t_frames[0] + h * np.arange(-n_hist, int(round((t_frames[-1] - t_frames[0]) / h)) + 1)
     if t_grid[0] < traj.t_start:
         raise ThermodError("time compression: trajectory does not cover the history")
-    K = calib.K
-    K_inv = np.linalg.inv(K)
-    corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+    sigma = _psf_sigma(calib, psf_sigma_px)
+    cam = _Camera(calib)
     alpha = np.float32(iir_alpha(h, tau))
     out = np.empty((n, H, W), np.float32)
     sharp = np.empty((n, H, W), np.float32)
     Rs = traj.R(t_grid)
-    Hrel = K @ np.einsum("nji,njk->nik", Rs[:-1], Rs[1:]) @ K_inv
-    pr = np.einsum("nij,jc->nic", Hrel, corners)
-    max_step = float(np.hypot(*(pr[:, :2] / pr[:, 2:3] - corners[None, :2]).transpose(1, 0, 2)).max())
-    B = scene.view(Rs[0], K, W, H)
+    max_step = cam.step_motion_px(Rs)
+    B = scene.view(Rs[0], cam.K, W, H)
     k = 0
     for j in range(1, len(t_grid)):
-        S = scene.view(Rs[j], K, W, H)
+        S = scene.view(Rs[j], cam.K, W, H)
         B += alpha * (S - B)
         if k < n and abs(t_grid[j] - t_frames[k]) < 0.5 * h:
             out[k], sharp[k] = B, S
             k += 1
             if progress is not None:
                 progress(k)
-    sigma = calib.psf_sigma_px if psf_sigma_px is None else float(psf_sigma_px)
-    if sigma > 0:
-        for i in range(n):
-            out[i] = gaussian_psf(out[i], sigma)
-    return Rendered(out, sharp, None, len(t_grid) - 1, max_step)
+    return Rendered(_apply_psf(out, sigma), sharp, None, len(t_grid) - 1, max_step)
 
 
 def _photon_accumulate(out, S, rows_t, exposure, ta, tz):
