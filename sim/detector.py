@@ -353,8 +353,19 @@ class _PhotonDetector:
         self.out = np.zeros((*rows_t.shape, width), np.float32)
 
     def step(self, S: np.ndarray, ta: float, tz: float) -> None:
-        """Integrate the view S held over (ta, tz]."""
-        _photon_accumulate(self.out, S, self.rows_t, self.exposure_s, ta, tz)
+        """Add the view S held over (ta, tz] to every row whose exposure window [t_r − E, t_r]
+        overlaps it, weighted by the overlap / E. Every frame whose rows can overlap is visited
+        (an exposure longer than the frame period spans several frames)."""
+        rows_t, exposure = self.rows_t, self.exposure_s
+        k0 = int(np.searchsorted(rows_t[:, -1], ta, side="right"))           # last row read after ta
+        k1 = int(np.searchsorted(rows_t[:, 0] - exposure, tz, side="left"))  # first window opens < tz
+        for k in range(k0, k1):
+            rt = rows_t[k]
+            ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
+            sel = np.flatnonzero(ov > 0)
+            if sel.size:
+                r0, r1 = sel[0], sel[-1] + 1
+                self.out[k, r0:r1] += S[r0:r1] * (ov[r0:r1] / exposure).astype(np.float32)[:, None]
 
 
 def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
@@ -403,23 +414,6 @@ def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, ca
             if progress is not None:
                 progress(k)
     return Rendered(_apply_psf(out, sigma), sharp, None, len(t_grid) - 1, max_step)
-
-
-def _photon_accumulate(out, S, rows_t, exposure, ta, tz):
-    """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz].
-
-    rows_t [n, H] are the rows' read times; every frame whose rows can overlap is visited (an
-    exposure longer than the frame period spans several frames).
-    """
-    k0 = int(np.searchsorted(rows_t[:, -1], ta, side="right"))          # last row read after ta
-    k1 = int(np.searchsorted(rows_t[:, 0] - exposure, tz, side="left"))  # first row's window opens before tz
-    for k in range(k0, k1):
-        rt = rows_t[k]
-        ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
-        sel = np.flatnonzero(ov > 0)
-        if sel.size:
-            r0, r1 = sel[0], sel[-1] + 1
-            out[k, r0:r1] += S[r0:r1] * (ov[r0:r1] / exposure).astype(np.float32)[:, None]
 
 
 def gaussian_psf(img: np.ndarray, sigma_px: float) -> np.ndarray:
