@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from thermod.errors import ConfigError
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import Calibration, CalibrationError
 
 GYRO_KINDS = ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088", "iio", "serial")
 CAMERA_KINDS = ("sim", "replay", "aravis", "v4l2")
@@ -306,7 +306,10 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     else:
         kw["R_cam_gyro"] = d.R_cam_gyro
     s.done()
-    return Calibration(**kw)
+    try:
+        return Calibration(**kw)
+    except CalibrationError as e:  # the checks the keys share (e.g. the field of view): name the file
+        raise ConfigError(f"{path}: calibration.{e.field}: {e.problem}") from None
 
 
 def _deblur(path: str, table: Any) -> DeblurConfig:
