@@ -106,8 +106,8 @@ def test_invalid_calibration_cannot_be_built(change, field, expected):
 
 
 def test_valid_values_are_normalised_not_rejected():
-    c = Calibration(width=np.int64(64), height=48.0, fx=np.float32(100.0), cx=31.5, cy=23.5, R_cam_gyro=np.eye(3).ravel(),
-                    scale=[1.02], bias_rad_s=np.zeros(3))
+    c = Calibration(width=np.int64(64), height=48.0, fx=np.float32(100.0), cx=31.5, cy=23.5,
+                    R_cam_gyro=np.eye(3).ravel(), scale=[1.02], bias_rad_s=np.zeros(3))
     assert (c.width, c.height) == (64, 48) and type(c.width) is int and type(c.fx) is float
     assert c.scale == (1.02, 1.02, 1.02) and c.R_cam_gyro[1] == (0.0, 1.0, 0.0)
     assert c == Calibration(width=64, height=48, fx=100.0, cx=31.5, cy=23.5, scale=(1.02,) * 3)

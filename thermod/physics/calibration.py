@@ -82,13 +82,15 @@ class Calibration:
             raise CalibrationError("psf_beta", f"expected a value in (0, 1] (1 = diffraction limited), "
                                                f"got {self.psf_beta!r}")
         if not self.tau_s <= 1.0:
-            raise CalibrationError("tau_s", f"expected a detector time constant in (0, 1] s, got {self.tau_s!r}")
+            raise CalibrationError("tau_s", f"expected a detector time constant in (0, 1] s, "
+                                            f"got {self.tau_s!r}")
         period = 1.0 / self.frame_rate_hz
         if not 0 <= self.readout_s <= period * (1 + 1e-9):
             raise CalibrationError("readout_s", f"expected a value in [0, {period:.6g}] s (one frame "
                                                 f"period), got {self.readout_s!r}")
         if not abs(self.time_offset_s) <= 1.0:
-            raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, got {self.time_offset_s!r}")
+            raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, "
+                                                    f"got {self.time_offset_s!r}")
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
         scale = _vector("scale", self.scale, (1, 3))
         scale = scale * 3 if len(scale) == 1 else scale
@@ -251,7 +253,8 @@ def _rotation(key: str, v) -> tuple:
         raise CalibrationError(key, "expected a 3×3 rotation matrix, got non-finite values")
     err = float(np.abs(R @ R.T - np.eye(3)).max())
     if err > ROTATION_TOL or np.linalg.det(R) < 0:
-        raise CalibrationError(key, f"expected a rotation matrix (orthonormal within {ROTATION_TOL}, det +1), "
+        raise CalibrationError(key, f"expected a rotation matrix (orthonormal within {ROTATION_TOL}, "
+                                    f"det +1), "
                                     f"got {R.round(6).tolist()} (|R Rᵀ − I| = {err:.3g}, "
                                     f"det {np.linalg.det(R):.3g})")
     return _tuple2(R)
