@@ -447,12 +447,23 @@ class Writer:
     def flush(self) -> None:
         self.file.flush()
 
-    def commit(self, calibration: Calibration, *, time_order: bool = False) -> int:
-        """Complete and rename into place; returns the number of frames dropped as repeats.
+    def sort_frames(self) -> int:
+        """Put frames that arrived out of time order in order, with every dataset appended in step
+        with them (same number of rows); of frames with the same time the first is kept. Returns
+        how many were dropped as repeats."""
+        if "camera/t" not in self.file:
+            return 0
+        t = self.file["camera/t"][()]
+        order = np.argsort(t, kind="stable")
+        keep = np.ones(len(order), bool)
+        keep[1:] = np.diff(t[order]) > 0
+        order, dropped = order[keep], int((~keep).sum())
+        if not np.array_equal(order, np.arange(len(t))):
+            self._reorder(order, len(t))
+        return dropped
 
-        `time_order`: frames that arrived out of time order are sorted (with every dataset appended
-        in step with them), a repeated time keeps the first; otherwise time must already increase.
-        """
+    def commit(self, calibration: Calibration) -> Path:
+        """Add the format and calibration attributes, check the layout, rename into place."""
         f = self.file
         if "camera/frames" not in f:
             f.create_dataset("camera/frames", (0, calibration.height, calibration.width), np.uint16)
@@ -461,18 +472,7 @@ class Writer:
         if tuple(hw) != (calibration.height, calibration.width):
             raise RecordingError(self.path, "camera/frames", f"frame shape {tuple(hw)} does not match the "
                                  f"calibration's height×width {(calibration.height, calibration.width)}")
-        t = f["camera/t"][()]
-        dropped = 0
-        if time_order:
-            order = np.argsort(t, kind="stable")
-            keep = np.ones(len(order), bool)
-            keep[1:] = np.diff(t[order]) > 0
-            order, dropped = order[keep], int((~keep).sum())
-            if not np.array_equal(order, np.arange(n)):
-                self._reorder(order, n)
-                f = self.file
-                t = f["camera/t"][()]
-        _check_times(self.path, "camera/t", t, n)
+        _check_times(self.path, "camera/t", f["camera/t"][()], n)
         for name in ("gyro/t", "gyro/rate"):
             if name not in f:
                 raise RecordingError(self.path, name, "dataset missing")
@@ -485,7 +485,7 @@ class Writer:
         self.set_attrs("gyro", calibration.gyro_attrs())
         f.close()
         os.replace(self.part, self.path)
-        return dropped
+        return self.path
 
     def _reorder(self, order: np.ndarray, n: int) -> None:
         """Rewrite the spool with the per-frame datasets in `order` (the others as they are)."""
@@ -498,7 +498,7 @@ class Writer:
                     g = dst.require_group(name)
                 elif name in per_frame:
                     ds = dst.create_dataset(name, (len(order), *obj.shape[1:]), obj.dtype,
-                                            chunks=obj.chunks if len(order) else None)
+                                            maxshape=(None, *obj.shape[1:]), chunks=obj.chunks)
                     for j, i in enumerate(order):
                         ds[j] = obj[i]
                     g = ds
