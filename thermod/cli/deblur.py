@@ -170,9 +170,7 @@ def _deblur_stream(r: recording.Reader, calib, src: Path, w: recording.Writer, c
     bar.refresh()
     w.put("gyro/t", r.gyro_t)
     w.put("gyro/rate", r.gyro_rate)
-    r.copy_into(w.file, [name for name in r.names() if name.split("/")[0] != "deblurred"])
-    for group, attrs in r.group_attrs().items():
-        w.set_attrs(group, attrs)
+    r.copy_extras_into(w.file)
     passed: list[tuple[int, str]] = []
     times = []
     lams = np.full(n, np.nan)

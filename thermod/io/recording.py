@@ -317,19 +317,24 @@ class Reader:
         """An optional dataset by path, shape and storage checked (not read)."""
         return _dataset(self.path, self._f, name, "biufcSOUV", None)
 
-    def load(self, name: str) -> np.ndarray:
-        ds = self.dataset(name)
-        with _Guard(self.path, name):
-            return ds[()]
+    def copy_extras_into(self, dst: h5py.File) -> None:
+        """Copy everything beside the v1 core and an earlier /deblurred result (e.g. /truth, /record,
+        camera/frame_id) into another file, HDF5 to HDF5: attributes byte for byte, data never held
+        in memory."""
+        def copy(obj, parent_name: str, name: str):
+            with _Guard(self.path, f"{parent_name}/{name}".lstrip("/")):
+                self._f.copy(obj, dst.require_group(parent_name), name=name)
 
-    def copy_into(self, dst: h5py.File, names) -> None:
-        """Copy datasets (and the attributes of their groups) into another file, HDF5 to HDF5 — the
-        data is not held in memory."""
-        for name in names:
-            self.dataset(name)
-            with _Guard(self.path, name):
-                parent = dst.require_group(posixpath.dirname(name) or "/")
-                self._f.copy(self._f[name], parent, name=posixpath.basename(name))
+        with _Guard(self.path, "/"):
+            top = list(self._f.items())
+        for name, obj in top:
+            if name in ("camera", "gyro") and isinstance(obj, h5py.Group):
+                with _Guard(self.path, name):
+                    inner = [(k, v) for k, v in obj.items() if f"{name}/{k}" not in _CORE]
+                for k, v in inner:
+                    copy(v, name, k)
+            elif name != "deblurred":
+                copy(obj, "/", name)
 
     def close(self) -> None:
         try:
