@@ -176,3 +176,39 @@ def test_compressed_frame_damage_names_the_frame(tmp_path):
             r.frame(2)
     with pytest.raises(RecordingError, match="frame 2"):
         recording.read(p)
+
+
+def test_writer_appends_sorts_and_renames_only_when_complete(tmp_path):
+    p = tmp_path / "w.h5"
+    p.write_bytes(b"an earlier recording")
+    src = small_recording()
+    w = recording.Writer(p)
+    w.reserve("camera/frames", 10, (6, 8), np.uint16)        # more room than used: trimmed
+    for i in (2, 0, 1, 1, 3):                                # out of order, and one repeat
+        w.append_frame(src.frames[i], src.t[i])
+        w.append("camera/id", i, np.int64)                   # kept in step with the frames
+    w.put("gyro/t", src.gyro_t)
+    w.put("gyro/rate", src.gyro_rate)
+    assert p.read_bytes() == b"an earlier recording"        # untouched until commit
+    assert w.sort_frames() == 1
+    w.commit(src.calibration)
+    back = recording.read(p)
+    np.testing.assert_array_equal(back.frames, src.frames)
+    np.testing.assert_array_equal(back.t, src.t)
+    assert back.extras["camera/id"].tolist() == [0, 1, 2, 3]
+    assert not w.part.exists()
+    with recording.Writer(tmp_path / "x.h5") as w2:          # an error before commit: nothing left
+        w2.append_frame(src.frames[0], 1.0)
+    assert not any(q.name.startswith("x.h5") for q in tmp_path.iterdir())
+
+
+def test_writer_refuses_frames_of_another_camera(tmp_path):
+    src = small_recording()
+    w = recording.Writer(tmp_path / "w.h5")
+    w.append_frame(src.frames[0], 0.1)
+    w.put("gyro/t", src.gyro_t)
+    w.put("gyro/rate", src.gyro_rate)
+    with pytest.raises(RecordingError, match=r"w\.h5: camera/frames: frame shape \(6, 8\) does not match"):
+        w.commit(Calibration(width=16, height=12, cx=7.5, cy=5.5))
+    w.abort(keep=True)
+    assert w.part.exists() and not (tmp_path / "w.h5").exists()

@@ -168,6 +168,9 @@ def _deblur_stream(r: recording.Reader, calib, src: Path, w: recording.Writer, c
     n, (h, w_px) = r.n_frames, r.frame_shape
     bar.total = (bar.total or 0) + n
     bar.refresh()
+    w.reserve("camera/frames", n, (h, w_px), np.uint16)
+    w.reserve("camera/t", n, (), np.float64)
+    w.reserve("deblurred/frames", n, (h, w_px), np.float32)
     w.put("gyro/t", r.gyro_t)
     w.put("gyro/rate", r.gyro_rate)
     r.copy_extras_into(w.file)
@@ -190,8 +193,6 @@ def _deblur_stream(r: recording.Reader, calib, src: Path, w: recording.Writer, c
             lams[i] = dec.last_lam
         w.append("deblurred/frames", out, np.float32)
         bar.update(1)
-    if n == 0:
-        w.put("deblurred/frames", np.zeros((0, h, w_px), np.float32))
     w.put("deblurred/t", r.t)
     w.put("deblurred/deblurred", ok)
     w.put("deblurred/lambda", lams)      # per frame (noise-adaptive unless --lambda)

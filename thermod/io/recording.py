@@ -1,7 +1,14 @@
 """Recording format v1 (DESIGN.md §3): one HDF5 file = one recording.
 
 Every malformed input raises `RecordingError(path, field, problem)`; the message names the
-file and the dataset/attribute and says what was expected.
+file and the dataset/attribute (and the frame, where one is at fault) and says what was expected.
+
+- `Reader(path)`: checks the attributes (through `Calibration`, the one validation of a
+  calibration), then the declared shapes, dtypes and stored bytes of every dataset against them,
+  before anything is allocated; holds the timeline and reads frames one at a time.
+- `read(path)`: the whole recording in memory (refused beyond `memory_budget()`).
+- `Writer(path)`: the one writer, incremental, into ``<path>.part`` renamed on `commit`;
+  `write(path, rec)` is a whole `Recording` through it.
 """
 
 from __future__ import annotations
@@ -147,7 +154,8 @@ def _dataset(path, f, name, kinds: str, ndim: int | None, shape_ok=None, expecte
 
 
 def _kinds(kinds: str) -> str:
-    return " or ".join({"u": "unsigned integers", "i": "integers", "f": "floats"}[k] for k in kinds)
+    names = {"u": "unsigned integers", "i": "integers", "f": "floats"}
+    return " or ".join(names.get(k, f"dtype kind {k!r}") for k in kinds)
 
 
 def _attrs(path, f, group: str, required) -> dict:
@@ -419,19 +427,31 @@ class Writer:
             raise RecordingError(self.path, "file", f"cannot create {self.part} ({e})") from None
         self.rows: dict[str, int] = {}       # appended datasets → rows written
 
+    def reserve(self, name: str, n: int, row_shape: tuple, dtype) -> None:
+        """Create dataset `name` for `n` rows to be `append`ed (no resize per row; what is not
+        filled is trimmed by `commit`)."""
+        chunks = (1, *row_shape) if row_shape else (4096,)
+        self.file.create_dataset(name, (n, *row_shape), dtype, maxshape=(None, *row_shape), chunks=chunks)
+        self.rows[name] = 0
+
     def append(self, name: str, row, dtype=None) -> None:
         """Add one row (a frame, a time …) to dataset `name`, created on first use from the row."""
         row = np.asarray(row, dtype=dtype)
-        ds = self.file.get(name)
-        if ds is None:
-            chunks = (1, *row.shape) if row.ndim else (4096,)
-            ds = self.file.create_dataset(name, (0, *row.shape), row.dtype, maxshape=(None, *row.shape),
-                                          chunks=chunks)
-            self.rows[name] = 0
-        n = self.rows[name]
-        ds.resize(n + 1, axis=0)
-        ds[n] = row
+        if name not in self.rows:
+            self.reserve(name, 0, row.shape, row.dtype)
+        ds, n = self.file[name], self.rows[name]
+        if n >= ds.shape[0]:
+            ds.resize(n + 1, axis=0)
+        if row.ndim:
+            ds.write_direct(np.ascontiguousarray(row, ds.dtype), dest_sel=np.s_[n])
+        else:
+            ds[n] = row
         self.rows[name] = n + 1
+
+    def _trim(self) -> None:
+        for name, n in self.rows.items():
+            if self.file[name].shape[0] != n:
+                self.file[name].resize(n, axis=0)
 
     def append_frame(self, image: np.ndarray, t: float) -> None:
         """A camera frame (uint16 [H, W]) and its time."""
@@ -458,6 +478,7 @@ class Writer:
         how many were dropped as repeats."""
         if "camera/t" not in self.file:
             return 0
+        self._trim()
         t = self.file["camera/t"][()]
         order = np.argsort(t, kind="stable")
         keep = np.ones(len(order), bool)
@@ -469,6 +490,7 @@ class Writer:
 
     def commit(self, calibration: Calibration) -> Path:
         """Add the format and calibration attributes, check the layout, rename into place."""
+        self._trim()
         f = self.file
         if "camera/frames" not in f:
             f.create_dataset("camera/frames", (0, calibration.height, calibration.width), np.uint16)
@@ -519,6 +541,7 @@ class Writer:
         src.close()
         os.replace(tmp, self.part)
         self.file = h5py.File(self.part, "r+")
+        self.rows.update(dict.fromkeys(per_frame, len(order)))
 
     def abort(self, keep: bool = False) -> None:
         """Close without completing; the ``.part`` file is removed unless `keep`."""
