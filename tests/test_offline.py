@@ -218,6 +218,15 @@ def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
     with h5py.File(strings, "a") as f:
         del f["camera/t"]
         f["camera/t"] = np.array([b"x"] * 6)
+    damaged = tiny(tmp_path / "damaged.h5")
+    with h5py.File(damaged, "a") as f:                         # gzip frames, frame 2's chunk damaged
+        frames = f["camera/frames"][()]
+        del f["camera/frames"]
+        f.create_dataset("camera/frames", data=frames, chunks=(1, 48, 64), compression="gzip")
+        offset = f["camera/frames"].id.get_chunk_info(2).byte_offset
+    with open(damaged, "r+b") as fh:
+        fh.seek(offset)
+        fh.write(b"\xff" * 4)
     blocked, buggy = tiny(tmp_path / "blocked.h5"), tiny(tmp_path / "buggy.h5")
     out = tmp_path / "out"
     (out / "blocked.h5").mkdir(parents=True)                    # a directory in the way
@@ -229,22 +238,24 @@ def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
             raise ZeroDivisionError("division by zero")
         return real_frame(self, i)
     monkeypatch.setattr(recording.Reader, "frame", frame)
-    inputs = [good[0], garbage, zero_scale, strings, blocked, buggy, good[1]]
+    inputs = [good[0], garbage, zero_scale, strings, damaged, blocked, buggy, good[1]]
     rc, text, err = deblur(capsys, *inputs, "-o", out, "--uniform", "--method", "wiener")
     assert rc == 2
     assert f"{garbage}: file: not a readable HDF5 file" in err
     assert f"{zero_scale}: gyro.attrs['scale']: expected 1 or 3 positive numbers" in err
     assert f"{strings}: camera/t: expected" in err and "dtype |S1" in err
+    assert f"{damaged}: camera/frames: frame 2: cannot be read" in err
     assert f"{out / 'blocked.h5'}: cannot write the output (a directory is in the way)" in err
     assert f"{buggy}: unexpected ZeroDivisionError: division by zero" in err
     assert "Traceback" not in err
-    failed = ", ".join(map(str, (garbage, zero_scale, strings, blocked, buggy)))
-    assert err.strip().splitlines()[-1] == f"thermod deblur: 5 of 7 file(s) failed: {failed}"
+    failed = ", ".join(map(str, (garbage, zero_scale, strings, damaged, blocked, buggy)))
+    assert err.strip().splitlines()[-1] == f"thermod deblur: 6 of 8 file(s) failed: {failed}"
     for g in good:                                              # before and after the failures
         res = recording.read(out / g.name)
         assert res.deblurred.shape == (6, 48, 64) and "2 file(s)" in text
     assert (out / "zero_scale.h5").read_bytes() == b"an earlier result"
     assert (out / "blocked.h5").is_dir() and not (out / "buggy.h5").exists()
+    assert not (out / "damaged.h5").exists()
     assert sorted(p.name for p in out.iterdir()) == ["blocked.h5", "good0.h5", "good1.h5", "zero_scale.h5"]
 
 

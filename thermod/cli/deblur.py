@@ -127,13 +127,11 @@ def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, 
 
     try:
         kernel, info = render(reader.gyro_t, reader.gyro_rate, calib, t, cfg)
-    except ThermodError as e:   # a kernel that cannot be rendered: keep the frame
+        if info["coverage"] < cfg.min_coverage:
+            return None, f"gyro coverage {info['coverage']:.3f} < {cfg.min_coverage}"
+        return (dec.run_varying(frame, kernel) if cfg.mode == "grid" else dec.run(frame, kernel)), ""
+    except ThermodError as e:   # a kernel that cannot be rendered or inverted: keep the frame
         return None, str(e)
-    if info["coverage"] < cfg.min_coverage:
-        return None, f"gyro coverage {info['coverage']:.3f} < {cfg.min_coverage}"
-    if cfg.mode == "grid":
-        return dec.run_varying(frame, kernel), ""
-    return dec.run(frame, kernel), ""
 
 
 def _deblur_file(src: Path, dst: Path, cfg: DeblurConfig, dec, bar, config: Path | None = None) -> dict:
