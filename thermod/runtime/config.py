@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from thermod.errors import ConfigError, ThermodError
-from thermod.physics.calibration import Calibration
+from thermod.errors import ConfigError
+from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.runtime import sources
 
 
@@ -266,11 +266,8 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     s.done()
     try:
         return Calibration(**kw)
-    except (ThermodError, ValueError, TypeError) as e:
-        # Calibration checks itself (constraints across keys, e.g. the field of view): name the file
-        key = getattr(e, "field", None)
-        problem = getattr(e, "problem", None) or str(e)
-        raise ConfigError(f"{path}: calibration{'.' + key if key else ''}: {problem}") from None
+    except CalibrationError as e:  # the checks the keys share (e.g. the field of view): name the file
+        raise ConfigError(f"{path}: calibration.{e.field}: {e.problem}") from None
 
 
 def _deblur(path: str, table: Any) -> DeblurConfig:
