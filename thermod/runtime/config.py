@@ -67,7 +67,7 @@ class DeblurConfig:
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)
     mode: str = "uniform"            # uniform | grid (spatially varying, tiles)
-    grid: tuple[int, int] = (3, 4)   # rows × cols: near-square cells on a 4:3 sensor (benchmarks/bench_quality)
+    grid: tuple[int, int] = (3, 4)   # rows × cols: near-square cells on a 4:3 sensor
     m: float = 5.0                   # kernel window = m·τ
     min_coverage: float = 0.99       # gyro coverage below this → pass through
 
