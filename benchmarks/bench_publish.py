@@ -1,14 +1,18 @@
-"""Transport speed: cost of a `publish_*` call in the daemon's threads, and loopback latency and
-throughput to one subscriber, for 640×512 frames (float32 deblurred, uint16 raw) and gyro batches.
+"""Transport speed: cost of a `publish_*` call in the daemon's threads, of decoding a message,
+loopback latency and throughput to one subscriber, for 640×512 frames (float32 deblurred, uint16 raw)
+and gyro batches; and the publisher's memory with subscribers that connect and never read.
 
     .venv/bin/python benchmarks/bench_publish.py [--quick]
 """
 
 import argparse
+import subprocess
+import sys
 import time
 
 import numpy as np
 
+from thermod.io.wire import decode, encode_header
 from thermod.runtime.publish import Publisher, Subscriber
 
 H, W = 512, 640
@@ -49,6 +53,60 @@ def call_cost(n):
     return rows
 
 
+def decode_cost(n):
+    """Median µs to validate and decode one frame message (a view, no copy)."""
+    img = np.ones((H, W), np.float32)
+    head = {"v": 1, "seq": 0, "t": 1.0, "published": 1.0, "deblurred": True, "shape": [H, W], "dtype": "<f4",
+            "frame_id": 0, "kernel_size": [15, 15], "coverage": 1.0}
+    frames = [b"frame", encode_header(head), img.tobytes()]
+    dt = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        decode(frames)
+        dt.append(time.perf_counter() - t0)
+    return 1e6 * np.median(dt), 1e6 * np.percentile(dt, 99)
+
+
+# connects, then freezes (SIGSTOP: its ZeroMQ I/O thread stops reading too, like a hung client)
+STALLED = """
+import os, signal, sys, time, zmq
+s = zmq.Context().socket(zmq.SUB)
+s.setsockopt(zmq.SUBSCRIBE, b"frame")
+s.connect(sys.argv[1])
+time.sleep(0.3)
+os.kill(os.getpid(), signal.SIGSTOP)
+"""
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+
+
+def stalled_memory(n_stalled, seconds, **pub_kw):
+    """Publisher RSS (MB) before and after `seconds` of 50 fps frames with `n_stalled` subscribers
+    (separate processes, connecting 0.5 s apart) that never read, and the publisher's counters."""
+    img = np.ones((480, 640), np.float32)
+    with Publisher("tcp://127.0.0.1:*", max_message_bytes=img.nbytes, **pub_kw) as pub:
+        procs = []
+        rss0 = _rss_mb()
+        try:
+            t_next = time.monotonic()
+            for i in range(int(seconds * 50)):
+                if i % 25 == 0 and len(procs) < n_stalled:
+                    procs.append(subprocess.Popen([sys.executable, "-c", STALLED, pub.endpoint]))
+                pub.publish_frame(img, float(i), frame_id=i, deblurred=True)
+                t_next += 0.02
+                time.sleep(max(0.0, t_next - time.monotonic()))
+            rss1 = _rss_mb()
+            st = pub.stats()
+        finally:
+            for p in procs:
+                p.kill()
+                p.wait()
+    return rss0, rss1, st
+
+
 def latency(n, fps):
     """Frames paced at `fps`: received − published and received − call, ms."""
     img = np.ones((H, W), np.float32)
@@ -69,8 +127,9 @@ def latency(n, fps):
 
 def throughput(n, dtype):
     img = np.ones((H, W), dtype)
-    # Everything is queued at once, so lift the queue's byte bound (64 MiB by default) for this run.
-    with Publisher("tcp://127.0.0.1:*", hwm=10000, queue_size=10000, queue_bytes=1 << 32) as pub:
+    # Everything is queued at once, so lift the byte bounds (64 MiB by default) for this run.
+    with Publisher("tcp://127.0.0.1:*", hwm=10000, queue_size=10000, queue_bytes=1 << 32,
+                   max_queue_bytes=1 << 32) as pub:
         sub = connect(pub, ("frame", "raw"))
         got = 0
         t0 = time.monotonic()
@@ -95,6 +154,8 @@ def main():
     print(f"{'call (caller thread)':<32}{'median µs':>12}{'p99 µs':>12}")
     for name, med, p99 in call_cost(50 if q else 300):
         print(f"{name:<32}{med:12.1f}{p99:12.1f}")
+    med, p99 = decode_cost(200 if q else 2000)
+    print(f"{'decode frame f32 (subscriber)':<32}{med:12.1f}{p99:12.1f}")
     print(f"\n{'loopback latency at 50 fps, f32':<32}{'median ms':>12}{'p99 ms':>12}")
     ls = latency(50 if q else 250, 50.0)
     print(f"{'published → received':<32}{ls[0]:12.3f}{ls[1]:12.3f}")
@@ -103,6 +164,14 @@ def main():
     for name, dt in (("frame f32", np.float32), ("raw u16", np.uint16)):
         fps, mib, lost = throughput(100 if q else 500, dt)
         print(f"{name:<32}{fps:12.0f}{mib:12.0f}{lost:8d}")
+    secs = 4.0 if q else 10.0
+    print(f"\n4 stalled subscribers, 640×480 f32 at 50 fps, {secs:.0f} s")
+    print(f"{'publisher':<32}{'RSS MB before':>14}{'after':>8}{'held MB':>9}{'dropped':>9}")
+    for name, kw in (("unbounded (hwm 100, old)", dict(hwm=100, max_queue_bytes=1 << 40)),
+                     ("max_queue_mb = 64 (default)", dict(hwm=100))):
+        r0, r1, st = stalled_memory(4, secs, **kw)
+        print(f"{name:<32}{r0:14.0f}{r1:8.0f}{st['held_peak_bytes'] / 2**20:9.0f}"
+              f"{st['budget_dropped_total']:9d}")
 
 
 if __name__ == "__main__":

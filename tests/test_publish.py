@@ -2,6 +2,7 @@
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,7 +10,15 @@ import zmq
 import zmq.auth
 
 from thermod.errors import ThermodError
-from thermod.runtime.publish import Publisher, Subscriber, TransportError, decode
+from thermod.io.wire import MessageError, decode
+from thermod.runtime import config
+from thermod.runtime.publish import (
+    BUDGETED_STALLED_SUBSCRIBERS,
+    Publisher,
+    Subscriber,
+    TransportError,
+    is_loopback,
+)
 
 EP = "tcp://127.0.0.1:*"
 
@@ -176,7 +185,7 @@ def test_decode_gyro_layout_validation():
          "layout": [["t", "<f8", [2]], ["rate", "<f4", [2, 3]]]}
     topic, _, a = decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes()])
     assert topic == "gyro" and a["t"].tolist() == [1.0, 2.0]
-    from thermod.runtime.publish import MessageError
+
 
     with pytest.raises(MessageError, match="covers"):
         decode([b"gyro", json.dumps(h).encode(), t.tobytes() + r.tobytes() + b"\0"])
@@ -262,7 +271,8 @@ def test_bind_errors_and_bad_input_are_clear(tmp_path):
             Publisher(a.endpoint).start()
     with pytest.raises(TransportError, match="missing.key_secret"):
         Publisher(EP, curve_secret_key_file=tmp_path / "missing.key_secret")
-    public, _ = zmq.auth.create_certificates(tmp_path, "srv")
+    public, secret = zmq.auth.create_certificates(tmp_path, "srv")
+    Path(secret).chmod(0o600)
     with pytest.raises(TransportError, match="no secret key"):
         Publisher(EP, curve_secret_key_file=public)
     with pytest.raises(TransportError, match="needs curve_secret_key_file"):
@@ -288,6 +298,8 @@ def _certs(tmp_path):
     zmq.auth.create_certificates(keys, "server")
     ok_public, _ = zmq.auth.create_certificates(keys, "good")
     zmq.auth.create_certificates(keys, "evil")
+    for secret in keys.glob("*.key_secret"):
+        secret.chmod(0o600)  # create_certificates leaves them at the umask; the publisher refuses that
     (auth_dir / "good.key").write_bytes(open(ok_public, "rb").read())
     return keys, auth_dir
 
@@ -385,3 +397,304 @@ def test_gyro_coalescing_flushes_on_time():
         sub.close()
     with Publisher(EP, gyro_batch_s=0) as p:  # no coalescing: one message per call
         assert [p.publish_gyro(np.array([float(i)]), np.zeros((1, 3)), seq=i) for i in range(3)] == [0, 1, 2]
+
+
+# ------------------------------------------------------------------------------ endpoints and security
+def test_a_second_publisher_cannot_steal_a_live_ipc_endpoint(tmp_path):
+    ep = f"ipc://{tmp_path / 'pub.sock'}"
+    with Publisher(ep) as first:
+        sub = connect(first, ("frame",))
+        with pytest.raises(TransportError, match="already publishing"):
+            Publisher(ep).start()
+        # the first one still owns the socket: its subscriber keeps receiving
+        first.publish_frame(np.full((2, 2), 7.0, np.float32), 1.0, frame_id=1, deblurred=True)
+        m = sub.recv(2.0)
+        assert m is not None and m[1]["frame_id"] == 1
+        sub.close()
+
+
+def test_a_stale_ipc_socket_file_is_removed_and_a_regular_file_is_not(tmp_path):
+    import socket
+    path = tmp_path / "stale.sock"
+    dead = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    dead.bind(str(path))
+    dead.close()            # the file stays, nobody listens: what a killed daemon leaves behind
+    assert path.is_socket()
+    with Publisher(f"ipc://{path}") as p:
+        sub = connect(p, ("frame",))
+        p.publish_frame(np.zeros((2, 2), np.float32), 1.0, frame_id=3, deblurred=True)
+        assert sub.recv(2.0)[1]["frame_id"] == 3
+        sub.close()
+    keep = tmp_path / "data.bin"
+    keep.write_bytes(b"precious")
+    with pytest.raises(TransportError, match="not a socket"):
+        Publisher(f"ipc://{keep}").start()
+    assert keep.read_bytes() == b"precious"
+
+
+@pytest.mark.parametrize("endpoint, why", [
+    ("tcp://127.0.0.1:99999", "1–65535"),
+    ("tcp://127.0.0.1:0", "1–65535"),
+    ("tcp://127.0.0.1:55x", "1–65535"),
+    ("tcp://127.0.0.1", "HOST:PORT"),
+    ("tcp://:5555", "HOST:PORT"),
+    ("tcp://[::zz]:5555", "IPv6"),
+    ("udp://127.0.0.1:5555", "tcp://HOST:PORT"),
+    ("127.0.0.1:5555", "tcp://HOST:PORT"),
+    ("ipc://", "empty"),
+    ("tcp://127.0.0.1:5555 ", "blanks"),
+])
+def test_malformed_endpoints_are_refused_naming_publish_endpoint(endpoint, why):
+    with pytest.raises(TransportError, match="publish.endpoint") as e:
+        Publisher(endpoint)
+    assert why in str(e.value) and repr(endpoint) in str(e.value)
+    with pytest.raises(ThermodError, match=r"publish\.endpoint"):
+        config.load(None, {"publish.endpoint": endpoint})
+
+
+def test_loopback_classification():
+    for ep in ("tcp://127.0.0.1:1", "tcp://127.3.0.1:1", "tcp://localhost:1", "tcp://[::1]:1", "tcp://lo:1",
+               "ipc:///run/thermod/pub.sock", "inproc://x"):
+        assert is_loopback(ep), ep
+    for ep in ("tcp://0.0.0.0:1", "tcp://*:1", "tcp://[::]:1", "tcp://10.1.2.3:1", "tcp://eth0:1",
+               "tcp://camera.local:1"):
+        assert not is_loopback(ep), ep
+
+
+def test_a_remote_bind_needs_curve_or_an_explicit_insecure_opt_in(tmp_path, caplog):
+    with pytest.raises(TransportError, match="allow_insecure_remote"):
+        Publisher("tcp://0.0.0.0:*")
+    with pytest.raises(ThermodError, match=r"publish\.endpoint.*allow_insecure_remote"):
+        config.load(None, {"publish.endpoint": "tcp://0.0.0.0:5555"})
+    cfg = config.load(None, {"publish.endpoint": "tcp://0.0.0.0:5555", "publish.allow_insecure_remote": True})
+    assert cfg.publish.allow_insecure_remote
+    with caplog.at_level("WARNING", logger="thermod.runtime.publish"):
+        with Publisher("tcp://0.0.0.0:*", allow_insecure_remote=True) as p:
+            assert any("insecure_remote" in w for w in p.stats()["warnings"])
+    assert "without CURVE" in caplog.text
+    keys, _ = _certs(tmp_path)
+    with Publisher("tcp://0.0.0.0:*", curve_secret_key_file=keys / "server.key_secret") as p:
+        assert p.running and p.stats()["warnings"] == []
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o660])
+def test_a_curve_secret_key_readable_by_others_is_refused(tmp_path, mode):
+    keys, _ = _certs(tmp_path)
+    secret = keys / "server.key_secret"
+    secret.chmod(mode)
+    with pytest.raises(TransportError, match=f"readable by group or others.*{mode:04o}"):
+        Publisher(EP, curve_secret_key_file=secret)
+    client = keys / "good.key_secret"
+    client.chmod(mode)
+    with pytest.raises(TransportError, match="readable by group or others"):
+        Subscriber("tcp://127.0.0.1:5999", curve_server_key=keys / "server.key", curve_client_key_file=client)
+    secret.chmod(0o600)
+    with Publisher(EP, curve_secret_key_file=secret) as p:
+        assert p.running
+
+
+# ------------------------------------------------------------------------------------ memory bounds
+def test_the_byte_budget_sizes_the_hwm():
+    p = Publisher(EP, hwm=100, max_queue_bytes=64 << 20, max_message_bytes=640 * 480 * 4)
+    assert p.hwm == (64 << 20) // (2 * 640 * 480 * 4) - 1 == 26  # 640×480 float32 frames
+    assert Publisher(EP, hwm=5, max_queue_bytes=64 << 20, max_message_bytes=1000).hwm == 5
+    assert Publisher(EP, hwm=100, max_queue_bytes=1 << 20, max_message_bytes=1 << 20).hwm == 2
+    assert config.load(None, {}).publish.max_queue_mb == 64.0
+
+
+def _stalled(ctx, endpoint):
+    """A subscriber that connects and never reads."""
+    s = ctx.socket(zmq.SUB)
+    s.setsockopt(zmq.RCVHWM, 1)
+    s.setsockopt(zmq.LINGER, 0)
+    s.setsockopt(zmq.SUBSCRIBE, b"frame")
+    s.connect(endpoint)
+    return s
+
+
+@pytest.mark.slow
+def test_stalled_subscribers_cannot_grow_the_publisher_beyond_its_budget():
+    """inproc: no kernel socket buffers, so what each stalled subscriber holds is ZeroMQ's queue alone
+    (over tcp the kernel absorbs a few MB more per connection, outside the process)."""
+    mib = 1 << 20
+    budget = 24 * mib
+    img = np.zeros((512, 512), np.float32)                    # 1 MiB
+    ctx = zmq.Context()
+    p = Publisher("inproc://budget", hwm=100, max_queue_bytes=budget, max_message_bytes=img.nbytes,
+                  context=ctx).start()
+    assert p.hwm == budget // ((BUDGETED_STALLED_SUBSCRIBERS + 1) * mib) - 1
+    stalled, healthy = [], None
+    try:
+        healthy = connect(p, ("frame",), context=ctx)
+        frame_id = 0
+
+        def publish_and_read(n, wait=2.0):
+            """Frames one at a time, each read by the healthy subscriber before the next."""
+            got = 0
+            for _ in range(n):
+                nonlocal frame_id
+                frame_id += 1
+                p.publish_frame(img, float(frame_id), frame_id=frame_id, deblurred=True)
+                m = healthy.recv(wait)
+                got += m is not None and m[1]["frame_id"] == frame_id
+            return got
+
+        # the budgeted stalled subscriber: the healthy one loses nothing
+        for _ in range(BUDGETED_STALLED_SUBSCRIBERS):
+            stalled.append(_stalled(ctx, p.endpoint))
+            assert publish_and_read(20) == 20
+        assert p.stats()["held_bytes"] >= BUDGETED_STALLED_SUBSCRIBERS * (p.hwm + 1) * mib  # really held
+        assert p.stats()["budget_dropped_total"] == 0
+        # many more: the publisher drops and counts rather than grows
+        for _ in range(8):
+            stalled.append(_stalled(ctx, p.endpoint))
+            publish_and_read(20, wait=0.01)
+        s = p.stats()
+        assert s["budget_dropped"]["frame"] > 0
+        assert s["held_peak_bytes"] <= budget and s["held_bytes"] <= budget
+        assert s["held_bytes"] > budget - 2 * mib
+        # once the stalled subscribers leave, their queues are released and frames flow again
+        for st in stalled:
+            st.close()
+        stalled.clear()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and p.stats()["held_bytes"] > 0:
+            time.sleep(0.05)
+        assert p.stats()["held_bytes"] == 0
+        assert publish_and_read(10) == 10
+    finally:
+        for st in stalled:
+            st.close()
+        if healthy is not None:
+            healthy.close()
+        p.stop()
+        ctx.term()
+
+
+FROZEN = """
+import os, signal, sys, time, zmq
+s = zmq.Context().socket(zmq.SUB)
+s.setsockopt(zmq.SUBSCRIBE, b"frame")
+s.connect(sys.argv[1])
+time.sleep(0.3)
+os.kill(os.getpid(), signal.SIGSTOP)
+"""
+
+
+@pytest.mark.slow
+def test_a_frozen_subscriber_is_dropped_by_heartbeats_and_its_queue_freed():
+    """A hung client (SIGSTOP: not even its ZeroMQ I/O thread runs) answers no heartbeat."""
+    import subprocess
+    import sys
+    img = np.zeros((512, 512), np.float32)                    # 1 MiB
+    with Publisher(EP, stall_timeout_s=1.0, max_message_bytes=img.nbytes) as p:
+        frozen = subprocess.Popen([sys.executable, "-c", FROZEN, p.endpoint])
+        try:
+            deadline = time.monotonic() + 30
+            peak, i = 0, 0
+            # its queue fills (a transient in-flight frame or two is not that), then is freed; with a
+            # 60 s timeout instead, 19 MiB stay held
+            while peak < 8 * img.nbytes or p.stats()["held_bytes"] > 0:
+                assert time.monotonic() < deadline, f"held {p.stats()['held_bytes']} B, peak {peak} B"
+                i += 1
+                p.publish_frame(img, float(i), frame_id=i, deblurred=True)
+                peak = max(peak, p.stats()["held_bytes"])
+                time.sleep(0.02)
+        finally:
+            frozen.kill()
+            frozen.wait()
+
+
+def _rogue_message(n_bytes):
+    h = {"v": 1, "seq": 0, "t": 1.0, "published": 1.0, "shape": [1, n_bytes // 4], "dtype": "<f4",
+         "deblurred": True}
+    return [b"frame", json.dumps(h).encode(), bytes(n_bytes)]
+
+
+@pytest.mark.parametrize("limit_mib, delivered", [(1, False), (16, True)])
+def test_maxmsgsize_drops_an_oversized_message_on_its_size_prefix(limit_mib, delivered):
+    ctx = zmq.Context()
+    rogue = ctx.socket(zmq.PUB)
+    rogue.setsockopt(zmq.LINGER, 0)
+    port = rogue.bind_to_random_port("tcp://127.0.0.1")
+    monitor = rogue.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+    sub = Subscriber(f"tcp://127.0.0.1:{port}", ("frame",), max_message_bytes=limit_mib << 20)
+    try:
+        deadline = time.monotonic() + 5
+        while sub.recv(0.05) is None:       # slow joiner: small valid messages until one arrives
+            assert time.monotonic() < deadline, "subscriber never connected"
+            rogue.send_multipart(_rogue_message(64))
+        rogue.send_multipart(_rogue_message(8 << 20))         # 8 MiB
+        m = sub.recv(2.0)
+        if delivered:
+            assert m is not None and m[2].nbytes == 8 << 20
+        else:
+            assert m is None
+            # the subscriber hung up on reading the size prefix (the rogue sees the disconnect)
+            assert monitor.poll(2000)
+            from zmq.utils.monitor import recv_monitor_message
+            assert recv_monitor_message(monitor)["event"] == zmq.EVENT_DISCONNECTED
+            # and it dials again: small messages flow again
+            assert sub.disconnects == 1
+            deadline = time.monotonic() + 5
+            while sub.recv(0.05) is None:
+                assert time.monotonic() < deadline, "subscriber did not reconnect"
+                rogue.send_multipart(_rogue_message(64))
+    finally:
+        sub.close()
+        rogue.disable_monitor()
+        monitor.close(0)
+        rogue.close(0)
+        ctx.term()
+
+
+def test_a_subscriber_follows_a_restarted_publisher_on_one_connection():
+    first = Publisher(EP).start()
+    endpoint = first.endpoint
+    sub = connect(first, ("frame",))
+    first.stop()
+    with Publisher(endpoint) as second:
+        deadline = time.monotonic() + 5
+        while True:   # warm up again: the subscription must reach the new publisher
+            assert time.monotonic() < deadline, "subscriber did not follow the restart"
+            second.publish_health()
+            if sub.recv(0.1) is not None:
+                break
+        while sub.recv(0.2) is not None:
+            pass
+        second.publish_frame(np.zeros((2, 2), np.float32), 1.0, frame_id=5, deblurred=True)
+        assert sub.recv(2.0)[1]["frame_id"] == 5
+        assert sub.recv(0.3) is None            # once: no second connection delivers a duplicate
+    assert sub.disconnects >= 1
+    sub.close()
+
+
+@pytest.mark.parametrize("kind", ["tcp", "ipc"])
+def test_a_second_daemon_fails_on_a_taken_endpoint_before_preparing_its_payload(tmp_path, kind):
+    from thermod.runtime.daemon import Daemon
+    ep = EP if kind == "tcp" else f"ipc://{tmp_path / 'pub.sock'}"
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    with Publisher(ep) as first:
+        cfg = config.load(None, {"publish.endpoint": first.endpoint, "sim.cache_dir": str(cache)})
+        d = Daemon(cfg)
+        try:
+            with pytest.raises(TransportError, match="second thermod"):
+                d.start()
+            assert d.payload.loop is None and list(cache.iterdir()) == []   # nothing was rendered
+        finally:
+            d.stop()
+        assert first.running
+
+
+def test_an_insecure_remote_bind_is_reported_in_the_daemon_health(tmp_path):
+    from thermod.runtime.daemon import Daemon
+    cfg = config.load(None, {"publish.endpoint": "tcp://0.0.0.0:*", "publish.allow_insecure_remote": True,
+                             "sim.cache_dir": str(tmp_path)})
+    d = Daemon(cfg)
+    try:
+        h = d.health()
+        assert any("insecure_remote" in w for w in h["publisher"]["warnings"])
+        assert h["drops"]["publish_budget_dropped"] == 0 and h["publisher"]["hwm"] >= 2
+    finally:
+        d.stop()

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.io.wire import MAX_PAYLOAD_BYTES
 from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,9 @@ def add_arguments(p) -> None:
     p.add_argument("--no-raw", action="store_true", help="do not subscribe to raw frames")
     p.add_argument("--curve-server-key", default=None, help="publisher's public certificate → CURVE")
     p.add_argument("--curve-client-key", default=None, help="this client's *.key_secret certificate")
+    p.add_argument("--max-frame-mb", type=float, default=MAX_PAYLOAD_BYTES / 2**20,
+                   help="largest frame accepted, MiB; a publisher sending more is disconnected "
+                        "(default: a 4096×4096 float32 image)")
 
 
 class WatchStats:
@@ -241,8 +245,11 @@ def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
 def run(args) -> int:
     topics = ("frame", "gyro", "health") if args.no_raw else ("frame", "raw", "gyro", "health")
     previews = PreviewWriter(args.png, args.png_interval) if args.png else None
+    if not args.max_frame_mb > 0:
+        raise ThermodError(f"--max-frame-mb: expected a positive size in MiB, got {args.max_frame_mb}")
     with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
-                    curve_client_key_file=args.curve_client_key) as sub:
+                    curve_client_key_file=args.curve_client_key,
+                    max_message_bytes=int(args.max_frame_mb * 2**20)) as sub:
         stats = watch(sub, args.seconds, interval=args.interval, previews=previews)
         print(stats.format(sub.gaps), flush=True)
         if sub.errors:

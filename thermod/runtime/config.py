@@ -81,6 +81,8 @@ class PublishConfig:
     health_period_s: float = 1.0
     curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
     curve_authorized_keys: str | None = None  # directory of client public certificates (needs the secret key)
+    max_queue_mb: float = 64.0               # bytes ZeroMQ may hold for all subscribers together
+    allow_insecure_remote: bool = False      # permit a non-loopback bind without CURVE (warned)
 
 
 @dataclass(frozen=True)
@@ -302,15 +304,22 @@ def _deblur(path: str, table: Any) -> DeblurConfig:
 def _publish(path: str, table: Any) -> PublishConfig:
     s = _Section(path, "publish", table)
     d = PublishConfig()
+    from thermod.runtime.publish import endpoint_problem, is_loopback
     endpoint = s.pop("endpoint", d.endpoint, str)
-    if not endpoint.startswith(("tcp://", "ipc://", "inproc://")) or "://" == endpoint[-3:]:
-        raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or 'ipc:///run/thermod.sock'",
-                     endpoint)
+    if (problem := endpoint_problem(endpoint)) is not None:
+        raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or "
+                     f"'ipc:///run/thermod.sock' ({problem})", endpoint)
     kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
               hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
               health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
               curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"),
-              curve_authorized_keys=s.pop_file("curve_authorized_keys", what="directory"))
+              curve_authorized_keys=s.pop_file("curve_authorized_keys", what="directory"),
+              max_queue_mb=s.pop("max_queue_mb", d.max_queue_mb, float, lo=1.0, hi=65536.0),
+              allow_insecure_remote=s.pop("allow_insecure_remote", d.allow_insecure_remote, bool))
+    if not is_loopback(endpoint) and kw["curve_secret_key"] is None and not kw["allow_insecure_remote"]:
+        raise s.fail("endpoint", "a loopback or ipc:// address, or publish.curve_secret_key for CURVE, or "
+                     "publish.allow_insecure_remote = true (the stream would be readable by anyone on the "
+                     "network)", endpoint)
     if kw["curve_authorized_keys"] is not None and kw["curve_secret_key"] is None:
         raise ConfigError(f"{path}: publish.curve_secret_key: missing (curve_authorized_keys needs the "
                           "server's secret key file)")

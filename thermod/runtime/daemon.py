@@ -68,7 +68,10 @@ class Daemon:
             from thermod.runtime.publish import Publisher
             p = cfg.publish
             publisher = Publisher(p.endpoint, hwm=p.hwm, curve_secret_key_file=p.curve_secret_key,
-                                  authorized_keys_dir=p.curve_authorized_keys)
+                                  authorized_keys_dir=p.curve_authorized_keys,
+                                  allow_insecure_remote=p.allow_insecure_remote,
+                                  max_queue_bytes=int(p.max_queue_mb * 2**20),
+                                  max_message_bytes=cfg.calibration.width * cfg.calibration.height * 4)
         self.publisher = publisher
         if notifier is None:
             from thermod.runtime.sdnotify import Notifier
@@ -125,14 +128,14 @@ class Daemon:
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
         cfg = self.cfg
+        self.publisher.start()  # first: a taken endpoint fails here, before seconds of payload preparation
+        log.info("publishing on %s", self.publisher.endpoint)
         if self.payload is not None:
             if not self.payload.cached():
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
                             "this takes a while once", cfg.sim.loop_s, self.payload.cache_path)
                 self.notifier.extend_timeout(600.0)      # beyond TimeoutStartSec, once
             self.payload.prepare()
-        self.publisher.start()
-        log.info("publishing on %s", self.publisher.endpoint)
         dt = self.pipeline.warmup()
         log.info("renderer and %d deconvolution workers ready (%.2f s)", self.pipeline.n_workers, dt)
         if self.payload is not None:

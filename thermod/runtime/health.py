@@ -38,6 +38,11 @@ def source_clock(src: Source) -> dict | None:
             "resets": int(clk.resets)}
 
 
+# what health shows of Publisher.stats()
+PUBLISHER_KEYS = ("queue_depth", "queue_dropped", "send_errors", "hwm", "held_bytes", "held_peak_bytes",
+                  "budget_dropped", "warnings")
+
+
 class Health:
     """Builds the health message of one daemon; keeps the totals of the previous period for rates."""
 
@@ -69,6 +74,7 @@ class Health:
                      camera_frames_lost=d.counters["camera_frames_lost"])
         pub = d.publisher.stats()
         drops["publish_queue_dropped"] = pub.get("queue_dropped", 0)
+        drops["publish_budget_dropped"] = pub.get("budget_dropped_total", 0)
         devices, clocks = {}, {}
         for role, src, st in (("gyro", d.gyro, d.gyro_state), ("camera", d.camera, d.camera_state)):
             devices[role] = {**st.as_dict(now), "stats": source_stats(src)}
@@ -79,7 +85,7 @@ class Health:
             "rates": dict(self.rates), "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
             "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},
             "threads": d.critical_alive(), "ready": d.ready, "gyro_online": d.pipeline.gyro_online,
-            "publisher": {k: pub[k] for k in ("queue_depth", "queue_dropped", "send_errors") if k in pub},
+            "publisher": {k: pub[k] for k in PUBLISHER_KEYS if k in pub},
             "daemon": dict(d.counters),
             "reload": dict(d.reload_status),
         }

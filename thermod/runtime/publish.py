@@ -1,9 +1,8 @@
-"""ZeroMQ transport, wire format v1 (DESIGN.md §4, docs/wire.md).
+"""ZeroMQ transport for wire format v1 (docs/wire.md); the codec itself is `thermod.io.wire`.
 
-The daemon binds one PUB socket; every message is three frames ``[topic, header, payload]``:
-an exact topic (``frame``, ``raw``, ``gyro``, ``health``), a UTF-8 JSON header and the raw
-C-contiguous array bytes. `Publisher` owns that socket in one thread and never blocks its callers;
-`Subscriber` validates every message and counts sequence gaps.
+The daemon binds one PUB socket; every message is three frames ``[topic, header, payload]``.
+`Publisher` owns that socket in one thread and never blocks its callers; `Subscriber` validates every
+message (`thermod.io.wire.decode`) and counts sequence gaps.
 
 Example (a subscriber on the same host)::
 
@@ -15,18 +14,29 @@ Example (a subscriber on the same host)::
                 print(header["frame_id"], header["deblurred"], array.shape, array.dtype)
             print("lost so far:", sub.gaps)
 
-Security: the default endpoint is loopback only. With ``curve_secret_key_file`` (a file written by
-``zmq.auth.create_certificates``) the publisher encrypts with CURVE; with ``authorized_keys_dir`` it
+Security: the publisher binds loopback (or ``ipc://``) unless it has CURVE keys or is told
+``allow_insecure_remote``. With ``curve_secret_key_file`` (a file written by
+``zmq.auth.create_certificates``, mode 0600) it encrypts with CURVE; with ``authorized_keys_dir`` it
 also admits only clients whose public keys are in that directory.
+
+Memory: ZeroMQ keeps a send queue per subscriber. ``max_queue_bytes`` bounds the bytes of sent
+messages that ZeroMQ still holds, summed over every subscriber (tracked per message); a message that
+would exceed it is not sent and is counted in ``stats()["budget_dropped"]``. The per-subscriber
+SNDHWM is sized so that `BUDGETED_STALLED_SUBSCRIBERS` subscriber that stops reading fits in the budget
+with room to spare for the others; more stalled subscribers than that make the publisher drop (and
+count) messages instead of growing, until ZMTP heartbeats (unanswered for ``stall_timeout_s``)
+disconnect the stalled ones and free what they pinned.
 """
 
 from __future__ import annotations
 
 import collections
-import json
+import ipaddress
 import logging
-import math
 import os
+import re
+import socket
+import stat
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -38,55 +48,149 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 from thermod.errors import ThermodError
+from thermod.io.wire import (  # noqa: F401 - re-exported: the transport's users need the codec's names
+    ARRAY_DTYPES,
+    GYRO_LAYOUT_DTYPES,
+    MAX_HEADER_BYTES,
+    MAX_PAYLOAD_BYTES,
+    PACKED,
+    TOPICS,
+    WIRE_VERSION,
+    MessageError,
+    array_header,
+    decode,
+    encode_header,
+    jsonable,
+    nbytes,
+    pack_gyro,
+    wire_array,
+)
 
 log = logging.getLogger(__name__)
 
-WIRE_VERSION = 1
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
-TOPICS = ("frame", "raw", "gyro", "health")
-# Array dtypes a payload may carry (little-endian numpy strings); "packed" = concatenated `layout` parts.
-ARRAY_DTYPES = ("<f4", "<u2", "|u1", "<f8", "<i8")
-PACKED = "packed"
-GYRO_LAYOUT_DTYPES = {"t": "<f8", "rate": "<f4"}
-
-assert not any(a != b and b.startswith(a) for a in TOPICS for b in TOPICS), "a topic prefixes another"
+DEFAULT_MAX_QUEUE_BYTES = 64 << 20
+# The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
+# full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
+# dropped and counted until then.
+BUDGETED_STALLED_SUBSCRIBERS = 1
+DEFAULT_STALL_TIMEOUT_S = 5.0
+MIN_HWM = 2
 
 
 class TransportError(ThermodError):
     """The ZeroMQ endpoint could not be bound/connected, or a key file is unusable."""
 
 
-# ----------------------------------------------------------------------------------------- helpers
-def _jsonable(x):
-    """Plain JSON types; non-finite floats become null so non-Python parsers accept the header."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, str):
-        return x
-    if hasattr(x, "as_dict"):
-        return _jsonable(x.as_dict())
-    raise TypeError(f"header value of type {type(x).__name__} is not JSON-serialisable")
+# ----------------------------------------------------------------------------------------- endpoints
+_TCP = re.compile(r"^tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[^:\[\]/;]+):(?P<port>[^:/]+)$")
 
 
+def endpoint_problem(endpoint) -> str | None:
+    """What is wrong with ``endpoint`` as a ZeroMQ bind address, or None if it is well formed:
+    ``tcp://HOST:PORT`` (HOST an address, ``[IPv6]``, a name or ``*``; PORT 1–65535 or ``*``),
+    ``ipc://PATH`` or ``inproc://NAME``."""
+    if not isinstance(endpoint, str):
+        return "expected a string like 'tcp://127.0.0.1:5555'"
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep or scheme not in ("tcp", "ipc", "inproc"):
+        return "expected tcp://HOST:PORT, ipc://PATH or inproc://NAME"
+    if not rest or any(c.isspace() or not c.isprintable() for c in rest):
+        return f"the {scheme} address is empty or has blanks/control characters"
+    if scheme != "tcp":
+        return None
+    m = _TCP.match(endpoint)
+    if m is None:
+        return "expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:5555 (IPv6: tcp://[::1]:5555)"
+    port, host = m["port"], m["host"]
+    if port != "*" and not (port.isdigit() and 1 <= int(port) <= 65535):
+        return f"port {port!r} is not a number in 1–65535 (or * for any free port)"
+    if host.startswith("["):
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            return f"{host} is not an IPv6 address"
+    return None
+
+
+def check_endpoint(endpoint: str, what: str = "publish.endpoint") -> str:
+    """``endpoint`` unchanged, or `TransportError` naming ``what`` and the problem (`endpoint_problem`)."""
+    problem = endpoint_problem(endpoint)
+    if problem is not None:
+        raise TransportError(f"{what} {endpoint!r}: {problem}")
+    return endpoint
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Only this host can reach it: ``ipc``/``inproc``, or tcp on a loopback address/``localhost``."""
+    if not endpoint.startswith("tcp://"):
+        return True
+    m = _TCP.match(endpoint)
+    host = m["host"].strip("[]") if m else ""
+    if host in ("localhost", "lo"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # "*", an interface name or a host name: assume reachable from outside
+        return False
+
+
+def _ipc_path(endpoint: str) -> str | None:
+    """The socket file of a filesystem ``ipc://`` endpoint (not abstract ``@name`` nor wildcard ``*``)."""
+    if not endpoint.startswith("ipc://"):
+        return None
+    path = endpoint[len("ipc://"):]
+    return None if path.startswith("@") or path == "*" else path
+
+
+def _claim_ipc(path: str, what: str) -> None:
+    """ZeroMQ's bind unlinks whatever is at ``path``, stealing a live daemon's socket. Refuse if
+    something accepts connections there; remove a stale socket file nobody listens on."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise TransportError(f"{what} ipc://{path}: cannot inspect the socket file ({e})") from None
+    if not stat.S_ISSOCK(st.st_mode):
+        raise TransportError(f"{what} ipc://{path}: exists and is not a socket; not replacing it")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.settimeout(1.0)
+        probe.connect(path)
+    except (ConnectionRefusedError, FileNotFoundError):
+        live = False
+    except OSError as e:  # e.g. permission denied: cannot tell, so do not touch it
+        raise TransportError(f"{what} ipc://{path}: cannot probe the existing socket ({e})") from None
+    else:
+        live = True
+    finally:
+        probe.close()
+    if live:
+        raise TransportError(f"{what} ipc://{path}: another process is already publishing there "
+                             "(is a second thermod running?); stop it or choose another endpoint")
+    log.warning("removing stale socket file %s (nothing listening)", path)
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+    except OSError as e:
+        raise TransportError(f"{what} ipc://{path}: cannot remove the stale socket file ({e})") from None
+
+
+# ------------------------------------------------------------------------------------------ keys
 def _load_keypair(path, what: str) -> tuple[bytes, bytes]:
     try:
         public, secret = zmq.auth.load_certificate(os.fspath(path))
+        mode = os.stat(path).st_mode
     except (OSError, ValueError) as e:
         raise TransportError(f"{what} {path}: cannot read CURVE certificate ({e}); make one with "
                              "zmq.auth.create_certificates(dir, name)") from None
     if secret is None:
         raise TransportError(f"{what} {path}: has no secret key; pass the '.key_secret' file")
+    if mode & 0o077:
+        raise TransportError(f"{what} {path}: the secret key is readable by group or others "
+                             f"(mode {stat.S_IMODE(mode):04o}); chmod 600 it")
     return public, secret
 
 
@@ -112,13 +216,28 @@ class Publisher:
     ----------
     endpoint : str
         ZeroMQ bind address; ``tcp://127.0.0.1:*`` picks a free port (see `.endpoint` after `start`).
+        A non-loopback tcp address needs CURVE keys or ``allow_insecure_remote``.
     hwm : int
-        Send high-water mark per subscriber, in messages; beyond it ZeroMQ drops (PUB never blocks).
+        Upper bound on the send high-water mark per subscriber, in messages; beyond it ZeroMQ drops
+        for that subscriber (PUB never blocks).
+    max_queue_bytes : int
+        Byte budget for sent messages ZeroMQ still holds, all subscribers together; a message that
+        would exceed it is dropped (counted in ``budget_dropped``; health messages always go).
+    max_message_bytes : int, optional
+        The largest payload this publisher will send (e.g. H×W×4 for float32 frames). With it, the
+        SNDHWM becomes ``max_queue_bytes / ((BUDGETED_STALLED_SUBSCRIBERS + 1) × max_message_bytes) − 1``
+        (at least 2, at most ``hwm``).
     curve_secret_key_file : path, optional
-        Server certificate (``*.key_secret``) → CURVE encryption.
+        Server certificate (``*.key_secret``, not readable by group/others) → CURVE encryption.
     authorized_keys_dir : path, optional
         Directory of client public certificates (``*.key``); only those clients are admitted.
         Without it, any CURVE client is admitted (encryption only).
+    stall_timeout_s : float
+        A subscriber whose connection answers no ZMTP heartbeat for this long (it stopped reading:
+        its queues are full) is disconnected, releasing the messages it pinned. Needs peers with
+        ZMTP 3.1 (libzmq ≥ 4.2).
+    allow_insecure_remote : bool
+        Permit a non-loopback bind without CURVE (logged as a warning and listed in ``stats()["warnings"]``).
     queue_size, queue_bytes : int
         Bounds on the messages waiting for the sender thread (count, payload bytes); beyond either
         the OLDEST are dropped and counted. Gyro batches are many and small, frames few and large.
@@ -137,13 +256,28 @@ class Publisher:
     ownership over: the caller must never write to that array again.
     """
 
-    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64, curve_secret_key_file=None,
-                 authorized_keys_dir=None, queue_size: int = 1024, queue_bytes: int = 64 << 20,
-                 gyro_batch_s: float = 0.01, linger_s: float = 0.5, context: zmq.Context | None = None):
+    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64,
+                 max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES, max_message_bytes: int | None = None,
+                 curve_secret_key_file=None, authorized_keys_dir=None, allow_insecure_remote: bool = False,
+                 stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
+                 queue_size: int = 1024, queue_bytes: int = 64 << 20, gyro_batch_s: float = 0.01,
+                 linger_s: float = 0.5, context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
             raise ValueError("queue_size and hwm must be at least 1")
-        self.endpoint = endpoint
-        self.hwm, self.queue_size, self.linger_s = int(hwm), int(queue_size), float(linger_s)
+        if max_queue_bytes < 1 or (max_message_bytes is not None and max_message_bytes < 1):
+            raise ValueError("max_queue_bytes and max_message_bytes must be positive")
+        self.endpoint = check_endpoint(endpoint)
+        self.max_queue_bytes = int(max_queue_bytes)
+        if not stall_timeout_s > 0:
+            raise ValueError("stall_timeout_s must be positive")
+        self.stall_timeout_s = float(stall_timeout_s)
+        self.hwm = int(hwm)
+        if max_message_bytes is not None:
+            # a stalled subscriber holds SNDHWM messages plus the one its connection is writing;
+            # one more share of the budget is left for messages in flight to healthy subscribers
+            fit = self.max_queue_bytes // ((BUDGETED_STALLED_SUBSCRIBERS + 1) * int(max_message_bytes)) - 1
+            self.hwm = max(MIN_HWM, min(self.hwm, fit))
+        self.queue_size, self.linger_s = int(queue_size), float(linger_s)
         self.queue_bytes = int(queue_bytes)
         self.gyro_batch_s = float(gyro_batch_s)
         self._gyro: dict | None = None
@@ -158,6 +292,15 @@ class Publisher:
                                      "authentication runs inside the CURVE handshake)")
             if not Path(authorized_keys_dir).is_dir():
                 raise TransportError(f"authorized_keys_dir {authorized_keys_dir}: not a directory")
+        self.warnings: list[str] = []
+        if self._keys is None and not is_loopback(self.endpoint):
+            if not allow_insecure_remote:
+                raise TransportError(
+                    f"publish.endpoint {self.endpoint!r}: binds beyond loopback without CURVE, so anyone on "
+                    "the network could read the stream; set publish.curve_secret_key, bind 127.0.0.1/ipc, "
+                    "or set publish.allow_insecure_remote = true")
+            self.warnings.append(f"insecure_remote: {self.endpoint} is reachable from the network "
+                                 "without CURVE (publish.allow_insecure_remote = true)")
         self.authorized_keys_dir = authorized_keys_dir
         self.public_key = self._keys[0] if self._keys else None
         self._queue: collections.deque = collections.deque()
@@ -168,6 +311,10 @@ class Publisher:
         self._seq = dict.fromkeys(TOPICS, 0)
         self._queued = dict.fromkeys(TOPICS, 0)
         self._sent = dict.fromkeys(TOPICS, 0)
+        self._budget_dropped = dict.fromkeys(TOPICS, 0)
+        self._held: list = []          # (MessageTracker, bytes) of sent payloads ZeroMQ still holds
+        self._held_bytes = 0
+        self._held_peak = 0
         self._queue_dropped = 0
         self._queue_nbytes = 0
         self._send_errors = 0
@@ -178,6 +325,8 @@ class Publisher:
         """Bind (in the sender thread) and return once bound; raise `TransportError` if it cannot."""
         if self._thread is not None:
             return self
+        for w in self.warnings:
+            log.warning("%s", w)
         self._stopping.clear()
         ready, failure = threading.Event(), []
         self._thread = threading.Thread(target=self._run, args=(ready, failure), name="thermod-publish",
@@ -221,30 +370,21 @@ class Publisher:
             raise ValueError(f"unknown topic {topic!r}; wire v1 topics are {TOPICS}")
         if "t" not in header:
             raise ValueError("header needs 't' (frame time, s, host monotonic)")
-        if array is None:
-            array = np.empty(0, np.uint8)
-        dtype = array.dtype.newbyteorder("<") if array.dtype.byteorder == ">" else array.dtype
-        if dtype.str not in ARRAY_DTYPES:
-            raise ValueError(f"payload dtype {array.dtype} not allowed on the wire (allowed: {ARRAY_DTYPES})")
-        if copy or not array.flags.c_contiguous or array.dtype != dtype:
-            array = np.array(array, dtype=dtype, order="C", copy=True)
-        head = dict(header)
-        head.setdefault("deblurred", False)
-        head.update(shape=list(array.shape), dtype=dtype.str)
-        return self._enqueue(topic, head, array)
+        array = wire_array(array, copy=copy)
+        return self._enqueue(topic, array_header(header, array), array)
 
     def _enqueue(self, topic: str, head: dict, payload) -> int:
-        nbytes = _nbytes(payload)
+        size = nbytes(payload)
         with self._lock:
             seq = self._seq[topic]
             self._seq[topic] = seq + 1
             head["v"], head["seq"] = WIRE_VERSION, seq
             while self._queue and (len(self._queue) >= self.queue_size
-                                   or self._queue_nbytes + nbytes > self.queue_bytes):
-                self._queue_nbytes -= _nbytes(self._queue.popleft()[2])
+                                   or self._queue_nbytes + size > self.queue_bytes):
+                self._queue_nbytes -= nbytes(self._queue.popleft()[2])
                 self._queue_dropped += 1
             self._queue.append((topic, head, payload))
-            self._queue_nbytes += nbytes
+            self._queue_nbytes += size
             self._queued[topic] += 1
         self._wake.set()
         return seq
@@ -320,16 +460,10 @@ class Publisher:
         self._gyro = None
         t = np.concatenate(p["t"]) if len(p["t"]) > 1 else p["t"][0]
         rate = np.concatenate(p["rate"]) if len(p["rate"]) > 1 else p["rate"][0]
-        n = p["n"]
-        header = dict(p["extra"], t=float(t[-1]), deblurred=False, shape=[n], dtype=PACKED, n=n,
-                      layout=[["t", "<f8", [n]], ["rate", "<f4", [n, 3]]], sample_seq=p["seq"],
+        fields, payload = pack_gyro(t, rate)
+        header = dict(p["extra"], t=float(t[-1]), deblurred=False, **fields, sample_seq=p["seq"],
                       gap_before=p["gap_before"], n_lost=p["n_lost"])
-        return self._enqueue("gyro", header, t.tobytes() + rate.tobytes())
-
-    def flush_gyro(self) -> int | None:
-        """Queue the coalesced gyro samples now (also done by `stop` and after ``gyro_batch_s``)."""
-        with self._gyro_lock:
-            return self._flush_gyro_locked()
+        return self._enqueue("gyro", header, payload)
 
     def publish_health(self, *, rates: dict | None = None, drops: dict | None = None,
                        devices: dict | None = None, calibration=None, t: float | None = None, **extra) -> int:
@@ -337,16 +471,24 @@ class Publisher:
         (a `Calibration` or its `as_dict()`, recording attribute names) so `record` can write it."""
         header = dict(extra, t=time.monotonic() if t is None else float(t), deblurred=False,
                       rates=rates or {}, drops=drops or {}, devices=devices or {},
-                      calibration=None if calibration is None else _jsonable(calibration))
+                      calibration=None if calibration is None else jsonable(calibration))
         return self.publish("health", header, None)
 
     def stats(self) -> dict:
+        """Counters: ``budget_dropped`` (per topic, not sent because ZeroMQ already held
+        ``max_queue_bytes``), ``held_bytes``/``held_peak_bytes`` (sent payloads ZeroMQ still holds),
+        ``queue_dropped`` (oldest dropped from the hand-off queue), ``hwm`` (per subscriber),
+        ``warnings`` (e.g. an insecure remote bind)."""
         with self._lock:
             return {"endpoint": self.endpoint, "running": self.running, "queued": dict(self._queued),
                     "sent": dict(self._sent), "queue_depth": len(self._queue),
                     "queue_bytes": self._queue_nbytes,
                     "queue_dropped": self._queue_dropped, "send_errors": self._send_errors,
-                    "bytes_sent": self._bytes_sent}
+                    "bytes_sent": self._bytes_sent, "hwm": self.hwm, "max_queue_bytes": self.max_queue_bytes,
+                    "held_bytes": self._held_bytes, "held_peak_bytes": self._held_peak,
+                    "budget_dropped": dict(self._budget_dropped),
+                    "budget_dropped_total": sum(self._budget_dropped.values()),
+                    "warnings": list(self.warnings)}
 
     # -------------------------------------------------------------- sender thread
     def _run(self, ready: threading.Event, failure: list) -> None:
@@ -354,12 +496,19 @@ class Publisher:
         auth = sock = None
         try:
             try:
+                path = _ipc_path(self.endpoint)
+                if path is not None:
+                    _claim_ipc(path, "publish.endpoint")
                 if self.authorized_keys_dir is not None:
                     auth = ThreadAuthenticator(ctx, log=log.getChild("auth"))
                     auth.start()
                     auth.configure_curve(domain="*", location=os.fspath(self.authorized_keys_dir))
                 sock = ctx.socket(zmq.PUB)
                 sock.setsockopt(zmq.SNDHWM, self.hwm)
+                # ZMTP heartbeats: a subscriber that stops reading stops answering them too, so its
+                # connection (and the queue it pins) is dropped after stall_timeout_s
+                sock.setsockopt(zmq.HEARTBEAT_IVL, max(1, int(self.stall_timeout_s * 1000 / 3)))
+                sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, max(1, int(self.stall_timeout_s * 1000)))
                 sock.setsockopt(zmq.LINGER, int(self.linger_s * 1000))
                 if self._keys is not None:
                     sock.curve_server = True
@@ -367,18 +516,25 @@ class Publisher:
                 sock.bind(self.endpoint)
                 self.endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
             except zmq.ZMQError as e:
-                failure.append(TransportError(f"cannot bind publisher to {self.endpoint}: {e}"))
+                hint = " (another process holds the port; is a second thermod running?)" \
+                    if e.errno == zmq.EADDRINUSE else ""
+                failure.append(TransportError(f"cannot bind publisher to publish.endpoint {self.endpoint!r}: "
+                                              f"{e}{hint}"))
+                return
+            except TransportError as e:
+                failure.append(e)
                 return
             finally:
                 ready.set()
-            log.info("publishing wire v%d on %s%s", WIRE_VERSION, self.endpoint,
-                     " (CURVE)" if self._keys else "")
+            log.info("publishing wire v%d on %s%s, SNDHWM %d, queue budget %.0f MB", WIRE_VERSION,
+                     self.endpoint, " (CURVE)" if self._keys else "", self.hwm, self.max_queue_bytes / 1e6)
             while True:
                 self._wake.wait(0.2 if self._gyro is None else max(self.gyro_batch_s, 1e-3))
                 self._wake.clear()
                 stopping = self._stopping.is_set()
                 with self._gyro_lock:
                     self._flush_gyro_locked(older_than=None if stopping else self.gyro_batch_s)
+                sock.getsockopt(zmq.EVENTS)  # lets the socket finish closed subscribers' pipes (frees queues)
                 self._drain(sock)
                 if stopping:
                     self._drain(sock)
@@ -391,16 +547,31 @@ class Publisher:
             if self._shared_ctx is None:
                 ctx.term()
 
+    def _release_held(self) -> None:
+        """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them)."""
+        held = [(tr, n) for tr, n in self._held if not tr.done]
+        with self._lock:
+            self._held = held
+            self._held_bytes = sum(n for _, n in held)
+
     def _drain(self, sock) -> None:
+        self._release_held()
         while True:
             with self._lock:
                 if not self._queue:
                     return
                 topic, head, payload = self._queue.popleft()
-                self._queue_nbytes -= _nbytes(payload)
+                self._queue_nbytes -= nbytes(payload)
+            size = nbytes(payload)
+            if topic != "health" and self._held_bytes + size > self.max_queue_bytes:
+                self._release_held()
+                if self._held_bytes + size > self.max_queue_bytes:
+                    with self._lock:
+                        self._budget_dropped[topic] += 1
+                    continue
             head["published"] = time.monotonic()
             try:
-                hbytes = json.dumps(_jsonable(head), separators=(",", ":"), allow_nan=False).encode()
+                hbytes = encode_header(head)
             except (TypeError, ValueError) as e:
                 log.error("dropping %s seq %s: header not serialisable (%s)", topic, head.get("seq"), e)
                 with self._lock:
@@ -409,7 +580,8 @@ class Publisher:
             try:
                 # PUB never blocks: above the HWM ZeroMQ drops for that subscriber; the payload's
                 # buffer now belongs to ZeroMQ, which is why publish() copied it or took ownership.
-                sock.send_multipart([topic.encode(), hbytes, payload], flags=zmq.NOBLOCK, copy=False)
+                tracker = sock.send_multipart([topic.encode(), hbytes, payload], flags=zmq.NOBLOCK,
+                                              copy=False, track=True)
             except zmq.ZMQError as e:
                 log.warning("send of %s seq %s failed: %s", topic, head.get("seq"), e)
                 with self._lock:
@@ -417,124 +589,14 @@ class Publisher:
                 continue
             with self._lock:
                 self._sent[topic] += 1
-                self._bytes_sent += len(hbytes) + _nbytes(payload)
-
-
-def _nbytes(payload) -> int:
-    return payload.nbytes if isinstance(payload, np.ndarray) else len(payload)
+                self._bytes_sent += len(hbytes) + size
+                if not tracker.done:
+                    self._held.append((tracker, size))
+                    self._held_bytes += size
+                    self._held_peak = max(self._held_peak, self._held_bytes)
 
 
 # -------------------------------------------------------------------------------------- subscriber
-class MessageError(ValueError):
-    """A received message violates wire v1 (counted by `kind` and logged by `Subscriber`, never raised
-    out of it). `kind`: framing, topic, header_size, json, version, header, dtype, shape, layout,
-    payload_size."""
-
-    def __init__(self, kind: str, message: str):
-        self.kind = kind
-        super().__init__(message)
-
-
-def decode(frames: list, *, max_header_bytes: int = 65536, topics: Iterable[str] = TOPICS):
-    """Validate and decode one received multipart message → (topic, header, array).
-
-    ``frames`` are bytes or `zmq.Frame` objects. Raises `MessageError` naming what is wrong.
-    The array is a read-only view on the payload (no copy); ``gyro`` decodes to a structured array
-    with fields ``t`` (<f8) and ``rate`` (<f4, 3); ``health`` to an empty uint8 array.
-    """
-    if len(frames) != 3:
-        raise MessageError("framing", f"expected 3 frames [topic, header, payload], got {len(frames)}")
-    raw_topic, raw_header, payload = (f.buffer if isinstance(f, zmq.Frame) else memoryview(f) for f in frames)
-    topic = bytes(raw_topic).decode("ascii", "replace")
-    if topic not in topics:
-        raise MessageError("topic", f"topic {topic!r} is not one of {tuple(topics)}")
-    if raw_header.nbytes > max_header_bytes:
-        raise MessageError("header_size", f"{topic}: header is {raw_header.nbytes} bytes, "
-                                          f"limit {max_header_bytes}")
-    try:
-        header = json.loads(bytes(raw_header).decode("utf-8"), parse_constant=_reject_constant)
-    except RecursionError:  # "[[[[…": the bound on header bytes does not bound the nesting
-        raise MessageError("json", f"{topic}: header JSON is nested too deeply") from None
-    except (UnicodeDecodeError, ValueError) as e:
-        raise MessageError("json", f"{topic}: header is not UTF-8 JSON ({e})") from None
-    if not isinstance(header, dict):
-        raise MessageError("json", f"{topic}: header must be a JSON object, got {type(header).__name__}")
-    if type(header.get("v")) is not int or header["v"] != WIRE_VERSION:  # true == 1 in Python
-        raise MessageError("version", f"{topic}: header v={header.get('v')!r}, expected {WIRE_VERSION}")
-    seq = header.get("seq")
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-        raise MessageError("header", f"{topic}: header seq must be a non-negative integer, got {seq!r}")
-    for key in ("t", "published"):
-        if not _is_number(header.get(key)):
-            raise MessageError("header", f"{topic}: header {key!r} must be a number (s), "
-                                         f"got {header.get(key)!r}")
-    if not isinstance(header.get("deblurred"), bool):
-        raise MessageError("header", f"{topic}: header 'deblurred' must be true/false, "
-                                     f"got {header.get('deblurred')!r}")
-    shape = _shape(topic, "shape", header.get("shape"))
-    dtype = header.get("dtype")
-    if dtype == PACKED:
-        return topic, header, _decode_packed(topic, header, shape, payload)
-    if dtype not in ARRAY_DTYPES:
-        raise MessageError("dtype", f"{topic}: dtype {dtype!r} not allowed (expected one of {ARRAY_DTYPES})")
-    need = math.prod(shape) * np.dtype(dtype).itemsize
-    if need != payload.nbytes:
-        raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, shape {shape} × "
-                                           f"{dtype} needs {need}")
-    if topic in ("frame", "raw") and len(shape) != 2:
-        raise MessageError("shape", f"{topic}: shape must be [H, W], got {shape}")
-    array = np.frombuffer(payload, dtype=dtype).reshape(shape)
-    array.flags.writeable = False  # a view on ZeroMQ's message buffer
-    return topic, header, array
-
-
-def _decode_packed(topic: str, header: dict, shape: list, payload: memoryview) -> np.ndarray:
-    layout = header.get("layout")
-    if topic != "gyro" or not isinstance(layout, list) or len(shape) != 1:
-        raise MessageError("layout", f"{topic}: packed payload needs topic 'gyro', shape [N] and a layout")
-    n = shape[0]
-    parts, offset = {}, 0
-    for entry in layout:
-        if not (isinstance(entry, list) and len(entry) == 3):
-            raise MessageError("layout", f"{topic}: layout entries are [name, dtype, shape], got {entry!r}")
-        name, dt, sub = entry
-        if GYRO_LAYOUT_DTYPES.get(name) != dt:
-            raise MessageError("layout", f"{topic}: layout entry {name!r} must have dtype "
-                                         f"{GYRO_LAYOUT_DTYPES.get(name)!r}, got {dt!r}")
-        sub = _shape(topic, f"layout[{name}]", sub)
-        if not sub or sub[0] != n or (name == "rate" and sub[1:] != [3]) or (name == "t" and len(sub) != 1):
-            raise MessageError("layout", f"{topic}: layout {name} shape {sub} does not fit {n} samples")
-        size = math.prod(sub) * np.dtype(dt).itemsize
-        if offset + size > payload.nbytes:
-            raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, "
-                                               "layout needs more")
-        parts[name] = np.frombuffer(payload, dtype=dt, count=math.prod(sub), offset=offset).reshape(sub)
-        offset += size
-    if offset != payload.nbytes or set(parts) != set(GYRO_LAYOUT_DTYPES):
-        raise MessageError("payload_size", f"{topic}: layout {[e[0] for e in layout]} covers {offset} of "
-                                           f"{payload.nbytes} payload bytes; expected exactly t and rate")
-    out = np.empty(n, dtype=[("t", "<f8"), ("rate", "<f4", (3,))])
-    out["t"], out["rate"] = parts["t"], parts["rate"]
-    out.flags.writeable = False
-    return out
-
-
-def _reject_constant(name):
-    raise ValueError(f"non-standard JSON constant {name}")
-
-
-def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _shape(topic, key, shape) -> list:
-    if not (isinstance(shape, list) and len(shape) <= 4
-            and all(isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**31 for s in shape)):
-        raise MessageError("shape", f"{topic}: header {key!r} must be a list of ≤ 4 non-negative ints, "
-                                    f"got {shape!r}")
-    return shape
-
-
 class Subscriber:
     """Wire-v1 SUB client: validated ``(topic, header, array)`` messages, seq gaps counted per topic.
 
@@ -550,6 +612,10 @@ class Subscriber:
         This client's certificate (``*.key_secret``); a throwaway key pair is made if omitted.
     max_header_bytes : int
         Larger headers are rejected.
+    max_message_bytes : int
+        The largest frame (payload) this subscriber expects, default a 4096 × 4096 float32 image.
+        Set as ZMQ_MAXMSGSIZE: a publisher that announces a larger frame is disconnected on its
+        size prefix, before the frame's bytes are received.
     context : zmq.Context, optional
         Share a context (needed for ``inproc://`` endpoints); by default the subscriber owns one.
     rcvhwm : int
@@ -557,19 +623,25 @@ class Subscriber:
         and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
 
     Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
-    (`MessageError.kind` → count of rejected messages), ``restarts`` (seq went backwards: the
+    (`MessageError.kind` → count of rejected messages), ``disconnects`` (connections dropped, e.g. by a
+    frame above ``max_message_bytes``; each is redialled), ``restarts`` (seq went backwards: the
     publisher restarted). Each returned header gains ``received`` (host monotonic at receipt).
     Like any ZeroMQ socket, a Subscriber belongs to one thread.
     """
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, topics: Iterable[str] = ("frame",), *,
-                 curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = 65536,
-                 rcvhwm: int = 1000, context: zmq.Context | None = None):
+                 curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = MAX_HEADER_BYTES,
+                 max_message_bytes: int = MAX_PAYLOAD_BYTES, rcvhwm: int = 1000,
+                 context: zmq.Context | None = None):
+        check_endpoint(endpoint, "subscriber endpoint")
         self.topics = tuple(topics)
         unknown = [t for t in self.topics if t not in TOPICS]
         if unknown or not self.topics:
             raise ValueError(f"topics must be a non-empty subset of {TOPICS}, got {self.topics}")
         self.endpoint, self.max_header_bytes = endpoint, int(max_header_bytes)
+        if max_message_bytes < 1:
+            raise ValueError("max_message_bytes must be positive")
+        self.max_message_bytes = int(max_message_bytes)
         self.gaps = collections.Counter()
         self.received = collections.Counter()
         self.restarts = collections.Counter()
@@ -578,8 +650,14 @@ class Subscriber:
         self._own_ctx = context is None
         self._ctx = zmq.Context() if context is None else context
         self._sock = self._ctx.socket(zmq.SUB)
+        self._monitor = None
+        self._poller = zmq.Poller()
+        self.disconnects = 0
+        self._redial_pending = False
         try:
             self._sock.setsockopt(zmq.RCVHWM, int(rcvhwm))
+            # checked per frame against its size prefix; the header is bounded by max_header_bytes
+            self._sock.setsockopt(zmq.MAXMSGSIZE, max(self.max_message_bytes, self.max_header_bytes))
             self._sock.setsockopt(zmq.LINGER, 0)
             if curve_server_key is not None:
                 self._sock.curve_serverkey = _load_public_key(curve_server_key)
@@ -591,6 +669,9 @@ class Subscriber:
             for t in self.topics:
                 self._sock.setsockopt(zmq.SUBSCRIBE, t.encode())
             self._sock.connect(endpoint)
+            self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+            self._poller.register(self._sock, zmq.POLLIN)
+            self._poller.register(self._monitor, zmq.POLLIN)
         except zmq.ZMQError as e:
             self.close()
             raise TransportError(f"cannot connect subscriber to {endpoint}: {e}") from None
@@ -604,7 +685,12 @@ class Subscriber:
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             wait_ms = 200 if deadline is None else max(0, int((deadline - time.monotonic()) * 1000))
-            if not self._sock.poll(wait_ms):
+            ready = dict(self._poller.poll(wait_ms))
+            if self._monitor in ready:
+                self._count_disconnects()
+            if self._sock not in ready:
+                if self._redial_pending:  # only when idle: libzmq aborts if a pipe goes mid-message
+                    self._redial()
                 if deadline is not None and time.monotonic() >= deadline:
                     return None
                 continue
@@ -621,6 +707,27 @@ class Subscriber:
             header["received"] = time.monotonic()
             self._track(topic, header["seq"])
             return topic, header, array
+
+    def _count_disconnects(self) -> None:
+        while self._monitor.poll(0):
+            self._monitor.recv_multipart()
+            self.disconnects += 1
+            self._redial_pending = True
+
+    def _redial(self) -> None:
+        """The connection dropped. ZeroMQ retries by itself after a network fault, but not after a
+        protocol error such as a frame above MAXMSGSIZE; dial again in both cases, replacing its
+        retry so that exactly one connection remains."""
+        self._redial_pending = False
+        if self.disconnects <= 10 or self.disconnects % 1000 == 0:
+            log.warning("connection to %s dropped (#%d: a frame above max_message_bytes=%d, or the "
+                        "publisher went away); reconnecting", self.endpoint, self.disconnects,
+                        self.max_message_bytes)
+        try:
+            self._sock.disconnect(self.endpoint)
+        except zmq.ZMQError:
+            pass  # already gone
+        self._sock.connect(self.endpoint)
 
     def _track(self, topic: str, seq: int) -> None:
         last = self._last_seq.get(topic)
@@ -639,6 +746,10 @@ class Subscriber:
                 yield msg
 
     def close(self) -> None:
+        if self._monitor is not None and not self._sock.closed:
+            self._sock.disable_monitor()
+            self._monitor.close(linger=0)
+            self._monitor = None
         if not self._sock.closed:
             self._sock.close(linger=0)
         if self._own_ctx:
