@@ -100,11 +100,18 @@ class Fault:
 
 def schedule(seconds: float, seed: int = 0, *, gap_s=(1.0, 3.0), quiet_s: float = 4.0) -> list[Fault]:
     """A fault every U(gap_s) seconds until ``seconds − quiet_s`` (the end is left quiet so every
-    fault has ended before the daemon is checked), kinds drawn uniformly from `KINDS`."""
+    fault has ended before the daemon is checked). Kinds are dealt from shuffled rounds of `KINDS`
+    (bad reloads twice per round, their variants from shuffled rounds of `BAD_CONFIGS`), so a short
+    soak still meets every kind."""
     rng = random.Random(seed)
+
+    def dealer(items):
+        while True:
+            yield from rng.sample(items, len(items))
+    kinds, variants = dealer((*KINDS, "reload_bad")), dealer(BAD_CONFIGS)
     out, t = [], rng.uniform(*gap_s)
     while t < seconds - quiet_s:
-        kind = rng.choice(KINDS)
+        kind = next(kinds)
         arg = {"gyro_unplug": lambda: round(rng.uniform(0.2, 1.0), 2),
                "gyro_nack": lambda: rng.randint(1, 5),
                "fifo_overflow": lambda: round(rng.uniform(0.3, 0.8), 2),   # > 256 samples at 1 kHz
@@ -113,7 +120,7 @@ def schedule(seconds: float, seed: int = 0, *, gap_s=(1.0, 3.0), quiet_s: float 
                "camera_disconnect": lambda: round(rng.uniform(0.2, 1.5), 2),
                "reload_good": lambda: (round(rng.uniform(0.0075, 0.0090), 5),       # tau_s, lambda
                                        round(rng.uniform(500, 5000), 1)),
-               "reload_bad": lambda: (rng.choice(BAD_CONFIGS), rng.randrange(1 << 30)),
+               "reload_bad": lambda: (next(variants), rng.randrange(1 << 30)),
                "stalled_subscribers": lambda: rng.randint(0, 4),
                "subscriber_churn": lambda: round(rng.uniform(0.3, 3.0), 2)}[kind]()
         out.append(Fault(round(t, 3), kind, arg))
@@ -388,10 +395,13 @@ def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, wor
             withheld += not all(h["threads"].values())
             thread_deaths.update(_dead_threads(d))
             time.sleep(0.2)
-        t_faults_end = time.monotonic()
-        # the end was left quiet (schedule's quiet_s): the daemon must be publishing and deblurring
-        quiet_from = t_faults_end - 1.5
-        published_quiet, deblurred_quiet = acct.since(quiet_from)
+        # after the last fault: both devices running again and frames deblurred again (the gyro's
+        # retry back-off can reach retry_max_s per failed attempt, so this may take several seconds)
+        recovered = _wait(lambda: d.gyro_state.state == d.camera_state.state == "running"
+                          and acct.since(time.monotonic() - 0.5)[1] > 0, 20.0, step=0.1)
+        t_checked = time.monotonic()
+        recovery_s = t_checked - (t0 + (plan[-1].at if plan else 0.0))
+        published_quiet, deblurred_quiet = acct.since(time.monotonic() - 1.5)
         rss1 = rss_mb()
         h_end = d.health()
         alive = serve.is_alive() and all(h_end["threads"].values())
@@ -411,8 +421,8 @@ def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, wor
         if tmp is not None:
             tmp.cleanup()
     return _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld,
-                   notify.longest_gap(t0, t_faults_end), len(notify.pings(t0)), rss0, rss1, alive,
-                   published_quiet, deblurred_quiet, drained, watchdog_s)
+                   notify.longest_gap(t0, t_checked), len(notify.pings(t0)), rss0, rss1, alive,
+                   published_quiet, deblurred_quiet, drained, watchdog_s, recovered, recovery_s)
 
 
 def _inject(f: Fault, payload, gyro: HiccupGyro, camera, crowd: SubscriberCrowd) -> None:
@@ -501,7 +511,8 @@ def _drain(d: Daemon, acct: AccountingSubscriber, timeout: float = 20.0) -> bool
 
 
 def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld, wd_gap, wd_pings,
-            rss0, rss1, alive, published_quiet, deblurred_quiet, drained, watchdog_s) -> dict:
+            rss0, rss1, alive, published_quiet, deblurred_quiet, drained, watchdog_s, recovered,
+            recovery_s) -> dict:
     pc = h["pipeline"]["counters"]
     drops = h["drops"]
     written = d.camera_state.items
@@ -509,11 +520,14 @@ def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, wi
     delivered = written + rejected
     published = acct.count()
     seq_gaps = acct.gaps + (acct.seqs[0] if acct.seqs else 0)       # frames the subscriber never saw
-    pub_dropped = int(drops.get("publish_queue_dropped", 0))
+    pub = d.publisher.stats()
+    # the publisher's drops (hand-off queue overflow: any topic; byte budget, a header it could not
+    # send: per frame) are seq gaps on the wire; only gaps it counted are named
+    pub_counted = (int(pub.get("budget_dropped", {}).get("frame", 0)) + int(pub.get("queue_dropped", 0))
+                   + int(pub.get("send_errors", 0)))
     named = {"frames_overrun": int(pc.get("frames_overrun", 0)), "camera_items_rejected": rejected,
              "emit_errors": int(pc.get("emit_errors", 0)),
-             # a publisher queue drop is a seq gap; only gaps it counted are named
-             "publish_queue_dropped": min(seq_gaps, pub_dropped)}
+             "publisher_dropped": min(seq_gaps, pub_counted)}
     in_flight = written - int(pc.get("frames_out", 0)) - named["frames_overrun"]
     unaccounted = delivered - published - sum(named.values())
     ids = acct.frame_ids
@@ -546,12 +560,14 @@ def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, wi
                     "dead": sorted(thread_deaths), "workers_replaced": int(pc.get("workers_replaced", 0)),
                     "watchdog_withheld_samples": withheld},
         "watchdog": {"pings": wd_pings, "longest_gap_s": round(wd_gap, 3), "watchdog_sec": watchdog_s},
-        "end": {"alive": alive, "published_last_1.5s": published_quiet,
+        "end": {"alive": alive, "recovered": recovered, "recovery_s": round(recovery_s, 2),
+                "published_last_1.5s": published_quiet,
                 "deblurred_last_1.5s": deblurred_quiet,
                 "gyro": h["devices"]["gyro"]["state"], "camera_restarts": d.camera_state.restarts,
                 "gyro_outages": d.counters["gyro_outages"]},
         "subscribers": {"churned": crowd.churned, "churn_received": crowd.churn_received,
-                        "publisher": h.get("publisher", {})},
+                        "publisher": {k: pub[k] for k in ("queue_dropped", "budget_dropped", "send_errors",
+                                                          "held_peak_bytes", "hwm") if k in pub}},
         "drops": {k: v for k, v in drops.items() if v},
     }
 
@@ -581,8 +597,10 @@ def table(r: dict) -> str:
              + f"; watchdog withheld in {th['watchdog_withheld_samples']} samples"),
             ("watchdog pings: longest gap", f"{wd['longest_gap_s']:.2f} s over {wd['pings']} pings "
                                             f"(WatchdogSec {wd['watchdog_sec']:g})"),
-            ("at the end", f"alive {r['end']['alive']}, {r['end']['published_last_1.5s']} frames published "
-                           f"in the last 1.5 s"),
+            ("at the end", f"alive {r['end']['alive']}; "
+                           + (f"deblurring again {r['end']['recovery_s']:.1f} s after the last fault, "
+                              if r["end"]["recovered"] else "NOT deblurring again, ")
+                           + f"{r['end']['published_last_1.5s']} frames published in the last 1.5 s"),
             ("subscribers that came and left", f"{r['subscribers']['churned']}")]
     if rl["problems"]:
         rows.append(("reload problems", "; ".join(rl["problems"])))
