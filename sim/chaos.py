@@ -212,6 +212,7 @@ class AccountingSubscriber(threading.Thread):
         self.reasons = collections.Counter()      # None = deblurred
         self.camera_gaps = 0
         self.gaps = 0
+        self.gap_events: list[tuple[float, int]] = []    # (host time, frames missing before it)
         self.errors = collections.Counter()
         self.ready = threading.Event()
         self._halt = threading.Event()
@@ -229,7 +230,9 @@ class AccountingSubscriber(threading.Thread):
                     self.deblurred.append(bool(h["deblurred"]))
                     self.reasons[None if h["deblurred"] else h.get("reason")] += 1
                     self.camera_gaps += int(h.get("camera_gap_before") or 0)
-                self.gaps = int(sub.gaps["frame"])
+                if sub.gaps["frame"] != self.gaps:
+                    self.gap_events.append((time.monotonic(), int(sub.gaps["frame"]) - self.gaps))
+                    self.gaps = int(sub.gaps["frame"])
             self.errors.update(sub.errors)
 
     def count(self) -> int:
@@ -422,7 +425,7 @@ def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, wor
             tmp.cleanup()
     return _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld,
                    notify.longest_gap(t0, t_checked), len(notify.pings(t0)), rss0, rss1, alive,
-                   published_quiet, deblurred_quiet, drained, watchdog_s, recovered, recovery_s)
+                   published_quiet, deblurred_quiet, drained, watchdog_s, recovered, recovery_s, t0)
 
 
 def _inject(f: Fault, payload, gyro: HiccupGyro, camera, crowd: SubscriberCrowd) -> None:
@@ -512,24 +515,27 @@ def _drain(d: Daemon, acct: AccountingSubscriber, timeout: float = 20.0) -> bool
 
 def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld, wd_gap, wd_pings,
             rss0, rss1, alive, published_quiet, deblurred_quiet, drained, watchdog_s, recovered,
-            recovery_s) -> dict:
+            recovery_s, t0) -> dict:
     pc = h["pipeline"]["counters"]
     drops = h["drops"]
     written = d.camera_state.items
     rejected = int(drops.get("camera_items_rejected", 0))
     delivered = written + rejected
-    published = acct.count()
-    seq_gaps = acct.gaps + (acct.seqs[0] if acct.seqs else 0)       # frames the subscriber never saw
     pub = d.publisher.stats()
-    # the publisher's drops (hand-off queue overflow: any topic; byte budget, a header it could not
-    # send: per frame) are seq gaps on the wire; only gaps it counted are named
+    # published = handed to ZeroMQ by the publisher; what it did not send (hand-off queue overflow,
+    # byte budget, a header it could not encode) is named only as far as its counters cover it
+    published, queued = int(pub["sent"]["frame"]), int(pub["queued"]["frame"])
     pub_counted = (int(pub.get("budget_dropped", {}).get("frame", 0)) + int(pub.get("queue_dropped", 0))
                    + int(pub.get("send_errors", 0)))
     named = {"frames_overrun": int(pc.get("frames_overrun", 0)), "camera_items_rejected": rejected,
              "emit_errors": int(pc.get("emit_errors", 0)),
-             "publisher_dropped": min(seq_gaps, pub_counted)}
+             "publisher_dropped": min(queued - published, pub_counted)}
     in_flight = written - int(pc.get("frames_out", 0)) - named["frames_overrun"]
     unaccounted = delivered - published - sum(named.values())
+    # the accounting subscriber: every frame sent must arrive; a sent frame that did not was dropped
+    # by ZeroMQ at the per-subscriber SNDHWM (PUB drops silently: the daemon cannot count it)
+    received = acct.count()
+    seq_gaps = acct.gaps + (acct.seqs[0] if acct.seqs else 0)       # frames the subscriber never saw
     ids = acct.frame_ids
     duplicates = len(ids) - len(set(ids))
     span = max(ids) - min(ids) + 1 if ids else 0
@@ -547,14 +553,16 @@ def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, wi
                    "sensor": delivered + int(drops.get("camera_frames_lost", 0)),
                    "delivered": delivered, "published": published, "dropped": named,
                    "in_flight": in_flight, "drained": drained, "unaccounted": unaccounted,
+                   "received": received, "wire_lost": published - received,
+                   "wire_gaps_at_s": [(round(t - t0, 1), n) for t, n in acct.gap_events[:20]],
                    "seq_gaps": seq_gaps, "duplicates": duplicates, "ids_spanned": span,
                    "ids_missing": span - len(set(ids)),
                    "ids_unexplained": span - len(set(ids)) - int(drops.get("camera_frames_lost", 0))
-                   - sum(named.values()),
+                   - sum(named.values()) - (published - received),
                    "subscriber_errors": dict(acct.errors)},
         "passthrough": passthrough,
         "published_by_reason": {("deblurred" if k is None else k): v for k, v in acct.reasons.items()},
-        "deblurred_share": deblurred / published if published else 0.0,
+        "deblurred_share": deblurred / received if received else 0.0,
         "rss_mb": {"start": round(rss0, 1), "end": round(rss1, 1), "growth": round(rss1 - rss0, 1)},
         "threads": {"deaths": len(thread_deaths) + int(pc.get("workers_replaced", 0)),
                     "dead": sorted(thread_deaths), "workers_replaced": int(pc.get("workers_replaced", 0)),
@@ -588,7 +596,10 @@ def table(r: dict) -> str:
             ("frame ids missing from the stream", f"{f['ids_missing']} of {f['ids_spanned']}; not camera "
                                                   f"losses or drops: {f['ids_unexplained']}"),
             ("unaccounted", f"{f['unaccounted']}" + ("" if f["drained"] else " (pipeline not drained)")),
-            ("subscriber seq gaps / duplicate ids", f"{f['seq_gaps']} / {f['duplicates']}"),
+            ("accounting subscriber: received", f"{f['received']} of {f['published']} published; seq gaps "
+                                                f"{f['seq_gaps']}, duplicate ids {f['duplicates']}"
+             + (f"; lost on the wire (ZeroMQ HWM, uncounted) {f['wire_lost']} at "
+                + ", ".join(f"{t} s ({n})" for t, n in f["wire_gaps_at_s"]) if f["wire_lost"] else "")),
             ("published: deblurred share", f"{r['deblurred_share']:.1%}"),
             ("passthrough reasons", _pairs(r["passthrough"]) or "none"),
             ("RSS start → end (MB)", f"{r['rss_mb']['start']:.0f} → {r['rss_mb']['end']:.0f} "
