@@ -4,7 +4,7 @@ stalled or churning subscribers: one every 1–3 s; see `thermod.sim.chaos`). Pr
 camera frame published or counted under a reason, passthrough reasons, RSS at start and end, thread
 deaths, the longest gap between watchdog pings, faults by kind and reloads applied/refused.
 
-    .venv/bin/python benchmarks/bench_chaos.py [--minutes 10] [--seed 0] [--method kf] [--quick] [--json F]
+    .venv/bin/python benchmarks/bench_chaos.py [--minutes 10] [--seed 0] [--method kf] [--set K=V] [--quick]
 
 Targets: unaccounted 0, nothing lost on the wire to a subscriber that keeps up, thread deaths 0,
 every bad reload refused and every good one applied, longest watchdog gap < WatchdogSec
@@ -19,6 +19,7 @@ import logging
 import sys
 from pathlib import Path
 
+from thermod.runtime import config
 from thermod.sim import chaos
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,6 +52,8 @@ def main(argv=None) -> int:
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--method", default=None, help="deblur.method (default: the shipped configuration's)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a configuration override, as `thermod run --set` (repeatable)")
     ap.add_argument("--quick", action="store_true", help="1 minute, Wiener")
     ap.add_argument("--json", type=Path, help="also write the result dict here")
     ap.add_argument("-v", "--verbose", action="store_true", help="print each fault as it is injected")
@@ -59,8 +62,11 @@ def main(argv=None) -> int:
         args.minutes, args.method = 1.0, args.method or "wiener"
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s %(name)s: %(message)s")
     watchdog_s = chaos.unit_watchdog_s(REPO / "systemd" / "thermod.service")
+    overrides = dict(config.parse_override(x) for x in args.set)
     r = chaos.run(args.minutes * 60.0, seed=args.seed, method=args.method, watchdog_s=watchdog_s,
-                  log=print if args.verbose else None)
+                  overrides=overrides, log=print if args.verbose else None)
+    if overrides:
+        print("overrides:", overrides)
     print(chaos.table(r))
     if args.json:
         args.json.write_text(json.dumps(r, indent=1, default=str))

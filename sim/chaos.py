@@ -338,16 +338,17 @@ class _Reloads:
 
 # ------------------------------------------------------------------------------------ the soak
 def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, workdir=None,
-        watchdog_s: float = 5.0, log=None) -> dict:
+        watchdog_s: float = 5.0, overrides: dict | None = None, log=None) -> dict:
     """Run the daemon for `seconds` under the faults of `schedule(seconds, seed)`; return the result
     dict (see `table`). ``method``: deblur.method (None = the shipped default); ``watchdog_s``: the
-    unit's WatchdogSec (the daemon pings at half of it, at most every second); ``log``: a callable
+    unit's WatchdogSec (the daemon pings at half of it, at most every second); ``overrides``: more
+    ``{"section.key": value}`` settings, as ``thermod run --set`` (they survive reloads); ``log``: a callable
     given one line per fault (progress)."""
     say = log or (lambda line: None)
     tmp = tempfile.TemporaryDirectory(prefix="thermod-chaos-") if workdir is None else None
     work = Path(tmp.name if tmp else workdir)
     ep = f"tcp://127.0.0.1:{_free_port()}"
-    overrides = {"publish.endpoint": ep}
+    overrides = {**(overrides or {}), "publish.endpoint": ep}
     if method:
         overrides["deblur.method"] = method
     cfg_path = work / "chaos.toml"
