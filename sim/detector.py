@@ -131,8 +131,45 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     progress: optional callable(n_frames_done) for a progress bar.
     """
     t_frames = np.asarray(frame_times, dtype=np.float64)
-    n, H, W = len(t_frames), int(calib.height), int(calib.width)
-    if n == 0:
+    _check_render_args(t_frames, calib, kind, step_px, history_tau)
+    if kind == "photon":
+        exposure_s = _photon_exposure(calib, exposure_s)
+    t_begin = _integration_start(t_frames, traj, calib, kind, exposure_s, history_tau)
+    sigma = _psf_sigma(calib, psf_sigma_px)
+
+    cam = _Camera(calib)
+    rows_t = row_read_time(t_frames[:, None], np.arange(cam.H)[None, :], float(calib.readout_s), cam.H)
+    if kind == "thermal":
+        detector = _ThermalDetector(scene.view(traj.R(t_begin)[0], cam.K, cam.W, cam.H), rows_t,
+                                    float(calib.tau_s))
+    else:
+        detector = _PhotonDetector(rows_t, exposure_s, cam.W)
+    n = len(t_frames)
+    sharp = np.empty((n, cam.H, cam.W), np.float32)
+    sharp_rolling = np.empty((n, cam.H, cam.W), np.float32) if calib.readout_s > 0 else None
+    n_steps, max_step = 0, 0.0
+
+    edges = np.r_[t_begin, t_frames]
+    for k in range(n):
+        for a, b in _canvas_segments(cam, calib, traj, edges[k], edges[k + 1]):
+            t_bounds = _fine_steps(calib, traj, a, b, step_px)
+            seg = _Segment.plan(scene, traj, cam, t_bounds)
+            max_step = max(max_step, cam.step_motion_px(seg.Q))
+            for j in range(len(t_bounds) - 1):
+                detector.step(seg.view(cam, j), t_bounds[j], t_bounds[j + 1])
+            n_steps += len(t_bounds) - 1
+        sharp[k] = seg.frame_view(cam)
+        if sharp_rolling is not None:
+            sharp_rolling[k] = scene.rolling_view(traj.R(rows_t[k]), cam.K, cam.W)
+        if progress is not None:
+            progress(k + 1)
+    return Rendered(_apply_psf(detector.out, sigma), sharp, sharp_rolling, n_steps, max_step)
+
+
+def _check_render_args(t_frames: np.ndarray, calib: Calibration, kind: str, step_px: float,
+                       history_tau: float) -> None:
+    """Reject frame times, detector kinds, step sizes and readouts the renderer cannot honour."""
+    if len(t_frames) == 0:
         raise ThermodError("detector: no frame times to render")
     if np.any(np.diff(t_frames) <= 0):
         raise ThermodError("detector: frame times must be strictly increasing")
@@ -141,109 +178,194 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     if not 0 < step_px <= 8:
         raise ThermodError(f"detector: step_px must be in (0, 8], got {step_px}")
     tau, ro = float(calib.tau_s), float(calib.readout_s)
-    period = float(np.min(np.diff(t_frames))) if n > 1 else math.inf
+    period = float(np.min(np.diff(t_frames))) if len(t_frames) > 1 else math.inf
     if ro < 0 or ro >= period:
         raise ThermodError(f"detector: readout_s = {ro} must be ≥ 0 and shorter than the frame period "
                            f"{period}")
     if kind == "thermal" and (tau < 0 or history_tau < 5):
         raise ThermodError(f"detector: need tau_s ≥ 0 and history_tau ≥ 5 (got {tau}, {history_tau})")
-    if kind == "photon":
-        if exposure_s is None:
-            exposure_s = default_photon_exposure_s(calib.frame_rate_hz)
-        exposure_s = float(exposure_s)
-        if not 0 < exposure_s:
-            raise ThermodError(f"detector: exposure_s must be > 0, got {exposure_s}")
-        lead = exposure_s + ro
-    else:
-        lead = history_tau * tau + ro
+
+
+def _photon_exposure(calib: Calibration, exposure_s: float | None) -> float:
+    """The photon detector's exposure (s): as given, else one frame period (Eq. 2)."""
+    if exposure_s is None:
+        exposure_s = default_photon_exposure_s(calib.frame_rate_hz)
+    exposure_s = float(exposure_s)
+    if not 0 < exposure_s:
+        raise ThermodError(f"detector: exposure_s must be > 0, got {exposure_s}")
+    return exposure_s
+
+
+def _integration_start(t_frames: np.ndarray, traj: Trajectory, calib: Calibration, kind: str,
+                       exposure_s: float | None, history_tau: float) -> float:
+    """When integration starts: before the first row of the first frame by `history_tau`·τ (thermal:
+    a settled detector) or by the exposure (photon); the trajectory must cover it."""
+    ro = float(calib.readout_s)
+    lead = exposure_s + ro if kind == "photon" else history_tau * float(calib.tau_s) + ro
     t_begin = t_frames[0] - lead - 1e-6
     if t_begin < traj.t_start or t_frames[-1] > traj.t_end:
         raise ThermodError(f"detector: trajectory covers [{traj.t_start}, {traj.t_end}] but rendering "
                            f"needs [{t_begin}, {t_frames[-1]}]")
+    return t_begin
 
-    K = calib.K
-    K_inv = np.linalg.inv(K)
-    corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
-    rows_t = row_read_time(t_frames[:, None], np.arange(H)[None, :], ro, H)   # [n, H]
-    out = np.zeros((n, H, W), np.float32)
-    sharp = np.empty((n, H, W), np.float32)
-    sharp_rolling = np.empty((n, H, W), np.float32) if ro > 0 else None
 
-    B = scene.view(traj.R(t_begin)[0], K, W, H) if kind == "thermal" else None
-    cap_k, cap_r = 0, 0            # next (frame, row) to capture (thermal)
-    n_steps, max_step = 0, 0.0
-    tmp = np.empty((H, W), np.float32)
-
-    # Segments: frame intervals, split so that no canvas has to span more than half the image of travel.
-    edges = np.r_[t_begin, t_frames]
-    for k in range(n):
-        a0, b0 = edges[k], edges[k + 1]
-        speed = image_speed_bound(calib, traj.max_rate(a0, b0))
-        n_sub = max(1, int(math.ceil(speed * (b0 - a0) / (0.5 * min(W, H)))))
-        sub = np.linspace(a0, b0, n_sub + 1)
-        for s in range(n_sub):
-            a, b = sub[s], sub[s + 1]
-            sp = image_speed_bound(calib, traj.max_rate(a, b))
-            n_st = max(1, int(math.ceil(sp * (b - a) / step_px)))
-            tb = np.linspace(a, b, n_st + 1)
-            tm = 0.5 * (tb[:-1] + tb[1:])
-            R_ref = traj.R(b)[0]
-            Q = np.einsum("ji,njk->nik", R_ref, traj.R(tm))          # Q_j = R_refᵀ R(t_j)
-            Hs = K @ Q @ K_inv                                       # view pixel → reference-view pixel
-            pc = np.einsum("nij,jc->nic", Hs, corners)
-            pc = pc[:, :2] / pc[:, 2:3]
-            if np.any(~np.isfinite(pc)) or np.abs(pc).max() > 1e5:
-                raise ThermodError("detector: a view turned more than 90° within one frame interval; "
-                                   "raise the frame rate or slow the motion")
-            x0 = int(math.floor(min(pc[:, 0].min(), 0))) - 3
-            y0 = int(math.floor(min(pc[:, 1].min(), 0))) - 3
-            x1 = int(math.ceil(max(pc[:, 0].max(), W - 1))) + 4
-            y1 = int(math.ceil(max(pc[:, 1].max(), H - 1))) + 4
-            K_c = K.copy()
-            K_c[0, 2] -= x0
-            K_c[1, 2] -= y0
-            canvas = scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1)
-            if n_st > 1:    # image motion between consecutive views, in the view, at the corners
-                Hrel = K @ np.einsum("nji,njk->nik", Q[:-1], Q[1:]) @ K_inv
-                pr = np.einsum("nij,jc->nic", Hrel, corners)
-                d = np.hypot(*(pr[:, :2] / pr[:, 2:3] - corners[None, :2]).transpose(1, 0, 2)).max()
-                max_step = max(max_step, float(d))
-            for j in range(n_st):
-                Hj = K_c @ Q[j] @ K_inv
-                S = cv2.warpPerspective(canvas, Hj, (W, H), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                        borderMode=cv2.BORDER_REPLICATE)
-                ta, tz = tb[j], tb[j + 1]
-                if kind == "thermal":
-                    # capture the rows read during (ta, tz]: exact exponential approach within the step
-                    while cap_k < n and rows_t[cap_k][cap_r] <= tz:
-                        rt = rows_t[cap_k]
-                        r1 = int(np.searchsorted(rt, tz, side="right"))
-                        g = iir_alpha(rt[cap_r:r1] - ta, tau).astype(np.float32)[:, None]
-                        out[cap_k, cap_r:r1] = B[cap_r:r1] + g * (S[cap_r:r1] - B[cap_r:r1])
-                        cap_r = r1
-                        if cap_r >= H:
-                            cap_k, cap_r = cap_k + 1, 0
-                    alpha = iir_alpha(tz - ta, tau)
-                    np.subtract(S, B, out=tmp)
-                    tmp *= np.float32(alpha)
-                    B += tmp
-                else:
-                    _photon_accumulate(out, S, rows_t, exposure_s, ta, tz)
-                n_steps += 1
-            if s == n_sub - 1:
-                sharp[k] = canvas[-y0:-y0 + H, -x0:-x0 + W]
-                if sharp_rolling is not None:
-                    sharp_rolling[k] = scene.rolling_view(traj.R(rows_t[k]), K, W)
-        if progress is not None:
-            progress(k + 1)
-
+def _psf_sigma(calib: Calibration, psf_sigma_px: float | None) -> float:
+    """The optical PSF σ in px (Eq. 19): as given, else the calibration's."""
     sigma = calib.psf_sigma_px if psf_sigma_px is None else float(psf_sigma_px)
     if sigma < 0:
         raise ThermodError(f"detector: PSF sigma must be ≥ 0 px, got {sigma}")
+    return sigma
+
+
+def _apply_psf(frames: np.ndarray, sigma: float) -> np.ndarray:
+    """Blur every frame in place with the Gaussian optical PSF (Eq. 19); returns `frames`."""
     if sigma > 0:
-        for k in range(n):
-            out[k] = gaussian_psf(out[k], sigma)
-    return Rendered(out, sharp, sharp_rolling, n_steps, max_step)
+        for k in range(len(frames)):
+            frames[k] = gaussian_psf(frames[k], sigma)
+    return frames
+
+
+class _Camera:
+    """The detector's pinhole geometry: K, K⁻¹, size and the image corners (homogeneous, [3, 4])."""
+
+    def __init__(self, calib: Calibration):
+        self.W, self.H = int(calib.width), int(calib.height)
+        self.K = calib.K
+        self.K_inv = np.linalg.inv(self.K)
+        W, H = self.W, self.H
+        self.corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+
+    def map_corners(self, Hs: np.ndarray) -> np.ndarray:
+        """The image corners mapped by each homography of Hs [n, 3, 3] → pixels [n, 2, 4]."""
+        p = np.einsum("nij,jc->nic", Hs, self.corners)
+        return p[:, :2] / p[:, 2:3]
+
+    def step_motion_px(self, Rs: np.ndarray) -> float:
+        """Largest image motion (px, at the corners) between consecutive orientations Rs [n, 3, 3]
+        (Eq. 16 with Q = R_{j}ᵀ R_{j+1}); 0 for a single orientation."""
+        if len(Rs) < 2:
+            return 0.0
+        Hrel = self.K @ np.einsum("nji,njk->nik", Rs[:-1], Rs[1:]) @ self.K_inv
+        d = self.map_corners(Hrel) - self.corners[None, :2]
+        return float(np.hypot(*d.transpose(1, 0, 2)).max())
+
+
+def _canvas_segments(cam: _Camera, calib: Calibration, traj: Trajectory, a0: float, b0: float):
+    """Split the interval (a0, b0] into segments over which the image travels at most half the
+    frame, so that one canvas holds every view of a segment; returns [(a, b), …]."""
+    speed = image_speed_bound(calib, traj.max_rate(a0, b0))
+    n_sub = max(1, int(math.ceil(speed * (b0 - a0) / (0.5 * min(cam.W, cam.H)))))
+    sub = np.linspace(a0, b0, n_sub + 1)
+    return list(zip(sub[:-1], sub[1:], strict=True))
+
+
+def _fine_steps(calib: Calibration, traj: Trajectory, a: float, b: float, step_px: float) -> np.ndarray:
+    """Step boundaries over (a, b] such that the image moves ≤ `step_px` per step anywhere in the
+    frame (Eq. 12: h ≤ IFOV / ω)."""
+    speed = image_speed_bound(calib, traj.max_rate(a, b))
+    n_steps = max(1, int(math.ceil(speed * (b - a) / step_px)))
+    return np.linspace(a, b, n_steps + 1)
+
+
+@dataclass
+class _Segment:
+    """One canvas and the rotations that warp it into each fine step's view.
+
+    The canvas is the pinhole view at the segment end's orientation R_ref = R(b), with intrinsics
+    K_c (K shifted by the canvas origin (x0, y0) in view pixels), large enough to hold every view;
+    Q[j] = R_refᵀ R(t_j) at step j's mid time (Eq. 16)."""
+
+    canvas: np.ndarray
+    K_c: np.ndarray
+    Q: np.ndarray
+    x0: int
+    y0: int
+
+    @classmethod
+    def plan(cls, scene: SphereScene, traj: Trajectory, cam: _Camera, t_bounds: np.ndarray) -> _Segment:
+        """Sample the canvas for the steps bounded by `t_bounds` (one cv2.remap from the sphere)."""
+        t_mid = 0.5 * (t_bounds[:-1] + t_bounds[1:])
+        R_ref = traj.R(t_bounds[-1])[0]
+        Q = np.einsum("ji,njk->nik", R_ref, traj.R(t_mid))          # Q_j = R_refᵀ R(t_j)
+        pc = cam.map_corners(cam.K @ Q @ cam.K_inv)                  # view corners in the reference view
+        if np.any(~np.isfinite(pc)) or np.abs(pc).max() > 1e5:
+            raise ThermodError("detector: a view turned more than 90° within one frame interval; "
+                               "raise the frame rate or slow the motion")
+        x0 = int(math.floor(min(pc[:, 0].min(), 0))) - 3
+        y0 = int(math.floor(min(pc[:, 1].min(), 0))) - 3
+        x1 = int(math.ceil(max(pc[:, 0].max(), cam.W - 1))) + 4
+        y1 = int(math.ceil(max(pc[:, 1].max(), cam.H - 1))) + 4
+        K_c = cam.K.copy()
+        K_c[0, 2] -= x0
+        K_c[1, 2] -= y0
+        return cls(scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1), K_c, Q, x0, y0)
+
+    def view(self, cam: _Camera, j: int) -> np.ndarray:
+        """The sharp view at step j's mid time: the canvas warped by K_c Q_j K⁻¹ (Eq. 16)."""
+        Hj = self.K_c @ self.Q[j] @ cam.K_inv
+        return cv2.warpPerspective(self.canvas, Hj, (cam.W, cam.H),
+                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                   borderMode=cv2.BORDER_REPLICATE)
+
+    def frame_view(self, cam: _Camera) -> np.ndarray:
+        """The sharp view at the segment's end (R_ref): the canvas cropped to the frame."""
+        return self.canvas[-self.y0:-self.y0 + cam.H, -self.x0:-self.x0 + cam.W]
+
+
+class _ThermalDetector:
+    """Microbolometer state B advanced exactly for a piecewise-constant input (Eq. 10 with the
+    exact α of Eq. 11), each frame's rows captured at their rolling-readout read times `rows_t`."""
+
+    def __init__(self, B0: np.ndarray, rows_t: np.ndarray, tau: float):
+        n, H = rows_t.shape
+        self.B, self.rows_t, self.tau = B0, rows_t, tau
+        self.out = np.zeros((n, H, B0.shape[1]), np.float32)
+        self.next_k, self.next_r = 0, 0          # next (frame, row) to capture
+        self._tmp = np.empty(B0.shape, np.float32)
+
+    def step(self, S: np.ndarray, ta: float, tz: float) -> None:
+        """Integrate the view S held over (ta, tz]."""
+        self._capture_rows(S, ta, tz)
+        np.subtract(S, self.B, out=self._tmp)
+        self._tmp *= np.float32(iir_alpha(tz - ta, self.tau))
+        self.B += self._tmp
+
+    def _capture_rows(self, S: np.ndarray, ta: float, tz: float) -> None:
+        """Read out the rows whose read time falls in (ta, tz], each with the exact in-step
+        exponential approach B + α(t_r − ta)(S − B) — no rounding to the step grid."""
+        n, H = self.rows_t.shape
+        while self.next_k < n and self.rows_t[self.next_k][self.next_r] <= tz:
+            k, r0 = self.next_k, self.next_r
+            rt = self.rows_t[k]
+            r1 = int(np.searchsorted(rt, tz, side="right"))
+            g = iir_alpha(rt[r0:r1] - ta, self.tau).astype(np.float32)[:, None]
+            self.out[k, r0:r1] = self.B[r0:r1] + g * (S[r0:r1] - self.B[r0:r1])
+            self.next_r = r1
+            if r1 >= H:
+                self.next_k, self.next_r = k + 1, 0
+
+
+class _PhotonDetector:
+    """Photon detector (Eq. 2): each row box-averages the views over its exposure window."""
+
+    def __init__(self, rows_t: np.ndarray, exposure_s: float, width: int):
+        self.rows_t, self.exposure_s = rows_t, exposure_s
+        self.out = np.zeros((*rows_t.shape, width), np.float32)
+
+    def step(self, S: np.ndarray, ta: float, tz: float) -> None:
+        """Add the view S held over (ta, tz] to every row whose exposure window [t_r − E, t_r]
+        overlaps it, weighted by the overlap / E. Every frame whose rows can overlap is visited
+        (an exposure longer than the frame period spans several frames)."""
+        rows_t, exposure = self.rows_t, self.exposure_s
+        k0 = int(np.searchsorted(rows_t[:, -1], ta, side="right"))           # last row read after ta
+        k1 = int(np.searchsorted(rows_t[:, 0] - exposure, tz, side="left"))  # first window opens < tz
+        for k in range(k0, k1):
+            rt = rows_t[k]
+            ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
+            sel = np.flatnonzero(ov > 0)
+            if sel.size:
+                r0, r1 = sel[0], sel[-1] + 1
+                self.out[k, r0:r1] += S[r0:r1] * (ov[r0:r1] / exposure).astype(np.float32)[:, None]
 
 
 def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
@@ -274,48 +396,24 @@ def render_time_compressed(scene: SphereScene, traj: Trajectory, frame_times, ca
     t_grid = t_frames[0] + h * np.arange(-n_hist, int(round((t_frames[-1] - t_frames[0]) / h)) + 1)
     if t_grid[0] < traj.t_start:
         raise ThermodError("time compression: trajectory does not cover the history")
-    K = calib.K
-    K_inv = np.linalg.inv(K)
-    corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+    sigma = _psf_sigma(calib, psf_sigma_px)
+    cam = _Camera(calib)
     alpha = np.float32(iir_alpha(h, tau))
     out = np.empty((n, H, W), np.float32)
     sharp = np.empty((n, H, W), np.float32)
     Rs = traj.R(t_grid)
-    Hrel = K @ np.einsum("nji,njk->nik", Rs[:-1], Rs[1:]) @ K_inv
-    pr = np.einsum("nij,jc->nic", Hrel, corners)
-    max_step = float(np.hypot(*(pr[:, :2] / pr[:, 2:3] - corners[None, :2]).transpose(1, 0, 2)).max())
-    B = scene.view(Rs[0], K, W, H)
+    max_step = cam.step_motion_px(Rs)
+    B = scene.view(Rs[0], cam.K, W, H)
     k = 0
     for j in range(1, len(t_grid)):
-        S = scene.view(Rs[j], K, W, H)
+        S = scene.view(Rs[j], cam.K, W, H)
         B += alpha * (S - B)
         if k < n and abs(t_grid[j] - t_frames[k]) < 0.5 * h:
             out[k], sharp[k] = B, S
             k += 1
             if progress is not None:
                 progress(k)
-    sigma = calib.psf_sigma_px if psf_sigma_px is None else float(psf_sigma_px)
-    if sigma > 0:
-        for i in range(n):
-            out[i] = gaussian_psf(out[i], sigma)
-    return Rendered(out, sharp, None, len(t_grid) - 1, max_step)
-
-
-def _photon_accumulate(out, S, rows_t, exposure, ta, tz):
-    """Add the step's view to every row whose exposure window [t_r − E, t_r] overlaps (ta, tz].
-
-    rows_t [n, H] are the rows' read times; every frame whose rows can overlap is visited (an
-    exposure longer than the frame period spans several frames).
-    """
-    k0 = int(np.searchsorted(rows_t[:, -1], ta, side="right"))          # last row read after ta
-    k1 = int(np.searchsorted(rows_t[:, 0] - exposure, tz, side="left"))  # first row's window opens before tz
-    for k in range(k0, k1):
-        rt = rows_t[k]
-        ov = np.minimum(tz, rt) - np.maximum(ta, rt - exposure)
-        sel = np.flatnonzero(ov > 0)
-        if sel.size:
-            r0, r1 = sel[0], sel[-1] + 1
-            out[k, r0:r1] += S[r0:r1] * (ov[r0:r1] / exposure).astype(np.float32)[:, None]
+    return Rendered(_apply_psf(out, sigma), sharp, None, len(t_grid) - 1, max_step)
 
 
 def gaussian_psf(img: np.ndarray, sigma_px: float) -> np.ndarray:

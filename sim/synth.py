@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -116,85 +117,134 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
     (`detector.render_time_compressed`); thermal detector only, no rolling readout.
     """
+    _check_method(method, kind)
+    nominal = _nominal_calibration(calib, frame_rate)
+    fps = float(nominal.frame_rate_hz)
+    n = _frame_count(seconds, nominal)
+    fx = check_effects(effects)
+    truth_cal = true_calibration(nominal, fx)
+    psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
+    gyro = _gyro_with_effects(gyro or GyroErrorModel(), fx)
+    sensor = _sensor_effects(fx)
+
+    mot = mo.parse(motion, seed)
+    sc = _sphere_scene(scene, truth_cal, seed)
+    t_frames = t0 + np.arange(n) / fps
+    traj, gyro_lo, gyro_hi = _trajectory(mot, t_frames, truth_cal, kind, exposure_s, history_tau)
+    with _progress_bar(n if progress else 0) as bar:
+        if method == "fine":
+            r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
+                           psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau, progress=bar)
+        else:
+            r = det.render_time_compressed(sc, traj, t_frames, truth_cal, compression=compression,
+                                           slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
+                                           progress=bar)
+    rng_sensor, rng_gyro = np.random.default_rng([seed, 10]), np.random.default_rng([seed, 11])
+    frames = det.apply_sensor(r.frames, sensor, rng_sensor, float(np.median(sc.texture)))
+    gs = gyro.sample(traj.omega, gyro_lo, gyro_hi, truth_cal, rng_gyro, t_anchor=t_frames[0])
+
+    run = {"psf_sigma_px": float(psf_sigma), "scene": _spec_str(scene), "motion": mot.spec, "seed": int(seed),
+           "detector": kind, "step_px": float(step_px), "history_tau": float(history_tau),
+           "t_ref": float(t_frames[0]), "n_steps": int(r.n_steps), "max_step_px": float(r.max_step_px),
+           "method": method, "counts_per_k": float(sensor.counts_per_k), "effects_json": json.dumps(fx),
+           "gyro_model_json": json.dumps(_jsonable(gyro)), "effects": ",".join(sorted(fx)) if fx else ""}
+    if method == "time_compression":
+        run.update(compression=float(compression), slow_fps=float(slow_fps))
+    extras = _truth_extras(r, gs, traj.R(t_frames), truth)
+    return Recording(frames, t_frames, gs.t, gs.rate, nominal, extras=extras,
+                     extra_attrs={"truth": _truth_attrs(truth_cal, run, fx)})
+
+
+def _check_method(method: str, kind: str) -> None:
+    """Reject unknown synthesis methods and time compression of a photon detector."""
     if method not in ("fine", "time_compression"):
         raise ThermodError(f"simulate: method must be 'fine' or 'time_compression', got {method!r}")
     if method == "time_compression" and kind != "thermal":
         raise ThermodError("simulate: time compression synthesises the thermal detector only")
+
+
+def _nominal_calibration(calib: Calibration | None, frame_rate: float | None) -> Calibration:
+    """The calibration the user believes (default `Calibration()`), at `frame_rate` if given."""
     nominal = calib or Calibration()
     if frame_rate is not None:
         if not 0 < frame_rate <= 10000:
             raise ThermodError(f"--fps: expected 0 < fps ≤ 10000, got {frame_rate}")
         nominal = nominal.replace(frame_rate_hz=float(frame_rate))
     _check_calibration(nominal)
-    fps = float(nominal.frame_rate_hz)
+    return nominal
+
+
+def _frame_count(seconds: float, calib: Calibration) -> int:
+    """Frames in `seconds` at the calibration's frame rate; the whole recording must fit in memory."""
+    fps = float(calib.frame_rate_hz)
     if not (isinstance(seconds, (int, float)) and 0 < seconds <= 3600):
         raise ThermodError(f"--seconds: expected 0 < seconds ≤ 3600, got {seconds!r}")
     n = int(round(seconds * fps))
     if n < 1:
         raise ThermodError(f"--seconds {seconds}: shorter than one frame at {fps} Hz")
-    pixels = int(nominal.width) * int(nominal.height)
-    per_frame = pixels * (2 + 4 * 3)            # uint16 out + float32 render, sharp (+ rolling) stacks
+    per_frame = int(calib.width) * int(calib.height) * (2 + 4 * 3)   # uint16 out + 3 float32 truth stacks
     if n * per_frame > MAX_BYTES:
         raise ThermodError(f"--seconds {seconds}: {n} frames need ~{n * per_frame / 1e9:.1f} GB in memory "
                            f"(limit {MAX_BYTES / 1e9:.0f} GB); shorten the run or shrink the frame")
-    fx = check_effects(effects)
-    truth_cal = true_calibration(nominal, fx)
-    psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
-    gyro = (gyro or GyroErrorModel())
-    gkw = {}
+    return n
+
+
+def _gyro_with_effects(gyro: GyroErrorModel, fx: Mapping) -> GyroErrorModel:
+    """The gyro error model with the effects' noise, clock drift and low-pass applied."""
+    changes = {}
     if "gyro_noise" in fx:
-        gkw["noise_rms_deg_s"] = fx["gyro_noise"] / DEG
+        changes["noise_rms_deg_s"] = fx["gyro_noise"] / DEG
     if "clock_drift_ppm" in fx:
-        gkw["clock_drift_ppm"] = fx["clock_drift_ppm"]
+        changes["clock_drift_ppm"] = fx["clock_drift_ppm"]
     if "gyro_lowpass_hz" in fx:
-        gkw["lowpass_hz"] = fx["gyro_lowpass_hz"]
-    gyro = gyro.replace(**gkw)
+        changes["lowpass_hz"] = fx["gyro_lowpass_hz"]
+    return gyro.replace(**changes)
+
+
+def _sensor_effects(fx: Mapping) -> det.SensorEffects:
+    """The read-out electronics the effects ask for (validated)."""
     sensor = det.SensorEffects(netd_k=fx.get("netd", 0.0), fpn_k=fx.get("fpn", 0.0),
                                gain_nonuniformity=fx.get("gain_nonuniformity", 0.0),
                                nonlinearity=fx.get("detector_nonlinearity", 0.0),
                                quantisation_bits=fx.get("quantisation_bits", 16))
     sensor.validate()
+    return sensor
 
-    mot = mo.parse(motion, seed)
-    sc = _sphere_scene(scene, truth_cal, seed)
-    t_frames = t0 + np.arange(n) / fps
+
+def _trajectory(mot: mo.Motion, t_frames: np.ndarray, calib: Calibration, kind: str,
+                exposure_s: float | None, history_tau: float) -> tuple[mo.Trajectory, float, float]:
+    """The motion's trajectory and the gyro's sampling window (t_lo, t_hi).
+
+    The window runs from max(0.1 s, lead + readout + 50 ms) before the first frame, lead = the
+    detector's history (`history_tau`·τ, or the photon exposure), to 50 ms after the last; the
+    trajectory reaches |time offset| + 50 ms further either side (the gyro clock is shifted by it)."""
     if kind == "photon":
-        lead = exposure_s or default_photon_exposure_s(fps)
+        lead = exposure_s or default_photon_exposure_s(calib.frame_rate_hz)
     else:
-        lead = history_tau * truth_cal.tau_s
-    gyro_pre = max(0.1, lead + truth_cal.readout_s + 0.05)
-    gyro_post = 0.05
-    t_lo = t_frames[0] - gyro_pre - abs(truth_cal.time_offset_s) - 0.05
-    t_hi = t_frames[-1] + gyro_post + abs(truth_cal.time_offset_s) + 0.05
-    traj = mo.Trajectory(mot, t_frames[0], t_lo, t_hi)
+        lead = history_tau * calib.tau_s
+    gyro_lo = t_frames[0] - max(0.1, lead + calib.readout_s + 0.05)
+    gyro_hi = t_frames[-1] + 0.05
+    off = abs(calib.time_offset_s)
+    return mo.Trajectory(mot, t_frames[0], gyro_lo - off - 0.05, gyro_hi + off + 0.05), gyro_lo, gyro_hi
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=n, unit="frame", desc="thermod sim", leave=False)
 
-    def _prog(k):
-        bar.update(k - bar.n)
-
+@contextmanager
+def _progress_bar(n_frames: int):
+    """A tqdm bar as the renderer's progress callable (None when n_frames is 0); closed on exit."""
+    if not n_frames:
+        yield None
+        return
+    from tqdm import tqdm
+    bar = tqdm(total=n_frames, unit="frame", desc="thermod sim", leave=False)
     try:
-        if method == "fine":
-            r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
-                           psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau,
-                           progress=_prog if bar else None)
-        else:
-            r = det.render_time_compressed(sc, traj, t_frames, truth_cal, compression=compression,
-                                           slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
-                                           progress=_prog if bar else None)
+        yield lambda k: bar.update(k - bar.n)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
 
-    rng = np.random.default_rng([seed, 10])
-    frames = det.apply_sensor(r.frames, sensor, rng, float(np.median(sc.texture)))
-    gs = gyro.sample(traj.omega, t_frames[0] - gyro_pre, t_frames[-1] + gyro_post, truth_cal,
-                     np.random.default_rng([seed, 11]), t_anchor=t_frames[0])
 
-    extras, attrs = {}, {}
+def _truth_extras(r: det.Rendered, gs, frame_R: np.ndarray, truth: bool) -> dict:
+    """The truth datasets (module docstring); the float32 image stacks only when `truth`."""
+    extras = {}
     if truth:
         extras["truth/frames"] = r.sharp
         extras["truth/blurry_noiseless"] = r.frames
@@ -202,24 +252,19 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
             extras["truth/frames_rolling"] = r.sharp_rolling
     extras["truth/gyro_t_camera"] = gs.t_true
     extras["truth/gyro_omega_camera"] = gs.omega_true.astype(np.float32)
-    extras["truth/frame_R"] = traj.R(t_frames)
-    true_attrs = {**truth_cal.camera_attrs(), **truth_cal.gyro_attrs()}
+    extras["truth/frame_R"] = frame_R
+    return extras
+
+
+def _truth_attrs(truth_cal: Calibration, run: dict, fx: Mapping) -> dict:
+    """The truth attributes: the true calibration, then how the recording was made (`run`), then
+    one `effect_<name>` per effect."""
     attrs = {k: np.asarray(v, dtype=np.float64) if isinstance(v, (list, tuple, np.ndarray)) else v
-             for k, v in true_attrs.items()}
-    attrs.update({
-        "psf_sigma_px": float(psf_sigma),
-        "scene": _spec_str(scene), "motion": mot.spec, "seed": int(seed), "detector": kind,
-        "step_px": float(step_px), "history_tau": float(history_tau), "t_ref": float(t_frames[0]),
-        "n_steps": int(r.n_steps), "max_step_px": float(r.max_step_px), "method": method,
-        "counts_per_k": float(sensor.counts_per_k),
-        "effects_json": json.dumps(fx), "gyro_model_json": json.dumps(_jsonable(gyro)),
-        "effects": ",".join(sorted(fx)) if fx else "",
-    })
-    if method == "time_compression":
-        attrs.update(compression=float(compression), slow_fps=float(slow_fps))
+             for k, v in {**truth_cal.camera_attrs(), **truth_cal.gyro_attrs()}.items()}
+    attrs.update(run)
     for k, v in fx.items():
         attrs[f"effect_{k}"] = np.asarray(v, dtype=np.float64)
-    return Recording(frames, t_frames, gs.t, gs.rate, nominal, extras=extras, extra_attrs={"truth": attrs})
+    return attrs
 
 
 def truth_calibration(rec: Recording) -> Calibration:
