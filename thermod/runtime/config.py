@@ -81,7 +81,7 @@ class PublishConfig:
     health_period_s: float = 1.0
     curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
     curve_authorized_keys: str | None = None  # directory of client public certificates (needs the secret key)
-    max_queue_mb: float = 64.0               # bytes ZeroMQ may hold for all subscribers together
+    max_queue_mb: float = 128.0              # bytes ZeroMQ may hold for all subscribers together
     allow_insecure_remote: bool = False      # permit a non-loopback bind without CURVE (warned)
 
 

@@ -69,7 +69,7 @@ from thermod.io.wire import (  # noqa: F401 - re-exported: the transport's users
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
-DEFAULT_MAX_QUEUE_BYTES = 64 << 20
+DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 # The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
 # full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
 # dropped and counted until then.
