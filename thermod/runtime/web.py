@@ -38,7 +38,9 @@ from thermod.io.wire import jsonable
 log = logging.getLogger(__name__)
 
 HISTORY_S = 300            # seconds of health history kept and plotted
-RAW_KEEP = 64              # raw frames kept to pair with their deblurred frame (by frame_id)
+# raw frames kept to pair with their deblurred frame (by frame_id): the deblurred output may lag the
+# raw by a second or more on a loaded machine (≈ 100 VGA frames at 50 fps in 64 MiB)
+RAW_KEEP_BYTES = 64 << 20
 RAW_STALE_S = 2.0          # no raw frame for this long: show the deblurred frame alone
 JPEG_QUALITY = 85
 KERNEL_VIEW_PX = 192       # the kernel image is scaled (nearest) to at most this many pixels a side
@@ -100,6 +102,7 @@ class LiveView:
         self._lock = threading.Lock()
         self._frames: collections.deque = collections.deque(maxlen=4)   # (header, array), newest last
         self._raws: collections.OrderedDict = collections.OrderedDict()  # frame_id → array
+        self._raw_bytes = 0
         self._last_raw_at = -math.inf
         self._kernel: tuple[dict, np.ndarray] | None = None
         self._health: dict | None = None
@@ -130,10 +133,12 @@ class LiveView:
                 if header["deblurred"]:
                     self._counts["deblurred"] += 1
             elif topic == "raw":
+                old = self._raws.pop(header["frame_id"], None)
+                self._raw_bytes += array.nbytes - (0 if old is None else old.nbytes)
                 self._raws[header["frame_id"]] = array
                 self._last_raw_at = time.monotonic()
-                while len(self._raws) > RAW_KEEP:
-                    self._raws.popitem(last=False)
+                while self._raw_bytes > RAW_KEEP_BYTES and len(self._raws) > 1:
+                    self._raw_bytes -= self._raws.popitem(last=False)[1].nbytes
             elif topic == "kernel":
                 self._kernel = (header, array)
             elif topic == "health":
@@ -175,7 +180,8 @@ class LiveView:
     # ------------------------------------------------------------------ HTTP side
     def _newest_pair(self):
         """The newest frame and its raw counterpart; while raw frames flow, a frame whose raw has not
-        arrived is skipped for an older one that has it. → (header, frame, raw or None) or None."""
+        arrived is skipped for an older one that has it. → (header, frame, raw or None, raw flowing)
+        or None."""
         with self._lock:
             if not self._frames:
                 return None
@@ -184,16 +190,16 @@ class LiveView:
                 for h, a in reversed(self._frames):
                     raw = self._raws.get(h.get("frame_id"))
                     if raw is not None:
-                        return h, a, raw
+                        return h, a, raw, True
             h, a = self._frames[-1]
-            return h, a, None
+            return h, a, None, raw_flowing
 
     def frame_jpeg(self) -> tuple[bytes, dict] | None:
         """(JPEG bytes, header of the frame shown) of the newest frame (pair), encoded once."""
         got = self._newest_pair()
         if got is None:
             return None
-        h, frame, raw = got
+        h, frame, raw, flowing = got
         key = (h.get("frame_id"), h.get("seq"), raw is not None)
         with self._encode_lock:
             if self._jpeg is None or self._jpeg[0] != key:
@@ -202,7 +208,7 @@ class LiveView:
                 if not ok:
                     raise WebError("OpenCV could not encode a JPEG")
                 self._jpeg = (key, buf.tobytes(), raw is not None)
-            return self._jpeg[1], {**h, "has_raw": self._jpeg[2]}
+            return self._jpeg[1], {**h, "has_raw": self._jpeg[2], "raw_flowing": flowing}
 
     def kernel_png(self) -> tuple[bytes, dict] | None:
         with self._lock:
@@ -319,7 +325,8 @@ def _handler(view: LiveView):
                 else:
                     data, h = got
                     self._send(200, "image/jpeg", data, {"X-Frame-Id": str(h.get("frame_id")),
-                                                         "X-Has-Raw": "1" if h["has_raw"] else "0"})
+                                                         "X-Has-Raw": "1" if h["has_raw"] else "0",
+                                                         "X-Raw-Flowing": "1" if h["raw_flowing"] else "0"})
             elif path == "/kernel.png":
                 got = view.kernel_png()
                 if got is None:
@@ -397,11 +404,13 @@ async function pollFrame() {
       $("frame").src = url;
       if (frameUrl) URL.revokeObjectURL(frameUrl);
       frameUrl = url;
-      const raw = r.headers.get("X-Has-Raw") === "1";
+      const raw = r.headers.get("X-Has-Raw") === "1", flowing = r.headers.get("X-Raw-Flowing") === "1";
       $("lraw").textContent = raw ? "raw" : "";
       $("ldeb").style.left = raw ? "462px" : "8px";
-      $("ldeb").innerHTML = raw ? "deblurred" : "deblurred <span class=warn>(no raw frames arrive: " +
-        "start the daemon with <b>thermod run --raw</b> to see them side by side)</span>";
+      $("ldeb").innerHTML = raw ? "deblurred" : "deblurred <span class=warn>(" + (flowing
+        ? "raw frames arrive, but the deblurred output lags too far behind to pair them"
+        : "no raw frames arrive: start the daemon with <b>thermod run --raw</b> to see them side by side") +
+        ")</span>";
     }
   } catch (e) {}
   setTimeout(pollFrame, 100);
@@ -440,7 +449,7 @@ function plot(id, title, unit, t, lines) {
     g.fillText(Math.abs(v) >= 100 ? v.toFixed(0) : v.toPrecision(3), 2, y + 4);
   }
   g.fillText("-" + (t1 - t0).toFixed(0) + " s", L, H - 5); g.fillText("now", W - R - 24, H - 5);
-  let lx = L + 150;
+  let lx = L + g.measureText(title + " (" + unit + ")").width + 14;
   for (const l of lines) {
     g.strokeStyle = l.c; g.lineWidth = 2; g.beginPath();
     let pen = false;
