@@ -270,6 +270,13 @@ def test_bind_address_errors():
             WebServer(view, f"127.0.0.1:{taken}")
 
 
+def test_watch_cli_reports_a_bad_http_address(capsys):
+    from thermod import cli
+
+    assert cli.main(["watch", "--http", "localhost", "--seconds", "0.1"]) == 2
+    assert "--http 'localhost': expected HOST:PORT" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------ a real browser, a real daemon
 def free_port() -> int:
     with socket.socket() as s:
@@ -327,6 +334,13 @@ def test_chromium_renders_the_live_page(require, tmp_path):
                 break
             assert time.monotonic() < deadline, f"the page never got frames, raw and kernels: {s}"
             time.sleep(1.0)
+        kernels, frames = {}, {}
+        with Subscriber(ep, ("frame", "kernel")) as sub:   # what the daemon puts on the kernel topic
+            t_end = time.monotonic() + 3.0
+            while time.monotonic() < t_end:
+                m = sub.recv(0.2)
+                if m is not None:
+                    (kernels if m[0] == "kernel" else frames)[m[1]["frame_id"]] = (m[1], np.array(m[2]))
         with tempfile.TemporaryDirectory() as profile:
             first = screenshot(url, tmp_path / "first.png", profile)
             time.sleep(3.0)
@@ -336,6 +350,15 @@ def test_chromium_renders_the_live_page(require, tmp_path):
             p.send_signal(signal.SIGTERM)
         for p in (watcher, daemon):
             p.wait(30)
+    # one kernel per deblurred frame (a loaded machine may drop messages on the way: most, not all)
+    deblurred = {i for i, (h, _) in frames.items() if h["deblurred"]}
+    both = set(kernels) & set(frames)
+    assert both <= deblurred and len(both) >= 0.5 * len(deblurred) > 0
+    for i in both:
+        (kh, k), (fh, _) = kernels[i], frames[i]
+        assert list(k.shape) == fh["kernel_size"] and kh["t"] == fh["t"]
+        assert kh["extent_px"] == pytest.approx(fh["kernel_extent_px"])
+        assert k.sum() == pytest.approx(1, abs=1e-4)
     assert first.shape[:2] == (900, 1280)
     x, y, w, h = LAYOUT["frame"]
     for shot in (first, second):
