@@ -185,6 +185,7 @@ def test_page_serves_pairs_kernel_and_health(pub):
         status, hdr, body = get(server.url + "kernel.png")
         kimg = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_GRAYSCALE)
         assert hdr["X-Frame-Id"] == "20" and np.array_equal(kimg, kernel_image(w))
+        assert hdr["X-Shape"] == "5x7" and float(hdr["X-Extent-Px"]) == pytest.approx(2.0)
 
         status, hdr, body = get(server.url + "health.json")
         s = json.loads(body)

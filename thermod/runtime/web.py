@@ -332,7 +332,10 @@ def _handler(view: LiveView):
                 if got is None:
                     self._send(404, "text/plain", b"no kernel received yet\n")
                 else:
-                    self._send(200, "image/png", got[0], {"X-Frame-Id": str(got[1].get("frame_id"))})
+                    h = got[1]
+                    self._send(200, "image/png", got[0], {
+                        "X-Frame-Id": str(h.get("frame_id")), "X-Shape": "x".join(map(str, h["shape"])),
+                        "X-Extent-Px": str(h.get("extent_px")), "X-Coverage": str(h.get("coverage"))})
             else:
                 self._send(404, "text/plain", b"not found\n")
 
@@ -424,6 +427,15 @@ async function pollKernel() {
       $("kernel").src = url;
       if (kernelUrl) URL.revokeObjectURL(kernelUrl);
       kernelUrl = url;
+      const shape = r.headers.get("X-Shape").split("x"), num = k => Number(r.headers.get(k));
+      $("kinfo").innerHTML = "frame " + r.headers.get("X-Frame-Id") + "<br>size " +
+        shape.slice(-2).join(" × ") + " px" +
+        (shape.length === 4 ? " (grid " + shape[0] + " × " + shape[1] + ")" : "") +
+        "<br>extent " + fmt(num("X-Extent-Px"), 2) + " px<br>gyro coverage " +
+        fmt(100 * num("X-Coverage"), 1) + " %";
+    } else if (r.status === 404) {
+      $("kinfo").textContent =
+        "no kernel yet (none deblurred, or the daemon runs with publish.kernel = false)";
     }
   } catch (e) {}
   setTimeout(pollKernel, 250);
@@ -471,11 +483,6 @@ async function pollHealth() {
       fmt(last("lat_p50_ms"), 1) + " ms &nbsp; raw " + (s.raw ? "yes" : "<span class=warn>none</span>") +
       (s.frame && s.frame.reason ? " &nbsp; <span class=warn>passing through: " + s.frame.reason + "</span>"
                                  : "");
-    const k = s.kernel;
-    $("kinfo").innerHTML = k ? "frame " + k.frame_id + "<br>size " + k.shape.slice(-2).join(" × ") +
-      " px" + (k.shape.length === 4 ? " (grid " + k.shape[0] + " × " + k.shape[1] + ")" : "") +
-      "<br>extent " + fmt(k.extent_px, 2) + " px<br>gyro coverage " + fmt(100 * k.coverage, 1) + " %"
-      : (s.frame ? "no kernel topic (daemon with publish.kernel = false, or no frame deblurred yet)" : "");
     plot("p_fps", "frame rate", "fps", t, [{n: "fps", c: "#e6553a", v: S.fps || []}]);
     plot("p_lat", "latency received − t", "ms", t, [{n: "p50", c: "#4cc38a", v: S.lat_p50_ms || []},
       {n: "p95", c: "#f0b44c", v: S.lat_p95_ms || []}, {n: "p99", c: "#e6553a", v: S.lat_p99_ms || []}]);
