@@ -77,6 +77,7 @@ class PublishConfig:
     endpoint: str = "tcp://127.0.0.1:5555"
     raw: bool = False
     gyro: bool = True
+    kernel: bool = True                      # the blur kernel of every deblurred frame (topic "kernel")
     hwm: int = 100
     health_period_s: float = 1.0
     curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
@@ -307,6 +308,7 @@ def _publish(path: str, table: Any) -> PublishConfig:
         raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or "
                      f"'ipc:///run/thermod.sock' ({problem})", endpoint)
     kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
+              kernel=s.pop("kernel", d.kernel, bool),
               hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
               health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
               curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"),

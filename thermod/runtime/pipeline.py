@@ -65,6 +65,7 @@ class FrameOut:
     n_samples: int = 0
     camera_gap_before: int = 0
     t_done: float = 0.0             # host monotonic when released
+    kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
 
     @property
     def latency_s(self) -> float:
@@ -393,14 +394,16 @@ class Pipeline:
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
-            self._complete(self._out(job.slot, out, True, None, job.info))
+            self._complete(self._out(job.slot, out, True, None, job.info, job.kernel))
 
     # ------------------------------------------------------------------ output (in order)
-    def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict) -> FrameOut:
+    def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict,
+             kernel=None) -> FrameOut:
         return FrameOut(index=slot.index, image=image, t=slot.t, frame_id=slot.frame_id, arrival=slot.arrival,
                         deblurred=deblurred, reason=reason, kernel_size=info.get("kernel_size"),
                         kernel_extent_px=info.get("kernel_extent_px"), coverage=info.get("coverage"),
-                        n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before)
+                        n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before,
+                        kernel=kernel)
 
     def _passthrough(self, slot: FrameSlot, reason: str, info: dict) -> None:
         self._count(f"passthrough_{reason}", 1)
