@@ -9,7 +9,7 @@ import math
 import tomllib
 from pathlib import Path
 
-from thermod.calib.discrepancy import CANDIDATES, FITTERS, Model, analyse, prepare, write_report
+from thermod.calib.discrepancy import CANDIDATES, EFFECTS, Model, analyse, prepare, write_report
 from thermod.errors import ConfigError
 from thermod.io import recording as recording_io
 from thermod.physics.calibration import Calibration
@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
-    bad = [c for c in cands if c not in FITTERS]
+    bad = [c for c in cands if c not in EFFECTS]
     if bad:
         raise ConfigError(f"--candidates: unknown effect(s) {', '.join(bad)}; known: {', '.join(CANDIDATES)}")
     if args.work_width < 32:
@@ -96,7 +96,8 @@ def run(args) -> int:
     calib, config_text = load_model(args.config, recs, args.recordings)
     data = []
     for p, r in zip(args.recordings, recs, strict=True):
-        d = prepare(r, calib, name=p, work_width=args.work_width)
+        d = prepare(r, calib, name=p, work_width=args.work_width,
+                    calib_source=None if args.config is None else args.config)
         say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
             f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
         data.append(d)
