@@ -96,8 +96,7 @@ def run(args) -> int:
     calib, config_text = load_model(args.config, recs, args.recordings)
     data = []
     for p, r in zip(args.recordings, recs, strict=True):
-        d = prepare(r, calib, name=p, work_width=args.work_width,
-                    calib_source=None if args.config is None else args.config)
+        d = prepare(r, calib, name=p, work_width=args.work_width)
         say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
             f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
         data.append(d)

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.calib.forward import ForwardModel, GridTooLarge, downsample
-from thermod.errors import ConfigError, RecordingError
+from thermod.errors import RecordingError
 from thermod.io import recording as recording_io
-from thermod.physics.calibration import CAMERA_KEYS, Calibration
+from thermod.physics.calibration import Calibration
 
 # Twice the largest full scale of common MEMS gyros (±2000 °/s): anything faster is not a rate in
 # rad/s (raw counts stored as rates, or a wrong unit).
@@ -99,17 +99,9 @@ def _static_sem(gyro_t, gyro_rate, t_onset_gyro):
 
 
 # ----------------------------------------------------------------------------------------- guards
-def _calibration_error(name: str, calib_source: str | None, key: str, problem: str):
-    """The error for a calibration value: the --config file's when it came from one, else the
-    recording attribute's."""
-    if calib_source is not None:
-        return ConfigError(f"{calib_source}: [calibration] {key}: {problem}")
-    group = "camera" if key in CAMERA_KEYS else "gyro"
-    return RecordingError(name, f"{group}.attrs['{key}']", problem)
-
-
-def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str, calib_source: str | None):
-    """Everything `prepare` sizes or inverts from the file, checked before it is used."""
+def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str):
+    """Everything `prepare` sizes from the file, checked before it is used (the calibration's own values
+    are checked by `Calibration` itself)."""
     n, h, w = rec.frames.shape
     if (h, w) != (calib.height, calib.width):
         raise RecordingError(name, "camera/frames", f"frame size {w}×{h} does not match the model's "
@@ -117,14 +109,6 @@ def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str, ca
     if n == 0:
         raise RecordingError(name, "camera/frames", "no frames: the workflow needs a static segment "
                              "followed by motion")
-    for key in ("fx", "fy", "cx", "cy"):
-        v = float(getattr(calib, key))
-        if not math.isfinite(v) or (key in ("fx", "fy") and v <= 0):
-            raise _calibration_error(name, calib_source, key, f"expected a finite focal length > 0 px, "
-                                     f"got {v!r}" if key in ("fx", "fy") else f"expected a finite value, "
-                                     f"got {v!r}")
-    if not (math.isfinite(calib.tau_s) and calib.tau_s > 0):
-        raise _calibration_error(name, calib_source, "tau_s", f"expected τ > 0 s, got {calib.tau_s!r}")
     rate = np.asarray(rec.gyro_rate)
     if rate.size:
         _, w_cam = calib.gyro_to_camera(rec.gyro_t, rate)
@@ -144,17 +128,17 @@ def _working_scale(calib: Calibration, work_width: int) -> float:
 
 
 def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<recording>",
-            calib_source: str | None = None, scale: float | None = None, work_width: int = 160,
+            scale: float | None = None, work_width: int = 160,
             offset_margin_s: float = 0.03, max_step_px: float = 0.5, smooth_px: float = 0.0,
             max_views_mb: float = MAX_VIEWS_MB) -> RecData:
     """Split a recording into reference and motion frames and build its forward model.
 
     Raises RecordingError (naming `name`) when there is no static segment, no motion, no gyro
     coverage of the motion frames, or when a size derived from the file (the working image, the
-    forward model's time steps) would be unreasonable; a bad calibration value raises the error of
-    its source (`calib_source`: the --config file, else the recording's attributes).
+    forward model's time steps) would be unreasonable. The calibration's own values were checked when
+    it was built (by the --config loader or the recording reader, which name their source).
     """
-    _check_inputs(rec, calib, name, calib_source)
+    _check_inputs(rec, calib, name)
     if scale is None:
         scale = _working_scale(calib, work_width)
     work = calib.intrinsics.scaled(scale)
