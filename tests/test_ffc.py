@@ -8,7 +8,9 @@ Aravis (the Aravis fake camera has none: never FFC).
 """
 
 import collections
+import os
 import socket
+import sys
 import threading
 import time
 
@@ -23,6 +25,11 @@ from thermod.runtime.pipeline import REASONS, Pipeline, kernel_window
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.emu_camera import EmuCamera, EmuV4L2Device, FFCSchedule
 from thermod.sim.scenes import load_scene
+
+sys.path.insert(0, os.path.dirname(__file__))
+import test_aravis  # noqa: E402  (the Aravis fake GigE camera fixture, shared)
+
+fake_camera = test_aravis.fake_camera
 
 H, W = 120, 160
 CAL = Calibration(width=W, height=H, fx=366.0, fy=366.0, cx=79.5, cy=59.5)   # τ = 8 ms: 5τ = 40 ms
@@ -223,6 +230,31 @@ def test_v4l2_without_telemetry_never_ffc():
     finally:
         cam.stop()
     assert [f.ffc for f in frames if f is not None] == [False] * 4
+
+
+# ------------------------------------------------------------------------------ GigE (Aravis)
+def test_genicam_ffc_status_values():
+    from thermod.drivers.aravis_camera import ffc_value
+
+    assert [ffc_value(v) for v in ("true", "1", "InProgress", "Active", "Closed", " Running ")] == [True] * 6
+    assert [ffc_value(v) for v in ("false", "0", "Complete", "Idle", "Open", "Off", "")] == [False] * 7
+
+
+@pytest.mark.hardware
+def test_aravis_fake_camera_never_ffc(fake_camera):
+    """The Aravis fake GigE camera offers no FFC status feature: frames are never flagged; asking for a
+    feature it lacks is a clear error."""
+    from thermod.drivers.aravis_camera import AravisCamera
+    from thermod.errors import DeviceError
+
+    cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=30.0)
+    with cam:
+        frames = test_aravis._collect(cam, 1.0)
+        s = cam.stats()
+    assert len(frames) >= 10 and not any(f.ffc for f in frames)
+    assert s["ffc_feature"] is None and s["ffc_frames"] == s["ffc_events"] == 0
+    with pytest.raises(DeviceError, match="'FFCInProgress' \\(ffc_feature\\) not available"):
+        AravisCamera("127.0.0.1", width=160, height=120, ffc_feature="FFCInProgress").start()
 
 
 # ------------------------------------------------------------------------------ daemon on the sim payload
