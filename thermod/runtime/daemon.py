@@ -109,7 +109,8 @@ class Daemon:
 
     def _on_frame(self, f) -> None:
         try:
-            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before)
+            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before,
+                                  ffc=getattr(f, "ffc", False))
         except ValueError as e:
             self.counters["frames_wrong_shape"] += 1
             raise DeviceError(f"{self.camera_state.name}: {e} (calibration.width/height)") from None
