@@ -29,6 +29,7 @@ from thermod.errors import ConfigError, RecordingError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.physics.geometry import so3_log
+from thermod.runtime import config
 from thermod.sim import detector as sim_detector
 from thermod.sim import motion as mo
 from thermod.sim import scenes as sim_scenes
@@ -308,11 +309,10 @@ def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
     assert s[1] == pytest.approx(1.05, rel=0.02)
     assert s[0] == 1.0 and s[2] == 1.0
     assert ana.unobservable == {"gyro_scale": ["scale[0]", "scale[2]"]}
-    rep = D.write_report(ana, tmp_path, ["pan.h5"])
+    rep = D.write_report(ana, tmp_path, ["pan.h5"], config.default_path().read_text())
     assert rep["unobservable"] == {"gyro_scale": ["scale[0]", "scale[2]"]}
     assert "Not observable with this motion" in (tmp_path / "report.md").read_text()
     # model.toml is a whole configuration: `thermod run --config` and `thermod deblur --config` take it
-    from thermod.runtime import config
     fitted = config.load(tmp_path / "model.toml", check_devices=False).calibration
     assert fitted.scale_vector[1] == pytest.approx(s[1]) and fitted.width == NOMINAL.width
     assert config.load_calibration(tmp_path / "model.toml") == fitted

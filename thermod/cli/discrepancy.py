@@ -102,6 +102,8 @@ def run(args) -> int:
         data.append(d)
     ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
                   progress=say)
+    if config_text is None:       # model.toml: the packaged default configuration, new calibration
+        config_text = cfgmod.default_path().read_text()
     write_report(ana, args.out, args.recordings, config_text)
     say(f"report: {Path(args.out) / 'report.md'}; model: {Path(args.out) / 'model.toml'}")
     return 0

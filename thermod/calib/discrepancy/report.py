@@ -157,12 +157,12 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     plt.close(fig)
 
 
-def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str | None = None) -> dict:
+def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str) -> dict:
     """DIR/report.json, report.md, model.toml and the figures; returns the JSON report.
 
-    model.toml is `config_text` (a full thermod configuration; default: the packaged simulated-payload
-    configuration) with its [calibration] table replaced, so it is ready for `thermod run --config`
-    as well as `thermod deblur --config` (which reads only the table).
+    model.toml is `config_text` (a full thermod configuration: the command passes the --config file, else
+    the packaged default) with its [calibration] table replaced, so it is ready for `thermod run
+    --config` as well as `thermod deblur --config` (which reads only the table).
     """
     out = Path(out)
     try:
@@ -171,9 +171,6 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
         raise ConfigError(f"--out {out}: cannot create the output directory ({e.strerror})") from None
     rep = jsonable(ana.report())
     rep["inputs"] = [str(p) for p in inputs]
-    if config_text is None:
-        from thermod.runtime.config import default_path
-        config_text = default_path().read_text()
     try:
         (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=True) + "\n")
         (out / "model.toml").write_text(replace_calibration_table(config_text, ana.model.final_calibration()))
