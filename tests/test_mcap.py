@@ -26,8 +26,27 @@ H, W = 96, 128
 def sim(tmp_path_factory):
     """A simulated panning recording (known truth) and its `thermod deblur` output."""
     d = tmp_path_factory.mktemp("sim")
-    assert cli.main(["sim", "-o", str(d / "sim.h5"), "--width", str(W), "--height", str(H), "--seconds", "0.3",
-                     "--motion", "pan:40", "--seed", "4", "--no-progress"]) == 0
+    assert (
+        cli.main(
+            [
+                "sim",
+                "-o",
+                str(d / "sim.h5"),
+                "--width",
+                str(W),
+                "--height",
+                str(H),
+                "--seconds",
+                "0.3",
+                "--motion",
+                "pan:40",
+                "--seed",
+                "4",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert cli.main(["deblur", str(d / "sim.h5"), "-o", str(d / "deb.h5"), "--method", "wiener"]) == 0
     return d
 
@@ -62,18 +81,27 @@ def test_export_read_back_with_the_mcap_reader(sim, tmp_path):
     rec = recording.read(sim / "deb.h5")
     n, m = rec.n_frames, len(rec.gyro_t)
     assert n == 15 and m > 300
-    assert counts == {mcap.RAW_TOPIC: n, mcap.DEBLURRED_TOPIC: n, mcap.CAMERA_INFO_TOPIC: n, mcap.IMU_TOPIC: m}
+    assert counts == {
+        mcap.RAW_TOPIC: n,
+        mcap.DEBLURRED_TOPIC: n,
+        mcap.CAMERA_INFO_TOPIC: n,
+        mcap.IMU_TOPIC: m,
+    }
     header, got, meta = read_all(tmp_path / "deb.mcap")
     assert header.profile == "ros2" and not (tmp_path / "deb.mcap.part").exists()
     assert {t: len(v) for t, v in got.items()} == counts
-    for topic, items in got.items():
+    for items in got.values():
         schema, channel = items[0][0], items[0][1]
         assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
         assert schema.data.decode() == mcap.MSGDEFS[schema.name]
     for i, (_, _, message, img) in enumerate(got[mcap.RAW_TOPIC]):
         assert (img.encoding, img.height, img.width, img.step, img.is_bigendian) == ("16UC1", H, W, 2 * W, 0)
         assert img.header.frame_id == mcap.CAMERA_FRAME_ID
-        assert round(rec.t[i] * 1e9) == message.log_time == img.header.stamp.sec * 10**9 + img.header.stamp.nanosec
+        assert (
+            round(rec.t[i] * 1e9)
+            == message.log_time
+            == img.header.stamp.sec * 10**9 + img.header.stamp.nanosec
+        )
         assert np.array_equal(np.frombuffer(img.data, "<u2").reshape(H, W), rec.frames[i])
     for i, (_, _, _, img) in enumerate(got[mcap.DEBLURRED_TOPIC]):
         assert img.encoding == "32FC1" and img.step == 4 * W
@@ -104,8 +132,17 @@ def test_writer_refuses_negative_times_and_wrong_frames(tmp_path):
 def test_record_mcap_through_the_wire(tmp_path):
     """A real Publisher on loopback → `record` with the MCAP writer: raw, deblurred, gyro, the
     calibration from health, camera info per raw frame."""
-    calib = Calibration(width=W, height=H, cx=63.5, cy=47.5, fx=300.0, fy=310.0, tau_s=0.011, rate_hz=1000.0,
-                        time_offset_s=0.002)
+    calib = Calibration(
+        width=W,
+        height=H,
+        cx=63.5,
+        cy=47.5,
+        fx=300.0,
+        fy=310.0,
+        tau_s=0.011,
+        rate_hz=1000.0,
+        time_offset_s=0.002,
+    )
     pub = Publisher("tcp://127.0.0.1:*", queue_size=512, hwm=512).start()
     try:
         sub = Subscriber(pub.endpoint, topics=("raw", "frame", "gyro", "health"), rcvhwm=10000)
@@ -130,15 +167,22 @@ def test_record_mcap_through_the_wire(tmp_path):
         pub.stop()
     assert writer.finish(attrs={"endpoint": "x"}) == tmp_path / "rec.mcap" and writer.source == "health"
     _, got, meta = read_all(tmp_path / "rec.mcap")
-    assert {t: len(v) for t, v in got.items()} == {mcap.RAW_TOPIC: 10, mcap.DEBLURRED_TOPIC: 10,
-                                                   mcap.CAMERA_INFO_TOPIC: 10, mcap.IMU_TOPIC: 200}
-    for i, ((_, _, message, _), (*_, img)) in enumerate(zip(got[mcap.RAW_TOPIC], got[mcap.DEBLURRED_TOPIC],
-                                                             strict=True)):
+    assert {t: len(v) for t, v in got.items()} == {
+        mcap.RAW_TOPIC: 10,
+        mcap.DEBLURRED_TOPIC: 10,
+        mcap.CAMERA_INFO_TOPIC: 10,
+        mcap.IMU_TOPIC: 200,
+    }
+    for i, ((_, _, message, _), (*_, img)) in enumerate(
+        zip(got[mcap.RAW_TOPIC], got[mcap.DEBLURRED_TOPIC], strict=True)
+    ):
         assert message.sequence == i + 7
         assert np.array_equal(np.frombuffer(img.data, "<f4").reshape(H, W), frames[i] * np.float32(0.5))
     raw0 = got[mcap.RAW_TOPIC][0][3]
     assert np.array_equal(np.frombuffer(raw0.data, "<u2").reshape(H, W), frames[0])
-    assert mcap.from_stamp(got[mcap.CAMERA_INFO_TOPIC][3][3].header.stamp) == pytest.approx(t0 + 0.06, abs=1e-9)
+    assert mcap.from_stamp(got[mcap.CAMERA_INFO_TOPIC][3][3].header.stamp) == pytest.approx(
+        t0 + 0.06, abs=1e-9
+    )
     assert got[mcap.CAMERA_INFO_TOPIC][0][3].k[4] == 310.0
     assert got[mcap.IMU_TOPIC][-1][3].angular_velocity.z == 0.25 * 9
     assert meta["thermod"]["calibration_source"] == "health"
@@ -159,8 +203,12 @@ def test_import_mcap_then_deblur(sim, tmp_path, capsys):
     assert np.abs(back.t - src.t).max() < 1e-9 and np.abs(back.gyro_t - src.gyro_t).max() < 1e-9
     assert np.array_equal(back.gyro_rate, src.gyro_rate)
     assert back.extra_attrs["record"]["imported_calibration"] == "thermod metadata"
-    assert cli.main(["deblur", str(tmp_path / "back.h5"), "-o", str(tmp_path / "sharp.h5"), "--method",
-                     "wiener"]) == 0
+    assert (
+        cli.main(
+            ["deblur", str(tmp_path / "back.h5"), "-o", str(tmp_path / "sharp.h5"), "--method", "wiener"]
+        )
+        == 0
+    )
     sharp = recording.read(tmp_path / "sharp.h5")
     truth = src.extras["truth/frames"]
     inner = np.s_[:, 8:-8, 8:-8]
@@ -186,20 +234,54 @@ def _ros_messages(store, ros1: bool, frames, t, gyro_t, rates, *, bigendian=Fals
     for f, ti in zip(frames, t, strict=True):
         rows = f.astype(">u2" if bigendian else "<u2").view(np.uint8).reshape(H, 2 * W)
         data = np.ascontiguousarray(np.pad(rows, ((0, 0), (0, pad)))).ravel()
-        images.append((ti, Image(header=header(ti, "cam"), height=H, width=W, encoding="mono16",
-                                 is_bigendian=int(bigendian), step=2 * W + pad, data=data)))
+        images.append(
+            (
+                ti,
+                Image(
+                    header=header(ti, "cam"),
+                    height=H,
+                    width=W,
+                    encoding="mono16",
+                    is_bigendian=int(bigendian),
+                    step=2 * W + pad,
+                    data=data,
+                ),
+            )
+        )
     zero9 = np.zeros(9)
-    imus = [(ti, Imu(header=header(ti, "imu"), orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
-                     orientation_covariance=np.r_[-1.0, np.zeros(8)], angular_velocity=Vec(x=r[0], y=r[1], z=r[2]),
-                     angular_velocity_covariance=zero9, linear_acceleration=Vec(x=0.0, y=0.0, z=0.0),
-                     linear_acceleration_covariance=zero9)) for ti, r in zip(gyro_t, rates, strict=True)]
+    imus = [
+        (
+            ti,
+            Imu(
+                header=header(ti, "imu"),
+                orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.r_[-1.0, np.zeros(8)],
+                angular_velocity=Vec(x=r[0], y=r[1], z=r[2]),
+                angular_velocity_covariance=zero9,
+                linear_acceleration=Vec(x=0.0, y=0.0, z=0.0),
+                linear_acceleration_covariance=zero9,
+            ),
+        )
+        for ti, r in zip(gyro_t, rates, strict=True)
+    ]
     k = np.array([200.0, 0, 60.0, 0, 210.0, 45.0, 0, 0, 1])
     p = np.array([200.0, 0, 60.0, 0, 0, 210.0, 45.0, 0, 0, 0, 1, 0])
     roi = Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    kw = dict(D=np.zeros(5), K=k, R=np.eye(3).ravel(), P=p) if ros1 else dict(d=np.zeros(5), k=k,
-                                                                              r=np.eye(3).ravel(), p=p)
-    info = Info(header=header(t[0], "cam"), height=H, width=W, distortion_model="plumb_bob", binning_x=0,
-                binning_y=0, roi=roi, **kw)
+    kw = (
+        dict(D=np.zeros(5), K=k, R=np.eye(3).ravel(), P=p)
+        if ros1
+        else dict(d=np.zeros(5), k=k, r=np.eye(3).ravel(), p=p)
+    )
+    info = Info(
+        header=header(t[0], "cam"),
+        height=H,
+        width=W,
+        distortion_model="plumb_bob",
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+        **kw,
+    )
     return images, imus, info
 
 
@@ -286,8 +368,12 @@ def _small_mcap(path, *, info=True, extra_image=False, encoding_ok=True):
             w.write_message("/b/image_raw", img, msg, log_time=10**9)
         w.write_message("/imu/data", imu, {"header": hdr}, log_time=10**9)
         if info:
-            w.write_message("/a/camera_info", ci, {"header": hdr, "height": H, "width": W,
-                                                   "k": [100.0, 0, 60, 0, 100.0, 45, 0, 0, 1]}, log_time=10**9)
+            w.write_message(
+                "/a/camera_info",
+                ci,
+                {"header": hdr, "height": H, "width": W, "k": [100.0, 0, 60, 0, 100.0, 45, 0, 0, 1]},
+                log_time=10**9,
+            )
         w.finish()
 
 
@@ -309,19 +395,26 @@ def test_import_errors_name_file_topic_and_what_is_missing(tmp_path, capsys):
 
     _small_mcap(tmp_path / "two.mcap", extra_image=True)
     err = fails(tmp_path / "two.mcap", "--tau", 0.01)
-    assert "two.mcap: image-topic: several sensor_msgs/msg/Image topics ['/a/image_raw', '/b/image_raw']" in err
+    assert (
+        "two.mcap: image-topic: several sensor_msgs/msg/Image topics ['/a/image_raw', '/b/image_raw']" in err
+    )
     assert "/c: no such topic" in fails(tmp_path / "two.mcap", "--image-topic", "/c")
     assert "/imu/data: is sensor_msgs/msg/Imu, expected sensor_msgs/msg/Image" in fails(
-        tmp_path / "two.mcap", "--image-topic", "/imu/data")
+        tmp_path / "two.mcap", "--image-topic", "/imu/data"
+    )
 
     _small_mcap(tmp_path / "noinfo.mcap", info=False)
     err = fails(tmp_path / "noinfo.mcap")
-    assert "camera intrinsics (no sensor_msgs/msg/CameraInfo topic) and the detector time constant (--tau S)" in err
+    assert (
+        "camera intrinsics (no sensor_msgs/msg/CameraInfo topic) and the detector time constant (--tau S)"
+        in err
+    )
     _small_mcap(tmp_path / "ok.mcap")
     assert "missing the detector time constant (--tau S)" in fails(tmp_path / "ok.mcap")
     _small_mcap(tmp_path / "rgb.mcap", encoding_ok=False)
     assert "rgb.mcap: /a/image_raw: image encoding 'rgb8' is not single-channel" in fails(
-        tmp_path / "rgb.mcap", "--tau", 0.01)
+        tmp_path / "rgb.mcap", "--tau", 0.01
+    )
 
     assert cli.main(["import", str(tmp_path / "ok.mcap"), "-o", out, "--tau", "0.01"]) == 0
     rec = recording.read(out)

@@ -32,20 +32,41 @@ GYRO_BATCH = 1024
 def add_arguments(p) -> None:
     p.add_argument("input", help=".mcap file, rosbag2 directory or ROS 1 .bag")
     p.add_argument("-o", "--output", required=True, help="recording to write (HDF5, format v1)")
-    p.add_argument("--image-topic", default=None, help="sensor_msgs/Image topic of the raw frames "
-                   "(default: the only one, or a usual name such as /thermal/image_raw)")
-    p.add_argument("--imu-topic", default=None, help="sensor_msgs/Imu topic of the gyro (default: the only "
-                   "one, or /imu/data)")
-    p.add_argument("--camera-info-topic", default=None, help="sensor_msgs/CameraInfo topic (default: the "
-                   "one beside the image topic, or the only one)")
-    p.add_argument("--calibration", default=None, metavar="TOML", help="a thermod TOML with a [calibration] "
-                   "table (e.g. thermod discrepancy's model.toml); its keys override the bag's")
-    p.add_argument("--tau", type=float, default=None, metavar="S", help="detector time constant (s); needed "
-                   "when the calibration comes from CameraInfo")
+    p.add_argument(
+        "--image-topic",
+        default=None,
+        help="sensor_msgs/Image topic of the raw frames "
+        "(default: the only one, or a usual name such as /thermal/image_raw)",
+    )
+    p.add_argument(
+        "--imu-topic",
+        default=None,
+        help="sensor_msgs/Imu topic of the gyro (default: the only one, or /imu/data)",
+    )
+    p.add_argument(
+        "--camera-info-topic",
+        default=None,
+        help="sensor_msgs/CameraInfo topic (default: the one beside the image topic, or the only one)",
+    )
+    p.add_argument(
+        "--calibration",
+        default=None,
+        metavar="TOML",
+        help="a thermod TOML with a [calibration] "
+        "table (e.g. thermod discrepancy's model.toml); its keys override the bag's",
+    )
+    p.add_argument(
+        "--tau",
+        type=float,
+        default=None,
+        metavar="S",
+        help="detector time constant (s); needed when the calibration comes from CameraInfo",
+    )
 
 
-def pick_topic(bag: mcap.Bag, msgtype: str, wanted: str | None, usual: tuple, what: str,
-               required: bool = True) -> str | None:
+def pick_topic(
+    bag: mcap.Bag, msgtype: str, wanted: str | None, usual: tuple, what: str, required: bool = True
+) -> str | None:
     """The topic of `msgtype` to read: `wanted`, else the only one, else one of the `usual` names."""
     have = sorted(t for t, m in bag.topics.items() if m == msgtype)
     if wanted is not None:
@@ -83,8 +104,10 @@ def _base_calibration(bag: mcap.Bag, info_topic: str | None, args) -> tuple[Cali
     if args.tau is None:
         missing.append("the detector time constant (--tau S)")
     if missing:
-        raise ThermodError(f"{bag.path}: no thermod calibration in the bag; missing {' and '.join(missing)}: "
-                           "give --calibration model.toml (a [calibration] table) or those")
+        raise ThermodError(
+            f"{bag.path}: no thermod calibration in the bag; missing {' and '.join(missing)}: "
+            "give --calibration model.toml (a [calibration] table) or those"
+        )
     return None, "camera_info"
 
 
@@ -104,20 +127,36 @@ def run(args) -> int:
         image_topic = pick_topic(bag, mcap.IMAGE, args.image_topic, IMAGE_TOPICS, "image-topic")
         imu_topic = pick_topic(bag, mcap.IMU, args.imu_topic, IMU_TOPICS, "imu-topic")
         beside = image_topic.rsplit("/", 1)[0] + "/camera_info"
-        info_topic = pick_topic(bag, mcap.CAMERA_INFO, args.camera_info_topic, (beside, mcap.CAMERA_INFO_TOPIC),
-                                "camera-info-topic", required=False)
+        info_topic = pick_topic(
+            bag,
+            mcap.CAMERA_INFO,
+            args.camera_info_topic,
+            (beside, mcap.CAMERA_INFO_TOPIC),
+            "camera-info-topic",
+            required=False,
+        )
         base, source = _base_calibration(bag, info_topic, args)
         writer = RecordWriter(out)
         try:
             info, frame_t, gyro_t = _stream(bag, writer, image_topic, imu_topic, info_topic)
             calibration = _calibration(bag, base, info, frame_t, gyro_t, args)
-            writer.finish(calibration, {"imported_from": str(bag.path), "image_topic": image_topic,
-                                        "imu_topic": imu_topic, "imported_calibration": source})
+            writer.finish(
+                calibration,
+                {
+                    "imported_from": str(bag.path),
+                    "image_topic": image_topic,
+                    "imu_topic": imu_topic,
+                    "imported_calibration": source,
+                },
+            )
         except BaseException:
             writer.discard()
             raise
-    print(f"wrote {out}: {len(frame_t)} frames from {image_topic}, {len(gyro_t)} gyro samples from {imu_topic}, "
-          f"calibration from {source}" + (f" + {args.calibration}" if args.calibration else ""))
+    print(
+        f"wrote {out}: {len(frame_t)} frames from {image_topic}, {len(gyro_t)} gyro samples from "
+        f"{imu_topic}, "
+        f"calibration from {source}" + (f" + {args.calibration}" if args.calibration else "")
+    )
     return 0
 
 
@@ -131,8 +170,11 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
         if topic == image_topic:
             image = mcap.image_array(msg, bag.path, topic)
             if image.dtype == np.float32:
-                raise RecordingError(bag.path, topic, "32FC1 frames are not raw detector counts; choose the "
-                                     "raw image topic with --image-topic")
+                raise RecordingError(
+                    bag.path,
+                    topic,
+                    "32FC1 frames are not raw detector counts; choose the raw image topic with --image-topic",
+                )
             t = mcap.from_stamp(msg.header.stamp)
             writer.add("raw", {"t": t, "frame_id": len(frame_t)}, image.astype(np.uint16, copy=False))
             frame_t.append(t)
@@ -159,8 +201,10 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
 def _calibration(bag, base, info, frame_t, gyro_t, args) -> Calibration:
     if base is None and info is not None:
         if info["distorted"]:
-            log.warning("%s: CameraInfo declares lens distortion; thermod models a pinhole camera and ignores "
-                        "it", bag.path)
+            log.warning(
+                "%s: CameraInfo declares lens distortion; thermod models a pinhole camera and ignores it",
+                bag.path,
+            )
         kw = {k: info[k] for k in ("width", "height", "fx", "fy", "cx", "cy")}
         if args.tau is not None:
             kw["tau_s"] = args.tau
@@ -171,8 +215,10 @@ def _calibration(bag, base, info, frame_t, gyro_t, args) -> Calibration:
             base = Calibration(**kw)
         except (TypeError, ValueError) as e:
             raise RecordingError(bag.path, "CameraInfo", f"unusable camera model ({e})") from None
-        log.warning("gyro axes taken as the camera axes (R_cam_gyro = I), bias 0, time offset 0: give "
-                    "--calibration to set them")
+        log.warning(
+            "gyro axes taken as the camera axes (R_cam_gyro = I), bias 0, time offset 0: give "
+            "--calibration to set them"
+        )
     if args.calibration is not None:
         from thermod.runtime import config
 

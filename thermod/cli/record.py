@@ -279,7 +279,8 @@ def run(args) -> int:
     writer = McapRecordWriter(out) if as_mcap else RecordWriter(out)
     try:
         # A deep receive queue: a recorder must ride out disk stalls without losing messages.
-        with Subscriber(args.endpoint, ("raw", "gyro", "health") + (("frame",) if as_mcap else ()), curve_server_key=args.curve_server_key,
+        topics = ("raw", "gyro", "health") + (("frame",) if as_mcap else ())
+        with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
                         curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
             try:
                 record(sub, args.seconds, writer, stop=lambda: bool(stopping))

@@ -2,12 +2,12 @@
 
 Written (`McapWriter`, CDR through ``mcap-ros2-support``; docs/design.md §3 "MCAP"):
 
-| topic                      | type                          | content |
-|----------------------------|-------------------------------|---------|
-| ``/thermal/image_raw``       | sensor_msgs/msg/Image 16UC1   | camera frames, raw counts |
-| ``/thermal/image_deblurred`` | sensor_msgs/msg/Image 32FC1   | thermod's output frames, in the raw frames' counts |
-| ``/thermal/camera_info``     | sensor_msgs/msg/CameraInfo    | K from fx, fy, cx, cy; no distortion; one per raw frame |
-| ``/imu/data``                | sensor_msgs/msg/Imu           | raw gyro samples (gyro frame, rad/s); no orientation |
+- ``/thermal/image_raw``, sensor_msgs/msg/Image 16UC1: camera frames, raw counts;
+- ``/thermal/image_deblurred``, sensor_msgs/msg/Image 32FC1: thermod's output frames (deblurred
+  or passed through), in the raw frames' counts;
+- ``/thermal/camera_info``, sensor_msgs/msg/CameraInfo: K from fx, fy, cx, cy, no distortion,
+  one per raw frame with its stamp;
+- ``/imu/data``, sensor_msgs/msg/Imu: raw gyro samples (gyro frame, rad/s), no orientation.
 
 Header stamps and log times are the recording's times: host ``CLOCK_MONOTONIC`` seconds as mapped
 by thermod (frames: when the last row was read; gyro: the gyro's mapped clock, *before*
@@ -45,21 +45,36 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 # ROS 2 (Humble and later) definitions in the concatenated form ros2 bag and Foxglove expect:
 # the type's fields, then each dependency after a separator line and "MSG: pkg/Type".
 _SEP = "=" * 80 + "\n"
-_HEADER = ("MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n" + _SEP
-           + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n")
+_HEADER = (
+    "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+    + _SEP
+    + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+)
 MSGDEFS = {
-    IMAGE: ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\n"
-            "uint32 step\nuint8[] data\n" + _SEP + _HEADER),
-    IMU: ("std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
-          "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
-          "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance\n"
-          + _SEP + _HEADER + _SEP + "MSG: geometry_msgs/Quaternion\nfloat64 x\nfloat64 y\nfloat64 z\n"
-          "float64 w\n" + _SEP + "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"),
-    CAMERA_INFO: ("std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
-                  "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
-                  "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n" + _SEP + _HEADER + _SEP
-                  + "MSG: sensor_msgs/RegionOfInterest\nuint32 x_offset\nuint32 y_offset\nuint32 height\n"
-                  "uint32 width\nbool do_rectify\n"),
+    IMAGE: (
+        "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\n"
+        "uint32 step\nuint8[] data\n" + _SEP + _HEADER
+    ),
+    IMU: (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+        "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
+        "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance\n"
+        + _SEP
+        + _HEADER
+        + _SEP
+        + "MSG: geometry_msgs/Quaternion\nfloat64 x\nfloat64 y\nfloat64 z\n"
+        "float64 w\n" + _SEP + "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
+    ),
+    CAMERA_INFO: (
+        "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
+        "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
+        "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n"
+        + _SEP
+        + _HEADER
+        + _SEP
+        + "MSG: sensor_msgs/RegionOfInterest\nuint32 x_offset\nuint32 y_offset\nuint32 height\n"
+        "uint32 width\nbool do_rectify\n"
+    ),
 }
 
 # Imu: orientation_covariance[0] = -1 says "no orientation estimate"; the other covariances are
@@ -102,21 +117,37 @@ class McapWriter:
         self.counts = dict.fromkeys((RAW_TOPIC, DEBLURRED_TOPIC, CAMERA_INFO_TOPIC, IMU_TOPIC), 0)
 
     def _write(self, topic: str, msgtype: str, msg: dict, ns: int, seq: int = 0) -> None:
-        self._w.write_message(topic, self._schemas[msgtype], msg, log_time=ns, publish_time=ns,
-                              sequence=int(seq) & 0xFFFFFFFF)
+        self._w.write_message(
+            topic, self._schemas[msgtype], msg, log_time=ns, publish_time=ns, sequence=int(seq) & 0xFFFFFFFF
+        )
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def image(self, topic: str, image: np.ndarray, t: float, seq: int = 0) -> None:
         """A uint16 (16UC1) or float32 (32FC1) frame [H, W], little-endian."""
         kind = {np.dtype(np.uint16): "16UC1", np.dtype(np.float32): "32FC1"}.get(image.dtype)
         if kind is None or image.ndim != 2:
-            raise RecordingError(self.path, topic, f"expected a uint16 or float32 [H, W] frame, got "
-                                 f"{image.dtype} {image.shape}")
+            raise RecordingError(
+                self.path,
+                topic,
+                f"expected a uint16 or float32 [H, W] frame, got {image.dtype} {image.shape}",
+            )
         h, w = image.shape
         data = np.ascontiguousarray(image, image.dtype.newbyteorder("<")).tobytes()
-        self._write(topic, IMAGE, {"header": {"stamp": stamp(t, self.path, topic), "frame_id": CAMERA_FRAME_ID},
-                                   "height": h, "width": w, "encoding": kind, "is_bigendian": 0,
-                                   "step": w * image.itemsize, "data": data}, to_ns(t, self.path, topic), seq)
+        self._write(
+            topic,
+            IMAGE,
+            {
+                "header": {"stamp": stamp(t, self.path, topic), "frame_id": CAMERA_FRAME_ID},
+                "height": h,
+                "width": w,
+                "encoding": kind,
+                "is_bigendian": 0,
+                "step": w * image.itemsize,
+                "data": data,
+            },
+            to_ns(t, self.path, topic),
+            seq,
+        )
 
     def raw(self, image: np.ndarray, t: float, frame_id: int = 0) -> None:
         self.image(RAW_TOPIC, np.asarray(image, np.uint16), t, frame_id)
@@ -126,32 +157,54 @@ class McapWriter:
 
     def gyro(self, t: np.ndarray, rate: np.ndarray, first_seq: int = 0) -> None:
         """Raw gyro samples (mapped gyro clock s, gyro-frame rad/s [n, 3]), one Imu message each."""
-        for i, (ti, (x, y, z)) in enumerate(zip(np.asarray(t, np.float64).tolist(),
-                                                np.asarray(rate, np.float64).tolist(), strict=True)):
-            self._write(IMU_TOPIC, IMU, {
-                "header": {"stamp": stamp(ti, self.path, IMU_TOPIC), "frame_id": GYRO_FRAME_ID},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}, "orientation_covariance": _NO_ESTIMATE,
-                "angular_velocity": {"x": x, "y": y, "z": z}, "angular_velocity_covariance": _UNKNOWN,
-                "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "linear_acceleration_covariance": _NO_ESTIMATE}, to_ns(ti, self.path, IMU_TOPIC), first_seq + i)
+        for i, (ti, (x, y, z)) in enumerate(
+            zip(np.asarray(t, np.float64).tolist(), np.asarray(rate, np.float64).tolist(), strict=True)
+        ):
+            self._write(
+                IMU_TOPIC,
+                IMU,
+                {
+                    "header": {"stamp": stamp(ti, self.path, IMU_TOPIC), "frame_id": GYRO_FRAME_ID},
+                    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                    "orientation_covariance": _NO_ESTIMATE,
+                    "angular_velocity": {"x": x, "y": y, "z": z},
+                    "angular_velocity_covariance": _UNKNOWN,
+                    "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "linear_acceleration_covariance": _NO_ESTIMATE,
+                },
+                to_ns(ti, self.path, IMU_TOPIC),
+                first_seq + i,
+            )
 
     def camera_info(self, calibration: Calibration, t: float, seq: int = 0) -> None:
         """The pinhole model of `calibration` (no distortion), stamped like the frame at `t`."""
         c = calibration
-        self._write(CAMERA_INFO_TOPIC, CAMERA_INFO, {
-            "header": {"stamp": stamp(t, self.path, CAMERA_INFO_TOPIC), "frame_id": CAMERA_FRAME_ID},
-            "height": int(c.height), "width": int(c.width), "distortion_model": "plumb_bob",
-            "d": [0.0] * 5, "k": [c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0],
-            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            "p": [c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-            "binning_x": 0, "binning_y": 0,
-            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}},
-            to_ns(t, self.path, CAMERA_INFO_TOPIC), seq)
+        self._write(
+            CAMERA_INFO_TOPIC,
+            CAMERA_INFO,
+            {
+                "header": {"stamp": stamp(t, self.path, CAMERA_INFO_TOPIC), "frame_id": CAMERA_FRAME_ID},
+                "height": int(c.height),
+                "width": int(c.width),
+                "distortion_model": "plumb_bob",
+                "d": [0.0] * 5,
+                "k": [c.fx, 0.0, c.cx, 0.0, c.fy, c.cy, 0.0, 0.0, 1.0],
+                "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                "p": [c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+                "binning_x": 0,
+                "binning_y": 0,
+                "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+            },
+            to_ns(t, self.path, CAMERA_INFO_TOPIC),
+            seq,
+        )
 
     def metadata(self, calibration: Calibration, attrs: dict | None = None) -> None:
         """The thermod calibration (JSON) and string attributes, in the metadata record ``thermod``."""
         data = {"calibration": json.dumps(calibration.as_dict())}
-        data.update({str(k): v if isinstance(v, str) else json.dumps(_plain(v)) for k, v in (attrs or {}).items()})
+        data.update(
+            {str(k): v if isinstance(v, str) else json.dumps(_plain(v)) for k, v in (attrs or {}).items()}
+        )
         self._w.add_metadata(METADATA_NAME, data)
 
     def commit(self) -> Path:
@@ -162,8 +215,11 @@ class McapWriter:
             os.replace(self.part, self.path)
         except (OSError, ValueError) as e:
             self.abort(keep=True)
-            raise RecordingError(self.path, "file", f"could not complete the MCAP file ({e}); what was "
-                                 f"written is in {self.part}") from None
+            raise RecordingError(
+                self.path,
+                "file",
+                f"could not complete the MCAP file ({e}); what was written is in {self.part}",
+            ) from None
         return self.path
 
     def abort(self, keep: bool = False) -> None:
@@ -278,8 +334,15 @@ class McapRecordWriter:
         try:
             for t, fid in zip(self.frame_t, self.frame_id, strict=True):
                 self._w.camera_info(calibration, t, fid)
-            self._w.metadata(calibration, {**(attrs or {}), "calibration_source": source,
-                                           "health_messages": self.health, "frames_dropped": self.dropped})
+            self._w.metadata(
+                calibration,
+                {
+                    **(attrs or {}),
+                    "calibration_source": source,
+                    "health_messages": self.health,
+                    "frames_dropped": self.dropped,
+                },
+            )
         except RecordingError:
             self._w.abort(keep=True)
             raise
@@ -318,8 +381,11 @@ class Bag:
         elif self.path.is_dir() or self.path.suffix.lower() == ".bag":
             self._open_rosbags()
         else:
-            raise RecordingError(self.path, "file", "expected an .mcap file, a rosbag2 directory (metadata.yaml "
-                                 "+ .db3/.mcap) or a ROS 1 .bag")
+            raise RecordingError(
+                self.path,
+                "file",
+                "expected an .mcap file, a rosbag2 directory (metadata.yaml + .db3/.mcap) or a ROS 1 .bag",
+            )
 
     def _open_mcap(self) -> None:
         from mcap.exceptions import McapError
@@ -340,7 +406,9 @@ class Bag:
             self.metadata = {m.name: dict(m.metadata) for m in self._reader.iter_metadata()}
         except (McapError, OSError, ValueError, KeyError, EOFError) as e:
             self.close()
-            raise RecordingError(self.path, "file", f"not a readable MCAP file ({type(e).__name__}: {e})") from None
+            raise RecordingError(
+                self.path, "file", f"not a readable MCAP file ({type(e).__name__}: {e})"
+            ) from None
         except RecordingError:
             self.close()
             raise
@@ -365,19 +433,23 @@ class Bag:
             from mcap.exceptions import McapError
 
             try:
-                for _, channel, _, msg in self._reader.iter_decoded_messages(topics=topics, log_time_order=True):
+                for _, channel, _, msg in self._reader.iter_decoded_messages(
+                    topics=topics, log_time_order=True
+                ):
                     yield channel.topic, msg
             except (McapError, ValueError, EOFError, IndexError, KeyError) as e:
-                raise RecordingError(self.path, ",".join(topics), f"cannot decode a message "
-                                     f"({type(e).__name__}: {e})") from None
+                raise RecordingError(
+                    self.path, ",".join(topics), f"cannot decode a message ({type(e).__name__}: {e})"
+                ) from None
             return
         conns = [c for c in self._reader.connections if c.topic in topics]
         for conn, _, data in self._reader.messages(connections=conns):
             try:
                 msg = self._reader.deserialize(data, conn.msgtype)
             except Exception as e:  # noqa: BLE001 - rosbags raises several kinds on damaged data
-                raise RecordingError(self.path, conn.topic, f"cannot decode a {conn.msgtype} message "
-                                     f"({type(e).__name__}: {e})") from None
+                raise RecordingError(
+                    self.path, conn.topic, f"cannot decode a {conn.msgtype} message ({type(e).__name__}: {e})"
+                ) from None
             yield conn.topic, msg
 
     def close(self) -> None:
@@ -400,8 +472,13 @@ def _ros2_name(msgtype: str) -> str:
 
 
 # Image encodings that are raw detector counts, and their element type.
-_ENCODINGS = {"mono16": np.uint16, "16UC1": np.uint16, "mono8": np.uint8, "8UC1": np.uint8,
-              "32FC1": np.float32}
+_ENCODINGS = {
+    "mono16": np.uint16,
+    "16UC1": np.uint16,
+    "mono8": np.uint8,
+    "8UC1": np.uint8,
+    "32FC1": np.float32,
+}
 
 
 def image_array(msg, path, topic: str) -> np.ndarray:
@@ -410,15 +487,17 @@ def image_array(msg, path, topic: str) -> np.ndarray:
     naming the file and topic."""
     enc = str(msg.encoding)
     if enc not in _ENCODINGS:
-        raise RecordingError(path, topic, f"image encoding {enc!r} is not single-channel "
-                             f"({', '.join(_ENCODINGS)} expected)")
+        raise RecordingError(
+            path, topic, f"image encoding {enc!r} is not single-channel ({', '.join(_ENCODINGS)} expected)"
+        )
     dt = np.dtype(_ENCODINGS[enc]).newbyteorder(">" if msg.is_bigendian else "<")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(msg.data, np.uint8)
     if h <= 0 or w <= 0 or step < w * dt.itemsize or data.size < h * step:
-        raise RecordingError(path, topic, f"image {w}×{h} {enc} step {step} does not fit its {data.size} "
-                             "data bytes")
-    rows = np.asarray(data[:h * step], np.uint8).reshape(h, step)[:, :w * dt.itemsize]
+        raise RecordingError(
+            path, topic, f"image {w}×{h} {enc} step {step} does not fit its {data.size} data bytes"
+        )
+    rows = np.asarray(data[: h * step], np.uint8).reshape(h, step)[:, : w * dt.itemsize]
     return np.ascontiguousarray(rows).view(dt).reshape(h, w).astype(dt.newbyteorder("="))
 
 
@@ -427,5 +506,12 @@ def camera_info_intrinsics(msg) -> dict:
     whether it declares a non-zero distortion."""
     k = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, np.float64).ravel()
     d = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, np.float64).ravel()
-    return {"width": int(msg.width), "height": int(msg.height), "fx": float(k[0]), "fy": float(k[4]),
-            "cx": float(k[2]), "cy": float(k[5]), "distorted": bool(np.any(d != 0))}
+    return {
+        "width": int(msg.width),
+        "height": int(msg.height),
+        "fx": float(k[0]),
+        "fy": float(k[4]),
+        "cx": float(k[2]),
+        "cy": float(k[5]),
+        "distorted": bool(np.any(d != 0)),
+    }
