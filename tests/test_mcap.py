@@ -75,6 +75,28 @@ def test_message_definitions_are_the_ros2_ones(msgtype):
     assert mcap.MSGDEFS[msgtype] == ref
 
 
+@pytest.mark.parametrize("frame_id", ["thermal_gyro", "", "imu", "a_frame_name_of_21_ch"])
+def test_packed_imu_is_what_the_ros2_encoder_writes(frame_id):
+    """The numpy Imu layout, byte for byte the output of mcap-ros2-support's encoder."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    encode = serialize_dynamic(mcap.IMU, mcap.MSGDEFS[mcap.IMU])[mcap.IMU]
+    msg = {
+        "header": {"stamp": {"sec": 123, "nanosec": 456789}, "frame_id": frame_id},
+        "orientation": {"w": 1.0},
+        "orientation_covariance": [-1.0] + [0.0] * 8,
+        "angular_velocity": {"x": 0.1, "y": -2.5, "z": 3e-3},
+        "linear_acceleration_covariance": [-1.0] + [0.0] * 8,
+    }
+    rec = np.zeros(1, mcap.imu_cdr_dtype(frame_id))
+    rec["encapsulation"], rec["sec"], rec["nanosec"] = mcap.CDR_LE, 123, 456789
+    rec["frame_id_len"], rec["frame_id"] = len(frame_id) + 1, frame_id.encode()
+    rec["orientation"][:, 3] = 1.0
+    rec["orientation_covariance"][:, 0] = rec["linear_acceleration_covariance"][:, 0] = -1.0
+    rec["angular_velocity"] = (0.1, -2.5, 3e-3)
+    assert rec.tobytes() == encode(msg)
+
+
 # --------------------------------------------------------------------------------------- writing
 def test_export_read_back_with_the_mcap_reader(sim, tmp_path):
     counts = mcap.export(sim / "deb.h5", tmp_path / "deb.mcap")
@@ -90,6 +112,7 @@ def test_export_read_back_with_the_mcap_reader(sim, tmp_path):
     header, got, meta = read_all(tmp_path / "deb.mcap")
     assert header.profile == "ros2" and not (tmp_path / "deb.mcap.part").exists()
     assert {t: len(v) for t, v in got.items()} == counts
+    assert rec.deblurred is not None and counts[mcap.DEBLURRED_TOPIC] == n
     for items in got.values():
         schema, channel = items[0][0], items[0][1]
         assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
