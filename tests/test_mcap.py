@@ -444,3 +444,63 @@ def test_import_errors_name_file_topic_and_what_is_missing(tmp_path, capsys):
     assert rec.frames.shape == (1, H, W) and rec.calibration.fx == 100.0 and rec.calibration.tau_s == 0.01
     with h5py.File(out) as f:
         assert f["record"].attrs["imported_calibration"] == "camera_info"
+
+
+@pytest.mark.slow
+def test_record_mcap_from_the_running_simulated_daemon(tmp_path):
+    """`thermod run --raw` on the simulated payload, `thermod record -o X.mcap`, read back with the
+    mcap reader, then `thermod import` and the recording's calibration is the daemon's."""
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from thermod.runtime import config
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    env = dict(os.environ)
+    env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
+    exe = str(Path(sys.executable).with_name("thermod"))
+    proc = subprocess.Popen([exe, "run", "--endpoint", ep, "--raw", "--seconds", "300"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
+    out = tmp_path / "live.mcap"
+    try:
+        with Subscriber(ep, ("health",)) as hs:
+            deadline = time.monotonic() + 240
+            while time.monotonic() < deadline and proc.poll() is None:
+                m = hs.recv(0.5)
+                if m is not None and m[1].get("ready"):
+                    break
+            else:
+                err = proc.stderr.read() if proc.poll() is not None else ""
+                pytest.fail(f"daemon never became ready: {err}")
+        assert cli.main(["record", "-o", str(out), "--endpoint", ep, "--seconds", "3"]) == 0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(20)
+    cfg = config.load()
+    _, got, meta = read_all(out)
+    raw = [d for *_, d in got[mcap.RAW_TOPIC]]
+    # At most 3 s at 50 fps; how many of them are written before the time is up depends on the
+    # machine's load (what is still queued then is not), but none is lost or skipped.
+    assert 50 <= len(raw) <= 151
+    assert meta["thermod"]["lost_raw_messages"] == "0" and meta["thermod"]["lost_gyro_messages"] == "0"
+    assert np.all(np.diff([m.sequence for _, _, m, _ in got[mcap.RAW_TOPIC]]) == 1)
+    t = np.array([mcap.from_stamp(d.header.stamp) for d in raw])
+    assert np.allclose(np.diff(t), 0.02, atol=2e-3)
+    assert (raw[0].encoding, raw[0].height, raw[0].width) == ("16UC1", cfg.calibration.height,
+                                                              cfg.calibration.width)
+    assert len(got[mcap.CAMERA_INFO_TOPIC]) == len(raw)
+    assert len(got.get(mcap.DEBLURRED_TOPIC, [])) >= 20  # the output rate depends on the machine's load
+    assert got[mcap.DEBLURRED_TOPIC][0][3].encoding == "32FC1"
+    gyro_t = np.array([mcap.from_stamp(d.header.stamp) for *_, d in got[mcap.IMU_TOPIC]])
+    assert (len(gyro_t) - 1) / (gyro_t[-1] - gyro_t[0]) == pytest.approx(1000.0, abs=5.0)
+    assert gyro_t[0] < t[1] and gyro_t[-1] > t[-2]  # the gyro covers the frames
+    assert meta["thermod"]["calibration_source"] == "health"
+    assert cli.main(["import", str(out), "-o", str(tmp_path / "live.h5")]) == 0
+    rec = recording.read(tmp_path / "live.h5")
+    assert rec.calibration == cfg.calibration and rec.n_frames == len(raw)

@@ -124,9 +124,10 @@ class McapWriter:
 
     The container is `mcap.writer.Writer`; Image and CameraInfo are encoded by mcap-ros2-support's
     encoder for `MSGDEFS`, Imu batches by `imu_cdr_dtype` (tests compare both byte for byte).
-    Chunks are LZ4-compressed: a live recorder must keep up with 50 raw + 50 float frames/s."""
+    `compress`: LZ4 chunks (exports); a live recorder writes them uncompressed, like the HDF5
+    recorder, to keep up with 50 raw + 50 float frames/s (compression tripled the cost per frame)."""
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, compress: bool = True):
         from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
         from mcap.writer import CompressionType, Writer
         from mcap_ros2 import __version__ as ros2_version
@@ -138,7 +139,7 @@ class McapWriter:
             self._file = open(self.part, "wb")  # noqa: SIM115 (closed by commit/abort)
         except OSError as e:
             raise RecordingError(self.path, "file", f"cannot create {self.part} ({e})") from None
-        self._w = Writer(self._file, compression=CompressionType.LZ4)
+        self._w = Writer(self._file, compression=CompressionType.LZ4 if compress else CompressionType.NONE)
         self._w.start(profile=Profile.ROS2, library=f"thermod, mcap-ros2-support {ros2_version}")
         self._encoders = {name: serialize_dynamic(name, text)[name] for name, text in MSGDEFS.items()}
         schemas = {name: self._w.register_schema(name, SchemaEncoding.ROS2, text.encode())
@@ -314,7 +315,7 @@ class McapRecordWriter:
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        self._w = McapWriter(self.path)
+        self._w = McapWriter(self.path, compress=False)
         self.frame_t: list[float] = []
         self.frame_id: list[int] = []
         self.shape: tuple | None = None
