@@ -97,6 +97,24 @@ def test_packed_imu_is_what_the_ros2_encoder_writes(frame_id):
     assert rec.tobytes() == encode(msg)
 
 
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_image_bytes_are_what_the_ros2_encoder_writes(tmp_path, dtype):
+    """The frame appended to the encoder's prefix = the whole message through the encoder."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    encode = serialize_dynamic(mcap.IMAGE, mcap.MSGDEFS[mcap.IMAGE])[mcap.IMAGE]
+    image = np.arange(35, dtype=dtype).reshape(5, 7) * 3
+    w = mcap.McapWriter(tmp_path / "one.mcap")
+    w.image(mcap.RAW_TOPIC, image, 12.25, 3)
+    w.commit()
+    with open(tmp_path / "one.mcap", "rb") as f:
+        (_, _, message), = make_reader(f).iter_messages()
+    expected = encode({"header": {"stamp": {"sec": 12, "nanosec": 250_000_000}, "frame_id": "thermal_camera"},
+                       "height": 5, "width": 7, "encoding": "16UC1" if dtype == np.uint16 else "32FC1",
+                       "is_bigendian": 0, "step": 7 * image.itemsize, "data": image.tobytes()})
+    assert message.data == expected and message.sequence == 3 and message.log_time == 12_250_000_000
+
+
 # --------------------------------------------------------------------------------------- writing
 def test_export_read_back_with_the_mcap_reader(sim, tmp_path):
     counts = mcap.export(sim / "deb.h5", tmp_path / "deb.mcap")
@@ -485,13 +503,14 @@ def test_record_mcap_from_the_running_simulated_daemon(tmp_path):
     cfg = config.load()
     _, got, meta = read_all(out)
     raw = [d for *_, d in got[mcap.RAW_TOPIC]]
-    # At most 3 s at 50 fps; how many of them are written before the time is up depends on the
-    # machine's load (what is still queued then is not), but none is lost or skipped.
+    # At most 3 s at 50 fps; how many are written before the time is up depends on the machine's
+    # load (what is still queued then is not); every frame received is there, and a frame lost on
+    # the way (publisher queue full) is counted in the metadata exactly as the frame numbers skip.
     assert 50 <= len(raw) <= 151
-    assert meta["thermod"]["lost_raw_messages"] == "0" and meta["thermod"]["lost_gyro_messages"] == "0"
-    assert np.all(np.diff([m.sequence for _, _, m, _ in got[mcap.RAW_TOPIC]]) == 1)
+    skipped = np.diff([m.sequence for _, _, m, _ in got[mcap.RAW_TOPIC]]) - 1
+    assert skipped.min() >= 0 and skipped.sum() == int(meta["thermod"]["lost_raw_messages"]) <= 5
     t = np.array([mcap.from_stamp(d.header.stamp) for d in raw])
-    assert np.allclose(np.diff(t), 0.02, atol=2e-3)
+    assert np.allclose(np.diff(t), 0.02 * (skipped + 1), atol=2e-3)
     assert (raw[0].encoding, raw[0].height, raw[0].width) == ("16UC1", cfg.calibration.height,
                                                               cfg.calibration.width)
     assert len(got[mcap.CAMERA_INFO_TOPIC]) == len(raw)

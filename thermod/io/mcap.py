@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -167,22 +168,16 @@ class McapWriter:
                 f"expected a uint16 or float32 [H, W] frame, got {image.dtype} {image.shape}",
             )
         h, w = image.shape
-        data = np.ascontiguousarray(image, image.dtype.newbyteorder("<")).tobytes()
-        self._write(
-            topic,
-            IMAGE,
-            {
-                "header": {"stamp": stamp(t, self.path, topic), "frame_id": CAMERA_FRAME_ID},
-                "height": h,
-                "width": w,
-                "encoding": kind,
-                "is_bigendian": 0,
-                "step": w * image.itemsize,
-                "data": data,
-            },
-            to_ns(t, self.path, topic),
-            seq,
-        )
+        data = np.ascontiguousarray(image, image.dtype.newbyteorder("<"))
+        # The encoder writes the fields before `data`; `uint8[] data` is last, a uint32 count then
+        # the bytes, so the frame is appended to that prefix in one copy (the encoder's byte stream
+        # cost ~10 ms for a 640×480 float frame).
+        head = self._encoders[IMAGE]({
+            "header": {"stamp": stamp(t, self.path, topic), "frame_id": CAMERA_FRAME_ID},
+            "height": h, "width": w, "encoding": kind, "is_bigendian": 0, "step": w * image.itemsize,
+            "data": b""})
+        self._add(topic, b"".join((head[:-4], struct.pack("<I", data.nbytes), data.data)),
+                  to_ns(t, self.path, topic), seq)
 
     def raw(self, image: np.ndarray, t: float, frame_id: int = 0) -> None:
         self.image(RAW_TOPIC, np.asarray(image, np.uint16), t, frame_id)
