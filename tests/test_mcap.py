@@ -255,7 +255,7 @@ def test_import_mcap_then_deblur(sim, tmp_path, capsys):
     inner = np.s_[:, 8:-8, 8:-8]
     before, after = rmse(src.frames[inner], truth[inner]), rmse(sharp.deblurred[inner], truth[inner])
     assert sharp.extras["deblurred/deblurred"].mean() > 0.5
-    assert after < 0.8 * before, (before, after)
+    assert after < 0.5 * before, (before, after)  # measured: 107.6 → 23.2 counts RMS
 
 
 def _ros_messages(store, ros1: bool, frames, t, gyro_t, rates, *, bigendian=False, pad=0):

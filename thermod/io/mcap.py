@@ -21,6 +21,7 @@ Read (`open_bag`): a ``.mcap`` file through ``mcap`` + ``mcap_ros2``; a rosbag2 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import struct
 from collections.abc import Iterable, Iterator
@@ -30,6 +31,8 @@ import numpy as np
 
 from thermod.errors import RecordingError
 from thermod.physics.calibration import Calibration
+
+log = logging.getLogger(__name__)
 
 RAW_TOPIC = "/thermal/image_raw"
 DEBLURRED_TOPIC = "/thermal/image_deblurred"
@@ -354,6 +357,8 @@ class McapRecordWriter:
             except (TypeError, ValueError, KeyError):
                 pass
         h, w = self.shape or (Calibration().height, Calibration().width)
+        log.warning("no calibration received (no health messages) nor --config: writing defaults for a "
+                    "%dx%d camera; fix them before deblurring", w, h)
         return Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2), "defaults"
 
     def finish(self, calibration: Calibration | None = None, attrs: dict | None = None) -> Path:
