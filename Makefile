@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
-DEBIAN_PKGS := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev pkg-config systemd
+DEBIAN_PKGS := gir1.2-aravis-0.8 aravis-tools libgirepository1.0-dev libcairo2-dev pkg-config systemd chromium
 
 .PHONY: run test lint bench debian-deps clean
 

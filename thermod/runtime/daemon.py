@@ -109,7 +109,8 @@ class Daemon:
 
     def _on_frame(self, f) -> None:
         try:
-            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before)
+            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before,
+                                  ffc=getattr(f, "ffc", False))
         except ValueError as e:
             self.counters["frames_wrong_shape"] += 1
             raise DeviceError(f"{self.camera_state.name}: {e} (calibration.width/height)") from None
@@ -124,6 +125,8 @@ class Daemon:
                                      kernel_size=o.kernel_size, kernel_extent_px=o.kernel_extent_px,
                                      coverage=o.coverage, reason=o.reason, copy=False, n_samples=o.n_samples,
                                      latency_s=o.latency_s, camera_gap_before=o.camera_gap_before)
+        if self.cfg.publish.kernel and o.kernel is not None:
+            self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
