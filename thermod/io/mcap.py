@@ -14,7 +14,7 @@ by thermod (frames: when the last row was read; gyro: the gyro's mapped clock, *
 ``time_offset_s``), not UNIX time. The whole thermod calibration travels in the MCAP metadata
 record ``thermod`` (key ``calibration``, JSON), so `thermod import` restores it exactly.
 
-Read (`open_bag`): a ``.mcap`` file through ``mcap`` + ``mcap_ros2``; a rosbag2 directory or a ROS 1
+Read (`Bag`): a ``.mcap`` file through ``mcap`` + ``mcap_ros2``; a rosbag2 directory or a ROS 1
 ``.bag`` through ``rosbags``. Messages are streamed in log-time order, never loaded all at once.
 """
 
