@@ -1,4 +1,4 @@
-"""`thermod run|watch|deblur|sim|record|discrepancy|bench`.
+"""`thermod run|watch|deblur|sim|record|import|discrepancy|bench`.
 
 Each command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
 only the chosen module is imported, so `thermod watch` does not pay for numba start-up.
@@ -22,6 +22,7 @@ COMMANDS = {
     "run": ("thermod.cli.run", "run the acquisition and deblurring daemon (default: simulated payload)"),
     "watch": ("thermod.cli.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
     "record": ("thermod.cli.record", "subscribe to raw frames and gyro samples and write a recording"),
+    "import": ("thermod.cli.import_", "convert a ROS recording (MCAP, rosbag2, ROS 1 .bag) to format v1"),
     "deblur": ("thermod.cli.deblur", "deblur recordings offline"),
     "sim": ("thermod.cli.sim", "simulate a recording with known truth"),
     "discrepancy": ("thermod.cli.discrepancy", "compare simulation with a recording and fix the model"),

@@ -32,7 +32,8 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p) -> None:
-    p.add_argument("-o", "--output", required=True, help="recording to write (HDF5, format v1)")
+    p.add_argument("-o", "--output", required=True, help="recording to write: HDF5 format v1, or ROS 2 "
+                   "messages with deblurred frames too if it ends in .mcap (thermod.io.mcap)")
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
     p.add_argument("--config", default=None, help="take the calibration from this thermod.toml")
@@ -201,10 +202,14 @@ def run(args) -> int:
         pass
     started = time.monotonic()
     attrs = {"endpoint": args.endpoint}
-    writer = RecordWriter(out)
+    as_mcap = out.suffix.lower() == ".mcap"
+    if as_mcap:
+        from thermod.io.mcap import McapRecordWriter
+    writer = McapRecordWriter(out) if as_mcap else RecordWriter(out)
     try:
         # A deep receive queue: a recorder must ride out disk stalls without losing messages.
-        with Subscriber(args.endpoint, ("raw", "gyro", "health"), curve_server_key=args.curve_server_key,
+        topics = ("raw", "gyro", "health") + (("frame",) if as_mcap else ())
+        with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
                         curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
             try:
                 record(sub, args.seconds, writer, stop=lambda: bool(stopping))
@@ -223,6 +228,9 @@ def run(args) -> int:
                 signal.signal(signal.SIGTERM, previous)
     if writer.empty:
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
+    if as_mcap:
+        print(f"wrote {out}: messages by topic {writer.counts}, calibration from {writer.source}")
+        return 0
     with h5py.File(out, "r") as f:
         n, shape, m = f["camera/t"].shape[0], f["camera/frames"].shape[1:], f["gyro/t"].shape[0]
         gt = f["gyro/t"][()]
