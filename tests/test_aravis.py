@@ -295,3 +295,15 @@ def test_stop_after_silent_loss_does_not_block(fake_camera):
         assert len(_collect(cam, 0.5)) >= 10
     finally:
         cam.stop()
+
+
+@pytest.mark.hardware
+def test_radiometry_is_none_without_flir_features(fake_camera):
+    """The fake camera has no Planck features (R, B, F, O): `radiometry()` says None, open or closed."""
+    cam = AravisCamera("127.0.0.1", width=160, height=120)
+    assert cam.radiometry() is None                      # no session yet
+    with cam:
+        assert cam._device is not None and not cam._device.is_feature_available("R")
+        assert cam.radiometry() is None
+        assert cam.poll(1.0) is not None                 # reading features left the stream working
+    assert cam.radiometry() is None
