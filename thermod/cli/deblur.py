@@ -10,6 +10,9 @@ The output holds the input's /camera and /gyro (and any other datasets, e.g. /tr
 incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
 unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
 frames were deblurred and /deblurred/lambda (float64 [N]) the data weight each one used.
+With `--celsius`, /deblurred/celsius (float32 [N, H, W], °C) converts the deblurred counts with a
+radiometric model (`thermod.physics.radiometry`): `--radiometry FILE`'s [radiometry] table, else
+`--config`'s, else the recording's own /radiometry attributes (same keys as the table).
 """
 
 from __future__ import annotations
@@ -60,6 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, metavar="TOML",
                         help="take the calibration from this file's [calibration] table (e.g. the "
                              "model.toml of `thermod discrepancy`); keys it omits keep the recording's")
+    parser.add_argument("--celsius", action="store_true",
+                        help="also write /deblurred/celsius (float32 °C) converted after deblurring")
+    parser.add_argument("--radiometry", type=Path, default=None, metavar="TOML",
+                        help="the counts→°C model for --celsius: this file's [radiometry] table (default: "
+                             "--config's, else the recording's /radiometry attributes)")
     parser.add_argument("--min-coverage", type=float, default=MIN_COVERAGE,
                         help=f"pass a frame through when its gyro window coverage is below this "
                              f"(default {MIN_COVERAGE})")
@@ -106,6 +114,8 @@ class _FrameDeblurrer:
             raise ThermodError(f"--min-coverage {self.min_coverage}: expected a fraction in [0, 1]")
         # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
         self.dec = deconv.Deconvolver(method=args.method, alpha=args.alpha, lam=args.lam, cache_size=2)
+        self.celsius = bool(getattr(args, "celsius", False))
+        self.radiometry = _file_radiometry(args) if self.celsius else None  # None: the recording's own
 
     def __call__(self, rec: recording.Recording, i: int) -> tuple[np.ndarray | None, str]:
         """(deblurred frame, "") or (None, why it was passed through)."""
@@ -129,6 +139,38 @@ class _FrameDeblurrer:
         return self.dec.run_varying(rec.frames[i], g), ""
 
 
+def _file_radiometry(args):
+    """--celsius's model from --radiometry (required to have one) or --config (optional), else None."""
+    from thermod.runtime.config import load_radiometry
+
+    if getattr(args, "radiometry", None) is not None:
+        model = load_radiometry(args.radiometry)
+        if model is None:
+            raise ThermodError(f"--radiometry {args.radiometry}: no [radiometry] table with model = 'planck' "
+                               "or 'linear'")
+        return model
+    return load_radiometry(args.config) if args.config is not None else None
+
+
+def _recording_radiometry(rec: recording.Recording, src: Path, fd: _FrameDeblurrer):
+    """The model --celsius converts with: the command line's, else the recording's /radiometry attrs."""
+    from thermod.physics import radiometry
+
+    if fd.radiometry is not None:
+        return fd.radiometry
+    attrs = rec.extra_attrs.get(radiometry.RECORDING_GROUP)
+    if not attrs:
+        raise ThermodError(f"{src}: --celsius needs a radiometric model: give --radiometry FILE (a "
+                           "[radiometry] table) or a recording with /radiometry attributes")
+    try:
+        model = radiometry.from_mapping(attrs)
+    except radiometry.RadiometryError as e:
+        raise RecordingError(src, f"radiometry.attrs['{e.field}']", e.problem) from None
+    if model is None:
+        raise RecordingError(src, "radiometry.attrs['model']", "is 'none': no model to convert with")
+    return model
+
+
 def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar, config: Path | None = None) -> dict:
     rec = recording.read(src)
     if config is not None:
@@ -147,6 +189,7 @@ def _deblur_file(src: Path, dst: Path, fd: _FrameDeblurrer, bar, config: Path | 
 
 def _deblur_recording(rec: recording.Recording, src: Path, dst: Path, fd: _FrameDeblurrer, bar) -> dict:
     n, h, w = rec.frames.shape
+    model = _recording_radiometry(rec, src, fd) if fd.celsius else None  # before any output is written
     bar.total = (bar.total or 0) + n
     bar.refresh()
     part = dst.with_name(dst.name + ".part")
@@ -163,6 +206,10 @@ def _deblur_recording(rec: recording.Recording, src: Path, dst: Path, fd: _Frame
             ds = g.create_dataset("frames", shape=(n, h, w), dtype=np.float32,
                                   chunks=(1, h, w) if n else None)
             ok = np.zeros(n, dtype=bool)
+            if model is not None:  # °C after deblurring: counts, not temperatures, are linear in flux
+                cds = g.create_dataset("celsius", shape=(n, h, w), dtype=np.float32,
+                                       chunks=(1, h, w) if n else None)
+                cds.attrs.update({"units": "degC", **model.as_dict()})
             for i in range(n):
                 t0 = time.perf_counter()
                 try:
@@ -178,6 +225,8 @@ def _deblur_recording(rec: recording.Recording, src: Path, dst: Path, fd: _Frame
                     ok[i] = True
                     lams[i] = fd.dec.last_lam
                 ds[i] = out
+                if model is not None:
+                    cds[i] = model.to_celsius(out)
                 bar.update(1)
             g.create_dataset("t", data=np.asarray(rec.t, np.float64))
             g.create_dataset("deblurred", data=ok)
