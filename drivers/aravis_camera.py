@@ -479,7 +479,8 @@ def _set_feature(dev, key: str, value, name: str) -> None:
 
 
 # GenICam names of the Planck constants, first match wins (FLIR A-series/Ax5 over eBUS/Aravis: R, B, F, O)
-_PLANCK_FEATURES = {"R": ("R", "PlanckR"), "B": ("B", "PlanckB"), "F": ("F", "PlanckF"), "O": ("O", "PlanckO")}
+_PLANCK_FEATURES = {"R": ("R", "PlanckR"), "B": ("B", "PlanckB"), "F": ("F", "PlanckF"),
+                    "O": ("O", "PlanckO")}
 
 
 def _read_number(dev, key: str) -> float | None:

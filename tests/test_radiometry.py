@@ -61,7 +61,8 @@ def test_planck_outside_its_domain_is_nan_without_warnings():
     assert np.isnan(low).all()
     assert np.isfinite(high[0]) and np.isnan(high[1:]).all()
     assert np.isnan(inv).all()
-    assert p.to_celsius(np.uint16(50)).shape == () and p.to_celsius(np.zeros((2, 3), np.uint16)).shape == (2, 3)
+    assert p.to_celsius(np.uint16(50)).shape == ()
+    assert p.to_celsius(np.zeros((2, 3), np.uint16)).shape == (2, 3)
 
 
 @settings(max_examples=200, deadline=None)
@@ -105,8 +106,9 @@ def test_mapping_round_trip_and_errors():
     for m in (Planck(**FLIR), Linear(gain=0.04, offset=-273.15)):
         assert radiometry.from_mapping(m.as_dict()) == m
     assert radiometry.from_mapping({"model": "none"}) is None
-    assert radiometry.from_mapping({"model": "planck", "R": 5.0, "B": 9.0}) == Planck(R=5.0, B=9.0, F=1.0, O=0.0)
-    for table, field in [({"model": "planck", "R": 5.0}, "B"), ({"model": "linear", "gain": 1.0, "B": 2.0}, "B"),
+    assert radiometry.from_mapping({"model": "planck", "R": 5.0, "B": 9.0}) == Planck(R=5.0, B=9.0, F=1, O=0)
+    for table, field in [({"model": "planck", "R": 5.0}, "B"),
+                         ({"model": "linear", "gain": 1.0, "B": 2.0}, "B"),
                          ({"model": "kelvin"}, "model"), ({"model": "none", "R": 1.0}, "R")]:
         with pytest.raises(RadiometryError) as e:
             radiometry.from_mapping(table)
@@ -122,7 +124,8 @@ def _toml(tmp_path, body):
 
 def test_config_section(tmp_path):
     assert config.load().radiometry is None
-    cfg = config.load(_toml(tmp_path, '[radiometry]\nmodel = "planck"\nR = 16556\nB = 1428\nF = 1\nO = -88\n'))
+    body = '[radiometry]\nmodel = "planck"\nR = 16556\nB = 1428\nF = 1\nO = -88\n'
+    cfg = config.load(_toml(tmp_path, body))
     assert cfg.radiometry == Planck(**FLIR)
     cfg = config.load(_toml(tmp_path, '[radiometry]\nmodel = "linear"\ngain = 0.04\noffset = -273.15\n'))
     assert cfg.radiometry == Linear(0.04, -273.15)

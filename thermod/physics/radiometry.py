@@ -147,7 +147,8 @@ def from_mapping(table: Mapping) -> Radiometry | None:
             raise RadiometryError(rest[0], "unused with model = 'none'")
         return None
     if model not in _KEYS:
-        raise RadiometryError("model", f"expected one of 'none', {', '.join(map(repr, MODELS))}, got {model!r}")
+        choices = ", ".join(map(repr, ("none", *MODELS)))
+        raise RadiometryError("model", f"expected one of {choices}, got {model!r}")
     cls, keys = _KEYS[model]
     unknown = sorted(k for k in table if k != "model" and k not in keys)
     if unknown:
