@@ -66,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--celsius", action="store_true",
                         help="also write /deblurred/celsius (float32 °C) converted after deblurring")
     parser.add_argument("--radiometry", type=Path, default=None, metavar="TOML",
-                        help="the counts→°C model for --celsius: this file's [radiometry] table (default: "
-                             "--config's, else the recording's /radiometry attributes)")
+                        help="the counts→°C model for --celsius (implies it): this file's [radiometry] table "
+                             "(default: --config's, else the recording's /radiometry attributes)")
     parser.add_argument("--min-coverage", type=float, default=MIN_COVERAGE,
                         help=f"pass a frame through when its gyro window coverage is below this "
                              f"(default {MIN_COVERAGE})")
@@ -114,7 +114,7 @@ class _FrameDeblurrer:
             raise ThermodError(f"--min-coverage {self.min_coverage}: expected a fraction in [0, 1]")
         # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
         self.dec = deconv.Deconvolver(method=args.method, alpha=args.alpha, lam=args.lam, cache_size=2)
-        self.celsius = bool(getattr(args, "celsius", False))
+        self.celsius = bool(getattr(args, "celsius", False) or getattr(args, "radiometry", None))
         self.radiometry = _file_radiometry(args) if self.celsius else None  # None: the recording's own
 
     def __call__(self, rec: recording.Recording, i: int) -> tuple[np.ndarray | None, str]:
@@ -160,8 +160,8 @@ def _recording_radiometry(rec: recording.Recording, src: Path, fd: _FrameDeblurr
         return fd.radiometry
     attrs = rec.extra_attrs.get(radiometry.RECORDING_GROUP)
     if not attrs:
-        raise ThermodError(f"{src}: --celsius needs a radiometric model: give --radiometry FILE (a "
-                           "[radiometry] table) or a recording with /radiometry attributes")
+        raise RecordingError(src, "/radiometry", "no attributes, and --celsius needs a radiometric model: "
+                             "give --radiometry FILE (a [radiometry] table) or --config with one")
     try:
         model = radiometry.from_mapping(attrs)
     except radiometry.RadiometryError as e:
