@@ -173,8 +173,8 @@ def test_daemon_publishes_celsius_next_to_each_frame():
     from thermod.runtime.sdnotify import Notifier
 
     ep = f"tcp://127.0.0.1:{_free_port()}"
-    # the simulated payload's counts are ~17 850 (real scene) or ~18 000 (procedural): near 26 or 36 °C
-    consts = dict(R=1.0e5, B=1428.0, F=1.0, O=17000.0)
+    # the simulated payload's counts are ~17 850 (real scene; 17 200–18 900 procedural): near 25 °C
+    consts = dict(R=3.4e5, B=1428.0, F=1.0, O=15000.0)
     overrides = {"publish.endpoint": ep, "deblur.method": "wiener", "radiometry.model": "planck",
                  **{f"radiometry.{k}": v for k, v in consts.items()}}
     cfg = config.load(None, overrides)
@@ -208,8 +208,8 @@ def test_daemon_publishes_celsius_next_to_each_frame():
         assert ch["radiometry"] == {"model": "planck", **consts}
         want = B / np.log(R / (img.astype(np.float64) - O) + F) - 273.15
         np.testing.assert_allclose(c, want, atol=1e-4)
-    med = np.median(celsius[both[0]][1])
-    assert 0.0 < med < 60.0, med       # ≈ 26 °C on the real scene, ≈ 36 °C on the procedural stand-in
+    c = celsius[both[0]][1]
+    assert np.isfinite(c).all() and 15.0 < np.median(c) < 35.0, np.median(c)
 
 
 # ------------------------------------------------------------------------------ thermod deblur --celsius
