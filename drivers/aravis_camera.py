@@ -456,6 +456,33 @@ class AravisCamera(CameraSource):
         return Frame(image=image, t=t, frame_id=frame_id, device_ts=ts, arrival=arrival, gap_before=gap,
                      ffc=self._read_ffc())
 
+    def radiometry(self):
+        """The camera's Planck constants as a `thermod.physics.radiometry.Planck`, or None.
+
+        Best effort: FLIR GigE cameras expose them as GenICam features ``R`` (integer), ``B``, ``F``,
+        ``O`` (float); ``PlanckR`` … are tried too. None when no session is open, a constant is absent
+        or unreadable, or the values do not form a valid model (never raises).
+        """
+        from thermod.physics.radiometry import Planck, RadiometryError
+
+        with self._lock:
+            dev = self._device
+            if dev is None:
+                return None
+            values = {}
+            for key, names in _PLANCK_FEATURES.items():
+                for name in names:
+                    v = _safe(lambda name=name: _read_number(dev, name))
+                    if v is not None:
+                        values[key] = v
+                        break
+                else:
+                    return None
+        try:
+            return Planck(**values)
+        except RadiometryError:
+            return None
+
     def stats(self) -> dict:
         rec = self._recent
         rate = (len(rec) - 1) / (rec[-1] - rec[0]) if len(rec) > 2 and rec[-1] > rec[0] else 0.0
@@ -500,6 +527,21 @@ def _set_feature(dev, key: str, value, name: str) -> None:
         dev.set_float_feature_value(key, value)
     else:
         dev.set_string_feature_value(key, str(value))
+
+
+# GenICam names of the Planck constants, first match wins (FLIR A-series/Ax5 over eBUS/Aravis: R, B, F, O)
+_PLANCK_FEATURES = {"R": ("R", "PlanckR"), "B": ("B", "PlanckB"), "F": ("F", "PlanckF"),
+                    "O": ("O", "PlanckO")}
+
+
+def _read_number(dev, key: str) -> float | None:
+    """A numeric feature's value (integer or float node), None when the camera has no such feature."""
+    if not dev.is_feature_available(key):
+        return None
+    v = _safe(lambda: dev.get_float_feature_value(key))
+    if v is None:
+        v = dev.get_integer_feature_value(key)
+    return float(v)
 
 
 def _msg(e: Exception) -> str:

@@ -294,3 +294,58 @@ def test_stop_after_silent_loss_does_not_block(fake_camera):
         assert len(_collect(cam, 0.5)) >= 10
     finally:
         cam.stop()
+
+
+@pytest.mark.hardware
+def test_radiometry_is_none_without_flir_features(fake_camera):
+    """The fake camera has no Planck features (R, B, F, O): `radiometry()` says None, open or closed."""
+    cam = AravisCamera("127.0.0.1", width=160, height=120)
+    assert cam.radiometry() is None                      # no session yet
+    with cam:
+        assert cam._device is not None and not cam._device.is_feature_available("R")
+        assert cam.radiometry() is None
+        assert cam.poll(1.0) is not None                 # reading features left the stream working
+    assert cam.radiometry() is None
+
+
+def _fake_xml_with_planck_features(path) -> None:
+    """The fake camera's own GenICam XML plus FLIR-style Planck features: R an IntReg, B/F/O FloatRegs,
+    in scratch registers the fake device does not use (RW, so the test writes the camera's values)."""
+    import gi
+
+    gi.require_version("Aravis", "0.8")
+    from gi.repository import Aravis
+
+    Aravis.enable_interface("Fake")
+    xml = Aravis.Camera.new("Fake_1").get_device().get_genicam_xml()
+    xml = xml[0] if isinstance(xml, tuple) else xml
+
+    def reg(kind, name, address, length):
+        sign = "<Sign>Signed</Sign>" if kind == "IntReg" else ""
+        return (f'<{kind} Name="{name}" NameSpace="Custom"><Address>{address:#x}</Address>'
+                f"<Length>{length}</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>{sign}"
+                f"<Endianess>BigEndian</Endianess></{kind}>\n")
+
+    extra = reg("IntReg", "R", 0x240, 4) + "".join(
+        reg("FloatReg", name, 0x248 + 8 * i, 8) for i, name in enumerate("BFO"))
+    assert xml.count("</RegisterDescription>") == 1
+    path.write_text(xml.replace("</RegisterDescription>", extra + "</RegisterDescription>"))
+
+
+@pytest.mark.hardware
+def test_radiometry_reads_planck_features_over_gvcp(fake_camera, tmp_path):
+    """With R, B, F, O in the camera's GenICam description, `radiometry()` reads them over GVCP."""
+    from thermod.physics.radiometry import Planck
+
+    xml = tmp_path / "fake-flir.xml"
+    _fake_xml_with_planck_features(xml)
+    fake_camera.start("-g", str(xml))
+    cam = AravisCamera("127.0.0.1", width=160, height=120)
+    with cam:
+        dev = cam._device
+        assert cam.radiometry() is None                  # registers still 0: B = 0 is no valid model
+        dev.set_integer_feature_value("R", 16556)
+        for name, v in (("B", 1428.0), ("F", 1.0), ("O", -88.0)):
+            dev.set_float_feature_value(name, v)
+        assert cam.radiometry() == Planck(R=16556.0, B=1428.0, F=1.0, O=-88.0)
+        assert cam.poll(1.0) is not None

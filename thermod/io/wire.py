@@ -15,7 +15,7 @@ from collections.abc import Iterable
 import numpy as np
 
 WIRE_VERSION = 1
-TOPICS = ("frame", "raw", "gyro", "health", "kernel")
+TOPICS = ("frame", "raw", "gyro", "health", "kernel", "celsius")
 # Array dtypes a payload may carry (little-endian numpy strings); "packed" = concatenated `layout` parts.
 ARRAY_DTYPES = ("<f4", "<u2", "|u1", "<f8", "<i8")
 PACKED = "packed"
@@ -191,7 +191,7 @@ def decode(frames: list, *, max_header_bytes: int = MAX_HEADER_BYTES, topics: It
     if need != payload.nbytes:
         raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, shape {shape} × "
                                            f"{dtype} needs {need}")
-    if topic in ("frame", "raw") and len(shape) != 2:
+    if topic in ("frame", "raw", "celsius") and len(shape) != 2:
         raise MessageError("shape", f"{topic}: shape must be [H, W], got {shape}")
     if topic == "kernel" and len(shape) not in (2, 4):
         raise MessageError("shape", f"{topic}: shape must be [kh, kw] or [rows, cols, kh, kw], got {shape}")

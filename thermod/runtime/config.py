@@ -8,7 +8,7 @@ command-line settings get the same checks as the file.
 
 Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
 ``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
-``[pipeline]``, ``[logging]``.
+``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from thermod.errors import ConfigError
+from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.runtime import sources
 
@@ -117,6 +118,7 @@ class Config:
     pipeline: PipelineConfig
     logging: LoggingConfig
     path: str = "<defaults>"
+    radiometry: radiometrymod.Radiometry | None = None   # counts → °C after deblurring; None = off
 
     @property
     def uses_sim(self) -> bool:
@@ -373,6 +375,27 @@ def _logging(path: str, table: Any) -> LoggingConfig:
     return LoggingConfig(level=lvl)
 
 
+def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | None:
+    """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset)."""
+    s = _Section(path, "radiometry", table)
+    model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS))
+    kw: dict[str, Any] = {"model": model}
+    for k in [k for k in s.t if k in ("R", "B", "F", "O", "gain", "offset")]:
+        kw[k] = s.pop(k, None, float)
+    try:
+        return radiometrymod.from_mapping({**kw, **s.t})  # left-over keys: named as unknown there
+    except radiometrymod.RadiometryError as e:
+        raise ConfigError(f"{path}: radiometry.{e.field}: {e.problem}") from None
+
+
+def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
+    """The [radiometry] table of a TOML file (a full configuration or a small model file), validated as in
+    `load`; None when the file has no such table or says model = "none"."""
+    p = Path(path)
+    raw = _read_toml(p)
+    return _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
+
+
 # ------------------------------------------------------------------------------ entry points
 def default_path() -> Path:
     """The packaged default configuration (the simulated payload)."""
@@ -411,6 +434,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
         pipeline=_pipeline(path, top.t.pop("pipeline", {})),
         logging=_logging(path, top.t.pop("logging", {})),
         path=path,
+        radiometry=_radiometry(path, top.t.pop("radiometry", {})),
     )
     top.done()
     if cfg.uses_sim:
