@@ -236,6 +236,17 @@ class _ReplayStream:
         if not self._running:
             raise DeviceError(f"{self.name}: poll() before start()")
 
+    def _drained(self, deadline: float) -> bool:
+        """Under ``session.cond``: nothing more to hand out? Then say so to the other source and wait
+        out ``deadline`` (the caller returns None)."""
+        s = self.session
+        if len(self._times) and not self.finished:
+            return False
+        setattr(s, f"{self.role}_done", True)
+        s.cond.notify_all()
+        _wait(s.cond, deadline)
+        return True
+
     def _publish_next(self) -> None:
         s = self.session
         done = self.finished
@@ -271,10 +282,7 @@ class ReplayCamera(_ReplayStream, CameraSource):
         n = len(s.t)
         with s.cond:
             while True:
-                if n == 0 or self.finished:
-                    s.camera_done = True
-                    s.cond.notify_all()
-                    _wait(s.cond, deadline)
+                if self._drained(deadline):
                     return None
                 t = float(s.rebased(s.t[self._i], self._lap))
                 if s.fast:
@@ -352,10 +360,7 @@ class ReplayGyro(_ReplayStream, GyroSource):
         deadline = time.monotonic() + max(0.0, timeout)
         with s.cond:
             while True:
-                if m == 0 or self.finished:
-                    s.gyro_done = True
-                    s.cond.notify_all()
-                    _wait(s.cond, deadline)
+                if self._drained(deadline):
                     return None
                 now = time.monotonic()
                 if s.fast:
