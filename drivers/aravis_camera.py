@@ -22,7 +22,15 @@ import threading
 import time
 from collections import deque
 
-from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker, as_uint16_image
+from thermod.drivers.camera_base import (
+    CameraSource,
+    Frame,
+    FrameIdTracker,
+    as_uint16_image,
+    clock_stats,
+    count_ffc,
+    measured_rate_hz,
+)
 from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
@@ -319,10 +327,7 @@ class AravisCamera(CameraSource):
             self.counters["ffc_read_errors"] += 1
             self.last_error = f"reading {self.ffc_feature}: {_msg(e)}"
             ffc = self._in_ffc            # keep the last known state
-        if ffc:
-            self.counters["ffc_frames"] += 1
-            if not self._in_ffc:
-                self.counters["ffc_events"] += 1
+        count_ffc(self.counters, self._in_ffc, ffc)
         self._in_ffc = ffc
         return ffc
 
@@ -457,16 +462,14 @@ class AravisCamera(CameraSource):
                      ffc=self._read_ffc())
 
     def stats(self) -> dict:
-        rec = self._recent
-        rate = (len(rec) - 1) / (rec[-1] - rec[0]) if len(rec) > 2 and rec[-1] > rec[0] else 0.0
+        rate = measured_rate_hz(self._recent)
         out = {"state": self.state, "device": self.address or self.device_id, "width": self.width,
                "height": self.height, "pixel_format": self.pixel_format, "frame_rate_hz": self.frame_rate_hz,
                "measured_rate_hz": rate, "packet_size": self.packet_size, "last_error": self.last_error,
                "bad_status": dict(self.bad_status), "ffc_feature": self.ffc_feature, **self.counters,
                **self.tracker.stats()}
         if self.clock is not None:
-            out.update(clock_drift_ppm=self.clock.drift_ppm, clock_residual_s=self.clock.residual_std_s,
-                       clock_resets=self.clock.resets)
+            out.update(clock_stats(self.clock))
         stream = self._stream
         if stream is not None and hasattr(stream, "get_statistics"):
             st = _safe(stream.get_statistics)

@@ -159,3 +159,25 @@ def as_uint16_image(data, height: int, width: int, device: str) -> np.ndarray:
         hint = " (8-bit colour: the device ignored Y16/Mono16 or RGB conversion is still on)"
     raise DeviceError(f"{device}: expected a {height}×{width} 16-bit frame ({n} pixels, {2 * n} bytes), "
                       f"got dtype {data.dtype} shape {data.shape}{hint}")
+
+
+def count_ffc(counters: dict, was_in_ffc: bool, in_ffc: bool) -> None:
+    """Count a frame delivered during a flat-field correction (``ffc_frames``) and each correction that
+    begins (``ffc_events``), given the state of the previous frame and of this one."""
+    if in_ffc:
+        counters["ffc_frames"] += 1
+        if not was_in_ffc:
+            counters["ffc_events"] += 1
+
+
+def measured_rate_hz(arrivals) -> float:
+    """Frame rate from the host arrival times of the latest frames (0 until three have arrived)."""
+    n = len(arrivals)
+    span = arrivals[-1] - arrivals[0] if n else 0.0
+    return (n - 1) / span if n > 2 and span > 0 else 0.0
+
+
+def clock_stats(clock: ClockMapper) -> dict:
+    """The device-clock fit's health, for a driver's ``stats()``."""
+    return {"clock_drift_ppm": clock.drift_ppm, "clock_residual_s": clock.residual_std_s,
+            "clock_resets": clock.resets}

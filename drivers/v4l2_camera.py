@@ -32,7 +32,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from thermod.drivers.camera_base import CameraSource, Frame, as_uint16_image
+from thermod.drivers.camera_base import (
+    CameraSource,
+    Frame,
+    as_uint16_image,
+    clock_stats,
+    count_ffc,
+    measured_rate_hz,
+)
 from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
@@ -319,10 +326,7 @@ class V4L2Camera(CameraSource):
             return False
         rows = raw[:self.top] if self.top else raw[self.raw_height - self.bottom:]
         ffc = boson_ffc_state(rows) == BOSON_FFC_IN_PROGRESS
-        if ffc:
-            self.counters["ffc_frames"] += 1
-            if not self._in_ffc:
-                self.counters["ffc_events"] += 1
+        count_ffc(self.counters, self._in_ffc, ffc)
         self._in_ffc = ffc
         return ffc
 
@@ -356,8 +360,7 @@ class V4L2Camera(CameraSource):
         return Frame(image=image, t=t, frame_id=self._frame_id, device_ts=ts, arrival=arrival, gap_before=gap)
 
     def stats(self) -> dict:
-        rec = self._recent
-        rate = (len(rec) - 1) / (rec[-1] - rec[0]) if len(rec) > 2 and rec[-1] > rec[0] else 0.0
+        rate = measured_rate_hz(self._recent)
         out = {"state": self.state, "device": self.path or str(self.device), "width": self.width,
                "height": self.height, "telemetry_rows": (self.top, self.bottom),
                "frame_rate_hz": self.frame_rate_hz, "measured_rate_hz": rate, "last_error": self.last_error,
@@ -365,6 +368,5 @@ class V4L2Camera(CameraSource):
         if self.clock is not None:
             out["timestamp_clock"] = {None: "unknown", True: "monotonic", False: "device"}[self._monotonic]
         if self.clock is not None and self._monotonic is False:
-            out.update(clock_drift_ppm=self.clock.drift_ppm, clock_residual_s=self.clock.residual_std_s,
-                       clock_resets=self.clock.resets)
+            out.update(clock_stats(self.clock))
         return out
