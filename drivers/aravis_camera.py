@@ -23,6 +23,7 @@ import time
 from collections import deque
 
 from thermod.drivers.camera_base import (
+    Backoff,
     CameraSource,
     Frame,
     FrameIdTracker,
@@ -152,7 +153,7 @@ class AravisCamera(CameraSource):
         self.req_buffers = n_buffers
         self.timestamp_offset_s = float(timestamp_offset_s)
         self.reconnect = bool(reconnect)
-        self.backoff = (float(backoff_s[0]), float(backoff_s[1]))
+        self._backoff = Backoff(*backoff_s)
         self.req_stall = stall_timeout_s
         self.features = dict(features or {})
         self.req_ffc_feature = ffc_feature
@@ -167,8 +168,6 @@ class AravisCamera(CameraSource):
         self.tracker = FrameIdTracker()
         self.clock: ClockMapper | None = None
         self._resolved_address: str | None = address
-        self._next_attempt = 0.0
-        self._delay = self.backoff[0]
         self.rediscover_s = 10.0
         self._lost_since = self._last_discovery = -math.inf
         self._last_arrival = math.nan
@@ -352,14 +351,13 @@ class AravisCamera(CameraSource):
             self.state = "lost"
             raise DeviceError(f"{self.name}: camera lost ({why}); check power, cable and IP")
         self.state = "reconnecting"
-        self._delay = self.backoff[0]
-        self._next_attempt = self._lost_since = time.monotonic()
+        self._backoff.restart(at_once=True)
+        self._lost_since = time.monotonic()
 
     def _try_reconnect(self, deadline: float) -> bool:
-        now = time.monotonic()
-        if now < self._next_attempt:
-            time.sleep(max(0.0, min(deadline, self._next_attempt) - now))
+        if not self._backoff.due(deadline):
             return False
+        now = time.monotonic()
         self.counters["reconnect_attempts"] += 1
         addr = self._resolved_address
         alive = addr is not None and gvcp_probe(addr, timeout=min(0.1, max(0.01, deadline - now))) is not None
@@ -378,8 +376,7 @@ class AravisCamera(CameraSource):
             except DeviceError as e:
                 self.last_error = str(e)
                 self._resolved_address = self._resolved_address or addr   # keep probing where it was
-        self._next_attempt = time.monotonic() + self._delay
-        self._delay = min(self._delay * 2.0, self.backoff[1])
+        self._backoff.failed()
         return False
 
     # -- frames --------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ read time) and counts lost frames from the device's frame ids with :class:`Frame
 from __future__ import annotations
 
 import abc
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,3 +182,31 @@ def clock_stats(clock: ClockMapper) -> dict:
     """The device-clock fit's health, for a driver's ``stats()``."""
     return {"clock_drift_ppm": clock.drift_ppm, "clock_residual_s": clock.residual_std_s,
             "clock_resets": clock.resets}
+
+
+class Backoff:
+    """When to retry opening a lost device: after ``first`` s, the wait doubling after each failed
+    attempt up to ``longest`` s."""
+
+    def __init__(self, first: float, longest: float):
+        self.first, self.longest = float(first), float(longest)
+        self.delay = self.first
+        self.next_attempt = 0.0
+
+    def restart(self, *, at_once: bool) -> None:
+        """A new loss: the first attempt now (``at_once``) or after ``first`` s."""
+        self.delay = self.first
+        self.next_attempt = time.monotonic() + (0.0 if at_once else self.delay)
+
+    def due(self, deadline: float) -> bool:
+        """True when an attempt is due; else sleep towards it (never past ``deadline``) and say False."""
+        now = time.monotonic()
+        if now < self.next_attempt:
+            time.sleep(max(0.0, min(deadline, self.next_attempt) - now))
+            return False
+        return True
+
+    def failed(self) -> None:
+        """An attempt failed: wait the current delay, and double it for the attempt after."""
+        self.next_attempt = time.monotonic() + self.delay
+        self.delay = min(2 * self.delay, self.longest)

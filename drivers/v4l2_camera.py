@@ -33,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 
 from thermod.drivers.camera_base import (
+    Backoff,
     CameraSource,
     Frame,
     as_uint16_image,
@@ -169,7 +170,7 @@ class V4L2Camera(CameraSource):
         self.timestamp_offset_s = float(timestamp_offset_s)
         self.read_timeout_s = float(read_timeout_s)
         self.reopen = bool(reopen)
-        self.backoff = (float(backoff_s[0]), float(backoff_s[1]))
+        self._backoff = Backoff(*backoff_s)
         self.path: str | None = None
         self._cap = None
         self._running = False
@@ -179,8 +180,6 @@ class V4L2Camera(CameraSource):
         self._frame_id = -1
         self._last_ts: int | None = None
         self._last_t = math.nan
-        self._next_attempt = 0.0
-        self._delay = self.backoff[0]
         self._recent = deque(maxlen=64)
         self.counters = {"frames": 0, "frames_lost": 0, "gap_events": 0, "read_errors": 0, "bad_frames": 0,
                          "reopens": 0, "reopen_attempts": 0, "timestamp_fallbacks": 0, "flat_frames": 0,
@@ -262,21 +261,17 @@ class V4L2Camera(CameraSource):
             self.state = "lost"
             raise DeviceError(f"{self.name}: {why}; check the cable/USB port (dmesg)")
         self.state = "reopening"
-        self._delay = self.backoff[0]
-        self._next_attempt = time.monotonic() + self._delay
+        self._backoff.restart(at_once=False)
 
     def _try_reopen(self, deadline: float) -> bool:
-        now = time.monotonic()
-        if now < self._next_attempt:
-            time.sleep(max(0.0, min(deadline, self._next_attempt) - now))
+        if not self._backoff.due(deadline):
             return False
         self.counters["reopen_attempts"] += 1
         try:
             self._open()
         except DeviceError as e:
             self.last_error = str(e)
-            self._next_attempt = time.monotonic() + self._delay
-            self._delay = min(2 * self._delay, self.backoff[1])
+            self._backoff.failed()
             return False
         self.counters["reopens"] += 1
         return True
