@@ -28,28 +28,9 @@ import numpy as np  # noqa: E402
 import scipy.fft  # noqa: E402
 
 from thermod.physics import deconv  # noqa: E402
-from thermod.physics.kernels import Kernel, blur  # noqa: E402
+from thermod.physics.kernels import blur  # noqa: E402
+from thermod.sim.kernels import comet  # noqa: E402
 from thermod.sim.scenes import shared_data_dir, texture  # noqa: E402
-
-
-def comet(length: int, angle_deg: float = 30.0) -> Kernel:
-    """One-sided exponential streak (thermal-like, decay length/4), bilinear splats, origin at the head."""
-    size = 2 * length + 3
-    w = np.zeros((size, size), np.float64)
-    c = length + 1
-    a = math.radians(angle_deg)
-    for s in np.linspace(0, length - 1, 8 * length):
-        x, y = c - s * math.cos(a), c - s * math.sin(a)
-        x0, y0 = int(math.floor(x)), int(math.floor(y))
-        fx, fy = x - x0, y - y0
-        wt = math.exp(-4 * s / length)
-        w[y0, x0] += wt * (1 - fx) * (1 - fy)
-        w[y0, x0 + 1] += wt * fx * (1 - fy)
-        w[y0 + 1, x0] += wt * (1 - fx) * fy
-        w[y0 + 1, x0 + 1] += wt * fx * fy
-    ys, xs = np.nonzero(w)
-    w = w[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
-    return Kernel((w / w.sum()).astype(np.float32), (c - ys.min(), c - xs.min()))
 
 
 def scene(shape: tuple[int, int]) -> tuple[np.ndarray, str]:
@@ -167,7 +148,7 @@ def main(argv=None) -> int:
     for h, w in sizes:
         big, _ = scene((h, w))
         for L in klens:
-            k = comet(L)
+            k = comet(L, L / 4, 30.0)
             truth = big[80:80 + h, 80:80 + w]
             rng = np.random.default_rng(L)
             lo, hi = deconv.robust_range(truth)   # noise 0.3 % of the scene's range (NETD-like)
@@ -193,7 +174,7 @@ def main(argv=None) -> int:
     # FFT back ends on the same solver, timed alternately so that load from other processes hits both
     emit("\n| FFT back end | 640×480, 65 px K&F ms (interleaved runs) |\n|---|---|")
     big, _ = scene((480, 640))
-    k = comet(65)
+    k = comet(65, 65 / 4, 30.0)
     b = blur(big, k)[80:560, 80:720]
     decs = {}
     for fft in ("scipy", "fftw"):

@@ -22,7 +22,16 @@ import threading
 import time
 from collections import deque
 
-from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker, as_uint16_image
+from thermod.drivers.camera_base import (
+    Backoff,
+    CameraSource,
+    Frame,
+    FrameIdTracker,
+    as_uint16_image,
+    clock_stats,
+    count_ffc,
+    measured_rate_hz,
+)
 from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
@@ -144,7 +153,7 @@ class AravisCamera(CameraSource):
         self.req_buffers = n_buffers
         self.timestamp_offset_s = float(timestamp_offset_s)
         self.reconnect = bool(reconnect)
-        self.backoff = (float(backoff_s[0]), float(backoff_s[1]))
+        self._backoff = Backoff(*backoff_s)
         self.req_stall = stall_timeout_s
         self.features = dict(features or {})
         self.req_ffc_feature = ffc_feature
@@ -159,8 +168,6 @@ class AravisCamera(CameraSource):
         self.tracker = FrameIdTracker()
         self.clock: ClockMapper | None = None
         self._resolved_address: str | None = address
-        self._next_attempt = 0.0
-        self._delay = self.backoff[0]
         self.rediscover_s = 10.0
         self._lost_since = self._last_discovery = -math.inf
         self._last_arrival = math.nan
@@ -319,10 +326,7 @@ class AravisCamera(CameraSource):
             self.counters["ffc_read_errors"] += 1
             self.last_error = f"reading {self.ffc_feature}: {_msg(e)}"
             ffc = self._in_ffc            # keep the last known state
-        if ffc:
-            self.counters["ffc_frames"] += 1
-            if not self._in_ffc:
-                self.counters["ffc_events"] += 1
+        count_ffc(self.counters, self._in_ffc, ffc)
         self._in_ffc = ffc
         return ffc
 
@@ -347,14 +351,13 @@ class AravisCamera(CameraSource):
             self.state = "lost"
             raise DeviceError(f"{self.name}: camera lost ({why}); check power, cable and IP")
         self.state = "reconnecting"
-        self._delay = self.backoff[0]
-        self._next_attempt = self._lost_since = time.monotonic()
+        self._backoff.restart(at_once=True)
+        self._lost_since = time.monotonic()
 
     def _try_reconnect(self, deadline: float) -> bool:
-        now = time.monotonic()
-        if now < self._next_attempt:
-            time.sleep(max(0.0, min(deadline, self._next_attempt) - now))
+        if not self._backoff.due(deadline):
             return False
+        now = time.monotonic()
         self.counters["reconnect_attempts"] += 1
         addr = self._resolved_address
         alive = addr is not None and gvcp_probe(addr, timeout=min(0.1, max(0.01, deadline - now))) is not None
@@ -373,8 +376,7 @@ class AravisCamera(CameraSource):
             except DeviceError as e:
                 self.last_error = str(e)
                 self._resolved_address = self._resolved_address or addr   # keep probing where it was
-        self._next_attempt = time.monotonic() + self._delay
-        self._delay = min(self._delay * 2.0, self.backoff[1])
+        self._backoff.failed()
         return False
 
     # -- frames --------------------------------------------------------------------------------
@@ -484,16 +486,14 @@ class AravisCamera(CameraSource):
             return None
 
     def stats(self) -> dict:
-        rec = self._recent
-        rate = (len(rec) - 1) / (rec[-1] - rec[0]) if len(rec) > 2 and rec[-1] > rec[0] else 0.0
+        rate = measured_rate_hz(self._recent)
         out = {"state": self.state, "device": self.address or self.device_id, "width": self.width,
                "height": self.height, "pixel_format": self.pixel_format, "frame_rate_hz": self.frame_rate_hz,
                "measured_rate_hz": rate, "packet_size": self.packet_size, "last_error": self.last_error,
                "bad_status": dict(self.bad_status), "ffc_feature": self.ffc_feature, **self.counters,
                **self.tracker.stats()}
         if self.clock is not None:
-            out.update(clock_drift_ppm=self.clock.drift_ppm, clock_residual_s=self.clock.residual_std_s,
-                       clock_resets=self.clock.resets)
+            out.update(clock_stats(self.clock))
         stream = self._stream
         if stream is not None and hasattr(stream, "get_statistics"):
             st = _safe(stream.get_statistics)

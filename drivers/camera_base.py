@@ -9,6 +9,7 @@ read time) and counts lost frames from the device's frame ids with :class:`Frame
 from __future__ import annotations
 
 import abc
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -159,3 +160,53 @@ def as_uint16_image(data, height: int, width: int, device: str) -> np.ndarray:
         hint = " (8-bit colour: the device ignored Y16/Mono16 or RGB conversion is still on)"
     raise DeviceError(f"{device}: expected a {height}×{width} 16-bit frame ({n} pixels, {2 * n} bytes), "
                       f"got dtype {data.dtype} shape {data.shape}{hint}")
+
+
+def count_ffc(counters: dict, was_in_ffc: bool, in_ffc: bool) -> None:
+    """Count a frame delivered during a flat-field correction (``ffc_frames``) and each correction that
+    begins (``ffc_events``), given the state of the previous frame and of this one."""
+    if in_ffc:
+        counters["ffc_frames"] += 1
+        if not was_in_ffc:
+            counters["ffc_events"] += 1
+
+
+def measured_rate_hz(arrivals) -> float:
+    """Frame rate from the host arrival times of the latest frames (0 until three have arrived)."""
+    n = len(arrivals)
+    span = arrivals[-1] - arrivals[0] if n else 0.0
+    return (n - 1) / span if n > 2 and span > 0 else 0.0
+
+
+def clock_stats(clock: ClockMapper) -> dict:
+    """The device-clock fit's health, for a driver's ``stats()``."""
+    return {"clock_drift_ppm": clock.drift_ppm, "clock_residual_s": clock.residual_std_s,
+            "clock_resets": clock.resets}
+
+
+class Backoff:
+    """When to retry opening a lost device: after ``first`` s, the wait doubling after each failed
+    attempt up to ``longest`` s."""
+
+    def __init__(self, first: float, longest: float):
+        self.first, self.longest = float(first), float(longest)
+        self.delay = self.first
+        self.next_attempt = 0.0
+
+    def restart(self, *, at_once: bool) -> None:
+        """A new loss: the first attempt now (``at_once``) or after ``first`` s."""
+        self.delay = self.first
+        self.next_attempt = time.monotonic() + (0.0 if at_once else self.delay)
+
+    def due(self, deadline: float) -> bool:
+        """True when an attempt is due; else sleep towards it (never past ``deadline``) and say False."""
+        now = time.monotonic()
+        if now < self.next_attempt:
+            time.sleep(max(0.0, min(deadline, self.next_attempt) - now))
+            return False
+        return True
+
+    def failed(self) -> None:
+        """An attempt failed: wait the current delay, and double it for the attempt after."""
+        self.next_attempt = time.monotonic() + self.delay
+        self.delay = min(2 * self.delay, self.longest)

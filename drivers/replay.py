@@ -189,30 +189,38 @@ def _wait(cond: threading.Condition, until: float) -> None:
         cond.wait(remaining)
 
 
-class ReplayCamera(CameraSource):
-    """Frames of a recording, re-timed (see module docstring). ``device_ts`` is the recorded time in ns."""
+class _ReplayStream:
+    """What a replayed camera and gyro share: their place (lap, index) in the session's timeline,
+    start/stop, and the lockstep fields ``<role>_active``, ``<role>_done``, ``<role>_next`` of the session."""
 
-    def __init__(self, source, *, loop: bool = False, speed: float = 1.0,
-                 session: ReplaySession | None = None):
+    role: str                # "camera" or "gyro": names this source's lockstep fields on the session
+    session: ReplaySession
+
+    def _attach(self, source, speed: float, loop: bool, session: ReplaySession | None) -> None:
         self.session = _session(source, speed, loop, session)
-        self.name = f"{self.session.name} camera"
-        self._i = 0           # next frame index within the lap
+        self.name = f"{self.session.name} {self.role}"
+        self._i = 0           # next item index within the lap
         self._lap = 0
-        self._last_t = math.nan
         self._running = False
-        self.counters = {"frames": 0, "laps": 0, "frames_lost": 0}
+
+    @property
+    def _times(self) -> np.ndarray:
+        raise NotImplementedError
 
     @property
     def finished(self) -> bool:
         s = self.session
-        return not s.loop and self._i >= len(s.t)
+        return not s.loop and self._i >= len(self._times)
+
+    def _seek(self, lap: int, i: int) -> None:
+        self._lap, self._i = lap, i
 
     def start(self) -> None:
         s = self.session
         s.begin()
         with s.cond:
-            self._lap, self._i = s.position(s.t, self._lap, self._i)
-            s.camera_active = True
+            self._seek(*s.position(self._times, self._lap, self._i))
+            setattr(s, f"{self.role}_active", True)
             self._publish_next()
             s.cond.notify_all()
         self._running = True
@@ -220,22 +228,61 @@ class ReplayCamera(CameraSource):
     def stop(self) -> None:
         s = self.session
         with s.cond:
-            s.camera_active = False
+            setattr(s, f"{self.role}_active", False)
             s.cond.notify_all()
         self._running = False
 
-    def poll(self, timeout: float) -> Frame | None:
+    def _check_started(self) -> None:
         if not self._running:
             raise DeviceError(f"{self.name}: poll() before start()")
+
+    def _drained(self, deadline: float) -> bool:
+        """Under ``session.cond``: nothing more to hand out? Then say so to the other source and wait
+        out ``deadline`` (the caller returns None)."""
+        s = self.session
+        if len(self._times) and not self.finished:
+            return False
+        setattr(s, f"{self.role}_done", True)
+        s.cond.notify_all()
+        _wait(s.cond, deadline)
+        return True
+
+    def _publish_next(self) -> None:
+        s = self.session
+        done = self.finished
+        nxt = math.inf if done else float(s.rebased(self._times[self._i], self._lap))
+        setattr(s, f"{self.role}_done", done)
+        setattr(s, f"{self.role}_next", nxt)
+
+    def _stream_stats(self) -> dict:
+        s = self.session
+        return {"state": "finished" if self.finished else ("streaming" if self._running else "stopped"),
+                "recording": str(s.path) if s.path else "<memory>", "speed": s.speed}
+
+
+class ReplayCamera(_ReplayStream, CameraSource):
+    """Frames of a recording, re-timed (see module docstring). ``device_ts`` is the recorded time in ns."""
+
+    role = "camera"
+
+    def __init__(self, source, *, loop: bool = False, speed: float = 1.0,
+                 session: ReplaySession | None = None):
+        self._attach(source, speed, loop, session)
+        self._last_t = math.nan
+        self.counters = {"frames": 0, "laps": 0, "frames_lost": 0}
+
+    @property
+    def _times(self) -> np.ndarray:
+        return self.session.t
+
+    def poll(self, timeout: float) -> Frame | None:
+        self._check_started()
         s = self.session
         deadline = time.monotonic() + max(0.0, timeout)
         n = len(s.t)
         with s.cond:
             while True:
-                if n == 0 or self.finished:
-                    s.camera_done = True
-                    s.cond.notify_all()
-                    _wait(s.cond, deadline)
+                if self._drained(deadline):
                     return None
                 t = float(s.rebased(s.t[self._i], self._lap))
                 if s.fast:
@@ -267,18 +314,11 @@ class ReplayCamera(CameraSource):
         return Frame(image=image, t=t, frame_id=lap * n + i, device_ts=int(round(float(s.t[i]) * 1e9)),
                      arrival=time.monotonic(), gap_before=gap)
 
-    def _publish_next(self) -> None:
-        s = self.session
-        s.camera_done = self.finished
-        s.camera_next = math.inf if s.camera_done else float(s.rebased(s.t[self._i], self._lap))
-
     def stats(self) -> dict:
-        s = self.session
-        return {"state": "finished" if self.finished else ("streaming" if self._running else "stopped"),
-                "recording": str(s.path) if s.path else "<memory>", "speed": s.speed, **self.counters}
+        return {**self._stream_stats(), **self.counters}
 
 
-class ReplayGyro(GyroSource):
+class ReplayGyro(_ReplayStream, GyroSource):
     """Gyro samples of a recording as :class:`~thermod.drivers.gyro_base.GyroBatch` es (raw rad/s, gyro frame,
     times re-based to the host clock; batches split where the recording has gaps, flagged ``gap_before``).
 
@@ -286,17 +326,15 @@ class ReplayGyro(GyroSource):
     ``max_batch``: the largest batch (as-fast-as-possible mode).
     """
 
+    role = "gyro"
+
     def __init__(self, source, *, loop: bool = False, speed: float = 1.0,
                  session: ReplaySession | None = None, batch_s: float = 0.004, max_batch: int = 256):
         super().__init__()
-        self.session = _session(source, speed, loop, session)
-        self.name = f"{self.session.name} gyro"
+        self._attach(source, speed, loop, session)
         self.batch_s = float(batch_s)
         self.max_batch = int(max_batch)
-        self._i = 0
-        self._lap = 0
         self._next_batch = 0.0
-        self._running = False
         self._seek_gap = 0           # samples skipped by a late (re)start: reported on the next batch
         s = self.session
         dt = np.diff(s.gyro_t)
@@ -306,43 +344,23 @@ class ReplayGyro(GyroSource):
         self._stats.update(laps=0)
 
     @property
-    def finished(self) -> bool:
-        s = self.session
-        return not s.loop and self._i >= len(s.gyro_t)
+    def _times(self) -> np.ndarray:
+        return self.session.gyro_t
 
-    def start(self) -> None:
-        s = self.session
-        s.begin()
-        with s.cond:
-            lap, i = s.position(s.gyro_t, self._lap, self._i)
-            skipped = (lap - self._lap) * len(s.gyro_t) + i - self._i
-            if skipped:
-                self._seek_gap = skipped
-            self._lap, self._i = lap, i
-            s.gyro_active = True
-            self._publish_next()
-            s.cond.notify_all()
-        self._running = True
-
-    def stop(self) -> None:
-        s = self.session
-        with s.cond:
-            s.gyro_active = False
-            s.cond.notify_all()
-        self._running = False
+    def _seek(self, lap: int, i: int) -> None:
+        skipped = (lap - self._lap) * len(self._times) + i - self._i
+        if skipped:
+            self._seek_gap = skipped
+        self._lap, self._i = lap, i
 
     def poll(self, timeout: float) -> GyroBatch | None:
-        if not self._running:
-            raise DeviceError(f"{self.name}: poll() before start()")
+        self._check_started()
         s = self.session
         m = len(s.gyro_t)
         deadline = time.monotonic() + max(0.0, timeout)
         with s.cond:
             while True:
-                if m == 0 or self.finished:
-                    s.gyro_done = True
-                    s.cond.notify_all()
-                    _wait(s.cond, deadline)
+                if self._drained(deadline):
                     return None
                 now = time.monotonic()
                 if s.fast:
@@ -385,13 +403,5 @@ class ReplayGyro(GyroSource):
             s.cond.notify_all()
         return self._count_batch(batch)
 
-    def _publish_next(self) -> None:
-        s = self.session
-        s.gyro_done = self.finished
-        s.gyro_next = math.inf if s.gyro_done else float(s.rebased(s.gyro_t[self._i], self._lap))
-
     def stats(self) -> dict:
-        s = self.session
-        return {**super().stats(), "state": "finished" if self.finished else
-                ("streaming" if self._running else "stopped"),
-                "recording": str(s.path) if s.path else "<memory>", "speed": s.speed}
+        return {**super().stats(), **self._stream_stats()}

@@ -32,7 +32,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from thermod.drivers.camera_base import CameraSource, Frame, as_uint16_image
+from thermod.drivers.camera_base import (
+    Backoff,
+    CameraSource,
+    Frame,
+    as_uint16_image,
+    clock_stats,
+    count_ffc,
+    measured_rate_hz,
+)
 from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
@@ -162,7 +170,7 @@ class V4L2Camera(CameraSource):
         self.timestamp_offset_s = float(timestamp_offset_s)
         self.read_timeout_s = float(read_timeout_s)
         self.reopen = bool(reopen)
-        self.backoff = (float(backoff_s[0]), float(backoff_s[1]))
+        self._backoff = Backoff(*backoff_s)
         self.path: str | None = None
         self._cap = None
         self._running = False
@@ -172,8 +180,6 @@ class V4L2Camera(CameraSource):
         self._frame_id = -1
         self._last_ts: int | None = None
         self._last_t = math.nan
-        self._next_attempt = 0.0
-        self._delay = self.backoff[0]
         self._recent = deque(maxlen=64)
         self.counters = {"frames": 0, "frames_lost": 0, "gap_events": 0, "read_errors": 0, "bad_frames": 0,
                          "reopens": 0, "reopen_attempts": 0, "timestamp_fallbacks": 0, "flat_frames": 0,
@@ -255,21 +261,17 @@ class V4L2Camera(CameraSource):
             self.state = "lost"
             raise DeviceError(f"{self.name}: {why}; check the cable/USB port (dmesg)")
         self.state = "reopening"
-        self._delay = self.backoff[0]
-        self._next_attempt = time.monotonic() + self._delay
+        self._backoff.restart(at_once=False)
 
     def _try_reopen(self, deadline: float) -> bool:
-        now = time.monotonic()
-        if now < self._next_attempt:
-            time.sleep(max(0.0, min(deadline, self._next_attempt) - now))
+        if not self._backoff.due(deadline):
             return False
         self.counters["reopen_attempts"] += 1
         try:
             self._open()
         except DeviceError as e:
             self.last_error = str(e)
-            self._next_attempt = time.monotonic() + self._delay
-            self._delay = min(2 * self._delay, self.backoff[1])
+            self._backoff.failed()
             return False
         self.counters["reopens"] += 1
         return True
@@ -319,10 +321,7 @@ class V4L2Camera(CameraSource):
             return False
         rows = raw[:self.top] if self.top else raw[self.raw_height - self.bottom:]
         ffc = boson_ffc_state(rows) == BOSON_FFC_IN_PROGRESS
-        if ffc:
-            self.counters["ffc_frames"] += 1
-            if not self._in_ffc:
-                self.counters["ffc_events"] += 1
+        count_ffc(self.counters, self._in_ffc, ffc)
         self._in_ffc = ffc
         return ffc
 
@@ -356,8 +355,7 @@ class V4L2Camera(CameraSource):
         return Frame(image=image, t=t, frame_id=self._frame_id, device_ts=ts, arrival=arrival, gap_before=gap)
 
     def stats(self) -> dict:
-        rec = self._recent
-        rate = (len(rec) - 1) / (rec[-1] - rec[0]) if len(rec) > 2 and rec[-1] > rec[0] else 0.0
+        rate = measured_rate_hz(self._recent)
         out = {"state": self.state, "device": self.path or str(self.device), "width": self.width,
                "height": self.height, "telemetry_rows": (self.top, self.bottom),
                "frame_rate_hz": self.frame_rate_hz, "measured_rate_hz": rate, "last_error": self.last_error,
@@ -365,6 +363,5 @@ class V4L2Camera(CameraSource):
         if self.clock is not None:
             out["timestamp_clock"] = {None: "unknown", True: "monotonic", False: "device"}[self._monotonic]
         if self.clock is not None and self._monotonic is False:
-            out.update(clock_drift_ppm=self.clock.drift_ppm, clock_residual_s=self.clock.residual_std_s,
-                       clock_resets=self.clock.resets)
+            out.update(clock_stats(self.clock))
         return out

@@ -26,13 +26,14 @@ import contextlib
 import fcntl
 import math
 import os
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from thermod.sim.emu_thread import ThreadedEmulator
 
 F_SETPIPE_SZ = 1031
 
@@ -58,17 +59,19 @@ def _parse(t: str) -> tuple[str, bool, int, int, int]:
     return end, sign == "s", int(bits), int(storage.split("X")[0]), int(shift)
 
 
-class IIOEmulator:
+class IIOEmulator(ThreadedEmulator):
     """Fake IIO gyro device tree + FIFO; ``start()`` the writer, point the driver at ``sysfs_root``
     and ``dev_path``."""
+
+    thread_name = "emu-iio"
 
     def __init__(self, root: str | os.PathLike | None = None, *, name: str = "icm42688", layout: str = "s16",
                  rate_hz: float = 1000.0, scale: float = 0.001065264, batch_s: float = 0.004,
                  rate_fn: Callable[[np.ndarray], np.ndarray] | None = None, drift_ppm: float = 0.0,
                  irq_latency_s: tuple[float, float] = (20e-6, 80e-6), pipe_size: int | None = None,
                  seed: int = 0):
-        self._tmp = None if root else tempfile.TemporaryDirectory(prefix="thermod-emu-iio-")
-        self.root = Path(root or self._tmp.name)
+        super().__init__(root, "thermod-emu-iio-")
+        self.root = Path(root or self._dir)
         self.sysfs_root = self.root / "sys/bus/iio/devices"
         self.dir = self.sysfs_root / "iio:device0"
         self.dev_path = str(self.root / "dev/iio:device0")
@@ -80,8 +83,6 @@ class IIOEmulator:
         self._rng = np.random.default_rng(seed)
         self.counters = {"records": 0, "dropped": 0, "enables": 0}
         self.truth: list[tuple[float, np.ndarray]] = []   # (true time, rate) of every record written
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._ts_lock = threading.Lock()
         self._ts_override: list[int] = []
         self._ts_shift_ns = 0
@@ -122,29 +123,15 @@ class IIOEmulator:
         os.mkfifo(self.dev_path)
 
     # -- control -----------------------------------------------------------------------------------
-    def start(self) -> IIOEmulator:
+    def _open(self) -> None:
         # O_RDWR: never blocks on a FIFO without reader; O_NONBLOCK: a full FIFO drops, as kfifo does
         self._fd = os.open(self.dev_path, os.O_RDWR | os.O_NONBLOCK)
         if self.pipe_size:
             fcntl.fcntl(self._fd, F_SETPIPE_SZ, self.pipe_size)
-        self._thread = threading.Thread(target=self._run, name="emu-iio", daemon=True)
-        self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
+    def _close(self) -> None:
         with contextlib.suppress(OSError):
             os.close(self._fd)
-        if self._tmp is not None:
-            self._tmp.cleanup()
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.stop()
 
     def corrupt_timestamps(self, values) -> None:
         """The next ``len(values)`` records carry these time stamps (ns) instead of their own."""

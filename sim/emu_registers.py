@@ -229,7 +229,32 @@ def _int16_be(raw: np.ndarray) -> np.ndarray:
     return raw.astype(">i2").view(np.uint8).reshape(len(raw), -1)
 
 
-class ICM42688Emu(RegisterChip):
+class _InvenSenseChip(RegisterChip):
+    """Register conventions the ICM-42688 and the MPU-6000 share: INT_STATUS clears on read and carries
+    the FIFO overflow flag; FIFO_COUNT is big-endian in two registers, high then low, and reading the
+    high byte latches the low one (a count read in two transfers stays consistent)."""
+
+    int_status_reg: int
+    overflow_bit: int
+    fifo_count_high_reg: int        # the low byte is the next register
+
+    def _read_reg(self, reg):
+        if reg == self.int_status_reg:
+            v = self.regs[reg]
+            self.regs[reg] = 0
+            return v
+        if reg == self.fifo_count_high_reg:
+            self._count_latch = len(self.fifo)
+            return (self._count_latch >> 8) & 0xFF
+        if reg == self.fifo_count_high_reg + 1:
+            return getattr(self, "_count_latch", len(self.fifo)) & 0xFF
+        return self.regs[reg]
+
+    def _set_overflow(self):
+        self.regs[self.int_status_reg] |= self.overflow_bit
+
+
+class ICM42688Emu(_InvenSenseChip):
     """ICM-42688-P (bank 0): WHO_AM_I 0x47, GYRO_CONFIG0, FIFO_CONFIG/1, INT_STATUS FIFO_FULL,
     FIFO_COUNT in bytes (big-endian), packets 2 (8 B, gyro) and 3 (16 B, accel+gyro+timestamp),
     flush by SIGNAL_PATH_RESET bit 1, soft reset by DEVICE_CONFIG bit 0. 2 KB FIFO; stream mode drops
@@ -238,6 +263,8 @@ class ICM42688Emu(RegisterChip):
     name = "ICM-42688-P"
     fifo_reg = 0x30
     fifo_capacity = 2048
+    int_status_reg, overflow_bit = 0x2D, 0x02         # INT_STATUS, FIFO_FULL_INT
+    fifo_count_high_reg = 0x2E
     timeline_regs = (0x4E, 0x4F)                      # power and ODR: the sample grid restarts
     FS_DPS = (2000.0, 1000.0, 500.0, 250.0, 125.0, 62.5, 31.25, 15.625)
     ODR_HZ = {1: 32000.0, 2: 16000.0, 3: 8000.0, 4: 4000.0, 5: 2000.0, 6: 1000.0, 7: 200.0, 8: 100.0,
@@ -290,23 +317,8 @@ class ICM42688Emu(RegisterChip):
                 self.flush()
             self.regs[0x4B] = 0                          # bits self-clear
 
-    def _read_reg(self, reg):
-        if reg == 0x2D:                                  # INT_STATUS clears on read
-            v = self.regs[0x2D]
-            self.regs[0x2D] = 0
-            return v
-        if reg == 0x2E:                                  # reading COUNTH latches COUNTL
-            self._count_latch = len(self.fifo)
-            return (self._count_latch >> 8) & 0xFF
-        if reg == 0x2F:
-            return getattr(self, "_count_latch", len(self.fifo)) & 0xFF
-        return self.regs[reg]
 
-    def _set_overflow(self):
-        self.regs[0x2D] |= 0x02                          # FIFO_FULL_INT
-
-
-class MPU6000Emu(RegisterChip):
+class MPU6000Emu(_InvenSenseChip):
     """MPU-6000/6050: WHO_AM_I 0x68, SMPLRT_DIV/CONFIG (8 kHz with the DLPF off, else 1 kHz, divided),
     GYRO_CONFIG FS_SEL, FIFO_EN (accel, temp, gyro X/Y/Z in register order, big-endian), USER_CTRL
     (FIFO_EN, FIFO_RESET), PWR_MGMT_1 (reset, sleep), INT_STATUS FIFO_OFLOW_INT. The 1 KB FIFO keeps
@@ -315,6 +327,8 @@ class MPU6000Emu(RegisterChip):
     name = "MPU-6000"
     fifo_reg = 0x74
     fifo_capacity = 1024
+    int_status_reg, overflow_bit = 0x3A, 0x10         # INT_STATUS, FIFO_OFLOW_INT
+    fifo_count_high_reg = 0x72
     drop_oldest_bytes = True
     timeline_regs = (0x19, 0x1A, 0x6B)
     FS_DPS = (250.0, 500.0, 1000.0, 2000.0)
@@ -359,21 +373,6 @@ class MPU6000Emu(RegisterChip):
                 self.regs[0x6A] &= ~0x04 & 0xFF
             if value & 0x01:                             # SIG_COND_RESET
                 self.regs[0x6A] &= ~0x01 & 0xFF
-
-    def _read_reg(self, reg):
-        if reg == 0x3A:
-            v = self.regs[0x3A]
-            self.regs[0x3A] = 0
-            return v
-        if reg == 0x72:
-            self._count_latch = len(self.fifo)
-            return (self._count_latch >> 8) & 0xFF
-        if reg == 0x73:
-            return getattr(self, "_count_latch", len(self.fifo)) & 0xFF
-        return self.regs[reg]
-
-    def _set_overflow(self):
-        self.regs[0x3A] |= 0x10                          # FIFO_OFLOW_INT
 
 
 class BMI088GyroEmu(RegisterChip):

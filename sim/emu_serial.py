@@ -25,7 +25,6 @@ import errno
 import math
 import os
 import struct
-import tempfile
 import threading
 import time
 import tty
@@ -34,10 +33,13 @@ from collections.abc import Callable
 import numpy as np
 
 from thermod.drivers.serial_imu import PAYLOAD_LEN, SYNC, TYPE_I16, crc16_ccitt, encode_frame
+from thermod.sim.emu_thread import ThreadedEmulator
 
 
-class SerialIMUEmulator:
+class SerialIMUEmulator(ThreadedEmulator):
     """Real-time serial IMU on ``os.openpty()``; use as a context manager or start()/stop()."""
+
+    thread_name = "emu-serial-imu"
 
     def __init__(self, *, rate_hz: float = 1000.0, batch_s: float = 0.005,
                  rate_fn: Callable[[np.ndarray], np.ndarray] | None = None, noise_rad_s: float = 0.0,
@@ -53,8 +55,8 @@ class SerialIMUEmulator:
         self._time_glitches: list[int] = []
         self.clock = clock
         self._rng = np.random.default_rng(seed)
-        self._tmp = None if link_dir else tempfile.TemporaryDirectory(prefix="thermod-emu-serial-")
-        self.link_dir = link_dir or self._tmp.name
+        super().__init__(link_dir, "thermod-emu-serial-")
+        self.link_dir = link_dir or self._dir
         self.link = os.path.join(self.link_dir, f"usb-thermod_emu_IMU_{serial_number}-if00-port0")
         self._seq0 = seq0
         self._t_us0 = int(self._rng.integers(0, 2**32)) if t_us0 is None else int(t_us0)
@@ -67,8 +69,6 @@ class SerialIMUEmulator:
         self._pending = b""
         self._offline_until = -math.inf
         self._reset_on_return = False
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     # -- pty ---------------------------------------------------------------------------------------
     def _open_pty(self) -> None:
@@ -93,28 +93,14 @@ class SerialIMUEmulator:
         self._pending = b""
 
     # -- control -----------------------------------------------------------------------------------
-    def start(self) -> SerialIMUEmulator:
+    def _open(self) -> None:
         self._open_pty()
         self._epoch = self.clock()
         self._k = 0
-        self._thread = threading.Thread(target=self._run, name="emu-serial-imu", daemon=True)
-        self._thread.start()
-        return self
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
+    def _close(self) -> None:
         with self._lock:
             self._close_pty()
-        if self._tmp is not None:
-            self._tmp.cleanup()
-
-    def __enter__(self):
-        return self.start()
-
-    def __exit__(self, *exc):
-        self.stop()
 
     def disconnect(self, seconds: float, *, reset_counters: bool = False) -> None:
         """Pull the cable for ``seconds``: both pty ends close, then a new pty appears at ``link``."""

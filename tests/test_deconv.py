@@ -12,6 +12,7 @@ from thermod.physics import deconv
 from thermod.physics.deconv import plans, tiles, wstep
 from thermod.physics.kernels import Kernel, KernelGrid, blur, blur_varying
 from thermod.sim import scenes
+from thermod.sim.kernels import comet
 
 
 @dataclass
@@ -57,26 +58,6 @@ def named_scene(request, shared_data, require):
 def psnr(a, ref):
     rng = float(np.percentile(ref, 99.5) - np.percentile(ref, 0.5))
     return 10 * np.log10(rng ** 2 / np.mean((a.astype(np.float64) - ref) ** 2))
-
-
-def comet(length=31, decay=8.0, angle_deg=0.0):
-    """One-sided exponential comet (thermal-like): origin at the head, tail trailing behind."""
-    size = 2 * length + 1
-    w = np.zeros((size, size), np.float32)
-    c = length
-    a = np.deg2rad(angle_deg)
-    for s in np.linspace(0, length - 1, 8 * length):
-        x, y = c - s * np.cos(a), c - s * np.sin(a)
-        x0, y0 = int(np.floor(x)), int(np.floor(y))
-        fx, fy = x - x0, y - y0
-        wt = np.exp(-s / decay)
-        w[y0, x0] += wt * (1 - fx) * (1 - fy)
-        w[y0, x0 + 1] += wt * fx * (1 - fy)
-        w[y0 + 1, x0] += wt * (1 - fx) * fy
-        w[y0 + 1, x0 + 1] += wt * fx * fy
-    ys, xs = np.nonzero(w)
-    w = w[ys.min():ys.max() + 1, xs.min():xs.max() + 1]
-    return Kernel((w / w.sum()).astype(np.float32), (c - ys.min(), c - xs.min()))
 
 
 def blurred_crop(img, kernel, margin=80, noise=0.002, seed=0):

@@ -1,6 +1,8 @@
 """Simulated camera source: real-time delivery at fps, 16-bit block ids wrapping 65535 → 1 (0 invalid),
 device clock offset and drift, transport losses and buffer overruns, injectable frame providers."""
 
+import os
+import sys
 import time
 
 import numpy as np
@@ -10,14 +12,8 @@ from thermod.drivers.camera_base import CameraSource
 from thermod.errors import DeviceError
 from thermod.sim.emu_camera import EmuCamera, make_provider
 
-
-def _frames(cam, n, timeout=0.5):
-    out = []
-    for _ in range(n):
-        f = cam.poll(timeout)
-        assert f is not None
-        out.append(f)
-    return out
+sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
+from camera_polling import poll_frames  # noqa: E402
 
 
 def _k(cam, f):
@@ -34,7 +30,7 @@ def test_id_wrap_skips_zero_and_timestamps_in_ns(stack):
     cam = EmuCamera(stack, fps=100.0, first_frame_id=65533, drift_ppm=0.0)
     assert isinstance(cam, CameraSource)
     with cam:
-        frames = _frames(cam, 8)
+        frames = poll_frames(cam, 8)
         st = cam.stats()
     raw = [cam.raw_frame_id(_k(cam, f)) for f in frames]
     assert raw == [65533, 65534, 65535, 1, 2, 3, 4, 5]
@@ -50,7 +46,7 @@ def test_real_time_delivery_at_fps(stack):
     cam = EmuCamera(stack, fps=50.0, latency_s=0.002, jitter_s=0.0002)
     with cam:
         t0 = time.monotonic()
-        frames = _frames(cam, 25)
+        frames = poll_frames(cam, 25)
         elapsed = time.monotonic() - t0
     assert elapsed == pytest.approx(25 / 50.0, abs=0.06)         # paced by the device, not the reader
     for f in frames:
@@ -65,7 +61,7 @@ def test_drift_is_tracked_by_the_clock_mapper(stack):
     cam = EmuCamera(stack, fps=50.0, drift_ppm=drift, device_offset_ns=123_456_789_000, latency_s=0.002,
                     n_buffers=128)
     with cam:
-        frames = _frames(cam, 90)                                  # 1.8 s
+        frames = poll_frames(cam, 90)                                  # 1.8 s
         st = cam.stats()
     dts = np.diff([f.device_ts for f in frames]) / np.diff([f.frame_id for f in frames])
     np.testing.assert_allclose(dts, 0.02 * (1 + drift * 1e-6) * 1e9, atol=1)
@@ -81,7 +77,7 @@ def test_drift_is_tracked_by_the_clock_mapper(stack):
 def test_transport_loss_and_invalid_ids(stack):
     cam = EmuCamera(stack, fps=100.0, drop=[3, 4], invalid_ids=[7])
     with cam:
-        frames = _frames(cam, 8)
+        frames = poll_frames(cam, 8)
         st = cam.stats()
     assert st["lost_transport"] == 2 and st["invalid_ids"] == 1
     assert st["frames_lost"] == 2 + st["lost_overrun"] == sum(f.gap_before for f in frames)
@@ -93,9 +89,9 @@ def test_transport_loss_and_invalid_ids(stack):
 def test_slow_consumer_overruns_the_buffer_pool(stack):
     cam = EmuCamera(stack, fps=100.0, n_buffers=4)
     with cam:
-        pre = _frames(cam, 2)
+        pre = poll_frames(cam, 2)
         time.sleep(0.2)                                            # ~20 frames while only 4 buffers
-        frames = _frames(cam, 10)
+        frames = poll_frames(cam, 10)
         st = cam.stats()
     assert st["lost_overrun"] >= 10
     seen = pre + frames
@@ -115,7 +111,7 @@ def test_callable_provider_gets_true_time_and_float_counts_are_digitised():
 
     cam = EmuCamera(render, fps=100.0)
     with cam:
-        frames = _frames(cam, 3)
+        frames = poll_frames(cam, 3)
     assert seen == pytest.approx([cam.true_time(_k(cam, f)) for f in frames])
     assert frames[0].image.dtype == np.uint16 and frames[0].image[0, 0] == 1235
     assert frames[1].image.max() == 65535                          # saturates like the ADC

@@ -2,6 +2,7 @@
 frames like OpenCV's V4L2 backend, Boson-style telemetry rows, buffer timestamps, unplug/replug)."""
 
 import os
+import sys
 import time
 
 import cv2
@@ -12,6 +13,9 @@ from thermod.drivers.v4l2_camera import V4L2Camera, fourcc_code, fourcc_str, res
 from thermod.errors import DeviceError
 from thermod.sim.emu_camera import EmuV4L2Device
 
+sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
+from camera_polling import poll_frames  # noqa: E402
+
 H, W = 512, 640
 
 
@@ -20,15 +24,6 @@ def scene():
     rng = np.random.default_rng(3)
     base = rng.integers(20000, 30000, size=(H, W), dtype=np.uint16)
     return np.stack([base + 100 * i for i in range(5)]).astype(np.uint16)
-
-
-def _frames(cam, n, timeout=0.5):
-    out = []
-    for _ in range(n):
-        f = cam.poll(timeout)
-        assert f is not None
-        out.append(f)
-    return out
 
 
 def test_fourcc_codes():
@@ -43,7 +38,7 @@ def test_boson_telemetry_stripped_and_bytes_reshaped(scene, layout):
     cam = V4L2Camera("/dev/video0", width=W, height=H, frame_rate_hz=60.0, telemetry_rows=(2, 0),
                      capture_factory=dev.open)
     with cam:
-        frames = _frames(cam, 12)
+        frames = poll_frames(cam, 12)
         st = cam.stats()
     for f in frames:
         assert f.image.dtype == np.uint16 and f.image.shape == (H, W)
@@ -124,10 +119,10 @@ def test_bad_settings_raise_device_errors(scene):
 def test_dropped_and_overrun_frames_counted_from_timestamps(scene):
     dev = EmuV4L2Device(scene, fps_modes=(60.0,), drop=[3], n_buffers=4)
     with V4L2Camera("/dev/video0", frame_rate_hz=60.0, capture_factory=dev.open) as cam:
-        first = _frames(cam, 5)
+        first = poll_frames(cam, 5)
         overrun_first = dev.captures[-1].timeline.lost_overrun
         time.sleep(0.25)                               # a stalled reader: ~15 frames, 4 buffers
-        late = _frames(cam, 8)
+        late = poll_frames(cam, 8)
         st = cam.stats()
     if overrun_first == 0:                             # (unless a loaded machine stalled the reader)
         assert [f.gap_before for f in first] == [0, 0, 0, 1, 0]
@@ -142,7 +137,7 @@ def test_device_clock_timestamps_are_mapped(scene):
     # a UVC-style hardware clock: unrelated offset and 300 ppm drift
     dev = EmuV4L2Device(scene, fps_modes=(60.0,), clock_offset_s=5000.0, drift_ppm=300.0)
     with V4L2Camera("/dev/video0", frame_rate_hz=60.0, capture_factory=dev.open) as cam:
-        frames = _frames(cam, 60)
+        frames = poll_frames(cam, 60)
         st = cam.stats()
     assert st["timestamp_clock"] == "device"
     tl = dev.captures[-1].timeline
@@ -155,7 +150,7 @@ def test_unplug_replug_reopens(scene):
     cam = V4L2Camera("/dev/video0", frame_rate_hz=60.0, capture_factory=dev.open, read_timeout_s=0.1,
                      backoff_s=(0.05, 0.2))
     with cam:
-        before = _frames(cam, 3)
+        before = poll_frames(cam, 3)
         dev.unplug()
         t0 = time.monotonic()
         while time.monotonic() - t0 < 0.5:

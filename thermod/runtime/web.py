@@ -396,17 +396,26 @@ canvas{background:#0e1013;border:1px solid #2a2f36}
 <script>
 "use strict";
 const $ = id => document.getElementById(id);
-let frameUrl = null, kernelUrl = null;
 function fmt(v, d) { return v === null || v === undefined ? "–" : Number(v).toFixed(d); }
+
+// GET past the browser's cache (a new URL each time)
+const fresh = path => fetch(path + "?" + Date.now(), {cache: "no-store"});
+
+// Show the image at path in <img id>, releasing the blob URL it showed before; the response, for its headers.
+async function showImage(path, id) {
+  const r = await fresh(path);
+  if (r.ok) {
+    const img = $(id), old = img.src;
+    img.src = URL.createObjectURL(await r.blob());
+    if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+  }
+  return r;
+}
 
 async function pollFrame() {
   try {
-    const r = await fetch("/frame.jpg?" + Date.now(), {cache: "no-store"});
+    const r = await showImage("/frame.jpg", "frame");
     if (r.ok) {
-      const url = URL.createObjectURL(await r.blob());
-      $("frame").src = url;
-      if (frameUrl) URL.revokeObjectURL(frameUrl);
-      frameUrl = url;
       const raw = r.headers.get("X-Has-Raw") === "1", flowing = r.headers.get("X-Raw-Flowing") === "1";
       $("lraw").textContent = raw ? "raw" : "";
       $("ldeb").style.left = raw ? "462px" : "8px";
@@ -421,12 +430,8 @@ async function pollFrame() {
 
 async function pollKernel() {
   try {
-    const r = await fetch("/kernel.png?" + Date.now(), {cache: "no-store"});
+    const r = await showImage("/kernel.png", "kernel");
     if (r.ok) {
-      const url = URL.createObjectURL(await r.blob());
-      $("kernel").src = url;
-      if (kernelUrl) URL.revokeObjectURL(kernelUrl);
-      kernelUrl = url;
       const shape = r.headers.get("X-Shape").split("x"), num = k => Number(r.headers.get(k));
       $("kinfo").innerHTML = "frame " + r.headers.get("X-Frame-Id") + "<br>size " +
         shape.slice(-2).join(" × ") + " px" +
@@ -474,7 +479,7 @@ function plot(id, title, unit, t, lines) {
 
 async function pollHealth() {
   try {
-    const r = await fetch("/health.json?" + Date.now(), {cache: "no-store"});
+    const r = await fresh("/health.json");
     const s = await r.json(), S = s.series, t = S.t || [];
     const last = k => (S[k] && S[k].length ? S[k][S[k].length - 1] : null);
     const c = s.counts, deb = c.frame ? 100 * (c.deblurred || 0) / c.frame : null;
