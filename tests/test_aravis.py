@@ -52,7 +52,7 @@ class FakeCamera:
         self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", self.serial, *extra],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                      preexec_fn=_die_with_parent)
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30      # a hang bound
         while time.monotonic() < deadline:
             info = gvcp_probe("127.0.0.1", 0.05)
             if info and info["serial"] == self.serial:

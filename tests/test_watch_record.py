@@ -51,7 +51,7 @@ def gyro_log(shared_data) -> tuple[np.ndarray, np.ndarray]:
 
 def connect(pub, topics, **kw):
     sub = Subscriber(pub.endpoint, topics=topics, **kw)
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 30      # a hang bound
     while time.monotonic() < deadline:
         pub.publish_health()
         if sub.recv(0.05) is not None:
