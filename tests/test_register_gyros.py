@@ -88,7 +88,7 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect(gyro, 40))
+    t, r = cat(collect(gyro, 400))
     gyro.stop()
     lsb = math.radians(fs) / 32768
     assert r.dtype == np.float32 and t.dtype == np.float64 and r.shape == (len(t), 3)
@@ -97,7 +97,9 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
     # full-scale and ODR codes landed in GYRO_CONFIG0 (the driver read them back too)
     assert chip.regs[0x4F] == (ICM42688Emu.FS_DPS.index(fs) << 5) | 0x06
     assert chip.odr_hz() == 1000.0
-    assert np.all(np.diff(t) > 0) and np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+    # the sample period on the device clock, once the clock fit has settled: until a fast read
+    # corrects a late first one (a loaded machine), times stay monotonic but may run closer
+    assert np.all(np.diff(t) > 0) and np.median(np.diff(t[len(t) // 2:])) == pytest.approx(1e-3, abs=1e-6)
 
 
 @pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
@@ -121,9 +123,9 @@ def test_mpu6000_sample_rate_divider():
     chip = MPU6000Emu(noise_rad_s=0.0)
     gyro = MPU6000(make_bus("i2c", chip), rate_hz=250.0)
     gyro.start()
-    t, _ = cat(collect(gyro, 50, timeout=0.02))         # 0.2 s at 250 Hz
+    t, _ = cat(collect(gyro, 100, timeout=0.02))        # 0.4 s at 250 Hz
     assert chip.regs[0x19] == 3 and chip.regs[0x1A] & 7 == 1
-    assert np.median(np.diff(t)) == pytest.approx(0.004, rel=1e-3)
+    assert np.median(np.diff(t[len(t) // 2:])) == pytest.approx(0.004, rel=1e-3)   # once the fit settled
     with pytest.raises(MPU6000Error, match="rate_hz=300"):
         MPU6000(make_bus("i2c", chip), rate_hz=300.0)
 
@@ -175,13 +177,13 @@ def test_bmi088_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = BMI088GyroEmu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = BMI088Gyro(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect(gyro, 40))
+    t, r = cat(collect(gyro, 400))
     assert len(t) >= 35
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(fs) / 32768 * 1.0001
     assert chip.regs[0x0F] == BMI088GyroEmu.FS_DPS.index(fs)
     assert chip.regs[0x10] == 0x82 and chip.odr_hz() == 1000.0      # bit 7 reads 1
     assert chip.regs[0x3E] == 0x80                                   # stream mode, X/Y/Z
-    assert np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+    assert np.median(np.diff(t[len(t) // 2:])) == pytest.approx(1e-3, abs=1e-6)   # once the fit settled
 
 
 @pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
