@@ -1,8 +1,9 @@
 """Shared by the camera-source tests (imported from beside them, like reference_kernels)."""
 
 
-def poll_frames(cam, n: int, timeout: float = 0.5) -> list:
-    """The next ``n`` frames of a started camera source; each must come within ``timeout`` seconds."""
+def poll_frames(cam, n: int, timeout: float = 30.0) -> list:
+    """The next ``n`` frames of a started camera source. ``poll`` returns as soon as a frame is there;
+    the timeout only catches a hang (a loaded machine may be slow, never a source that stopped)."""
     out = []
     for _ in range(n):
         f = cam.poll(timeout)

@@ -52,7 +52,7 @@ class FakeCamera:
         self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", self.serial, *extra],
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                      preexec_fn=_die_with_parent)
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30      # a hang bound
         while time.monotonic() < deadline:
             info = gvcp_probe("127.0.0.1", 0.05)
             if info and info["serial"] == self.serial:
@@ -89,9 +89,12 @@ def fake_camera(require):
             cam.kill()
 
 
-def _collect(cam, seconds):
-    frames, end = [], time.monotonic() + seconds
-    while time.monotonic() < end:
+def _collect(cam, n, timeout=60.0):
+    """The next `n` frames. The timeout only catches a camera that stopped (the fake camera sends 20–40
+    fps; a loaded CI machine may take several times the nominal 25–50 ms per frame, never a minute)."""
+    frames, end = [], time.monotonic() + timeout
+    while len(frames) < n:
+        assert time.monotonic() < end, f"only {len(frames)} of {n} frames in {timeout} s: {cam.stats()}"
         f = cam.poll(0.2)
         if f is not None:
             frames.append(f)
@@ -158,9 +161,8 @@ def test_bad_arguments_are_device_errors():
 def test_frames_at_rate_with_mapped_timestamps(fake_camera):
     cam = AravisCamera("127.0.0.1", width=320, height=240, frame_rate_hz=40.0, packet_size=1500)
     with cam:
-        frames = _collect(cam, 4.0)     # the fake camera starts its block ids at 65401: crosses the wrap
+        frames = _collect(cam, 140)     # the fake camera starts its block ids at 65401: crosses the wrap
         st = cam.stats()
-    assert len(frames) >= 40                            # how many depends on the machine's load
     f = frames[-1]
     assert f.image.dtype == np.uint16 and f.image.shape == (240, 320)
     assert f.image.max() > 0                          # the fake camera's gradient pattern, not zeros
@@ -174,10 +176,12 @@ def test_frames_at_rate_with_mapped_timestamps(fake_camera):
     np.testing.assert_allclose(np.median(np.diff(dev) / np.diff(ids)), 25e6, rtol=0.005)
     np.testing.assert_allclose(np.median(np.diff(t) / np.diff(ids)), 1 / 40.0, rtol=0.05)
     lag = np.array([f.arrival - f.t for f in frames])
-    assert np.all(lag >= -1e-6) and np.median(lag) < 0.1, lag    # stamped by the device, not the read
-    # on loopback nothing should be lost; under heavy load the odd frame may be, but then it is counted
+    # stamped by the device, not the read: never after the arrival, and the mapping sits on the lower
+    # envelope of the arrivals (the fastest reads), whatever the load does to the others
+    assert np.all(lag >= -1e-6) and np.min(lag) < 0.05, lag
+    # a frame the loaded host did not read in time is lost, and then counted as an id gap
     assert np.all(np.diff(ids) == 1 + np.array([f.gap_before for f in frames[1:]]))
-    assert st["frames_lost"] == sum(f.gap_before for f in frames) <= 0.05 * len(frames), st
+    assert st["frames_lost"] == sum(f.gap_before for f in frames), st
     assert st["id_wraps"] == 1 and st["invalid_ids"] == 0
     assert st["device"] == "127.0.0.1" and st["state"] == "streaming" and cam.stats()["state"] == "stopped"
 
@@ -186,7 +190,7 @@ def test_frames_at_rate_with_mapped_timestamps(fake_camera):
 def test_open_by_serial_and_rate_change(fake_camera):
     cam = AravisCamera(device_id=fake_camera.serial, width=160, height=120, frame_rate_hz=20.0)
     with cam:
-        frames = _collect(cam, 1.5)
+        frames = _collect(cam, 20)
     assert cam.stats()["frame_rate_hz"] == pytest.approx(20.0)
     # the camera's own clock shows the new period (host arrival times would show the machine's load)
     dev = np.array([f.device_ts for f in frames], np.int64)
@@ -204,7 +208,7 @@ def test_unknown_serial_and_absent_camera_name_what_to_check(fake_camera):
     t0 = time.monotonic()
     with pytest.raises(DeviceError, match=r"no GigE Vision camera answers at 127.0.0.2 .*UDP 3956"):
         AravisCamera("127.0.0.2").start()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 5.0      # one 0.3 s probe; the bound only catches a hang
 
 
 @pytest.mark.hardware
@@ -214,8 +218,7 @@ def test_reconnects_after_camera_restart(fake_camera, by):
     where = {"address": "127.0.0.1"} if by == "address" else {"device_id": fake_camera.serial}
     cam = AravisCamera(**where, width=160, height=120, frame_rate_hz=40.0, backoff_s=(0.1, 0.5))
     with cam:
-        before = _collect(cam, 0.5)
-        assert len(before) >= 15
+        before = _collect(cam, 15)
         fake_camera.kill()
         t_kill = time.monotonic()
         polls = []
@@ -223,18 +226,14 @@ def test_reconnects_after_camera_restart(fake_camera, by):
             t0 = time.monotonic()
             assert cam.poll(0.2) is None
             polls.append(time.monotonic() - t0)
-        assert max(polls) < 0.6                      # poll stays bounded while the camera is away
+        # poll(0.2) stays bounded while the camera is away (one ≤ 0.1 s probe per reopen, not a full
+        # Aravis open); the bound, 10× that, catches a poll that blocks, not a slow machine
+        assert max(polls) < 3.0
         st = cam.stats()
         assert st["state"] == "reconnecting" and st["disconnects"] == 1
         fake_camera.start()
-        t_up = time.monotonic()
-        after = []
-        while time.monotonic() - t_up < 5.0 and len(after) < 20:
-            f = cam.poll(0.2)
-            if f is not None:
-                after.append(f)
+        after = _collect(cam, 20)                    # backoff ≤ 0.5 s, then frames again
         st = cam.stats()
-    assert len(after) == 20 and time.monotonic() - t_up < 5.0
     assert st["reconnects"] == 1 and st["state"] == "streaming"
     # unwrapped ids keep increasing across the reconnect; the outage shows as a gap sized by time
     assert after[0].frame_id > before[-1].frame_id
@@ -249,7 +248,7 @@ def test_no_reconnect_mode_raises(fake_camera):
                        stall_timeout_s=0.3)
     cam.start()
     try:
-        assert _collect(cam, 0.3)
+        assert _collect(cam, 1)
         fake_camera.kill()
         with pytest.raises(DeviceError, match="camera lost .*GVCP probe"):
             for _ in range(20):
@@ -264,10 +263,13 @@ def test_incomplete_buffers_counted_and_skipped(fake_camera):
     fake_camera.start("-r", "10")          # the fake camera drops 1 % of its GVSP packets
     cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0)
     with cam:
-        frames = _collect(cam, 1.5)
+        frames, end = [], time.monotonic() + 120    # only catches a stopped camera
+        while len(frames) < 20 or cam.stats()["bad_buffers"] < 3:
+            assert time.monotonic() < end, cam.stats()
+            frames += _collect(cam, 1)
         st = cam.stats()
     assert st["bad_buffers"] >= 3 and st["bad_status"].get("missing-packets", 0) >= 3
-    assert len(frames) >= 20 and all(f.image.shape == (120, 160) for f in frames)
+    assert all(f.image.shape == (120, 160) for f in frames)
     # a skipped buffer is a lost frame: it shows up as a frame-id gap on the next good frame
     assert st["frames_lost"] == sum(f.gap_before for f in frames) > 0
     ids = [f.frame_id for f in frames]
@@ -280,18 +282,18 @@ def test_stop_after_silent_loss_does_not_block(fake_camera):
     # the daemon restarts a stalled source with stop() + start(): neither may hang on a dead camera
     cam = AravisCamera("127.0.0.1", width=160, height=120, frame_rate_hz=40.0)
     cam.start()
-    assert _collect(cam, 0.3)
+    assert _collect(cam, 1)
     fake_camera.kill()
     time.sleep(0.1)                        # loss not yet detected by the driver (no poll since)
     t0 = time.monotonic()
     cam.stop()
     with pytest.raises(DeviceError, match="no GigE Vision camera answers"):
         cam.start()
-    assert time.monotonic() - t0 < 1.5
+    assert time.monotonic() - t0 < 5.0     # a 0.2 s and a 0.3 s probe; the bound only catches a hang
     fake_camera.start()
     cam.start()
     try:
-        assert len(_collect(cam, 0.5)) >= 10
+        assert len(_collect(cam, 10)) == 10
     finally:
         cam.stop()
 

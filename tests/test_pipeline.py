@@ -43,7 +43,8 @@ class Collector:
             self.out.append(o)
         self.event.set()
 
-    def wait(self, n, timeout=20.0):
+    def wait(self, n, timeout=120.0):
+        """The first `n` outputs, as soon as they are there; the timeout only catches a hang."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self.lock:
@@ -215,7 +216,7 @@ def test_waits_for_gyro_then_deblurs(sharp):
 
 def test_missing_gyro_times_out_and_passes_through(sharp):
     col = Collector()
-    gr, fr, p = make(col, wait=1.0)
+    gr, fr, p = make(col, wait=3.0)
     p.start()
     try:
         now = time.monotonic()
@@ -232,9 +233,10 @@ def test_missing_gyro_times_out_and_passes_through(sharp):
     assert not a.deblurred and a.reason == "gyro_incomplete"
     # Eq. 18 weight of (t−40 ms, t−20 ms] with τ = 8 ms: (e^−2.5 − e^−5) / (1 − e^−5)
     assert a.coverage == pytest.approx((np.exp(-2.5) - np.exp(-5)) / (1 - np.exp(-5)), abs=0.01)
-    assert a.latency_s >= 1.0                               # waited wait_timeout_s for the gyro
+    assert a.latency_s >= 3.0                               # waited wait_timeout_s for the gyro
     np.testing.assert_array_equal(a.image, sharp.astype(np.uint16).astype(np.float32))   # raw counts, f32
-    assert b.reason == "gyro_offline" and b.latency_s < 1.0   # offline: no wait for the gyro
+    # offline: no wait for the gyro (3 s is the wait it skips; a loaded machine is not that slow)
+    assert b.reason == "gyro_offline" and b.latency_s < 3.0
     c = p.stats()["counters"]
     assert c["passthrough_gyro_incomplete"] == 1 and c["passthrough_gyro_offline"] == 1
 
@@ -269,10 +271,11 @@ def test_disabled_passes_everything_through(sharp):
 
 
 class SlowDeconvolver(Deconvolver):
-    """The real deconvolver on a slow machine (fault injection for overload)."""
+    """The real deconvolver on a slow machine (fault injection for overload): 1 s per frame, far
+    longer than the test takes to write its frames however loaded the machine (0.16 s nominal)."""
 
     def run(self, image, kernel, **kw):
-        time.sleep(0.15)
+        time.sleep(1.0)
         return super().run(image, kernel, **kw)
 
 
@@ -289,7 +292,7 @@ def test_overload_drops_oldest_job_and_publishes_it_passed_through(sharp):
             img, _ = blurry_frame(sharp, t0 + 0.02 * i, rng)
             fr.write(img, t0 + 0.02 * i, frame_id=i, arrival=time.monotonic())
             time.sleep(0.02)
-        outs = col.wait(n, timeout=10)
+        outs = col.wait(n)
     finally:
         p.stop()
     assert [o.frame_id for o in outs] == list(range(n))        # every frame exactly once, in order
@@ -327,8 +330,9 @@ def test_worker_exception_passes_frame_through_and_worker_is_replaced(sharp):
             fr.write(img, t0 + 0.02 * i, frame_id=i, arrival=time.monotonic())
             time.sleep(0.05)
         outs = col.wait(4)
-        time.sleep(0.15)
-        alive = p.alive()
+        deadline = time.monotonic() + 60                   # the replacement starts; 60 s: a hang
+        while not (alive := p.alive())["worker0"] and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         p.stop()
     assert [(o.frame_id, o.deblurred, o.reason) for o in outs] == [

@@ -27,7 +27,7 @@ def connect(pub, topics, **kw):
     """A subscriber that is provably connected: ZeroMQ drops messages sent before the subscription
     arrives (slow joiner), so warm up with health messages until one gets through."""
     sub = Subscriber(pub.endpoint, topics=(*topics, "health"), **kw)
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
     while time.monotonic() < deadline:
         pub.publish_health()
         if sub.recv(0.05) is not None:
@@ -144,7 +144,7 @@ def test_malformed_messages_are_counted_and_skipped():
     sub = Subscriber(f"tcp://127.0.0.1:{port}", topics=("raw",), max_header_bytes=2048)
     payload = np.arange(6, dtype="<u2").tobytes()
     ok = [b"raw", json.dumps(_good()).encode(), payload]
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
     while sub.recv(0.05) is None:  # warm up
         raw.send_multipart(ok)
         assert time.monotonic() < deadline
@@ -203,7 +203,7 @@ def test_seq_gaps_and_restarts_are_counted():
     port = raw.bind_to_random_port("tcp://127.0.0.1")
     sub = Subscriber(f"tcp://127.0.0.1:{port}", topics=("raw",))
     payload = np.zeros(6, "<u2").tobytes()
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
     while sub.recv(0.05) is None:
         raw.send_multipart([b"raw", json.dumps(_good(seq=0)).encode(), payload])
         assert time.monotonic() < deadline
@@ -319,9 +319,10 @@ def test_curve_only_authorised_clients_receive(tmp_path):
         img = np.full((4, 4), 3.0, np.float32)
         received = {"good": 0, "evil": 0, "plain": 0, "wrong_server": 0}
         subs = {"good": good, "evil": evil, "plain": plain, "wrong_server": wrong_server}
-        deadline = time.monotonic() + 2.0
-        i = 0
-        while time.monotonic() < deadline:
+        deadline = time.monotonic() + 60      # until the good one got 11 (CURVE handshakes are slow
+        i = 0                                 # on a loaded machine); 60 s only catches a hang
+        while received["good"] <= 10:
+            assert time.monotonic() < deadline, received
             p.publish_frame(img, float(i), frame_id=i, deblurred=True)
             i += 1
             for name, s in subs.items():
@@ -557,7 +558,7 @@ def test_stalled_subscribers_cannot_grow_the_publisher_beyond_its_budget():
         for st in stalled:
             st.close()
         stalled.clear()
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
         while time.monotonic() < deadline and p.stats()["held_bytes"] > 0:
             time.sleep(0.05)
         assert p.stats()["held_bytes"] == 0
@@ -620,7 +621,7 @@ def test_maxmsgsize_drops_an_oversized_message_on_its_size_prefix(limit_mib, del
     monitor = rogue.get_monitor_socket(zmq.EVENT_DISCONNECTED)
     sub = Subscriber(f"tcp://127.0.0.1:{port}", ("frame",), max_message_bytes=limit_mib << 20)
     try:
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
         while sub.recv(0.05) is None:       # slow joiner: small valid messages until one arrives
             assert time.monotonic() < deadline, "subscriber never connected"
             rogue.send_multipart(_rogue_message(64))
@@ -636,7 +637,7 @@ def test_maxmsgsize_drops_an_oversized_message_on_its_size_prefix(limit_mib, del
             assert recv_monitor_message(monitor)["event"] == zmq.EVENT_DISCONNECTED
             # and it dials again: small messages flow again
             assert sub.disconnects == 1
-            deadline = time.monotonic() + 5
+            deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
             while sub.recv(0.05) is None:
                 assert time.monotonic() < deadline, "subscriber did not reconnect"
                 rogue.send_multipart(_rogue_message(64))
@@ -654,7 +655,7 @@ def test_a_subscriber_follows_a_restarted_publisher_on_one_connection():
     sub = connect(first, ("frame",))
     first.stop()
     with Publisher(endpoint) as second:
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30      # a hang bound: loaded machines are slow, not stuck
         while True:   # warm up again: the subscription must reach the new publisher
             assert time.monotonic() < deadline, "subscriber did not follow the restart"
             second.publish_health()

@@ -32,34 +32,21 @@ def make_bus(kind, chip, address=0x68, **kw):
     return I2CBus(EmuI2C({0x68: chip}), address, **kw) if kind == "i2c" else SPIBus(EmuSPI(chip), **kw)
 
 
-def collect(gyro, seconds, timeout=0.01):
-    out, t_end = [], time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        b = gyro.poll(timeout)
-        if b is not None:
-            out.append(b)
-    return out
-
-
-def collect_samples(gyro, n, timeout_s=5.0):
-    """Batches until at least ``n`` samples are in hand (a slow machine just takes longer)."""
-    out, t_end = [], time.monotonic() + timeout_s
-    while sum(len(b) for b in out) < n and time.monotonic() < t_end:
-        b = gyro.poll(0.01)
-        if b is not None:
-            out.append(b)
-    return out
-
-
-def collect_timed(gyro, seconds, timeout=0.01):
-    """Batches, and for each the host time its poll returned (never earlier than its FIFO read)."""
-    out, returned, t_end = [], [], time.monotonic() + seconds
-    while time.monotonic() < t_end:
+def collect_timed(gyro, n, timeout=0.01, hang_s=60.0):
+    """Batches holding at least `n` samples, and for each the host time its poll returned (never
+    earlier than its FIFO read). A loaded machine just takes longer; `hang_s` only catches a hang."""
+    out, returned, t_end = [], [], time.monotonic() + hang_s
+    while sum(len(b) for b in out) < n:
+        assert time.monotonic() < t_end, f"{sum(len(b) for b in out)} of {n} samples: {gyro.stats()}"
         b = gyro.poll(timeout)
         if b is not None:
             out.append(b)
             returned.append(time.monotonic())
     return out, np.array(returned)
+
+
+def collect(gyro, n, timeout=0.01):
+    return collect_timed(gyro, n, timeout)[0]
 
 
 def read_lateness(batches, returned, decode):
@@ -101,7 +88,7 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = ICM42688Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect_samples(gyro, 40))
+    t, r = cat(collect(gyro, 400))
     gyro.stop()
     lsb = math.radians(fs) / 32768
     assert r.dtype == np.float32 and t.dtype == np.float64 and r.shape == (len(t), 3)
@@ -110,7 +97,9 @@ def test_icm42688_rates_and_units_at_every_full_scale(bus_kind, fs):
     # full-scale and ODR codes landed in GYRO_CONFIG0 (the driver read them back too)
     assert chip.regs[0x4F] == (ICM42688Emu.FS_DPS.index(fs) << 5) | 0x06
     assert chip.odr_hz() == 1000.0
-    assert np.all(np.diff(t) > 0) and np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+    # the sample period on the device clock, once the clock fit has settled: until a fast read
+    # corrects a late first one (a loaded machine), times stay monotonic but may run closer
+    assert np.all(np.diff(t) > 0) and np.median(np.diff(t[len(t) // 2:])) == pytest.approx(1e-3, abs=1e-6)
 
 
 @pytest.mark.parametrize("bus_kind", ["i2c", "spi"])
@@ -120,7 +109,7 @@ def test_mpu6000_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = MPU6000Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = MPU6000(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect_samples(gyro, 40))
+    t, r = cat(collect(gyro, 40))
     lsb = math.radians(fs) / 32768
     assert len(t) >= 35
     assert np.max(np.abs(r - w)) <= 0.5 * lsb * 1.0001
@@ -134,9 +123,9 @@ def test_mpu6000_sample_rate_divider():
     chip = MPU6000Emu(noise_rad_s=0.0)
     gyro = MPU6000(make_bus("i2c", chip), rate_hz=250.0)
     gyro.start()
-    t, _ = cat(collect(gyro, 0.2, timeout=0.02))
+    t, _ = cat(collect(gyro, 100, timeout=0.02))        # 0.4 s at 250 Hz
     assert chip.regs[0x19] == 3 and chip.regs[0x1A] & 7 == 1
-    assert np.median(np.diff(t)) == pytest.approx(0.004, rel=1e-3)
+    assert np.median(np.diff(t[len(t) // 2:])) == pytest.approx(0.004, rel=1e-3)   # once the fit settled
     with pytest.raises(MPU6000Error, match="rate_hz=300"):
         MPU6000(make_bus("i2c", chip), rate_hz=300.0)
 
@@ -147,7 +136,7 @@ def test_icm42688_timestamps_follow_the_device_clock_not_the_read_time(bus_kind)
     chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0, drift_ppm=300.0)
     gyro = ICM42688(make_bus(bus_kind, chip), full_scale_dps=2000.0, read_interval_s=0.003)
     gyro.start()
-    batches, returned = collect_timed(gyro, 1.2, timeout=0.01)
+    batches, returned = collect_timed(gyro, 1200)
     t, r = cat(batches)
     truth = decode(r[:, 0], t)
     skip = len(t) // 4                        # after the first 0.3 s the drift has been fitted
@@ -176,7 +165,7 @@ def test_icm42688_16_byte_packets_with_accel():
     gyro = ICM42688(make_bus("spi", chip), full_scale_dps=500.0, fifo_accel=True)
     gyro.start()
     assert chip.record_size() == 16 and chip.regs[0x5F] & 0x03 == 0x03
-    t, r = cat(collect_samples(gyro, 30))
+    t, r = cat(collect(gyro, 30))
     assert len(t) >= 30
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(500) / 32768 * 1.0001
 
@@ -188,13 +177,13 @@ def test_bmi088_rates_and_units_at_every_full_scale(bus_kind, fs):
     chip = BMI088GyroEmu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = BMI088Gyro(make_bus(bus_kind, chip), full_scale_dps=fs)
     gyro.start()
-    t, r = cat(collect_samples(gyro, 40))
+    t, r = cat(collect(gyro, 400))
     assert len(t) >= 35
     assert np.max(np.abs(r - w)) <= 0.5 * math.radians(fs) / 32768 * 1.0001
     assert chip.regs[0x0F] == BMI088GyroEmu.FS_DPS.index(fs)
     assert chip.regs[0x10] == 0x82 and chip.odr_hz() == 1000.0      # bit 7 reads 1
     assert chip.regs[0x3E] == 0x80                                   # stream mode, X/Y/Z
-    assert np.median(np.diff(t)) == pytest.approx(1e-3, abs=1e-6)
+    assert np.median(np.diff(t[len(t) // 2:])) == pytest.approx(1e-3, abs=1e-6)   # once the fit settled
 
 
 @pytest.mark.parametrize("name", ["icm42688", "mpu6000", "bmi088"])
@@ -204,9 +193,9 @@ def test_fifo_overflow_detected_flushed_counted(name):
     chip = Emu(rate_fn=fn, noise_rad_s=0.0)
     gyro = Driver(make_bus("i2c", chip), full_scale_dps=2000.0)
     gyro.start()
-    before = collect(gyro, 0.15)
+    before = collect(gyro, 150)
     time.sleep(0.45)                     # FIFO: 256 (ICM), 170 (MPU) or 100 (BMI) samples
-    after, returned = collect_timed(gyro, 0.25)
+    after, returned = collect_timed(gyro, 250)
     st = gyro.stats()
     assert chip.counters["overflows"] >= 1 and chip.counters["flushes"] >= 2
     # the stall is one overflow; a reader preempted for longer than the FIFO lasts (a loaded
@@ -273,14 +262,15 @@ def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     chip = Emu(rate_fn=constant(w), noise_rad_s=0.0)
     gyro = Driver(make_bus("i2c", chip), full_scale_dps=500.0)
     gyro.start()
-    first = collect(gyro, 0.05)
+    first = collect(gyro, 50)
     chip.unplug(0.1)                               # comes back power-cycled: configuration lost
     with pytest.raises(Error, match="FIFO status read failed: .*Remote I/O error.*check wiring"):
         gyro.poll(0.01)
     errors = 1
-    t_end = time.monotonic() + 0.5
+    t_end = time.monotonic() + 60                  # only catches a driver that never recovers
     after = []
-    while time.monotonic() < t_end and len(after) < 20:
+    while len(after) < 20:
+        assert time.monotonic() < t_end, gyro.stats()
         try:
             b = gyro.poll(0.01)
         except Error:
@@ -299,7 +289,7 @@ def test_io_errors_surface_as_driver_exception_and_recover_after_replug(name):
     chip.nack(1)
     with pytest.raises(Error):
         gyro.poll(0.01)
-    assert collect(gyro, 0.05)
+    assert collect(gyro, 1)
 
 
 def test_invalid_samples_are_dropped_but_keep_their_ticks():
@@ -308,7 +298,7 @@ def test_invalid_samples_are_dropped_but_keep_their_ticks():
     gyro = ICM42688(make_bus("spi", chip))
     gyro.start()
     chip.invalid_samples = 7                       # the first samples after the gyro powers on
-    batches, returned = collect_timed(gyro, 0.3)
+    batches, returned = collect_timed(gyro, 300)
     assert gyro.stats()["invalid"] == 7 and batches[0].seq == 7
     assert batches[0].gap_before and batches[0].n_lost == 7 == gyro.stats()["lost"]
     t, r = cat(batches)
@@ -327,11 +317,11 @@ def test_stop_start_cycle_continues_the_sequence_with_a_gap():
     chip = ICM42688Emu(rate_fn=fn, noise_rad_s=0.0)
     gyro = ICM42688(make_bus("spi", chip))
     gyro.start()
-    first = collect(gyro, 0.1)
+    first = collect(gyro, 100)
     gyro.stop()
     time.sleep(0.2)
     gyro.start()
-    second, returned = collect_timed(gyro, 0.1)
+    second, returned = collect_timed(gyro, 100)
     true_lost = round((decode(second[0].rate[:1, 0], second[0].t[:1])[0]
                        - decode(first[-1].rate[-1:, 0], first[-1].t[-1:])[0]) * 1000) - 1
     assert second[0].gap_before and true_lost >= 200 and abs(second[0].n_lost - true_lost) <= 2
@@ -420,9 +410,9 @@ def test_bus_glitches_reading_all_ones_are_counted_not_raised(name, bus_kind):
     gyro.start()
     batches = []
     for k in range(12):
-        batches += collect(gyro, 0.02)
+        batches += collect(gyro, 20)
         chip.glitch(1 + k % 3, reg=chip.fifo_reg if k % 2 else None)
-    batches += collect(gyro, 0.05)
+    batches += collect(gyro, 50)
     st = gyro.stats()
     assert st["io_errors"] == 0 and st["overflows"] + st["bad_counts"] + st["invalid"] >= 1
     assert st["gaps"] >= 1 and st["lost"] >= st["invalid"]       # invalid samples are missing ones

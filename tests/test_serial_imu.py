@@ -18,31 +18,32 @@ def rates(t):
     return np.stack([np.sin(3 * t), np.cos(2 * t), 0.05 * (t % 7.0)], axis=1)
 
 
-def run(gyro, seconds, timeout=0.01, tolerate=()):
-    out, errors, t_end = [], 0, time.monotonic() + seconds
-    while time.monotonic() < t_end:
+def _collect(gyro, n, tolerate, hang_s=60.0):
+    """Batches holding at least `n` samples (the emulator sends 1 kHz; how long the reads take
+    depends on the load, the timeout only catches a hang), their return times, and the errors."""
+    out, returned, errors, t_end = [], [], 0, time.monotonic() + hang_s
+    while sum(len(b) for b in out) < n:
+        assert time.monotonic() < t_end, f"{sum(len(b) for b in out)} of {n} samples: {gyro.stats()}"
         try:
-            b = gyro.poll(timeout)
+            b = gyro.poll(0.01)
         except tolerate:
             errors += 1
             continue
         if b is not None:
             out.append(b)
+            returned.append(time.monotonic())
+    return out, np.array(returned), errors
+
+
+def run(gyro, n, tolerate=()):
+    out, _, errors = _collect(gyro, n, tolerate)
     return out, errors
 
 
-def run_timed(gyro, seconds, timeout=0.01, tolerate=()):
+def run_timed(gyro, n, tolerate=()):
     """Batches, and for each the host time its poll returned (never earlier than its read)."""
-    out, returned, t_end = [], [], time.monotonic() + seconds
-    while time.monotonic() < t_end:
-        try:
-            b = gyro.poll(timeout)
-        except tolerate:
-            continue
-        if b is not None:
-            out.append(b)
-            returned.append(time.monotonic())
-    return out, np.array(returned)
+    out, returned, _ = _collect(gyro, n, tolerate)
+    return out, returned
 
 
 def true_times(batches):
@@ -95,7 +96,7 @@ def test_every_good_frame_received_every_bad_one_counted_none_accepted(int16_sca
     with emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        batches, returned = run_timed(gyro, 1.0)
+        batches, returned = run_timed(gyro, 1000)
         gyro.stop()
     got = seqs_of(batches)
     good = np.array(emu.log["good"])
@@ -170,9 +171,9 @@ def test_implausible_device_times_start_an_epoch_and_stay_on_time(glitch):
     with SerialIMUEmulator(rate_fn=rates, t_us0=10**9, seed=5) as emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        first, ret1 = run_timed(gyro, 0.3)
+        first, ret1 = run_timed(gyro, 300)
         emu.glitch_times(TIME_GLITCHES[glitch] or [emu._t_us0 + 300_000] * 3)   # time stands still
-        after, ret2 = run_timed(gyro, 0.4)
+        after, ret2 = run_timed(gyro, 400)
         gyro.stop()
         t_end = time.monotonic()
     st = gyro.stats()
@@ -195,13 +196,13 @@ def test_disconnect_raises_once_then_reopens_with_a_gap():
     with SerialIMUEmulator(rate_fn=rates, seed=1) as emu:
         gyro = SerialIMU(emu.link, reopen_interval_s=0.05)
         gyro.start()
-        before, _ = run(gyro, 0.2)
+        before, _ = run(gyro, 200)
         emu.disconnect(0.3)
         with pytest.raises(SerialIMUError, match="disconnected.*will reopen"):
             for _ in range(50):
                 gyro.poll(0.01)
         assert gyro.stats()["connected"] == 0
-        after, errors = run(gyro, 0.6, tolerate=SerialIMUError)
+        after, errors = run(gyro, 200, tolerate=SerialIMUError)
         gyro.stop()
     assert errors == 0                                     # raised once; later polls retry quietly
     st = gyro.stats()
@@ -218,12 +219,12 @@ def test_counter_wrap_and_device_reset():
     with SerialIMUEmulator(rate_fn=rates, seq0=2**32 - 300, t_us0=2**32 - 250_000, seed=2) as emu:
         gyro = SerialIMU(emu.link, reopen_interval_s=0.05)
         gyro.start()
-        first, _ = run(gyro, 0.5)
+        first, _ = run(gyro, 500)
         emu.disconnect(0.1, reset_counters=True)
         with pytest.raises(SerialIMUError, match="disconnected"):
             for _ in range(50):
                 gyro.poll(0.01)
-        after, returned = run_timed(gyro, 0.5, tolerate=SerialIMUError)
+        after, returned = run_timed(gyro, 500, tolerate=SerialIMUError)
         gyro.stop()
     s = seqs_of(first)
     assert s[0] >= 2**32 - 300 and s[-1] > 2**32 + 100 and np.all(np.diff(s) == 1)   # unwrapped
@@ -242,9 +243,9 @@ def test_device_reboot_without_disconnect():
     with SerialIMUEmulator(rate_fn=rates, seq0=5000, t_us0=10**9, batch_s=0.02, seed=4) as emu:
         gyro = SerialIMU(emu.link)
         gyro.start()
-        first, ret1 = run_timed(gyro, 0.3)
+        first, ret1 = run_timed(gyro, 300)
         emu.reboot()                                    # counters restart at 0 mid-stream
-        after, ret2 = run_timed(gyro, 0.4)
+        after, ret2 = run_timed(gyro, 400)
         gyro.stop()
     assert gyro.stats()["resets"] == 1
     batches = first + after
@@ -279,7 +280,7 @@ def test_usb_spec_resolves_through_sysfs(tmp_path):
         os.symlink(emu.link, dev / "ttyUSB3")
         gyro = SerialIMU("usb:0403:6015:EMU0001", sysfs_root=str(sysfs), dev_root=str(dev))
         gyro.start()
-        batches, _ = run(gyro, 0.1)
+        batches, _ = run(gyro, 60)
         gyro.stop()
     assert sum(len(b) for b in batches) > 50
     with pytest.raises(SerialIMUError, match="0403:6016.*no tty"):

@@ -337,8 +337,11 @@ def test_chromium_renders_the_live_page(require, tmp_path):
             time.sleep(1.0)
         kernels, frames = {}, {}
         with Subscriber(ep, ("frame", "kernel")) as sub:   # what the daemon puts on the kernel topic
-            t_end = time.monotonic() + 3.0
-            while time.monotonic() < t_end:
+            # until 10 deblurred frames came with their kernels: how long depends on the machine's
+            # load (overload passes frames through), the deadline only catches a daemon that stopped
+            t_end = time.monotonic() + 120
+            while len(set(kernels) & set(frames)) < 10:
+                assert time.monotonic() < t_end, (len(frames), len(kernels), dict(sub.gaps))
                 m = sub.recv(0.2)
                 if m is not None:
                     (kernels if m[0] == "kernel" else frames)[m[1]["frame_id"]] = (m[1], np.array(m[2]))
@@ -351,10 +354,11 @@ def test_chromium_renders_the_live_page(require, tmp_path):
             p.send_signal(signal.SIGTERM)
         for p in (watcher, daemon):
             p.wait(30)
-    # one kernel per deblurred frame (a loaded machine may drop messages on the way: most, not all)
+    # kernels come only with deblurred frames (a loaded machine may drop messages on the way, so
+    # not every deblurred frame's kernel is asserted to arrive)
     deblurred = {i for i, (h, _) in frames.items() if h["deblurred"]}
     both = set(kernels) & set(frames)
-    assert both <= deblurred and len(both) >= 0.5 * len(deblurred) > 0
+    assert both <= deblurred and len(both) >= 10
     for i in both:
         (kh, k), (fh, _) = kernels[i], frames[i]
         assert list(k.shape) == fh["kernel_size"] and kh["t"] == fh["t"]
