@@ -209,6 +209,7 @@ def test_server_odd_size_colour_map_played_by_ffmpeg(require):
     assert err.max() < 12, err
     assert swapped > 3 * err.max()
     assert stats["frames_pushed"] >= 5 and stats["url"] == cfg.url
+    assert 5 <= stats["encoded"] <= stats["frames_pushed"] + 1     # + the one being counted
 
 
 @pytest.mark.slow

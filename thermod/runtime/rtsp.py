@@ -178,7 +178,9 @@ def _import_gst():
 class RtspServer:
     """Serves frames offered by the daemon (`offer`, `offer_raw`) as ``cfg.url``; `start`, `stop`.
 
-    `stats()` → ``{url, clients, frames_pushed, dropped, ...}`` for the health message.
+    `stats()` → ``{url, clients, frames_pushed, dropped, ...}`` for the health message: ``dropped``
+    counts frames replaced in the mailbox, ``frames_pushed − encoded`` those the leaky ``appsrc``
+    dropped because the encoder was busy.
     """
 
     def __init__(self, cfg: RtspConfig, width: int, height: int, frame_rate_hz: float):
@@ -306,7 +308,13 @@ class RtspServer:
             self._appsrc = bin_.get_child_by_name("thermod_src")
             self._encoder = bin_.get_child_by_name("thermod_enc")
             self._last_pts = -1
+        self._encoder.get_static_pad("src").add_probe(self.Gst.PadProbeType.BUFFER, self._encoded)
         log.info("rtsp: stream started (%dx%d)", self.out_w, self.out_h)
+
+    def _encoded(self, pad, info):
+        with self._lock:
+            self.counters["encoded"] += 1
+        return self.Gst.PadProbeReturn.OK
 
     def _media_unprepared(self, media) -> None:
         with self._lock:
@@ -400,5 +408,6 @@ class RtspServer:
             clients = self.clients
         return {"url": self.url, "view": self.cfg.view, "clients": clients,
                 "frames_pushed": c.get("frames_pushed", 0), "dropped": c.get("dropped", 0),
+                "encoded": c.get("encoded", 0),
                 "push_refused": c.get("push_refused", 0), "push_errors": c.get("push_errors", 0),
                 "connections": c.get("connections", 0)}
