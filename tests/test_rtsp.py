@@ -244,10 +244,11 @@ def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     # the scene moves (hand-held shake): consecutive decoded pictures differ
     diffs = [np.abs(frames[i + 1].astype(int) - frames[i]).mean() for i in range(len(frames) - 1)]
     assert sum(d > 0.5 for d in diffs) >= 5, diffs
-    # not blank: AGC spreads the scene over the grey scale (1st–99th percentile → 0‥255)
+    # not blank: AGC spreads the scene over the grey scale (its 1st–99th percentile → 0‥255);
+    # measured over 40 decoded frames: 1st percentile 0–14, 99th 252–255, std 31–97
     for f in frames:
-        p2, p98 = np.percentile(f, [2, 98])
-        assert p98 - p2 > 100, (p2, p98)
+        p1, p99 = np.percentile(f, [1, 99])
+        assert p1 < 64 and p99 > 192 and f.std() > 10, (p1, p99, f.std())
     if view == "side_by_side":
         # raw left, deblurred right, same range: similar brightness, and the deblurred half is sharper
         left, right = frames[:, :, :cal.width].astype(float), frames[:, :, cal.width:].astype(float)
