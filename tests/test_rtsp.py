@@ -131,6 +131,19 @@ def test_thermod_run_rtsp_without_gstreamer_exits_with_the_packages(monkeypatch,
 
 
 # ------------------------------------------------------------------------------------ a real client
+def test_thermod_run_rtsp_port_taken_is_one_line_exit_2(capsys, require):
+    require(_gstreamer_ok(), "GStreamer RTSP server (Debian gir1.2-gst-rtsp-server-1.0)")
+    from thermod.cli import main
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        rc = main(["run", "--rtsp", f"rtsp://127.0.0.1:{port}/thermal", "--endpoint",
+                   f"tcp://127.0.0.1:{free_port()}", "--seconds", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"rtsp.url: cannot listen on 127.0.0.1:{port}" in err and "in use" in err, err
+
+
 def _gstreamer_ok() -> bool:
     try:
         from thermod.runtime.rtsp import _import_gst
