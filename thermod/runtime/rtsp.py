@@ -73,7 +73,7 @@ class Agc:
     """
 
     def __init__(self, low_pct: float = 1.0, high_pct: float = 99.0, smoothing: float = 0.0,
-                 max_samples: int = 40000):
+                 max_samples: int = 20000):
         if not 0.0 <= low_pct < high_pct <= 100.0:
             raise ValueError(f"AGC percentiles: expected 0 <= low < high <= 100, got {low_pct}, {high_pct}")
         if not 0.0 <= smoothing < 1.0:
@@ -101,9 +101,12 @@ class Agc:
     def apply(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
         """Linear map of [lo, hi] to 0‥255, saturating outside (NaN → 0); a flat range maps to black."""
         scale = 255.0 / (hi - lo) if hi - lo > 1e-6 * max(1.0, abs(lo)) else 0.0
-        out = (np.asarray(image, np.float32) - np.float32(lo)) * np.float32(scale)
-        np.nan_to_num(out, copy=False, nan=0.0)
-        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        out = np.subtract(image, np.float32(lo), dtype=np.float32)   # in place from here: 50 fps
+        out *= np.float32(scale)
+        out += np.float32(0.5)
+        np.fmax(out, 0.0, out=out)           # fmax also maps NaN to 0
+        np.minimum(out, 255.0, out=out)
+        return out.astype(np.uint8)
 
     def __call__(self, image: np.ndarray) -> np.ndarray:
         return self.apply(image, *self.update(image))
