@@ -226,7 +226,7 @@ def test_server_odd_size_colour_map_played_by_ffmpeg(require):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("view", ["deblurred", "side_by_side"])
+@pytest.mark.parametrize("view", ["deblurred", "raw", "side_by_side"])
 def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     require(shutil.which("ffmpeg") is not None, "ffmpeg (Debian package ffmpeg)")
     require(_gstreamer_ok(), "GStreamer RTSP server, x264enc (Debian gir1.2-gst-rtsp-server-1.0 "
