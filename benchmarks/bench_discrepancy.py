@@ -71,7 +71,7 @@ def main() -> None:
         d = D.prepare(rec, nominal)
         ana = D.analyse([d], D.Model(nominal))
         runs.append(time.perf_counter() - t0)
-        found = ", ".join(f"{s['effect']} {D._fmt_params(s['params'])}" for s in ana.steps) or "nothing"
+        found = ", ".join(f"{s['effect']} {D.format_params(s['params'])}" for s in ana.steps) or "nothing"
     rows.append((f"full analysis (median of {len(runs)})", statistics.median(runs),
                  f"found {found}; gap {ana.gap_initial:.3f} → {ana.gap_final:.3f} "
                  f"(floor {ana.noise_floor:.3f})"))

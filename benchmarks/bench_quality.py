@@ -287,16 +287,16 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="frames evaluated per simulation (default 2)")
     ap.add_argument("--lam", type=float, default=None, help="fixed K&F λ (default: noise-adaptive)")
     ap.add_argument("--grid", type=int, nargs=2, default=None,
-                    help="kernel grid (default offline.DEFAULT_GRID)")
+                    help="kernel grid (default DeblurConfig().grid, as `thermod deblur`)")
     ap.add_argument("--overlap", type=float, default=1.0)
     ap.add_argument("--no-skimage", action="store_true", help="skip the scikit-image baselines")
     ap.add_argument("--out", type=Path, default=HERE / "results", help="directory for quality.md/png")
     args = ap.parse_args(argv)
-    from thermod.cli.deblur import DEFAULT_GRID
+    from thermod.cli.deblur import OFFLINE
 
     n_sc = min(args.scenes or (2 if args.quick else len(REPORT_SCENES)), len(REPORT_SCENES))
     n_fr = args.frames or (1 if args.quick else 2)
-    opts = Options(lam=args.lam, grid=tuple(args.grid or DEFAULT_GRID), overlap=args.overlap,
+    opts = Options(lam=args.lam, grid=tuple(args.grid or OFFLINE.grid), overlap=args.overlap,
                    skimage=not args.no_skimage)
     methods = [m for m in METHODS if opts.skimage or not m.startswith("skimage")]
     t_start = time.perf_counter()

@@ -112,6 +112,10 @@ class AravisCamera(CameraSource):
         Without frames for this long, probe the camera; no answer means it is gone.
     features
         Extra GenICam features to set after opening, e.g. ``{"ExposureTime": 1000.0}``.
+    ffc_feature
+        GenICam feature that reports a flat-field correction (shutter closed / NUC) in progress, read
+        once per frame; its value flags ``Frame.ffc`` (see :func:`ffc_value`). None: the first of
+        `FFC_STATUS_FEATURES` the camera offers. A camera offering none of them never flags FFC.
     """
 
     def __init__(self, address: str | None = None, *, device_id: str | None = None, width: int | None = None,
@@ -120,7 +124,8 @@ class AravisCamera(CameraSource):
                  packet_size: int | None = 1500, n_buffers: int | None = None,
                  timestamp_offset_s: float = 0.0,
                  reconnect: bool = True, backoff_s: tuple[float, float] = (0.2, 5.0),
-                 stall_timeout_s: float | None = None, features: dict | None = None, name: str | None = None):
+                 stall_timeout_s: float | None = None, features: dict | None = None, name: str | None = None,
+                 ffc_feature: str | None = None):
         if (address is None) == (device_id is None):
             raise DeviceError("GigE camera: give exactly one of address= (IP) or device_id= (id/serial/name)")
         bad = [p for p in pixel_formats if p not in PIXEL_FORMATS_16]
@@ -142,6 +147,9 @@ class AravisCamera(CameraSource):
         self.backoff = (float(backoff_s[0]), float(backoff_s[1]))
         self.req_stall = stall_timeout_s
         self.features = dict(features or {})
+        self.req_ffc_feature = ffc_feature
+        self.ffc_feature: str | None = None     # the status feature found on the open camera
+        self._in_ffc = False
 
         self._lock = threading.RLock()
         self._cam = self._stream = self._device = None
@@ -163,7 +171,8 @@ class AravisCamera(CameraSource):
         self.pixel_format = ""
         self.packet_size = 0
         self.counters = {"bad_buffers": 0, "wrong_size": 0, "disconnects": 0, "reconnects": 0,
-                         "reconnect_attempts": 0, "stalls": 0, "timestamp_fallbacks": 0, "outage_frames": 0}
+                         "reconnect_attempts": 0, "stalls": 0, "timestamp_fallbacks": 0, "outage_frames": 0,
+                         "ffc_frames": 0, "ffc_events": 0, "ffc_read_errors": 0}
         self.bad_status: dict[str, int] = {}
         self.last_error = ""
 
@@ -258,6 +267,7 @@ class AravisCamera(CameraSource):
         self.width, self.height = w, h
         for k, v in self.features.items():
             _set_feature(dev, k, v, self.name)
+        self.ffc_feature = self._find_ffc_feature(dev)
         if self.req_rate is not None:
             cam.set_frame_rate(float(self.req_rate))
             rate = cam.get_frame_rate()
@@ -290,6 +300,31 @@ class AravisCamera(CameraSource):
         cam.start_acquisition()
         if self._resolved_address is None:
             self._resolved_address = _safe(lambda: dev.get_device_address().to_string())
+
+    def _find_ffc_feature(self, dev) -> str | None:
+        if self.req_ffc_feature is not None:
+            if not dev.is_feature_available(self.req_ffc_feature):
+                raise DeviceError(f"{self.name}: GenICam feature {self.req_ffc_feature!r} (ffc_feature) not "
+                                  "available on this camera")
+            return self.req_ffc_feature
+        return next((f for f in FFC_STATUS_FEATURES if dev.is_feature_available(f)), None)
+
+    def _read_ffc(self) -> bool:
+        """The camera's FFC status for the frame just received (one GVCP register read), counted."""
+        if self.ffc_feature is None or self._device is None:
+            return False
+        try:
+            ffc = ffc_value(self._device.get_feature(self.ffc_feature).get_value_as_string())
+        except Exception as e:   # GLib.GError: a failed read must not lose the frame
+            self.counters["ffc_read_errors"] += 1
+            self.last_error = f"reading {self.ffc_feature}: {_msg(e)}"
+            ffc = self._in_ffc            # keep the last known state
+        if ffc:
+            self.counters["ffc_frames"] += 1
+            if not self._in_ffc:
+                self.counters["ffc_events"] += 1
+        self._in_ffc = ffc
+        return ffc
 
     def _teardown(self, stop_device: bool = True) -> None:
         session = [self._cam, self._stream, self._device]
@@ -418,7 +453,35 @@ class AravisCamera(CameraSource):
         self._last_arrival = arrival
         self._last_t = t
         self._recent.append(arrival)
-        return Frame(image=image, t=t, frame_id=frame_id, device_ts=ts, arrival=arrival, gap_before=gap)
+        return Frame(image=image, t=t, frame_id=frame_id, device_ts=ts, arrival=arrival, gap_before=gap,
+                     ffc=self._read_ffc())
+
+    def radiometry(self):
+        """The camera's Planck constants as a `thermod.physics.radiometry.Planck`, or None.
+
+        Best effort: FLIR GigE cameras expose them as GenICam features ``R`` (integer), ``B``, ``F``,
+        ``O`` (float); ``PlanckR`` … are tried too. None when no session is open, a constant is absent
+        or unreadable, or the values do not form a valid model (never raises).
+        """
+        from thermod.physics.radiometry import Planck, RadiometryError
+
+        with self._lock:
+            dev = self._device
+            if dev is None:
+                return None
+            values = {}
+            for key, names in _PLANCK_FEATURES.items():
+                for name in names:
+                    v = _safe(lambda name=name: _read_number(dev, name))
+                    if v is not None:
+                        values[key] = v
+                        break
+                else:
+                    return None
+        try:
+            return Planck(**values)
+        except RadiometryError:
+            return None
 
     def stats(self) -> dict:
         rec = self._recent
@@ -426,7 +489,8 @@ class AravisCamera(CameraSource):
         out = {"state": self.state, "device": self.address or self.device_id, "width": self.width,
                "height": self.height, "pixel_format": self.pixel_format, "frame_rate_hz": self.frame_rate_hz,
                "measured_rate_hz": rate, "packet_size": self.packet_size, "last_error": self.last_error,
-               "bad_status": dict(self.bad_status), **self.counters, **self.tracker.stats()}
+               "bad_status": dict(self.bad_status), "ffc_feature": self.ffc_feature, **self.counters,
+               **self.tracker.stats()}
         if self.clock is not None:
             out.update(clock_drift_ppm=self.clock.drift_ppm, clock_residual_s=self.clock.residual_std_s,
                        clock_resets=self.clock.resets)
@@ -436,6 +500,20 @@ class AravisCamera(CameraSource):
             if st is not None and len(st) == 2:
                 out.update(resent_packets=int(st[0]), missing_packets=int(st[1]))
         return out
+
+
+# GenICam status features that say a flat-field correction (NUC/shutter) is in progress, tried in
+# order. FLIR's GigE cores document NUCMode (Off/Automatic/Manual) and the NUCAction command — a mode
+# and a trigger, not a status — so there is no standard name; these are the names used for a boolean
+# or enumeration status (no camera offering them was at hand to check: pass ffc_feature= for yours).
+FFC_STATUS_FEATURES = ("FFCInProgress", "NUCInProgress", "FFCStatus", "NUCStatus", "ShutterStatus")
+_FFC_ACTIVE = {"1", "true", "on", "active", "inprogress", "in_progress", "running", "busy", "closed"}
+
+
+def ffc_value(value: str) -> bool:
+    """Whether a status feature's value (as a string: boolean, integer or enumeration entry) means a
+    flat-field correction is in progress: 1/true/on, InProgress, Active, Running, Busy, shutter Closed."""
+    return str(value).strip().lower() in _FFC_ACTIVE
 
 
 def _set_feature(dev, key: str, value, name: str) -> None:
@@ -449,6 +527,21 @@ def _set_feature(dev, key: str, value, name: str) -> None:
         dev.set_float_feature_value(key, value)
     else:
         dev.set_string_feature_value(key, str(value))
+
+
+# GenICam names of the Planck constants, first match wins (FLIR A-series/Ax5 over eBUS/Aravis: R, B, F, O)
+_PLANCK_FEATURES = {"R": ("R", "PlanckR"), "B": ("B", "PlanckB"), "F": ("F", "PlanckF"),
+                    "O": ("O", "PlanckO")}
+
+
+def _read_number(dev, key: str) -> float | None:
+    """A numeric feature's value (integer or float node), None when the camera has no such feature."""
+    if not dev.is_feature_available(key):
+        return None
+    v = _safe(lambda: dev.get_float_feature_value(key))
+    if v is None:
+        v = dev.get_integer_feature_value(key)
+    return float(v)
 
 
 def _msg(e: Exception) -> str:

@@ -31,6 +31,8 @@ class Frame:
     device_ts : device timestamp as received (ns for GigE, µs for V4L2), or None.
     arrival : host monotonic seconds when the driver received the frame.
     gap_before : number of frames lost just before this one (from frame-id gaps).
+    ffc : the camera reports a flat-field correction (shutter closed / NUC update) in progress while
+        it delivered this frame: the image is frozen or shows the shutter, not the scene.
     """
 
     image: np.ndarray
@@ -39,6 +41,7 @@ class Frame:
     device_ts: int | None
     arrival: float
     gap_before: int = 0
+    ffc: bool = False
 
 
 class CameraSource(abc.ABC):

@@ -15,6 +15,10 @@ so lost frames are counted from timestamp gaps. Most V4L2 drivers stamp buffers 
 (``timestamp_clock="auto"`` detects this on the first frame); otherwise (UVC hardware clock, another
 clock) it is mapped by `ClockMapper`. Cameras with telemetry lines (FLIR Boson 640×514 =
 640×512 image + 2 telemetry rows) have them stripped: ``telemetry_rows=(top, bottom)``.
+
+Flat-field corrections: with telemetry rows and ``telemetry="boson"`` (the default), each frame's FFC
+state is read from the Boson telemetry status word (:func:`boson_ffc_state`) and a frame delivered while
+it says "FFC in progress" is flagged ``Frame.ffc``.
 """
 
 from __future__ import annotations
@@ -33,6 +37,24 @@ from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
 FOURCC_Y16 = "Y16 "
+
+# FLIR Boson telemetry line (the first telemetry row, 16-bit words as delivered in Y16): the status
+# word is word 38 (byte offset 76); its bits 0–1 hold the FFC state, the FLR_BOSON_FFCSTATUS_E values
+# of the Boson SDK (0 never performed, 1 imminent, 2 in progress, 3 complete). Source: FLIR Boson
+# Software IDD, telemetry table ("Status bits", word 38), as decoded by the open ROS Boson telemetry
+# splitter; byte 76 is also the STATUS field of Elphel's Boson640Telemetry parser. A non-Boson camera
+# with telemetry rows needs telemetry=None.
+BOSON_STATUS_WORD = 38
+BOSON_FFC_STATE_MASK = 0b11
+BOSON_FFC_IN_PROGRESS = 2
+
+
+def boson_ffc_state(telemetry: np.ndarray) -> int | None:
+    """The FFC state (0–3, see `BOSON_STATUS_WORD`) from Boson telemetry rows (uint16 [rows, W]), or
+    None when there is no telemetry line long enough to hold the status word."""
+    if telemetry.ndim != 2 or telemetry.shape[0] < 1 or telemetry.shape[1] <= BOSON_STATUS_WORD:
+        return None
+    return int(telemetry[0, BOSON_STATUS_WORD]) & BOSON_FFC_STATE_MASK
 
 
 def fourcc_code(s: str) -> int:
@@ -90,6 +112,9 @@ class V4L2Camera(CameraSource):
     telemetry_rows
         ``(top, bottom)`` rows of the device frame that are not image (Boson: 2 rows, top or bottom
         depending on its configuration).
+    telemetry
+        Layout of the telemetry rows: ``"boson"`` (FLIR Boson: FFC state from the status word, see
+        :func:`boson_ffc_state`) or None (rows stripped, not interpreted: frames never flagged FFC).
     capture_factory
         ``path -> VideoCapture``-like; default :func:`opencv_capture`.
     timestamp_clock
@@ -107,7 +132,8 @@ class V4L2Camera(CameraSource):
 
     def __init__(self, device: str | int | os.PathLike, *, width: int = 640, height: int = 512,
                  frame_rate_hz: float | None = None, telemetry_rows: tuple[int, int] = (0, 0),
-                 fourcc: str = FOURCC_Y16, capture_factory: Callable | None = None,
+                 telemetry: str | None = "boson", fourcc: str = FOURCC_Y16,
+                 capture_factory: Callable | None = None,
                  timestamp_clock: str = "auto", timestamp_offset_s: float = 0.0, read_timeout_s: float = 1.0,
                  reopen: bool = True, backoff_s: tuple[float, float] = (0.2, 5.0), name: str | None = None):
         top, bottom = (int(v) for v in telemetry_rows)
@@ -121,6 +147,10 @@ class V4L2Camera(CameraSource):
         self.width, self.height = int(width), int(height)
         self.top, self.bottom = top, bottom
         self.raw_height = self.height + top + bottom
+        if telemetry not in ("boson", None):
+            raise DeviceError(f"V4L2 camera {device}: telemetry must be 'boson' or None, got {telemetry!r}")
+        self.telemetry = telemetry if top + bottom else None
+        self._in_ffc = False
         self.req_rate = frame_rate_hz
         self.fourcc = fourcc
         self.factory = capture_factory or opencv_capture
@@ -146,7 +176,8 @@ class V4L2Camera(CameraSource):
         self._delay = self.backoff[0]
         self._recent = deque(maxlen=64)
         self.counters = {"frames": 0, "frames_lost": 0, "gap_events": 0, "read_errors": 0, "bad_frames": 0,
-                         "reopens": 0, "reopen_attempts": 0, "timestamp_fallbacks": 0, "flat_frames": 0}
+                         "reopens": 0, "reopen_attempts": 0, "timestamp_fallbacks": 0, "flat_frames": 0,
+                         "ffc_frames": 0, "ffc_events": 0}
         self.last_error = ""
 
     # -- session -------------------------------------------------------------------------------
@@ -278,7 +309,22 @@ class V4L2Camera(CameraSource):
             if data.dtype == np.uint8 or data.ndim != 2 or data.shape[0] != self.raw_height:
                 self.counters["flat_frames"] += 1
             image = raw[self.top:self.raw_height - self.bottom]
-            return self._frame(image, ms, arrival)
+            frame = self._frame(image, ms, arrival)
+            frame.ffc = self._ffc(raw)
+            return frame
+
+    def _ffc(self, raw: np.ndarray) -> bool:
+        """Whether the frame's telemetry says a flat-field correction is in progress (counted)."""
+        if self.telemetry is None:
+            return False
+        rows = raw[:self.top] if self.top else raw[self.raw_height - self.bottom:]
+        ffc = boson_ffc_state(rows) == BOSON_FFC_IN_PROGRESS
+        if ffc:
+            self.counters["ffc_frames"] += 1
+            if not self._in_ffc:
+                self.counters["ffc_events"] += 1
+        self._in_ffc = ffc
+        return ffc
 
     def _frame(self, image: np.ndarray, ms: float, arrival: float) -> Frame:
         ts = int(round(ms * 1000.0))                   # µs ticks: exact ints for the clock fit

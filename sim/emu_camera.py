@@ -4,7 +4,8 @@
   (Aravis) or V4L2 source goes. Frames come from an injectable provider, are delivered in real time at
   ``fps`` with a transport latency, carry device timestamps in ns on a device clock with offset and
   drift, and 16-bit block ids that wrap 65535 → 1 (0 is invalid). Transmission losses and a consumer
-  that falls behind the buffer pool show up as id gaps, exactly as a driver sees them.
+  that falls behind the buffer pool show up as id gaps, exactly as a driver sees them. Flat-field
+  corrections on a schedule (:class:`FFCSchedule`): frozen frames flagged ``ffc``, then an offset step.
 - :class:`EmuV4L2Device` / :class:`EmuV4L2Capture` — a ``cv2.VideoCapture``-compatible Y16 V4L2 device
   for the :class:`~thermod.drivers.v4l2_camera.V4L2Camera` capture seam: FOURCC/CONVERT_RGB semantics,
   frames returned as flat uint8 bytes like OpenCV's V4L2 backend (or uint16 / [H, 2W] variants),
@@ -25,6 +26,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker
+from thermod.drivers.v4l2_camera import BOSON_FFC_IN_PROGRESS, BOSON_STATUS_WORD
 from thermod.errors import DeviceError
 from thermod.runtime.clock import ClockMapper
 
@@ -57,6 +59,13 @@ def make_provider(frames) -> Callable[[int, float], np.ndarray]:
                       f"{getattr(frames, 'shape', '')}")
 
 
+def _offset(img: np.ndarray, counts: float) -> np.ndarray:
+    """``img`` + ``counts``, clipped to the 16-bit ADC range (a new copy only when counts ≠ 0)."""
+    if counts == 0:
+        return img
+    return np.clip(img.astype(np.float32) + np.float32(counts), 0, 65535).round().astype(np.uint16)
+
+
 def _to_u16(img) -> np.ndarray:
     img = np.asarray(img)
     if img.dtype == np.uint16:
@@ -64,6 +73,39 @@ def _to_u16(img) -> np.ndarray:
     if img.ndim != 2:
         raise DeviceError(f"emulated camera: frame provider returned shape {img.shape}, expected [H, W]")
     return np.clip(np.rint(img), 0, 65535).astype(np.uint16)
+
+
+class FFCSchedule:
+    """Flat-field corrections (shutter/NUC) every ``interval_s``, each ``duration_s`` long.
+
+    FFC ``j`` (j = 1, 2, ...) runs over ``[origin + j·interval_s, origin + j·interval_s + duration_s)``
+    (host time). A frame read inside it shows the last frame read before it began (the camera freezes
+    its output, as Boson/Tau cores do by default) and is flagged ``ffc``; afterwards the new NUC leaves
+    a small offset: ``step_counts`` after odd-numbered FFCs, 0 after even ones (bounded, never drifting).
+    """
+
+    def __init__(self, interval_s: float, duration_s: float, step_counts: float = 0.0, origin: float = 0.0):
+        if not (interval_s > duration_s > 0 and math.isfinite(interval_s)):
+            raise DeviceError(f"FFC schedule: need interval_s > duration_s > 0, got {interval_s!r}, "
+                              f"{duration_s!r}")
+        self.interval_s, self.duration_s = float(interval_s), float(duration_s)
+        self.step_counts, self.origin = float(step_counts), float(origin)
+
+    def event(self, t: float) -> int:
+        """Number of the last FFC begun at or before host time ``t`` (0: none yet)."""
+        return max(0, math.floor((t - self.origin) / self.interval_s + 1e-12))
+
+    def active(self, t: float) -> bool:
+        """Whether an FFC is running at host time ``t``."""
+        j = self.event(t)
+        return j >= 1 and t - (self.origin + j * self.interval_s) < self.duration_s
+
+    def offset(self, t: float) -> float:
+        """NUC offset (counts) of a frame read at ``t`` outside an FFC."""
+        return self.step_counts if self.event(t) % 2 else 0.0
+
+    def start(self, j: int) -> float:
+        return self.origin + j * self.interval_s
 
 
 class _Timeline:
@@ -151,6 +193,9 @@ class EmuCamera(CameraSource):
     origin
         Host time of the timeline origin (frame k completes at ``origin + (k+1)/fps``); None = at
         ``start()``. Pass the same origin to a gyro emulator to share one truth timeline.
+    ffc
+        Flat-field corrections (:class:`FFCSchedule`, on host time), or None for a camera that never
+        runs one.
     """
 
     def __init__(self, frames, fps: float = 50.0, *, drift_ppm: float = 0.0,
@@ -158,7 +203,7 @@ class EmuCamera(CameraSource):
                  jitter_s: float = 0.0002,
                  n_buffers: int = 8, drop: Sequence[int] = (), drop_prob: float = 0.0,
                  invalid_ids: Sequence[int] = (), origin: float | None = None, seed: int = 0,
-                 name: str = "emu-camera"):
+                 name: str = "emu-camera", ffc: FFCSchedule | None = None):
         if not (fps > 0 and math.isfinite(fps)):
             raise DeviceError(f"{name}: fps must be > 0, got {fps!r}")
         if not 1 <= int(first_frame_id) <= 65535:
@@ -183,7 +228,9 @@ class EmuCamera(CameraSource):
         self._pending: tuple[int, float] | None = None      # frame taken from the pool, awaiting its arrival
         self._lock = threading.Lock()
         self._running = False
-        self.counters = {"delivered": 0}
+        self.ffc = ffc
+        self._ffc_event = 0                                  # last FFC whose frames were delivered
+        self.counters = {"delivered": 0, "ffc_frames": 0, "ffc_events": 0}
 
     # -- device truth (for tests and the simulator) --------------------------------------------
     def true_time(self, k: int) -> float:
@@ -249,10 +296,30 @@ class EmuCamera(CameraSource):
         raw_id = 0 if k in self.invalid_ids else self.raw_frame_id(k)
         frame_id, gap = self.tracker.update(raw_id)
         self.clock.observe(ticks, arrival)
-        image = self.provider(k, t_true)
+        image, in_ffc = self._image(k, t_true)
         self.counters["delivered"] += 1
         return Frame(image=image, t=float(self.clock.to_host(ticks)), frame_id=frame_id, device_ts=ticks,
-                     arrival=arrival, gap_before=gap)
+                     arrival=arrival, gap_before=gap, ffc=in_ffc)
+
+    def ffc_truth(self, k: int) -> bool:
+        """Whether frame index ``k`` is read during a flat-field correction (the schedule's truth)."""
+        return self.ffc is not None and self.ffc.active(self.timeline.completes(k))
+
+    def _image(self, k: int, t_true: float) -> tuple[np.ndarray, bool]:
+        sched = self.ffc
+        if sched is None:
+            return self.provider(k, t_true), False
+        if sched.active(t_true):
+            j = sched.event(t_true)
+            if j != self._ffc_event:
+                self._ffc_event = j
+                self.counters["ffc_events"] += 1
+            self.counters["ffc_frames"] += 1
+            # frozen: the last frame read before this FFC began, with the NUC it had
+            k_frozen = math.ceil((sched.start(j) - self.timeline.origin) * self.fps - 1 - 1e-9) - 1
+            t_frozen = self.timeline.completes(k_frozen)
+            return _offset(self.provider(k_frozen, t_frozen), sched.offset(t_frozen)), True
+        return _offset(self.provider(k, t_true), sched.offset(t_true)), False
 
     def stats(self) -> dict:
         tl = self.timeline
@@ -293,6 +360,11 @@ class EmuV4L2Device:
     telemetry_rows
         ``(top, bottom)`` telemetry lines added around the image; each holds a recognisable pattern
         (0xFFFF fill with the frame counter in words 0–1) that must never reach a deblurred frame.
+        The first line carries a Boson status word (word 38: FFC state in bits 0–1, see
+        `thermod.drivers.v4l2_camera.BOSON_STATUS_WORD`).
+    ffc_frames
+        Frame indices during which the telemetry reports "FFC in progress" (state 2; "complete",
+        3, otherwise).
     layout
         What ``retrieve`` returns for Y16 with CONVERT_RGB off: ``"flat"`` — uint8 [1, 2·W·H] raw
         bytes (OpenCV's V4L2 backend for formats it does not convert), ``"rows"`` — uint8 [H, 2W],
@@ -307,7 +379,8 @@ class EmuV4L2Device:
     def __init__(self, frames, *, path: str = "/dev/video0", width: int = 640, height: int = 512,
                  fps_modes: Sequence[float] = (30.0, 60.0, 9.0), telemetry_rows: tuple[int, int] = (0, 0),
                  layout: str = "flat", clock_offset_s: float = 0.0, drift_ppm: float = 0.0,
-                 latency_s: float = 0.001, n_buffers: int = 4, drop: Sequence[int] = (), seed: int = 0):
+                 latency_s: float = 0.001, n_buffers: int = 4, drop: Sequence[int] = (), seed: int = 0,
+                 ffc_frames: Sequence[int] = ()):
         if layout not in ("flat", "rows", "u16"):
             raise DeviceError(f"emulated V4L2 device: layout must be 'flat', 'rows' or 'u16', got {layout!r}")
         self.provider = make_provider(frames)
@@ -321,6 +394,7 @@ class EmuV4L2Device:
         self.latency_s = float(latency_s)
         self.n_buffers = int(n_buffers)
         self.drop = tuple(drop)
+        self.ffc_frames = set(ffc_frames)
         self.seed = seed
         self.plugged = True
         self.opened = 0
@@ -343,6 +417,9 @@ class EmuV4L2Device:
         if len(rows):
             rows[:, 0] = k & 0xFFFF
             rows[:, 1] = (k >> 16) & 0xFFFF
+            if rows.shape[1] > BOSON_STATUS_WORD:
+                state = BOSON_FFC_IN_PROGRESS if k in self.ffc_frames else 3    # 3: FFC complete
+                rows[0, BOSON_STATUS_WORD] = 0xFFFC | state
         return rows
 
 

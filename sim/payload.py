@@ -13,6 +13,11 @@ frequencies snapped to whole cycles per loop), so the blur of every frame — al
 seam — matches the gyro, and the deblurred stream can be checked against the truth:
 `truth_for(frame_id)` returns the sharp view of a delivered frame.
 
+Flat-field corrections: with ``[sim] ffc_interval_s`` > 0 the camera runs one every that many seconds
+(`thermod.sim.emu_camera.FFCSchedule` from T0): for ``ffc_duration_s`` it repeats the last frame read
+before it, flagged ``ffc``, then its output steps by ``ffc_step_counts`` (the new NUC).
+`ffc_truth(frame_id)` says which delivered frames were frozen.
+
 Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
 raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
 overflow), reachable as ``payload.chip``.
@@ -74,8 +79,30 @@ class SimPayload:
         return 0 if self.frames is None else len(self.frames)
 
     def truth_for(self, frame_id: int) -> np.ndarray:
-        """The sharp view (float32 counts) of delivered frame `frame_id` (ids start at 1)."""
-        return self.truth[(int(frame_id) - 1) % self.n_frames]
+        """The sharp view (float32 counts) of delivered frame `frame_id` (ids start at 1), with the NUC
+        offset the camera had then (see `ffc_schedule`)."""
+        view = self.truth[(int(frame_id) - 1) % self.n_frames]
+        sched = self.ffc_schedule()
+        off = 0.0 if sched is None else sched.offset(self.read_time(frame_id))
+        return view if off == 0 else view + np.float32(off)
+
+    def read_time(self, frame_id: int) -> float:
+        """Host time at which delivered frame `frame_id` was read (T0 + (id − 1)/fps)."""
+        return self.t0 + (int(frame_id) - 1) / self.cfg.frame_rate_hz
+
+    def ffc_schedule(self):
+        """The camera's flat-field correction schedule (on host time, from T0), or None when it runs none."""
+        c = self.cfg
+        if not c.ffc_interval_s or self.t0 is None:
+            return None
+        from thermod.sim.emu_camera import FFCSchedule
+
+        return FFCSchedule(c.ffc_interval_s, c.ffc_duration_s, c.ffc_step_counts, origin=self.t0)
+
+    def ffc_truth(self, frame_id: int) -> bool:
+        """Whether delivered frame `frame_id` was read during a flat-field correction (frozen, flagged)."""
+        sched = self.ffc_schedule()
+        return sched is not None and sched.active(self.read_time(frame_id))
 
     def frame_for(self, frame_id: int) -> np.ndarray:
         """The blurry raw frame (uint16) delivered as `frame_id`."""
@@ -147,7 +174,8 @@ class SimCamera(CameraSource):
             fps = self.p.cfg.frame_rate_hz
             # EmuCamera's frame k completes at origin + (k+1)/fps; ours at T0 + k/fps
             self.emu = EmuCamera(self.p.frames, fps, origin=self.p.t0 - 1.0 / fps, latency_s=self.latency_s,
-                                 drift_ppm=self.drift_ppm, seed=self.p.cfg.seed, name=self.name)
+                                 drift_ppm=self.drift_ppm, seed=self.p.cfg.seed, name=self.name,
+                                 ffc=self.p.ffc_schedule())
         self.emu.start()
         self.counters["starts"] += 1
 

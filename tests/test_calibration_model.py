@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from thermod.physics.calibration import Calibration
+from thermod.errors import ThermodError
+from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.physics.detector import iir_alpha, photon_average, thermal_response, thermal_weights
 from thermod.physics.geometry import so3_exp
 
@@ -66,3 +67,82 @@ def test_thermal_weights_and_photon_average():
     assert w.sum() == pytest.approx(1.0)
     assert w[1] / w[0] == pytest.approx(np.exp(-1))
     assert photon_average(np.array([[0.0], [2.0]]))[0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("change, field, expected", [
+    ({"R_cam_gyro": np.zeros((3, 3))}, "R_cam_gyro", "rotation matrix"),
+    ({"R_cam_gyro": np.diag([1.0, 1.0, -1.0])}, "R_cam_gyro", "det +1"),        # a reflection
+    ({"R_cam_gyro": np.eye(3) * 1.01}, "R_cam_gyro", "orthonormal"),
+    ({"R_cam_gyro": np.eye(2)}, "R_cam_gyro", "3×3"),
+    ({"scale": (1.0, 0.0, 1.0)}, "scale", "positive"),
+    ({"scale": (1.0, 1.0)}, "scale", "1 or 3"),
+    ({"bias_rad_s": (0.0, float("nan"), 0.0)}, "bias_rad_s", "finite"),
+    ({"fx": 0.0}, "fx", "positive"),
+    ({"fy": -5.0}, "fy", "positive"),
+    ({"fx": 1e9}, "fx", "field of view"),           # 640 px over 4e-5°: not a camera
+    ({"fy": 1.0}, "fy", "field of view"),           # 480 px over 180°: not a pinhole
+    ({"width": 64.7}, "width", "integer"),          # never truncated
+    ({"height": 0}, "height", "integer in [1,"),
+    ({"width": True}, "width", "number"),
+    ({"frame_rate_hz": 0.0}, "frame_rate_hz", "positive"),
+    ({"rate_hz": float("inf")}, "rate_hz", "finite"),
+    ({"pixel_pitch_um": 0.0}, "pixel_pitch_um", "positive"),
+    ({"psf_beta": 0.0}, "psf_beta", "(0, 1]"),
+    ({"psf_beta": 1.5}, "psf_beta", "(0, 1]"),
+    ({"tau_s": 0.0}, "tau_s", "positive"),
+    ({"tau_s": "8ms"}, "tau_s", "number"),
+    ({"time_offset_s": float("nan")}, "time_offset_s", "finite"),
+    ({"readout_s": -0.001}, "readout_s", "frame"),
+    ({"readout_s": 0.03}, "readout_s", "0.02"),     # longer than the 50 Hz frame period
+    ({"cx": float("inf")}, "cx", "finite"),
+])
+def test_invalid_calibration_cannot_be_built(change, field, expected):
+    with pytest.raises(CalibrationError) as e:
+        Calibration(**change)
+    assert e.value.field == field and str(e.value).startswith(f"{field}: ") and expected in str(e.value)
+    assert isinstance(e.value, ThermodError)
+    with pytest.raises(CalibrationError):       # every way of making one checks the same
+        Calibration().replace(**change)
+
+
+def test_valid_values_are_normalised_not_rejected():
+    c = Calibration(width=np.int64(64), height=48.0, fx=np.float32(100.0), cx=31.5, cy=23.5,
+                    R_cam_gyro=np.eye(3).ravel(), scale=[1.02], bias_rad_s=np.zeros(3))
+    assert (c.width, c.height) == (64, 48) and type(c.width) is int and type(c.fx) is float
+    assert c.scale == (1.02, 1.02, 1.02) and c.R_cam_gyro[1] == (0.0, 1.0, 0.0)
+    assert c == Calibration(width=64, height=48, fx=100.0, cx=31.5, cy=23.5, scale=(1.02,) * 3)
+    hash(c)                                       # still usable as a key
+    # a rotation printed to six decimals is accepted
+    R = np.round(so3_exp([0.1, -0.2, 0.3]), 6)
+    assert np.allclose(Calibration(R_cam_gyro=R).R_cam_gyro_matrix, R)
+
+
+def test_with_psf_sigma_px_refuses_sharper_than_diffraction():
+    c = Calibration()                               # λ 10 µm, F/1, 17 µm: β = 1 gives 0.265 px
+    limit = 0.45 * 10.0 / 17.0
+    assert c.with_psf_sigma_px(limit).psf_beta == pytest.approx(1.0)
+    for bad in (0.0, -1.0, 0.5 * limit, float("nan")):
+        with pytest.raises(CalibrationError, match="psf_sigma_px"):
+            c.with_psf_sigma_px(bad)
+
+
+def test_from_attrs_names_the_attribute():
+    with pytest.raises(CalibrationError, match="width: expected an integer") as e:
+        Calibration.from_attrs({"width": np.float64(64.7)})
+    assert e.value.field == "width"
+    with pytest.raises(CalibrationError, match="fx: expected a number, got 'abc'"):
+        Calibration.from_attrs({"fx": "abc"})
+    with pytest.raises(CalibrationError, match="fx: expected a number"):
+        Calibration.from_attrs({"fx": np.array([1.0, 2.0])})
+    c = Calibration.from_attrs({"width": np.array([320]), "height": np.int32(240), "cx": 159.5, "cy": 119.5})
+    assert (c.width, c.height) == (320, 240)
+
+
+def test_config_file_gets_the_same_check_with_its_name(tmp_path):
+    from thermod.errors import ConfigError
+    from thermod.runtime.config import load_calibration
+
+    p = tmp_path / "model.toml"
+    p.write_text("[calibration]\nfx = 1e9\n")      # in range for the key alone, not for the camera
+    with pytest.raises(ConfigError, match=rf"{p}: calibration\.fx: expected a focal length"):
+        load_calibration(p)

@@ -26,3 +26,30 @@ def test_every_command_module_has_the_command_interface():
 def test_console_script_help_runs():
     r = subprocess.run([sys.executable, "-m", "thermod.cli", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "deblur" in r.stdout
+
+
+def test_unexpected_error_is_one_line_and_v_shows_the_traceback(monkeypatch, capsys):
+    """A bug in a command: exit 1 with one line naming the command; -v adds the traceback."""
+    from thermod.cli import sim
+
+    def broken(args):
+        return {}["missing"]
+    monkeypatch.setattr(sim, "run", broken)
+    assert cli.main(["sim", "-o", "x.h5"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("thermod sim: internal error: KeyError: 'missing'") and "-v" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert cli.main(["sim", "-v", "-o", "x.h5"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "broken" in err
+
+
+def test_thermod_error_exits_2_without_traceback(monkeypatch, capsys):
+    from thermod.cli import sim
+    from thermod.errors import ThermodError
+
+    def refuses(args):
+        raise ThermodError("x.h5: camera/t: expected floats")
+    monkeypatch.setattr(sim, "run", refuses)
+    assert cli.main(["sim", "-o", "x.h5"]) == 2
+    assert capsys.readouterr().err == "thermod sim: error: x.h5: camera/t: expected floats\n"

@@ -49,7 +49,7 @@ def test_hardware_examples_parse_and_name_missing_device():
     assert cfg.camera.kind == "aravis" and cfg.camera.device == "FLIR-A655sc"
     R = np.asarray(cfg.calibration.R_cam_gyro)
     np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]))
-    assert cfg.deblur.mode == "grid" and cfg.deblur.grid == (3, 3)
+    assert cfg.deblur.mode == "grid" and cfg.deblur.grid == (3, 4)
     boson = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False)
     assert boson.gyro.kind == "serial" and boson.gyro.options["baud"] == 921600
     assert boson.camera.kind == "v4l2" and boson.calibration.height == 512
@@ -185,23 +185,11 @@ def test_non_utf8_byte_is_a_config_error_naming_the_line(tmp_path):
         config.load_calibration(p)
 
 
-def test_calibration_own_checks_become_config_errors_naming_the_file(tmp_path, monkeypatch):
-    """Whatever Calibration refuses on construction reaches the user as a ConfigError with file and key."""
-    from thermod.errors import ThermodError
-
-    class Refused(ThermodError, ValueError):
-        field, problem = "fx", "expected a focal length giving a sane field of view"
-
-    real = config.Calibration
-
-    def self_validating(**kw):             # what Calibration's own checks do with a 1e-3 px focal length
-        if kw.get("fx", 1.0) < 1.0:
-            raise Refused("fx: expected a focal length giving a sane field of view")
-        return real(**kw)
-
-    monkeypatch.setattr(config, "Calibration", self_validating)
+def test_calibration_own_checks_become_config_errors_naming_the_file(tmp_path):
+    """What Calibration refuses on construction (here a field of view that no lens has: a 1e-3 px focal
+    length) reaches the user as a ConfigError naming the file and the key."""
     p = _write(tmp_path, BASE + "[calibration]\nfx = 1e-3\n")
-    with pytest.raises(ConfigError, match=r"^.*t\.toml: calibration\.fx: expected a focal length"):
+    with pytest.raises(ConfigError, match=r"t\.toml: calibration\.fx: "):
         config.load(p)
     with pytest.raises(ConfigError, match=r"t\.toml: calibration\.fx: "):
         config.load_calibration(p)

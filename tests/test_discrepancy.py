@@ -5,46 +5,59 @@ never by `thermod.calib.forward`: 320×240, 0.2 s static then 0.3 s of three-axi
 smooth 40 ms onset (a real payload does not jump from rest to 30 °/s between two gyro samples),
 NETD 50 mK. The nominal model is what the file's attributes say; the truth is hidden in the
 simulator's truth attributes.
+
+The scene is the simulator's seeded procedural texture (`SCENE`), so every threshold here was
+measured on a scene the tests make themselves; the tests on the real DJI frames say so and `require`
+them.
 """
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import math
+import subprocess
+import sys
 
+import h5py
 import numpy as np
 import pytest
 
 from thermod.calib import discrepancy as D
 from thermod.cli import discrepancy as discrepancy_cli
 from thermod.errors import ConfigError, RecordingError
-from thermod.physics.calibration import Calibration
+from thermod.io import recording
+from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.physics.geometry import so3_log
-
-sim_ok = True
-try:
-    from thermod.sim import detector as sim_detector
-    from thermod.sim import motion as mo
-    from thermod.sim import scenes as sim_scenes
-    from thermod.sim.synth import simulate, truth_calibration
-except ImportError:  # pragma: no cover - the simulator is part of the package
-    sim_ok = False
+from thermod.runtime import config
+from thermod.sim import detector as sim_detector
+from thermod.sim import motion as mo
+from thermod.sim import scenes as sim_scenes
+from thermod.sim.synth import simulate, truth_calibration
 
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
+SCENE = "texture"          # seeded procedural scene: the same with or without ../shared
+REAL = "real:1"            # a real DJI frame from ../shared/data (tests on it `require` it)
 
-if sim_ok:
-    class Ramped(mo.Motion):
-        """A motion faded in with a smoothstep over `ramp_s` (rates start from zero)."""
 
-        def __init__(self, inner: mo.Motion, ramp_s: float):
-            self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
+def scene_for(scene: str, require) -> str:
+    if scene == REAL:
+        require(bool(sim_scenes.real_frames()), "../shared/data/thermal (the real DJI frames)")
+    return scene
 
-        def omega(self, t):
-            t = np.atleast_1d(np.asarray(t, float))
-            x = np.clip(t / self.ramp_s, 0.0, 1.0)
-            return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
+
+class Ramped(mo.Motion):
+    """A motion faded in with a smoothstep over `ramp_s` (rates start from zero)."""
+
+    def __init__(self, inner: mo.Motion, ramp_s: float):
+        self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
+
+    def omega(self, t):
+        t = np.atleast_1d(np.asarray(t, float))
+        x = np.clip(t / self.ramp_s, 0.0, 1.0)
+        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
 
 
 def rich_motion(seed: int = 3, deg: float = 2.0):
@@ -52,14 +65,14 @@ def rich_motion(seed: int = 3, deg: float = 2.0):
     return mo.sequence([(mo.static(), 0.2), (Ramped(mo.shake(deg, seed), 0.04), None)])
 
 
-def record(effects: dict, scene="real:1", seed: int = 1, motion_seed: int = 3):
+def record(effects: dict, scene=SCENE, seed: int = 1, motion_seed: int = 3):
     return simulate(scene, rich_motion(motion_seed), 0.5, NOMINAL, {"netd": 0.05, **effects}, seed=seed)
 
 
 _CACHE: dict = {}
 
 
-def analysed(key: str, effects: dict, scene="real:1"):
+def analysed(key: str, effects: dict, scene=SCENE):
     """(recording, analysis) for hidden `effects`, computed once per test session."""
     if key not in _CACHE:
         rec = record(effects, scene)
@@ -71,11 +84,6 @@ def analysed(key: str, effects: dict, scene="real:1"):
 def excess(gap: float, floor: float) -> float:
     """Gap above the noise floor (what an effect can remove)."""
     return math.sqrt(max(gap * gap - floor * floor, 0.0))
-
-
-@pytest.fixture(autouse=True)
-def _need_sim(require):
-    require(sim_ok, "thermod.sim (the simulator's fine-time renderer)")
 
 
 # ------------------------------------------------------------------ one hidden effect each
@@ -121,6 +129,36 @@ def test_single_hidden_effect_is_named_recovered_and_closes_the_gap(effect):
     assert ana.unobservable == {}
 
 
+def _stripes_scene():
+    """Horizontal stripes (the texture averaged along each row): horizontal image motion is invisible."""
+    tex = sim_scenes.load_scene(SCENE, (240, 320), 0)
+    rows = np.broadcast_to(tex.mean(axis=1, keepdims=True), tex.shape).astype(np.float32).copy()
+    return sim_detector.SphereScene(rows, NOMINAL.fx, NOMINAL.fy)
+
+
+@pytest.mark.slow
+def test_static_segment_measures_the_bias_the_images_cannot_see():
+    # On horizontal stripes a yaw bias (the image drifting sideways) leaves the residual unchanged:
+    # only the static segment, where the camera is still and the gyro reads its bias, measures it.
+    rec = simulate(_stripes_scene(), rich_motion(), 0.5, NOMINAL,
+                   {"netd": 0.05, "gyro_bias": (0.01, 0.03, 0.0)}, seed=1)
+    d = D.prepare(rec, NOMINAL, name="stripes")
+    problem, model = D.Problem([d]), D.Model(NOMINAL)
+    problem.refresh(model)
+    ctx = D.StepContext.at(problem, problem.evaluate(model, keep=True), (), model_tol=0.05)
+    truth = np.asarray(truth_calibration(rec).bias_rad_s)
+
+    def bias_error_deg_s(prior: bool):
+        fit = D.fit_gyro_bias(ctx, model, use_static_prior=prior)
+        return np.abs(np.subtract(fit.model.calib.bias_rad_s, truth)) / DEG
+
+    err = {prior: bias_error_deg_s(prior) for prior in (True, False)}
+    assert err[True][1] < 0.1, err          # yaw: measured 0.03 °/s with the prior …
+    assert err[False][1] > 1.0, err         # … 1.70 °/s (all of it) from the images alone
+    assert err[True][0] < 0.1, err          # pitch is seen by both: 0.016 / 0.006 °/s
+    assert err[False][0] < 0.1, err
+
+
 PAIRS = {
     "offset+bias": {"time_offset": -0.005, "gyro_bias": (0.02, -0.015, 0.01)},
     "offset+readout": {"time_offset": 0.008, "rolling_readout": 0.010},   # strongly coupled timing pair
@@ -159,31 +197,39 @@ def test_clean_recording_adds_nothing():
     assert ana.noise_floor < ana.gap_initial < 1.2 * ana.noise_floor + 0.05
 
 
+# Per scene: least ratio of the gap without / with the FPN estimate, least correlation of the estimate
+# with the true pattern. Measured on the texture: 1.18 and 0.78 (its sharp edges leave the forward
+# model a larger gap of its own, 0.033, which the FPN estimate partly absorbs).
+FPN_EXPECT = {SCENE: (1.1, 0.7), REAL: (1.5, 0.8)}
+
+
 @pytest.mark.slow
-def test_fixed_pattern_noise_is_estimated_not_blamed_on_the_model():
+@pytest.mark.parametrize("scene", [SCENE, REAL])
+def test_fixed_pattern_noise_is_estimated_not_blamed_on_the_model(scene, require):
     import cv2
 
     from thermod.calib.forward import downsample
 
-    rec = record({"fpn": 0.1})                     # 4 counts RMS, twice the temporal noise
+    rec = record({"fpn": 0.1}, scene_for(scene, require))      # 4 counts RMS, twice the temporal noise
     d = D.prepare(rec, NOMINAL, name="fpn")
     ana = D.analyse([d], D.Model(NOMINAL))
     assert ana.steps == [] and not ana.unexplained
     # Without the FPN estimate the pattern, moved with the scene, would look like a model error.
     d2 = D.prepare(rec, NOMINAL, name="fpn")
     ana2 = D.analyse([d2], D.Model(NOMINAL), fpn=False, candidates=())
-    assert ana2.gap_initial > 1.5 * ana.gap_initial
+    min_ratio, min_corr = FPN_EXPECT[scene]
+    assert ana2.gap_initial > min_ratio * ana.gap_initial, (ana2.gap_initial, ana.gap_initial)
     # The estimate is the sensor's pattern: static mean − noiseless static view, high-passed.
     true_static = downsample(rec.extras["truth/blurry_noiseless"][: d.n_static], d.fm.scale).mean(axis=0)
     pattern = d.static_mean - true_static
     hp = pattern - cv2.GaussianBlur(pattern, (0, 0), 1.5)
     m = d.mask.any(axis=0)
-    assert np.corrcoef(d.fpn[m], hp[m])[0, 1] > 0.8
+    assert np.corrcoef(d.fpn[m], hp[m])[0, 1] > min_corr
 
 
-def _high_contrast_scene():
-    """The real scene stretched to a 30 K span (a hot vehicle on a cool field), on the sphere."""
-    tex = sim_scenes.load_scene("real:1", (240, 320), 0)
+def _high_contrast_scene(scene=SCENE):
+    """The scene stretched to a 30 K span (a hot vehicle on a cool field), on the sphere."""
+    tex = sim_scenes.load_scene(scene, (240, 320), 0)
     m = float(np.median(tex))
     lo, hi = np.percentile(tex, [1, 99])
     t2 = (m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32)
@@ -191,11 +237,16 @@ def _high_contrast_scene():
 
 
 @pytest.mark.slow
-def test_out_of_vocabulary_effect_is_unexplained_not_misnamed():
-    rec, ana = analysed("nonlinearity", {"detector_nonlinearity": 1.0}, scene=_high_contrast_scene())
-    assert ana.unexplained
-    assert ana.steps == [], [s["effect"] for s in ana.steps]
-    assert ana.gap_final > 3 * ana.noise_floor
+@pytest.mark.parametrize("scene", [SCENE, REAL])
+def test_out_of_vocabulary_effect_is_unexplained_not_misnamed(scene, require):
+    rec, ana = analysed(f"nonlinearity-{scene}", {"detector_nonlinearity": 1.0},
+                        scene=_high_contrast_scene(scene_for(scene, require)))
+    assert ana.steps == [], [s["effect"] for s in ana.steps]          # nothing misnamed
+    assert ana.gap_final > 3 * ana.noise_floor                          # texture: measured 8.9×
+    if scene == REAL:
+        # On the real frame the structure left exceeds the forward model's precision allowance; on
+        # the texture (gap 0.041) it stays inside it (0.05), so no verdict can be drawn there.
+        assert ana.unexplained
 
 
 @pytest.mark.slow
@@ -215,22 +266,53 @@ def test_common_optical_psf_is_not_misnamed():
     assert not ana.unexplained
 
 
+def _motion_blurred(rec, sigma_px: float, t_motion: float):
+    """`rec` with its frames from `t_motion` on (camera time) blurred by an extra Gaussian of `sigma_px`
+    (a focus that shifts while the payload shakes): the noiseless render is blurred, the same noise
+    realisation added back."""
+    import cv2
+
+    clean = rec.extras["truth/blurry_noiseless"]
+    noise = rec.frames.astype(np.float32) - clean
+    frames = rec.frames.copy()
+    for k in np.flatnonzero(rec.t >= t_motion):
+        blurred = cv2.GaussianBlur(clean[k], (0, 0), sigma_px) + noise[k]
+        frames[k] = np.clip(np.rint(blurred), 0, 65535).astype(np.uint16)
+    rec.frames = frames
+    return rec
+
+
+@pytest.mark.slow
+def test_extra_blur_of_motion_frames_is_named_optical_psf():
+    # Unlike a PSF the static frames share (test above), blur that only the moving frames have is a
+    # static-vs-motion gap: optical_psf names it and recovers its σ (added in quadrature to Eq. 19's).
+    rec = record({})
+    rec = _motion_blurred(rec, 1.5, t_motion=rec.t[0] + 0.2)                # the motion starts at 0.2 s
+    ana = D.analyse([D.prepare(rec, NOMINAL, name="blur")], D.Model(NOMINAL))
+    assert [s["effect"] for s in ana.steps][:1] == ["optical_psf"], [s["effect"] for s in ana.steps]
+    extra = ana.steps[0]["params"]["extra_sigma_px"]
+    # Measured 1.18 px for 1.5: the forward model's own resampling blur (cubic warps at half
+    # resolution) already accounts for part of it.
+    assert 1.0 < extra < 1.7, extra
+    assert ana.steps[0]["params"]["psf_sigma_px"] == pytest.approx(math.hypot(NOMINAL.psf_sigma_px, extra))
+    assert ana.gap_final < 0.7 * ana.gap_initial           # measured 0.1006 → 0.0578
+
+
 @pytest.mark.slow
 def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
     # A yaw-only pan excites scale[1] alone: the others must be reported, not invented.
     motion = mo.sequence([(mo.static(), 0.2), (Ramped(mo.pan(20.0, "yaw"), 0.04), None)])
-    rec = simulate("real:1", motion, 0.5, NOMINAL, {"netd": 0.05, "gyro_scale": 1.05}, seed=2)
+    rec = simulate(SCENE, motion, 0.5, NOMINAL, {"netd": 0.05, "gyro_scale": 1.05}, seed=2)
     ana = D.analyse([D.prepare(rec, NOMINAL)], D.Model(NOMINAL), candidates=("gyro_scale", "misalignment"))
     assert [s["effect"] for s in ana.steps] == ["gyro_scale"]
     s = ana.model.calib.scale_vector
     assert s[1] == pytest.approx(1.05, rel=0.02)
     assert s[0] == 1.0 and s[2] == 1.0
     assert ana.unobservable == {"gyro_scale": ["scale[0]", "scale[2]"]}
-    rep = D.write_report(ana, tmp_path, ["pan.h5"])
+    rep = D.write_report(ana, tmp_path, ["pan.h5"], config.default_path().read_text())
     assert rep["unobservable"] == {"gyro_scale": ["scale[0]", "scale[2]"]}
     assert "Not observable with this motion" in (tmp_path / "report.md").read_text()
     # model.toml is a whole configuration: `thermod run --config` and `thermod deblur --config` take it
-    from thermod.runtime import config
     fitted = config.load(tmp_path / "model.toml", check_devices=False).calibration
     assert fitted.scale_vector[1] == pytest.approx(s[1]) and fitted.width == NOMINAL.width
     assert config.load_calibration(tmp_path / "model.toml") == fitted
@@ -267,10 +349,9 @@ def test_deblurring_with_updated_model_beats_nominal(require):
 @pytest.mark.slow
 def test_cli_two_recordings_share_parameters(tmp_path):
     from thermod.cli import main
-    from thermod.io import recording
 
     paths = []
-    for i, (scene, seed) in enumerate((("real:1", 5), ("real:1", 6))):
+    for i, (scene, seed) in enumerate(((SCENE, 5), (SCENE, 6))):
         rec = simulate(scene, rich_motion(seed), 0.5, NOMINAL, {"netd": 0.05, "time_offset": -0.004},
                        seed=seed)
         p = tmp_path / f"rec{i}.h5"
@@ -301,12 +382,19 @@ def test_cli_two_recordings_share_parameters(tmp_path):
     assert "time_offset" in md and "residual_maps.png" in md
     for f in ("residual_maps.png", "gap_per_step.png", "diagnostics_step1_time_offset.png"):
         assert (out / f).stat().st_size > 1000
-    # Feeding the fitted model back leaves nothing to add.
+    # Feeding the fitted model back leaves nothing to add; run as a user does (a fresh process, so the
+    # exit status includes writing the figures): a successful run exits 0.
     out2 = tmp_path / "again"
-    assert main(["discrepancy", paths[0], "--out", str(out2), "--config", str(out / "model.toml")]) == 0
+    proc = subprocess.run([sys.executable, "-m", "thermod.cli", "discrepancy", paths[0], "--out", str(out2),
+                           "--config", str(out / "model.toml")], capture_output=True, text=True, timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert (out2 / "gap_per_step.png").stat().st_size > 1000
     rep2 = json.loads((out2 / "report.json").read_text())
     assert rep2["steps"] == []
-    assert rep2["gap_initial"] < min(0.7 * rep["gap_initial"], 1.2 * rep2["noise_floor"])
+    # Back to the forward model's precision on this scene: measured 0.037 after 0.153, the first run's
+    # final gap 0.0385.
+    assert rep2["gap_initial"] < min(0.7 * rep["gap_initial"], 1.1 * rep["gap_final"])
 
 
 def test_calibration_only_toml_round_trips(tmp_path):
@@ -325,19 +413,19 @@ def test_calibration_only_toml_round_trips(tmp_path):
 
 
 def test_static_only_recording_is_rejected_with_the_file_named(tmp_path):
-    rec = simulate("real:1", "static", 0.3, NOMINAL, {"netd": 0.05}, seed=0)
+    rec = simulate(SCENE, "static", 0.3, NOMINAL, {"netd": 0.05}, seed=0)
     with pytest.raises(RecordingError, match="static.h5.*gyro/rate.*no motion"):
         D.prepare(rec, NOMINAL, name="static.h5")
 
 
 def test_recording_without_static_segment_is_rejected():
-    moving = simulate("real:1", mo.shake(2.0, 3), 0.3, NOMINAL, {"netd": 0.05}, seed=0)
+    moving = simulate(SCENE, mo.shake(2.0, 3), 0.3, NOMINAL, {"netd": 0.05}, seed=0)
     with pytest.raises(RecordingError, match="static frames"):
         D.prepare(moving, NOMINAL, name="moving.h5")
 
 
 def test_size_mismatch_between_model_and_frames_is_rejected():
-    rec = simulate("real:1", rich_motion(), 0.5, NOMINAL, {"netd": 0.05}, seed=0)
+    rec = simulate(SCENE, rich_motion(), 0.5, NOMINAL, {"netd": 0.05}, seed=0)
     with pytest.raises(RecordingError, match="width×height 640×480"):
         D.prepare(rec, Calibration(), name="x.h5")
 
@@ -382,3 +470,82 @@ def test_effective_area_grows_with_residual_correlation():
     assert 1.0 <= a_white < 1.3
     # A Gaussian-correlated field of σ = 2 px has Σρ² = 4πσ²/2 ≈ 25 pixels per independent sample.
     assert 15 < a_smooth < 35
+
+
+# ------------------------------------------------------------------ bad input through the command line
+@pytest.fixture(scope="module")
+def good_recording(tmp_path_factory):
+    """A valid recording (static, then shake) to break in one way per test."""
+    p = tmp_path_factory.mktemp("rec") / "good.h5"
+    recording.write(p, simulate(SCENE, rich_motion(), 0.5, NOMINAL, {"netd": 0.05}, seed=0))
+    return p
+
+
+def _broken(src, dst, edit):
+    import shutil
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        edit(f)
+    return dst
+
+
+def _int32_rates(f):
+    raw = np.rint(np.degrees(f["gyro/rate"][()]) * 16.4).astype(np.int32)    # raw counts at ±2000 °/s
+    del f["gyro/rate"]
+    f["gyro/rate"] = raw
+
+
+def _no_frames(f):
+    h, w = f["camera/frames"].shape[1:]
+    del f["camera/frames"], f["camera/t"]
+    f["camera/frames"] = np.zeros((0, h, w), np.uint16)
+    f["camera/t"] = np.zeros(0)
+
+
+BAD_INPUTS = {
+    # name: (edit of the good file or None for a non-HDF5 file, what the one-line error must mention)
+    "not_hdf5": (None, "HDF5"),
+    "missing_dataset": (lambda f: f.__delitem__("gyro/rate"), "gyro/rate"),
+    "zero_frames": (_no_frames, "camera/frames"),
+    "fx_zero": (lambda f: f["camera"].attrs.__setitem__("fx", 0.0), "fx"),
+    "fx_huge": (lambda f: f["camera"].attrs.__setitem__("fx", 1e12), "fx"),
+    "int32_gyro_counts": (_int32_rates, "gyro/rate"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_bad_input_is_a_one_line_error_exit_2(case, good_recording, tmp_path, capsys):
+    from thermod.cli import main
+
+    edit, mention = BAD_INPUTS[case]
+    path = tmp_path / f"{case}.h5"
+    if edit is None:
+        path.write_bytes(b"this is not an HDF5 file\n" * 10)
+    else:
+        _broken(good_recording, path, edit)
+    # Every allocation sized from the file is checked before it is made: no MemoryError, no
+    # LinAlgError, no traceback; the error names the file and what is wrong in it.
+    assert main(["discrepancy", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"{case}.h5" in err and mention in err, err
+    assert len(err.strip().splitlines()) == 1, err
+
+
+def test_derived_sizes_are_guarded_before_allocation(good_recording):
+    # A τ of 1 ns asks for a time step of 25 µs: 12 000 steps of 160×120 warped views is more than
+    # a 100 MB budget allows; the error says so instead of allocating.
+    rec = recording.read(good_recording)
+    with pytest.raises(RecordingError, match=r"good\.h5: camera/t, gyro/rate: .*time steps .*GB"):
+        D.prepare(rec, NOMINAL.replace(tau_s=1e-9), name="good.h5", max_views_mb=100)
+    # a focal length that is not a number never reaches prepare(): the Calibration refuses it
+    with pytest.raises(CalibrationError, match=r"fy: expected a finite number"):
+        NOMINAL.replace(fy=float("nan"))
+
+
+def test_figures_need_no_test_extra():
+    # Figures are part of `thermod discrepancy`: matplotlib must come with `pip install thermod`,
+    # not only with the [test] extra (a successful run used to exit 1 with ModuleNotFoundError).
+    reqs = importlib.metadata.requires("thermod") or []
+    main_deps = [r for r in reqs if "extra ==" not in r]
+    assert any(r.lower().startswith("matplotlib") for r in main_deps), main_deps

@@ -16,6 +16,7 @@ from thermod.runtime import config
 from thermod.runtime.daemon import Daemon
 from thermod.runtime.publish import Subscriber
 from thermod.runtime.sdnotify import Notifier
+from thermod.sim.chaos import HiccupGyro
 from thermod.sim.payload import SimPayload
 
 pytestmark = pytest.mark.slow
@@ -25,44 +26,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-class HiccupGyro:
-    """The real ICM-42688-P driver, whose polling thread can be starved for a while (as by a
-    priority inversion): the chip's FIFO then overflows exactly as on hardware."""
-
-    def __init__(self, inner):
-        self.inner, self.name, self._pause, self._shift = inner, inner.name, 0.0, 0.0
-
-    def pause(self, seconds):
-        self._pause = seconds
-
-    def start(self):
-        self.inner.start()
-
-    def stop(self):
-        self.inner.stop()
-
-    def stats(self):
-        return self.inner.stats()
-
-    @property
-    def clock(self):
-        return self.inner.clock
-
-    def jump_back(self, seconds):
-        """The next batch is stamped `seconds` early (a glitch of the device → host clock mapping)."""
-        self._shift = seconds
-
-    def poll(self, timeout):
-        if self._pause:
-            p, self._pause = self._pause, 0.0
-            time.sleep(p)
-        b = self.inner.poll(timeout)
-        if b is not None and self._shift:
-            b.t = b.t - self._shift
-            self._shift = 0.0
-        return b
 
 
 class Frames(threading.Thread):

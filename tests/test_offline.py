@@ -191,3 +191,113 @@ def test_config_of_another_camera_is_refused(pan50, tmp_path, capsys):
     model.write_text("[calibration]\ntau_s = -1\n")
     rc, _, err = deblur(capsys, pan50, "-o", tmp_path / "o.h5", "--config", model)
     assert rc == 2 and "calibration.tau_s" in err
+
+
+# ------------------------------------------------------------------------ batches and bad inputs
+def tiny(path, n=6, seed=0, **calib_changes):
+    """A 64×48 recording with a 1 kHz gyro turning at 20 °/s about y: fast to deblur."""
+    rng = np.random.default_rng(seed)
+    calib = Calibration(width=64, height=48, cx=31.5, cy=23.5).replace(**calib_changes)
+    gyro_t = np.arange(0.0, 0.02 * (n + 3), 0.001)
+    rate = np.zeros((len(gyro_t), 3), np.float32)
+    rate[:, 1] = np.deg2rad(20.0)
+    rec = recording.Recording(rng.integers(1000, 3000, (n, 48, 64), dtype=np.uint16),
+                              0.05 + 0.02 * np.arange(n), gyro_t, rate, calib)
+    recording.write(path, rec)
+    return path
+
+
+def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
+    good = [tiny(tmp_path / f"good{i}.h5", seed=i) for i in range(2)]
+    garbage = tmp_path / "garbage.h5"
+    garbage.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(200))
+    zero_scale = tiny(tmp_path / "zero_scale.h5")
+    with h5py.File(zero_scale, "a") as f:
+        f["gyro"].attrs["scale"] = np.zeros(3)
+    strings = tiny(tmp_path / "strings.h5")
+    with h5py.File(strings, "a") as f:
+        del f["camera/t"]
+        f["camera/t"] = np.array([b"x"] * 6)
+    damaged = tiny(tmp_path / "damaged.h5")
+    with h5py.File(damaged, "a") as f:                         # gzip frames, frame 2's chunk damaged
+        frames = f["camera/frames"][()]
+        del f["camera/frames"]
+        f.create_dataset("camera/frames", data=frames, chunks=(1, 48, 64), compression="gzip")
+        offset = f["camera/frames"].id.get_chunk_info(2).byte_offset
+    with open(damaged, "r+b") as fh:
+        fh.seek(offset)
+        fh.write(b"\xff" * 4)
+    blocked, buggy = tiny(tmp_path / "blocked.h5"), tiny(tmp_path / "buggy.h5")
+    out = tmp_path / "out"
+    (out / "blocked.h5").mkdir(parents=True)                    # a directory in the way
+    (out / "zero_scale.h5").write_bytes(b"an earlier result")   # must survive the failure
+    real_frame = recording.Reader.frame
+
+    def frame(self, i):                                         # a bug that only one file meets
+        if self.path.name == "buggy.h5" and i == 3:
+            raise ZeroDivisionError("division by zero")
+        return real_frame(self, i)
+    monkeypatch.setattr(recording.Reader, "frame", frame)
+    inputs = [good[0], garbage, zero_scale, strings, damaged, blocked, buggy, good[1]]
+    rc, text, err = deblur(capsys, *inputs, "-o", out, "--uniform", "--method", "wiener")
+    assert rc == 2
+    assert f"{garbage}: file: not a readable HDF5 file" in err
+    assert f"{zero_scale}: gyro.attrs['scale']: expected 1 or 3 positive numbers" in err
+    assert f"{strings}: camera/t: expected" in err and "dtype |S1" in err
+    assert f"{damaged}: camera/frames: frame 2: cannot be read" in err
+    assert f"{out / 'blocked.h5'}: cannot write the output (a directory is in the way)" in err
+    assert f"{buggy}: unexpected ZeroDivisionError: division by zero" in err
+    assert "Traceback" not in err
+    failed = ", ".join(map(str, (garbage, zero_scale, strings, damaged, blocked, buggy)))
+    assert err.strip().splitlines()[-1] == f"thermod deblur: 6 of 8 file(s) failed: {failed}"
+    for g in good:                                              # before and after the failures
+        res = recording.read(out / g.name)
+        assert res.deblurred.shape == (6, 48, 64) and "2 file(s)" in text
+    assert (out / "zero_scale.h5").read_bytes() == b"an earlier result"
+    assert (out / "blocked.h5").is_dir() and not (out / "buggy.h5").exists()
+    assert not (out / "damaged.h5").exists()
+    assert sorted(p.name for p in out.iterdir()) == ["blocked.h5", "good0.h5", "good1.h5", "zero_scale.h5"]
+
+
+def test_failed_single_file_keeps_the_previous_output(tmp_path, capsys):
+    src = tiny(tmp_path / "a.h5")
+    with h5py.File(src, "a") as f:
+        f["camera"].attrs["frame_rate_hz"] = 0.0
+    (tmp_path / "o.h5").write_bytes(b"previous")
+    rc, _, err = deblur(capsys, src, "-o", tmp_path / "o.h5")
+    assert rc == 2 and f"{src}: camera.attrs['frame_rate_hz']: expected a positive number, got 0.0" in err
+    assert (tmp_path / "o.h5").read_bytes() == b"previous" and not (tmp_path / "o.h5.part").exists()
+
+
+def test_defaults_are_deblur_configs():
+    """One source for the offline defaults: DeblurConfig (the grid mode is the one offline choice)."""
+    import argparse
+    import dataclasses
+
+    from thermod.cli import deblur as cmd
+    from thermod.runtime.config import DeblurConfig
+
+    p = argparse.ArgumentParser()
+    cmd.add_arguments(p)
+    cfg = cmd.deblur_config(p.parse_args(["x.h5", "-o", "y.h5"]))
+    assert cfg == dataclasses.replace(DeblurConfig(), mode="grid")
+    assert cmd.deblur_config(p.parse_args(["x.h5", "-o", "y.h5", "--uniform"])).mode == "uniform"
+    assert cmd.deblur_config(p.parse_args(["x.h5", "-o", "y.h5", "--grid", "1", "1"])).mode == "uniform"
+
+
+def test_memory_does_not_grow_with_the_recording(tmp_path, capsys):
+    """Frames stream through: 8× the frames may not cost 8× the memory (tracemalloc sees numpy)."""
+    import tracemalloc
+
+    peaks = {}
+    assert deblur(capsys, tiny(tmp_path / "warm.h5"), "-o", tmp_path / "w.h5", "--uniform", "--method",
+                  "wiener")[0] == 0          # FFT plans and caches: allocated once, not per frame
+    for n in (12, 96):
+        src = tiny(tmp_path / f"n{n}.h5", n=n)
+        tracemalloc.start()
+        rc, _, _ = deblur(capsys, src, "-o", tmp_path / f"o{n}.h5", "--uniform", "--method", "wiener")
+        peaks[n] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert rc == 0
+    frames_bytes = 96 * 48 * 64 * (2 + 4)     # what holding the stack and its result would add
+    assert peaks[96] - peaks[12] < 0.25 * frames_bytes, peaks

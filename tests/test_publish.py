@@ -499,7 +499,7 @@ def test_the_byte_budget_sizes_the_hwm():
     assert p.hwm == (64 << 20) // (2 * 640 * 480 * 4) - 1 == 26  # 640×480 float32 frames
     assert Publisher(EP, hwm=5, max_queue_bytes=64 << 20, max_message_bytes=1000).hwm == 5
     assert Publisher(EP, hwm=100, max_queue_bytes=1 << 20, max_message_bytes=1 << 20).hwm == 2
-    assert config.load(None, {}).publish.max_queue_mb == 64.0
+    assert config.load(None, {}).publish.max_queue_mb == 128.0
 
 
 def _stalled(ctx, endpoint):

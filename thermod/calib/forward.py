@@ -31,7 +31,11 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.detector import iir_alpha, row_read_time
 from thermod.physics.geometry import integrate_rotations
 
-__all__ = ["ForwardModel", "downsample", "orientations", "predict_frames"]
+__all__ = ["ForwardModel", "GridTooLarge", "downsample", "orientations", "predict_frames"]
+
+
+class GridTooLarge(ValueError):
+    """The fixed time grid would need more memory for its warped views than allowed."""
 
 
 def downsample(frames: np.ndarray, scale: float, smooth_px: float = 0.0) -> np.ndarray:
@@ -98,12 +102,16 @@ class ForwardModel:
         Head-room on the gyro rate when choosing the step, so candidate scales stay sub-pixel.
     cache_mb : float
         Memory allowed for cached warped views (skipped when larger).
+    max_views_mb : float
+        Memory the warped views of one prediction may take at all; GridTooLarge beyond it (checked
+        before anything is allocated: the step count follows from the gyro rate, fx and τ).
     interpolation : "cubic" (default: least resampling blur) or "linear" (≈ 2× faster warps).
     """
 
     def __init__(self, reference, frame_t, gyro_t, gyro_rate, calib: Calibration, *, t_ref: float,
                  scale: float = 1.0, fpn=None, max_step_px: float = 0.5, max_rate_factor: float = 1.3,
-                 tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic"):
+                 tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic",
+                 max_views_mb: float = 4096.0):
         self.calib0 = calib
         self.scale = float(scale)
         self.intr = calib.intrinsics.scaled(self.scale)
@@ -123,7 +131,14 @@ class ForwardModel:
         h_max = max(tau_min, 1e-4) / 4.0   # α ≤ 0.22: rows read between grid points interpolate well
         self.dt = min(h_max, max_step_px / speed) if speed > 0 else h_max
         t_end = float(self.frame_t.max()) if len(self.frame_t) else self.t_ref
-        n = max(1, int(math.ceil((t_end - self.t_ref) / self.dt)))
+        n_float = max(1.0, math.ceil((t_end - self.t_ref) / self.dt))
+        views_mb = n_float * self.h * self.w * 2 * 4 / 1e6
+        if not views_mb <= max_views_mb:
+            raise GridTooLarge(f"the forward model needs {n_float:.3g} time steps ({views_mb / 1e3:.3g} GB "
+                               f"of warped views, limit {max_views_mb / 1e3:.3g} GB) for "
+                               f"{t_end - self.t_ref:.3g} s of motion at up to {speed:.3g} px/s "
+                               f"(working fx {self.intr.fx:.4g}, τ {calib.tau_s:.3g} s)")
+        n = int(n_float)
         self.dt = (t_end - self.t_ref) / n if t_end > self.t_ref else self.dt
         self.t_grid = self.t_ref + self.dt * np.arange(n + 1)
         self.t_mid = 0.5 * (self.t_grid[1:] + self.t_grid[:-1])

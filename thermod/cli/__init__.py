@@ -1,7 +1,11 @@
-"""`thermod run|watch|deblur|sim|record|discrepancy|bench`.
+"""`thermod run|watch|deblur|sim|record|import|discrepancy|bench`.
 
 Each command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
 only the chosen module is imported, so `thermod watch` does not pay for numba start-up.
+
+Exit status: 0 success; 2 bad input, configuration, device or usage (a ThermodError: one line
+naming the file, key or device); 1 an unexpected internal error (one line naming the command;
+`-v` adds the traceback); 130 interrupted. No traceback reaches the user without `-v`.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ import argparse
 import importlib
 import logging
 import sys
+import traceback
 
 from thermod.errors import ThermodError
 
@@ -17,6 +22,7 @@ COMMANDS = {
     "run": ("thermod.cli.run", "run the acquisition and deblurring daemon (default: simulated payload)"),
     "watch": ("thermod.cli.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
     "record": ("thermod.cli.record", "subscribe to raw frames and gyro samples and write a recording"),
+    "import": ("thermod.cli.import_", "convert a ROS recording (MCAP, rosbag2, ROS 1 .bag) to format v1"),
     "deblur": ("thermod.cli.deblur", "deblur recordings offline"),
     "sim": ("thermod.cli.sim", "simulate a recording with known truth"),
     "discrepancy": ("thermod.cli.discrepancy", "compare simulation with a recording and fix the model"),
@@ -27,7 +33,8 @@ COMMANDS = {
 def _usage() -> str:
     lines = ["usage: thermod COMMAND [options]", "", "commands:"]
     lines += [f"  {name:<12} {helptext}" for name, (_, helptext) in COMMANDS.items()]
-    lines += ["", "`thermod COMMAND --help` for a command's options."]
+    lines += ["", "`thermod COMMAND --help` for a command's options.",
+              "exit status: 0 ok, 2 bad input/configuration/device, 1 internal error (-v: traceback)"]
     return "\n".join(lines)
 
 
@@ -59,4 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as e:  # noqa: BLE001 - a bug gets one line, not a traceback (unless -v)
+        if args.verbose:
+            traceback.print_exc()
+        hint = "" if args.verbose else " (run with -v for the traceback)"
+        print(f"thermod {name}: internal error: {type(e).__name__}: {e}{hint}", file=sys.stderr)
+        return 1
 

@@ -9,7 +9,7 @@ import math
 import tomllib
 from pathlib import Path
 
-from thermod.calib.discrepancy import CANDIDATES, FITTERS, Model, analyse, prepare, write_report
+from thermod.calib.discrepancy import CANDIDATES, EFFECTS, Model, analyse, prepare, write_report
 from thermod.errors import ConfigError
 from thermod.io import recording as recording_io
 from thermod.physics.calibration import Calibration
@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
-    bad = [c for c in cands if c not in FITTERS]
+    bad = [c for c in cands if c not in EFFECTS]
     if bad:
         raise ConfigError(f"--candidates: unknown effect(s) {', '.join(bad)}; known: {', '.join(CANDIDATES)}")
     if args.work_width < 32:
@@ -102,6 +102,8 @@ def run(args) -> int:
         data.append(d)
     ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
                   progress=say)
+    if config_text is None:       # model.toml: the packaged default configuration, new calibration
+        config_text = cfgmod.default_path().read_text()
     write_report(ana, args.out, args.recordings, config_text)
     say(f"report: {Path(args.out) / 'report.md'}; model: {Path(args.out) / 'model.toml'}")
     return 0

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import os
 import signal
 import sys
 import time
@@ -33,7 +32,8 @@ log = logging.getLogger(__name__)
 
 
 def add_arguments(p) -> None:
-    p.add_argument("-o", "--output", required=True, help="recording to write (HDF5, format v1)")
+    p.add_argument("-o", "--output", required=True, help="recording to write: HDF5 format v1, or ROS 2 "
+                   "messages with deblurred frames too if it ends in .mcap (thermod.io.mcap)")
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
     p.add_argument("--config", default=None, help="take the calibration from this thermod.toml")
@@ -42,7 +42,8 @@ def add_arguments(p) -> None:
 
 
 class RecordWriter:
-    """Streams received messages into ``<path>.part``; `finish()` completes the format-v1 file.
+    """Streams received messages into ``<path>.part`` (through `thermod.io.recording.Writer`, the
+    one writer of format v1); `finish()` completes the file.
 
     Frames are appended to disk one chunk each; gyro samples (20 bytes each) stay in memory until
     `finish`. Frames of another size than the first one are dropped and counted.
@@ -50,12 +51,9 @@ class RecordWriter:
 
     def __init__(self, path, flush_s: float = 1.0):
         self.path = Path(path)
-        self.spool = self.path.with_name(self.path.name + ".part")
-        try:
-            self._f = h5py.File(self.spool, "w")
-        except OSError as e:
-            raise RecordingError(self.spool, "file", f"cannot create ({e})") from None
-        self._frames = self._t = self._fid = None
+        self._w = recording.Writer(self.path)
+        self.spool = self._w.part
+        self._shape: tuple[int, int] | None = None
         self.n_frames = 0
         self.dropped = collections.Counter()
         self.gyro_t: list[np.ndarray] = []
@@ -87,106 +85,54 @@ class RecordWriter:
                 self.calibration = header["calibration"]
         now = time.monotonic()
         if now - self._last_flush > self._flush_s:  # a crash then loses at most ~1 s
-            self._f.flush()
+            self._w.flush()
             self._last_flush = now
 
     def _add_frame(self, image: np.ndarray, t: float, frame_id: int) -> None:
-        if self._frames is None:
-            if image.ndim != 2 or image.dtype != np.uint16:
-                self.dropped["not uint16 [H, W]"] += 1
-                return
-            h, w = image.shape
-            self._frames = self._f.create_dataset("camera/frames", (0, h, w), np.uint16,
-                                                  maxshape=(None, h, w), chunks=(1, h, w))
-            self._t = self._f.create_dataset("camera/t", (0,), np.float64, maxshape=(None,), chunks=(4096,))
-            self._fid = self._f.create_dataset("record/frame_id", (0,), np.int64, maxshape=(None,),
-                                               chunks=(4096,))
-        if image.shape != self._frames.shape[1:] or image.dtype != np.uint16:
+        if image.ndim != 2 or image.dtype != np.uint16:
+            self.dropped["not uint16 [H, W]" if self._shape is None else "size changed"] += 1
+            return
+        if self._shape is None:
+            self._shape = image.shape
+        if image.shape != self._shape:
             self.dropped["size changed"] += 1
             return
         if not np.isfinite(t):
             self.dropped["non-finite time"] += 1
             return
-        n = self.n_frames
-        for ds in (self._frames, self._t, self._fid):
-            ds.resize(n + 1, axis=0)
-        self._frames[n] = image
-        self._t[n] = t
-        self._fid[n] = frame_id
-        self.n_frames = n + 1
+        self._w.append_frame(image, t)
+        self._w.append("record/frame_id", frame_id, np.int64)
+        self.n_frames += 1
 
     # ---------------------------------------------------------------------------------- finish
     def finish(self, calibration: Calibration | None = None, attrs: dict | None = None) -> Path:
         """Complete the file: gyro data, calibration attributes, frames in time order; rename into
         place. Calibration: argument > health > defaults sized to the frames. On failure the
         ``.part`` file keeps every received frame and gyro sample and the error names it."""
-        f = self._f
+        w = self._w
         try:
-            gt, grate, gseq, ggap = self._gyro()
-            for name, data in (("gyro/t", gt), ("gyro/rate", grate), ("record/gyro_seq", gseq),
-                               ("record/gyro_gap_before", ggap)):
-                f.create_dataset(name, data=data)
+            for name, data in zip(("gyro/t", "gyro/rate", "record/gyro_seq", "record/gyro_gap_before"),
+                                  self._gyro(), strict=True):
+                w.put(name, data)
             calibration, source = self._calibration(calibration)
-            if self._frames is None:
-                f.create_dataset("camera/frames", (0, calibration.height, calibration.width), np.uint16)
-                f.create_dataset("camera/t", (0,), np.float64)
-                f.create_dataset("record/frame_id", (0,), np.int64)
-            shape = f["camera/frames"].shape[1:]
-            if shape != (calibration.height, calibration.width):
-                raise RecordingError(self.path, "camera/frames", f"frame shape {shape} does not match the "
-                                     f"calibration's height×width {(calibration.height, calibration.width)} "
-                                     f"({source})")
-            t = f["camera/t"][()]
-            order, dup = _time_order(t)
+            if self._shape is None:
+                w.put("record/frame_id", np.zeros(0, np.int64))
+            dup = w.sort_frames()
             if dup:
                 log.warning("dropping %d raw frames with a repeated time stamp", dup)
-            f.attrs["format"], f.attrs["version"] = recording.FORMAT, recording.VERSION
-            for k, v in calibration.camera_attrs().items():
-                f["camera"].attrs[k] = v
-            for k, v in calibration.gyro_attrs().items():
-                f["gyro"].attrs[k] = v
-            rec_attrs = {**(attrs or {}), "calibration_source": source, "health_messages": self.health,
-                         "frames_dropped": sum(self.dropped.values()) + dup}
-            for k, v in rec_attrs.items():
-                f.require_group("record").attrs[k] = v
-            if np.array_equal(order, np.arange(len(t))):
-                f.close()
-                os.replace(self.spool, self.path)
-            else:
-                self._write_reordered(order)
+            w.set_attrs("record", {**(attrs or {}), "calibration_source": source,
+                                   "health_messages": self.health,
+                                   "frames_dropped": sum(self.dropped.values()) + dup})
+            w.commit(calibration)
         except (OSError, ValueError, KeyError, TypeError) as e:
-            self.close()
+            w.abort(keep=True)
             raise RecordingError(self.path, "file", f"could not complete the recording ({e}); the received "
                                  f"data is in {self.spool}") from None
         except RecordingError as e:
-            self.close()
+            w.abort(keep=True)
             raise RecordingError(self.path, e.field, f"{e.problem}; the received data is in "
                                  f"{self.spool}") from None
         return self.path
-
-    def _write_reordered(self, order: np.ndarray) -> None:
-        """Frames arrived out of time order (or repeated): copy them sorted into a new file."""
-        src = self._f
-        tmp = self.path.with_name(self.path.name + ".sorting")
-        with h5py.File(tmp, "w") as dst:
-            for k, v in src.attrs.items():
-                dst.attrs[k] = v
-            for group in ("camera", "gyro", "record"):
-                g = dst.create_group(group)
-                for k, v in src[group].attrs.items():
-                    g.attrs[k] = v
-            h, w = src["camera/frames"].shape[1:]
-            frames = dst.create_dataset("camera/frames", (len(order), h, w), np.uint16,
-                                        chunks=(1, h, w) if len(order) else None)
-            for j, i in enumerate(order):
-                frames[j] = src["camera/frames"][i]
-            dst["camera/t"] = src["camera/t"][()][order]
-            dst["record/frame_id"] = src["record/frame_id"][()][order]
-            for name in ("gyro/t", "gyro/rate", "record/gyro_seq", "record/gyro_gap_before"):
-                dst[name] = src[name][()]
-        src.close()
-        os.replace(tmp, self.path)
-        os.unlink(self.spool)
 
     def _calibration(self, calibration):
         if calibration is not None:
@@ -194,12 +140,9 @@ class RecordWriter:
         if self.calibration is not None:
             try:
                 return Calibration.from_dict(self.calibration), "health"
-            except (TypeError, ValueError, KeyError) as e:
+            except (TypeError, ValueError, KeyError, ThermodError) as e:
                 log.warning("calibration in the health messages is unusable (%s); using defaults", e)
-        if self._frames is not None:
-            h, w = self._frames.shape[1:]
-        else:
-            h, w = Calibration().height, Calibration().width
+        h, w = self._shape if self._shape is not None else (Calibration().height, Calibration().width)
         log.warning("no calibration received (no health messages) nor --config: writing defaults for a "
                     "%dx%d camera; fix them before deblurring", w, h)
         return Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2), "defaults"
@@ -223,23 +166,10 @@ class RecordWriter:
 
     def close(self) -> None:
         """Close the spool without completing it (the data stays in ``.part``)."""
-        try:
-            if self._f.id.valid:
-                self._f.close()
-        except (OSError, ValueError):
-            pass
+        self._w.abort(keep=True)
 
     def discard(self) -> None:
-        self.close()
-        self.spool.unlink(missing_ok=True)
-
-
-def _time_order(t: np.ndarray) -> tuple[np.ndarray, int]:
-    """Indices sorting `t`, keeping the first of equal times; and how many were dropped."""
-    order = np.argsort(t, kind="stable")
-    keep = np.ones(len(order), bool)
-    keep[1:] = np.diff(t[order]) > 0
-    return order[keep], int((~keep).sum())
+        self._w.abort()
 
 
 def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False) -> RecordWriter:
@@ -272,10 +202,14 @@ def run(args) -> int:
         pass
     started = time.monotonic()
     attrs = {"endpoint": args.endpoint}
-    writer = RecordWriter(out)
+    as_mcap = out.suffix.lower() == ".mcap"
+    if as_mcap:
+        from thermod.io.mcap import McapRecordWriter
+    writer = McapRecordWriter(out) if as_mcap else RecordWriter(out)
     try:
         # A deep receive queue: a recorder must ride out disk stalls without losing messages.
-        with Subscriber(args.endpoint, ("raw", "gyro", "health"), curve_server_key=args.curve_server_key,
+        topics = ("raw", "gyro", "health") + (("frame",) if as_mcap else ())
+        with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
                         curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
             try:
                 record(sub, args.seconds, writer, stop=lambda: bool(stopping))
@@ -294,6 +228,9 @@ def run(args) -> int:
                 signal.signal(signal.SIGTERM, previous)
     if writer.empty:
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
+    if as_mcap:
+        print(f"wrote {out}: messages by topic {writer.counts}, calibration from {writer.source}")
+        return 0
     with h5py.File(out, "r") as f:
         n, shape, m = f["camera/t"].shape[0], f["camera/frames"].shape[1:], f["gyro/t"].shape[0]
         gt = f["gyro/t"][()]

@@ -5,7 +5,9 @@ latency percentiles ``published − t`` (daemon-side: waiting for gyro coverage 
 ``received − t`` (end to end; meaningful on the daemon's host only, because ``t`` is that host's
 CLOCK_MONOTONIC), messages lost (seq gaps), the deblurred share and why the other frames were not
 deblurred. With ``--png DIR`` it writes raw|deblurred side-by-side previews (one percentile stretch
-for both halves, so brightness compares) at most every ``--png-interval`` seconds.
+for both halves, so brightness compares) at most every ``--png-interval`` seconds. With ``--http
+HOST:PORT`` it also serves a live page there (`thermod.runtime.web`): raw | deblurred, the current
+blur kernel and health plots.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 from thermod.errors import ThermodError
 from thermod.io.wire import MAX_PAYLOAD_BYTES
 from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
+from thermod.runtime.web import side_by_side, stretch_u8  # noqa: F401 - the previews' home is web
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +35,8 @@ def add_arguments(p) -> None:
     p.add_argument("--interval", type=float, default=1.0, help="seconds between status lines")
     p.add_argument("--png", metavar="DIR", default=None, help="write raw|deblurred preview PNGs to DIR")
     p.add_argument("--png-interval", type=float, default=1.0, help="seconds between previews")
+    p.add_argument("--http", metavar="HOST:PORT", default=None,
+                   help="serve a live page there, e.g. 127.0.0.1:8080 (port 0: any free port)")
     p.add_argument("--no-raw", action="store_true", help="do not subscribe to raw frames")
     p.add_argument("--curve-server-key", default=None, help="publisher's public certificate → CURVE")
     p.add_argument("--curve-client-key", default=None, help="this client's *.key_secret certificate")
@@ -146,25 +151,6 @@ def _compact(d) -> str:
 
 
 # ------------------------------------------------------------------------------------ previews
-def stretch_u8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Linear map of [lo, hi] to 0‥255 (saturating outside)."""
-    scale = 255.0 / max(hi - lo, 1e-6)
-    return np.clip((np.asarray(image, np.float32) - lo) * scale, 0, 255).astype(np.uint8)
-
-
-def side_by_side(raw: np.ndarray | None, frame: np.ndarray, gap: int = 4) -> np.ndarray:
-    """raw | frame as 8-bit, both stretched with the raw's (else the frame's) 1st–99th percentiles."""
-    ref = frame if raw is None else raw
-    lo, hi = np.percentile(ref.astype(np.float32), [1.0, 99.0])
-    right = stretch_u8(frame, lo, hi)
-    if raw is None or raw.shape != frame.shape:
-        return right
-    out = np.zeros((frame.shape[0], 2 * frame.shape[1] + gap), np.uint8)
-    out[:, : frame.shape[1]] = stretch_u8(raw, lo, hi)
-    out[:, frame.shape[1] + gap:] = right
-    return out
-
-
 class PreviewWriter:
     """Pairs frames with their raw counterpart by frame_id and writes a PNG every `interval` s."""
 
@@ -220,21 +206,29 @@ def _trim(d: collections.OrderedDict, keep: int) -> None:
 
 # ----------------------------------------------------------------------------------------- run
 def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
-          previews: PreviewWriter | None = None, out=None) -> WatchStats:
-    """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`."""
+          previews: PreviewWriter | None = None, view=None, out=None) -> WatchStats:
+    """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`;
+    every message also goes to `view` (a `thermod.runtime.web.LiveView`), sampled once a second."""
     out = sys.stdout if out is None else out
     stats = WatchStats()
     t_end = None if seconds is None else time.monotonic() + seconds
     next_line = time.monotonic() + interval
+    next_sample = time.monotonic() + 1.0 if view is not None else np.inf
     try:
         while t_end is None or time.monotonic() < t_end:
-            wait = min(next_line, t_end or np.inf) - time.monotonic()
+            wait = min(next_line, next_sample, t_end or np.inf) - time.monotonic()
             msg = sub.recv(max(0.0, wait))
             if msg is not None:
                 stats.add(*msg)
                 if previews is not None and msg[0] in ("frame", "raw"):
                     previews.add(*msg)
-            if time.monotonic() >= next_line:
+                if view is not None:
+                    view.add(*msg)
+            now = time.monotonic()
+            if now >= next_sample:
+                view.sample(sub.gaps, now)
+                next_sample = max(next_sample + 1.0, now + 0.5)
+            if now >= next_line:
                 print(stats.status_line(sub.gaps), file=out, flush=True)
                 next_line += interval
     except KeyboardInterrupt:
@@ -247,13 +241,25 @@ def run(args) -> int:
     previews = PreviewWriter(args.png, args.png_interval) if args.png else None
     if not args.max_frame_mb > 0:
         raise ThermodError(f"--max-frame-mb: expected a positive size in MiB, got {args.max_frame_mb}")
-    with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
-                    curve_client_key_file=args.curve_client_key,
-                    max_message_bytes=int(args.max_frame_mb * 2**20)) as sub:
-        stats = watch(sub, args.seconds, interval=args.interval, previews=previews)
-        print(stats.format(sub.gaps), flush=True)
-        if sub.errors:
-            print(f"rejected malformed messages: {dict(sub.errors)}", flush=True)
+    view = server = None
+    if args.http:
+        from thermod.runtime.web import LiveView, WebServer
+
+        topics += ("kernel",)
+        view = LiveView(args.endpoint)
+        server = WebServer(view, args.http).start()
+        print(f"live view on {server.url}", flush=True)
+    try:
+        with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
+                        curve_client_key_file=args.curve_client_key,
+                        max_message_bytes=int(args.max_frame_mb * 2**20)) as sub:
+            stats = watch(sub, args.seconds, interval=args.interval, previews=previews, view=view)
+            print(stats.format(sub.gaps), flush=True)
+            if sub.errors:
+                print(f"rejected malformed messages: {dict(sub.errors)}", flush=True)
+    finally:
+        if server is not None:
+            server.stop()
     if previews is not None and previews.written:
         print(f"previews: {len(previews.written)} PNGs in {previews.dir} (latest.png = newest)", flush=True)
     if stats.frames == 0:

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 import numpy as np
 
 WIRE_VERSION = 1
-TOPICS = ("frame", "raw", "gyro", "health")
+TOPICS = ("frame", "raw", "gyro", "health", "kernel", "celsius")
 # Array dtypes a payload may carry (little-endian numpy strings); "packed" = concatenated `layout` parts.
 ARRAY_DTYPES = ("<f4", "<u2", "|u1", "<f8", "<i8")
 PACKED = "packed"
@@ -104,6 +104,33 @@ def pack_gyro(t: np.ndarray, rate: np.ndarray) -> tuple[dict, bytes]:
     return fields, t.tobytes() + rate.tobytes()
 
 
+def pack_kernel(kernel) -> tuple[dict, np.ndarray]:
+    """A blur kernel (``weights`` float32 [kh, kw] summing to 1, ``origin`` (oy, ox) = zero displacement)
+    or a grid of them (``kernels[r][c]``) → (header fields ``origin``, ``extent_px``, ``coverage``;
+    float32 payload).
+
+    A grid travels as [rows, cols, KH, KW]: every cell zero-padded so that all share one ``origin``
+    (weights keep their displacements, so cells compare pixel for pixel)."""
+    if hasattr(kernel, "kernels"):
+        cells = kernel.kernels
+        flat = [k for row in cells for k in row]
+        oy = max(k.origin[0] for k in flat)
+        ox = max(k.origin[1] for k in flat)
+        kh = oy + max(k.weights.shape[0] - k.origin[0] for k in flat)
+        kw = ox + max(k.weights.shape[1] - k.origin[1] for k in flat)
+        out = np.zeros((len(cells), len(cells[0]), kh, kw), "<f4")
+        for r, row in enumerate(cells):
+            for c, k in enumerate(row):
+                y0, x0 = oy - k.origin[0], ox - k.origin[1]
+                out[r, c, y0:y0 + k.weights.shape[0], x0:x0 + k.weights.shape[1]] = k.weights
+        fields = dict(origin=[oy, ox], extent_px=float(kernel.max_extent_px), coverage=float(kernel.coverage))
+        return fields, out
+    w = np.ascontiguousarray(kernel.weights, dtype="<f4")
+    fields = dict(origin=[int(o) for o in kernel.origin], extent_px=float(kernel.extent_px),
+                  coverage=float(kernel.coverage))
+    return fields, w
+
+
 def nbytes(payload) -> int:
     return payload.nbytes if isinstance(payload, np.ndarray) else len(payload)
 
@@ -164,8 +191,10 @@ def decode(frames: list, *, max_header_bytes: int = MAX_HEADER_BYTES, topics: It
     if need != payload.nbytes:
         raise MessageError("payload_size", f"{topic}: payload is {payload.nbytes} bytes, shape {shape} × "
                                            f"{dtype} needs {need}")
-    if topic in ("frame", "raw") and len(shape) != 2:
+    if topic in ("frame", "raw", "celsius") and len(shape) != 2:
         raise MessageError("shape", f"{topic}: shape must be [H, W], got {shape}")
+    if topic == "kernel" and len(shape) not in (2, 4):
+        raise MessageError("shape", f"{topic}: shape must be [kh, kw] or [rows, cols, kh, kw], got {shape}")
     array = np.frombuffer(payload, dtype=dtype).reshape(shape)
     array.flags.writeable = False  # a view on the transport's message buffer
     return topic, header, array

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from thermod.errors import ThermodError
 from thermod.physics.geometry import Intrinsics, so3_exp
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um",
@@ -21,6 +22,20 @@ GYRO_KEYS = ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s", "scale")
 
 # The paper's SBTI setup: FLIR A655sc-like, IFOV 0.0391°, τ = 8 ms, 640×480 at 50 Hz, 17 µm pitch.
 PAPER_IFOV_RAD = math.radians(0.0391)
+
+# What a pinhole camera can be: a field of view between a long telephoto's and a wide angle's.
+MIN_FOV_DEG, MAX_FOV_DEG = 0.1, 175.0
+MAX_SIDE_PX = 16384
+ROTATION_TOL = 1e-4     # |R Rᵀ − I| allowed: six printed decimals, not a shear
+
+
+class CalibrationError(ThermodError, ValueError):
+    """A calibration value out of range or of the wrong type. `field` is the key (a recording
+    attribute / [calibration] key), `problem` says what was expected; callers prefix the source."""
+
+    def __init__(self, field: str, problem: str):
+        self.field, self.problem = field, problem
+        super().__init__(f"{field}: {problem}")
 
 
 @dataclass(frozen=True)
@@ -45,6 +60,45 @@ class Calibration:
     scale: tuple = (1.0, 1.0, 1.0)
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
+    def __post_init__(self):
+        """Normalise the types (numpy → Python, arrays → tuples) and check every range: an invalid
+        calibration cannot exist, whatever built it (config, --set, recording attributes, reload)."""
+        set_ = object.__setattr__
+        for k in ("width", "height"):
+            set_(self, k, _integer(k, getattr(self, k), 1, MAX_SIDE_PX))
+        for k in _FLOAT_KEYS:
+            set_(self, k, _number(k, getattr(self, k)))
+        for k in ("fx", "fy", "tau_s", "frame_rate_hz", "wavelength_um", "f_number", "pixel_pitch_um",
+                  "rate_hz"):
+            if not getattr(self, k) > 0:
+                raise CalibrationError(k, f"expected a positive number, got {getattr(self, k)!r}")
+        for k, side in (("fx", self.width), ("fy", self.height)):
+            fov = math.degrees(2.0 * math.atan(0.5 * side / getattr(self, k)))
+            if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
+                raise CalibrationError(k, f"expected a focal length giving a field of view in "
+                                          f"[{MIN_FOV_DEG}°, {MAX_FOV_DEG}°] over {side} px, got "
+                                          f"{getattr(self, k)!r} ({fov:.3g}°)")
+        if not 0 < self.psf_beta <= 1:
+            raise CalibrationError("psf_beta", f"expected a value in (0, 1] (1 = diffraction limited), "
+                                               f"got {self.psf_beta!r}")
+        if not self.tau_s <= 1.0:
+            raise CalibrationError("tau_s", f"expected a detector time constant in (0, 1] s, "
+                                            f"got {self.tau_s!r}")
+        period = 1.0 / self.frame_rate_hz
+        if not 0 <= self.readout_s <= period * (1 + 1e-9):
+            raise CalibrationError("readout_s", f"expected a value in [0, {period:.6g}] s (one frame "
+                                                f"period), got {self.readout_s!r}")
+        if not abs(self.time_offset_s) <= 1.0:
+            raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, "
+                                                    f"got {self.time_offset_s!r}")
+        set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
+        scale = _vector("scale", self.scale, (1, 3))
+        scale = scale * 3 if len(scale) == 1 else scale
+        if not all(x > 0 for x in scale):
+            raise CalibrationError("scale", f"expected 1 or 3 positive numbers, got {list(scale)}")
+        set_(self, "scale", scale)
+        set_(self, "R_cam_gyro", _rotation("R_cam_gyro", self.R_cam_gyro))
+
     # ----------------------------------------------------------------- derived
     @property
     def intrinsics(self) -> Intrinsics:
@@ -64,9 +118,14 @@ class Calibration:
         return self.psf_sigma_um / self.pixel_pitch_um
 
     def with_psf_sigma_px(self, sigma_px: float) -> Calibration:
-        """The same optics with β chosen so that Eq. 19 gives `sigma_px`."""
-        beta = 0.45 * self.wavelength_um * self.f_number / (sigma_px * self.pixel_pitch_um)
-        return dataclasses.replace(self, psf_beta=float(beta))
+        """The same optics with β chosen so that Eq. 19 gives `sigma_px`. σ below the diffraction
+        limit (β = 1) is not a lens: CalibrationError."""
+        s = _number("psf_sigma_px", sigma_px)
+        limit = 0.45 * self.wavelength_um * self.f_number / self.pixel_pitch_um
+        if not s >= limit:
+            raise CalibrationError("psf_sigma_px", f"expected at least the diffraction limit {limit:.4g} px "
+                                                   f"(Eq. 19 with β = 1), got {sigma_px!r}")
+        return dataclasses.replace(self, psf_beta=float(limit / s))
 
     @property
     def R_cam_gyro_matrix(self) -> np.ndarray:
@@ -123,36 +182,90 @@ class Calibration:
 
     @classmethod
     def from_attrs(cls, camera: dict, gyro: dict | None = None) -> Calibration:
-        """Build from recording attributes (missing keys keep their defaults). Raises KeyError/ValueError."""
-        kw = {}
-        for k in CAMERA_KEYS:
-            if k in camera:
-                kw[k] = int(camera[k]) if k in ("width", "height") else float(camera[k])
+        """Build from recording attributes (missing keys keep their defaults). Values may be numpy
+        scalars or one-element arrays; anything else raises CalibrationError naming the key."""
+        kw = {k: _scalar(k, camera[k]) for k in CAMERA_KEYS if k in camera}
         gyro = gyro or {}
-        if "rate_hz" in gyro:
-            kw["rate_hz"] = float(gyro["rate_hz"])
-        if "time_offset_s" in gyro:
-            kw["time_offset_s"] = float(gyro["time_offset_s"])
-        if "R_cam_gyro" in gyro:
-            R = np.asarray(gyro["R_cam_gyro"], dtype=np.float64)
-            if R.shape != (3, 3):
-                raise ValueError(f"R_cam_gyro must be 3×3, got shape {R.shape}")
-            kw["R_cam_gyro"] = _tuple2(R)
-        if "bias_rad_s" in gyro:
-            b = np.asarray(gyro["bias_rad_s"], dtype=np.float64).ravel()
-            if b.shape != (3,):
-                raise ValueError(f"bias_rad_s must have 3 values, got {b.size}")
-            kw["bias_rad_s"] = tuple(float(x) for x in b)
-        if "scale" in gyro:
-            s = np.asarray(gyro["scale"], dtype=np.float64).ravel()
-            if s.size not in (1, 3):
-                raise ValueError(f"scale must have 1 or 3 values, got {s.size}")
-            kw["scale"] = tuple(float(x) for x in (np.full(3, s[0]) if s.size == 1 else s))
+        for k in ("rate_hz", "time_offset_s"):
+            if k in gyro:
+                kw[k] = _scalar(k, gyro[k])
+        for k in ("R_cam_gyro", "bias_rad_s", "scale"):
+            if k in gyro:
+                kw[k] = gyro[k]
         return cls(**kw)
 
     @classmethod
     def from_dict(cls, d: dict) -> Calibration:
         return cls.from_attrs(d, d)
+
+
+_FLOAT_KEYS = ("fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um", "f_number", "psf_beta",
+               "pixel_pitch_um", "readout_s", "rate_hz", "time_offset_s")
+
+
+def _scalar(key, v):
+    """A number stored as an attribute: Python/numpy scalar or a one-element array, as is."""
+    if isinstance(v, np.ndarray) and v.size == 1 and v.dtype.kind in "iuf":
+        return v.reshape(()).item()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _number(key: str, v) -> float:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise CalibrationError(key, f"expected a number, got {_show(v)}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise CalibrationError(key, f"expected a finite number, got {x!r}")
+    return x
+
+
+def _integer(key: str, v, lo: int, hi: int) -> int:
+    x = _number(key, v)
+    if x != int(x) or not lo <= x <= hi:
+        raise CalibrationError(key, f"expected an integer in [{lo}, {hi}], got {_show(v)}")
+    return int(x)
+
+
+def _vector(key: str, v, sizes: tuple[int, ...]) -> tuple:
+    try:
+        a = np.asarray(v)
+    except (TypeError, ValueError):
+        a = np.asarray(None)
+    want = " or ".join(map(str, sizes))
+    if a.dtype.kind not in "iuf" or a.ndim > 1 or a.size not in sizes:
+        raise CalibrationError(key, f"expected {want} numbers, got {_show(v)}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationError(key, f"expected finite numbers, got {a.tolist()}")
+    return tuple(float(x) for x in a.ravel())
+
+
+def _rotation(key: str, v) -> tuple:
+    try:
+        R = np.asarray(v)
+    except (TypeError, ValueError):
+        R = np.asarray(None)
+    if R.dtype.kind not in "iuf" or R.shape not in ((3, 3), (9,)):
+        raise CalibrationError(key, f"expected a 3×3 rotation matrix, got {_show(v)}")
+    R = R.astype(np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(R)):
+        raise CalibrationError(key, "expected a 3×3 rotation matrix, got non-finite values")
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > ROTATION_TOL or np.linalg.det(R) < 0:
+        raise CalibrationError(key, f"expected a rotation matrix (orthonormal within {ROTATION_TOL}, "
+                                    f"det +1), "
+                                    f"got {R.round(6).tolist()} (|R Rᵀ − I| = {err:.3g}, "
+                                    f"det {np.linalg.det(R):.3g})")
+    return _tuple2(R)
+
+
+def _show(v) -> str:
+    """A short repr of an offending value (a huge array would flood the message)."""
+    if isinstance(v, np.ndarray):
+        return f"an array of shape {v.shape} and dtype {v.dtype}" if v.size > 9 else repr(v.tolist())
+    r = repr(v)
+    return r if len(r) <= 80 else r[:77] + "..."
 
 
 def _tuple2(R: np.ndarray) -> tuple:

@@ -8,7 +8,8 @@ command-line settings get the same checks as the file.
 
 Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
 ``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
-``[pipeline]``, ``[logging]``, ``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`).
+``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default),
+``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`).
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from thermod.errors import ConfigError, ThermodError
-from thermod.physics.calibration import Calibration
+from thermod.errors import ConfigError
+from thermod.physics import radiometry as radiometrymod
+from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.runtime import sources
 
 
@@ -55,6 +57,9 @@ class SimConfig:
     gyro_rate_hz: float = 1000.0
     gyro_noise_rad_s: float = 0.002
     cache_dir: str = ""              # "" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback
+    ffc_interval_s: float = 0.0      # a flat-field correction (shutter/NUC) every this many s; 0 = never
+    ffc_duration_s: float = 0.5      # frames frozen (shutter closed) for this long per FFC
+    ffc_step_counts: float = 20.0    # offset step of the new NUC after each FFC (raw counts)
 
 
 @dataclass(frozen=True)
@@ -67,9 +72,10 @@ class DeblurConfig:
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)
     mode: str = "uniform"            # uniform | grid (spatially varying, tiles)
-    grid: tuple[int, int] = (3, 3)
+    grid: tuple[int, int] = (3, 4)   # rows × cols: near-square cells on a 4:3 sensor
     m: float = 5.0                   # kernel window = m·τ
     min_coverage: float = 0.99       # gyro coverage below this → pass through
+    ffc_settle_s: float | None = None  # after a flat-field correction: pass through this long (None: m·τ)
 
 
 @dataclass(frozen=True)
@@ -77,11 +83,12 @@ class PublishConfig:
     endpoint: str = "tcp://127.0.0.1:5555"
     raw: bool = False
     gyro: bool = True
+    kernel: bool = True                      # the blur kernel of every deblurred frame (topic "kernel")
     hwm: int = 100
     health_period_s: float = 1.0
     curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
     curve_authorized_keys: str | None = None  # directory of client public certificates (needs the secret key)
-    max_queue_mb: float = 64.0               # bytes ZeroMQ may hold for all subscribers together
+    max_queue_mb: float = 128.0              # bytes ZeroMQ may hold for all subscribers together
     allow_insecure_remote: bool = False      # permit a non-loopback bind without CURVE (warned)
 
 
@@ -127,6 +134,7 @@ class Config:
     pipeline: PipelineConfig
     logging: LoggingConfig
     path: str = "<defaults>"
+    radiometry: radiometrymod.Radiometry | None = None   # counts → °C after deblurring; None = off
     rtsp: RtspConfig = field(default_factory=RtspConfig)
 
     @property
@@ -282,11 +290,8 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     s.done()
     try:
         return Calibration(**kw)
-    except (ThermodError, ValueError, TypeError) as e:
-        # Calibration checks itself (constraints across keys, e.g. the field of view): name the file
-        key = getattr(e, "field", None)
-        problem = getattr(e, "problem", None) or str(e)
-        raise ConfigError(f"{path}: calibration{'.' + key if key else ''}: {problem}") from None
+    except CalibrationError as e:  # the checks the keys share (e.g. the field of view): name the file
+        raise ConfigError(f"{path}: calibration.{e.field}: {e.problem}") from None
 
 
 def _deblur(path: str, table: Any) -> DeblurConfig:
@@ -302,6 +307,7 @@ def _deblur(path: str, table: Any) -> DeblurConfig:
         mode=s.pop("mode", d.mode, str, choices=("uniform", "grid")),
         m=s.pop("m", d.m, float, lo=1.0, hi=20.0),
         min_coverage=s.pop("min_coverage", d.min_coverage, float, lo=0.0, hi=1.0),
+        ffc_settle_s=s.pop("ffc_settle_s", d.ffc_settle_s, float, lo=0.0, hi=60.0),
     )
     alpha = s.pop("alpha", d.alpha, float)
     if not (abs(alpha - 1.0) < 1e-9 or abs(alpha - 2.0 / 3.0) < 1e-3):
@@ -326,6 +332,7 @@ def _publish(path: str, table: Any) -> PublishConfig:
         raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or "
                      f"'ipc:///run/thermod.sock' ({problem})", endpoint)
     kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
+              kernel=s.pop("kernel", d.kernel, bool),
               hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
               health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
               curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"),
@@ -366,7 +373,14 @@ def _sim(path: str, table: Any) -> SimConfig:
               frame_rate_hz=s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=1.0, hi=500.0),
               gyro_rate_hz=s.pop("gyro_rate_hz", d.gyro_rate_hz, float, choices=(1000.0, 2000.0, 4000.0)),
               gyro_noise_rad_s=s.pop("gyro_noise_rad_s", d.gyro_noise_rad_s, float, lo=0.0, hi=1.0),
-              cache_dir=s.pop("cache_dir", d.cache_dir, str))
+              cache_dir=s.pop("cache_dir", d.cache_dir, str),
+              ffc_interval_s=s.pop("ffc_interval_s", d.ffc_interval_s, float, lo=0.0, hi=86400.0),
+              ffc_duration_s=s.pop("ffc_duration_s", d.ffc_duration_s, float, lo=0.0, lo_open=True, hi=10.0),
+              ffc_step_counts=s.pop("ffc_step_counts", d.ffc_step_counts, float, lo=-1000.0, hi=1000.0))
+    if 0 < kw["ffc_interval_s"] <= kw["ffc_duration_s"]:
+        dur = kw["ffc_duration_s"]
+        raise s.fail("ffc_interval_s", f"0 (never) or longer than ffc_duration_s ({dur:g} s)",
+                     kw["ffc_interval_s"])
     s.done()
     return SimConfig(**kw)
 
@@ -399,6 +413,27 @@ def _logging(path: str, table: Any) -> LoggingConfig:
     lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
     s.done()
     return LoggingConfig(level=lvl)
+
+
+def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | None:
+    """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset)."""
+    s = _Section(path, "radiometry", table)
+    model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS))
+    kw: dict[str, Any] = {"model": model}
+    for k in [k for k in s.t if k in ("R", "B", "F", "O", "gain", "offset")]:
+        kw[k] = s.pop(k, None, float)
+    try:
+        return radiometrymod.from_mapping({**kw, **s.t})  # left-over keys: named as unknown there
+    except radiometrymod.RadiometryError as e:
+        raise ConfigError(f"{path}: radiometry.{e.field}: {e.problem}") from None
+
+
+def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
+    """The [radiometry] table of a TOML file (a full configuration or a small model file), validated as in
+    `load`; None when the file has no such table or says model = "none"."""
+    p = Path(path)
+    raw = _read_toml(p)
+    return _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
 
 
 # ------------------------------------------------------------------------------ entry points
@@ -439,6 +474,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
         pipeline=_pipeline(path, top.t.pop("pipeline", {})),
         logging=_logging(path, top.t.pop("logging", {})),
         path=path,
+        radiometry=_radiometry(path, top.t.pop("radiometry", {})),
         rtsp=_rtsp(path, top.t.pop("rtsp", {})),
     )
     top.done()

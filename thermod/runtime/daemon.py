@@ -15,7 +15,7 @@ error or stall (no frame for ``max(1 s, 10 frame periods)``) restarts the camera
 back-off. Every state change is logged once and visible in the health message.
 
 Signals: SIGTERM/SIGINT → clean shutdown (< 2 s), exit 0. SIGHUP → re-read the configuration file
-and apply its calibration and deblur settings to the running pipeline (no frame dropped);
+and apply its calibration, deblur and radiometry settings to the running pipeline (no frame dropped);
 source/publish changes need a restart and are reported as such. A reload that fails for any reason
 keeps the running configuration and says why (log, ``health["reload"]``).
 
@@ -114,7 +114,8 @@ class Daemon:
 
     def _on_frame(self, f) -> None:
         try:
-            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before)
+            self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before,
+                                  ffc=getattr(f, "ffc", False))
         except ValueError as e:
             self.counters["frames_wrong_shape"] += 1
             raise DeviceError(f"{self.camera_state.name}: {e} (calibration.width/height)") from None
@@ -131,6 +132,13 @@ class Daemon:
                                      kernel_size=o.kernel_size, kernel_extent_px=o.kernel_extent_px,
                                      coverage=o.coverage, reason=o.reason, copy=False, n_samples=o.n_samples,
                                      latency_s=o.latency_s, camera_gap_before=o.camera_gap_before)
+        if self.cfg.publish.kernel and o.kernel is not None:
+            self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)
+        if (rad := self.cfg.radiometry) is not None:  # after deblurring: counts are linear in flux, °C not
+            self.publisher.publish("celsius", {"t": float(o.t), "frame_id": int(o.frame_id),
+                                               "deblurred": bool(o.deblurred),
+                                               "radiometry": rad.as_dict()},
+                                   rad.to_celsius(o.image), copy=False)
         if self.rtsp is not None:
             self.rtsp.offer(o.image, o.t, o.frame_id)
 
@@ -213,7 +221,8 @@ class Daemon:
         if restart_needed:
             log.warning("reload: changes to %s need a restart; applied calibration and deblur only",
                         ", ".join(restart_needed))
-        self.cfg = dataclasses.replace(self.cfg, calibration=new.calibration, deblur=new.deblur)
+        self.cfg = dataclasses.replace(self.cfg, calibration=new.calibration, deblur=new.deblur,
+                                       radiometry=new.radiometry)
         self.counters["reloads"] += 1
         self.reload_status = {"ok": True, "error": None, "at": now, "restart_needed": restart_needed}
         log.info("reloaded calibration and deblur settings from %s", new.path)

@@ -81,6 +81,9 @@ class Health:
             clk = source_clock(src)
             if clk is not None:
                 clocks[role] = clk
+        # flat-field corrections the pipeline saw (frames the camera flagged); their frames and those
+        # of the settle time after each are under drops.passthrough_ffc
+        devices["camera"]["ffc_events"] = pc.get("ffc_events", 0)
         return {
             "rates": dict(self.rates), "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
             "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},

@@ -13,6 +13,9 @@ For every frame k read at t_k (camera clock) the scheduler
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
 ``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
 
+- the camera runs a flat-field correction (shutter closed, NUC update: `FrameSlot.ffc`), or the frame's
+  kernel window reaches back into one, or the detector is still settling after it (``ffc_settle_s``)
+  → ``ffc`` (see `Pipeline._ffc_hold`);
 - gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``;
 - a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
 - job queue full → the OLDEST job is dropped (``overload``) and its frame passed through;
@@ -44,7 +47,7 @@ from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 
 log = logging.getLogger(__name__)
 
-REASONS = ("disabled", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
+REASONS = ("disabled", "ffc", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
            "worker_error")
 
 
@@ -65,6 +68,7 @@ class FrameOut:
     n_samples: int = 0
     camera_gap_before: int = 0
     t_done: float = 0.0             # host monotonic when released
+    kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
 
     @property
     def latency_s(self) -> float:
@@ -188,6 +192,8 @@ class Pipeline:
         self.counters = collections.Counter()
         self._count_lock = threading.Lock()
         self._prebuilt: list = []
+        self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
+        self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
 
     # ------------------------------------------------------------------ lifecycle
     def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0) -> float:
@@ -317,6 +323,9 @@ class Pipeline:
         if not s.deblur.enabled:
             self._passthrough(slot, "disabled", {})
             return
+        if self._ffc_hold(slot, s):
+            self._passthrough(slot, "ffc", {})
+            return
         t0_cam, t1_cam = kernel_window(s.calib, s.deblur, slot.t)
         off = s.calib.time_offset_s
         if self.gyro_online:
@@ -342,6 +351,28 @@ class Pipeline:
             self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
             return
         self._enqueue(_Job(slot, kernel, info, s.generation))
+
+    def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
+        """Whether a frame must pass through because of a flat-field correction (FFC).
+
+        During an FFC the camera repeats a frozen frame (or shows its shutter) and then steps to a new
+        NUC: the detector state is not the IIR model's (Eq. 10) over that stretch, so no kernel may
+        span it. A frame is held when the camera flags it, when its kernel window
+        (t − m·τ − readout, t] reaches back to the last flagged frame, or when it was read less than
+        ``ffc_settle_s`` (default m·τ) after that frame. Frames arrive in order (one scheduler thread).
+        """
+        if slot.ffc:
+            if not self._in_ffc:
+                self._in_ffc = True
+                self._count("ffc_events", 1)
+            self._ffc_last_t = slot.t
+            return True
+        self._in_ffc = False
+        if self._ffc_last_t is None:
+            return False
+        settle = s.deblur.ffc_settle_s if s.deblur.ffc_settle_s is not None else s.deblur.m * s.calib.tau_s
+        window_start, _ = kernel_window(s.calib, s.deblur, slot.t)
+        return window_start <= self._ffc_last_t or slot.t - self._ffc_last_t < settle
 
     def _enqueue(self, job: _Job) -> None:
         dropped = None
@@ -393,14 +424,16 @@ class Pipeline:
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
-            self._complete(self._out(job.slot, out, True, None, job.info))
+            self._complete(self._out(job.slot, out, True, None, job.info, job.kernel))
 
     # ------------------------------------------------------------------ output (in order)
-    def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict) -> FrameOut:
+    def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict,
+             kernel=None) -> FrameOut:
         return FrameOut(index=slot.index, image=image, t=slot.t, frame_id=slot.frame_id, arrival=slot.arrival,
                         deblurred=deblurred, reason=reason, kernel_size=info.get("kernel_size"),
                         kernel_extent_px=info.get("kernel_extent_px"), coverage=info.get("coverage"),
-                        n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before)
+                        n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before,
+                        kernel=kernel)
 
     def _passthrough(self, slot: FrameSlot, reason: str, info: dict) -> None:
         self._count(f"passthrough_{reason}", 1)

@@ -63,13 +63,14 @@ from thermod.io.wire import (  # noqa: F401 - re-exported: the transport's users
     jsonable,
     nbytes,
     pack_gyro,
+    pack_kernel,
     wire_array,
 )
 
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
-DEFAULT_MAX_QUEUE_BYTES = 64 << 20
+DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 # The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
 # full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
 # dropped and counted until then.
@@ -415,6 +416,14 @@ class Publisher:
             raise ValueError(f"raw image must be uint16 [H, W], got {image.dtype} {image.shape}")
         header = dict(extra, t=float(t), frame_id=int(frame_id), deblurred=False)
         return self.publish("raw", header, image, copy=copy)
+
+    def publish_kernel(self, kernel, t: float, *, frame_id: int, **extra) -> int:
+        """The blur kernel a deblurred frame was deconvolved with (`thermod.io.wire.pack_kernel`):
+        float32 [kh, kw], or [rows, cols, kh, kw] for a grid; header ``origin``, ``extent_px``,
+        ``coverage``, and the frame's ``t`` and ``frame_id``."""
+        fields, weights = pack_kernel(kernel)
+        header = dict(extra, t=float(t), frame_id=int(frame_id), deblurred=False, **fields)
+        return self.publish("kernel", header, weights)
 
     def publish_gyro(self, t: np.ndarray, rate: np.ndarray, *, seq: int, gap_before: bool = False,
                      n_lost: int = 0, **extra) -> int | None:

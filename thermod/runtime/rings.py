@@ -195,6 +195,7 @@ class FrameSlot:
     frame_id: int
     arrival: float
     gap_before: int
+    ffc: bool = False    # the camera flagged a flat-field correction in progress
 
 
 class FrameRing:
@@ -213,6 +214,7 @@ class FrameRing:
         self._arrival = np.zeros(self.capacity)
         self._fid = np.zeros(self.capacity, np.int64)
         self._gapb = np.zeros(self.capacity, np.int64)
+        self._ffc = np.zeros(self.capacity, bool)
         self._head = 0
         self._claimed = 0
         self._cond = threading.Condition()
@@ -223,7 +225,8 @@ class FrameRing:
         """Absolute index of the next frame to be written (= frames written so far)."""
         return self._head
 
-    def write(self, image: np.ndarray, t: float, frame_id: int, arrival: float, gap_before: int = 0) -> int:
+    def write(self, image: np.ndarray, t: float, frame_id: int, arrival: float, gap_before: int = 0,
+              ffc: bool = False) -> int:
         """Copy one frame in (single writer); returns its absolute index. Wrong shape → ValueError."""
         if image.shape != self.shape:
             raise ValueError(f"frame shape {image.shape} does not match the ring's {self.shape}")
@@ -232,6 +235,7 @@ class FrameRing:
         self._claimed = h + 1
         np.copyto(self._img[s], image, casting="unsafe")
         self._t[s], self._arrival[s], self._fid[s], self._gapb[s] = t, arrival, frame_id, gap_before
+        self._ffc[s] = bool(ffc)
         self._head = h + 1
         self.frames_written += 1
         with self._cond:
@@ -255,7 +259,7 @@ class FrameRing:
             s = index % self.capacity
             img = self._img[s].copy()
             slot = FrameSlot(index, img, float(self._t[s]), int(self._fid[s]), float(self._arrival[s]),
-                             int(self._gapb[s]))
+                             int(self._gapb[s]), bool(self._ffc[s]))
             if self._claimed - self.capacity <= index:
                 return slot
         return max(0, self._claimed - self.capacity)

@@ -149,7 +149,8 @@ def _aravis(cfg, payload):
         where = {"device_id": c.device}
     return AravisCamera(**where, width=cfg.calibration.width, height=cfg.calibration.height,
                         frame_rate_hz=o["frame_rate_hz"] or None, pixel_formats=(o["pixel_format"],),
-                        packet_size=o["packet_size"] or None, stall_timeout_s=o["stream_timeout_s"])
+                        packet_size=o["packet_size"] or None, stall_timeout_s=o["stream_timeout_s"],
+                        ffc_feature=o["ffc_feature"] or None)
 
 
 def _v4l2(cfg, payload):
@@ -158,6 +159,7 @@ def _v4l2(cfg, payload):
     return V4L2Camera(cfg.camera.device, width=o["width"], height=o["height"], fourcc=o["fourcc"],
                       frame_rate_hz=o["frame_rate_hz"] or None,
                       telemetry_rows=(o["telemetry_top"], o["telemetry_bottom"]),
+                      telemetry=None if o["telemetry"] == "none" else o["telemetry"],
                       timestamp_clock=o["timestamp_clock"], timestamp_offset_s=o["timestamp_offset_s"])
 
 
@@ -212,13 +214,17 @@ CAMERAS: Mapping[str, Driver] = _table(
     Driver("aravis", "id", {"pixel_format": Option(str, "Mono16", choices=("Mono16", "Mono14", "Mono12")),
                             "packet_size": Option(int, 0, 0, 9000),
                             "frame_rate_hz": Option(float, 0.0, 0.0, 1000.0),
-                            "stream_timeout_s": Option(float, 1.0, 0.01, 60.0)}, _aravis),
+                            "stream_timeout_s": Option(float, 1.0, 0.01, 60.0),
+                            # GenICam feature reporting a flat-field correction; "" = a known name
+                            "ffc_feature": Option(str, "")}, _aravis),
     Driver("v4l2", "device file", {"width": Option(int, 640, 1, 8192), "height": Option(int, 480, 1, 8192),
                                    "fourcc": Option(str, "Y16 "),
                                    "frame_rate_hz": Option(float, 0.0, 0.0, 1000.0),
                                    # rows the camera adds to each image (FLIR Boson telemetry: 2), stripped
                                    "telemetry_top": Option(int, 0, 0, 64),
                                    "telemetry_bottom": Option(int, 0, 0, 64),
+                                   # what the telemetry rows hold: Boson (FFC state read), or none
+                                   "telemetry": Option(str, "boson", choices=("boson", "none")),
                                    "timestamp_clock": Option(str, "auto",
                                                              choices=("auto", "monotonic", "device")),
                                    "timestamp_offset_s": Option(float, 0.0, -1.0, 1.0)}, _v4l2),

@@ -1,0 +1,70 @@
+"""Model-discrepancy workflow: which effect is missing from the calibration, and how large is it?
+
+`thermod discrepancy REC.h5 [REC2.h5 …] --out DIR [--config model.toml]`
+
+A recording made by the payload starts with a static segment (the gyro reads ≈ its bias) followed
+by motion. The workflow
+
+1. builds a **reference scene** from the static frames (their mean: the detector is settled and the
+   camera still, so this is the sharp view, with the static optical PSF and the fixed-pattern noise);
+2. **predicts** every motion frame from the reference, the raw gyro and the current model with
+   `thermod.calib.forward.ForwardModel` (Eq. 16 homographies, Eq. 10/11 thermal IIR at sub-pixel steps,
+   rolling readout, extra Gaussian PSF) at a reduced working resolution;
+3. measures the **gap**: ``gap = ‖measured − predicted‖ / ‖measured − reference‖`` over the pixels
+   valid in every view (1 = the model explains nothing of the motion signal, 0 = everything), with
+   the **noise floor** the gap a perfect model would leave, from the static frames' temporal noise;
+4. fits each **candidate effect** (time_offset, rolling_readout, gyro_bias, gyro_scale,
+   misalignment, time_constant, optical_psf): coarse search, then bounded refinement. A candidate is
+   accepted only if its BIC gain on *effective* independent residual samples (pixel correlation
+   measured from the residual's autocorrelation) is decisive and it removes a sizeable fraction of
+   the gap's excess over the noise floor; the best one is added to the model, the effects named
+   before it are refitted with it in place (they may have absorbed part of it), and the loop repeats;
+   the gyro bias also uses the static segment's mean raw rate as a prior (a direct measurement);
+5. says ``unexplained: true`` when the remaining residual is still well above the noise floor but no
+   candidate explains it, rather than naming a wrong effect.
+
+Fixed-pattern noise (FPN) sits still on the sensor while the scene moves, so it is estimated as the
+temporal mean of the motion residual and added back to every prediction (and removed from the
+reference before warping). The optical PSF of the static frames is in the reference already: the
+`optical_psf` candidate fits the *extra* blur σ_e of motion frames and reports the model's Eq. 19 σ
+as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one). A PSF that static and
+moving frames share is therefore *unobservable* from this comparison — the workflow leaves it alone.
+Parameters the motion does not excite (a gyro axis that barely turns; misalignment directions about
+the only rotation axis) are not fitted and are listed under `unobservable`.
+
+The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
+signal on simulator data) is allowed for by `model_tol` in both the search and the verdict.
+
+Layout: `data` (model, recording preparation, size guards), `problem` (cost, noise, step
+context), `effects` (one `Effect` record per candidate), `diagnostics`, `analysis` (the search),
+`report` (outputs).
+
+Outputs: DIR/report.json, DIR/report.md, DIR/model.toml and PNG figures (residual maps before and
+after every step, gap per step, the diagnostic panel that pointed at each effect).
+"""
+
+from thermod.calib.discrepancy.analysis import Analysis, Candidate, Criteria, analyse
+from thermod.calib.discrepancy.data import MAX_GYRO_RATE_RAD_S, Model, RecData, detect_static, prepare
+from thermod.calib.discrepancy.diagnostics import diagnostics
+from thermod.calib.discrepancy.effects import (
+    CANDIDATES,
+    EFFECTS,
+    Effect,
+    FitResult,
+    fit_gyro_bias,
+    fit_optical_psf,
+    static_bias_prior,
+)
+from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, effective_area
+from thermod.calib.discrepancy.report import (
+    calibration_toml,
+    format_params,
+    replace_calibration_table,
+    write_report,
+)
+
+__all__ = ["CANDIDATES", "EFFECTS", "MAX_GYRO_RATE_RAD_S", "Analysis", "Candidate", "Criteria", "Effect",
+           "Evaluation", "FitResult", "Model", "Problem", "RecData", "StepContext", "analyse",
+           "calibration_toml", "detect_static", "diagnostics", "effective_area", "fit_gyro_bias",
+           "fit_optical_psf", "format_params", "prepare", "replace_calibration_table", "static_bias_prior",
+           "write_report"]

@@ -1,0 +1,281 @@
+"""The candidate effects, one `Effect` record each: its fit, the diagnostic panel that points at it,
+the calibration fields it owns and how its values read from a model (its merge into the calibration).
+
+Every fit takes the step's `StepContext` and the current `Model` and returns a `FitResult` whose
+model has the effect merged in: a coarse search, then a bounded refinement.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from thermod.calib.discrepancy.data import Model
+from thermod.calib.discrepancy.problem import StepContext
+from thermod.physics.geometry import so3_log
+
+
+@dataclass
+class FitResult:
+    effect: str
+    model: Model
+    ssr: float
+    unobservable: list = field(default_factory=list)
+    n_params: int = 1
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One candidate effect.
+
+    fit(ctx, model) -> FitResult: the model with the effect fitted in.
+    diagnostic: the panel of `diagnostics` that shows it (the figure highlights it).
+    fields: the calibration (or `Model`) fields it changes.
+    values(model, nominal) -> dict: its parameters as they stand in `model` (what the report says
+    and what goes into model.toml), relative to `nominal` where the field composes (misalignment).
+    """
+
+    name: str
+    fit: Callable[[StepContext, Model], FitResult]
+    diagnostic: str
+    fields: tuple[str, ...]
+    values: Callable[[Model, Model], dict]
+
+
+# ----------------------------------------------------------------------------------------- search
+def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width):
+    """Coarse grid then bounded Brent refinement of a one-parameter family `make(x) -> Model`."""
+    def cost(x):
+        return ctx.problem.evaluate(make(x)).ssr
+
+    costs = [cost(x) for x in grid]
+    i = int(np.argmin(costs))
+    a = max(lo, grid[max(i - 1, 0)] if refine_width is None else grid[i] - refine_width)
+    b = min(hi, grid[min(i + 1, len(grid) - 1)] if refine_width is None else grid[i] + refine_width)
+    if b <= a:
+        return grid[i], costs[i]
+    res = optimize.minimize_scalar(cost, bounds=(a, b), method="bounded",
+                                   options={"xatol": (b - a) * 2e-3, "maxiter": 15})
+    if res.fun < costs[i]:
+        return float(res.x), float(res.fun)
+    return float(grid[i]), float(costs[i])
+
+
+def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: float = 0.25, prior=None):
+    """Levenberg–Marquardt on the residual vector from the best of several starts (x in `unit`s).
+
+    The Jacobian is a forward difference with a step of `h` units: the forward model is only
+    smooth down to its resampling precision, so steps must move the image by a good fraction of
+    a pixel, not by float rounding. `prior` = (x_p, w): an independent measurement x_p of x with
+    weight w (SSR units per unit²) appended as extra residuals √w (x − x_p). Returns the fitted
+    parameters and the image SSR alone (what the selection compares).
+    """
+    problem = ctx.problem
+
+    def residuals(x):
+        p = np.zeros(0) if prior is None else np.sqrt(prior[1]) * (x - prior[0])
+        return np.concatenate([problem.residual_vector(make(x * unit)), p])
+
+    def cost(x):
+        r = residuals(x)
+        return float(r @ r)
+
+    x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
+    lam = 1e-3
+    for _ in range(iters if len(x) else 0):
+        r0 = residuals(x)
+        J = np.empty((len(r0), len(x)))
+        for i in range(len(x)):
+            e = np.zeros(len(x))
+            e[i] = h if x[i] + h <= bound else -h
+            J[:, i] = (residuals(x + e) - r0) / e[i]
+        x, step, lam = _lm_step(J, r0, x, cost, bound, lam)
+        if step is None or np.max(np.abs(step)) < 0.02:
+            break
+    return x * unit, problem.evaluate(make(x * unit)).ssr
+
+
+def _lm_step(J, r0, x, cost, bound, lam: float):
+    """One damped Gauss–Newton step that lowers the cost: (new x, step, λ), or (x, None, λ)."""
+    c0 = float(r0 @ r0)
+    g, A = J.T @ r0, J.T @ J
+    for _ in range(4):
+        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
+        xn = np.clip(x + step, -bound, bound)
+        if cost(xn) < c0:
+            return xn, step, lam / 3
+        lam *= 10
+    return x, None, lam
+
+
+def _with(model: Model, **changes) -> Model:
+    return Model(model.calib.replace(**changes), model.extra_psf_px)
+
+
+# ----------------------------------------------------------------------------------------- fits
+def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) -> FitResult:
+    t0 = model.calib.time_offset_s
+    grid = t0 + np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
+
+    def make(x):
+        return _with(model, time_offset_s=float(x))
+    x, ssr = _scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005)
+    return FitResult("time_offset", make(x), ssr)
+
+
+def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
+    """Readout time T_ro ∈ [0, frame period]. Rows are read T_ro/2 early on average, so a time offset
+    fitted before the readout has absorbed that shift: once `time_offset` is in the model the readout is
+    also tried with the offset moved by −ΔT_ro/2 (mid-frame timing kept), and the better one is kept."""
+    c0 = model.calib
+    hi = 1.0 / c0.frame_rate_hz
+    grid = np.linspace(0.0, hi, 11)
+
+    def make(x):
+        return _with(model, readout_s=float(x))
+
+    def make_centred(x):
+        offset = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
+        return _with(model, readout_s=float(x), time_offset_s=offset)
+
+    x, ssr = _scalar_fit(ctx, make, grid, 0.0, hi, None)
+    best = FitResult("rolling_readout", make(x), ssr)
+    if "time_offset" in ctx.named:
+        xc, ssrc = _scalar_fit(ctx, make_centred, grid, 0.0, hi, None)
+        if ssrc < ssr:
+            best = FitResult("rolling_readout", make_centred(xc), ssrc)
+    return best
+
+
+def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
+    tau = model.calib.tau_s
+    lo, hi = math.log(tau / 3.0), math.log(tau * 3.0)
+
+    def make(x):
+        return _with(model, tau_s=float(math.exp(x)))
+    x, ssr = _scalar_fit(ctx, make, np.linspace(lo, hi, 13), lo, hi, None)
+    return FitResult("time_constant", make(x), ssr)
+
+
+def fit_optical_psf(ctx: StepContext, model: Model, max_sigma_px: float = 3.0) -> FitResult:
+    """Extra Gaussian blur σ_e of the motion frames beyond the static ones (adds in quadrature)."""
+    def make(x):
+        return Model(model.calib, float(math.hypot(model.extra_psf_px, x)))
+    x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_sigma_px, 13), 0.0, max_sigma_px, None)
+    return FitResult("optical_psf", make(x), ssr)
+
+
+def _axis_observable(recs, min_rms=0.0175, rel=0.1):
+    """Gyro axes whose motion RMS (rad/s) is ≥ min_rms (1 °/s) and ≥ rel × the strongest axis."""
+    rms = np.sqrt(np.mean([d.motion_rms_rad_s**2 for d in recs], axis=0))
+    return (rms >= min_rms) & (rms >= rel * rms.max())
+
+
+def static_bias_prior(ctx: StepContext, b0, unit: float, bias_stability_rad_s: float):
+    """The static segments' mean raw rate as a measurement of the bias (in `unit`s relative to b0)
+    with its weight on the image χ² scale, or None when no recording has a static mean."""
+    sm = [d.static_gyro_mean for d in ctx.recs if d.static_gyro_mean is not None]
+    if not sm:
+        return None
+    xs = (np.mean(sm, axis=0) - b0) / unit
+    sem = [d.static_gyro_sem for d in ctx.recs if d.static_gyro_sem is not None]
+    sem = np.sqrt(np.mean(np.square(sem), axis=0) / len(sem)) if sem else np.zeros(3)
+    sigma = np.sqrt(sem**2 + bias_stability_rad_s**2) / unit
+    return xs, ctx.chi2_scale / sigma**2
+
+
+def fit_gyro_bias(ctx: StepContext, model: Model, bias_stability_rad_s: float = math.radians(0.05),
+                  use_static_prior: bool = True) -> FitResult:
+    """Bias: the static segment measures it directly (the camera is still, the gyro reads its bias),
+    so its mean enters as a prior with its standard error ⊕ `bias_stability_rad_s` (drift between
+    the static and the moving part); the images refine it. The prior's weight puts both on the
+    same χ² scale: image SSR / (residual variance × pixels per independent sample)."""
+    b0 = np.asarray(model.calib.bias_rad_s, float)
+    unit = math.radians(0.2)
+    prior = static_bias_prior(ctx, b0, unit, bias_stability_rad_s) if use_static_prior else None
+    starts = [np.zeros(3)] + ([prior[0]] if prior is not None else [])
+
+    def make(x):
+        return _with(model, bias_rad_s=tuple(float(v) for v in b0 + x))
+    x, ssr = _vector_fit(ctx, make, starts, unit, bound=100.0, prior=prior)   # ±20 °/s
+    return FitResult("gyro_bias", make(x), ssr, n_params=3)
+
+
+def fit_gyro_scale(ctx: StepContext, model: Model, bic_min: float = 10.0) -> FitResult:
+    """Scale factor: one common factor first, per-axis factors only if the BIC on effective samples
+    prefers the two extra parameters (Occam: a common error is the usual case and the per-axis fit of
+    a weakly excited axis, typically roll, is noisy). Axes the motion barely excites are not fitted."""
+    s0 = model.calib.scale_vector
+    obs = _axis_observable(ctx.recs)
+    idx = np.flatnonzero(obs)
+    unit = 0.01
+    un = [f"scale[{a}]" for a in range(3) if not obs[a]]
+
+    def make(x):     # one common factor when x has one element, else one per observable axis
+        s = s0.copy()
+        s[idx] = s0[idx] * (1.0 + np.asarray(x, float))
+        return _with(model, scale=tuple(float(v) for v in s))
+
+    if len(idx) == 0:
+        return FitResult("gyro_scale", model, ctx.problem.evaluate(model).ssr, unobservable=un, n_params=0)
+    x1, ssr1 = _vector_fit(ctx, make, [np.zeros(1)], unit, bound=20.0)
+    best = FitResult("gyro_scale", make(x1), ssr1, unobservable=un, n_params=1)
+    if len(idx) > 1:
+        x3, ssr3 = _vector_fit(ctx, make, [np.full(len(idx), x1[0] / unit)], unit, bound=20.0)
+        if ctx.delta_bic(ssr1, ssr3, len(idx) - 1) > bic_min and ssr1 - ssr3 >= ctx.min_gain:
+            best = FitResult("gyro_scale", make(x3), ssr3, unobservable=un, n_params=len(idx))
+    return best
+
+
+def fit_misalignment(ctx: StepContext, model: Model) -> FitResult:
+    """Extra camera-side rotation δ: ω_cam' = exp(δ) ω_cam. Only directions the motion excites are fitted:
+    Δω ≈ δ × ω, whose information matrix Σ(|ω|² I − ω ωᵀ) is singular for single-axis motion."""
+    c0 = model.calib
+    M = np.zeros((3, 3))
+    for d in ctx.recs:
+        _, w = c0.gyro_to_camera(d.gyro_t, d.gyro_rate)
+        w = w[d.gyro_t + c0.time_offset_s > d.t_onset]
+        M += np.sum(w**2) * np.eye(3) - w.T @ w
+    ev, evec = np.linalg.eigh(M)
+    keep = ev > 0.05 * max(ev.max(), 1e-12)
+    basis = evec[:, keep]
+
+    def make(x):
+        return Model(c0.with_misalignment(basis @ np.asarray(x)), model.extra_psf_px)
+    x, ssr = _vector_fit(ctx, make, [np.zeros(basis.shape[1])], math.radians(0.5), bound=20.0)   # ±10°
+    un = [f"rotation about {np.round(evec[:, i], 2).tolist()}" for i in np.flatnonzero(~keep)]
+    return FitResult("misalignment", make(x), ssr, unobservable=un, n_params=int(keep.sum()))
+
+
+# ----------------------------------------------------------------------------------------- registry
+def _calib_values(*keys):
+    def values(model: Model, nominal: Model) -> dict:
+        return {k: getattr(model.calib, k) for k in keys}
+    return values
+
+
+def _misalignment_values(model: Model, nominal: Model) -> dict:
+    R, R0 = model.calib.R_cam_gyro_matrix, nominal.calib.R_cam_gyro_matrix
+    return {"rotvec_rad": so3_log(R @ R0.T).tolist()}
+
+
+def _psf_values(model: Model, nominal: Model) -> dict:
+    return {"psf_sigma_px": model.final_calibration().psf_sigma_px, "extra_sigma_px": model.extra_psf_px}
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Effect("time_offset", fit_time_offset, "lag", ("time_offset_s",), _calib_values("time_offset_s")),
+    Effect("rolling_readout", fit_rolling_readout, "row", ("readout_s", "time_offset_s"),
+           _calib_values("readout_s", "time_offset_s")),
+    Effect("gyro_bias", fit_gyro_bias, "time", ("bias_rad_s",), _calib_values("bias_rad_s")),
+    Effect("gyro_scale", fit_gyro_scale, "rate", ("scale",), _calib_values("scale")),
+    Effect("misalignment", fit_misalignment, "rate", ("R_cam_gyro",), _misalignment_values),
+    Effect("time_constant", fit_time_constant, "accel", ("tau_s",), _calib_values("tau_s")),
+    Effect("optical_psf", fit_optical_psf, "spectrum", ("psf_beta",), _psf_values),
+)}
+
+CANDIDATES = tuple(EFFECTS)
