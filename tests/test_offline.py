@@ -259,6 +259,43 @@ def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == ["blocked.h5", "good0.h5", "good1.h5", "zero_scale.h5"]
 
 
+def test_celsius_batch_converts_each_recording_with_its_own_model(tmp_path, capsys):
+    """--celsius in a batch: each recording's /radiometry model, a passed-through frame's raw counts
+    converted; a recording without a model fails alone, before any output of it is written."""
+    from thermod.physics.radiometry import RECORDING_GROUP, Linear
+
+    models = [Linear(gain=0.01, offset=-5.0), Linear(gain=-0.002, offset=40.0)]
+    tagged = []
+    for i, model in enumerate(models):
+        rec = recording.read(tiny(tmp_path / f"plain{i}.h5", seed=i))
+        rec.extra_attrs = {RECORDING_GROUP: model.as_dict()}
+        if i == 1:      # gyro from 25 ms before frame 0: it lacks its m·τ = 40 ms of history, frame 1 has it
+            keep = rec.gyro_t > rec.t[0] - 0.025
+            rec.gyro_t, rec.gyro_rate = rec.gyro_t[keep], rec.gyro_rate[keep]
+        tagged.append(tmp_path / f"t{i}.h5")
+        recording.write(tagged[-1], rec)
+    bare = tiny(tmp_path / "bare.h5", seed=7)
+    out = tmp_path / "out"
+    rc, _, err = deblur(capsys, tagged[0], bare, tagged[1], "-o", out, "--celsius", "--uniform",
+                        "--method", "wiener")
+    assert rc == 2
+    assert f"{bare}: /radiometry: no attributes, and --celsius needs a radiometric model" in err
+    assert err.strip().splitlines()[-1] == f"thermod deblur: 1 of 3 file(s) failed: {bare}"
+    assert sorted(p.name for p in out.iterdir()) == ["t0.h5", "t1.h5"]
+    for src, model, expect_ok in zip(tagged, models, ([True] * 6, [False] + [True] * 5), strict=True):
+        with h5py.File(out / src.name) as f:
+            raw, deb = f["camera/frames"][()], f["deblurred/frames"][()]
+            ok, c = f["deblurred/deblurred"][()], f["deblurred/celsius"][()]
+            attrs = dict(f["deblurred/celsius"].attrs)
+            assert dict(f[RECORDING_GROUP].attrs) == model.as_dict()      # the input's, kept
+        assert ok.tolist() == expect_ok
+        assert c.dtype == np.float32 and c.shape == raw.shape == (6, 48, 64)
+        np.testing.assert_array_equal(c, model.to_celsius(deb))
+        np.testing.assert_array_equal(c[~ok], model.to_celsius(raw[~ok]))
+        assert not np.allclose(c[ok], model.to_celsius(raw[ok]), atol=1e-3)  # deblurred, then converted
+        assert attrs.pop("units") == "degC" and attrs == model.as_dict()
+
+
 def test_failed_single_file_keeps_the_previous_output(tmp_path, capsys):
     src = tiny(tmp_path / "a.h5")
     with h5py.File(src, "a") as f:

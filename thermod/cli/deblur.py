@@ -11,6 +11,11 @@ The output holds the input's /camera and /gyro (and any other datasets, e.g. /tr
 incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
 unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
 frames were deblurred and /deblurred/lambda (float64 [N]) the data weight each one used.
+With `--celsius`, /deblurred/celsius (float32 [N, H, W], °C; attrs units = "degC" and the model's
+keys) converts each frame of /deblurred/frames — the deblurred counts, or a passed-through frame's
+raw counts, as the daemon does — with a radiometric model (`thermod.physics.radiometry`):
+`--radiometry FILE`'s [radiometry] table, else `--config`'s, else the recording's own /radiometry
+attributes (same keys as the table). A recording with no model fails before any output is written.
 
 Frames are read, deblurred and written one at a time (memory does not grow with the recording),
 into ``OUT.h5.part``, renamed to ``OUT.h5`` only when complete: an existing output is never left
@@ -68,6 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, metavar="TOML",
                         help="take the calibration from this file's [calibration] table (e.g. the "
                              "model.toml of `thermod discrepancy`); keys it omits keep the recording's")
+    parser.add_argument("--celsius", action="store_true",
+                        help="also write /deblurred/celsius (float32 °C) converted after deblurring")
+    parser.add_argument("--radiometry", type=Path, default=None, metavar="TOML",
+                        help="the counts→°C model for --celsius (implies it): this file's [radiometry] table "
+                             "(default: --config's, else the recording's /radiometry attributes)")
     parser.add_argument("--min-coverage", type=float, default=d.min_coverage,
                         help=f"pass a frame through when its gyro window coverage is below this "
                              f"(default {d.min_coverage})")
@@ -114,6 +124,38 @@ def _outputs(inputs: list[Path], output: Path) -> list[Path]:
     return outs
 
 
+def command_radiometry(args):
+    """--celsius's model from the command line: --radiometry's table (which must hold one), else
+    --config's (optional); None leaves it to each recording's /radiometry attributes."""
+    from thermod.runtime.config import load_radiometry
+
+    if args.radiometry is not None:
+        model = load_radiometry(args.radiometry)
+        if model is None:
+            raise ThermodError(f"--radiometry {args.radiometry}: no [radiometry] table with model = 'planck' "
+                               "or 'linear'")
+        return model
+    return load_radiometry(args.config) if args.config is not None else None
+
+
+def _recording_radiometry(r: recording.Reader, src: Path):
+    """The recording's own model, from its /radiometry attributes; a RecordingError naming the file
+    when it has none."""
+    from thermod.physics import radiometry
+
+    attrs = r.group_attrs().get(radiometry.RECORDING_GROUP)
+    if not attrs:
+        raise RecordingError(src, "/radiometry", "no attributes, and --celsius needs a radiometric model: "
+                             "give --radiometry FILE (a [radiometry] table) or --config with one")
+    try:
+        model = radiometry.from_mapping(attrs)
+    except radiometry.RadiometryError as e:
+        raise RecordingError(src, f"radiometry.attrs['{e.field}']", e.problem) from None
+    if model is None:
+        raise RecordingError(src, "radiometry.attrs['model']", "is 'none': no model to convert with")
+    return model
+
+
 class OutputError(ThermodError):
     """The output of one file cannot be written (disk full, permissions, a directory in the way)."""
 
@@ -134,7 +176,9 @@ def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, 
         return None, str(e)
 
 
-def _deblur_file(src: Path, dst: Path, cfg: DeblurConfig, dec, bar, config: Path | None = None) -> dict:
+def _deblur_file(src: Path, dst: Path, cfg: DeblurConfig, dec, bar, config: Path | None = None,
+                 celsius: bool = False, model=None) -> dict:
+    """Deblur one recording into `dst`; with `celsius`, convert with `model` (None: the recording's)."""
     if dst.is_dir():
         raise OutputError(dst, "a directory is in the way")
     with recording.Reader(src) as r:
@@ -146,13 +190,15 @@ def _deblur_file(src: Path, dst: Path, cfg: DeblurConfig, dec, bar, config: Path
             if (calib.height, calib.width) != r.frame_shape:
                 raise ThermodError(f"{config}: calibration is {calib.width}×{calib.height} but {src} has "
                                    f"{r.frame_shape[1]}×{r.frame_shape[0]} frames")
+        if celsius and model is None:       # before any output is written
+            model = _recording_radiometry(r, src)
         try:
             writer = recording.Writer(dst)
         except RecordingError as e:
             raise OutputError(dst, e.problem) from None
         try:
             with writer:
-                return _deblur_stream(r, calib, src, writer, cfg, dec, bar)
+                return _deblur_stream(r, calib, src, writer, cfg, dec, bar, model)
         except OSError as e:   # output side: full disk, permissions, a directory in the way …
             raise OutputError(dst, e) from None
         except RecordingError as e:
@@ -162,13 +208,16 @@ def _deblur_file(src: Path, dst: Path, cfg: DeblurConfig, dec, bar, config: Path
 
 
 def _deblur_stream(r: recording.Reader, calib, src: Path, w: recording.Writer, cfg: DeblurConfig, dec,
-                   bar) -> dict:
+                   bar, model=None) -> dict:
     n, (h, w_px) = r.n_frames, r.frame_shape
     bar.total = (bar.total or 0) + n
     bar.refresh()
     w.reserve("camera/frames", n, (h, w_px), np.uint16)
     w.reserve("camera/t", n, (), np.float64)
     w.reserve("deblurred/frames", n, (h, w_px), np.float32)
+    if model is not None:
+        w.reserve("deblurred/celsius", n, (h, w_px), np.float32)
+        w.set_attrs("deblurred/celsius", {"units": "degC", **model.as_dict()})
     w.put("gyro/t", r.gyro_t)
     w.put("gyro/rate", r.gyro_rate)
     r.copy_extras_into(w.file)
@@ -190,6 +239,8 @@ def _deblur_stream(r: recording.Reader, calib, src: Path, w: recording.Writer, c
             ok[i] = True
             lams[i] = dec.last_lam
         w.append("deblurred/frames", out, np.float32)
+        if model is not None:     # °C after deblurring: counts, not temperatures, are linear in flux
+            w.append("deblurred/celsius", model.to_celsius(out), np.float32)
         bar.update(1)
     w.put("deblurred/t", r.t)
     w.put("deblurred/deblurred", ok)
@@ -209,6 +260,8 @@ def run(args) -> int:
     from thermod.physics.deconv import Deconvolver  # numba start-up only when deblurring
 
     cfg = deblur_config(args)
+    celsius = args.celsius or args.radiometry is not None
+    model = command_radiometry(args) if celsius else None
     outs = _outputs(list(args.inputs), args.output)
     # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
     dec = Deconvolver(method=cfg.method, alpha=cfg.alpha, lam=cfg.lam, cache_size=2)
@@ -217,7 +270,7 @@ def run(args) -> int:
     with tqdm(total=0, unit="frame", desc="thermod deblur", disable=None, file=sys.stderr) as bar:
         for src, dst in zip(args.inputs, outs, strict=True):
             try:
-                reports.append(_deblur_file(src, dst, cfg, dec, bar, args.config))
+                reports.append(_deblur_file(src, dst, cfg, dec, bar, args.config, celsius, model))
             except ThermodError as e:    # this file fails; the others go on
                 failed.append((src, str(e)))
             except Exception as e:       # noqa: BLE001 - a bug must not cost the rest of the batch

@@ -465,7 +465,10 @@ class Writer:
         self.file.create_dataset(name, data=data, chunks=chunks)
 
     def set_attrs(self, group: str, attrs: dict) -> None:
-        g = self.file.require_group(group)
+        """Attributes of a group (created if missing) or of a dataset already created."""
+        g = self.file.get(group)
+        if not isinstance(g, h5py.Dataset):
+            g = self.file.require_group(group)
         for k, v in attrs.items():
             g.attrs[k] = v
 
