@@ -19,6 +19,7 @@ absence is a `RtspError` naming the Debian packages to install.
 from __future__ import annotations
 
 import collections
+import ipaddress
 import logging
 import math
 import threading
@@ -145,6 +146,13 @@ def video_bytes(img: np.ndarray) -> bytes:
     rows = img.reshape(img.shape[0], -1)
     pad = -rows.shape[1] % 4
     return (np.pad(rows, ((0, 0), (0, pad))) if pad else rows).tobytes()
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def colormap_code(name: str) -> int | None:
@@ -370,6 +378,9 @@ class RtspServer:
         for th in self._threads:
             th.start()
         log.info("rtsp: serving %s (%s)", self.url, self.cfg.view)
+        if not _is_loopback(self.host):
+            log.warning("rtsp: %s is reachable from the network and RTSP has no authentication here: "
+                        "anyone who can reach it can watch", self.url)
 
     def _run_loop(self) -> None:
         self._ctx.push_thread_default()
