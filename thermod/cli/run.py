@@ -26,6 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--raw", action="store_true", help="also publish raw frames (publish.raw = true)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override any configuration key, e.g. --set deblur.method=wiener (repeatable)")
+    parser.add_argument("--rtsp", metavar="URL", help="serve the live view as H.264 over RTSP, e.g. "
+                        "rtsp://127.0.0.1:8554/thermal (rtsp.enabled = true, rtsp.url = URL)")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
 
 
@@ -35,6 +37,9 @@ def _overrides(args) -> dict:
         ov["publish.endpoint"] = args.endpoint
     if args.raw:
         ov["publish.raw"] = True
+    if args.rtsp:
+        ov["rtsp.enabled"] = True
+        ov["rtsp.url"] = args.rtsp
     return ov
 
 

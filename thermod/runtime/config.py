@@ -8,7 +8,8 @@ command-line settings get the same checks as the file.
 
 Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
 ``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
-``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default).
+``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default),
+``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`).
 """
 
 from __future__ import annotations
@@ -103,6 +104,21 @@ class PipelineConfig:
 
 
 @dataclass(frozen=True)
+class RtspConfig:
+    """``[rtsp]``: the live view served as H.264 over RTSP (`thermod.runtime.rtsp`)."""
+
+    enabled: bool = False
+    url: str = "rtsp://127.0.0.1:8554/thermal"
+    view: str = "deblurred"          # deblurred | raw | side_by_side (raw left, deblurred right)
+    agc_low_pct: float = 1.0         # percentile of the frame mapped to black
+    agc_high_pct: float = 99.0       # percentile mapped to white
+    agc_smoothing: float = 0.8       # weight of the previous frame's range: no brightness pumping
+    colormap: str = ""               # OpenCV colour map name (e.g. "inferno"), "" = grey
+    bitrate_kbps: int = 2000
+    key_int: int = 10                # frames between key frames: a new client's picture starts within this
+
+
+@dataclass(frozen=True)
 class LoggingConfig:
     level: str = "info"
 
@@ -119,6 +135,7 @@ class Config:
     logging: LoggingConfig
     path: str = "<defaults>"
     radiometry: radiometrymod.Radiometry | None = None   # counts → °C after deblurring; None = off
+    rtsp: RtspConfig = field(default_factory=RtspConfig)
 
     @property
     def uses_sim(self) -> bool:
@@ -368,6 +385,29 @@ def _sim(path: str, table: Any) -> SimConfig:
     return SimConfig(**kw)
 
 
+def _rtsp(path: str, table: Any) -> RtspConfig:
+    from thermod.runtime.rtsp import COLORMAPS, VIEWS, RtspError, parse_url
+    s = _Section(path, "rtsp", table)
+    d = RtspConfig()
+    url = s.pop("url", d.url, str)
+    try:
+        parse_url(url)
+    except RtspError as e:
+        raise ConfigError(f"{path}: rtsp.url: {e}") from None
+    kw = dict(enabled=s.pop("enabled", d.enabled, bool), url=url,
+              view=s.pop("view", d.view, str, choices=VIEWS),
+              agc_low_pct=s.pop("agc_low_pct", d.agc_low_pct, float, lo=0.0, hi=50.0),
+              agc_high_pct=s.pop("agc_high_pct", d.agc_high_pct, float, lo=50.0, hi=100.0),
+              agc_smoothing=s.pop("agc_smoothing", d.agc_smoothing, float, lo=0.0, hi=0.99),
+              colormap=s.pop("colormap", d.colormap, str, choices=COLORMAPS),
+              bitrate_kbps=s.pop("bitrate_kbps", d.bitrate_kbps, int, lo=50, hi=100_000),
+              key_int=s.pop("key_int", d.key_int, int, lo=1, hi=1000))
+    if kw["agc_low_pct"] >= kw["agc_high_pct"]:
+        raise s.fail("agc_high_pct", f"a value above agc_low_pct ({kw['agc_low_pct']})", kw["agc_high_pct"])
+    s.done()
+    return RtspConfig(**kw)
+
+
 def _logging(path: str, table: Any) -> LoggingConfig:
     s = _Section(path, "logging", table)
     lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
@@ -435,6 +475,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
         logging=_logging(path, top.t.pop("logging", {})),
         path=path,
         radiometry=_radiometry(path, top.t.pop("radiometry", {})),
+        rtsp=_rtsp(path, top.t.pop("rtsp", {})),
     )
     top.done()
     if cfg.uses_sim:

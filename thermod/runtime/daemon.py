@@ -46,7 +46,7 @@ log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
 # sections a running daemon cannot change: a reload that changes them is applied in part
-_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim")
+_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp")
 
 
 # ------------------------------------------------------------------------------------ the daemon
@@ -73,6 +73,11 @@ class Daemon:
                                   max_queue_bytes=int(p.max_queue_mb * 2**20),
                                   max_message_bytes=cfg.calibration.width * cfg.calibration.height * 4)
         self.publisher = publisher
+        self.rtsp = None     # the H.264 live view ([rtsp]); GStreamer is imported only when enabled
+        if cfg.rtsp.enabled:
+            from thermod.runtime.rtsp import RtspServer
+            self.rtsp = RtspServer(cfg.rtsp, cfg.calibration.width, cfg.calibration.height,
+                                   cfg.calibration.frame_rate_hz)
         if notifier is None:
             from thermod.runtime.sdnotify import Notifier
             notifier = Notifier()
@@ -119,6 +124,8 @@ class Daemon:
             self.counters["camera_frames_lost"] += int(f.gap_before)
         if self.cfg.publish.raw:
             self.publisher.publish_raw(f.image, f.t, frame_id=f.frame_id, gap_before=int(f.gap_before))
+        if self.rtsp is not None:
+            self.rtsp.offer_raw(f.image, f.t, f.frame_id)
 
     def _emit(self, o: FrameOut) -> None:
         self.publisher.publish_frame(o.image, o.t, frame_id=o.frame_id, deblurred=o.deblurred,
@@ -132,12 +139,16 @@ class Daemon:
                                                "deblurred": bool(o.deblurred),
                                                "radiometry": rad.as_dict()},
                                    rad.to_celsius(o.image), copy=False)
+        if self.rtsp is not None:
+            self.rtsp.offer(o.image, o.t, o.frame_id)
 
     # ---------------------------------------------------------------- lifecycle
     def start(self) -> None:
         cfg = self.cfg
         self.publisher.start()  # first: a taken endpoint fails here, before seconds of payload preparation
         log.info("publishing on %s", self.publisher.endpoint)
+        if self.rtsp is not None:
+            self.rtsp.start()     # a taken port fails here too
         if self.payload is not None:
             if not self.payload.cached():
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
@@ -178,6 +189,8 @@ class Daemon:
         if self.payload is not None:
             self.payload.stop()
         self.notifier.stopping("stopping")
+        if self.rtsp is not None:
+            self.rtsp.stop()
         try:
             self.publisher.stop()
         finally:

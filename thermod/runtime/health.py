@@ -91,6 +91,7 @@ class Health:
             "publisher": {k: pub[k] for k in PUBLISHER_KEYS if k in pub},
             "daemon": dict(d.counters),
             "reload": dict(d.reload_status),
+            "rtsp": d.rtsp.stats() if getattr(d, "rtsp", None) is not None else None,
         }
 
 
