@@ -17,7 +17,8 @@ $(STAMP): pyproject.toml
 	else echo "note: GObject introspection headers missing, GigE (Aravis) support not installed; run 'make debian-deps'"; fi
 	touch $@
 
-# Debian packages for GigE Vision (Aravis) and `systemd-analyze`; needs root (or sudo).
+# Debian packages: Aravis (GigE Vision), GStreamer RTSP server + x264 (thermod run --rtsp), and the real
+# clients the tests use (ffmpeg, Chromium, systemd-analyze); needs root (or sudo).
 debian-deps:
 	@missing=$$(for p in $(DEBIAN_PKGS); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	if [ -n "$$missing" ]; then \
