@@ -68,6 +68,11 @@ class CameraSource(abc.ABC):
     @abc.abstractmethod
     def stats(self) -> dict: ...
 
+    def radiometry(self):
+        """The camera's own counts → °C model (`thermod.physics.radiometry`), when it reports one (FLIR
+        cameras expose Planck constants over GenICam); None otherwise. Read once, when asked."""
+        return None
+
     def __enter__(self):
         self.start()
         return self

@@ -152,6 +152,9 @@ class SimCamera(CameraSource):
     """
 
     name = "sim camera"
+    # What the simulated camera reports as its Planck constants (as a FLIR camera does over GenICam):
+    # chosen so that the simulated scenes' counts (≈ 17 000–19 000) read as ≈ 20–30 °C.
+    PLANCK = {"R": 3.4e5, "B": 1428.0, "F": 1.0, "O": 15000.0}
 
     def __init__(self, payload: SimPayload, *, latency_s: float = 0.002, drift_ppm: float = 20.0):
         self.p = payload
@@ -218,6 +221,11 @@ class SimCamera(CameraSource):
     def clock(self):
         """The emulated camera's device-clock → host mapping (its fit residuals go into health)."""
         return None if self.emu is None else self.emu.clock
+
+    def radiometry(self):
+        from thermod.physics.radiometry import Planck
+
+        return Planck(**self.PLANCK)
 
     def stats(self) -> dict:
         return {**(self.emu.stats() if self.emu is not None else {}), **self.counters}

@@ -167,16 +167,23 @@ def _free_port() -> int:
 
 
 @pytest.mark.slow
-def test_daemon_publishes_celsius_next_to_each_frame():
+@pytest.mark.parametrize("source", ["config", "camera"])
+def test_daemon_publishes_celsius_next_to_each_frame(source):
+    """With Planck constants from the configuration, or (model = "camera") the ones the camera reports:
+    the simulated camera reports its own, as a FLIR camera does over GenICam."""
     from thermod.runtime.daemon import Daemon
     from thermod.runtime.publish import Subscriber
     from thermod.runtime.sdnotify import Notifier
+    from thermod.sim.payload import SimCamera
 
     ep = f"tcp://127.0.0.1:{_free_port()}"
     # the simulated payload's counts are ~17 850 (real scene; 17 200–18 900 procedural): near 25 °C
-    consts = dict(R=3.4e5, B=1428.0, F=1.0, O=15000.0)
-    overrides = {"publish.endpoint": ep, "deblur.method": "wiener", "radiometry.model": "planck",
-                 **{f"radiometry.{k}": v for k, v in consts.items()}}
+    consts = dict(R=3.4e5, B=1428.0, F=1.0, O=15000.0) if source == "config" else dict(SimCamera.PLANCK)
+    overrides = {"publish.endpoint": ep, "deblur.method": "wiener"}
+    if source == "config":
+        overrides |= {"radiometry.model": "planck", **{f"radiometry.{k}": v for k, v in consts.items()}}
+    else:
+        overrides |= {"radiometry.model": "camera"}
     cfg = config.load(None, overrides)
     d = Daemon(cfg, notifier=Notifier(None, env={}), overrides=overrides)
     frames, celsius = {}, {}
@@ -193,9 +200,11 @@ def test_daemon_publishes_celsius_next_to_each_frame():
                     topic, header, array = m[:3]
                     (frames if topic == "frame" else celsius)[header["frame_id"]] = (header, np.array(array))
             gaps = dict(sub.gaps)
+        health = d.health()
     finally:
         stop.set()
         d.stop()
+    assert health["radiometry"] == {"source": source, "model": {"model": "planck", **consts}}
     both = sorted(set(frames) & set(celsius))
     assert len(both) >= 20, (len(frames), len(celsius))
     assert not any(gaps.values()), gaps
@@ -286,3 +295,38 @@ def test_sighup_reload_applies_a_new_radiometry_model(tmp_path):
     p.write_text(p.read_text().replace("gain = 0.1", "gain = 0"))        # refused: keeps the running model
     assert not d.reload() and d.cfg.radiometry == Linear(0.1, -273.15)
     assert "radiometry.gain" in d.reload_status["error"]
+
+
+def test_camera_model_needs_a_live_camera(tmp_path):
+    p = tmp_path / "m.toml"
+    p.write_text('[radiometry]\nmodel = "camera"\n')
+    with pytest.raises(ConfigError, match=r"m\.toml: radiometry\.model: 'camera' needs a live camera"):
+        config.load_radiometry(p)
+    p.write_text('[radiometry]\nmodel = "camera"\nR = 1.0\n')
+    with pytest.raises(ConfigError, match=r"m\.toml: .*R"):
+        config.load_radiometry(p)
+
+
+def test_a_camera_without_constants_converts_nothing_and_says_so(small_rec, tmp_path):
+    """The replay camera (a real driver) reports no constants: no °C, and health says the model is None."""
+    from thermod.runtime.daemon import Daemon
+    from thermod.runtime.sdnotify import Notifier
+
+    src, _ = small_rec
+    cfg_path = tmp_path / "replay.toml"
+    cfg_path.write_text(f"""
+[sources.gyro]
+kind = "replay"
+path = "{src}"
+[sources.camera]
+kind = "replay"
+path = "{src}"
+[publish]
+endpoint = "tcp://127.0.0.1:{_free_port()}"
+[radiometry]
+model = "camera"
+""")
+    cfg = config.load(cfg_path)
+    d = Daemon(cfg, notifier=Notifier(None, env={}))
+    assert d.radiometry() is None
+    assert d.health()["radiometry"] == {"source": "camera", "model": None}

@@ -134,7 +134,8 @@ class Config:
     pipeline: PipelineConfig
     logging: LoggingConfig
     path: str = "<defaults>"
-    radiometry: radiometrymod.Radiometry | None = None   # counts → °C after deblurring; None = off
+    # counts → °C after deblurring; None = off; CAMERA_RADIOMETRY = the constants the camera reports
+    radiometry: radiometrymod.Radiometry | str | None = None
     rtsp: RtspConfig = field(default_factory=RtspConfig)
 
     @property
@@ -415,10 +416,17 @@ def _logging(path: str, table: Any) -> LoggingConfig:
     return LoggingConfig(level=lvl)
 
 
-def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | None:
-    """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset)."""
+CAMERA_RADIOMETRY = "camera"     # [radiometry] model = "camera": the Planck constants the camera reports
+
+
+def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | str | None:
+    """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset) |
+    "camera" (the constants the camera itself reports, read once it streams: `CAMERA_RADIOMETRY`)."""
     s = _Section(path, "radiometry", table)
-    model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS))
+    model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY))
+    if model == CAMERA_RADIOMETRY:
+        s.done()
+        return CAMERA_RADIOMETRY
     kw: dict[str, Any] = {"model": model}
     for k in [k for k in s.t if k in ("R", "B", "F", "O", "gain", "offset")]:
         kw[k] = s.pop(k, None, float)
@@ -430,10 +438,15 @@ def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | None:
 
 def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
     """The [radiometry] table of a TOML file (a full configuration or a small model file), validated as in
-    `load`; None when the file has no such table or says model = "none"."""
+    `load`; None when the file has no such table or says model = "none". Offline there is no camera to
+    ask, so model = "camera" is an error here."""
     p = Path(path)
     raw = _read_toml(p)
-    return _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
+    model = _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
+    if model == CAMERA_RADIOMETRY:
+        raise ConfigError(f"{p}: radiometry.model: 'camera' needs a live camera; give 'planck' constants "
+                          "(R, B, F, O) or 'linear' (gain, offset) for offline use")
+    return model
 
 
 # ------------------------------------------------------------------------------ entry points

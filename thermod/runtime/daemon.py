@@ -42,6 +42,8 @@ from thermod.runtime.pipeline import FrameOut, Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.runtime.sources import Source
 
+_UNREAD = object()         # the camera's radiometric constants have not been asked for yet
+
 log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
@@ -73,6 +75,7 @@ class Daemon:
                                   max_queue_bytes=int(p.max_queue_mb * 2**20),
                                   max_message_bytes=cfg.calibration.width * cfg.calibration.height * 4)
         self.publisher = publisher
+        self._camera_radiometry = _UNREAD     # model = "camera": the constants, read at the first frame
         self.rtsp = None     # the H.264 live view ([rtsp]); GStreamer is imported only when enabled
         if cfg.rtsp.enabled:
             from thermod.runtime.rtsp import RtspServer
@@ -127,6 +130,24 @@ class Daemon:
         if self.rtsp is not None:
             self.rtsp.offer_raw(f.image, f.t, f.frame_id)
 
+    def radiometry(self):
+        """The counts → °C model in force: the configuration's, or with model = "camera" the constants
+        the camera reports (asked once; a camera without them converts nothing, said in the log and in
+        health)."""
+        rad = self.cfg.radiometry
+        if rad != configmod.CAMERA_RADIOMETRY:
+            return rad
+        if self._camera_radiometry is _UNREAD:
+            try:
+                self._camera_radiometry = self.camera.radiometry()
+            except Exception as e:  # noqa: BLE001 - a driver's read must not stop the frames
+                log.warning("radiometry: reading the camera's constants failed: %s", e)
+                self._camera_radiometry = None
+            if self._camera_radiometry is None:
+                log.warning("radiometry: model = 'camera' but %s reports no Planck constants; no °C",
+                            self.camera.name)
+        return self._camera_radiometry
+
     def _emit(self, o: FrameOut) -> None:
         self.publisher.publish_frame(o.image, o.t, frame_id=o.frame_id, deblurred=o.deblurred,
                                      kernel_size=o.kernel_size, kernel_extent_px=o.kernel_extent_px,
@@ -134,7 +155,7 @@ class Daemon:
                                      latency_s=o.latency_s, camera_gap_before=o.camera_gap_before)
         if self.cfg.publish.kernel and o.kernel is not None:
             self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)
-        if (rad := self.cfg.radiometry) is not None:  # after deblurring: counts are linear in flux, °C not
+        if (rad := self.radiometry()) is not None:  # after deblurring: counts are linear in flux, °C not
             self.publisher.publish("celsius", {"t": float(o.t), "frame_id": int(o.frame_id),
                                                "deblurred": bool(o.deblurred),
                                                "radiometry": rad.as_dict()},
@@ -223,6 +244,7 @@ class Daemon:
                         ", ".join(restart_needed))
         self.cfg = dataclasses.replace(self.cfg, calibration=new.calibration, deblur=new.deblur,
                                        radiometry=new.radiometry)
+        self._camera_radiometry = _UNREAD
         self.counters["reloads"] += 1
         self.reload_status = {"ok": True, "error": None, "at": now, "restart_needed": restart_needed}
         log.info("reloaded calibration and deblur settings from %s", new.path)

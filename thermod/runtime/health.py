@@ -92,7 +92,18 @@ class Health:
             "daemon": dict(d.counters),
             "reload": dict(d.reload_status),
             "rtsp": d.rtsp.stats() if getattr(d, "rtsp", None) is not None else None,
+            "radiometry": _radiometry(d),
         }
+
+
+def _radiometry(d) -> dict:
+    """Which counts → °C model the daemon converts with, and where it came from."""
+    from thermod.runtime.config import CAMERA_RADIOMETRY
+
+    source = "camera" if d.cfg.radiometry == CAMERA_RADIOMETRY else "config"
+    model = d.radiometry() if d.cfg.radiometry is not None else None
+    return {"source": source if d.cfg.radiometry is not None else None,
+            "model": model.as_dict() if model is not None else None}
 
 
 def status_line(h: dict, gyro_state: str, camera_state: str) -> str:
