@@ -28,6 +28,7 @@ from thermod.sim.scenes import load_scene
 
 sys.path.insert(0, os.path.dirname(__file__))
 import test_aravis  # noqa: E402  (the Aravis fake GigE camera fixture, shared)
+from collecting import Collector  # noqa: E402
 
 fake_camera = test_aravis.fake_camera
 
@@ -36,25 +37,6 @@ CAL = Calibration(width=W, height=H, fx=366.0, fy=366.0, cx=79.5, cy=59.5)   # Ï
 
 
 # ------------------------------------------------------------------------------ pipeline window rule
-class Collector:
-    def __init__(self):
-        self.out, self.lock = [], threading.Lock()
-
-    def __call__(self, o):
-        with self.lock:
-            self.out.append(o)
-
-    def wait(self, n, timeout=30.0):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self.lock:
-                if len(self.out) >= n:
-                    return list(self.out)
-            time.sleep(0.005)
-        with self.lock:
-            return list(self.out)
-
-
 def run_frames(flags, period, deblur):
     """Frames read every `period` s (gyro covering all of them: a slow pan), flagged ffc per `flags`;
     returns the outputs in order and the pipeline's counters."""
@@ -197,7 +179,6 @@ def test_v4l2_boson_frames_flagged_from_telemetry(top):
     """Through the V4L2 driver on the emulated Boson (640Ã—512 + 2 telemetry rows, top or bottom):
     frames whose telemetry says "FFC in progress" are flagged, the others not, and the image never
     contains telemetry."""
-    pytest.importorskip("cv2")
     img = np.full((512, 640), 3000, np.uint16)
     ffc_frames = {3, 4, 5, 9}
     dev = EmuV4L2Device(img, telemetry_rows=(2, 0) if top else (0, 2), fps_modes=(60.0,),
@@ -221,7 +202,6 @@ def test_v4l2_boson_frames_flagged_from_telemetry(top):
 
 
 def test_v4l2_without_telemetry_never_ffc():
-    pytest.importorskip("cv2")
     dev = EmuV4L2Device(np.full((512, 640), 10, np.uint16), fps_modes=(60.0,), ffc_frames={0, 1, 2})
     cam = V4L2Camera("/dev/video0", width=640, height=512, capture_factory=dev.open, frame_rate_hz=60.0)
     cam.start()

@@ -8,7 +8,8 @@ to the simulator's truth than the blurry input. The thresholds are measured on t
 fail with τ 6 % too long or short, the time offset applied with the wrong sign, or a 3τ window.
 """
 
-import threading
+import os
+import sys
 import time
 
 import numpy as np
@@ -23,6 +24,9 @@ from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim import synth
 from thermod.sim.scenes import load_scene
 
+sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
+from collecting import Collector  # noqa: E402
+
 H, W = 120, 160
 CAL = Calibration(width=W, height=H, fx=366.0, fy=366.0, cx=79.5, cy=59.5)
 RATE = 1000.0
@@ -32,27 +36,6 @@ def omega(t):
     """Yaw pan plus a wobble in pitch: ~9 px of blur over 5τ at fx = 366."""
     t = np.asarray(t, np.float64)
     return np.stack([0.2 * np.sin(2 * np.pi * 3 * t), 0.6 + 0.1 * np.cos(2 * np.pi * 2 * t), 0.02 + 0 * t], 1)
-
-
-class Collector:
-    def __init__(self):
-        self.out, self.lock, self.event = [], threading.Lock(), threading.Event()
-
-    def __call__(self, o):
-        with self.lock:
-            self.out.append(o)
-        self.event.set()
-
-    def wait(self, n, timeout=120.0):
-        """The first `n` outputs, as soon as they are there; the timeout only catches a hang."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            with self.lock:
-                if len(self.out) >= n:
-                    return list(self.out)
-            time.sleep(0.005)
-        with self.lock:
-            return list(self.out)
 
 
 @pytest.fixture(scope="module")
