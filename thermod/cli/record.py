@@ -194,12 +194,15 @@ def run(args) -> int:
     out = Path(args.output)
     if not out.parent.is_dir():
         raise RecordingError(out, "file", f"directory {out.parent} does not exist")
+    # SIGTERM and Ctrl-C end the loop between two messages: a KeyboardInterrupt raised inside an append
+    # would leave a frame without its time and the whole recording refused
     stopping = []
-    previous = None
-    try:
-        previous = signal.signal(signal.SIGTERM, lambda *_: stopping.append(True))
-    except ValueError:  # not the main thread: Ctrl-C/--seconds still work
-        pass
+    previous = {}
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        try:
+            previous[sig] = signal.signal(sig, lambda *_: stopping.append(True))
+        except ValueError:  # not the main thread: Ctrl-C/--seconds still work
+            pass
     started = time.monotonic()
     attrs = {"endpoint": args.endpoint}
     as_mcap = out.suffix.lower() == ".mcap"
@@ -224,8 +227,8 @@ def run(args) -> int:
             else:  # also after an error: what was received is written
                 writer.finish(calibration, attrs)
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     if writer.empty:
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
     if as_mcap:
