@@ -211,12 +211,16 @@ def test_fifo_overflow_detected_flushed_counted(name):
     assert st["lost"] == sum(batches[i].n_lost for i in gaps)
     for prev, b in zip(batches[:-1], batches[1:], strict=True):
         assert b.seq == prev.seq + len(prev) + b.n_lost
-    # the lost count is estimated from host time; the truth is in the rates
+    # the lost count is estimated from host time; the truth is in the rates. The estimate is off by
+    # what the reader's own preemption around the flush adds: ±2 samples when reads are timely, more
+    # when this run's reads were late (a loaded machine)
+    late = read_lateness(after, returned, decode)
+    tol = 2 + int(math.ceil(1000.0 * max(float(np.percentile(late, 90)), 0.0)))
     for i in gaps:
         t_last_true = decode(batches[i - 1].rate[-1:, 0], batches[i - 1].t[-1:])[0]
         t_next_true = decode(batches[i].rate[:1, 0], batches[i].t[:1])[0]
         true_lost = round((t_next_true - t_last_true) * 1000) - 1
-        assert abs(batches[i].n_lost - true_lost) <= 2
+        assert abs(batches[i].n_lost - true_lost) <= tol, (batches[i].n_lost, true_lost, tol)
         if batches[i] is after[0]:
             assert true_lost > 400                   # the 0.45 s stall
     # samples after a gap are intact and correctly timed (the clock fit restarted): never before
@@ -329,7 +333,10 @@ def test_stop_start_cycle_continues_the_sequence_with_a_gap():
     second, returned = collect_timed(gyro, 100)
     true_lost = round((decode(second[0].rate[:1, 0], second[0].t[:1])[0]
                        - decode(first[-1].rate[-1:, 0], first[-1].t[-1:])[0]) * 1000) - 1
-    assert second[0].gap_before and true_lost >= 200 and abs(second[0].n_lost - true_lost) <= 2
+    # host-time estimate: ±2 samples, plus what this run's late reads add (a loaded machine)
+    late = read_lateness(second, returned, decode)
+    tol = 2 + int(math.ceil(1000.0 * max(float(np.percentile(late, 90)), 0.0)))
+    assert second[0].gap_before and true_lost >= 200 and abs(second[0].n_lost - true_lost) <= tol
     assert second[0].seq == first[-1].seq + len(first[-1]) + second[0].n_lost
     t, r = cat(second)
     assert t[0] > first[-1].t[-1]
