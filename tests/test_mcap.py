@@ -3,6 +3,8 @@ libraries: the `mcap` reader with the `mcap_ros2` decoder, and `rosbags` (its wr
 bags, its typestore gives the reference ROS 2 message definitions)."""
 
 import json
+import os
+import sys
 import time
 
 import h5py
@@ -18,6 +20,9 @@ from thermod.errors import RecordingError
 from thermod.io import mcap, recording
 from thermod.physics.calibration import Calibration
 from thermod.runtime.publish import Publisher, Subscriber
+
+sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
+from daemon_process import running_daemon  # noqa: E402
 
 H, W = 96, 128
 
@@ -468,38 +473,11 @@ def test_import_errors_name_file_topic_and_what_is_missing(tmp_path, capsys):
 def test_record_mcap_from_the_running_simulated_daemon(tmp_path):
     """`thermod run --raw` on the simulated payload, `thermod record -o X.mcap`, read back with the
     mcap reader, then `thermod import` and the recording's calibration is the daemon's."""
-    import os
-    import signal
-    import socket
-    import subprocess
-    import sys
-    from pathlib import Path
-
     from thermod.runtime import config
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
-    env = dict(os.environ)
-    env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-    exe = str(Path(sys.executable).with_name("thermod"))
-    proc = subprocess.Popen([exe, "run", "--endpoint", ep, "--raw", "--seconds", "300"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
     out = tmp_path / "live.mcap"
-    try:
-        with Subscriber(ep, ("health",)) as hs:
-            deadline = time.monotonic() + 240
-            while time.monotonic() < deadline and proc.poll() is None:
-                m = hs.recv(0.5)
-                if m is not None and m[1].get("ready"):
-                    break
-            else:
-                err = proc.stderr.read() if proc.poll() is not None else ""
-                pytest.fail(f"daemon never became ready: {err}")
+    with running_daemon() as ep:
         assert cli.main(["record", "-o", str(out), "--endpoint", ep, "--seconds", "3"]) == 0
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(20)
     cfg = config.load()
     _, got, meta = read_all(out)
     raw = [d for *_, d in got[mcap.RAW_TOPIC]]

@@ -21,6 +21,9 @@ from thermod.io import recording
 from thermod.physics.calibration import Calibration
 from thermod.runtime.publish import Publisher, Subscriber
 
+sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
+from daemon_process import running_daemon  # noqa: E402
+
 H, W = 96, 128
 
 
@@ -325,29 +328,10 @@ def test_record_cli_interrupted_still_writes(pub, shared_data, tmp_path, sig):
 @pytest.mark.slow
 def test_record_and_watch_the_real_daemon(tmp_path, capsys):
     """`thermod run` on the simulated payload, then `thermod record` and `watch` on its output."""
-    import socket
-
     from thermod.runtime import config
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
-    env = dict(os.environ)
-    env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-    proc = subprocess.Popen([str(Path(sys.executable).with_name("thermod")), "run", "--endpoint", ep, "--raw",
-                             "--seconds", "300"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
-                            text=True)
     out = tmp_path / "rec.h5"
-    try:
-        with Subscriber(ep, ("health",)) as hs:  # ready = frames and samples flowing (first start renders)
-            deadline = time.monotonic() + 240
-            while time.monotonic() < deadline and proc.poll() is None:
-                m = hs.recv(0.5)
-                if m is not None and m[1].get("ready"):
-                    break
-            else:
-                err = proc.stderr.read() if proc.poll() is not None else ""
-                pytest.fail(f"daemon never became ready: {err}")
+    with running_daemon() as ep:
         assert cli.main(["record", "-o", str(out), "--endpoint", ep, "--seconds", "3"]) == 0
         with Subscriber(ep, ("frame", "raw", "gyro", "health")) as sub:
             previews = PreviewWriter(tmp_path / "png", 0.5)
@@ -362,9 +346,6 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
                     if msg[0] in ("frame", "raw"):
                         previews.add(*msg)
             gaps, rejected = dict(sub.gaps), dict(sub.errors)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.wait(20)
     cfg = config.load()
     rec = recording.read(out)
     assert rec.calibration == cfg.calibration and rec.frames.shape[1:] == (cfg.calibration.height,
