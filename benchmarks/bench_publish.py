@@ -13,7 +13,8 @@ import time
 import numpy as np
 
 from thermod.io.wire import decode, encode_header
-from thermod.runtime.publish import Publisher, Subscriber
+from thermod.runtime.publish import DEFAULT_MAX_QUEUE_BYTES, Publisher, Subscriber
+from thermod.sim.chaos import FROZEN_SUBSCRIBER, rss_mb
 
 H, W = 512, 640
 
@@ -67,38 +68,22 @@ def decode_cost(n):
     return 1e6 * np.median(dt), 1e6 * np.percentile(dt, 99)
 
 
-# connects, then freezes (SIGSTOP: its ZeroMQ I/O thread stops reading too, like a hung client)
-STALLED = """
-import os, signal, sys, time, zmq
-s = zmq.Context().socket(zmq.SUB)
-s.setsockopt(zmq.SUBSCRIBE, b"frame")
-s.connect(sys.argv[1])
-time.sleep(0.3)
-os.kill(os.getpid(), signal.SIGSTOP)
-"""
-
-
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
-
-
 def stalled_memory(n_stalled, seconds, **pub_kw):
     """Publisher RSS (MB) before and after `seconds` of 50 fps frames with `n_stalled` subscribers
     (separate processes, connecting 0.5 s apart) that never read, and the publisher's counters."""
     img = np.ones((480, 640), np.float32)
     with Publisher("tcp://127.0.0.1:*", max_message_bytes=img.nbytes, **pub_kw) as pub:
         procs = []
-        rss0 = _rss_mb()
+        rss0 = rss_mb()
         try:
             t_next = time.monotonic()
             for i in range(int(seconds * 50)):
                 if i % 25 == 0 and len(procs) < n_stalled:
-                    procs.append(subprocess.Popen([sys.executable, "-c", STALLED, pub.endpoint]))
+                    procs.append(subprocess.Popen([sys.executable, "-c", FROZEN_SUBSCRIBER, pub.endpoint]))
                 pub.publish_frame(img, float(i), frame_id=i, deblurred=True)
                 t_next += 0.02
                 time.sleep(max(0.0, t_next - time.monotonic()))
-            rss1 = _rss_mb()
+            rss1 = rss_mb()
             st = pub.stats()
         finally:
             for p in procs:
@@ -127,7 +112,7 @@ def latency(n, fps):
 
 def throughput(n, dtype):
     img = np.ones((H, W), dtype)
-    # Everything is queued at once, so lift the byte bounds (64 MiB by default) for this run.
+    # Everything is queued at once, so lift the byte bounds for this run.
     with Publisher("tcp://127.0.0.1:*", hwm=10000, queue_size=10000, queue_bytes=1 << 32,
                    max_queue_bytes=1 << 32) as pub:
         sub = connect(pub, ("frame", "raw"))
@@ -168,7 +153,7 @@ def main():
     print(f"\n4 stalled subscribers, 640×480 f32 at 50 fps, {secs:.0f} s")
     print(f"{'publisher':<32}{'RSS MB before':>14}{'after':>8}{'held MB':>9}{'dropped':>9}")
     for name, kw in (("unbounded (hwm 100, old)", dict(hwm=100, max_queue_bytes=1 << 40)),
-                     ("max_queue_mb = 64 (default)", dict(hwm=100))):
+                     (f"max_queue_mb = {DEFAULT_MAX_QUEUE_BYTES >> 20} (default)", dict(hwm=100))):
         r0, r1, st = stalled_memory(4, secs, **kw)
         print(f"{name:<32}{r0:14.0f}{r1:8.0f}{st['held_peak_bytes'] / 2**20:9.0f}"
               f"{st['budget_dropped_total']:9d}")

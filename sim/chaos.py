@@ -294,6 +294,18 @@ class SubscriberCrowd:
 
 
 # ------------------------------------------------------------------------------------ helpers
+# A subscriber that connects, then freezes (SIGSTOP: its ZeroMQ I/O thread stops reading too, like a
+# hung client): `python -c FROZEN_SUBSCRIBER ENDPOINT`.
+FROZEN_SUBSCRIBER = """
+import os, signal, sys, time, zmq
+s = zmq.Context().socket(zmq.SUB)
+s.setsockopt(zmq.SUBSCRIBE, b"frame")
+s.connect(sys.argv[1])
+time.sleep(0.3)
+os.kill(os.getpid(), signal.SIGSTOP)
+"""
+
+
 def rss_mb() -> float:
     """This process's resident set (VmRSS), MB."""
     with open("/proc/self/status") as f:

@@ -19,6 +19,7 @@ from thermod.runtime.publish import (
     TransportError,
     is_loopback,
 )
+from thermod.sim.chaos import FROZEN_SUBSCRIBER
 
 EP = "tcp://127.0.0.1:*"
 
@@ -572,16 +573,6 @@ def test_stalled_subscribers_cannot_grow_the_publisher_beyond_its_budget():
         ctx.term()
 
 
-FROZEN = """
-import os, signal, sys, time, zmq
-s = zmq.Context().socket(zmq.SUB)
-s.setsockopt(zmq.SUBSCRIBE, b"frame")
-s.connect(sys.argv[1])
-time.sleep(0.3)
-os.kill(os.getpid(), signal.SIGSTOP)
-"""
-
-
 @pytest.mark.slow
 def test_a_frozen_subscriber_is_dropped_by_heartbeats_and_its_queue_freed():
     """A hung client (SIGSTOP: not even its ZeroMQ I/O thread runs) answers no heartbeat."""
@@ -589,7 +580,7 @@ def test_a_frozen_subscriber_is_dropped_by_heartbeats_and_its_queue_freed():
     import sys
     img = np.zeros((512, 512), np.float32)                    # 1 MiB
     with Publisher(EP, stall_timeout_s=1.0, max_message_bytes=img.nbytes) as p:
-        frozen = subprocess.Popen([sys.executable, "-c", FROZEN, p.endpoint])
+        frozen = subprocess.Popen([sys.executable, "-c", FROZEN_SUBSCRIBER, p.endpoint])
         try:
             deadline = time.monotonic() + 30
             peak, i = 0, 0
