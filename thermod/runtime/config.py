@@ -50,7 +50,7 @@ class SimConfig:
     """The simulated payload (sim/payload.py): a pre-rendered loop played in real time."""
 
     scene: str = "real:1"
-    motion: str = "shake:3"
+    motion: str = "multirotor:60"
     loop_s: float = 2.0
     seed: int = 0
     frame_rate_hz: float = 50.0

@@ -18,12 +18,15 @@ in N frame periods, so a solve may last that long without a queue building up; `
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
 
 Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
-a loaded or slower machine shows up as it is). Costs are kept per (method, cells) and a shared
-load factor L follows the machine: predicted cost = c[key] · L / L_key, where L_key is L when the
-key was last observed, so a method not used for a while is predicted from its own last cost scaled
-by how much the machine has slowed or sped up since. Updates are geometric (log-space EWMAs): fast
-when a solve is slower than predicted (½ of the log-ratio), slow when faster (⅕), and one solve's
-ratio is clipped to [⅓, 3] so that a single preemption moves nothing far.
+a loaded or slower machine shows up as it is). Costs are kept per key (solver family, kernel cells)
+as the sliding median of the last `WINDOW` solves (one preemption moves nothing). A load factor L
+follows the machine: while a key is in use, L = L₀ · median / median₀, with (median₀, L₀) its
+anchor taken after its first `ANCHOR` solves of a stretch of use, so the machine's drift moves L
+and a key's own error (a warm-up cost that was off) moves only that key. A key not in use is
+predicted from its last median scaled by L / L_then: a method given up on a loaded machine is
+tried again when the method in use shows that the load is gone. L is a ratio of medians, never a
+running product, so it cannot drift on noise. A key's first solves after a pause count at once
+when slower than predicted (the cheaper rung is taken before a queue builds up).
 
 Hysteresis (no flapping): the governor steps down as soon as its current rung's predicted cost
 exceeds the budget, or when a job had to be dropped for overload; it steps up only to a rung
@@ -37,17 +40,19 @@ The governor has no clock or thread of its own: the pipeline calls `choose` (sch
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
+import statistics
 import threading
 from dataclasses import dataclass
 
 from thermod.runtime.config import DeblurConfig
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
-CLIP = 3.0                        # one solve moves a prediction by at most this ratio (before the EWMA)
-ALPHA_UP, ALPHA_DOWN = 0.5, 0.2   # EWMA weights (log domain): slower than predicted, faster
-ALPHA_LOAD = 0.1                  # the shared load factor follows more slowly than one key
+WINDOW = 15                       # solves per key in the sliding median
+ANCHOR = 5                        # solves of a stretch of use before the key moves the load factor
+STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 
 
 @dataclass(frozen=True)
@@ -126,8 +131,11 @@ class Governor:
         self._last_change = -math.inf
         self._last_climb = -math.inf
         self._lock = threading.Lock()
-        self._cost: dict[tuple[str, int], float] = {}     # (family, cells) → seconds at load L_key
-        self._stamp: dict[tuple[str, int], float] = {}    # (family, cells) → L when last observed
+        self._cost: dict[tuple[str, int], float] = {}     # (family, cells) → last median (s) at load L_key
+        self._stamp: dict[tuple[str, int], float] = {}    # (family, cells) → L when that median was taken
+        self._recent: dict[tuple[str, int], collections.deque] = {}   # this stretch's solves (s)
+        self._last_seen: dict[tuple[str, int], float] = {}
+        self._anchor: dict[tuple[str, int], tuple[float, float]] = {}  # (median₀, L₀) of this stretch
         self.load = 1.0
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
@@ -167,21 +175,29 @@ class Governor:
             return plo * cells / lo
         return plo + (phi - plo) * (cells - lo) / (hi - lo)
 
-    def observe(self, family: str, cells: int, seconds: float) -> None:
-        """A worker's measured solve time."""
+    def observe(self, family: str, cells: int, seconds: float, now: float) -> None:
+        """A worker's measured solve time (s) at host time `now`."""
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
             key = (family, cells)
-            pred = self._predict(family, cells)
-            if pred <= 0:
-                self._cost[key], self._stamp[key] = float(seconds), self.load
+            recent = self._recent.get(key)
+            if recent is None or now - self._last_seen.get(key, -math.inf) > STALE_S:
+                recent = self._recent[key] = collections.deque(maxlen=WINDOW)
+                self._anchor.pop(key, None)
+            self._last_seen[key] = now
+            recent.append(float(seconds))
+            if len(recent) < 3 and key in self._cost:   # a new stretch: believe a slower solve at once
+                self._cost[key] = max(self._predict(family, cells), min(recent))
+                self._stamp[key] = self.load
                 return
-            r = min(max(seconds / pred, 1.0 / CLIP), CLIP)
-            a = ALPHA_UP if r > 1 else ALPHA_DOWN
-            self.load *= r ** ALPHA_LOAD
-            self._cost[key] = pred * r ** a
-            self._stamp[key] = self.load
+            med = statistics.median(recent)
+            if key not in self._anchor and len(recent) >= ANCHOR:
+                self._anchor[key] = (med, self.load)
+            if key in self._anchor:
+                med0, load0 = self._anchor[key]
+                self.load = load0 * med / med0
+            self._cost[key], self._stamp[key] = med, self.load
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
@@ -261,6 +277,7 @@ class Governor:
                 "load": round(self.load, 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._cost)},
+                "solves_measured": sum(len(d) for d in self._recent.values()),
                 "frames": dict(self.frames),
                 **self.counts,
             }

@@ -553,7 +553,8 @@ class Pipeline:
                 varying = hasattr(job.kernel, "kernels")
                 t0 = time.perf_counter()
                 out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
-                gov.observe(fam, int(np.prod(job.kernel.grid)) if varying else 1, time.perf_counter() - t0)
+                dt = time.perf_counter() - t0
+                gov.observe(fam, int(np.prod(job.kernel.grid)) if varying else 1, dt, time.monotonic())
                 out = np.asarray(out, dtype=np.float32)
                 if out.shape != img.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
