@@ -237,3 +237,16 @@ def test_slow_machine_degrades_the_method_not_the_share_of_frames():
     assert {o.method for o in deblurred} == {"wiener"}               # the rung that keeps up
     assert all(o.grid is not None for o in deblurred)
     assert st["governor"]["method"] == "wiener" and c["method_wiener"] == len(deblurred)
+
+
+def test_watch_counts_frames_by_the_method_in_their_header():
+    from thermod.cli.watch import WatchStats, method_label
+
+    st = WatchStats()
+    wiener = {"method": "wiener", "grid": [1, 1]}
+    heads = [{"method": "kf", "grid": [3, 4]}, wiener, wiener, {}]   # {}: a daemon from before the governor
+    for i, h in enumerate(heads):
+        st.add("frame", {"t": float(i), "published": i + 0.01, "deblurred": True, **h}, None)
+    assert [method_label(h) for h in heads] == ["kf 3×4", "wiener", "wiener", "?"]
+    assert st.summary()["methods"] == {"wiener": 2, "kf 3×4": 1, "?": 1}
+    assert "deblurred by: wiener ×2, kf 3×4 ×1, ? ×1" in st.format()
