@@ -51,7 +51,9 @@ from thermod.runtime.config import DeblurConfig
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
 WINDOW = 15                       # solves per key in the sliding median
-ANCHOR = 5                        # solves of a stretch of use before the key moves the load factor
+ANCHOR = 8                        # solves of a stretch of use before the key moves the load factor; the
+                                  # stretch's first (cold: plans, caches) solve is left out of its
+                                  # reference, lest cold starts walk the load factor down stretch by stretch
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 
 
@@ -193,7 +195,7 @@ class Governor:
                 return
             med = statistics.median(recent)
             if key not in self._anchor and len(recent) >= ANCHOR:
-                self._anchor[key] = (med, self.load)
+                self._anchor[key] = (statistics.median(list(recent)[1:]), self.load)
             if key in self._anchor:
                 med0, load0 = self._anchor[key]
                 self.load = load0 * med / med0
