@@ -24,9 +24,10 @@ follows the machine: while a key is in use, L = L₀ · median / median₀, with
 anchor taken after its first `ANCHOR` solves of a stretch of use, so the machine's drift moves L
 and a key's own error (a warm-up cost that was off) moves only that key. A key not in use is
 predicted from its last median scaled by L / L_then: a method given up on a loaded machine is
-tried again when the method in use shows that the load is gone. L is a ratio of medians, never a
-running product, so it cannot drift on noise. A key's first solves after a pause count at once
-when slower than predicted (the cheaper rung is taken before a queue builds up).
+tried again when the method in use shows that the load is gone. Within a stretch L is a ratio of
+medians, not a running product of per-solve ratios, so noise does not walk it; across stretches the
+ratios chain, so a stretch's reference leaves out its first (cold) solve. A key's first solves after
+a pause count at once when slower than predicted (the cheaper rung is taken before a queue builds up).
 
 Hysteresis (no flapping): the governor steps down as soon as its current rung's predicted cost
 exceeds the budget, or when a job had to be dropped for overload; it steps up only to a rung
