@@ -53,6 +53,7 @@ from .noise import (
 )
 from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, wisdom_path
 from .solver import DEFAULT_ALPHA, Deconvolver, deconvolve, deconvolve_varying
+from .tiles import TILE_MARGIN_PX, kernel_spread
 from .wstep import (
     BETA_MAX,
     BETA_RATE,
@@ -66,6 +67,7 @@ from .wstep import (
 __all__ = [
     "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
     "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
-    "NoiseLambda", "beta_schedule", "deconvolve", "deconvolve_varying", "noise_sigma", "robust_range",
+    "NoiseLambda", "TILE_MARGIN_PX", "beta_schedule", "deconvolve", "deconvolve_varying", "kernel_spread",
+    "noise_sigma", "robust_range",
     "shrink_23_analytic", "shrink_numeric", "shrink_threshold", "wisdom_path",
 ]
