@@ -377,6 +377,20 @@ def test_bad_parameters_raise():
         deconv.Deconvolver(lam_rule=30.0)
     with pytest.raises(ThermodError, match="value_range"):
         deconv.Deconvolver().run(np.zeros((8, 8), np.float32), DELTA, value_range=(5, 5))
+    for bad in (0, 7, 2.5, True):
+        with pytest.raises(ThermodError, match="iterations"):
+            deconv.Deconvolver(iterations=bad)
+
+
+# measured on the self-made scene, 33 px comet: 6 and 5 steps 39.82 dB, 4 steps 39.65, 1 step 34.69
+def test_fewer_iterations_degrade_gracefully(scene):
+    k = comet(33, 8.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    full = deconv.Deconvolver().run(b, k)
+    assert np.array_equal(deconv.Deconvolver(iterations=6).run(b, k), full)
+    p = {n: psnr(deconv.Deconvolver(iterations=n).run(b, k), s) for n in (5, 4, 1)}
+    assert psnr(full, s) - 0.05 < p[5] and psnr(full, s) - 0.4 < p[4] < p[5] + 0.05
+    assert psnr(b, s) + 8 < p[1] < p[4] - 3
 
 
 # ------------------------------------------------------------------------- adaptive λ

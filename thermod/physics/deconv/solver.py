@@ -32,6 +32,10 @@ class Deconvolver:
     fft : "auto" (pyFFTW if installed), "fftw" or "scipy".
     workers : FFT threads (1 = one core; run several Deconvolvers in threads for throughput).
     margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
+    iterations : K&F β steps, the last ones of `beta_schedule()` (None: all six). A knob to
+        degrade by under a short time budget: each step is one FFT pair and one w-step. Measured
+        (bench_deconv scenes, 3 comets 17–65 px) 5 steps cost 0.15–0.45 dB at 1280×1024 and
+        nothing at 640×512; 4 steps 0.6–1.6 dB at 1280×1024 (Wiener: 5–7 dB).
     realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
         estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
         For the daemon's workers, which warm up the common sizes before going live.
@@ -42,7 +46,8 @@ class Deconvolver:
 
     def __init__(self, method: str = "kf", alpha: float = DEFAULT_ALPHA, lam: float | None = None,
                  fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16,
-                 realtime: bool = False, *, lam_rule: NoiseLambda | None = None):
+                 realtime: bool = False, *, lam_rule: NoiseLambda | None = None,
+                 iterations: int | None = None):
         if method not in NOISE_LAMBDA:
             raise DeconvError(f"method: expected one of {sorted(NOISE_LAMBDA)}, got {method!r}")
         alpha = float(alpha)
@@ -67,6 +72,13 @@ class Deconvolver:
         self._plans: OrderedDict[tuple[int, int], Plan] = OrderedDict()
         self._otfs: OrderedDict = OrderedDict()
         self._betas = beta_schedule()
+        if iterations is not None:
+            if (isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer))
+                    or not 1 <= iterations <= len(self._betas)):
+                raise DeconvError(f"iterations: expected an integer in [1, {len(self._betas)}], "
+                                  f"got {iterations!r}")
+            self._betas = self._betas[-int(iterations):]
+        self.iterations = len(self._betas)
         if method == "kf" and alpha < 1:
             self._luts = [shrink_lut(alpha, b) for b in self._betas]
             self._taus = [shrink_threshold(alpha, b) for b in self._betas]
