@@ -382,6 +382,22 @@ def test_bad_parameters_raise():
             deconv.Deconvolver(iterations=bad)
 
 
+# measured on the self-made scene, 33 px comet: split 2×2 39.80 dB vs 39.82 whole-frame, RMS 4e-4 of the span
+def test_split_solve_matches_the_whole_frame(scene):
+    k = comet(33, 8.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    full = deconv.Deconvolver().run(b, k)
+    assert np.array_equal(deconv.Deconvolver(split=(1, 1)).run(b, k), full)
+    span = float(s.max() - s.min())
+    for split in ((2, 2), (2, 3)):
+        out = deconv.Deconvolver(split=split).run(b, k)
+        assert np.sqrt(np.mean((out - full) ** 2)) < 1e-3 * span
+        assert psnr(out, s) > psnr(full, s) - 0.05
+    for bad in ((0, 2), (2,), "2x2", (2, 17)):
+        with pytest.raises(ThermodError, match="split"):
+            deconv.Deconvolver(split=bad)
+
+
 # measured on the self-made scene, 33 px comet: 6 and 5 steps 39.82 dB, 4 steps 39.65, 1 step 34.69
 def test_fewer_iterations_degrade_gracefully(scene):
     k = comet(33, 8.0, 30.0)

@@ -17,6 +17,7 @@ from .wstep import LUT_SIZE, LUT_VMAX, beta_schedule, shrink_lut, shrink_thresho
 from .xstep import conj_mul, finish, prepare, wiener_solve, xstep
 
 DEFAULT_ALPHA = 2.0 / 3.0
+SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
 
 class Deconvolver:
@@ -36,6 +37,11 @@ class Deconvolver:
         degrade by under a short time budget: each step is one FFT pair and one w-step. Measured
         (bench_deconv scenes, 3 comets 17–65 px) 5 steps cost 0.15–0.45 dB at 1280×1024 and
         nothing at 640×512; 4 steps 0.6–1.6 dB at 1280×1024 (Wiener: 5–7 dB).
+    split : (rows, cols) or None. Solve every uniform-blur frame in rows × cols tiles (blend ramp
+        `SPLIT_OVERLAP` of the spacing, `TILE_MARGIN_PX` margins) instead of one frame-sized FFT:
+        the faster mode for large sensors, whose frame-sized FFT buffers fall out of cache. At
+        1280×1024, (2, 2) took 0.70× the CPU time of the whole-frame solve for ≤ 0.04 dB
+        (benchmarks/results/deconv.md, loaded machine).
     realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
         estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
         For the daemon's workers, which warm up the common sizes before going live.
@@ -47,7 +53,7 @@ class Deconvolver:
     def __init__(self, method: str = "kf", alpha: float = DEFAULT_ALPHA, lam: float | None = None,
                  fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16,
                  realtime: bool = False, *, lam_rule: NoiseLambda | None = None,
-                 iterations: int | None = None):
+                 iterations: int | None = None, split: tuple[int, int] | None = None):
         if method not in NOISE_LAMBDA:
             raise DeconvError(f"method: expected one of {sorted(NOISE_LAMBDA)}, got {method!r}")
         alpha = float(alpha)
@@ -79,6 +85,15 @@ class Deconvolver:
                                   f"got {iterations!r}")
             self._betas = self._betas[-int(iterations):]
         self.iterations = len(self._betas)
+        if split is not None:
+            try:
+                split = tuple(int(v) for v in split)
+                ok = len(split) == 2 and all(1 <= v <= 16 for v in split)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise DeconvError(f"split: expected (rows, cols) integers in [1, 16] or None, got {split!r}")
+        self.split = split
         if method == "kf" and alpha < 1:
             self._luts = [shrink_lut(alpha, b) for b in self._betas]
             self._taus = [shrink_threshold(alpha, b) for b in self._betas]
@@ -163,6 +178,9 @@ class Deconvolver:
         """
         img = check_image(image)
         w, origin = check_kernel(kernel)
+        if self.split is not None and self.split != (1, 1):
+            return self.run_varying(img, _SplitGrid(kernel, img.shape, self.split), overlap=SPLIT_OVERLAP,
+                                    uniform_tol_px=0, value_range=value_range)
         lo, hi = value_range_of(img, value_range)
         lam = self.last_lam = self.lam_for(img, lo, hi)
         return self._solve(img, (0, img.shape[0], 0, img.shape[1]), w, origin, lo, hi, lam)
@@ -227,6 +245,18 @@ class Deconvolver:
                 tile = self._solve(img, boxes[r, c], w, origin, lo, hi, lam, pshape)
                 out[ys:ye, xs:xe] += tile[ys - by0:ye - by0, xs - bx0:xe - bx0] * wy[:, None] * wx[None, :]
         return out
+
+
+class _SplitGrid:
+    """One kernel on an even rows × cols grid (`Deconvolver(split=…)`)."""
+
+    def __init__(self, kernel, shape, split):
+        rows, cols = split
+        ye = np.linspace(0, shape[0], rows + 1)
+        xe = np.linspace(0, shape[1], cols + 1)
+        self.kernels = [[kernel] * cols for _ in range(rows)]
+        self.centers = np.array([[((ye[i] + ye[i + 1] - 1) / 2, (xe[j] + xe[j + 1] - 1) / 2)
+                                  for j in range(cols)] for i in range(rows)])
 
 
 _DEFAULT: dict = {}
