@@ -43,6 +43,7 @@ unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, 
 
 from .checks import DeconvError
 from .noise import (
+    KF_HYPER_LAPLACIAN,
     LAMBDA_RANGE,
     NOISE_KNEE,
     NOISE_LAMBDA,
@@ -64,7 +65,7 @@ from .wstep import (
 )
 
 __all__ = [
-    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
+    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
     "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
     "NoiseLambda", "beta_schedule", "deconvolve", "deconvolve_varying", "noise_sigma", "robust_range",
     "shrink_23_analytic", "shrink_numeric", "shrink_threshold", "wisdom_path",
