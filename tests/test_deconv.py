@@ -174,7 +174,10 @@ def test_kf_beats_wiener_and_both_alphas_work(named_scene):
     over_wiener, over_blurry = KF_MARGINS_DB[name]
     assert p["kf23"] > p["wiener"] + over_wiener, p       # the hyper-Laplacian prior pays off
     assert p["kf1"] > blurry + over_blurry and p["kf23"] > blurry + over_blurry, (blurry, p)
-    assert p["kf23"] > p["kf1"], p                        # sparse gradients: α = 2/3 fits them better
+    if name == "synthetic":
+        assert p["kf23"] > p["kf1"], p                    # sparse gradients: α = 2/3 fits them better
+    else:   # real clutter: α = 1 (the default) keeps low-contrast texture that 2/3 zeroes; measured +0.47
+        assert p["kf1"] > p["kf23"], p
 
 
 def test_float32_and_uint16_in_float32_counts_out_never_clipped():
@@ -195,7 +198,7 @@ def test_large_kernel_101px(scene):
     assert k.weights.shape[1] >= 100
     s, b = blurred_crop(scene, k, margin=110, noise=0.001)
     out = deconv.deconvolve(b, k)
-    assert psnr(out, s) > psnr(b, s) + 19.0        # measured +19.6 dB
+    assert psnr(out, s) > psnr(b, s) + 18.0   # measured +18.5 dB (α = 1; 2/3: +19.6 on this sparse scene)
 
 
 def test_border_ringing_is_bounded(scene):
@@ -433,9 +436,9 @@ def test_lambda_adapts_to_the_noise(scene):
     lam_quiet = d.last_lam
     own_noisy = psnr(d.run(noisy, k), s)
     lam_noisy = d.last_lam
-    assert lam_quiet > 10 * lam_noisy                                # measured 18×
-    assert own_noisy > psnr(deconv.Deconvolver(lam=lam_quiet).run(noisy, k), s) + 15.0   # measured +17.4 dB
-    assert own_quiet > psnr(deconv.Deconvolver(lam=lam_noisy).run(quiet, k), s) + 4.5    # measured +5.2 dB
+    assert lam_quiet > 10 * lam_noisy                                # measured 13.7×
+    assert own_noisy > psnr(deconv.Deconvolver(lam=lam_quiet).run(noisy, k), s) + 9.5    # measured +11.0 dB
+    assert own_quiet > psnr(deconv.Deconvolver(lam=lam_noisy).run(quiet, k), s) + 4.0    # measured +4.8 dB
     fixed = deconv.Deconvolver(lam=1234.0)
     fixed.run(noisy, k)
     assert fixed.last_lam == 1234.0
@@ -484,3 +487,22 @@ def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(sce
     measured = deconv.Deconvolver(fft="fftw", lam=3000.0)  # offline: measures (and saves wisdom)
     measured.run(blurry, k)
     assert measured.estimated_plans == 0
+
+
+# ------------------------------------------------------------------ the paper's plain method
+# default − paper (dB) at least, per noise σ (unit range); measured −0.33, +1.16, +9.76. At σ = 0.001
+# the clutter of the self-made scene inflates σ̂ 2.5× (noise_sigma cannot tell it from noise), so
+# the adaptive λ is too weak there; the fixed λ only fits the middle level.
+PAPER_MARGIN_DB = {0.001: -0.6, 0.003: 0.8, 0.01: 8.0}
+
+
+@pytest.mark.parametrize("noise", sorted(PAPER_MARGIN_DB))
+def test_default_against_the_papers_method_at_small_blur(scene, noise):
+    """The paper's plain method (K&F α = 1, one fixed λ = 3000, tuned once as bench_quality does)
+    against thermod's default (noise-adaptive λ) at the SBTI's smallest blur (6.25 °/s: a 1.3 px
+    exponential tail), from quiet to noisy frames."""
+    k = comet(7, 1.3, 30.0)
+    s, b = blurred_crop(scene[:400, :480], k, margin=40, noise=noise, seed=1)
+    default = psnr(deconv.Deconvolver().run(b, k), s)
+    paper = psnr(deconv.Deconvolver(alpha=1.0, lam=3000.0).run(b, k), s)
+    assert default >= paper + PAPER_MARGIN_DB[noise], (default, paper)

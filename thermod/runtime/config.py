@@ -67,7 +67,7 @@ class DeblurConfig:
     enabled: bool = True
     method: str = "kf"               # kf | wiener
     lam: float | None = None         # data weight (K&F convention); None = thermod.physics.deconv default
-    alpha: float = 2.0 / 3.0         # hyper-Laplacian exponent: 1 or 2/3
+    alpha: float = 1.0               # prior exponent: 1 (TV, default) or 2/3 (hyper-Laplacian)
     kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)

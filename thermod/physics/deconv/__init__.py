@@ -59,6 +59,7 @@ unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, 
 
 from .checks import DeconvError
 from .noise import (
+    KF_HYPER_LAPLACIAN,
     LAMBDA_RANGE,
     NOISE_KNEE,
     NOISE_LAMBDA,
@@ -81,7 +82,8 @@ from .wstep import (
 )
 
 __all__ = [
-    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
+    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS",
+    "NOISE_KNEE",
     "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
     "NoiseLambda", "TILE_MARGIN_PX", "beta_schedule", "deconvolve", "deconvolve_varying", "kernel_spread",
     "noise_sigma", "robust_range",

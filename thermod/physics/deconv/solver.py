@@ -16,7 +16,7 @@ from .tiles import TILE_MARGIN_PX, max_moment_deviation, tile_weights
 from .wstep import LUT_SIZE, LUT_VMAX, beta_schedule, shrink_lut, shrink_threshold, wstep_div
 from .xstep import conj_mul, finish, prepare, wiener_solve, xstep
 
-DEFAULT_ALPHA = 2.0 / 3.0
+DEFAULT_ALPHA = 1.0   # TV: on real thermal scenes 0.1–0.7 dB above 2/3 at the best λ of each (bench_quality)
 SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
 
@@ -26,7 +26,7 @@ class Deconvolver:
     Parameters
     ----------
     method : "kf" (hyper-Laplacian, default) or "wiener" (one Tikhonov solve).
-    alpha : prior exponent for "kf": 1 (soft threshold), 2/3 (default, analytic LUT) or any in (0, 1).
+    alpha : prior exponent for "kf": 1 (default, soft threshold), 2/3 (analytic LUT) or any in (0, 1).
     lam : data weight λ for a unit-range frame (K&F convention). None (default): adapted to each
         frame's noise σ̂ (`noise_sigma`) by `lam_rule`.
     lam_rule : the `NoiseLambda` used when lam is None (default: `NoiseLambda.default(method)`).
@@ -70,7 +70,7 @@ class Deconvolver:
         if lam_rule is not None and not isinstance(lam_rule, NoiseLambda):
             raise DeconvError(f"lam_rule: expected a NoiseLambda, got {type(lam_rule).__name__}")
         self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
-        self.lam_rule = lam_rule or NoiseLambda.default(method)
+        self.lam_rule = lam_rule or NoiseLambda.default(method, alpha)
         self.last_lam = float("nan")   # λ used for the last frame (adaptive when lam is None)
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
         self.realtime = bool(realtime)
