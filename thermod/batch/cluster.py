@@ -20,6 +20,7 @@ import logging
 import os
 import queue
 import re
+import threading
 import time
 import uuid
 from collections.abc import Sequence
@@ -63,15 +64,27 @@ def connect(address: str, timeout_s: float = CONNECT_TIMEOUT_S):
     levels = [q.level for q in quiet]
     for q in quiet:                       # the failure is reported once, below, as one line
         q.setLevel(logging.CRITICAL)
-    try:
-        client = distributed.Client(address, timeout=timeout_s, set_as_default=False)
-    except Exception as e:                # noqa: BLE001 - OSError, TimeoutError, comm errors …
-        why = (str(e).strip().splitlines() or [type(e).__name__])[0]
+    result: dict = {}
+
+    def attempt():
+        try:
+            result["client"] = distributed.Client(address, timeout=timeout_s, set_as_default=False)
+        except BaseException as e:        # noqa: BLE001 - OSError, TimeoutError, comm errors …
+            result["error"] = e
+
+    # Client's own timeout does not cover a peer that accepts the connection and never speaks (measured:
+    # still waiting after 120 s with timeout=1), so the attempt runs in a daemon thread we stop waiting for.
+    thread = threading.Thread(target=attempt, name="thermod-dask-connect", daemon=True)
+    thread.start()
+    thread.join(timeout_s + 1.0)
+    for q, level in zip(quiet, levels, strict=True):
+        q.setLevel(level)
+    if "client" not in result:
+        e = result.get("error")
+        why = "no answer" if e is None else (str(e).strip().splitlines() or [type(e).__name__])[0]
         raise SchedulerError(f"--scheduler {address}: no Dask scheduler answered within {timeout_s:g} s "
-                             f"({why})") from None
-    finally:
-        for q, level in zip(quiet, levels, strict=True):
-            q.setLevel(level)
+                             f"({why})")
+    client = result["client"]
     try:
         client.wait_for_workers(1, timeout=timeout_s)
     except Exception:                     # noqa: BLE001 - a timeout, or the scheduler went away

@@ -215,6 +215,11 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     w.put("gyro/t", r.gyro_t)
     w.put("gyro/rate", r.gyro_rate)
     r.copy_extras_into(w.file)
+    # Held open until `commit` closes the file, so their chunks reach the disk only when the chunk cache
+    # evicts them or at close: the layout (and so the bytes) does not depend on when each short-lived
+    # dataset handle dies — a Dask worker's profiler thread that briefly holds a frame of `append`
+    # delays that, and moved a chunk in a measured run.
+    open_datasets = [w.file[name] for name in w.rows]     # noqa: F841 - kept alive on purpose
     passed: list[tuple[int, str]] = []
     times = []
     lams = np.full(n, np.nan)

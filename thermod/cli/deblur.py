@@ -54,7 +54,7 @@ OFFLINE = dataclasses.replace(DeblurConfig(), mode="grid")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = OFFLINE
     parser.add_argument("inputs", nargs="+", type=Path, metavar="IN.h5", help="recording(s), format v1")
-    parser.add_argument("-o", "--output", required=True, type=Path,
+    parser.add_argument("-o", "--output", required=True,     # a str: Path() would drop "DIR/"'s slash
                         help="output file (one input) or directory (several inputs, or a path ending in /)")
     parser.add_argument("--kernel", choices=("thermal", "photon"), default=d.kernel,
                         help=f"blur model: microbolometer (Eq. 18) or photon-detector box (Eq. 17); "
@@ -109,9 +109,10 @@ def deblur_config(args) -> DeblurConfig:
                                min_coverage=float(args.min_coverage))
 
 
-def _outputs(inputs: list[Path], output: Path) -> list[Path]:
+def _outputs(inputs: list[Path], output: str | Path) -> list[Path]:
     """Output path per input; several inputs (or -o DIR/) write DIR/<input name>."""
-    as_dir = len(inputs) > 1 or str(output).endswith(os.sep) or output.is_dir()
+    as_dir = len(inputs) > 1 or str(output).endswith(os.sep) or Path(output).is_dir()
+    output = Path(output)
     if not as_dir:
         outs = [output]
     else:
