@@ -132,6 +132,17 @@ def test_a_scheduler_that_does_not_answer_is_one_line_within_the_connect_timeout
     assert not (tmp_path / "o.h5").exists() and not (tmp_path / "o.h5.part").exists()
 
 
+def test_a_scheduler_without_workers_is_one_line_not_a_wait_forever(fleet, tmp_path, capsys):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", dashboard_address=":0",
+                                  silence_logs=40) as c:
+        rc, _, err = deblur(capsys, fleet[0][0], "-o", tmp_path / "o.h5", "--scheduler", c.scheduler_address,
+                            "--connect-timeout", "1")
+    assert rc == 2 and err.count("\n") == 1, err
+    assert f"--scheduler {c.scheduler_address}: the scheduler has no workers (waited 1 s)" in err
+    assert not (tmp_path / "o.h5").exists()
+
+
 @pytest.mark.parametrize("address", ["localhost:8786", "tcp://", "http://h:8786", "tcp://h:port"])
 def test_a_malformed_scheduler_address_is_refused_before_connecting(fleet, tmp_path, capsys, address):
     rc, _, err = deblur(capsys, fleet[0][0], "-o", tmp_path / "o.h5", "--scheduler", address)
