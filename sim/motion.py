@@ -392,3 +392,17 @@ class Trajectory:
         i0 = max(int((t0 - self.g0) / self.dt) - 1, 0)
         i1 = min(int((t1 - self.g0) / self.dt) + 2, len(self.wg))
         return np.abs(self.wg[i0:i1]).max(axis=0)
+
+
+def flight(rms_deg_s: tuple = (8.0, 15.0, 12.0), seed: int = 0, n: int = 12) -> SumOfSines:
+    """Multirotor-like flight attitude: pitch, yaw and roll rates (`rms_deg_s`, camera x, y, z) from sums
+    of sines between 0.3 and 6 Hz (slow manoeuvres to gusts, rate spectrum falling as 1/√f), moving
+    from t = −∞ (no static lead-in). Seeded, so the same arguments always give the same motion."""
+    rng = np.random.default_rng([seed, 3])
+    f = np.exp(rng.uniform(np.log(0.3), np.log(6.0), (n, 3)))
+    w_rms = 1.0 / np.sqrt(f)
+    w_rms *= np.sqrt(2.0 / (w_rms**2).sum(axis=0))                  # unit RMS rate per axis
+    w_rms *= np.asarray(rms_deg_s, float) * DEG
+    amps = w_rms / (2 * np.pi * f)
+    spec = "flight:" + ":".join(f"{r:g}" for r in rms_deg_s)
+    return SumOfSines(f, amps, rng.uniform(0, 2 * np.pi, (n, 3)), spec=spec)

@@ -99,7 +99,7 @@ def _taps(f, cubic, w):
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _warp_views(S, sup, Hs, ox, oy, cubic, out_v, out_m):
+def _warp_views(S, sup, Hs, ox, oy, cubic, full, out_v, out_m):
     """out_v[j](x) = S(H_j x + o), out_m[j](x) = support(H_j x + o): the canvas sampled with zero outside
     it (what OpenCV's warpPerspective with WARP_INVERSE_MAP and a constant 0 border does)."""
     n, h, w = out_v.shape
@@ -127,6 +127,15 @@ def _warp_views(S, sup, Hs, ox, oy, cubic, out_v, out_m):
                 _taps(v - iv, cubic, wy)
                 acc = 0.0
                 accm = 0.0
+                if full and iu >= 1 and iv >= 1 and iu + 2 < cw and iv + 2 < ch:
+                    # all taps inside a canvas known everywhere: the support is 1
+                    for a in range(4):
+                        r = S[iv - 1 + a]
+                        acc += wy[a] * (wx[0] * r[iu - 1] + wx[1] * r[iu] + wx[2] * r[iu + 1]
+                                        + wx[3] * r[iu + 2])
+                    out_v[j, y, x] = acc
+                    out_m[j, y, x] = 1.0
+                    continue
                 for a in range(4):
                     yy = iv - 1 + a
                     if yy < 0 or yy >= ch or wy[a] == 0.0:
@@ -186,7 +195,6 @@ def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
     (g_{j−1} = (1 − α) g_j + direct), each step's share α·g_j (all of g_0 for the initial view)
     is scattered through the interpolation taps at H_j x + o.
     """
-    n1 = Hs.shape[0]
     nf, h, w = C.shape
     ch, cw = grad.shape
     g = np.zeros(w)
@@ -195,7 +203,6 @@ def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
     for y in range(h):
         for x in range(w):
             g[x] = 0.0
-        k = nf - 1
         jmax = 0
         for kk in range(nf):
             jmax = max(jmax, jj[kk, y])
@@ -350,6 +357,7 @@ class ForwardModel:
         if self.support.shape != self.reference.shape:
             raise ValueError("support must have the reference canvas's shape")
         self.origin = (ox, oy)
+        self._full_support = bool(np.all(self.support == 1.0))
         iy, ix = int(round(oy)), int(round(ox))
         view = np.zeros((self.h, self.w), np.float32)
         crop = self.reference[iy:iy + self.h, ix:ix + self.w]
@@ -386,7 +394,8 @@ class ForwardModel:
         Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
         V = np.empty((len(Hs), self.h, self.w), np.float32)
         M = np.empty_like(V)
-        _warp_views(self.reference, self.support, Hs, self.origin[0], self.origin[1], self._cubic, V, M)
+        _warp_views(self.reference, self.support, Hs, self.origin[0], self.origin[1], self._cubic,
+                    self._full_support, V, M)
         if self._cache_ok:
             self._views, self._cache_key = (V, M), key
         return V, M
