@@ -136,7 +136,7 @@ def _working_scale(calib: Calibration, work_width: int) -> float:
 
 def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<recording>",
             scale: float | None = None, work_width: int = 160,
-            offset_margin_s: float = 0.03, max_step_px: float = 0.5, smooth_px: float = 0.0,
+            offset_margin_s: float = 0.03, max_step_px: float = 1.0, smooth_px: float = 0.0,
             max_views_mb: float = MAX_VIEWS_MB) -> RecData:
     """Split a recording into reference and motion frames and build its forward model.
 
