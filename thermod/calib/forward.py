@@ -27,7 +27,7 @@ import math
 import cv2
 import numpy as np
 
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration
 from thermod.physics.detector import iir_alpha, row_read_time
 from thermod.physics.geometry import integrate_rotations
 
@@ -178,7 +178,8 @@ class ForwardModel:
         return K[None] @ Q @ np.linalg.inv(K)[None]
 
     def _gyro_key(self, calib: Calibration):
-        return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)))
+        return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)),
+                tuple(getattr(calib, k) for k in GYRO_EFFECT_KEYS))
 
     def views(self, calib: Calibration) -> np.ndarray:
         """Warped reference and validity mask at the grid mid-points: float32 [n_steps, h, w, 2]."""

@@ -279,3 +279,123 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
 )}
 
 CANDIDATES = tuple(EFFECTS)
+
+
+# ----------------------------------------------------------------------------------------- gyro-side effects
+# clock_drift, gyro_lowpass, gyro_saturation (issue 12): fields of `Calibration.condition_gyro`, so the
+# forward model, `thermod deblur` and the daemon all apply what is fitted here.
+_GYRO_BIC_MIN = 10.0      # decisive, as `Criteria.bic_min`
+
+
+def _current_ssr(ctx: StepContext, model: Model) -> float:
+    return ctx.problem.evaluate(model).ssr
+
+
+def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) -> FitResult:
+    """Gyro clock rate error ε (ppm): t_cam = t_gyro + offset + ε (t_gyro − epoch). The epoch is the
+    gyro-clock time of the first analysed frame (the offset stays what it was there), or the model's
+    own epoch once it has a drift. ±2 % covers an RC-clocked MEMS output data rate; a crystal's
+    ±100 ppm moves a 1 s recording by ±0.1 ms, which only long recordings resolve."""
+    c0 = model.calib
+    epoch = c0.clock_epoch_s if c0.clock_drift_ppm else float(
+        min(d.frame_t[0] for d in ctx.recs) - c0.time_offset_s)
+    p0 = c0.clock_drift_ppm
+
+    def make(x):
+        return _with(model, clock_drift_ppm=float(x), clock_epoch_s=epoch)
+    grid = p0 + np.linspace(-max_ppm, max_ppm, 17)
+    x, ssr = _scalar_fit(ctx, make, grid, p0 - max_ppm, p0 + max_ppm, None)
+    return FitResult("clock_drift", make(x), ssr)
+
+
+def _lowpass_model(model: Model, delay_s: float, offset_s: float | None = None) -> Model:
+    """The model with a 2nd-order Butterworth DLPF of DC group delay `delay_s` (0 = none)."""
+    from thermod.physics.gyro_effects import group_delay_s
+
+    c = model.calib
+    fc = group_delay_s(1.0) / delay_s if delay_s > 0 else 0.0
+    fc = min(fc, 0.45 * c.rate_hz) if fc else 0.0
+    changes = {"gyro_lowpass_hz": float(fc) if fc >= 1.0 else 0.0}
+    if offset_s is not None:
+        changes["time_offset_s"] = float(offset_s)
+    return _with(model, **changes)
+
+
+def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) -> FitResult:
+    """The gyro chip's low-pass, parametrised by its DC group delay d = √2/(2π f_c).
+
+    At low frequencies it is a pure delay, which `time_offset` explains as well with one parameter
+    too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart. So
+    while no time offset is named, the fit is kept only if it beats the best pure time offset
+    decisively (ΔBIC > 10 and the forward model's precision on the SSR); otherwise it reports no
+    gain and the simpler time offset is named instead. Once a time offset is named it has absorbed
+    the filter's delay, so the delay is also tried moved from the offset into the filter (total
+    low-frequency delay kept), as the readout fit does with its mean delay.
+    """
+    from thermod.physics.gyro_effects import group_delay_s
+
+    c0 = model.calib
+    d0 = group_delay_s(c0.gyro_lowpass_hz) if c0.gyro_lowpass_hz else 0.0
+    grid = np.linspace(0.0, max_delay_s, 13)
+
+    def make(d):
+        return _lowpass_model(model, float(d))
+
+    def make_centred(d):
+        return _lowpass_model(model, float(d), c0.time_offset_s + d0 - float(d))
+
+    x, ssr = _scalar_fit(ctx, make, grid, 0.0, max_delay_s, None)
+    best = FitResult("gyro_lowpass", make(x), ssr)
+    if "time_offset" in ctx.named:
+        xc, ssrc = _scalar_fit(ctx, make_centred, grid, 0.0, max_delay_s, None)
+        if ssrc < ssr:
+            best = FitResult("gyro_lowpass", make_centred(xc), ssrc)
+        return best
+    pure = fit_time_offset(ctx, model)
+    if ctx.delta_bic(pure.ssr, best.ssr, 0) > _GYRO_BIC_MIN and pure.ssr - best.ssr >= ctx.min_gain:
+        return best
+    return FitResult("gyro_lowpass", model, _current_ssr(ctx, model), n_params=0,
+                     unobservable=["gyro_lowpass: no better than a pure time offset (the motion has too "
+                                   "little content near the cutoff to show the attenuation)"])
+
+
+def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -> FitResult:
+    """Clipping at the gyro's range: the range is read off the raw samples (the largest |rate| that
+    samples pile up at, in runs), the clipped runs are continued smoothly and the continuation's
+    amplitude (`gyro_clip_gain`, 1 = the cubic through the slopes on both sides) is fitted from the
+    images. No pile-up: nothing to fit."""
+    from thermod.physics.gyro_effects import detect_clip_level
+
+    level = max(detect_clip_level(d.gyro_rate) for d in ctx.recs)
+    if level <= 0:
+        return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
+                         unobservable=["gyro_saturation: no raw samples pile up at a constant |rate|"])
+
+    def make(g):
+        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g))
+    x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_gain, 13), 0.0, max_gain, None)
+    return FitResult("gyro_saturation", make(x), ssr)
+
+
+def _lowpass_values(model: Model, nominal: Model) -> dict:
+    from thermod.physics.gyro_effects import group_delay_s
+
+    fc = model.calib.gyro_lowpass_hz
+    return {"gyro_lowpass_hz": fc, "group_delay_s": group_delay_s(fc) if fc else 0.0}
+
+
+def _saturation_values(model: Model, nominal: Model) -> dict:
+    c = model.calib
+    return {"gyro_range_rad_s": c.gyro_range_rad_s, "gyro_range_deg_s": math.degrees(c.gyro_range_rad_s),
+            "gyro_clip_gain": c.gyro_clip_gain}
+
+
+GYRO_EFFECTS = (
+    Effect("clock_drift", fit_clock_drift, "lag_trend", ("clock_drift_ppm", "clock_epoch_s"),
+           _calib_values("clock_drift_ppm", "clock_epoch_s")),
+    Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"), _lowpass_values),
+    Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
+           _saturation_values),
+)
+EFFECTS.update({e.name: e for e in GYRO_EFFECTS})
+CANDIDATES = tuple(EFFECTS)
