@@ -185,6 +185,29 @@ class Calibration:
             t = self.gyro_clock_to_ideal(t)
         return t, r
 
+    @property
+    def gyro_condition_margin_s(self) -> float:
+        """Gyro time `condition_gyro` needs either side of a span: the inverse filter's reach
+        (8/f_c) and a clipped run's (50 ms)."""
+        m = 0.0
+        if self.gyro_lowpass_hz > 0:
+            m = max(m, 8.0 / self.gyro_lowpass_hz)
+        if self.gyro_range_rad_s > 0:
+            m = max(m, 0.05)
+        return m
+
+    def condition_window(self, t_gyro, rate_gyro, t_cam_lo: float, t_cam_hi: float):
+        """`condition_gyro` of the samples covering camera times [t_cam_lo, t_cam_hi] (plus the
+        margin the corrections need): what a kernel renderer passed a whole ring buffer needs."""
+        t = np.asarray(t_gyro)
+        if not self.has_gyro_effects:
+            return t, rate_gyro
+        m = self.gyro_condition_margin_s + 2.0 / self.rate_hz
+        lo, hi = self.camera_time_to_gyro(np.array([t_cam_lo, t_cam_hi]))
+        i0, i1 = np.searchsorted(t, [lo - m, hi + m])
+        i0, i1 = max(int(i0) - 2, 0), min(int(i1) + 2, len(t))
+        return self.condition_gyro(t[i0:i1], np.asarray(rate_gyro)[i0:i1])
+
     def gyro_clock_to_ideal(self, t_gyro):
         """Gyro-clock stamps → drift-free gyro time: t + ε (t − epoch)."""
         eps = self.clock_drift_ppm * 1e-6
@@ -266,8 +289,9 @@ MAX_CLIP_GAIN = 10.0
 
 def _check_gyro_effects(c: Calibration) -> None:
     if not abs(c.clock_drift_ppm) <= MAX_CLOCK_DRIFT_PPM:
-        raise CalibrationError("clock_drift_ppm", f"expected a gyro clock drift within ±{MAX_CLOCK_DRIFT_PPM:g} "
-                                                  f"ppm (±10 %), got {c.clock_drift_ppm!r}")
+        raise CalibrationError("clock_drift_ppm", f"expected a gyro clock drift within "
+                                                  f"±{MAX_CLOCK_DRIFT_PPM:g} ppm (±10 %), "
+                                                  f"got {c.clock_drift_ppm!r}")
     if not abs(c.clock_epoch_s) <= 1e10:
         raise CalibrationError("clock_epoch_s", f"expected a gyro-clock time within ±1e10 s, "
                                                 f"got {c.clock_epoch_s!r}")

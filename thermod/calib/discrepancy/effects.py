@@ -17,6 +17,7 @@ from scipy import optimize
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
 from thermod.physics.geometry import so3_log
+from thermod.physics.gyro_effects import detect_clip_level, group_delay_s
 
 
 @dataclass
@@ -292,26 +293,36 @@ def _current_ssr(ctx: StepContext, model: Model) -> float:
 
 
 def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) -> FitResult:
-    """Gyro clock rate error ε (ppm): t_cam = t_gyro + offset + ε (t_gyro − epoch). The epoch is the
-    gyro-clock time of the first analysed frame (the offset stays what it was there), or the model's
-    own epoch once it has a drift. ±2 % covers an RC-clocked MEMS output data rate; a crystal's
-    ±100 ppm moves a 1 s recording by ±0.1 ms, which only long recordings resolve."""
+    """Gyro clock rate error ε (ppm) with the offset at its epoch: t_cam = t_gyro + offset + ε (t_gyro −
+    epoch), the epoch being the gyro-clock time of the first analysed frame (or the model's own once it
+    has a drift). The clock map is a line, so both are fitted; it is kept only if it beats the best
+    pure time offset decisively (otherwise the simpler `time_offset` explains it). ±2 % covers an
+    RC-clocked MEMS output data rate; a crystal's ±100 ppm moves a 1 s recording by ±0.1 ms, which
+    only long recordings resolve."""
     c0 = model.calib
     epoch = c0.clock_epoch_s if c0.clock_drift_ppm else float(
         min(d.frame_t[0] for d in ctx.recs) - c0.time_offset_s)
-    p0 = c0.clock_drift_ppm
+    p0, off0 = c0.clock_drift_ppm, c0.time_offset_s
+    unit = np.array([1e-3, 1000.0])          # 1 ms, 1000 ppm
 
     def make(x):
-        return _with(model, clock_drift_ppm=float(x), clock_epoch_s=epoch)
-    grid = p0 + np.linspace(-max_ppm, max_ppm, 17)
-    x, ssr = _scalar_fit(ctx, make, grid, p0 - max_ppm, p0 + max_ppm, None)
-    return FitResult("clock_drift", make(x), ssr)
+        x = np.asarray(x, float)
+        ppm = float(np.clip(p0 + x[1], -max_ppm, max_ppm))
+        return _with(model, time_offset_s=float(off0 + x[0]), clock_drift_ppm=ppm, clock_epoch_s=epoch)
+    starts = [np.zeros(2)] + [np.array([0.0, s]) for s in (-4.0, 4.0)]
+    x, ssr = _vector_fit(ctx, make, starts, unit, bound=max_ppm / 1000.0)
+    best = FitResult("clock_drift", make(x), ssr, n_params=2)
+    if "time_offset" in ctx.named or c0.clock_drift_ppm:
+        return best
+    pure = fit_time_offset(ctx, model)
+    if ctx.delta_bic(pure.ssr, best.ssr, 1) > _GYRO_BIC_MIN and pure.ssr - best.ssr >= ctx.min_gain:
+        return best
+    return FitResult("clock_drift", model, _current_ssr(ctx, model), n_params=0,
+                     unobservable=["clock_drift: no better than a constant time offset over this recording"])
 
 
 def _lowpass_model(model: Model, delay_s: float, offset_s: float | None = None) -> Model:
     """The model with a 2nd-order Butterworth DLPF of DC group delay `delay_s` (0 = none)."""
-    from thermod.physics.gyro_effects import group_delay_s
-
     c = model.calib
     fc = group_delay_s(1.0) / delay_s if delay_s > 0 else 0.0
     fc = min(fc, 0.45 * c.rate_hz) if fc else 0.0
@@ -332,8 +343,6 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
     the filter's delay, so the delay is also tried moved from the offset into the filter (total
     low-frequency delay kept), as the readout fit does with its mean delay.
     """
-    from thermod.physics.gyro_effects import group_delay_s
-
     c0 = model.calib
     d0 = group_delay_s(c0.gyro_lowpass_hz) if c0.gyro_lowpass_hz else 0.0
     grid = np.linspace(0.0, max_delay_s, 13)
@@ -364,8 +373,6 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -
     samples pile up at, in runs), the clipped runs are continued smoothly and the continuation's
     amplitude (`gyro_clip_gain`, 1 = the cubic through the slopes on both sides) is fitted from the
     images. No pile-up: nothing to fit."""
-    from thermod.physics.gyro_effects import detect_clip_level
-
     level = max(detect_clip_level(d.gyro_rate) for d in ctx.recs)
     if level <= 0:
         return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
@@ -378,8 +385,6 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -
 
 
 def _lowpass_values(model: Model, nominal: Model) -> dict:
-    from thermod.physics.gyro_effects import group_delay_s
-
     fc = model.calib.gyro_lowpass_hz
     return {"gyro_lowpass_hz": fc, "group_delay_s": group_delay_s(fc) if fc else 0.0}
 
@@ -391,9 +396,11 @@ def _saturation_values(model: Model, nominal: Model) -> dict:
 
 
 GYRO_EFFECTS = (
-    Effect("clock_drift", fit_clock_drift, "lag_trend", ("clock_drift_ppm", "clock_epoch_s"),
-           _calib_values("clock_drift_ppm", "clock_epoch_s")),
-    Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"), _lowpass_values),
+    Effect("clock_drift", fit_clock_drift, "lag_trend",
+           ("clock_drift_ppm", "clock_epoch_s", "time_offset_s"),
+           _calib_values("clock_drift_ppm", "clock_epoch_s", "time_offset_s")),
+    Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"),
+           _lowpass_values),
     Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
            _saturation_values),
 )
