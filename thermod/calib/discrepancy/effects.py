@@ -351,7 +351,8 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
         return _lowpass_model(model, float(d))
 
     def make_centred(d):
-        return _lowpass_model(model, float(d), c0.time_offset_s + d0 - float(d))
+        # the delay delays the gyro: camera time of a sample = t + offset − d at low frequencies
+        return _lowpass_model(model, float(d), c0.time_offset_s - d0 + float(d))
 
     x, ssr = _scalar_fit(ctx, make, grid, 0.0, max_delay_s, None)
     best = FitResult("gyro_lowpass", make(x), ssr)
