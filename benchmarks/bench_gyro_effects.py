@@ -74,8 +74,10 @@ def psnr(rec, cal: Calibration, frames) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one effect (clock_drift)")
+    ap.add_argument("--only", choices=list(CASES), help="one effect")
+    ap.add_argument("-v", "--verbose", action="store_true", help="the analysis's progress")
     args = ap.parse_args()
-    names = ["clock_drift"] if args.quick else list(CASES)
+    names = [args.only] if args.only else ["clock_drift"] if args.quick else list(CASES)
     print("| effect | true | recovered | named | gap before → after | noise floor | PSNR nominal | "
           "PSNR fitted | PSNR truth | analysis s |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -83,7 +85,8 @@ def main() -> None:
         fx, broad, key = CASES[name]
         rec = simulate("texture", motion(broad), 0.5, NOMINAL, {"netd": 0.05, **fx}, seed=1)
         t0 = time.monotonic()
-        ana = D.analyse([D.prepare(rec, NOMINAL, name=name)], D.Model(NOMINAL))
+        ana = D.analyse([D.prepare(rec, NOMINAL, name=name)], D.Model(NOMINAL),
+                        progress=print if args.verbose else None)
         dt = time.monotonic() - t0
         truth = truth_calibration(rec)
         frames = range(14, 25)                        # 80 ms or more into the motion
