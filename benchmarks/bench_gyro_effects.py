@@ -53,7 +53,7 @@ def motion(broadband: bool, seed: int = 3) -> mo.Motion:
 
 
 CASES = {   # effect: (hidden effects, broadband motion, the parameter to report)
-    "clock_drift": ({"clock_drift": 5000.0}, False, "clock_drift_ppm"),
+    "clock_drift": ({"clock_drift": 10000.0}, False, "clock_drift_ppm"),
     "gyro_lowpass": ({"gyro_lowpass": 20.0}, True, "gyro_lowpass_hz"),
     "gyro_saturation": ({"gyro_saturation": 0.7}, False, "gyro_range_rad_s"),
 }

@@ -286,6 +286,15 @@ CANDIDATES = tuple(EFFECTS)
 # clock_drift, gyro_lowpass, gyro_saturation (issue 12): fields of `Calibration.condition_gyro`, so the
 # forward model, `thermod deblur` and the daemon all apply what is fitted here.
 _GYRO_BIC_MIN = 10.0      # decisive, as `Criteria.bic_min`
+_GYRO_MIN_EXPLAINED = 0.3  # of what the simpler model leaves above the noise, as `Criteria.min_explained`
+
+
+def _beats(ctx: StepContext, simpler: FitResult, fit: FitResult, extra_params: int) -> bool:
+    """Whether `fit` beats the simpler model decisively: ΔBIC > 10 for its extra parameters and at
+    least 30 % of the simpler model's excess SSR over the noise removed."""
+    excess = max(simpler.ssr - ctx.problem.noise_ss(), 1e-30)
+    return (ctx.delta_bic(simpler.ssr, fit.ssr, extra_params) > _GYRO_BIC_MIN
+            and simpler.ssr - fit.ssr >= _GYRO_MIN_EXPLAINED * excess)
 
 
 def _current_ssr(ctx: StepContext, model: Model) -> float:
@@ -315,7 +324,7 @@ def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) ->
     if "time_offset" in ctx.named or c0.clock_drift_ppm:
         return best
     pure = fit_time_offset(ctx, model)
-    if ctx.delta_bic(pure.ssr, best.ssr, 1) > _GYRO_BIC_MIN and pure.ssr - best.ssr >= ctx.min_gain:
+    if _beats(ctx, pure, best, 1):
         return best
     return FitResult("clock_drift", model, _current_ssr(ctx, model), n_params=0,
                      unobservable=["clock_drift: no better than a constant time offset over this recording"])
@@ -338,7 +347,7 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
     At low frequencies it is a pure delay, which `time_offset` explains as well with one parameter
     too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart. So
     while no time offset is named, the fit is kept only if it beats the best pure time offset
-    decisively (ΔBIC > 10 and the forward model's precision on the SSR); otherwise it reports no
+    decisively (ΔBIC > 10 and 30 % of what the offset leaves above the noise); otherwise it reports no
     gain and the simpler time offset is named instead. Once a time offset is named it has absorbed
     the filter's delay, so the delay is also tried moved from the offset into the filter (total
     low-frequency delay kept), as the readout fit does with its mean delay.
@@ -362,7 +371,7 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
             best = FitResult("gyro_lowpass", make_centred(xc), ssrc)
         return best
     pure = fit_time_offset(ctx, model)
-    if ctx.delta_bic(pure.ssr, best.ssr, 0) > _GYRO_BIC_MIN and pure.ssr - best.ssr >= ctx.min_gain:
+    if _beats(ctx, pure, best, 0):
         return best
     return FitResult("gyro_lowpass", model, _current_ssr(ctx, model), n_params=0,
                      unobservable=["gyro_lowpass: no better than a pure time offset (the motion has too "
