@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration
 from thermod.physics.detector import iir_alpha, row_read_time
 from thermod.physics.geometry import integrate_rotations
 
@@ -386,7 +386,8 @@ class ForwardModel:
         return K[None] @ Q @ np.linalg.inv(K)[None]
 
     def _gyro_key(self, calib: Calibration):
-        return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)))
+        return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)),
+                tuple(getattr(calib, k) for k in GYRO_EFFECT_KEYS))
 
     def views(self, calib: Calibration):
         """Reference and support sampled at the view times (grid start, then every step's mid-point):

@@ -14,7 +14,8 @@ by motion (or is motion only: see below). The workflow
    valid in every view (1 = the model explains nothing of the motion signal, 0 = everything), with
    the **noise floor** the gap a perfect model would leave, from the static frames' temporal noise;
 4. fits each **candidate effect** (time_offset, rolling_readout, gyro_bias, gyro_scale,
-   misalignment, time_constant, optical_psf): coarse search, then bounded refinement. A candidate is
+   misalignment, time_constant, optical_psf, and the gyro-side clock_drift, gyro_lowpass,
+   gyro_saturation): coarse search, then bounded refinement. A candidate is
    accepted only if its BIC gain on *effective* independent residual samples (pixel correlation
    measured from the residual's autocorrelation) is decisive and it removes a sizeable fraction of
    the gap's excess over the noise floor; the best one is added to the model, the effects named
@@ -44,6 +45,12 @@ as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one). 
 moving frames share is therefore *unobservable* from this comparison — the workflow leaves it alone.
 Parameters the motion does not excite (a gyro axis that barely turns; misalignment directions about
 the only rotation axis) are not fitted and are listed under `unobservable`.
+
+The gyro-side effects compete with simpler ones: a clock drift (a line: offset at an epoch plus
+ε) and a DLPF (a delay at low frequencies) are kept only if they beat the best pure time offset
+decisively, so with motion that lacks the content to tell them apart the report names the simpler
+`time_offset`. Saturation reads the range off the raw samples (a pile-up at a constant |rate|) and
+fits only the amplitude of the clipped runs' continuation.
 
 The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
 signal on simulator data) is allowed for by `model_tol` in both the search and the verdict.
