@@ -65,8 +65,8 @@ from .wstep import (
 )
 
 __all__ = [
-    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
-    "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
+    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS",
+    "NOISE_KNEE", "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
     "NoiseLambda", "beta_schedule", "deconvolve", "deconvolve_varying", "noise_sigma", "robust_range",
     "shrink_23_analytic", "shrink_numeric", "shrink_threshold", "wisdom_path",
 ]
