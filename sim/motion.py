@@ -424,3 +424,17 @@ def multirotor(roll_deg_s: float = 60.0, seed: int = 0, n: int = 5) -> SumOfSine
     rate_amp *= roll_deg_s * DEG * np.asarray(MULTIROTOR_AXIS_SHARE)
     return SumOfSines(f, rate_amp / (2 * np.pi * f), rng.uniform(0, 2 * np.pi, (n, 3)),
                       spec=f"multirotor:{roll_deg_s:g}")
+
+
+def flight(rms_deg_s: tuple = (8.0, 15.0, 12.0), seed: int = 0, n: int = 12) -> SumOfSines:
+    """Multirotor-like flight attitude: pitch, yaw and roll rates (`rms_deg_s`, camera x, y, z) from sums
+    of sines between 0.3 and 6 Hz (slow manoeuvres to gusts, rate spectrum falling as 1/√f), moving
+    from t = −∞ (no static lead-in). Seeded, so the same arguments always give the same motion."""
+    rng = np.random.default_rng([seed, 3])
+    f = np.exp(rng.uniform(np.log(0.3), np.log(6.0), (n, 3)))
+    w_rms = 1.0 / np.sqrt(f)
+    w_rms *= np.sqrt(2.0 / (w_rms**2).sum(axis=0))                  # unit RMS rate per axis
+    w_rms *= np.asarray(rms_deg_s, float) * DEG
+    amps = w_rms / (2 * np.pi * f)
+    spec = "flight:" + ":".join(f"{r:g}" for r in rms_deg_s)
+    return SumOfSines(f, amps, rng.uniform(0, 2 * np.pi, (n, 3)), spec=spec)

@@ -27,7 +27,7 @@ import numpy as np
 
 from thermod.errors import ConfigError
 from thermod.physics import radiometry as radiometrymod
-from thermod.physics.calibration import Calibration, CalibrationError
+from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration, CalibrationError
 from thermod.runtime import sources
 
 
@@ -67,7 +67,7 @@ class DeblurConfig:
     enabled: bool = True
     method: str = "kf"               # kf | wiener
     lam: float | None = None         # data weight (K&F convention); None = thermod.physics.deconv default
-    alpha: float = 2.0 / 3.0         # hyper-Laplacian exponent: 1 or 2/3
+    alpha: float = 1.0               # prior exponent: 1 (TV, default) or 2/3 (hyper-Laplacian)
     kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)
@@ -277,6 +277,8 @@ def _calibration(path: str, table: Any, base: Calibration | None = None) -> Cali
     kw["rate_hz"] = s.pop("rate_hz", d.rate_hz, float, lo=0.0, lo_open=True, hi=100000.0)
     kw["time_offset_s"] = s.pop("time_offset_s", d.time_offset_s, float, lo=-1.0, hi=1.0)
     kw["bias_rad_s"] = s.pop_floats("bias_rad_s", d.bias_rad_s, (3,))
+    for k in GYRO_EFFECT_KEYS:      # ranges checked by Calibration (CalibrationError below names the key)
+        kw[k] = s.pop(k, getattr(d, k), float)
     sc = s.pop_floats("scale", d.scale, (1, 3), positive=True)
     kw["scale"] = sc * 3 if len(sc) == 1 else sc
     if s.has("R_cam_gyro"):

@@ -50,6 +50,7 @@ import numpy as np
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s
+from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.runtime.config import DeblurConfig, PipelineConfig
 from thermod.runtime.governor import Choice, Governor, coarser_grids
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
@@ -455,12 +456,16 @@ class Pipeline:
             self._passthrough(slot, "ffc", {})
             return
         t0_cam, t1_cam = kernel_window(s.calib, s.deblur, slot.t)
-        off = s.calib.time_offset_s
+        g0, g1 = (float(x) for x in s.calib.camera_time_to_gyro(np.array([t0_cam, t1_cam])))  # clock drift
         if self.gyro_online:
             deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
-            self.gyro_ring.wait_until(t1_cam - off, deadline - time.monotonic())
-        margin = 2.0 / s.calib.rate_hz
-        w = self.gyro_ring.window(t0_cam - off - margin, t1_cam - off + margin, pad=2)
+            self.gyro_ring.wait_until(g1, deadline - time.monotonic())
+        # the DLPF inverse and the clipped-run continuation read further (not waited for: latency)
+        margin = 2.0 / s.calib.rate_hz + s.calib.gyro_condition_margin_s
+        w = self.gyro_ring.window(g0 - margin, g1 + margin, pad=2)
+        if s.calib.gyro_range_rad_s > 0 and len(w) and np.any(np.abs(w.rate) >= s.calib.gyro_range_rad_s
+                                                              * (1 - CLIP_TOL)):
+            self._count("frames_gyro_clipped", 1)   # continued by the calibration: flagged, not dropped
         if w.gap:
             self._passthrough(slot, "gyro_gap", {"n_samples": len(w)})
             return
