@@ -407,10 +407,12 @@ def test_fewer_iterations_degrade_gracefully(scene):
     s, b = blurred_crop(scene, k)
     full = deconv.Deconvolver().run(b, k)
     assert np.array_equal(deconv.Deconvolver(iterations=6).run(b, k), full)
-    p = {n: psnr(deconv.Deconvolver(iterations=n).run(b, k), s) for n in (5, 4, 1)}
-    # α = 1 (the default): 5 of 6 steps −0.03 dB, 4 steps −0.78 dB on this scene
-    assert psnr(full, s) - 0.05 < p[5] and psnr(full, s) - 1.0 < p[4] < p[5] + 0.05
-    assert psnr(b, s) + 8 < p[1] < p[4] - 3
+    p = {n: psnr(deconv.Deconvolver(iterations=n).run(b, k), s) for n in (5, 4, 3, 1)}
+    # the continuation in n coarser steps (measured: 5, 4, 3 steps −0.03, −0.08, −0.03 dB; keeping only
+    # the last n β steps instead lost 0.78 dB at 4 and 2.1 dB at 3)
+    f = psnr(full, s)
+    assert f - 0.05 < p[5] and f - 0.3 < p[4] < p[5] + 0.05 and f - 0.3 < p[3]
+    assert psnr(b, s) + 8 < p[1] < p[3] - 3
 
 
 # ------------------------------------------------------------------------- adaptive λ

@@ -18,7 +18,7 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver
 from thermod.runtime.config import DeblurConfig, PipelineConfig
 from thermod.runtime.governor import Governor, coarser_grids, ladder
-from thermod.runtime.pipeline import Pipeline, _set_kf_iterations, grid_needed, make_deconvolver
+from thermod.runtime.pipeline import Pipeline, grid_needed, make_deconvolver
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
 
@@ -201,10 +201,8 @@ class SlowKF(Deconvolver):
 
 
 def slow_factory(d):
-    dec = SlowKF(d.method, d.alpha, d.lam, cache_size=1, realtime=True)
-    if d.kf_iterations is not None:
-        _set_kf_iterations(dec, d.kf_iterations)
-    return dec
+    return SlowKF(d.method, d.alpha, d.lam, cache_size=1, realtime=True,
+                  iterations=d.kf_iterations if d.method == "kf" else None)
 
 
 def test_slow_machine_degrades_the_method_not_the_share_of_frames():

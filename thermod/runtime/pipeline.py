@@ -213,30 +213,9 @@ def make_deconvolver(deblur: DeblurConfig):
     # live kernels never repeat: an OTF cache would only hold ~3 MB per entry of dead weight
     # realtime: an FFT size first seen mid-stream is estimated, not measured (a measured plan would
     # stall the queue ~0.7 s on a machine without wisdom); warmup() measures the common sizes first.
-    d = Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True)
-    if deblur.method == "kf" and deblur.kf_iterations is not None:
-        _set_kf_iterations(d, deblur.kf_iterations)
-    return d
-
-
-def _set_kf_iterations(d, n: int) -> None:
-    """K&F with n β steps: the same continuation from β = 1 towards 256 at the coarser ratio
-    BETA_RATE^(6/n) (n = 3: β = 1, 8, 64). The Deconvolver keeps its schedule in private fields;
-    if they are gone, the deconvolver runs its full schedule (and the governor measures that)."""
-    from thermod.physics.deconv import BETA_MAX, BETA_RATE, BETA_START, beta_schedule, shrink_threshold
-    from thermod.physics.deconv.wstep import shrink_lut
-
-    if not all(hasattr(d, a) for a in ("_betas", "_luts", "_taus")):
-        log.warning("deconvolver without a β schedule to shorten: kf_iterations=%d ignored", n)
-        return
-    full = len(beta_schedule())
-    betas = beta_schedule(BETA_START, BETA_MAX, BETA_RATE ** (full / n))[:n]
-    d._betas = betas
-    if d.alpha < 1:
-        d._luts = [shrink_lut(d.alpha, b) for b in betas]
-        d._taus = [shrink_threshold(d.alpha, b) for b in betas]
-    else:
-        d._luts, d._taus = d._luts[:len(betas)], d._taus[:len(betas)]
+    iterations = deblur.kf_iterations if deblur.method == "kf" else None
+    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True,
+                       iterations=iterations)
 
 
 def default_workers() -> int:
