@@ -557,8 +557,8 @@ class FFCEvent:
 
     def validate(self) -> None:
         if not (math.isfinite(self.t_start_s) and self.t_start_s > 0):
-            raise ThermodError(f"--effect ffc_event: T_START={self.t_start_s!r} s must be > 0 (after the first "
-                               "frame, whose image the frozen frames repeat)")
+            raise ThermodError(f"--effect ffc_event: T_START={self.t_start_s!r} s must be > 0 (after the "
+                               "first frame, whose image the frozen frames repeat)")
         if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= 10):
             raise ThermodError(f"--effect ffc_event: DURATION={self.duration_s!r} s must be in (0, 10]")
         if not (math.isfinite(self.step_counts) and abs(self.step_counts) <= 1000):

@@ -121,7 +121,7 @@ def _gap_figure(ana: Analysis, path: Path) -> str:
 def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    fig, axes = plt.subplots(2, 4, figsize=(16, 6.5))
     ax = axes.ravel()
     panels = {}
     ax[0].plot(dg["row_gap"], lw=1)
@@ -146,6 +146,7 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     ax[5].set(xlabel="time since motion onset (s)", ylabel="lag (ms)",
               title=f"kernel-centroid lag (median {dg['lag_median_s'] * 1e3:.2f} ms)")
     panels["lag"] = ax[5]
+    _detector_panels(dg, ax[6], ax[7], panels)
     for k, a in panels.items():
         if k == highlight:
             for s in a.spines.values():
@@ -155,6 +156,36 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
+    """The detector-side panels: residual vs the blur's mixing variance (a curved response), and the
+    per-frame residual energy and frame-to-frame change against time (flat-field corrections)."""
+    if "mix_var" in dg:
+        ax_resp.plot(dg["mix_var"], dg["mix_residual"], "o-", ms=3, label="binned residual")
+        xx = np.array([0.0, np.nanmax(dg["mix_var"]) if np.any(np.isfinite(dg["mix_var"])) else 1.0])
+        ax_resp.plot(xx, dg["mix_slope"] * xx, "k--", lw=0.8, label=f"slope γ = {dg['mix_slope']:.3g}/count")
+        ax_resp.axhline(0, color="k", lw=0.5)
+        ax_resp.legend(fontsize=8)
+    ax_resp.set(xlabel="variance the blur mixes, P(r²) − P(r)² (counts²)", ylabel="mean residual (counts)",
+                title="vs blur mixing (detector response)")
+    panels["response"] = ax_resp
+    if "frame_energy" in dg:
+        t = dg["ffc_t"]
+        ax_ffc.semilogy(t, np.maximum(dg["frame_energy"], 1e-3), "o-", ms=3, label="residual energy")
+        ax_ffc.semilogy(t, np.maximum(dg["change_measured"], 1e-3), "s", ms=3, mfc="none",
+                        label="measured change")
+        ax_ffc.semilogy(t, np.maximum(dg["change_predicted"], 1e-3), "+", ms=4, label="predicted change")
+        fz = np.asarray(dg["frozen"], bool)
+        if fz.any():
+            ax_ffc.semilogy(t[fz], np.maximum(dg["frame_energy"][fz], 1e-3), "rx", ms=8, label="frozen")
+        for a, b in dg["ffc_events"]:
+            ax_ffc.axvspan(a, b, color="0.85")
+            ax_ffc.axvline(b, color="r", lw=1)
+        ax_ffc.legend(fontsize=7)
+    ax_ffc.set(xlabel="time since motion onset (s)", ylabel="per frame / noise variance",
+               title="residual and change vs time (FFC)")
+    panels["ffc"] = ax_ffc
 
 
 def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str) -> dict:
