@@ -15,7 +15,7 @@ import pytest
 
 from thermod import cli
 from thermod.cli.record import RecordWriter, record
-from thermod.cli.watch import PreviewWriter, WatchStats, side_by_side, stretch_u8, watch
+from thermod.cli.watch import Agc, PreviewWriter, WatchStats, side_by_side, to_u8, watch
 from thermod.errors import RecordingError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
@@ -141,9 +141,9 @@ def test_watch_stats_and_previews(pub, shared_data, tmp_path):
     assert 1 <= len(previews.written) <= 5.0 / 0.2 + 1 and (tmp_path / "png" / "latest.png").exists()
     img = cv2.imread(str(previews.written[-1]), cv2.IMREAD_UNCHANGED)
     assert img.dtype == np.uint8 and img.shape == (H, 2 * W + 4)
-    lo, hi = np.percentile(feeder.blurry.astype(np.float32), [1, 99])
-    assert np.array_equal(img[:, :W], stretch_u8(feeder.blurry, lo, hi))
-    assert np.array_equal(img[:, W + 4:], stretch_u8(sharp, lo, hi))
+    lo, hi = Agc(1.0, 99.0).update(feeder.blurry)
+    assert np.array_equal(img[:, :W], to_u8(feeder.blurry, lo, hi))
+    assert np.array_equal(img[:, W + 4:], to_u8(sharp, lo, hi))
     assert img[:, :W].std() < img[:, W + 4:].std()  # the sharp half has more contrast
     cv2.imwrite("/tmp/thermod_watch_preview.png", cv2.resize(img, None, fx=3, fy=3,
                                                              interpolation=cv2.INTER_NEAREST))
@@ -321,7 +321,10 @@ def test_record_cli_interrupted_still_writes(pub, shared_data, tmp_path, sig):
     fid = rec.extras["record/frame_id"]
     assert np.all(np.diff(fid) == 1)  # nothing lost in between on loopback
     assert rec.calibration == calib and rec.extra_attrs["record"]["calibration_source"] == "health"
-    assert len(rec.gyro_t) >= 20 * (rec.n_frames - 1)
+    # gyro and frames travel in separate messages, so where each stops depends on the load; what must
+    # hold is that the gyro kept is contiguous (nothing lost in between) and long enough to matter
+    gyro_dt = np.diff(rec.gyro_t)
+    assert np.allclose(gyro_dt, 1e-3, atol=1e-6) and len(rec.gyro_t) >= 20 * (rec.n_frames - 1) - 100
 
 
 # ------------------------------------------------------------------------- against the real daemon

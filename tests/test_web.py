@@ -129,7 +129,7 @@ def test_kernel_image_scales_to_peak_and_tiles_cells():
     w[1, 4], w[0, 0] = 0.5, 0.25
     img = kernel_image(w, size=100)
     assert img.shape == (60, 100)                       # ×20, nearest neighbour
-    assert img[20:40, 80:100].min() == 255 and img[0:20, 0:20].max() == 127
+    assert img[20:40, 80:100].min() == 255 and img[0:20, 0:20].max() == 128   # 127.5 rounds up
     grid = np.stack([np.stack([w, w])] * 3)             # 3 rows × 2 cols of 3 × 5
     assert kernel_image(grid, size=100, gap=2).shape == (7 * (3 * (3 + 2) - 2), 7 * (2 * (5 + 2) - 2))
 

@@ -23,8 +23,8 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.io.wire import MAX_PAYLOAD_BYTES
+from thermod.runtime.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
 from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
-from thermod.runtime.web import side_by_side, stretch_u8  # noqa: F401 - the previews' home is web
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +190,7 @@ class PreviewWriter:
     def _write(self, frame, raw, fid) -> None:
         self._last_write = time.monotonic()
         self._pending.clear()
-        img = side_by_side(raw, frame)
+        img = side_by_side(raw, frame, gap=4)
         path = self.dir / f"watch_{int(fid):08d}.png"
         tmp = self.dir / ".latest.png.part.png"
         if not self._cv2.imwrite(str(path), img) or not self._cv2.imwrite(str(tmp), img):

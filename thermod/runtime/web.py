@@ -34,6 +34,7 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.io.wire import jsonable
+from thermod.runtime.display import side_by_side, to_u8
 
 log = logging.getLogger(__name__)
 
@@ -54,25 +55,6 @@ class WebError(ThermodError):
 
 
 # ------------------------------------------------------------------------------------- 8-bit images
-def stretch_u8(image: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Linear map of [lo, hi] to 0‥255 (saturating outside)."""
-    scale = 255.0 / max(hi - lo, 1e-6)
-    return np.clip((np.asarray(image, np.float32) - lo) * scale, 0, 255).astype(np.uint8)
-
-
-def side_by_side(raw: np.ndarray | None, frame: np.ndarray, gap: int = 4) -> np.ndarray:
-    """raw | frame as 8-bit, both stretched with the raw's (else the frame's) 1st–99th percentiles."""
-    ref = frame if raw is None else raw
-    lo, hi = np.percentile(ref.astype(np.float32), [1.0, 99.0])
-    right = stretch_u8(frame, lo, hi)
-    if raw is None or raw.shape != frame.shape:
-        return right
-    out = np.zeros((frame.shape[0], 2 * frame.shape[1] + gap), np.uint8)
-    out[:, : frame.shape[1]] = stretch_u8(raw, lo, hi)
-    out[:, frame.shape[1] + gap:] = right
-    return out
-
-
 def kernel_image(weights: np.ndarray, size: int = KERNEL_VIEW_PX, gap: int = 2) -> np.ndarray:
     """A kernel [kh, kw] (or grid [rows, cols, kh, kw]) as 8-bit: weight / peak, cells separated by
     `gap` pixels, scaled up (nearest neighbour, an integer factor) to at most `size` a side."""
@@ -81,7 +63,7 @@ def kernel_image(weights: np.ndarray, size: int = KERNEL_VIEW_PX, gap: int = 2) 
         w = w[None, None]
     rows, cols, kh, kw = w.shape
     peak = float(w.max())
-    cells = stretch_u8(w, 0.0, peak if peak > 0 else 1.0)
+    cells = to_u8(w, 0.0, peak if peak > 0 else 1.0)
     mosaic = np.full((rows * (kh + gap) - gap, cols * (kw + gap) - gap), 40, np.uint8)
     for r in range(rows):
         for c in range(cols):
@@ -203,7 +185,7 @@ class LiveView:
         key = (h.get("frame_id"), h.get("seq"), raw is not None)
         with self._encode_lock:
             if self._jpeg is None or self._jpeg[0] != key:
-                img = side_by_side(raw, frame)
+                img = side_by_side(raw, frame, gap=4)
                 ok, buf = self._cv2.imencode(".jpg", img, [self._cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
                 if not ok:
                     raise WebError("OpenCV could not encode a JPEG")
