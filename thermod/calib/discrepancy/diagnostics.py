@@ -128,7 +128,10 @@ def detector_diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict
     nb = max(len(edges) - 1, 0)
     bx = np.array([x[idx == i].mean() if np.any(idx == i) else np.nan for i in range(nb)])
     br = np.array([res[idx == i].mean() if np.any(idx == i) else np.nan for i in range(nb)])
-    slope = float(np.sum(x * res) / np.sum(x * x)) if x.size and np.sum(x * x) > 0 else 0.0
+    ok = np.isfinite(bx) & np.isfinite(br)
+    # through the bins (equal pixel counts), so a few extreme pixels do not set it
+    den = float(np.sum(bx[ok] ** 2))
+    slope = float(np.sum(bx[ok] * br[ok]) / den) if den > 0 else 0.0
     return {"mix_var": bx, "mix_residual": br, "mix_slope": slope,
             "ffc_t": np.concatenate(times), "frame_energy": np.concatenate(energy),
             "change_measured": np.concatenate(dm_all), "change_predicted": np.concatenate(dp_all),
