@@ -212,6 +212,21 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     return rep
 
 
+def _detector_notes(ana: Analysis) -> list[str]:
+    """Notes for the detector-side effects: what model.toml does not carry."""
+    out = []
+    r = ana.model.response
+    if r is not None and r.gamma != 0.0:
+        out += [f"- Detector response: linearise the raw counts y before deblurring with x = c0 + u + γu², "
+                f"u = y − c0, c0 = {r.level:.1f} counts, γ = {r.gamma:.4g} per count. It is not in "
+                "model.toml's [calibration]: `thermod run`/`deblur` deconvolve the counts as they come."]
+    for e in ana.model.ffc:
+        out += [f"- Flat-field correction in {e.recording}: frames frozen from t = {e.t_start:.4f} s to "
+                f"{e.t_end:.4f} s (camera clock), then an offset step of {e.step_counts:.2f} counts; the "
+                "daemon passes such frames through (reason `ffc`) when the camera flags them."]
+    return out
+
+
 def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
     md = ["# thermod discrepancy report", "", f"Inputs: {', '.join(inputs)}", "",
           f"- gap: {ana.gap_initial:.4f} (nominal) → {ana.gap_final:.4f} (final); "
@@ -234,6 +249,7 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
            "sensor while the scene moves) and added back to every prediction.",
            "- A gyro bias hypothesis uses the static segment's mean raw rate as a prior (the camera is "
            "still there), refined by the images."]
+    md += _detector_notes(ana)
     if ana.unobservable:
         md += ["", "Not observable with this motion (left at their previous values):"]
         md += [f"- {k}: {', '.join(v)}" for k, v in ana.unobservable.items()]
