@@ -109,6 +109,43 @@ def test_frozen_runs():
     assert sensor.frozen_runs(np.zeros(4, bool)) == []
 
 
+@pytest.fixture(scope="module")
+def small_rec_data():
+    cal = NOMINAL.replace(width=64, height=48, cx=31.5, cy=23.5)
+    rec = simulate("texture", motion(), 0.3, cal, {"netd": 0.05}, seed=4)
+    d = D.prepare(rec, cal, name="small")
+    d.fm.set_reference(d.static_mean, None, prescaled=True)
+    return cal, d
+
+
+def test_response_prediction_is_the_blur_of_the_linearised_reference(small_rec_data):
+    # P is linear in its reference, so P(L(r)) = P(r) + γ P((r − c0)²): the prediction with one extra
+    # prediction of the squared reference equals blurring the linearised reference itself.
+    import copy
+    cal, d = small_rec_data
+    resp = sensor.Response(float(d.static_mean.mean()) + 30.0, 4e-4)
+    got, _ = sensor.predict(d, D.Model(cal, response=resp))
+    fm = copy.copy(d.fm)
+    fm.set_reference(resp.linearise(d.static_mean), None, prescaled=True)
+    x, valid = fm.predict(cal)
+    want = resp.counts(x)
+    assert np.max(np.abs(got - want)[valid]) < 0.05                        # counts (float32 rounding)
+    lin, _ = d.fm.predict(cal)
+    assert np.max(np.abs(got - lin)[valid]) > 1.0                          # and the curve does something
+
+
+def test_ffc_prediction_freezes_then_steps(small_rec_data):
+    cal, d = small_rec_data
+    p0, _ = sensor.predict(d, D.Model(cal))
+    a, b = 3, 6
+    ev = sensor.FFCEvent("small", float(d.frame_t[a]), float(d.frame_t[b]), 12.5)
+    p, _ = sensor.predict(d, D.Model(cal, ffc=(ev,)))
+    for k in range(a, b):
+        assert np.array_equal(p[k], p0[a - 1])
+    assert np.allclose(p[b:], p0[b:] + 12.5, atol=1e-3)
+    assert np.array_equal(p[:a], p0[:a])
+
+
 # ------------------------------------------------------------------ flat-field correction
 _CACHE: dict = {}
 
