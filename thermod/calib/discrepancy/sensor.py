@@ -170,13 +170,15 @@ def temporal_change(d, frames: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray
 
 
 def detect_frozen(d, predicted: np.ndarray, mask: np.ndarray, *, min_motion: float = 4.0,
-                  live_fraction: float = 0.25) -> np.ndarray:
+                  max_change: float = 0.5) -> np.ndarray:
     """Motion frames that did not change although the model says the image moved: a camera holding its
-    output during a flat-field correction. Frozen where the measured change is below noise +
-    `live_fraction` × the predicted change and the predicted change exceeds `min_motion` × noise."""
+    output during a flat-field correction repeats the last frame, so its change is far below what the
+    temporal noise alone gives a live frame (< `max_change` × noise), where the model predicts a change
+    above `min_motion` × noise. Testing against the noise, not against the predicted change, keeps
+    frames that moved less than predicted (a time offset at the motion onset) live."""
     dm, noise = temporal_change(d, d.measured, mask)
     dp, _ = temporal_change(d, predicted, mask)
-    return (dp > min_motion * noise) & (dm < noise + live_fraction * dp)
+    return (dp > min_motion * noise) & (dm < max_change * noise)
 
 
 def frozen_runs(frozen: np.ndarray) -> list[tuple[int, int]]:
