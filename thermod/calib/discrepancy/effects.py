@@ -313,7 +313,8 @@ def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
     """Flat-field corrections: runs of frozen motion frames (`sensor.detect_frozen`, on top of the events
     already in the model), each with the global offset step of the new NUC, fitted as the difference of
     the mean residual after and before it (least squares; the per-pixel part is the per-segment FPN
-    `sensor.estimate_fpn` makes once the event is in the model). No frozen run: no parameter."""
+    `sensor.estimate_fpn` makes once the event is in the model). No frozen run: no parameter. Steps of
+    events already in the model are refitted too (the search's refit after later effects)."""
     events = list(model.ffc)
     for d in ctx.recs:
         p, _ = ctx.problem.predict(model, d)
@@ -324,8 +325,9 @@ def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
         for a, b in sensor.frozen_runs(frozen):
             t_end = float(d.frame_t[b]) if b < len(d.frame_t) else float(d.frame_t[-1]) + period
             events.append(sensor.FFCEvent(d.name, float(d.frame_t[a]), t_end))
-    if len(events) == len(model.ffc):
+    if not events:
         return FitResult("ffc_event", model, ctx.problem.evaluate(model).ssr, n_params=0)
+    # every event's step is refitted: a refit after a timing effect moves the residual means
     zero = dataclasses.replace(model, ffc=tuple(dataclasses.replace(e, step_counts=0.0) for e in events))
     fitted = []
     for d in ctx.recs:
