@@ -70,11 +70,14 @@ def events_of(d, model) -> list[FFCEvent]:
 
 def _squared_reference_model(d, level: float):
     """A copy of d's forward model whose reference is (r − c0)² (same grid; its own view cache)."""
+    # (the key is the reference array itself: every set_reference makes a new one)
     key = (id(d.fm.reference), level)
     aux = d.aux.get("response_fm")
     if aux is None or aux[0] != key or aux[2] is not d.fm.reference:
         fm2 = copy.copy(d.fm)
-        fm2.set_reference((d.fm.reference - np.float32(level)) ** 2, None, prescaled=True)
+        # same canvas placement and support (a motion-only recording's scene canvas), no FPN
+        fm2.set_reference((d.fm.reference - np.float32(level)) ** 2, None, prescaled=True,
+                          origin=getattr(d.fm, "origin", (0.0, 0.0)), support=getattr(d.fm, "support", None))
         aux = (key, fm2, d.fm.reference)
         d.aux["response_fm"] = aux
     return aux[1]
