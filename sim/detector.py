@@ -455,6 +455,7 @@ class SensorEffects:
     the reference level; nonlinearity: mild quadratic response y = m + d (1 + c d / 1000 counts),
     d = x − m (c = 0.05 → +5 % response 25 K above the reference); quantisation_bits: 16 → integer
     counts, 14 → multiples of 4 counts (the 16-bit stream of a 14-bit ADC). counts_per_k: responsivity.
+    nuc: one flat-field correction (`FFCEvent`), applied by `apply_sensor` when frame times are given.
     """
 
     netd_k: float = 0.0
@@ -463,6 +464,7 @@ class SensorEffects:
     nonlinearity: float = 0.0
     quantisation_bits: int = 16
     counts_per_k: float = COUNTS_PER_K
+    nuc: FFCEvent | None = None
 
     def validate(self) -> None:
         for name in ("netd_k", "fpn_k", "gain_nonuniformity"):
@@ -472,30 +474,100 @@ class SensorEffects:
         if not np.isfinite(self.nonlinearity) or abs(self.nonlinearity) > 1:
             raise ThermodError("sensor effect detector_nonlinearity: expected |c| ≤ 1, "
                                f"got {self.nonlinearity!r}")
+        if self.nuc is not None:
+            self.nuc.validate()
         if int(self.quantisation_bits) != self.quantisation_bits or not 8 <= self.quantisation_bits <= 16:
             raise ThermodError(f"sensor effect quantisation_bits: expected an integer 8–16, "
                                f"got {self.quantisation_bits!r}")
 
 
 def apply_sensor(frames: np.ndarray, fx: SensorEffects, rng: np.random.Generator,
-                 ref_level: float) -> np.ndarray:
-    """Noiseless float32 frames [N, H, W] → uint16 raw counts (nonlinearity, gain, FPN, NETD, ADC)."""
+                 ref_level: float, t_frames: np.ndarray | None = None,
+                 nuc_rng: np.random.Generator | None = None) -> np.ndarray:
+    """Noiseless float32 frames [N, H, W] → uint16 raw counts (nonlinearity, gain, FPN, NETD, ADC).
+
+    With `fx.nuc` and `t_frames` (s since the first frame), a flat-field correction is applied as well
+    (`FFCEvent`); its new residual pattern is drawn from `nuc_rng` (default a fixed stream) so the
+    temporal noise is the same realisation as without it.
+    """
     fx.validate()
     n, h, w = frames.shape
     cpk = fx.counts_per_k
     gain = (1.0 + fx.gain_nonuniformity * rng.standard_normal((h, w))).astype(np.float32)
-    fpn = (fx.fpn_k * cpk * (np.sqrt(2 / 3) * rng.standard_normal((h, w))
-                             + np.sqrt(1 / 3) * rng.standard_normal((1, w)))).astype(np.float32)
+    fpn = _fpn_pattern(fx, rng, h, w)
     lsb = float(2 ** (16 - int(fx.quantisation_bits)))
     out = np.empty(frames.shape, np.uint16)
     ref = np.float32(ref_level)
+    if fx.nonlinearity:
+        _check_monotonic(frames, fx.nonlinearity, ref_level)
+    nuc = fx.nuc if t_frames is not None else None
+    after = np.zeros(n, bool) if nuc is None else np.asarray(t_frames) >= nuc.t_end_s
+    fpn_after = fpn
+    if after.any():
+        # the new NUC leaves a new residual pattern of the same RMS and a global offset step
+        fpn_after = _fpn_pattern(fx, nuc_rng or np.random.default_rng(12), h, w) + np.float32(nuc.step_counts)
     for k in range(n):
         d = frames[k] - ref
         if fx.nonlinearity:
             d = d * (1 + np.float32(fx.nonlinearity / 1000.0) * d)
-        y = ref + gain * d + fpn
+        y = ref + gain * d + (fpn_after if after[k] else fpn)
         if fx.netd_k:
             y = y + (fx.netd_k * cpk * rng.standard_normal((h, w))).astype(np.float32)
         y = np.round(y / lsb) * lsb
         out[k] = np.clip(y, 0, 65535 - (65535 % lsb)).astype(np.uint16)
+    if nuc is not None:
+        frozen = nuc.frozen(t_frames)
+        if frozen.any():
+            out[frozen] = out[nuc.last_live(t_frames)]
     return out
+
+
+def _fpn_pattern(fx: SensorEffects, rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """Fixed-pattern offset: ⅔ of the variance per pixel, ⅓ per column (counts)."""
+    return (fx.fpn_k * fx.counts_per_k * (np.sqrt(2 / 3) * rng.standard_normal((h, w))
+                                          + np.sqrt(1 / 3) * rng.standard_normal((1, w)))).astype(np.float32)
+
+
+def _check_monotonic(frames: np.ndarray, c: float, ref_level: float) -> None:
+    """The quadratic response y = m + d (1 + c d/1000) turns over at d = −500/c: the scene must stay
+    on its rising side (a detector's response never decreases with the flux)."""
+    d_turn = -500.0 / c
+    d = (float(frames.min()) if c > 0 else float(frames.max())) - ref_level
+    if (c > 0 and d <= d_turn) or (c < 0 and d >= d_turn):
+        raise ThermodError(f"--effect detector_nonlinearity={c:g}: the response turns over {abs(d_turn):.0f} "
+                           f"counts {'below' if c > 0 else 'above'} the scene's median level and the scene "
+                           f"reaches {abs(d):.0f}; use |c| < {500.0 / abs(d):.3g} for this scene")
+
+
+@dataclass(frozen=True)
+class FFCEvent:
+    """A flat-field correction (shutter / NUC) at `t_start_s` (s since the first frame) lasting
+    `duration_s`: frames read inside [t_start, t_start + duration) repeat the last frame read before
+    it (the camera freezes its output, as Boson/Tau cores do, cf. `thermod.sim.emu_camera.FFCSchedule`);
+    frames read after it carry the new NUC: a global offset `step_counts` and a new residual FPN.
+    The detector's recovery from the shutter is taken to be over by the end of the frozen stretch."""
+
+    t_start_s: float
+    duration_s: float
+    step_counts: float = 20.0
+
+    @property
+    def t_end_s(self) -> float:
+        return self.t_start_s + self.duration_s
+
+    def validate(self) -> None:
+        if not (math.isfinite(self.t_start_s) and self.t_start_s > 0):
+            raise ThermodError(f"--effect ffc_event: T_START={self.t_start_s!r} s must be > 0 (after the "
+                               "first frame, whose image the frozen frames repeat)")
+        if not (math.isfinite(self.duration_s) and 0 < self.duration_s <= 10):
+            raise ThermodError(f"--effect ffc_event: DURATION={self.duration_s!r} s must be in (0, 10]")
+        if not (math.isfinite(self.step_counts) and abs(self.step_counts) <= 1000):
+            raise ThermodError(f"--effect ffc_event: STEP_COUNTS={self.step_counts!r} must be within ±1000")
+
+    def frozen(self, t_frames) -> np.ndarray:
+        t = np.asarray(t_frames, float)
+        return (t >= self.t_start_s) & (t < self.t_end_s)
+
+    def last_live(self, t_frames) -> int:
+        """Index of the last frame read before the event (the one the frozen frames repeat)."""
+        return int(np.searchsorted(np.asarray(t_frames, float), self.t_start_s, side="left")) - 1

@@ -15,13 +15,18 @@ has to explain:
     fpn                    K      fixed-pattern offset RMS
     gain_nonuniformity     —      per-pixel gain RMS
     quantisation_bits      bits   ADC resolution (16 or 14, …)
-    detector_nonlinearity  —      mild quadratic response (outside the model's vocabulary)
+    detector_nonlinearity  —      c: quadratic response y = m + d (1 + c d / 1000 counts) about the scene's
+                                  median level m (`detector.apply_sensor`; must stay monotonic)
     gyro_noise             rad/s  white gyro noise RMS per sample
     clock_drift            ppm    the gyro clock runs at 1 + ε against the camera's; the clocks agree
                                   at the first frame (clock_epoch_s = its time − the time offset)
     gyro_lowpass           Hz     cutoff of the gyro chip's DLPF (2nd-order Butterworth: group delay
                                   √2/(2π f_c) plus attenuation 1/√(1 + (f/f_c)⁴))
     gyro_saturation        rad/s  the gyro's full-scale range: raw samples clip at ±this
+    ffc_event              s,s[,counts]  T_START,DURATION[,STEP_COUNTS]: a flat-field correction T_START
+                                  after the first frame: frames frozen for DURATION, then a new NUC
+                                  (offset step, default 20 counts, and a new FPN realisation);
+                                  `extras["truth/ffc_frozen"]` flags the frozen frames
 
 (`clock_drift_ppm` and `gyro_lowpass_hz` are accepted as older names of `clock_drift`, `gyro_lowpass`.)
 
@@ -53,10 +58,11 @@ from thermod.sim.gyro_model import DEG, GyroErrorModel
 
 EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
            "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
-           "gyro_noise", "clock_drift", "gyro_lowpass", "gyro_saturation")
+           "gyro_noise", "clock_drift", "gyro_lowpass", "gyro_saturation",
+           "ffc_event")
 EFFECT_ALIASES = {"clock_drift_ppm": "clock_drift", "gyro_lowpass_hz": "gyro_lowpass"}
 MAX_BYTES = 6e9          # the whole recording is built in memory
-_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,)}
+_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,), "ffc_event": (2, 3)}
 
 
 def check_effects(effects: Mapping | None) -> dict:
@@ -81,7 +87,19 @@ def check_effects(effects: Mapping | None) -> dict:
     _check_gyro_effects(out)
     if "gyro_scale" in out and np.any(np.asarray(out["gyro_scale"]) <= 0):
         raise ThermodError(f"--effect gyro_scale={out['gyro_scale']}: must be > 0")
+    if "detector_nonlinearity" in out and abs(out["detector_nonlinearity"]) > 1:
+        raise ThermodError(f"--effect detector_nonlinearity={out['detector_nonlinearity']}: expected |c| ≤ 1 "
+                           "(c = 1: +100 % response 1000 counts above the level)")
+    if "ffc_event" in out:
+        _ffc_event(out).validate()
     return out
+
+
+def _ffc_event(fx: Mapping) -> det.FFCEvent | None:
+    """The `ffc_event` effect (T_START, DURATION[, STEP_COUNTS]) as a detector `FFCEvent`, or None."""
+    if "ffc_event" not in fx:
+        return None
+    return det.FFCEvent(*(float(v) for v in fx["ffc_event"]))
 
 
 def true_calibration(nominal: Calibration, effects: Mapping, t_anchor: float = 0.0) -> Calibration:
@@ -149,7 +167,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
                                            slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
                                            progress=bar)
     rng_sensor, rng_gyro = np.random.default_rng([seed, 10]), np.random.default_rng([seed, 11])
-    frames = det.apply_sensor(r.frames, sensor, rng_sensor, float(np.median(sc.texture)))
+    frames = det.apply_sensor(r.frames, sensor, rng_sensor, float(np.median(sc.texture)),
+                              t_frames=t_frames - t_frames[0], nuc_rng=np.random.default_rng([seed, 12]))
     gs = gyro.sample(traj.omega, gyro_lo, gyro_hi, truth_cal, rng_gyro, t_anchor=t_frames[0])
 
     run = {"psf_sigma_px": float(psf_sigma), "scene": _spec_str(scene), "motion": mot.spec, "seed": int(seed),
@@ -160,6 +179,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     if method == "time_compression":
         run.update(compression=float(compression), slow_fps=float(slow_fps))
     extras = _truth_extras(r, gs, traj.R(t_frames), truth)
+    if sensor.nuc is not None:
+        extras["truth/ffc_frozen"] = sensor.nuc.frozen(t_frames - t_frames[0])
     return Recording(frames, t_frames, gs.t, gs.rate, nominal, extras=extras,
                      extra_attrs={"truth": _truth_attrs(truth_cal, run, fx)})
 
@@ -212,7 +233,7 @@ def _sensor_effects(fx: Mapping) -> det.SensorEffects:
     sensor = det.SensorEffects(netd_k=fx.get("netd", 0.0), fpn_k=fx.get("fpn", 0.0),
                                gain_nonuniformity=fx.get("gain_nonuniformity", 0.0),
                                nonlinearity=fx.get("detector_nonlinearity", 0.0),
-                               quantisation_bits=fx.get("quantisation_bits", 16))
+                               quantisation_bits=fx.get("quantisation_bits", 16), nuc=_ffc_event(fx))
     sensor.validate()
     return sensor
 

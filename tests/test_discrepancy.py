@@ -238,21 +238,8 @@ def _high_contrast_scene(scene=SCENE):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("scene", [SCENE, REAL])
-def test_out_of_vocabulary_effect_is_unexplained_not_misnamed(scene, require):
-    rec, ana = analysed(f"nonlinearity-{scene}", {"detector_nonlinearity": 1.0},
-                        scene=_high_contrast_scene(scene_for(scene, require)))
-    assert ana.steps == [], [s["effect"] for s in ana.steps]          # nothing misnamed
-    assert ana.gap_final > 3 * ana.noise_floor                          # texture: measured 8.9×
-    if scene == REAL:
-        # On the real frame the structure left exceeds the forward model's precision allowance; on
-        # the texture (gap 0.041) it stays inside it (0.05), so no verdict can be drawn there.
-        assert ana.unexplained
-
-
-@pytest.mark.slow
 def test_high_contrast_clean_recording_is_not_unexplained():
-    # Control for the test above: the same scene without the nonlinearity is explained.
+    # The high-contrast scene alone is explained (its sharp edges stay within the model's precision).
     rec, ana = analysed("contrast-clean", {}, scene=_high_contrast_scene())
     assert not ana.unexplained
     assert ana.steps == []

@@ -31,7 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="hidden truth effect (repeatable), e.g. time_offset=0.004, rolling_readout=0.012, "
                         "gyro_bias=0.001,0,0, misalignment=0,0,0.01, time_constant=0.010, netd=0.05; "
                         "gyro side: clock_drift=PPM (clocks agree at the first frame), gyro_lowpass=HZ "
-                        "(2nd-order Butterworth DLPF cutoff), gyro_saturation=RAD_S (full-scale range)")
+                        "(2nd-order Butterworth DLPF cutoff), gyro_saturation=RAD_S (full-scale range); "
+                        "detector side: detector_nonlinearity=0.3 (quadratic response, 1/1000 counts), "
+                        "ffc_event=T_START,DURATION[,STEP_COUNTS] (frozen frames, then a new NUC)")
     p.add_argument("--seed", type=int, default=0, help="random seed (scene, shake, noise)")
     p.add_argument("--width", type=int, default=None, help="image width (px, default 640)")
     p.add_argument("--height", type=int, default=None, help="image height (px, default 480)")

@@ -14,8 +14,9 @@ by motion (or is motion only: see below). The workflow
    valid in every view (1 = the model explains nothing of the motion signal, 0 = everything), with
    the **noise floor** the gap a perfect model would leave, from the static frames' temporal noise;
 4. fits each **candidate effect** (time_offset, rolling_readout, gyro_bias, gyro_scale,
-   misalignment, time_constant, optical_psf, and the gyro-side clock_drift, gyro_lowpass,
-   gyro_saturation): coarse search, then bounded refinement. A candidate is
+   misalignment, time_constant, optical_psf, the gyro-side clock_drift, gyro_lowpass,
+   gyro_saturation, and the detector-side detector_nonlinearity and ffc_event of `sensor`): coarse
+   search, then bounded refinement. A candidate is
    accepted only if its BIC gain on *effective* independent residual samples (pixel correlation
    measured from the residual's autocorrelation) is decisive and it removes a sizeable fraction of
    the gap's excess over the noise floor; the best one is added to the model, the effects named
@@ -55,8 +56,9 @@ fits only the amplitude of the clipped runs' continuation.
 The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
 signal on simulator data) is allowed for by `model_tol` in both the search and the verdict.
 
-Layout: `data` (model, recording preparation, size guards), `problem` (cost, noise, step
-context), `effects` (one `Effect` record per candidate), `diagnostics`, `analysis` (the search),
+Layout: `data` (model, recording preparation, size guards), `sensor` (detector-side effects: the
+response curve, flat-field corrections, the one prediction every cost goes through), `problem` (cost,
+noise, step context), `effects` (one `Effect` record per candidate), `diagnostics`, `analysis` (the search),
 `report` (outputs).
 
 Outputs: DIR/report.json, DIR/report.md, DIR/model.toml and PNG figures (residual maps before and

@@ -4,10 +4,11 @@ forward model, and the guards on every size derived from the file before it is a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from thermod.calib.discrepancy.sensor import FFCEvent, Response
 from thermod.calib.forward import ForwardModel, GridTooLarge, downsample
 from thermod.errors import RecordingError
 from thermod.io import recording as recording_io
@@ -25,10 +26,13 @@ MAX_VIEWS_MB = 2048.0
 
 @dataclass(frozen=True)
 class Model:
-    """The calibration under test plus the extra optical blur of motion frames (px, full resolution)."""
+    """The calibration under test plus the extra optical blur of motion frames (px, full resolution)
+    and the detector-side effects (`sensor`: a non-linear response, flat-field correction events)."""
 
     calib: Calibration
     extra_psf_px: float = 0.0
+    response: Response | None = None
+    ffc: tuple[FFCEvent, ...] = ()
 
     def final_calibration(self) -> Calibration:
         """Calibration with the extra blur folded into Eq. 19's σ (static blur taken as nominal)."""
@@ -64,6 +68,7 @@ class RecData:
     origin: tuple = (0.0, 0.0)            # motion: canvas position of the reference view's pixel (0, 0)
     coverage: np.ndarray | None = None    # motion: frames' summed weight per canvas pixel
     noise_source: str = "static frames"   # how noise_var was measured
+    aux: dict = field(default_factory=dict)   # per-recording state of the detector-side effects (`sensor`)
 
 
 def detect_static(gyro_t, gyro_rate, *, head_s: float = 0.05, min_rate: float = math.radians(0.5),

@@ -8,6 +8,7 @@ import math
 import cv2
 import numpy as np
 
+from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.problem import Evaluation, Problem
 from thermod.physics.calibration import Calibration
@@ -89,6 +90,7 @@ def diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
         "spectrum_freq": (np.arange(N_SPECTRUM_BINS) + 0.5) * 0.05,
     }
     dg.update(gyro_panels(problem, model, dg))
+    dg.update(detector_diagnostics(problem, model, ev))
     return dg
 
 
@@ -124,3 +126,48 @@ def gyro_panels(problem: Problem, model: Model, dg: dict) -> dict:
         clipped.append(hit)
     return {"lag_slope_ppm": slope * 1e6, "motion_freq_hz": freq, "gyro_abs_max": np.concatenate(top),
             "clip_level": level, "frame_clipped": np.concatenate(clipped)}
+
+
+# ----------------------------------------------------------------------------------------- detector side
+N_MIX_BINS = 12
+
+
+def detector_diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
+    """The panels of the detector-side effects (`sensor`).
+
+    response: mean residual in quantile bins of the variance the blur mixes into each pixel,
+    P(r²) − P(r)² (a curved response leaves γ·that: a straight line of slope γ through 0; the residuals
+    of τ or an extra PSF are zero-mean at every mixing level). ffc: per-frame residual energy and the
+    measured vs predicted frame-to-frame change (in noise units) against time, with the frames that
+    did not change although the image moved (frozen: a flat-field correction) and the model's events.
+    """
+    xs, rs, times, energy, dm_all, dp_all, frozen_all = [], [], [], [], [], [], []
+    events = []
+    for d, r, p in zip(problem.recs, ev.residuals, ev.predicted, strict=True):
+        mv = sensor.mixing_variance(d, model)
+        xs.append(mv[d.mask].astype(np.float64))
+        rs.append(r[d.mask].astype(np.float64))
+        t = d.frame_t - d.t_onset
+        times.append(t)
+        cnt = np.maximum(d.mask.sum(axis=(1, 2)), 1)
+        energy.append(np.sum(r.astype(np.float64) ** 2, axis=(1, 2)) / cnt / max(d.noise_var, 1e-12))
+        dm, noise = sensor.temporal_change(d, d.measured, d.mask)
+        dp, _ = sensor.temporal_change(d, p, d.mask)
+        dm_all.append(dm / noise)
+        dp_all.append(dp / noise)
+        frozen_all.append(sensor.detect_frozen(d, p, d.mask))
+        events += [(e.t_start - d.t_onset, e.t_end - d.t_onset) for e in sensor.events_of(d, model)]
+    x, res = np.concatenate(xs), np.concatenate(rs)
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, N_MIX_BINS + 1))) if x.size else np.zeros(1)
+    idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, max(len(edges) - 2, 0))
+    nb = max(len(edges) - 1, 0)
+    bx = np.array([x[idx == i].mean() if np.any(idx == i) else np.nan for i in range(nb)])
+    br = np.array([res[idx == i].mean() if np.any(idx == i) else np.nan for i in range(nb)])
+    ok = np.isfinite(bx) & np.isfinite(br)
+    # through the bins (equal pixel counts), so a few extreme pixels do not set it
+    den = float(np.sum(bx[ok] ** 2))
+    slope = float(np.sum(bx[ok] * br[ok]) / den) if den > 0 else 0.0
+    return {"mix_var": bx, "mix_residual": br, "mix_slope": slope,
+            "ffc_t": np.concatenate(times), "frame_energy": np.concatenate(energy),
+            "change_measured": np.concatenate(dm_all), "change_predicted": np.concatenate(dp_all),
+            "frozen": np.concatenate(frozen_all), "ffc_events": events}

@@ -7,6 +7,7 @@ model has the effect merged in: a coarse search, then a bounded refinement.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -14,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
+from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
 from thermod.physics.geometry import so3_log
@@ -114,7 +116,7 @@ def _lm_step(J, r0, x, cost, bound, lam: float):
 
 
 def _with(model: Model, **changes) -> Model:
-    return Model(model.calib.replace(**changes), model.extra_psf_px)
+    return dataclasses.replace(model, calib=model.calib.replace(**changes))
 
 
 # ----------------------------------------------------------------------------------------- fits
@@ -165,7 +167,7 @@ def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
 def fit_optical_psf(ctx: StepContext, model: Model, max_sigma_px: float = 3.0) -> FitResult:
     """Extra Gaussian blur σ_e of the motion frames beyond the static ones (adds in quadrature)."""
     def make(x):
-        return Model(model.calib, float(math.hypot(model.extra_psf_px, x)))
+        return dataclasses.replace(model, extra_psf_px=float(math.hypot(model.extra_psf_px, x)))
     x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_sigma_px, 13), 0.0, max_sigma_px, None)
     return FitResult("optical_psf", make(x), ssr)
 
@@ -246,7 +248,7 @@ def fit_misalignment(ctx: StepContext, model: Model) -> FitResult:
     basis = evec[:, keep]
 
     def make(x):
-        return Model(c0.with_misalignment(basis @ np.asarray(x)), model.extra_psf_px)
+        return dataclasses.replace(model, calib=c0.with_misalignment(basis @ np.asarray(x)))
     x, ssr = _vector_fit(ctx, make, [np.zeros(basis.shape[1])], math.radians(0.5), bound=20.0)   # ±10°
     un = [f"rotation about {np.round(evec[:, i], 2).tolist()}" for i in np.flatnonzero(~keep)]
     return FitResult("misalignment", make(x), ssr, unobservable=un, n_params=int(keep.sum()))
@@ -415,4 +417,81 @@ GYRO_EFFECTS = (
            _saturation_values),
 )
 EFFECTS.update({e.name: e for e in GYRO_EFFECTS})
+
+
+# ----------------------------------------------------------------------------------------- detector side
+# Effects after the thermal IIR (`sensor`): a non-linear response of the counts and flat-field corrections.
+def _reference_level(recs) -> tuple[float, float]:
+    """Mean level and RMS contrast (counts) of the references over the pixels the fit uses."""
+    vals = np.concatenate([d.static_mean[d.mask.any(axis=0)] - (d.fpn[d.mask.any(axis=0)] if d.fpn is not None
+                                                                  else 0.0) for d in recs])
+    return float(vals.mean()), float(max(vals.std(), 1e-3))
+
+
+def fit_detector_nonlinearity(ctx: StepContext, model: Model, max_curvature: float = 1.0) -> FitResult:
+    """Curvature γ of the linearisation x = c0 + u + γu² (u = counts − c0, `sensor.Response`) about the
+    references' mean level c0. γ is searched in units of 1/(3·RMS contrast): ±`max_curvature` lets the
+    slope dx/dy change by up to ±2·max_curvature/3 at 3 RMS from the level (a strong non-linearity)."""
+    level, spread = _reference_level(ctx.recs)
+    if model.response is not None:
+        level = model.response.level
+    unit = 1.0 / (3.0 * spread)
+    u0 = 0.0 if model.response is None else model.response.gamma / unit
+
+    def make(u):
+        return dataclasses.replace(model, response=sensor.Response(level, float(u) * unit))
+    grid = u0 + np.linspace(-max_curvature, max_curvature, 21)
+    x, ssr = _scalar_fit(ctx, make, grid, u0 - max_curvature, u0 + max_curvature, None)
+    return FitResult("detector_nonlinearity", make(x), ssr)
+
+
+def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
+    """Flat-field corrections: runs of frozen motion frames (`sensor.detect_frozen`, on top of the events
+    already in the model), each with the global offset step of the new NUC, fitted as the difference of
+    the mean residual after and before it (least squares; the per-pixel part is the per-segment FPN
+    `sensor.estimate_fpn` makes once the event is in the model). No frozen run: no parameter. Steps of
+    events already in the model are refitted too (the search's refit after later effects)."""
+    events = list(model.ffc)
+    for d in ctx.recs:
+        p, _ = ctx.problem.predict(model, d)
+        frozen = sensor.detect_frozen(d, p, d.mask)
+        for e in sensor.events_of(d, model):
+            frozen &= ~e.frozen(d.frame_t)
+        period = 1.0 / model.calib.frame_rate_hz
+        for a, b in sensor.frozen_runs(frozen):
+            t_end = float(d.frame_t[b]) if b < len(d.frame_t) else float(d.frame_t[-1]) + period
+            events.append(sensor.FFCEvent(d.name, float(d.frame_t[a]), t_end))
+    if not events:
+        return FitResult("ffc_event", model, ctx.problem.evaluate(model).ssr, n_params=0)
+    # every event's step is refitted: a refit after a timing effect moves the residual means
+    zero = dataclasses.replace(model, ffc=tuple(dataclasses.replace(e, step_counts=0.0) for e in events))
+    fitted = []
+    for d in ctx.recs:
+        evs = sensor.events_of(d, zero)
+        if not evs:
+            continue
+        p, _ = ctx.problem.predict(zero, d)
+        seg = sensor.segments(d, zero)
+        r = np.where(d.mask, d.measured - p, np.nan)
+        level = [float(np.nanmean(r[seg == s])) if np.any(seg == s) else 0.0 for s in range(len(evs) + 1)]
+        fitted += [dataclasses.replace(e, step_counts=level[i + 1] - level[i]) for i, e in enumerate(evs)]
+    new = dataclasses.replace(model, ffc=tuple(fitted))
+    n_new = len(events) - len(model.ffc)
+    return FitResult("ffc_event", new, ctx.problem.evaluate(new).ssr, n_params=2 * n_new)
+
+
+def _response_values(model: Model, nominal: Model) -> dict:
+    r = model.response
+    return {"level_counts": r.level if r else 0.0, "gamma_per_count": r.gamma if r else 0.0}
+
+
+def _ffc_values(model: Model, nominal: Model) -> dict:
+    return {"t_start_s": [e.t_start for e in model.ffc], "t_end_s": [e.t_end for e in model.ffc],
+            "step_counts": [e.step_counts for e in model.ffc]}
+
+
+EFFECTS.update({e.name: e for e in (
+    Effect("detector_nonlinearity", fit_detector_nonlinearity, "response", ("response",), _response_values),
+    Effect("ffc_event", fit_ffc_event, "ffc", ("ffc",), _ffc_values),
+)})
 CANDIDATES = tuple(EFFECTS)

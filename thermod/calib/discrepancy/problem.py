@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import MIN_COVERAGE, Model, RecData, noise_variance_spatial
 
 
@@ -30,7 +31,7 @@ class Problem:
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1
-        return d.fm.predict(model.calib, model.extra_psf_px)
+        return sensor.predict(d, model)
 
     def evaluate(self, model: Model, keep=False) -> Evaluation:
         ssr, n, res, preds = 0.0, 0, [], []
@@ -53,7 +54,7 @@ class Problem:
 
     def refresh(self, model: Model, fpn: bool = True, erode_px: int = 2, fpn_iters: int = 2,
                 fpn_highpass_px: float = 1.5):
-        """Per-step state: FPN estimate and the fixed valid mask.
+        """Per-step state: FPN estimate (per NUC segment: `sensor.estimate_fpn`) and the fixed valid mask.
 
         FPN stays put on the sensor while the scene moves, so it is what the motion residual has in
         common over time: F ← F + HP(mean_k r_k), iterated from F = 0 under the current model. Only
@@ -64,12 +65,13 @@ class Problem:
         with the FPN, under the current model: once per step, never inside a candidate's fit.
         """
         for d in self.recs:
+            d.aux["ffc_fpn"] = None
             if d.reference == "motion":
                 _refresh_motion(d, model, fpn, fpn_iters, fpn_highpass_px, self.scene_iters)
             else:
-                d.fpn = _estimate_fpn(d, model, fpn_iters, fpn_highpass_px) if fpn else None
+                d.fpn = sensor.estimate_fpn(d, model, fpn_iters, fpn_highpass_px) if fpn else None
                 d.fm.set_reference(d.static_mean, d.fpn, prescaled=True)
-            _, v = d.fm.predict(model.calib, model.extra_psf_px)
+            _, v = sensor.predict(d, model)
             k = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8)
             d.mask = np.stack([cv2.erode(x.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
                                for x in v]).astype(bool)
@@ -100,19 +102,6 @@ class Problem:
 
     def noise_floor(self) -> float:
         return self.gap(self.noise_ss())
-
-
-def _estimate_fpn(d: RecData, model: Model, iters: int, highpass_px: float) -> np.ndarray:
-    F = np.zeros_like(d.static_mean)
-    for _ in range(iters):
-        d.fm.set_reference(d.static_mean, F, prescaled=True)
-        p, v = d.fm.predict(model.calib, model.extra_psf_px)
-        r = np.where(v, d.measured - p, 0.0)
-        cnt = v.sum(axis=0)
-        upd = np.where(cnt > 0, r.sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
-        upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
-        F = F + upd
-    return F
 
 
 def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px: float, scene_iters: int):

@@ -121,7 +121,7 @@ def _gap_figure(ana: Analysis, path: Path) -> str:
 def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 3, figsize=(12, 9.5))
+    fig, axes = plt.subplots(4, 3, figsize=(12, 12.5))
     ax = axes.ravel()
     panels = {}
     ax[0].plot(dg["row_gap"], lw=1)
@@ -147,6 +147,8 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
               title=f"kernel-centroid lag (median {dg['lag_median_s'] * 1e3:.2f} ms)")
     panels["lag"] = ax[5]
     panels.update(_gyro_panels(ax[6:9], dg))
+    _detector_panels(dg, ax[9], ax[10], panels)
+    ax[11].axis("off")
     for k, a in panels.items():
         if k == highlight:
             for s in a.spines.values():
@@ -156,6 +158,36 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
+    """The detector-side panels: residual vs the blur's mixing variance (a curved response), and the
+    per-frame residual energy and frame-to-frame change against time (flat-field corrections)."""
+    if "mix_var" in dg:
+        ax_resp.plot(dg["mix_var"], dg["mix_residual"], "o-", ms=3, label="binned residual")
+        xx = np.array([0.0, np.nanmax(dg["mix_var"]) if np.any(np.isfinite(dg["mix_var"])) else 1.0])
+        ax_resp.plot(xx, dg["mix_slope"] * xx, "k--", lw=0.8, label=f"slope γ = {dg['mix_slope']:.3g}/count")
+        ax_resp.axhline(0, color="k", lw=0.5)
+        ax_resp.legend(fontsize=8)
+    ax_resp.set(xlabel="variance the blur mixes, P(r²) − P(r)² (counts²)", ylabel="mean residual (counts)",
+                title="vs blur mixing (detector response)")
+    panels["response"] = ax_resp
+    if "frame_energy" in dg:
+        t = dg["ffc_t"]
+        ax_ffc.semilogy(t, np.maximum(dg["frame_energy"], 1e-3), "o-", ms=3, label="residual energy")
+        ax_ffc.semilogy(t, np.maximum(dg["change_measured"], 1e-3), "s", ms=3, mfc="none",
+                        label="measured change")
+        ax_ffc.semilogy(t, np.maximum(dg["change_predicted"], 1e-3), "+", ms=4, label="predicted change")
+        fz = np.asarray(dg["frozen"], bool)
+        if fz.any():
+            ax_ffc.semilogy(t[fz], np.maximum(dg["frame_energy"][fz], 1e-3), "rx", ms=8, label="frozen")
+        for a, b in dg["ffc_events"]:
+            ax_ffc.axvspan(a, b, color="0.85")
+            ax_ffc.axvline(b, color="r", lw=1)
+        ax_ffc.legend(fontsize=7)
+    ax_ffc.set(xlabel="time since motion onset (s)", ylabel="per frame / noise variance",
+               title="residual and change vs time (FFC)")
+    panels["ffc"] = ax_ffc
 
 
 def _gyro_panels(ax, dg: dict) -> dict:
@@ -207,6 +239,21 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     return rep
 
 
+def _detector_notes(ana: Analysis) -> list[str]:
+    """Notes for the detector-side effects: what model.toml does not carry."""
+    out = []
+    r = ana.model.response
+    if r is not None and r.gamma != 0.0:
+        out += [f"- Detector response: linearise the raw counts y before deblurring with x = c0 + u + γu², "
+                f"u = y − c0, c0 = {r.level:.1f} counts, γ = {r.gamma:.4g} per count. It is not in "
+                "model.toml's [calibration]: `thermod run`/`deblur` deconvolve the counts as they come."]
+    for e in ana.model.ffc:
+        out += [f"- Flat-field correction in {e.recording}: frames frozen from t = {e.t_start:.4f} s to "
+                f"{e.t_end:.4f} s (camera clock), then an offset step of {e.step_counts:.2f} counts; the "
+                "daemon passes such frames through (reason `ffc`) when the camera flags them."]
+    return out
+
+
 def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
     md = ["# thermod discrepancy report", "", f"Inputs: {', '.join(inputs)}", "",
           f"- gap: {ana.gap_initial:.4f} (nominal) → {ana.gap_final:.4f} (final); "
@@ -233,6 +280,7 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
            "sensor while the scene moves) and added back to every prediction.",
            "- A gyro bias hypothesis uses the static segment's mean raw rate as a prior (the camera is "
            "still there), refined by the images."]
+    md += _detector_notes(ana)
     if ana.unobservable:
         md += ["", "Not observable with this motion (left at their previous values):"]
         md += [f"- {k}: {', '.join(v)}" for k, v in ana.unobservable.items()]
