@@ -105,13 +105,13 @@ class GyroErrorModel:
         if not t_end > t_start:
             raise ThermodError(f"gyro model: empty span [{t_start}, {t_end}]")
         t_anchor = t_start if t_anchor is None else float(t_anchor)
-        off = float(calib.time_offset_s)
-        drift = self.clock_drift_ppm * 1e-6
-        # stamps on the gyro clock: a regular grid; true camera time t = a + (t_g + off − a)(1 + drift)
-        g0 = t_anchor + (t_start - t_anchor) / (1 + drift) - off
+        clock = self.clock(calib, t_anchor)
+        drift = clock.clock_drift_ppm * 1e-6
+        # stamps on the gyro clock: a regular grid, read at the camera times the calibration maps them to
+        g0 = float(clock.camera_time_to_gyro(t_start))
         n = int(math.floor((t_end - t_start) * rate / (1 + drift))) + 1
         t_gyro = g0 + np.arange(n) / rate
-        t_true = t_anchor + (t_gyro + off - t_anchor) * (1 + drift)
+        t_true = clock.gyro_time_to_camera(t_gyro)
         if self.jitter_s > 0:
             t_true = t_true + self.jitter_s * rng.standard_normal(n)
 
@@ -138,6 +138,18 @@ class GyroErrorModel:
         # what the camera really did at the sampling instants, for the truth record
         w_true = np.asarray(omega_cam(t_true), dtype=np.float64).reshape(n, 3)
         return GyroSamples(t_gyro, raw.astype(np.float32), t_true, w_true, rate)
+
+    def clock(self, calib: Calibration, t_anchor: float) -> Calibration:
+        """The calibration whose clock map (`Calibration.gyro_time_to_camera`) the samples follow:
+        `calib`'s own, or this model's `clock_drift_ppm` with the clocks agreeing at camera time
+        `t_anchor` (epoch t_anchor − time offset on the gyro clock)."""
+        if not self.clock_drift_ppm:
+            return calib
+        if calib.clock_drift_ppm:
+            raise ThermodError("gyro model clock_drift_ppm: the calibration has a clock drift already; "
+                               "set one of the two")
+        return calib.replace(clock_drift_ppm=float(self.clock_drift_ppm),
+                             clock_epoch_s=float(t_anchor) - calib.time_offset_s)
 
     def _lowpassed(self, omega_cam, t_true, rate):
         """Sensed rate through the chip's 2nd-order Butterworth, run on an 8× oversampled grid

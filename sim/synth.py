@@ -17,8 +17,13 @@ has to explain:
     quantisation_bits      bits   ADC resolution (16 or 14, …)
     detector_nonlinearity  —      mild quadratic response (outside the model's vocabulary)
     gyro_noise             rad/s  white gyro noise RMS per sample
-    clock_drift_ppm        ppm    gyro clock drift against the camera clock
-    gyro_lowpass_hz        Hz     the gyro chip's low-pass (group delay)
+    clock_drift            ppm    the gyro clock runs at 1 + ε against the camera's; the clocks agree
+                                  at the first frame (clock_epoch_s = its time − the time offset)
+    gyro_lowpass           Hz     cutoff of the gyro chip's DLPF (2nd-order Butterworth: group delay
+                                  √2/(2π f_c) plus attenuation 1/√(1 + (f/f_c)⁴))
+    gyro_saturation        rad/s  the gyro's full-scale range: raw samples clip at ±this
+
+(`clock_drift_ppm` and `gyro_lowpass_hz` are accepted as older names of `clock_drift`, `gyro_lowpass`.)
 
 The truth goes to `extra_attrs["truth"]` (true calibration attributes, effects, specs) and
 `extras["truth/..."]`: `frames` (float32 sharp view at each frame time, no PSF),
@@ -48,7 +53,8 @@ from thermod.sim.gyro_model import DEG, GyroErrorModel
 
 EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
            "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
-           "gyro_noise", "clock_drift_ppm", "gyro_lowpass_hz")
+           "gyro_noise", "clock_drift", "gyro_lowpass", "gyro_saturation")
+EFFECT_ALIASES = {"clock_drift_ppm": "clock_drift", "gyro_lowpass_hz": "gyro_lowpass"}
 MAX_BYTES = 6e9          # the whole recording is built in memory
 _VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,)}
 
@@ -57,6 +63,7 @@ def check_effects(effects: Mapping | None) -> dict:
     """Validate effect names and values; returns {name: float or 3-tuple}."""
     out = {}
     for name, v in dict(effects or {}).items():
+        name = EFFECT_ALIASES.get(name, name)
         if name not in EFFECTS:
             raise ThermodError(f"--effect {name}: unknown effect; known: {', '.join(EFFECTS)}")
         a = np.asarray(v, dtype=np.float64).ravel() if not isinstance(v, str) else None
@@ -68,16 +75,18 @@ def check_effects(effects: Mapping | None) -> dict:
                                f"got {a.size}")
         out[name] = float(a[0]) if a.size == 1 else tuple(float(x) for x in a)
     for name in ("rolling_readout", "time_constant", "optical_psf", "netd", "fpn", "gain_nonuniformity",
-                 "gyro_noise", "gyro_lowpass_hz"):
+                 "gyro_noise"):
         if name in out and out[name] < 0:
             raise ThermodError(f"--effect {name}={out[name]}: must be ≥ 0")
+    _check_gyro_effects(out)
     if "gyro_scale" in out and np.any(np.asarray(out["gyro_scale"]) <= 0):
         raise ThermodError(f"--effect gyro_scale={out['gyro_scale']}: must be > 0")
     return out
 
 
-def true_calibration(nominal: Calibration, effects: Mapping) -> Calibration:
-    """The calibration the world is rendered with: the nominal one changed by the effects."""
+def true_calibration(nominal: Calibration, effects: Mapping, t_anchor: float = 0.0) -> Calibration:
+    """The calibration the world is rendered with: the nominal one changed by the effects (a clock
+    drift agrees with the camera clock at camera time `t_anchor`)."""
     c = nominal
     if "time_offset" in effects:
         c = c.replace(time_offset_s=c.time_offset_s + effects["time_offset"])
@@ -95,7 +104,7 @@ def true_calibration(nominal: Calibration, effects: Mapping) -> Calibration:
         c = c.replace(tau_s=effects["time_constant"])
     if "optical_psf" in effects:
         c = c.with_psf_sigma_px(effects["optical_psf"]) if effects["optical_psf"] > 0 else c
-    return c
+    return _true_gyro_effects(c, effects, t_anchor)
 
 
 def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Calibration | None = None,
@@ -122,14 +131,14 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     fps = float(nominal.frame_rate_hz)
     n = _frame_count(seconds, nominal)
     fx = check_effects(effects)
-    truth_cal = true_calibration(nominal, fx)
+    t_frames = t0 + np.arange(n) / fps
+    truth_cal = true_calibration(nominal, fx, t_anchor=float(t_frames[0]))
     psf_sigma = fx.get("optical_psf", nominal.psf_sigma_px)
     gyro = _gyro_with_effects(gyro or GyroErrorModel(), fx)
     sensor = _sensor_effects(fx)
 
     mot = mo.parse(motion, seed)
     sc = _sphere_scene(scene, truth_cal, seed)
-    t_frames = t0 + np.arange(n) / fps
     traj, gyro_lo, gyro_hi = _trajectory(mot, t_frames, truth_cal, kind, exposure_s, history_tau)
     with _progress_bar(n if progress else 0) as bar:
         if method == "fine":
@@ -194,10 +203,7 @@ def _gyro_with_effects(gyro: GyroErrorModel, fx: Mapping) -> GyroErrorModel:
     changes = {}
     if "gyro_noise" in fx:
         changes["noise_rms_deg_s"] = fx["gyro_noise"] / DEG
-    if "clock_drift_ppm" in fx:
-        changes["clock_drift_ppm"] = fx["clock_drift_ppm"]
-    if "gyro_lowpass_hz" in fx:
-        changes["lowpass_hz"] = fx["gyro_lowpass_hz"]
+    changes.update(_gyro_effect_changes(gyro, fx))
     return gyro.replace(**changes)
 
 
@@ -306,3 +312,47 @@ def _jsonable(g: GyroErrorModel) -> dict:
     for k, v in g.__dict__.items():
         d[k] = None if v is None else (str(v) if isinstance(v, float) and not math.isfinite(v) else v)
     return d
+
+
+# ------------------------------------------------------------------ gyro-side effects of issue 12
+# clock_drift, gyro_lowpass, gyro_saturation: the truth calibration carries each (so that
+# `Calibration.condition_gyro` with the true values inverts them) and the gyro error model renders
+# the low-pass and the clipping; the clock drift is rendered through the truth calibration's clock.
+MAX_CLOCK_DRIFT_PPM = 1e5
+
+
+def _check_gyro_effects(fx: dict) -> None:
+    if "clock_drift" in fx and not abs(fx["clock_drift"]) <= MAX_CLOCK_DRIFT_PPM:
+        raise ThermodError(f"--effect clock_drift={fx['clock_drift']}: expected a drift within "
+                           f"±{MAX_CLOCK_DRIFT_PPM:g} ppm")
+    if "gyro_lowpass" in fx and fx["gyro_lowpass"] != 0 and not fx["gyro_lowpass"] >= 1.0:
+        raise ThermodError(f"--effect gyro_lowpass={fx['gyro_lowpass']}: expected a cutoff ≥ 1 Hz "
+                           "(0 = none)")
+    if "gyro_saturation" in fx and not fx["gyro_saturation"] > 0:
+        raise ThermodError(f"--effect gyro_saturation={fx['gyro_saturation']}: expected a full-scale range "
+                           "> 0 rad/s")
+
+
+def _true_gyro_effects(c: Calibration, fx: Mapping, t_anchor: float) -> Calibration:
+    changes = {}
+    if fx.get("clock_drift"):
+        changes.update(clock_drift_ppm=float(fx["clock_drift"]),
+                       clock_epoch_s=float(t_anchor) - c.time_offset_s)
+    if fx.get("gyro_lowpass"):
+        nyq = 0.5 * c.rate_hz
+        if not fx["gyro_lowpass"] < nyq:
+            raise ThermodError(f"--effect gyro_lowpass={fx['gyro_lowpass']}: expected a cutoff below the "
+                               f"gyro's Nyquist rate {nyq:g} Hz")
+        changes["gyro_lowpass_hz"] = float(fx["gyro_lowpass"])
+    if "gyro_saturation" in fx:
+        changes["gyro_range_rad_s"] = float(fx["gyro_saturation"])
+    return c.replace(**changes) if changes else c
+
+
+def _gyro_effect_changes(gyro: GyroErrorModel, fx: Mapping) -> dict:
+    changes = {}
+    if fx.get("gyro_lowpass"):
+        changes["lowpass_hz"] = fx["gyro_lowpass"]
+    if "gyro_saturation" in fx:
+        changes["range_deg_s"] = min(gyro.range_deg_s, fx["gyro_saturation"] / DEG)
+    return changes

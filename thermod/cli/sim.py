@@ -29,7 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=1.0, help="duration (s, default 1)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE",
                    help="hidden truth effect (repeatable), e.g. time_offset=0.004, rolling_readout=0.012, "
-                        "gyro_bias=0.001,0,0, misalignment=0,0,0.01, time_constant=0.010, netd=0.05")
+                        "gyro_bias=0.001,0,0, misalignment=0,0,0.01, time_constant=0.010, netd=0.05; "
+                        "gyro side: clock_drift=PPM (clocks agree at the first frame), gyro_lowpass=HZ "
+                        "(2nd-order Butterworth DLPF cutoff), gyro_saturation=RAD_S (full-scale range)")
     p.add_argument("--seed", type=int, default=0, help="random seed (scene, shake, noise)")
     p.add_argument("--width", type=int, default=None, help="image width (px, default 640)")
     p.add_argument("--height", type=int, default=None, help="image height (px, default 480)")

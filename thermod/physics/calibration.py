@@ -3,6 +3,13 @@
 Keys are the recording attributes of DESIGN.md §3 (format v1): camera intrinsics, detector τ,
 optics, rolling readout, and the gyro → camera calibration
 `ω_cam = R_cam_gyro · scale · (ω_gyro − bias)`, sampled at `t_gyro + time_offset_s`.
+
+Three gyro-side effects precondition the raw samples before that map (`condition_gyro`; all off by
+default): a clipped range (`gyro_range_rad_s`: clipped runs are replaced by a smooth continuation),
+the chip's digital low-pass (`gyro_lowpass_hz`: a regularised inverse of a 2nd-order Butterworth)
+and clock drift (`clock_drift_ppm`: the gyro clock runs at 1 + ε against the camera's,
+``t_cam = t_gyro + time_offset_s + ε (t_gyro − clock_epoch_s)``, so `time_offset_s` is the offset
+at the gyro-clock epoch `clock_epoch_s`).
 """
 
 from __future__ import annotations
@@ -14,11 +21,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.physics import gyro_effects
 from thermod.physics.geometry import Intrinsics, so3_exp
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um",
                "f_number", "psf_beta", "pixel_pitch_um", "readout_s")
-GYRO_KEYS = ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s", "scale")
+GYRO_KEYS = ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s", "scale", "clock_drift_ppm",
+             "clock_epoch_s", "gyro_lowpass_hz", "gyro_range_rad_s", "gyro_clip_gain")
+# Gyro-side effect fields (scalars; 0 = off, except the clip gain whose neutral value is 1).
+GYRO_EFFECT_KEYS = GYRO_KEYS[5:]
 
 # The paper's SBTI setup: FLIR A655sc-like, IFOV 0.0391°, τ = 8 ms, 640×480 at 50 Hz, 17 µm pitch.
 PAPER_IFOV_RAD = math.radians(0.0391)
@@ -58,6 +69,11 @@ class Calibration:
     bias_rad_s: tuple = (0.0, 0.0, 0.0)
     time_offset_s: float = 0.0
     scale: tuple = (1.0, 1.0, 1.0)
+    clock_drift_ppm: float = 0.0
+    clock_epoch_s: float = 0.0
+    gyro_lowpass_hz: float = 0.0
+    gyro_range_rad_s: float = 0.0
+    gyro_clip_gain: float = 1.0
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self):
@@ -91,6 +107,7 @@ class Calibration:
         if not abs(self.time_offset_s) <= 1.0:
             raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, "
                                                     f"got {self.time_offset_s!r}")
+        _check_gyro_effects(self)
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
         scale = _vector("scale", self.scale, (1, 3))
         scale = scale * 3 if len(scale) == 1 else scale
@@ -143,9 +160,68 @@ class Calibration:
 
     def gyro_to_camera(self, t_gyro: np.ndarray, rate_gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Raw gyro samples → (camera-clock times, calibrated camera-frame rates, float64)."""
-        unbiased = np.asarray(rate_gyro, np.float64) - np.asarray(self.bias_rad_s)
+        t, r = self.condition_gyro(t_gyro, rate_gyro)
+        unbiased = r - np.asarray(self.bias_rad_s)
         rate = unbiased @ self.gyro_to_camera_matrix.T
-        return np.asarray(t_gyro, np.float64) + self.time_offset_s, rate
+        return t + self.time_offset_s, rate
+
+    @property
+    def has_gyro_effects(self) -> bool:
+        return bool(self.clock_drift_ppm or self.gyro_lowpass_hz or self.gyro_range_rad_s)
+
+    def condition_gyro(self, t_gyro, rate_gyro) -> tuple[np.ndarray, np.ndarray]:
+        """Raw samples as an ideal gyro on a drift-free clock would give them (float64; gyro frame,
+        bias kept): clipped runs reconstructed, the low-pass inverted, the clock drift removed
+        (times on the gyro clock rescaled about `clock_epoch_s`; `time_offset_s` is added by
+        `gyro_to_camera`). A no-op copy when none of the three is set."""
+        t = np.asarray(t_gyro, np.float64)
+        r = np.asarray(rate_gyro, np.float64)
+        if r.ndim == 2 and len(r) >= 4:
+            if self.gyro_range_rad_s > 0:
+                r = gyro_effects.unclip(t, r, self.gyro_range_rad_s, self.gyro_clip_gain)
+            if self.gyro_lowpass_hz > 0:
+                r = gyro_effects.inverse_lowpass(t, r, self.gyro_lowpass_hz)
+        if self.clock_drift_ppm:
+            t = self.gyro_clock_to_ideal(t)
+        return t, r
+
+    @property
+    def gyro_condition_margin_s(self) -> float:
+        """Gyro time `condition_gyro` needs either side of a span: the inverse filter's reach
+        (8/f_c) and a clipped run's (50 ms)."""
+        m = 0.0
+        if self.gyro_lowpass_hz > 0:
+            m = max(m, 8.0 / self.gyro_lowpass_hz)
+        if self.gyro_range_rad_s > 0:
+            m = max(m, 0.05)
+        return m
+
+    def condition_window(self, t_gyro, rate_gyro, t_cam_lo: float, t_cam_hi: float):
+        """`condition_gyro` of the samples covering camera times [t_cam_lo, t_cam_hi] (plus the
+        margin the corrections need): what a kernel renderer passed a whole ring buffer needs."""
+        t = np.asarray(t_gyro)
+        if not self.has_gyro_effects:
+            return t, rate_gyro
+        m = self.gyro_condition_margin_s + 2.0 / self.rate_hz
+        lo, hi = self.camera_time_to_gyro(np.array([t_cam_lo, t_cam_hi]))
+        i0, i1 = np.searchsorted(t, [lo - m, hi + m])
+        i0, i1 = max(int(i0) - 2, 0), min(int(i1) + 2, len(t))
+        return self.condition_gyro(t[i0:i1], np.asarray(rate_gyro)[i0:i1])
+
+    def gyro_clock_to_ideal(self, t_gyro):
+        """Gyro-clock stamps → drift-free gyro time: t + ε (t − epoch)."""
+        eps = self.clock_drift_ppm * 1e-6
+        return np.asarray(t_gyro, np.float64) + eps * (np.asarray(t_gyro, np.float64) - self.clock_epoch_s)
+
+    def gyro_time_to_camera(self, t_gyro):
+        """Camera-clock time of gyro stamps: t + time_offset_s + ε (t − clock_epoch_s)."""
+        return self.gyro_clock_to_ideal(t_gyro) + self.time_offset_s
+
+    def camera_time_to_gyro(self, t_cam):
+        """Inverse of `gyro_time_to_camera`: the gyro stamp read at camera time t_cam."""
+        eps = self.clock_drift_ppm * 1e-6
+        t = np.asarray(t_cam, np.float64) - self.time_offset_s
+        return (t + eps * self.clock_epoch_s) / (1.0 + eps)
 
     def camera_to_gyro(self, rate_cam: np.ndarray) -> np.ndarray:
         """Inverse of the rate part of `gyro_to_camera`: what an ideal gyro reads (gyro frame, with
@@ -173,6 +249,7 @@ class Calibration:
             "bias_rad_s": np.asarray(self.bias_rad_s, dtype=np.float64),
             "time_offset_s": float(self.time_offset_s),
             "scale": self.scale_vector,
+            **{k: float(getattr(self, k)) for k in GYRO_EFFECT_KEYS},
         }
 
     def as_dict(self) -> dict:
@@ -186,7 +263,7 @@ class Calibration:
         scalars or one-element arrays; anything else raises CalibrationError naming the key."""
         kw = {k: _scalar(k, camera[k]) for k in CAMERA_KEYS if k in camera}
         gyro = gyro or {}
-        for k in ("rate_hz", "time_offset_s"):
+        for k in ("rate_hz", "time_offset_s", *GYRO_EFFECT_KEYS):
             if k in gyro:
                 kw[k] = _scalar(k, gyro[k])
         for k in ("R_cam_gyro", "bias_rad_s", "scale"):
@@ -200,7 +277,36 @@ class Calibration:
 
 
 _FLOAT_KEYS = ("fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um", "f_number", "psf_beta",
-               "pixel_pitch_um", "readout_s", "rate_hz", "time_offset_s")
+               "pixel_pitch_um", "readout_s", "rate_hz", "time_offset_s", *GYRO_EFFECT_KEYS)
+
+# Ranges of the gyro-side effect fields: a crystal is within ±100 ppm, an RC-clocked MEMS ODR within
+# a few %; a DLPF below 1 Hz or above Nyquist is no DLPF; MEMS full scales are ±125…±4000 °/s.
+MAX_CLOCK_DRIFT_PPM = 1e5
+MIN_LOWPASS_HZ = 1.0
+MAX_GYRO_RANGE_RAD_S = math.radians(10000.0)
+MAX_CLIP_GAIN = 10.0
+
+
+def _check_gyro_effects(c: Calibration) -> None:
+    if not abs(c.clock_drift_ppm) <= MAX_CLOCK_DRIFT_PPM:
+        raise CalibrationError("clock_drift_ppm", f"expected a gyro clock drift within "
+                                                  f"±{MAX_CLOCK_DRIFT_PPM:g} ppm (±10 %), "
+                                                  f"got {c.clock_drift_ppm!r}")
+    if not abs(c.clock_epoch_s) <= 1e10:
+        raise CalibrationError("clock_epoch_s", f"expected a gyro-clock time within ±1e10 s, "
+                                                f"got {c.clock_epoch_s!r}")
+    nyq = 0.5 * c.rate_hz
+    if c.gyro_lowpass_hz != 0 and not MIN_LOWPASS_HZ <= c.gyro_lowpass_hz < nyq:
+        raise CalibrationError("gyro_lowpass_hz", f"expected 0 (none) or a cutoff in [{MIN_LOWPASS_HZ:g}, "
+                                                  f"{nyq:g}) Hz (below the gyro's Nyquist rate), "
+                                                  f"got {c.gyro_lowpass_hz!r}")
+    if c.gyro_range_rad_s != 0 and not 0 < c.gyro_range_rad_s <= MAX_GYRO_RANGE_RAD_S:
+        raise CalibrationError("gyro_range_rad_s", f"expected 0 (not clipped) or a full-scale range in "
+                                                   f"(0, {MAX_GYRO_RANGE_RAD_S:.4g}] rad/s, "
+                                                   f"got {c.gyro_range_rad_s!r}")
+    if not 0 <= c.gyro_clip_gain <= MAX_CLIP_GAIN:
+        raise CalibrationError("gyro_clip_gain", f"expected a gain in [0, {MAX_CLIP_GAIN:g}] for the "
+                                                 f"continuation of clipped runs, got {c.gyro_clip_gain!r}")
 
 
 def _scalar(key, v):

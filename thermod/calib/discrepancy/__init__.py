@@ -3,7 +3,7 @@
 `thermod discrepancy REC.h5 [REC2.h5 …] --out DIR [--config model.toml]`
 
 A recording made by the payload starts with a static segment (the gyro reads ≈ its bias) followed
-by motion. The workflow
+by motion (or is motion only: see below). The workflow
 
 1. builds a **reference scene** from the static frames (their mean: the detector is settled and the
    camera still, so this is the sharp view, with the static optical PSF and the fixed-pattern noise);
@@ -14,7 +14,8 @@ by motion. The workflow
    valid in every view (1 = the model explains nothing of the motion signal, 0 = everything), with
    the **noise floor** the gap a perfect model would leave, from the static frames' temporal noise;
 4. fits each **candidate effect** (time_offset, rolling_readout, gyro_bias, gyro_scale,
-   misalignment, time_constant, optical_psf): coarse search, then bounded refinement. A candidate is
+   misalignment, time_constant, optical_psf, and the gyro-side clock_drift, gyro_lowpass,
+   gyro_saturation): coarse search, then bounded refinement. A candidate is
    accepted only if its BIC gain on *effective* independent residual samples (pixel correlation
    measured from the residual's autocorrelation) is decisive and it removes a sizeable fraction of
    the gap's excess over the noise floor; the best one is added to the model, the effects named
@@ -22,6 +23,19 @@ by motion. The workflow
    the gyro bias also uses the static segment's mean raw rate as a prior (a direct measurement);
 5. says ``unexplained: true`` when the remaining residual is still well above the noise floor but no
    candidate explains it, rather than naming a wrong effect.
+
+**Motion only.** A recording without a static lead-in (fewer than 3 frames before the gyro sees motion)
+gets a motion-only reference instead (report: ``"reference": "motion"``): a scene canvas S, somewhat
+larger than the frame where the motion needs it, in the camera frame at t_ref (the frame whose
+preceding 5τ moved least). S starts as the frames back-projected and averaged (a blurred mosaic) with
+the t_ref frame on top, and is refined by a few Jacobi-preconditioned CGLS iterations of
+min Σ (M − F − A S)² (the forward model A is linear in S; `ForwardModel.adjoint` is Aᵀ), alternating
+with the FPN estimate once per step in `Problem.refresh` — never inside a candidate's fit. S is shared
+by every frame, so it cannot follow an error that differs from frame to frame (every candidate effect
+moves or blurs each frame according to its own motion); canvas pixels seen by fewer than 2.5 frames
+are left out so no frame predicts what only it saw. There is no static segment to measure the noise:
+it is the spatial high-pass (Immerkær) of the motion residual, an upper bound while model errors
+remain (``noise_source`` says which estimate was used); there is no static bias prior either.
 
 Fixed-pattern noise (FPN) sits still on the sensor while the scene moves, so it is estimated as the
 temporal mean of the motion residual and added back to every prediction (and removed from the
@@ -31,6 +45,12 @@ as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one). 
 moving frames share is therefore *unobservable* from this comparison — the workflow leaves it alone.
 Parameters the motion does not excite (a gyro axis that barely turns; misalignment directions about
 the only rotation axis) are not fitted and are listed under `unobservable`.
+
+The gyro-side effects compete with simpler ones: a clock drift (a line: offset at an epoch plus
+ε) and a DLPF (a delay at low frequencies) are kept only if they beat the best pure time offset
+decisively, so with motion that lacks the content to tell them apart the report names the simpler
+`time_offset`. Saturation reads the range off the raw samples (a pile-up at a constant |rate|) and
+fits only the amplitude of the clipped runs' continuation.
 
 The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
 signal on simulator data) is allowed for by `model_tol` in both the search and the verdict.

@@ -79,7 +79,7 @@ def diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
         spec_noise += d.noise_var * float(d.mask.mean())
     nrec = len(problem.recs)
     lag = np.concatenate(lags)
-    return {
+    dg = {
         "row_gap": np.sqrt(rows / np.maximum(rows_sig, 1e-12)),
         "noise_sd": math.sqrt(sum(d.noise_var for d in problem.recs) / nrec),
         "t": np.concatenate(times), "frame_gap": np.concatenate(frame_rel),
@@ -88,3 +88,39 @@ def diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict:
         "spectrum": spec / nrec, "spectrum_noise": spec_noise / nrec,
         "spectrum_freq": (np.arange(N_SPECTRUM_BINS) + 0.5) * 0.05,
     }
+    dg.update(gyro_panels(problem, model, dg))
+    return dg
+
+
+# ------------------------------------------------------------------ gyro-side panels (issue 12)
+def gyro_panels(problem: Problem, model: Model, dg: dict) -> dict:
+    """Panels for the gyro-side effects, from the per-frame series above and the raw gyro.
+
+    lag_trend (clock_drift): the centroid lag against time with its straight-line slope (a drifting
+    clock makes the lag grow at ε s/s). lag_freq (gyro_lowpass): the lag against each frame's motion
+    frequency |dω/dt| / (2π|ω|) (a pure offset is flat; a low-pass lags more, and attenuates, as the
+    frequency nears its cutoff). clip (gyro_saturation): the raw |rate| distribution near its top
+    (a pile-up at the range) and which frames' detector window (5τ) holds clipped samples.
+    """
+    from thermod.physics.gyro_effects import clipped_runs, detect_clip_level
+
+    t, lag = np.asarray(dg["t"], float), np.asarray(dg["lag_s"], float)
+    ok = np.isfinite(lag)
+    slope = float(np.polyfit(t[ok], lag[ok], 1)[0]) if ok.sum() >= 3 and np.ptp(t[ok]) > 0 else float("nan")
+    speed = np.radians(np.asarray(dg["speed_deg_s"], float))
+    freq = np.radians(np.asarray(dg["accel_deg_s2"], float)) / (2 * math.pi * np.maximum(speed, 1e-6))
+    level = max(detect_clip_level(d.gyro_rate) for d in problem.recs)
+    top, clipped = [], []
+    for d in problem.recs:
+        a = np.abs(np.asarray(d.gyro_rate, np.float64))
+        top.append(a.max(axis=1))
+        t_cam = model.calib.gyro_time_to_camera(d.gyro_t)
+        hit = np.zeros(len(d.frame_t), bool)
+        if level > 0:
+            for ax in range(3):
+                for i0, i1, _ in clipped_runs(d.gyro_rate[:, ax], level):
+                    a0, a1 = t_cam[i0], t_cam[i1]
+                    hit |= (d.frame_t >= a0) & (d.frame_t - 5 * model.calib.tau_s <= a1)
+        clipped.append(hit)
+    return {"lag_slope_ppm": slope * 1e6, "motion_freq_hz": freq, "gyro_abs_max": np.concatenate(top),
+            "clip_level": level, "frame_clipped": np.concatenate(clipped)}

@@ -17,6 +17,7 @@ from scipy import optimize
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
 from thermod.physics.geometry import so3_log
+from thermod.physics.gyro_effects import detect_clip_level, group_delay_s
 
 
 @dataclass
@@ -278,4 +279,140 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("optical_psf", fit_optical_psf, "spectrum", ("psf_beta",), _psf_values),
 )}
 
+CANDIDATES = tuple(EFFECTS)
+
+
+# ----------------------------------------------------------------------------------------- gyro-side effects
+# clock_drift, gyro_lowpass, gyro_saturation (issue 12): fields of `Calibration.condition_gyro`, so the
+# forward model, `thermod deblur` and the daemon all apply what is fitted here.
+_GYRO_BIC_MIN = 10.0      # decisive, as `Criteria.bic_min`
+_GYRO_MIN_EXPLAINED = 0.3  # of what the simpler model leaves above the noise, as `Criteria.min_explained`
+
+
+def _beats(ctx: StepContext, simpler: FitResult, fit: FitResult, extra_params: int) -> bool:
+    """Whether `fit` beats the simpler model decisively: ΔBIC > 10 for its extra parameters and at
+    least 30 % of the simpler model's excess SSR over the noise removed."""
+    excess = max(simpler.ssr - ctx.problem.noise_ss(), 1e-30)
+    return (ctx.delta_bic(simpler.ssr, fit.ssr, extra_params) > _GYRO_BIC_MIN
+            and simpler.ssr - fit.ssr >= _GYRO_MIN_EXPLAINED * excess)
+
+
+def _current_ssr(ctx: StepContext, model: Model) -> float:
+    return ctx.problem.evaluate(model).ssr
+
+
+def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) -> FitResult:
+    """Gyro clock rate error ε (ppm) with the offset at its epoch: t_cam = t_gyro + offset + ε (t_gyro −
+    epoch), the epoch being the gyro-clock time of the first analysed frame (or the model's own once it
+    has a drift). The clock map is a line, so both are fitted; it is kept only if it beats the best
+    pure time offset decisively (otherwise the simpler `time_offset` explains it). ±2 % covers an
+    RC-clocked MEMS output data rate; a crystal's ±100 ppm moves a 1 s recording by ±0.1 ms, which
+    only long recordings resolve."""
+    c0 = model.calib
+    epoch = c0.clock_epoch_s if c0.clock_drift_ppm else float(
+        min(d.frame_t[0] for d in ctx.recs) - c0.time_offset_s)
+    p0, off0 = c0.clock_drift_ppm, c0.time_offset_s
+    unit = np.array([1e-3, 1000.0])          # 1 ms, 1000 ppm
+
+    def make(x):
+        x = np.asarray(x, float)
+        ppm = float(np.clip(p0 + x[1], -max_ppm, max_ppm))
+        return _with(model, time_offset_s=float(off0 + x[0]), clock_drift_ppm=ppm, clock_epoch_s=epoch)
+    starts = [np.zeros(2)] + [np.array([0.0, s]) for s in (-4.0, 4.0)]
+    x, ssr = _vector_fit(ctx, make, starts, unit, bound=max_ppm / 1000.0)
+    best = FitResult("clock_drift", make(x), ssr, n_params=2)
+    if "time_offset" in ctx.named or c0.clock_drift_ppm:
+        return best
+    pure = fit_time_offset(ctx, model)
+    if _beats(ctx, pure, best, 1):
+        return best
+    return FitResult("clock_drift", model, _current_ssr(ctx, model), n_params=0,
+                     unobservable=["clock_drift: no better than a constant time offset over this recording"])
+
+
+def _lowpass_model(model: Model, delay_s: float, offset_s: float | None = None) -> Model:
+    """The model with a 2nd-order Butterworth DLPF of DC group delay `delay_s` (0 = none)."""
+    c = model.calib
+    fc = group_delay_s(1.0) / delay_s if delay_s > 0 else 0.0
+    fc = min(fc, 0.45 * c.rate_hz) if fc else 0.0
+    changes = {"gyro_lowpass_hz": float(fc) if fc >= 1.0 else 0.0}
+    if offset_s is not None:
+        changes["time_offset_s"] = float(offset_s)
+    return _with(model, **changes)
+
+
+def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) -> FitResult:
+    """The gyro chip's low-pass, parametrised by its DC group delay d = √2/(2π f_c).
+
+    At low frequencies it is a pure delay, which `time_offset` explains as well with one parameter
+    too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart. So
+    while no time offset is named, the fit is kept only if it beats the best pure time offset
+    decisively (ΔBIC > 10 and 30 % of what the offset leaves above the noise); otherwise it reports no
+    gain and the simpler time offset is named instead. Once a time offset is named it has absorbed
+    the filter's delay, so the delay is also tried moved from the offset into the filter (total
+    low-frequency delay kept), as the readout fit does with its mean delay.
+    """
+    c0 = model.calib
+    d0 = group_delay_s(c0.gyro_lowpass_hz) if c0.gyro_lowpass_hz else 0.0
+    grid = np.linspace(0.0, max_delay_s, 13)
+
+    def make(d):
+        return _lowpass_model(model, float(d))
+
+    def make_centred(d):
+        # the delay delays the gyro: camera time of a sample = t + offset − d at low frequencies
+        return _lowpass_model(model, float(d), c0.time_offset_s - d0 + float(d))
+
+    x, ssr = _scalar_fit(ctx, make, grid, 0.0, max_delay_s, None)
+    best = FitResult("gyro_lowpass", make(x), ssr)
+    if "time_offset" in ctx.named:
+        xc, ssrc = _scalar_fit(ctx, make_centred, grid, 0.0, max_delay_s, None)
+        if ssrc < ssr:
+            best = FitResult("gyro_lowpass", make_centred(xc), ssrc)
+        return best
+    pure = fit_time_offset(ctx, model)
+    if _beats(ctx, pure, best, 0):
+        return best
+    return FitResult("gyro_lowpass", model, _current_ssr(ctx, model), n_params=0,
+                     unobservable=["gyro_lowpass: no better than a pure time offset (the motion has too "
+                                   "little content near the cutoff to show the attenuation)"])
+
+
+def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -> FitResult:
+    """Clipping at the gyro's range: the range is read off the raw samples (the largest |rate| that
+    samples pile up at, in runs), the clipped runs are continued smoothly and the continuation's
+    amplitude (`gyro_clip_gain`, 1 = the cubic through the slopes on both sides) is fitted from the
+    images. No pile-up: nothing to fit."""
+    level = max(detect_clip_level(d.gyro_rate) for d in ctx.recs)
+    if level <= 0:
+        return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
+                         unobservable=["gyro_saturation: no raw samples pile up at a constant |rate|"])
+
+    def make(g):
+        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g))
+    x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_gain, 13), 0.0, max_gain, None)
+    return FitResult("gyro_saturation", make(x), ssr)
+
+
+def _lowpass_values(model: Model, nominal: Model) -> dict:
+    fc = model.calib.gyro_lowpass_hz
+    return {"gyro_lowpass_hz": fc, "group_delay_s": group_delay_s(fc) if fc else 0.0}
+
+
+def _saturation_values(model: Model, nominal: Model) -> dict:
+    c = model.calib
+    return {"gyro_range_rad_s": c.gyro_range_rad_s, "gyro_range_deg_s": math.degrees(c.gyro_range_rad_s),
+            "gyro_clip_gain": c.gyro_clip_gain}
+
+
+GYRO_EFFECTS = (
+    Effect("clock_drift", fit_clock_drift, "lag_trend",
+           ("clock_drift_ppm", "clock_epoch_s", "time_offset_s"),
+           _calib_values("clock_drift_ppm", "clock_epoch_s", "time_offset_s")),
+    Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"),
+           _lowpass_values),
+    Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
+           _saturation_values),
+)
+EFFECTS.update({e.name: e for e in GYRO_EFFECTS})
 CANDIDATES = tuple(EFFECTS)

@@ -121,7 +121,7 @@ def _gap_figure(ana: Analysis, path: Path) -> str:
 def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    fig, axes = plt.subplots(3, 3, figsize=(12, 9.5))
     ax = axes.ravel()
     panels = {}
     ax[0].plot(dg["row_gap"], lw=1)
@@ -146,6 +146,7 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     ax[5].set(xlabel="time since motion onset (s)", ylabel="lag (ms)",
               title=f"kernel-centroid lag (median {dg['lag_median_s'] * 1e3:.2f} ms)")
     panels["lag"] = ax[5]
+    panels.update(_gyro_panels(ax[6:9], dg))
     for k, a in panels.items():
         if k == highlight:
             for s in a.spines.values():
@@ -155,6 +156,31 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _gyro_panels(ax, dg: dict) -> dict:
+    """The gyro-side panels (see `diagnostics.gyro_panels`): clock drift, low-pass, saturation."""
+    t, lag = np.asarray(dg["t"]), np.asarray(dg["lag_s"]) * 1e3
+    ax[0].plot(t, lag, "o", ms=3)
+    ok = np.isfinite(lag)
+    if ok.sum() >= 3 and np.isfinite(dg["lag_slope_ppm"]):
+        p = np.polyfit(t[ok], lag[ok], 1)
+        ax[0].plot(t, np.polyval(p, t), "r-", lw=1)
+    ax[0].set(xlabel="time since motion onset (s)", ylabel="lag (ms)",
+              title=f"lag trend {dg['lag_slope_ppm']:.0f} ppm (clock drift)")
+    ax[1].semilogx(np.maximum(dg["motion_freq_hz"], 0.1), lag, "o", ms=3)
+    ax[1].axhline(0, color="k", lw=0.8)
+    ax[1].set(xlabel="motion frequency |dω/dt|/(2π|ω|) (Hz)", ylabel="lag (ms)",
+              title="lag vs motion frequency (gyro low-pass)")
+    top = np.degrees(np.asarray(dg["gyro_abs_max"]))
+    ax[2].hist(top, bins=60, log=True)
+    if dg["clip_level"] > 0:
+        ax[2].axvline(np.degrees(dg["clip_level"]), color="r", lw=1)
+    n_clip = int(np.sum(dg["frame_clipped"]))
+    ax[2].set(xlabel="max raw |ω| over axes (°/s)", ylabel="samples",
+              title=f"gyro range: pile-up at {np.degrees(dg['clip_level']):.4g} °/s, {n_clip} frames hit"
+              if dg["clip_level"] > 0 else "gyro range: no pile-up (saturation)")
+    return {"lag_trend": ax[0], "lag_freq": ax[1], "clip": ax[2]}
 
 
 def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text: str) -> dict:
@@ -187,7 +213,11 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
           f"noise floor {ana.noise_floor:.4f}",
           "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the "
           "motion frames",
-          f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**", "",
+          f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**",
+          f"- reference: **{ana.reference}** ("
+          + ("mean of the static lead-in" if ana.reference == "static" else
+             "no static lead-in: a scene canvas estimated by least squares from the moving frames")
+          + f"); noise from {ana.noise_source}", "",
           "| step | effect | parameters | gap before | gap after | ΔBIC | excess explained |",
           "|---|---|---|---|---|---|---|"]
     for i, s in enumerate(ana.steps, 1):

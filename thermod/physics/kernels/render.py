@@ -114,6 +114,7 @@ def render_path(gyro_t, gyro_rate, calib: Calibration, t_frame: float, *, point=
     box = exposure_s is not None
     length = check_scalar("exposure_s", exposure_s, True) if box else check_scalar("m", m, True) * p.tau
     a, b = window(p, tf, y, length)
+    t, r = calib.condition_window(t, r, a, b)      # clock drift, DLPF, clipping (no-op when unset)
     times, Q, w, cov, ns = _nodes_for(t, r, p, a, b, box, px_per_rad(p, x, y), x, y)
     u, st = path_offsets(Q, (x, y), p.camera)
     if st:   # PathStatus.OK is 0
@@ -148,6 +149,7 @@ def render_thermal_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float,
     mm = check_scalar("m", m, True)
     x, y = check_point(point, p)
     a, b = window(p, tf, y, mm * p.tau)
+    t, r = calib.condition_window(t, r, a, b)
     return _render(t, r, p, a, b, False, x, y, psf)
 
 
@@ -167,6 +169,7 @@ def render_photon_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float,
     ex = check_scalar("exposure_s", exposure_s, True)
     x, y = check_point(point, p)
     a, b = window(p, tf, y, ex)
+    t, r = calib.condition_window(t, r, a, b)
     return _render(t, r, p, a, b, True, x, y, psf)
 
 
@@ -211,6 +214,7 @@ def render_kernel_grid(gyro_t, gyro_rate, calib: Calibration, t_frame: float, gr
         raise KernelError(f"kind: expected 'thermal' or 'photon', got {kind!r}")
     centers, bounds = _grid_layout(p.height, p.width, rows, cols)
     ppr = px_per_rad(p, p.cx, p.cy)   # the frame-wide bound: same sub-steps as single kernels
+    t, r = calib.condition_window(t, r, tf - p.readout - length, tf)
     kernels = []
     times = np.empty(rows)
     for i in range(rows):

@@ -1,0 +1,119 @@
+"""Gyro-side corrections of raw samples that `Calibration.condition_gyro` applies before the linear
+gyro → camera map: the continuation of clipped runs and the inverse of the chip's digital low-pass.
+
+Both work on raw samples (gyro frame, rad/s, bias included) at a near-constant output data rate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# The inverse low-pass is rolled off above REG_FACTOR × f_c (order 2·REG_ORDER): 1/H grows as f², so
+# without it the white noise above the cutoff would be amplified without bound. At f_c the roll-off
+# costs 0.14 %, at 3 f_c half the amplitude.
+REG_FACTOR = 3.0
+REG_ORDER = 3
+# A sample counts as clipped when |rate| ≥ range·(1 − CLIP_TOL): float32 storage and an LSB
+# quantisation after the clip put it a few 1e-5 below the range.
+CLIP_TOL = 1e-4
+
+
+def butterworth2(f_hz, cutoff_hz: float) -> np.ndarray:
+    """H(j2πf) of the 2nd-order Butterworth low-pass, H(s) = ω_c² / (s² + √2 ω_c s + ω_c²).
+
+    Its group delay at DC is √2 / (2π f_c) (e.g. 9 ms at 25 Hz): what a time offset absorbs; the
+    attenuation |H| = 1/√(1 + (f/f_c)⁴) is what tells the two apart.
+    """
+    x = np.asarray(f_hz, np.float64) / cutoff_hz
+    return 1.0 / (1.0 - x * x + 1j * math.sqrt(2.0) * x)
+
+
+def group_delay_s(cutoff_hz: float) -> float:
+    """DC group delay of `butterworth2`: √2 / (2π f_c)."""
+    return math.sqrt(2.0) / (2.0 * math.pi * cutoff_hz)
+
+
+def inverse_lowpass(t: np.ndarray, rate: np.ndarray, cutoff_hz: float) -> np.ndarray:
+    """The rate before a 2nd-order Butterworth at `cutoff_hz`: ŵ = F⁻¹[R(f) / H(f) · F[w]].
+
+    R(f) = 1 / (1 + (f / (REG_FACTOR f_c))^(2·REG_ORDER)) regularises the inverse above the cutoff.
+    The series is extended at both ends by odd reflection (value and slope continue) before the FFT,
+    so the ends of a short window are not wrapped onto each other. Sampling is taken as uniform at
+    the median interval (MEMS output data rates are).
+    """
+    r = np.asarray(rate, np.float64)
+    n = len(r)
+    if n < 4:
+        return r.copy()
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0:
+        return r.copy()
+    m = min(n - 1, max(8, int(math.ceil(4.0 / (cutoff_hz * dt)))))
+    head = 2.0 * r[:1] - r[m:0:-1]
+    tail = 2.0 * r[-1:] - r[-2:-m - 2:-1]
+    x = np.concatenate([head, r, tail])
+    f = np.fft.rfftfreq(len(x), dt)
+    g = 1.0 / butterworth2(f, cutoff_hz) / (1.0 + (f / (REG_FACTOR * cutoff_hz)) ** (2 * REG_ORDER))
+    y = np.fft.irfft(np.fft.rfft(x, axis=0) * g[:, None], n=len(x), axis=0)
+    return y[m:m + n]
+
+
+def clipped_runs(rate_axis: np.ndarray, range_rad_s: float) -> list[tuple[int, int, float]]:
+    """Runs (first, last, sign) of consecutive samples pinned at ±range on one axis."""
+    a = np.asarray(rate_axis, np.float64)
+    lim = range_rad_s * (1.0 - CLIP_TOL)
+    runs = []
+    for sign in (1.0, -1.0):
+        m = np.r_[False, sign * a >= lim, False]
+        d = np.diff(m.astype(np.int8))
+        runs += [(int(i), int(j) - 1, sign) for i, j in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1),
+                                                             strict=True)]
+    return sorted(runs)
+
+
+def unclip(t: np.ndarray, rate: np.ndarray, range_rad_s: float, gain: float = 1.0) -> np.ndarray:
+    """Clipped runs replaced by a smooth continuation above the range.
+
+    Between the last unclipped sample before a run and the first after it, the cubic Hermite with
+    the slopes the signal had on both sides is the natural continuation of a peak that the range cut
+    off; its excess over the range is scaled by `gain` (fitted from the images: the shape of the cut
+    peak is only guessed). Runs touching either end of the series are left clipped (one side is
+    unknown), as are samples within the range.
+    """
+    t = np.asarray(t, np.float64)
+    out = np.array(rate, np.float64, copy=True)
+    n = len(t)
+    for a in range(out.shape[1]):
+        y = out[:, a]
+        for i0, i1, sign in clipped_runs(y, range_rad_s):
+            if i0 < 2 or i1 > n - 3:
+                continue
+            ta, tb = t[i0 - 1], t[i1 + 1]
+            ya, yb = y[i0 - 1], y[i1 + 1]
+            sa = (y[i0 - 1] - y[i0 - 2]) / (t[i0 - 1] - t[i0 - 2])
+            sb = (y[i1 + 2] - y[i1 + 1]) / (t[i1 + 2] - t[i1 + 1])
+            h = tb - ta
+            u = (t[i0:i1 + 1] - ta) / h
+            hermite = ((2 * u**3 - 3 * u**2 + 1) * ya + (u**3 - 2 * u**2 + u) * h * sa
+                       + (-2 * u**3 + 3 * u**2) * yb + (u**3 - u**2) * h * sb)
+            excess = np.maximum(sign * hermite - range_rad_s, 0.0)
+            y[i0:i1 + 1] = sign * (range_rad_s + gain * excess)
+    return out
+
+
+def detect_clip_level(rate: np.ndarray, min_samples: int = 3) -> float:
+    """The range a gyro clipped at: the largest |rate| that ≥ `min_samples` samples sit on exactly
+    (a pile-up at the extreme of the distribution, in runs of ≥ 2), or 0 when no axis shows one."""
+    r = np.abs(np.asarray(rate, np.float64))
+    level = 0.0
+    for a in range(r.shape[1]):
+        top = float(r[:, a].max(initial=0.0))
+        if top <= 0:
+            continue
+        at = r[:, a] >= top * (1.0 - CLIP_TOL)
+        runs = [j - i for i, j, _ in clipped_runs(np.asarray(rate, np.float64)[:, a], top)]
+        if at.sum() >= min_samples and max(runs, default=0) >= 1:
+            level = max(level, top)
+    return level
