@@ -7,8 +7,9 @@ work per file is what matters, not its content; simulating N would dominate the 
 deblurs all N with the default settings (K&F, kernel grid) through the real command line,
 `thermod deblur … -o DIR/ [--scheduler ADDR]`, start-up included; the clusters are started once
 (worker processes, 1 thread each) and stay warm between repetitions, as a standing fleet would.
-Repetitions are interleaved (local, 1 worker, 2 workers, local, …); the table prints the median wall
-time, recordings per hour and whether every output is byte-identical to the local run's.
+All share one FFTW wisdom file, planned by an untimed local warm-up. Repetitions are interleaved
+(local, 1 worker, 2 workers, local, …); the table prints the median wall time, recordings per hour
+and whether every output is byte-identical to the local run's.
 """
 
 from __future__ import annotations
@@ -95,6 +96,12 @@ def main() -> int:
         print(f"simulated {args.n} × {args.frames} frames at {args.size[0]}×{args.size[1]} "
               f"in {time.perf_counter() - t0:.0f} s", flush=True)
         names = [p.name for p in inputs]
+        # One FFTW wisdom file for this run, planned by an untimed local warm-up: the clusters' workers
+        # inherit the variable and load it, so every engine runs the same FFT plans. (The default
+        # ~/.cache/thermod is rewritten by any thermod process on the machine; a plan measured anew
+        # under load can differ, and so do the last bits of the result.)
+        os.environ["THERMOD_CACHE_DIR"] = str(tmp / "cache")
+        deblur(inputs[:1], tmp / "warmup", None)
         clusters = {k: LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
                                     dashboard_address=":0", silence_logs=40) for k in (1, 2)}
         engines = {"local (default)": None, "LocalCluster, 1 worker": clusters[1].scheduler_address,
