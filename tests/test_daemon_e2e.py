@@ -243,7 +243,10 @@ def test_record_output_deblurs_with_thermod_deblur(payload, tmp_path):
         np.testing.assert_array_equal(rec.frames[i], pl.frame_for(int(fids[i])))
     assert np.all(np.diff(rec.gyro_t) > 0)
     assert np.median(np.diff(rec.gyro_t)) == pytest.approx(1e-3, rel=0.01)     # the chip's 1 kHz samples
-    r = subprocess.run([str(THERMOD), "deblur", str(rec_path), "-o", str(out_path), "--uniform"],
+    # the payload flies a multirotor: its roll varies the blur across the frame, so the offline
+    # default (a kernel grid) — one kernel per frame measured 0.55 here, against 0.29–0.39 under the
+    # earlier hand-held shake
+    r = subprocess.run([str(THERMOD), "deblur", str(rec_path), "-o", str(out_path)],
                        capture_output=True, text=True, env=env(), timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     out = recording.read(out_path)
