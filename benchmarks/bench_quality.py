@@ -53,6 +53,7 @@ from thermod.physics import (
     kernels,
 )
 from thermod.physics.calibration import Calibration  # noqa: E402
+from thermod.runtime.config import DeblurConfig  # noqa: E402
 from thermod.sim import motion as mo  # noqa: E402
 from thermod.sim import synth  # noqa: E402
 from thermod.sim.gyro_model import GyroErrorModel  # noqa: E402
@@ -131,8 +132,8 @@ def paper_kf(blurry: np.ndarray, k, lam: float) -> np.ndarray:
 class Options:
     lam: float | None = None
     paper_lam: float = 3000.0
-    grid: tuple = (3, 4)
-    overlap: float = 1.0
+    grid: tuple = DeblurConfig().grid
+    overlap: float = deconv.TILE_OVERLAP
     wiener_balance: float = 0.005
     rl_iter: int = 30
     skimage: bool = True

@@ -163,10 +163,10 @@ def test_adaptive_grid_follows_the_roll():
     # (r = 400 px) moves 0.5 px at ω_z = 0.5 / (0.008 · 400) = 0.156 rad/s
     assert grid_for([0.0, 0.0, 0.14]) == (1, 1)
     assert grid_for([0.0, 0.0, 0.18]) == (2, 3)
-    assert grid_for([0.0, 0.0, 1.0]) == (3, 4)             # capped at deblur.grid
-    assert grid_for([0.0, 0.0, 1.0], grid=(6, 8)) == (6, 8)
+    assert grid_for([0.0, 0.0, 1.0]) == (6, 8)             # the default deblur.grid
+    assert grid_for([0.0, 0.0, 1.0], grid=(3, 4)) == (3, 4)   # capped at deblur.grid
     assert grid_for([0.0, 0.0, 1.0], mode="uniform") == (1, 1)
-    assert grid_for([0.0, 0.0, 0.0], mode="grid") == (3, 4)
+    assert grid_for([0.0, 0.0, 0.0], mode="grid") == (6, 8)
     assert grid_for([0.0, 0.0, 0.18], grid_tol_px=2.0) == (1, 1)
 
 

@@ -72,7 +72,7 @@ class DeblurConfig:
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)
     mode: str = "adaptive"           # adaptive (grid from the roll, `pipeline.grid_needed`) | uniform | grid
-    grid: tuple[int, int] = (3, 4)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
+    grid: tuple[int, int] = (6, 8)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
     grid_tol_px: float = 0.5         # adaptive: kernel shift allowed across a cell (px) before it is split
     kf_iterations: int | None = None  # K&F β steps (None: K&F's six); the governor's faster rung uses 3
     governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)

@@ -6,7 +6,7 @@ first (rungs the configuration rules out are left out: ``method = "wiener"`` sta
 ``mode = "uniform"`` has no grid):
 
     kf        K&F (hyper-Laplacian, six β steps) over the kernel grid the frame needs; the grid is
-              coarsened (3×4 → 2×3 → 1×1 = uniform) before the method is given up
+              coarsened (6×8 → … → 2×3 → 1×1 = uniform) before the method is given up
     kf_fast   K&F with three β steps (β = 1, 8, 64: the same continuation, coarser), uniform
     wiener    one Tikhonov solve over the grid the frame needs, coarsened down to uniform
 

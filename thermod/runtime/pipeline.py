@@ -163,7 +163,7 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
     thermal kernel of Eq. 18, whose weights decay as e^(−s/τ); half the exposure for the photon box
     of Eq. 17). The rates are the kernel-weighted means of |ω_z| and ω_⊥ over the frame's window
     (calibrated camera frame). A cell's half-diagonal h must keep t_eff·(…) ≤ grid_tol_px; grids
-    are tried coarse to fine (1×1, 2×3, 3×4 on a 4:3 sensor) up to ``deblur.grid``.
+    are tried coarse to fine (1×1, 2×3, 3×4, … 6×8 on a 4:3 sensor) up to ``deblur.grid``.
     """
     if deblur.mode == "uniform":
         return (1, 1)

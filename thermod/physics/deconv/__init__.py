@@ -69,7 +69,7 @@ from .noise import (
     robust_range,
 )
 from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, wisdom_path
-from .solver import DEFAULT_ALPHA, Deconvolver, deconvolve, deconvolve_varying
+from .solver import DEFAULT_ALPHA, TILE_OVERLAP, Deconvolver, deconvolve, deconvolve_varying
 from .tiles import TILE_MARGIN_PX, kernel_spread
 from .wstep import (
     BETA_MAX,
@@ -85,7 +85,8 @@ __all__ = [
     "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS",
     "NOISE_KNEE",
     "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
-    "NoiseLambda", "TILE_MARGIN_PX", "beta_schedule", "deconvolve", "deconvolve_varying", "kernel_spread",
+    "NoiseLambda", "TILE_MARGIN_PX", "TILE_OVERLAP", "beta_schedule", "deconvolve", "deconvolve_varying",
+    "kernel_spread",
     "noise_sigma", "robust_range",
     "shrink_23_analytic", "shrink_numeric", "shrink_threshold", "wisdom_path",
 ]
