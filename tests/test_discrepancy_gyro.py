@@ -238,7 +238,7 @@ def test_gyro_effect_is_named_recovered_and_closes_the_gap(effect):
     assert not ana.unexplained
     if effect == "clock_drift":
         t = rec.gyro_t[(rec.gyro_t > rec.t[10]) & (rec.gyro_t < rec.t[-1])]
-        assert np.abs(c.gyro_time_to_camera(t) - truth.gyro_time_to_camera(t)).max() < 5e-4   # measured 0.2 ms
+        assert np.abs(c.gyro_time_to_camera(t) - truth.gyro_time_to_camera(t)).max() < 5e-4  # 0.2 ms
         assert c.clock_drift_ppm == pytest.approx(10000.0, rel=0.3)
     elif effect == "gyro_lowpass":
         assert "time_offset" not in ana.named      # broadband: the attenuation tells it from a delay
