@@ -9,6 +9,15 @@ iteration — the reference Matlab algorithm transcribed), the speed-up, both PS
 = same algorithm), and frames/s with two threads (one Deconvolver each) on 2 cores.
 A second table compares the FFT back ends (pyFFTW vs scipy.fft) on the same solver.
 Target: 640×480 with a 65 px kernel ≤ 15 ms median on one core and ≥ 8× the plain version.
+
+Spatially varying table (640×480, roll blur rendered on a 12×16 grid of tangential comets): the
+uniform solve beside tile solves on 3×4 (full blending; kernel-sized margins as before, and the
+8 px margins now) and 6×8 (blend ramp 0.25 of the spacing) grids, interleaved medians, the ratio
+to uniform and PSNR. Target: spatially varying ≤ 2× uniform at ≥ the 3×4 reference's PSNR − 0.2 dB.
+
+Large-sensor table: K&F and Wiener at 640×480, 640×512, 1280×1024 beside the FFT floor (one
+float32 rfft2 + irfft2 pair at the solver's padded size, same plan type), in ms and ms per
+megapixel, with the per-frame budget of a 2-worker daemon (2 / fps).
 """
 
 from __future__ import annotations
@@ -114,6 +123,100 @@ def fps_two_threads(frames, kernel, n_per_thread: int) -> float:
     return 2 * n_per_thread / (time.perf_counter() - t0)
 
 
+def roll_grid(rows, cols, full_shape, crop, px_per_radius=0.06):
+    """Kernel grid for the frame cropped by `crop` px under roll about the optical axis: comets
+    tangential to the centre of the uncropped frame, length ∝ radius (exponential thermal tail)."""
+    from thermod.physics.kernels import KernelGrid
+    h, w = full_shape
+    hh, ww = h - 2 * crop, w - 2 * crop
+    ye = np.linspace(0, hh, rows + 1)
+    xe = np.linspace(0, ww, cols + 1)
+    kernels = []
+    for i in range(rows):
+        row = []
+        for j in range(cols):
+            y, x = (ye[i] + ye[i + 1]) / 2 + crop - h / 2, (xe[j] + xe[j + 1]) / 2 + crop - w / 2
+            length = max(2, round(px_per_radius * math.hypot(x, y)))
+            row.append(comet(length, length / 3, math.degrees(math.atan2(x, -y))))
+        kernels.append(row)
+    centers = np.array([[((ye[i] + ye[i + 1] - 1) / 2, (xe[j] + xe[j + 1] - 1) / 2) for j in range(cols)]
+                        for i in range(rows)])
+    bounds = np.array([[(ye[i], ye[i + 1], xe[j], xe[j + 1]) for j in range(cols)] for i in range(rows)])
+    return KernelGrid(kernels, centers, bounds.astype(int), np.zeros(rows), (hh, ww))
+
+
+def interleaved_ms(fns: dict, reps: int) -> dict:
+    """{name: median ms} of the callables run in turn `reps` times (after one warm-up each), so that
+    load from other processes hits them alike."""
+    for fn in fns.values():
+        fn()
+    ts = {k: [] for k in fns}
+    for _ in range(reps):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            ts[k].append(time.perf_counter() - t0)
+    return {k: 1e3 * float(np.median(v)) for k, v in ts.items()}
+
+
+def varying_table(reps: int) -> None:
+    from thermod.physics.kernels import blur_varying
+    h, w = 480, 640
+    big, name = scene((h, w))
+    fine = roll_grid(12, 16, big.shape, 0)
+    truth = big[80:80 + h, 80:80 + w]
+    lo, hi = deconv.robust_range(truth)
+    noise = np.random.default_rng(3).normal(0, 0.003 * (hi - lo), (h, w)).astype(np.float32)
+    b = blur_varying(big, fine)[80:80 + h, 80:80 + w] + noise
+    g34, g68 = roll_grid(3, 4, big.shape, 80), roll_grid(6, 8, big.shape, 80)
+    kmax = max(max(k.weights.shape) for row in g34.kernels for k in row)
+    d = deconv.Deconvolver()
+    fns = {
+        "uniform (central kernel)": lambda: d.run(b, g34.kernels[1][1]),
+        f"3×4 tiles, overlap 1, margins kernel + 8 = {kmax + 8} px (before)":
+            lambda: d.run_varying(b, g34, margin_px=kmax + 8),
+        f"3×4 tiles, overlap 1, margins {deconv.TILE_MARGIN_PX} px": lambda: d.run_varying(b, g34),
+        f"6×8 tiles, overlap 0.25, margins {deconv.TILE_MARGIN_PX} px":
+            lambda: d.run_varying(b, g68, overlap=0.25),
+    }
+    t = interleaved_ms(fns, reps)
+    emit(f"\n## Spatially varying, 640×480 ({name}, roll: comets tangential to the centre, 0.06 px of "
+         f"tail per px of radius, up to {kmax} px; kernel_spread of the 3×4 grid "
+         f"{deconv.kernel_spread(g34):.1f} px; one core, interleaved medians of {reps})\n")
+    emit("| solve | ms | × uniform | PSNR dB |\n|---|---|---|---|")
+    emit(f"| blurry input | – | – | {psnr(b, truth):.2f} |")
+    t_uni = t["uniform (central kernel)"]
+    for k, fn in fns.items():
+        emit(f"| {k} | {t[k]:.1f} | {t[k] / t_uni:.2f}× | {psnr(fn(), truth):.2f} |")
+
+
+def floor_table(reps: int) -> None:
+    from thermod.physics.deconv.plans import Plan
+    emit(f"\n## Large sensors: cost per megapixel beside the FFT floor (33 px comet; one core, interleaved "
+         f"medians of {reps})\n")
+    emit("| frame | padded FFT size | K&F ms | K&F ms/MP | Wiener ms | Wiener ms/MP | FFT pair ms | "
+         "pair ms/MP | K&F / pair | 2-worker budget |")
+    emit("|---|---|---|---|---|---|---|---|---|---|")
+    k = comet(33, 33 / 4, 30.0)
+    for (h, w), fps in (((480, 640), 50), ((512, 640), 60), ((1024, 1280), 30)):
+        big, _ = scene((h, w))
+        b = blur(big, k)[80:80 + h, 80:80 + w]
+        d, dw = deconv.Deconvolver(), deconv.Deconvolver(method="wiener")
+        shape = d.padded_shape((h, w), k.weights.shape)
+        plan = Plan(shape, d.fft, 1)
+        plan.rin[:] = 0.5
+
+        def pair(plan=plan):
+            plan.cin[:] = plan.fwd()
+            plan.inv()
+        t = interleaved_ms({"kf": lambda: d.run(b, k), "wiener": lambda: dw.run(b, k), "pair": pair},  # noqa: B023
+                           reps)
+        mp = h * w / 1e6
+        emit(f"| {w}×{h} | {shape[1]}×{shape[0]} | {t['kf']:.1f} | {t['kf'] / mp:.1f} | {t['wiener']:.1f} | "
+             f"{t['wiener'] / mp:.1f} | {t['pair']:.2f} | {t['pair'] / mp:.2f} | {t['kf'] / t['pair']:.1f} | "
+             f"{2000 / fps:.0f} ms at {fps} fps |")
+
+
 def psnr(a, ref):
     r = float(np.percentile(ref, 99.5) - np.percentile(ref, 0.5))
     return 10 * math.log10(r * r / float(np.mean((a.astype(np.float64) - ref) ** 2)))
@@ -130,6 +233,8 @@ def emit(text: str = "") -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions and sizes")
+    ap.add_argument("--only", choices=("speed", "varying", "floor"), default=None,
+                    help="run one table (speed: the per-size table and FFT back ends)")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "deconv.md",
                     help="markdown copy of the tables (default benchmarks/results/deconv.md)")
     args = ap.parse_args(argv)
@@ -141,6 +246,16 @@ def main(argv=None) -> int:
          f"{deconv.Deconvolver().fft}, one core per Deconvolver, medians of {reps} runs; load average "
          f"before the run {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (the machine is shared).\n")
     emit("Scenes: " + "; ".join(f"{w}×{h} {scene((h, w))[1]}" for h, w in sizes) + ".\n")
+    if args.only in (None, "varying"):
+        varying_table(reps)
+    if args.only in (None, "floor"):
+        floor_table(reps)
+    if args.only in ("varying", "floor"):
+        emit(f"\nload average after the run {os.getloadavg()[0]:.1f}")
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text("\n".join(LINES) + "\n")
+        return 0
+    emit("\n## Speed per frame size and kernel\n")
     emit("| frame | kernel | K&F α=2/3 ms (fastest) | Wiener ms | plain K&F ms | speed-up | "
          "PSNR thermod / plain (dB) | blurry dB | fps, 2 threads |")
     emit("|---|---|---|---|---|---|---|---|---|")

@@ -15,6 +15,7 @@ every motion is defined for all t. Specs for the CLI (angles in degrees, rates i
     vibration[:rms[:hz]]        vehicle vibration, RMS rate °/s around a fundamental + harmonics
     sway[:deg[:period_s]]       smooth periodic sway that returns exactly to its start
     log[:start_s]               replay of the real Betaflight gyro log (see GyroLog)
+    multirotor[:roll_rms]       multirotor attitude motion, roll-dominant, RMS roll rate °/s (default 60)
     static:0.3+pan:50           sequence: each part but the last takes a duration (…:D or static:D)
 """
 
@@ -320,13 +321,15 @@ def _parse_one(p: str, seed: int, want_duration: bool = False):
             return sway(float(args[0]) if args else 2.0, float(args[1]) if len(args) > 1 else 2.0), dur
         if name == "log":
             return load_gyro_log(None, float(args[0]) if args else 0.0), dur
+        if name == "multirotor":
+            return multirotor(float(args[0]) if args else 60.0, seed), dur
     except (ValueError, IndexError) as e:
         raise ThermodError(f"--motion {p!r}: bad number ({e}); expected e.g. pan:50, slew:90:yaw, "
                            "shake:2, vibration:10:45, log:5, static:0.3+pan:50") from None
     except KeyError as e:
         raise ThermodError(f"--motion {p!r}: unknown axis {e}; expected yaw, pitch or roll") from None
     raise ThermodError(f"--motion {p!r}: unknown motion {name!r}; expected static, pan, roll, tilt, "
-                       "slew, shake, vibration, sway or log")
+                       "slew, shake, vibration, sway, log or multirotor")
 
 
 def _axis(a: str) -> int:
@@ -392,3 +395,46 @@ class Trajectory:
         i0 = max(int((t0 - self.g0) / self.dt) - 1, 0)
         i1 = min(int((t1 - self.g0) / self.dt) + 2, len(self.wg))
         return np.abs(self.wg[i0:i1]).max(axis=0)
+
+
+# --------------------------------------------------------------------------- appended motions
+# Rate proportions of the real Betaflight log (shared/data/gyro/betaflight_smooth_2khz.csv, 39 s of
+# flight): RMS roll 61, pitch 43, yaw 14 °/s; half its rate power lies below ~1 Hz, 90 % below ~2 Hz.
+MULTIROTOR_AXIS_SHARE = (0.70, 0.23, 1.0)      # (pitch, yaw, roll) RMS rate relative to roll
+MULTIROTOR_BAND_HZ = (1.0, 4.0)
+
+
+def multirotor(roll_deg_s: float = 60.0, seed: int = 0, n: int = 5) -> SumOfSines:
+    """Multirotor attitude motion, procedural and seeded (no data needed): roll dominates, as in
+    flight. `roll_deg_s` is the RMS roll rate; pitch and yaw follow the real log's proportions
+    (`MULTIROTOR_AXIS_SHARE`). `n` lines per axis, geometrically spaced over 1–4 Hz (the attitude
+    loop's corrections; a 2 s loop keeps them distinct after snapping to whole cycles), each with
+    the same rate amplitude and a seeded phase: a flat rate spectrum, roll angles of ~8° RMS.
+
+    Roll (ω_z) turns the image about the principal point, so the blur grows with the distance from
+    it: the motion that makes spatially varying deblurring matter. A sum of sines: a looping
+    playback snaps its frequencies to whole cycles per loop (`thermod.sim.playback.loop_motion`).
+    """
+    if not roll_deg_s >= 0:
+        raise ThermodError(f"motion multirotor:{roll_deg_s}: expected an RMS roll rate ≥ 0 °/s")
+    rng = np.random.default_rng([seed, 3])
+    lo, hi = MULTIROTOR_BAND_HZ
+    f = np.repeat(np.geomspace(lo, hi, n)[:, None], 3, axis=1)
+    rate_amp = np.full((n, 3), math.sqrt(2.0 / n))                 # unit RMS rate per axis
+    rate_amp *= roll_deg_s * DEG * np.asarray(MULTIROTOR_AXIS_SHARE)
+    return SumOfSines(f, rate_amp / (2 * np.pi * f), rng.uniform(0, 2 * np.pi, (n, 3)),
+                      spec=f"multirotor:{roll_deg_s:g}")
+
+
+def flight(rms_deg_s: tuple = (8.0, 15.0, 12.0), seed: int = 0, n: int = 12) -> SumOfSines:
+    """Multirotor-like flight attitude: pitch, yaw and roll rates (`rms_deg_s`, camera x, y, z) from sums
+    of sines between 0.3 and 6 Hz (slow manoeuvres to gusts, rate spectrum falling as 1/√f), moving
+    from t = −∞ (no static lead-in). Seeded, so the same arguments always give the same motion."""
+    rng = np.random.default_rng([seed, 3])
+    f = np.exp(rng.uniform(np.log(0.3), np.log(6.0), (n, 3)))
+    w_rms = 1.0 / np.sqrt(f)
+    w_rms *= np.sqrt(2.0 / (w_rms**2).sum(axis=0))                  # unit RMS rate per axis
+    w_rms *= np.asarray(rms_deg_s, float) * DEG
+    amps = w_rms / (2 * np.pi * f)
+    spec = "flight:" + ":".join(f"{r:g}" for r in rms_deg_s)
+    return SumOfSines(f, amps, rng.uniform(0, 2 * np.pi, (n, 3)), spec=spec)

@@ -49,7 +49,7 @@ def test_hardware_examples_parse_and_name_missing_device():
     assert cfg.camera.kind == "aravis" and cfg.camera.device == "FLIR-A655sc"
     R = np.asarray(cfg.calibration.R_cam_gyro)
     np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]))
-    assert cfg.deblur.mode == "grid" and cfg.deblur.grid == (3, 4)
+    assert cfg.deblur.mode == "adaptive" and cfg.deblur.grid == (3, 4)
     boson = config.load(CONFIG_DIR / "boson_serial.toml", check_devices=False)
     assert boson.gyro.kind == "serial" and boson.gyro.options["baud"] == 921600
     assert boson.camera.kind == "v4l2" and boson.calibration.height == 512

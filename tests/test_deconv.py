@@ -174,7 +174,10 @@ def test_kf_beats_wiener_and_both_alphas_work(named_scene):
     over_wiener, over_blurry = KF_MARGINS_DB[name]
     assert p["kf23"] > p["wiener"] + over_wiener, p       # the hyper-Laplacian prior pays off
     assert p["kf1"] > blurry + over_blurry and p["kf23"] > blurry + over_blurry, (blurry, p)
-    assert p["kf23"] > p["kf1"], p                        # sparse gradients: α = 2/3 fits them better
+    if name == "synthetic":
+        assert p["kf23"] > p["kf1"], p                    # sparse gradients: α = 2/3 fits them better
+    else:   # real clutter: α = 1 (the default) keeps low-contrast texture that 2/3 zeroes; measured +0.47
+        assert p["kf1"] > p["kf23"], p
 
 
 def test_float32_and_uint16_in_float32_counts_out_never_clipped():
@@ -195,7 +198,7 @@ def test_large_kernel_101px(scene):
     assert k.weights.shape[1] >= 100
     s, b = blurred_crop(scene, k, margin=110, noise=0.001)
     out = deconv.deconvolve(b, k)
-    assert psnr(out, s) > psnr(b, s) + 19.0        # measured +19.6 dB
+    assert psnr(out, s) > psnr(b, s) + 18.0   # measured +18.5 dB (α = 1; 2/3: +19.6 on this sparse scene)
 
 
 def test_border_ringing_is_bounded(scene):
@@ -294,6 +297,60 @@ def test_spatially_varying_beats_uniform_under_roll(named_scene):
     assert psnr(var, s) > psnr(b, s) + over_blurry
 
 
+def _roll_grid(rows, cols, full_shape, crop=80, px_per_radius=0.06):
+    """A roll-like kernel grid for the frame cropped by `crop` px: comets tangential to the frame
+    centre, their length growing with the radius (as roll blurs a thermal frame)."""
+    h, w = full_shape
+    ye = np.linspace(crop, h - crop, rows + 1)
+    xe = np.linspace(crop, w - crop, cols + 1)
+    kernels = []
+    for i in range(rows):
+        row = []
+        for j in range(cols):
+            y, x = (ye[i] + ye[i + 1]) / 2 - h / 2, (xe[j] + xe[j + 1]) / 2 - w / 2
+            length = max(2, round(px_per_radius * float(np.hypot(x, y))))
+            row.append(comet(length, length / 3, float(np.degrees(np.arctan2(x, -y)))))
+        kernels.append(row)
+    return kernels
+
+
+# measured on the self-made scene: reference 3×4 tiles 35.67 dB, 6×8 tiles with overlap 0.25 35.99 dB;
+# default margins vs kernel-sized margins differ by 8e-6 of the span (RMS).
+def test_small_margins_and_a_fine_narrow_grid_match_the_tiled_reference(scene):
+    """Roll blur (12×16 cells of tangential comets): tiles with 8 px margins give what kernel-sized
+    margins give (a thermal kernel's inverse is local), and a 6×8 grid with narrow blending
+    (about 2× a uniform solve) is at least as good as the 3×4 reference with full blending."""
+    fine = _grid(_roll_grid(12, 16, scene.shape, crop=0), scene.shape)
+    s = scene[80:-80, 80:-80]
+    noise = np.random.default_rng(1).normal(0, 20, s.shape).astype(np.float32)
+    b = blur_varying(scene, fine)[80:-80, 80:-80] + noise
+    g34 = _grid(_roll_grid(3, 4, scene.shape), s.shape)
+    g68 = _grid(_roll_grid(6, 8, scene.shape), s.shape)
+    d = deconv.Deconvolver()
+    kmax = max(max(k.weights.shape) for row in g34.kernels for k in row)
+    ref = d.run_varying(b, g34, margin_px=kmax + 8)
+    small = d.run_varying(b, g34)
+    span = float(s.max() - s.min())
+    assert np.sqrt(np.mean((small - ref) ** 2)) < 1e-4 * span
+    fast = d.run_varying(b, g68, overlap=0.25)
+    assert psnr(fast, s) >= psnr(ref, s)
+    assert psnr(ref, s) > psnr(d.run(b, g34.kernels[1][1]), s) + 5.0   # the grid matters here
+
+
+def test_kernel_spread_is_zero_for_one_kernel_and_grows_with_roll():
+    shape = (352, 480)
+    k = comet(25, 8.0, 30.0)
+    assert deconv.kernel_spread(_grid([[k] * 4 for _ in range(3)], shape)) == 0.0
+    roll = deconv.kernel_spread(_grid(_roll_grid(3, 4, (512, 640)), shape))
+    stronger = deconv.kernel_spread(_grid(_roll_grid(3, 4, (512, 640), px_per_radius=0.12), shape))
+    assert 2.0 < roll < stronger
+    with pytest.raises(deconv.DeconvError, match="grid"):
+        deconv.kernel_spread(object())
+    with pytest.raises(deconv.DeconvError, match="margin_px"):
+        flat = np.zeros(shape, np.float32)
+        deconv.Deconvolver().run_varying(flat, _grid([[k] * 4 for _ in range(3)], shape), margin_px=-1)
+
+
 # ------------------------------------------------------------------------------- errors
 DELTA = DuckKernel(np.ones((1, 1), np.float32), (0, 0))
 
@@ -323,6 +380,37 @@ def test_bad_parameters_raise():
         deconv.Deconvolver(lam_rule=30.0)
     with pytest.raises(ThermodError, match="value_range"):
         deconv.Deconvolver().run(np.zeros((8, 8), np.float32), DELTA, value_range=(5, 5))
+    for bad in (0, 7, 2.5, True):
+        with pytest.raises(ThermodError, match="iterations"):
+            deconv.Deconvolver(iterations=bad)
+
+
+# measured on the self-made scene, 33 px comet: split 2×2 39.80 dB vs 39.82 whole-frame, RMS 4e-4 of the span
+def test_split_solve_matches_the_whole_frame(scene):
+    k = comet(33, 8.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    full = deconv.Deconvolver().run(b, k)
+    assert np.array_equal(deconv.Deconvolver(split=(1, 1)).run(b, k), full)
+    span = float(s.max() - s.min())
+    for split in ((2, 2), (2, 3)):
+        out = deconv.Deconvolver(split=split).run(b, k)
+        assert np.sqrt(np.mean((out - full) ** 2)) < 1e-3 * span
+        assert psnr(out, s) > psnr(full, s) - 0.05
+    for bad in ((0, 2), (2,), "2x2", (2, 17)):
+        with pytest.raises(ThermodError, match="split"):
+            deconv.Deconvolver(split=bad)
+
+
+# measured on the self-made scene, 33 px comet: 6 and 5 steps 39.82 dB, 4 steps 39.65, 1 step 34.69
+def test_fewer_iterations_degrade_gracefully(scene):
+    k = comet(33, 8.0, 30.0)
+    s, b = blurred_crop(scene, k)
+    full = deconv.Deconvolver().run(b, k)
+    assert np.array_equal(deconv.Deconvolver(iterations=6).run(b, k), full)
+    p = {n: psnr(deconv.Deconvolver(iterations=n).run(b, k), s) for n in (5, 4, 1)}
+    # α = 1 (the default): 5 of 6 steps −0.03 dB, 4 steps −0.78 dB on this scene
+    assert psnr(full, s) - 0.05 < p[5] and psnr(full, s) - 1.0 < p[4] < p[5] + 0.05
+    assert psnr(b, s) + 8 < p[1] < p[4] - 3
 
 
 # ------------------------------------------------------------------------- adaptive λ
@@ -349,9 +437,9 @@ def test_lambda_adapts_to_the_noise(scene):
     lam_quiet = d.last_lam
     own_noisy = psnr(d.run(noisy, k), s)
     lam_noisy = d.last_lam
-    assert lam_quiet > 10 * lam_noisy                                # measured 18×
-    assert own_noisy > psnr(deconv.Deconvolver(lam=lam_quiet).run(noisy, k), s) + 15.0   # measured +17.4 dB
-    assert own_quiet > psnr(deconv.Deconvolver(lam=lam_noisy).run(quiet, k), s) + 4.5    # measured +5.2 dB
+    assert lam_quiet > 10 * lam_noisy                                # measured 13.7×
+    assert own_noisy > psnr(deconv.Deconvolver(lam=lam_quiet).run(noisy, k), s) + 9.5    # measured +11.0 dB
+    assert own_quiet > psnr(deconv.Deconvolver(lam=lam_noisy).run(quiet, k), s) + 4.0    # measured +4.8 dB
     fixed = deconv.Deconvolver(lam=1234.0)
     fixed.run(noisy, k)
     assert fixed.last_lam == 1234.0
@@ -400,3 +488,22 @@ def test_realtime_deconvolver_estimates_unseen_fft_sizes_instead_of_stalling(sce
     measured = deconv.Deconvolver(fft="fftw", lam=3000.0)  # offline: measures (and saves wisdom)
     measured.run(blurry, k)
     assert measured.estimated_plans == 0
+
+
+# ------------------------------------------------------------------ the paper's plain method
+# default − paper (dB) at least, per noise σ (unit range); measured −0.33, +1.16, +9.76. At σ = 0.001
+# the clutter of the self-made scene inflates σ̂ 2.5× (noise_sigma cannot tell it from noise), so
+# the adaptive λ is too weak there; the fixed λ only fits the middle level.
+PAPER_MARGIN_DB = {0.001: -0.6, 0.003: 0.8, 0.01: 8.0}
+
+
+@pytest.mark.parametrize("noise", sorted(PAPER_MARGIN_DB))
+def test_default_against_the_papers_method_at_small_blur(scene, noise):
+    """The paper's plain method (K&F α = 1, one fixed λ = 3000, tuned once as bench_quality does)
+    against thermod's default (noise-adaptive λ) at the SBTI's smallest blur (6.25 °/s: a 1.3 px
+    exponential tail), from quiet to noisy frames."""
+    k = comet(7, 1.3, 30.0)
+    s, b = blurred_crop(scene[:400, :480], k, margin=40, noise=noise, seed=1)
+    default = psnr(deconv.Deconvolver().run(b, k), s)
+    paper = psnr(deconv.Deconvolver(alpha=1.0, lam=3000.0).run(b, k), s)
+    assert default >= paper + PAPER_MARGIN_DB[noise], (default, paper)

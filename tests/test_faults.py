@@ -80,7 +80,11 @@ def rig(tmp_path_factory):
     ep = f"tcp://127.0.0.1:{free_port()}"
     cfg_path = tmp / "sim.toml"
     cfg_path.write_text(config.default_path().read_text())
-    cfg = config.load(cfg_path, {"publish.endpoint": ep, "deblur.method": "wiener"})
+    # the recording subscriber shares this process (and its GIL) with the daemon: on a loaded machine it
+    # may not run for seconds, so its send queue gets room for ~8 s of frames instead of the default ~1 s
+    opts = {"publish.endpoint": ep, "deblur.method": "wiener", "publish.max_queue_mb": 1024,
+            "publish.hwm": 800}
+    cfg = config.load(cfg_path, opts)
     payload = SimPayload(cfg.sim, cfg.calibration)
     payload.prepare()
     payload.start()
@@ -88,7 +92,7 @@ def rig(tmp_path_factory):
     camera = payload.camera_source()
     ns = NotifySocket(tmp)
     d = Daemon(cfg, gyro=gyro, camera=camera, notifier=Notifier(ns.path, env={}),
-               overrides={"publish.endpoint": ep, "deblur.method": "wiener"})
+               overrides=opts)
     t_start = time.monotonic()
     d.start()
     stop = threading.Event()
@@ -145,17 +149,19 @@ def frames_after(rig, t, until):
     return got
 
 
+ACCOUNTED = ("camera_frames_lost", "frames_overrun", "camera_items_rejected")
+
+
 def published_or_counted(got, before, after):
     """Every camera frame in `got` was published, or counted: a jump in frame ids is frames the camera
-    lost (camera_gap_before, from its id gaps; a loaded machine may starve its reader) or frames the
-    daemon counted as dropped between the `before` and `after` health reports."""
+    lost (a loaded machine may starve its reader) or frames the daemon dropped, all counted between the
+    `before` and `after` health reports. (Counters, not each frame's camera_gap_before: a frame whose
+    gap was noted may itself be overwritten in the frame ring, and its note with it.)"""
     ids = [x["frame_id"] for x in got]
     assert np.all(np.diff(ids) >= 1), ids
-    unexplained = sum(b["frame_id"] - a["frame_id"] - 1 - b["camera_gap_before"]
-                      for a, b in zip(got, got[1:], strict=False))
-    counted = sum(after["drops"].get(k, 0) - before["drops"].get(k, 0)
-                  for k in ("frames_overrun", "camera_items_rejected"))
-    assert 0 <= unexplained <= counted, (ids, [x["camera_gap_before"] for x in got], after["drops"])
+    jumps = sum(b["frame_id"] - a["frame_id"] - 1 for a, b in zip(got, got[1:], strict=False))
+    counted = sum(after["drops"].get(k, 0) - before["drops"].get(k, 0) for k in ACCOUNTED)
+    assert 0 <= jumps <= counted, (ids, after["drops"])
 
 
 def recovered(n):
@@ -338,9 +344,7 @@ def test_no_seq_gaps_and_threads_alive_after_all_faults(rig):
     seqs = np.array([x["seq"] for x in items])
     assert np.array_equal(seqs, np.arange(seqs[0], seqs[0] + len(seqs)))    # nothing lost on the wire
     # every camera frame through all the faults was published, or counted: a jump in frame ids is
-    # frames the camera lost (camera_gap_before, from its id gaps) or frames the daemon counted
-    unexplained = sum(max(0, b["frame_id"] - a["frame_id"] - 1 - b["camera_gap_before"])
-                      for a, b in zip(items, items[1:], strict=False))
-    counted = h["drops"].get("frames_overrun", 0) + h["drops"]["camera_items_rejected"]
-    assert unexplained <= counted, (unexplained, h["drops"])
+    # frames the camera lost or the daemon dropped, all counted
+    jumps = sum(b["frame_id"] - a["frame_id"] - 1 for a, b in zip(items, items[1:], strict=False))
+    assert jumps <= sum(h["drops"].get(k, 0) for k in ACCOUNTED), (jumps, h["drops"])
     assert h["drops"]["camera_frames_lost"] >= sum(x["camera_gap_before"] for x in items)

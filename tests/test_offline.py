@@ -338,3 +338,11 @@ def test_memory_does_not_grow_with_the_recording(tmp_path, capsys):
         assert rc == 0
     frames_bytes = 96 * 48 * 64 * (2 + 4)     # what holding the stack and its result would add
     assert peaks[96] - peaks[12] < 0.25 * frames_bytes, peaks
+
+
+def test_one_input_and_an_output_ending_in_a_slash_writes_into_that_directory(tmp_path, capsys):
+    """`-o DIR/` means a directory even for one input (argparse's Path() used to drop the slash)."""
+    src = tiny(tmp_path / "one.h5")
+    rc, _, _ = deblur(capsys, src, "-o", f"{tmp_path / 'new'}/", "--uniform", "--method", "wiener")
+    assert rc == 0 and (tmp_path / "new").is_dir()
+    assert recording.read(tmp_path / "new" / "one.h5").deblurred.shape == (6, 48, 64)

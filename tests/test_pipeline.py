@@ -90,12 +90,15 @@ def _rms(a):
     return float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
 
 
+UNIFORM = DeblurConfig(mode="uniform")      # one kernel per frame: the Eq. 18 physics under test
+
+
 def reblur_residual(rec, calib, deblur=None):
     """Median over frames of ‖pipeline kernel ∗ sharp − simulator's blurry‖ / ‖sharp − blurry‖ (noiseless)."""
     sharp, blurry = rec.extras["truth/frames"], rec.extras["truth/blurry_noiseless"]
     out = []
     for i in range(3, rec.n_frames):
-        k, _ = render(rec.gyro_t, rec.gyro_rate, calib, rec.t[i], deblur or DeblurConfig())
+        k, _ = render(rec.gyro_t, rec.gyro_rate, calib, rec.t[i], deblur or UNIFORM)
         out.append(_rms((kernels.blur(sharp[i], k) - blurry[i])[INTERIOR]) /
                    _rms((sharp[i] - blurry[i])[INTERIOR]))
     return float(np.median(out))
@@ -115,7 +118,7 @@ def test_pipeline_kernel_reblurs_the_simulators_sharp_view(simulated, motion):
     assert got < REBLUR_LIMIT[motion], got
     # the same check with the breakages it is there to catch
     assert reblur_residual(rec, true.replace(tau_s=true.tau_s / 1.06)) > REBLUR_LIMIT[motion]
-    assert reblur_residual(rec, true, DeblurConfig(m=3.0)) > REBLUR_LIMIT[motion]
+    assert reblur_residual(rec, true, DeblurConfig(mode="uniform", m=3.0)) > REBLUR_LIMIT[motion]
     if motion == "pan:150":
         assert reblur_residual(rec, true.replace(tau_s=true.tau_s * 1.06)) > REBLUR_LIMIT[motion]
     else:
@@ -127,7 +130,8 @@ def run_recording(rec, calib, *, workers=2):
     col = Collector()
     gr, fr = GyroRing(20000), FrameRing(32, (H, W))
     cfg = PipelineConfig(workers=workers, job_queue=32, wait_timeout_s=0.5, reorder_timeout_s=5.0)
-    p = Pipeline(gr, fr, calib, DeblurConfig(), cfg, col)
+    # the limits were measured with K&F: the governor must not trade it for speed on a loaded machine
+    p = Pipeline(gr, fr, calib, DeblurConfig(governor=False), cfg, col)
     p.warmup()
     p.start()
     try:

@@ -26,6 +26,7 @@ import math
 
 import cv2
 import numpy as np
+from numba import njit
 
 from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration
 from thermod.physics.detector import iir_alpha, row_read_time
@@ -77,21 +78,196 @@ def orientations(t_query: np.ndarray, t_cam: np.ndarray, omega_cam: np.ndarray, 
     return integrate_rotations(tt, ww, t_ref)[inv[: len(t_query)]]
 
 
+# ------------------------------------------------------------------ compiled kernels (one core, no threads)
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _taps(f, cubic, w):
+    """Interpolation weights of the 4 taps at offsets −1..2 for fractional position f (OpenCV's cubic,
+    Keys a = −0.75, or linear)."""
+    if cubic:
+        a = -0.75
+        x = f + 1.0
+        w[0] = ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a
+        w[1] = ((a + 2.0) * f - (a + 3.0)) * f * f + 1.0
+        g = 1.0 - f
+        w[2] = ((a + 2.0) * g - (a + 3.0)) * g * g + 1.0
+        w[3] = 1.0 - w[0] - w[1] - w[2]
+    else:
+        w[0] = 0.0
+        w[1] = 1.0 - f
+        w[2] = f
+        w[3] = 0.0
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _warp_views(S, sup, Hs, ox, oy, cubic, full, out_v, out_m):
+    """out_v[j](x) = S(H_j x + o), out_m[j](x) = support(H_j x + o): the canvas sampled with zero outside
+    it (what OpenCV's warpPerspective with WARP_INVERSE_MAP and a constant 0 border does)."""
+    n, h, w = out_v.shape
+    ch, cw = S.shape
+    wx = np.empty(4)
+    wy = np.empty(4)
+    for j in range(n):
+        H = Hs[j]
+        for y in range(h):
+            for x in range(w):
+                Z = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+                if Z <= 1e-9:
+                    out_v[j, y, x] = 0.0
+                    out_m[j, y, x] = 0.0
+                    continue
+                u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / Z + ox
+                v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / Z + oy
+                if u < -2.0 or v < -2.0 or u > cw + 1.0 or v > ch + 1.0:
+                    out_v[j, y, x] = 0.0
+                    out_m[j, y, x] = 0.0
+                    continue
+                iu = int(math.floor(u))
+                iv = int(math.floor(v))
+                _taps(u - iu, cubic, wx)
+                _taps(v - iv, cubic, wy)
+                acc = 0.0
+                accm = 0.0
+                if full and iu >= 1 and iv >= 1 and iu + 2 < cw and iv + 2 < ch:
+                    # all taps inside a canvas known everywhere: the support is 1
+                    for a in range(4):
+                        r = S[iv - 1 + a]
+                        acc += wy[a] * (wx[0] * r[iu - 1] + wx[1] * r[iu] + wx[2] * r[iu + 1]
+                                        + wx[3] * r[iu + 2])
+                    out_v[j, y, x] = acc
+                    out_m[j, y, x] = 1.0
+                    continue
+                for a in range(4):
+                    yy = iv - 1 + a
+                    if yy < 0 or yy >= ch or wy[a] == 0.0:
+                        continue
+                    ra = 0.0
+                    rm = 0.0
+                    for b in range(4):
+                        xx = iu - 1 + b
+                        if xx < 0 or xx >= cw:
+                            continue
+                        ra += wx[b] * S[yy, xx]
+                        rm += wx[b] * sup[yy, xx]
+                    acc += wy[a] * ra
+                    accm += wy[a] * rm
+                out_v[j, y, x] = acc
+                out_m[j, y, x] = accm
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _iir_rows(V, M, alpha, jj, frac, out_v, out_m):
+    """Eq. 10/11 over the grid, row by row: B_0 = V_0, B_j = B_{j−1} + α (V_j − B_{j−1}); row y of frame k
+    is B_{j−1} + f (B_j − B_{j−1}) with (j, f) = (jj[k, y], frac[k, y]) (frames in time order)."""
+    n1, h, w = V.shape
+    nf = jj.shape[0]
+    b = np.empty(w, np.float32)
+    bm = np.empty(w, np.float32)
+    pb = np.empty(w, np.float32)
+    pm = np.empty(w, np.float32)
+    a = np.float32(alpha)
+    for y in range(h):
+        for x in range(w):
+            b[x] = V[0, y, x]
+            bm[x] = M[0, y, x]
+            pb[x] = b[x]
+            pm[x] = bm[x]
+        j = 0
+        for k in range(nf):
+            t = jj[k, y]
+            while j < t:
+                j += 1
+                for x in range(w):
+                    pb[x] = b[x]
+                    pm[x] = bm[x]
+                    b[x] += a * (V[j, y, x] - b[x])
+                    bm[x] += a * (M[j, y, x] - bm[x])
+            f = frac[k, y]
+            for x in range(w):
+                out_v[k, y, x] = pb[x] + f * (b[x] - pb[x])
+                out_m[k, y, x] = pm[x] + f * (bm[x] - pm[x])
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
+    """Adjoint of `_iir_rows` ∘ `_warp_views` with respect to the canvas S: grad += Aᵀ C.
+
+    C: cotangent of the predicted frames [n_frames, h, w]. The IIR is run backwards in time
+    (g_{j−1} = (1 − α) g_j + direct), each step's share α·g_j (all of g_0 for the initial view)
+    is scattered through the interpolation taps at H_j x + o.
+    """
+    nf, h, w = C.shape
+    ch, cw = grad.shape
+    g = np.zeros(w)
+    wx = np.empty(4)
+    wy = np.empty(4)
+    for y in range(h):
+        for x in range(w):
+            g[x] = 0.0
+        jmax = 0
+        for kk in range(nf):
+            jmax = max(jmax, jj[kk, y])
+        for j in range(jmax, -1, -1):
+            # frames read in (t_{j−1}, t_j] or (t_j, t_{j+1}]: their share of B_j
+            for kk in range(nf):
+                t = jj[kk, y]
+                if t == j:
+                    f = frac[kk, y]
+                    for x in range(w):
+                        g[x] += f * C[kk, y, x]
+                elif t == j + 1:
+                    f = 1.0 - frac[kk, y]
+                    for x in range(w):
+                        g[x] += f * C[kk, y, x]
+            share = alpha if j > 0 else 1.0
+            H = Hs[j]
+            for x in range(w):
+                gv = share * g[x]
+                if gv == 0.0:
+                    continue
+                Z = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+                if Z <= 1e-9:
+                    continue
+                u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / Z + ox
+                v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / Z + oy
+                if u < -2.0 or v < -2.0 or u > cw + 1.0 or v > ch + 1.0:
+                    continue
+                iu = int(math.floor(u))
+                iv = int(math.floor(v))
+                _taps(u - iu, cubic, wx)
+                _taps(v - iv, cubic, wy)
+                for a in range(4):
+                    yy = iv - 1 + a
+                    if yy < 0 or yy >= ch or wy[a] == 0.0:
+                        continue
+                    for bb in range(4):
+                        xx = iu - 1 + bb
+                        if xx < 0 or xx >= cw:
+                            continue
+                        grad[yy, xx] += gv * wy[a] * wx[bb]
+            if j > 0:
+                for x in range(w):
+                    g[x] *= 1.0 - alpha
+
+
 class ForwardModel:
-    """Predicts one recording's motion frames for any calibration, caching what does not change.
+    """Predicts one recording's frames for any calibration, caching what does not change.
 
     Parameters
     ----------
     reference : float32 [H, W]
-        Sharp (static) view at full resolution, in counts, with FPN already removed if known.
+        Sharp view at full resolution, in counts, with FPN already removed if known (a static mean, or
+        any frame to start from: `set_reference` replaces it by a canvas at the working resolution).
     frame_t : float64 [n]
-        Camera times of the frames to predict (when their last row was read), all > `t_ref`.
+        Camera times of the frames to predict (when their last row was read), all > `t_start`.
     gyro_t, gyro_rate : raw gyro samples (gyro clock, gyro frame, rad/s).
     calib : Calibration
         Nominal model; it fixes the image size, intrinsics and the step size of the time grid.
     t_ref : float
-        A camera time at which the camera was at the reference pose (end of the static segment);
-        the detector is taken as settled on the reference there.
+        The camera time of the reference view: Q(t_ref) = I, so the reference is the sharp view the
+        camera had then (a static pose, or any moment of the motion).
+    t_start : float or None
+        Start of the time grid (default `t_ref`): the detector is taken as settled on the view at
+        t_start (the reference itself when t_start = t_ref; frames read ≥ 5τ later do not depend on it).
     scale : float
         Working resolution relative to the recording (e.g. 0.5 or 0.25).
     fpn : float32 [H, W] or None
@@ -105,59 +281,91 @@ class ForwardModel:
     max_views_mb : float
         Memory the warped views of one prediction may take at all; GridTooLarge beyond it (checked
         before anything is allocated: the step count follows from the gyro rate, fx and τ).
-    interpolation : "cubic" (default: least resampling blur) or "linear" (≈ 2× faster warps).
+    interpolation : "cubic" (default: least resampling blur; OpenCV's Keys kernel) or "linear".
+
+    The views are sampled by a compiled kernel (one core, no threads): the reference canvas at
+    ``H(s) x + origin`` with zero outside it, and its support (1 where the canvas is known) the same
+    way, so a pixel's IIR-weighted support says how much of its past came from known scene.
     """
 
     def __init__(self, reference, frame_t, gyro_t, gyro_rate, calib: Calibration, *, t_ref: float,
                  scale: float = 1.0, fpn=None, max_step_px: float = 0.5, max_rate_factor: float = 1.3,
                  tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic",
-                 max_views_mb: float = 4096.0):
+                 max_views_mb: float = 4096.0, t_start: float | None = None):
         self.calib0 = calib
         self.scale = float(scale)
         self.intr = calib.intrinsics.scaled(self.scale)
         self.h, self.w = self.intr.height, self.intr.width
-        ref = downsample(reference, self.scale)
-        self.fpn = None if fpn is None else downsample(fpn, self.scale)
-        self.reference = ref if self.fpn is None else ref - self.fpn
         self.frame_t = np.asarray(frame_t, dtype=np.float64)
         self.gyro_t = np.asarray(gyro_t, dtype=np.float64)
         self.gyro_rate = np.asarray(gyro_rate, dtype=np.float64)
         self.t_ref = float(t_ref)
-        if len(self.frame_t) and self.frame_t.min() <= self.t_ref:
-            raise ValueError("every frame to predict must be read after t_ref")
-        # Fixed time grid: from t_ref (detector settled on the reference) to the last frame.
+        self.t_start = self.t_ref if t_start is None else float(t_start)
+        if len(self.frame_t) and self.frame_t.min() <= self.t_start:
+            raise ValueError("every frame to predict must be read after the grid start")
+        if len(self.frame_t) > 1 and np.any(np.diff(self.frame_t) <= 0):
+            raise ValueError("frame times must increase")
+        # Fixed time grid: from t_start (detector settled there) to the last frame.
         speed = self._max_pixel_speed(calib) * max_rate_factor
-        tau_min = tau_min_s if tau_min_s is not None else calib.tau_s / 3.0
-        h_max = max(tau_min, 1e-4) / 4.0   # α ≤ 0.22: rows read between grid points interpolate well
+        # α ≤ 0.22 at τ_min: rows read between grid points interpolate well. τ_min = τ/1.5 by default:
+        # on the simulator's shake (320×240 at half resolution) the gaps of the true model, a 1 ms offset
+        # error and τ/2 or 2τ moved by < 0.001 from τ/3 with max_step_px 1.0 (234 steps instead of 467)
+        tau_min = tau_min_s if tau_min_s is not None else calib.tau_s / 1.5
+        h_max = max(tau_min, 1e-4) / 4.0
         self.dt = min(h_max, max_step_px / speed) if speed > 0 else h_max
-        t_end = float(self.frame_t.max()) if len(self.frame_t) else self.t_ref
-        n_float = max(1.0, math.ceil((t_end - self.t_ref) / self.dt))
-        views_mb = n_float * self.h * self.w * 2 * 4 / 1e6
+        t_end = float(self.frame_t.max()) if len(self.frame_t) else self.t_start
+        n_float = max(1.0, math.ceil((t_end - self.t_start) / self.dt))
+        views_mb = (n_float + 1) * self.h * self.w * 2 * 4 / 1e6
         if not views_mb <= max_views_mb:
             raise GridTooLarge(f"the forward model needs {n_float:.3g} time steps ({views_mb / 1e3:.3g} GB "
                                f"of warped views, limit {max_views_mb / 1e3:.3g} GB) for "
-                               f"{t_end - self.t_ref:.3g} s of motion at up to {speed:.3g} px/s "
+                               f"{t_end - self.t_start:.3g} s of motion at up to {speed:.3g} px/s "
                                f"(working fx {self.intr.fx:.4g}, τ {calib.tau_s:.3g} s)")
         n = int(n_float)
-        self.dt = (t_end - self.t_ref) / n if t_end > self.t_ref else self.dt
-        self.t_grid = self.t_ref + self.dt * np.arange(n + 1)
+        self.dt = (t_end - self.t_start) / n if t_end > self.t_start else self.dt
+        self.t_grid = self.t_start + self.dt * np.arange(n + 1)
         self.t_mid = 0.5 * (self.t_grid[1:] + self.t_grid[:-1])
+        # the view times: the grid start (initial state), then every step's mid-point
+        self.t_views = np.r_[self.t_grid[0], self.t_mid]
         if interpolation not in ("linear", "cubic"):
             raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
-        self._interp = cv2.INTER_LINEAR if interpolation == "linear" else cv2.INTER_CUBIC
+        self._cubic = interpolation == "cubic"
         self._cache_key = None
         self._views = None
-        self._cache_ok = n * self.h * self.w * 2 * 4 / 1e6 <= cache_mb
-        yy, xx = np.mgrid[0:self.h, 0:self.w]
-        self._pix = np.stack([xx.ravel(), yy.ravel(), np.ones(xx.size)], axis=0)
+        self._cache_ok = views_mb <= cache_mb
+        self.origin = (0.0, 0.0)
+        self.set_reference(reference, fpn)
 
-    def set_reference(self, reference, fpn=None, *, prescaled: bool = False) -> None:
-        """Replace the reference (and FPN) keeping the time grid; drops the cached views."""
+    def set_reference(self, reference, fpn=None, *, prescaled: bool = False, origin=(0.0, 0.0),
+                      support=None, subtract_fpn: bool = True) -> None:
+        """Replace the reference (and FPN) keeping the time grid; drops the cached views.
+
+        `reference` may be a canvas larger than the frame (prescaled, working resolution): `origin` is
+        the canvas position of the reference view's pixel (0, 0) and `support` (float32, canvas shape)
+        is 1 where the canvas is known, 0 elsewhere (default: everywhere). `subtract_fpn`: the
+        reference carries the FPN (a static mean) and it is removed before warping.
+        """
         ref = np.asarray(reference, np.float32) if prescaled else downsample(reference, self.scale)
         if fpn is not None:
             fpn = np.asarray(fpn, np.float32) if prescaled else downsample(fpn, self.scale)
         self.fpn = fpn
-        self.reference = ref if fpn is None else ref - fpn
+        ox, oy = float(origin[0]), float(origin[1])
+        if subtract_fpn and fpn is not None:
+            ref = ref.copy()
+            iy, ix = int(round(oy)), int(round(ox))
+            ref[iy:iy + self.h, ix:ix + self.w] -= fpn
+        self.reference = np.ascontiguousarray(ref, np.float32)
+        self.support = (np.ones_like(self.reference) if support is None
+                        else np.ascontiguousarray(support, np.float32))
+        if self.support.shape != self.reference.shape:
+            raise ValueError("support must have the reference canvas's shape")
+        self.origin = (ox, oy)
+        self._full_support = bool(np.all(self.support == 1.0))
+        iy, ix = int(round(oy)), int(round(ox))
+        view = np.zeros((self.h, self.w), np.float32)
+        crop = self.reference[iy:iy + self.h, ix:ix + self.w]
+        view[:crop.shape[0], :crop.shape[1]] = crop
+        self.reference_view = view          # the reference's own view (fallback where nothing is valid)
         self._views, self._cache_key = None, None
 
     # ------------------------------------------------------------------ geometry
@@ -181,76 +389,91 @@ class ForwardModel:
         return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)),
                 tuple(getattr(calib, k) for k in GYRO_EFFECT_KEYS))
 
-    def views(self, calib: Calibration) -> np.ndarray:
-        """Warped reference and validity mask at the grid mid-points: float32 [n_steps, h, w, 2]."""
+    def views(self, calib: Calibration):
+        """Reference and support sampled at the view times (grid start, then every step's mid-point):
+        two float32 [n_steps + 1, h, w] arrays."""
         key = self._gyro_key(calib)
         if self._views is not None and key == self._cache_key:
             return self._views
-        Hs = self.homographies(calib, self.t_mid)
-        src = np.dstack([self.reference, np.ones_like(self.reference)])
-        out = np.empty((len(Hs), self.h, self.w, 2), np.float32)
-        flags = self._interp | cv2.WARP_INVERSE_MAP
-        for j, H in enumerate(Hs):
-            cv2.warpPerspective(src, H, (self.w, self.h), dst=out[j], flags=flags,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
+        V = np.empty((len(Hs), self.h, self.w), np.float32)
+        M = np.empty_like(V)
+        _warp_views(self.reference, self.support, Hs, self.origin[0], self.origin[1], self._cubic,
+                    self._full_support, V, M)
         if self._cache_ok:
-            self._views, self._cache_key = out, key
-        return out
+            self._views, self._cache_key = (V, M), key
+        return V, M
 
     def row_times(self, calib: Calibration) -> np.ndarray:
         """Read time of every working row of every frame: [n_frames, h]."""
         y_full = (np.arange(self.h) + 0.5) / self.scale - 0.5
         return row_read_time(self.frame_t[:, None], y_full[None, :], calib.readout_s, calib.height)
 
+    def _row_steps(self, calib: Calibration):
+        """(j, f) per frame row: read in (t_{j−1}, t_j] at fraction f (j = 0, f = 1 at or before t_start)."""
+        rt = np.clip(self.row_times(calib), self.t_grid[0], self.t_grid[-1])
+        jj = np.clip(np.searchsorted(self.t_grid, rt, side="left"), 0, len(self.t_grid) - 1)
+        frac = np.where(jj > 0, (rt - self.t_grid[np.maximum(jj - 1, 0)]) / self.dt, 1.0)
+        return np.ascontiguousarray(jj, np.int64), np.ascontiguousarray(frac, np.float32)
+
     # ------------------------------------------------------------------ detector
+    def predict_raw(self, calib: Calibration):
+        """IIR-weighted view and support per frame before normalisation: (num, weight) [n, h, w]."""
+        V, M = self.views(calib)
+        n = len(self.frame_t)
+        num = np.empty((n, self.h, self.w), np.float32)
+        wgt = np.empty_like(num)
+        if n:
+            jj, frac = self._row_steps(calib)
+            _iir_rows(V, M, float(iir_alpha(self.dt, calib.tau_s)), jj, frac, num, wgt)
+        return num, wgt
+
     def predict(self, calib: Calibration, extra_psf_px: float = 0.0, valid_min: float = 0.99):
         """Predicted frames (float32 [n, h, w], counts, FPN included) and their valid mask (bool).
 
         Eq. 10/11: B_j = B_{j−1} + α (V_j − B_{j−1}), α = 1 − exp(−Δt/τ), over the fine grid;
         each frame row is the state at its read time (linear between grid points). A pixel is
-        valid when ≥ `valid_min` of its exponential weight came from inside the reference.
+        valid when ≥ `valid_min` of its exponential weight came from known reference (inside the
+        canvas and its support).
         """
-        V = self.views(calib)
-        n, h, w = len(self.frame_t), self.h, self.w
-        out = np.empty((n, h, w), np.float32)
-        valid = np.empty((n, h, w), bool)
-        if n == 0:
-            return out, valid
-        rt = np.clip(self.row_times(calib), self.t_grid[0], self.t_grid[-1])
-        # j such that t_grid[j-1] < t ≤ t_grid[j]; rows read at t_ref take j = 0.
-        jj = np.clip(np.searchsorted(self.t_grid, rt, side="left"), 0, len(self.t_grid) - 1)
-        frac = np.where(jj > 0, (rt - self.t_grid[np.maximum(jj - 1, 0)]) / self.dt, 1.0).astype(np.float32)
-        order = np.argsort(jj, axis=None, kind="stable")
-        jflat = jj.ravel()[order]
-        bounds = np.searchsorted(jflat, np.arange(len(self.t_grid) + 1))
-        alpha = np.float32(iir_alpha(self.dt, calib.tau_s))
-        B = np.dstack([self.reference, np.ones_like(self.reference)])
-        prev = B.copy()
-        out2 = np.empty((n, h, w, 2), np.float32)
-        fr, rr = np.unravel_index(order, jj.shape)
-        ff = frac.ravel()[order]
-        for j in range(len(self.t_grid)):
-            if j > 0:
-                prev[...] = B
-                B += alpha * (V[j - 1] - B)
-            a, b = bounds[j], bounds[j + 1]
-            if a == b:
-                continue
-            fk, rk, t = fr[a:b], rr[a:b], ff[a:b, None, None]
-            out2[fk, rk] = prev[rk] + t * (B[rk] - prev[rk])
-        m = out2[..., 1]
-        valid[...] = m >= valid_min
-        # Normalised by the in-bounds weight, so pixels near the edge stay in range (they are invalid).
-        out[...] = self.reference[None]
-        np.divide(out2[..., 0], m, out=out, where=m > 0.5)
+        num, m = self.predict_raw(calib)
+        n = len(num)
+        valid = m >= valid_min
+        # Normalised by the known weight, so pixels near the edge stay in range (they are invalid).
+        out = np.empty_like(num)
+        out[...] = self.reference_view[None]
+        np.divide(num, m, out=out, where=m > 0.5)
         if extra_psf_px > 0:
-            s = float(extra_psf_px) * self.scale
-            g = cv2.getGaussianKernel(2 * int(math.ceil(4 * s)) + 1, s, cv2.CV_32F)   # ±4σ, sums to 1
+            g = self._psf_kernel(extra_psf_px)
             for k in range(n):
                 out[k] = cv2.sepFilter2D(out[k], -1, g, g, borderType=cv2.BORDER_REPLICATE)
         if self.fpn is not None:
             out += self.fpn[None]
         return out, valid
+
+    def _psf_kernel(self, extra_psf_px: float) -> np.ndarray:
+        s = float(extra_psf_px) * self.scale
+        return cv2.getGaussianKernel(2 * int(math.ceil(4 * s)) + 1, s, cv2.CV_32F)   # ±4σ, sums to 1
+
+    def adjoint(self, calib: Calibration, cotangent: np.ndarray, extra_psf_px: float = 0.0,
+                weight: np.ndarray | None = None) -> np.ndarray:
+        """Aᵀ c: the canvas gradient of Σ c·prediction (float64, canvas shape), for least squares on the
+        reference. The prediction is linear in the canvas: views (interpolation taps), IIR, the
+        normalisation by `weight` (the known-support weight of `predict_raw`, fixed) and the extra PSF
+        (symmetric, so its own adjoint)."""
+        c = np.asarray(cotangent, np.float32)
+        if extra_psf_px > 0:
+            g = self._psf_kernel(extra_psf_px)
+            c = np.stack([cv2.sepFilter2D(x, -1, g, g, borderType=cv2.BORDER_CONSTANT) for x in c])
+        if weight is not None:
+            c = np.where(weight > 0.5, c / np.maximum(weight, 0.5), 0.0).astype(np.float32)
+        grad = np.zeros(self.reference.shape, np.float64)
+        if len(c):
+            jj, frac = self._row_steps(calib)
+            Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
+            _adjoint_rows(np.ascontiguousarray(c), float(iir_alpha(self.dt, calib.tau_s)), jj, frac, Hs,
+                          self.origin[0], self.origin[1], self._cubic, grad)
+        return grad
 
 
 def predict_frames(reference, frame_t, gyro_t, gyro_rate, calib: Calibration, *, t_ref: float,

@@ -68,7 +68,7 @@ def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibr
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recordings", nargs="+", metavar="REC.h5",
-                        help="format-v1 recordings: a static segment followed by motion")
+                        help="format-v1 recordings: a static segment followed by motion, or motion only")
     parser.add_argument("--out", required=True, metavar="DIR", help="output directory for the report")
     parser.add_argument("--config", metavar="TOML", help="thermod TOML whose [calibration] is the model to "
                         "test (default: the first recording's attributes)")
@@ -97,8 +97,13 @@ def run(args) -> int:
     data = []
     for p, r in zip(args.recordings, recs, strict=True):
         d = prepare(r, calib, name=p, work_width=args.work_width)
-        say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
-            f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
+        if d.reference == "static":
+            say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
+                f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
+        else:
+            say(f"{p}: no static lead-in: motion-only reference (scene canvas {d.scene.shape[1]}×"
+                f"{d.scene.shape[0]} at the pose of t={d.t_ref:.3f} s), {len(d.frame_t)} frames at "
+                f"{d.fm.w}×{d.fm.h}")
         data.append(d)
     ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
                   progress=say)

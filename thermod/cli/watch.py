@@ -3,11 +3,12 @@
 Prints, every ``--interval`` seconds and at the end: frame rate (from the frames' own times),
 latency percentiles ``published − t`` (daemon-side: waiting for gyro coverage + deblurring) and
 ``received − t`` (end to end; meaningful on the daemon's host only, because ``t`` is that host's
-CLOCK_MONOTONIC), messages lost (seq gaps), the deblurred share and why the other frames were not
-deblurred. With ``--png DIR`` it writes raw|deblurred side-by-side previews (one percentile stretch
-for both halves, so brightness compares) at most every ``--png-interval`` seconds. With ``--http
-HOST:PORT`` it also serves a live page there (`thermod.runtime.web`): raw | deblurred, the current
-blur kernel and health plots.
+CLOCK_MONOTONIC), messages lost (seq gaps), the deblurred share, which method deblurred them (the
+governor's choice in each frame's header: ``kf``, ``kf_fast``, ``wiener``, with the kernel grid) and
+why the other frames were not deblurred. With ``--png DIR`` it writes raw|deblurred side-by-side
+previews (one percentile stretch for both halves, so brightness compares) at most every
+``--png-interval`` seconds. With ``--http HOST:PORT`` it also serves a live page there
+(`thermod.runtime.web`): raw | deblurred, the current blur kernel and health plots.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class WatchStats:
         self.frames = 0
         self.deblurred = 0
         self.reasons: collections.Counter = collections.Counter()
+        self.methods: collections.Counter = collections.Counter()   # "kf 3×4", "wiener", … (deblurred)
         self.frame_t = [np.inf, -np.inf]
         self.lat_publish: collections.deque = collections.deque(maxlen=window)
         self.lat_receive: collections.deque = collections.deque(maxlen=window)
@@ -72,6 +74,7 @@ class WatchStats:
                 self.lat_receive.append(header["received"] - header["t"])
             if header["deblurred"]:
                 self.deblurred += 1
+                self.methods[method_label(header)] += 1
             else:
                 self.reasons[str(header.get("reason") or "unspecified")] += 1
         elif topic == "raw":
@@ -95,6 +98,7 @@ class WatchStats:
             "fps": fps,
             "deblurred_share": self.deblurred / self.frames if self.frames else float("nan"),
             "reasons": dict(self.reasons.most_common()),
+            "methods": dict(self.methods.most_common()),
             "latency_publish_ms": _percentiles(self.lat_publish),
             "latency_receive_ms": _percentiles(self.lat_receive),
             "raw": self.raw,
@@ -119,10 +123,18 @@ class WatchStats:
             "lost msgs    " + (", ".join(f"{k} {v}" for k, v in sorted(s["lost_messages"].items()) if v)
                                or "none"),
         ]
+        if s["methods"]:
+            lines.append("deblurred by: " + ", ".join(f"{k} ×{v}" for k, v in s["methods"].items()))
         if s["reasons"]:
             lines.append("not deblurred: " + ", ".join(f"{k} ×{v}" for k, v in s["reasons"].items()))
         if self.health:
             h = self.health
+            g = h.get("governor") or {}
+            if g.get("method"):
+                nan = float("nan")
+                lines.append(f"governor     {g['method']} (ladder {' > '.join(g.get('ladder', []))}), budget "
+                             f"{g.get('budget_ms', nan):.1f} ms, load ×{g.get('load', nan):.2f}, "
+                             f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
             lines.append(f"daemon rates {_compact(h.get('rates'))}  drops {_compact(h.get('drops'))}  "
                          f"devices {_compact(h.get('devices'))}")
         return "\n".join(lines)
@@ -132,8 +144,18 @@ class WatchStats:
         lp = s["latency_publish_ms"]["p50"]
         lr = s["latency_receive_ms"]["p50"]
         lost = sum(s["lost_messages"].values())
-        return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % | "
+        top = max(self.methods, key=self.methods.get) if self.methods else "-"
+        return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % "
+                f"({top}) | "
                 f"latency p50 {lp:.1f}/{lr:.1f} ms | lost {lost} | gyro {s['gyro_hz']:.0f} Hz")
+
+
+def method_label(header: dict) -> str:
+    """How a deblurred frame was deblurred, from its header: "kf", "kf 3×4", "wiener", …; "?" from a
+    daemon older than the governor (no ``method`` key)."""
+    m = header.get("method") or "?"
+    g = header.get("grid")
+    return f"{m} {g[0]}×{g[1]}" if isinstance(g, list) and len(g) == 2 and g != [1, 1] else m
 
 
 def _percentiles(values) -> dict:

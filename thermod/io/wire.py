@@ -131,6 +131,17 @@ def pack_kernel(kernel) -> tuple[dict, np.ndarray]:
     return fields, w
 
 
+METHODS = ("kf", "kf_fast", "wiener")   # a `frame` header's ``method``: the governor's rung (docs/wire.md)
+
+
+def frame_method_fields(method: str | None, grid) -> dict:
+    """The ``frame`` header fields naming how a frame was deblurred: ``method`` (one of `METHODS`,
+    null when passed through) and ``grid`` ([rows, cols] of its kernel grid, [1, 1] = one kernel;
+    null when passed through). Added in wire v1 without a version change: subscribers ignore keys
+    they do not know, and a header without them is from a daemon before the governor."""
+    return {"method": method, "grid": None if grid is None else [int(grid[0]), int(grid[1])]}
+
+
 def nbytes(payload) -> int:
     return payload.nbytes if isinstance(payload, np.ndarray) else len(payload)
 

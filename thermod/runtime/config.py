@@ -50,7 +50,7 @@ class SimConfig:
     """The simulated payload (sim/payload.py): a pre-rendered loop played in real time."""
 
     scene: str = "real:1"
-    motion: str = "shake:3"
+    motion: str = "multirotor:60"
     loop_s: float = 2.0
     seed: int = 0
     frame_rate_hz: float = 50.0
@@ -67,12 +67,17 @@ class DeblurConfig:
     enabled: bool = True
     method: str = "kf"               # kf | wiener
     lam: float | None = None         # data weight (K&F convention); None = thermod.physics.deconv default
-    alpha: float = 2.0 / 3.0         # hyper-Laplacian exponent: 1 or 2/3
+    alpha: float = 1.0               # prior exponent: 1 (TV, default) or 2/3 (hyper-Laplacian)
     kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
     exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
     psf: bool = True                 # optical PSF refinement (Eq. 19)
-    mode: str = "uniform"            # uniform | grid (spatially varying, tiles)
-    grid: tuple[int, int] = (3, 4)   # rows × cols: near-square cells on a 4:3 sensor
+    mode: str = "adaptive"           # adaptive (grid from the roll, `pipeline.grid_needed`) | uniform | grid
+    grid: tuple[int, int] = (3, 4)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
+    grid_tol_px: float = 0.5         # adaptive: kernel shift allowed across a cell (px) before it is split
+    kf_iterations: int | None = None  # K&F β steps (None: K&F's six); the governor's faster rung uses 3
+    governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)
+    max_solve_s: float = 0.030       # governor: longest solve wanted per frame, for latency (s)
+    headroom: float = 0.15           # governor: share of the budget kept free for jitter
     m: float = 5.0                   # kernel window = m·τ
     min_coverage: float = 0.99       # gyro coverage below this → pass through
     ffc_settle_s: float | None = None  # after a flat-field correction: pass through this long (None: m·τ)
@@ -307,7 +312,12 @@ def _deblur(path: str, table: Any) -> DeblurConfig:
         kernel=s.pop("kernel", d.kernel, str, choices=("thermal", "photon")),
         exposure_s=s.pop("exposure_s", d.exposure_s, float, lo=0.0, lo_open=True, hi=1.0),
         psf=s.pop("psf", d.psf, bool),
-        mode=s.pop("mode", d.mode, str, choices=("uniform", "grid")),
+        mode=s.pop("mode", d.mode, str, choices=("adaptive", "uniform", "grid")),
+        grid_tol_px=s.pop("grid_tol_px", d.grid_tol_px, float, lo=0.05, hi=100.0),
+        kf_iterations=s.pop("kf_iterations", d.kf_iterations, int, lo=1, hi=12),
+        governor=s.pop("governor", d.governor, bool),
+        max_solve_s=s.pop("max_solve_s", d.max_solve_s, float, lo=0.0, lo_open=True, hi=10.0),
+        headroom=s.pop("headroom", d.headroom, float, lo=0.0, hi=0.9),
         m=s.pop("m", d.m, float, lo=1.0, hi=20.0),
         min_coverage=s.pop("min_coverage", d.min_coverage, float, lo=0.0, hi=1.0),
         ffc_settle_s=s.pop("ffc_settle_s", d.ffc_settle_s, float, lo=0.0, hi=60.0),

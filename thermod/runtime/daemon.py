@@ -34,6 +34,7 @@ import threading
 import time
 
 from thermod.errors import ConfigError, DeviceError, ThermodError
+from thermod.io.wire import frame_method_fields
 from thermod.runtime import config as configmod
 from thermod.runtime import sources
 from thermod.runtime.driver_thread import DeviceState, DriverThread
@@ -56,11 +57,12 @@ class Daemon:
     """All parts wired together. `start`, then `serve` (blocks) or `tick` from your own loop, `stop`.
 
     ``gyro``/``camera``/``publisher`` may be passed in (tests inject sources with faults); by default
-    they are built from the configuration.
+    they are built from the configuration. ``deconvolver_factory`` is the pipeline's seam for the
+    deconvolver (tests inject a slow one to exercise the governor).
     """
 
     def __init__(self, cfg: configmod.Config, *, gyro=None, camera=None, publisher=None, notifier=None,
-                 overrides: dict | None = None):
+                 overrides: dict | None = None, deconvolver_factory=None):
         self.cfg = cfg
         self.overrides = dict(overrides or {})
         self.payload = sources.simulated_payload(cfg) if gyro is None or camera is None else None
@@ -90,7 +92,8 @@ class Daemon:
         self.gyro_ring = GyroRing(int(cfg.pipeline.gyro_ring_s * c.rate_hz * 1.1) + 64,
                                   max_step_s=4.0 / c.rate_hz)
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
-        self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit)
+        self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
+                                 deconvolver_factory=deconvolver_factory)
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
         self.camera_state = DeviceState(self.camera.name)
@@ -152,7 +155,8 @@ class Daemon:
         self.publisher.publish_frame(o.image, o.t, frame_id=o.frame_id, deblurred=o.deblurred,
                                      kernel_size=o.kernel_size, kernel_extent_px=o.kernel_extent_px,
                                      coverage=o.coverage, reason=o.reason, copy=False, n_samples=o.n_samples,
-                                     latency_s=o.latency_s, camera_gap_before=o.camera_gap_before)
+                                     latency_s=o.latency_s, camera_gap_before=o.camera_gap_before,
+                                     **frame_method_fields(o.method, o.grid))
         if self.cfg.publish.kernel and o.kernel is not None:
             self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)
         if (rad := self.radiometry()) is not None:  # after deblurring: counts are linear in flux, °C not

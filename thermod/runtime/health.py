@@ -1,5 +1,7 @@
 """The 1 Hz health message (wire topic ``health``): rates over the last period, every drop counter
-under its reason, device and clock state, thread liveness, the last reload's outcome.
+under its reason, device and clock state, thread liveness, the last reload's outcome, and the
+governor's state (``governor``: the method it runs now, its budget, measured costs, how often it
+stepped down or up, frames per method; `thermod.runtime.governor`).
 
 Sources are read through the `thermod.runtime.sources.Source` protocol (``name``, ``clock``,
 ``stats()``); a driver whose ``stats()`` raises is reported, never allowed to stop the message.
@@ -84,9 +86,13 @@ class Health:
         # flat-field corrections the pipeline saw (frames the camera flagged); their frames and those
         # of the settle time after each are under drops.passthrough_ffc
         devices["camera"]["ffc_events"] = pc.get("ffc_events", 0)
+        gov = ps.get("governor") or {}
+        gov = {**gov, "deblurred_by": {k.removeprefix("method_"): v for k, v in pc.items()
+                                       if k.startswith("method_")}}
         return {
             "rates": dict(self.rates), "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
-            "pipeline": {k: v for k, v in ps.items() if k != "counters"} | {"counters": pc},
+            "governor": gov,
+            "pipeline": {k: v for k, v in ps.items() if k not in ("counters", "governor")} | {"counters": pc},
             "threads": d.critical_alive(), "ready": d.ready, "gyro_online": d.pipeline.gyro_online,
             "publisher": {k: pub[k] for k in PUBLISHER_KEYS if k in pub},
             "daemon": dict(d.counters),
@@ -109,8 +115,10 @@ def _radiometry(d) -> dict:
 def status_line(h: dict, gyro_state: str, camera_state: str) -> str:
     """The one-line STATUS= for systemd."""
     r = h.get("rates", {})
+    method = (h.get("governor") or {}).get("method")
     return (f"gyro {r.get('gyro_hz', 0):.0f} Hz, frames {r.get('frames_in_hz', 0):.1f} fps, "
-            f"deblurred {r.get('deblurred_hz', 0):.1f} fps, gyro {gyro_state}, camera {camera_state}")
+            f"deblurred {r.get('deblurred_hz', 0):.1f} fps" + (f" ({method})" if method else "") +
+            f", gyro {gyro_state}, camera {camera_state}")
 
 
 def _finite(v) -> float | None:

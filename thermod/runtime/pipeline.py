@@ -10,6 +10,12 @@ For every frame k read at t_k (camera clock) the scheduler
 3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener; the FFTs
    and numba passes release the GIL, so N workers use N cores).
 
+Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
+the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no
+extra cost). The governor (`thermod.runtime.governor`) then picks the best method — K&F over that
+grid or a coarser one, K&F with fewer steps, Wiener — that the measured solve cost allows within
+the frame budget; each frame says which in `FrameOut.method` / ``grid``.
+
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
 ``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
 
@@ -18,7 +24,8 @@ A frame that cannot be deblurred is *passed through*: published as float32 count
   → ``ffc`` (see `Pipeline._ffc_hold`);
 - gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``;
 - a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
-- job queue full → the OLDEST job is dropped (``overload``) and its frame passed through;
+- job queue full even on the governor's cheapest rung → the OLDEST job is dropped (``overload``,
+  counted) and its frame passed through; the governor steps down a rung at once;
 - a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
 - the scheduler fell more than the frame ring behind → the overwritten frames are counted
   (``frames_overrun``); they were never read, so there is nothing to publish.
@@ -31,6 +38,7 @@ has a timeout, every queue a bound, every drop a counter (`Pipeline.stats`).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import os
 import threading
@@ -44,6 +52,7 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.runtime.config import DeblurConfig, PipelineConfig
+from thermod.runtime.governor import Choice, Governor, coarser_grids
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 
 log = logging.getLogger(__name__)
@@ -70,6 +79,8 @@ class FrameOut:
     camera_gap_before: int = 0
     t_done: float = 0.0             # host monotonic when released
     kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
+    method: str | None = None       # the governor's rung that deblurred it: kf | kf_fast | wiener
+    grid: tuple[int, int] | None = None   # the kernel grid it was solved with ((1, 1): one kernel)
 
     @property
     def latency_s(self) -> float:
@@ -82,6 +93,7 @@ class _Job:
     kernel: object                  # Kernel or KernelGrid
     info: dict
     generation: int
+    choice: Choice | None = None
     t_queued: float = field(default_factory=time.monotonic)
 
 
@@ -110,6 +122,9 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
     """
     from thermod.physics import kernels  # numba start-up is paid only by processes that deblur
 
+    if deblur.mode == "adaptive":
+        g = grid_needed(gyro_t, gyro_rate, calib, t_frame, deblur)
+        deblur = dataclasses.replace(deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
     if deblur.mode == "grid":
         g = kernels.render_kernel_grid(gyro_t, gyro_rate, calib, t_frame, grid=deblur.grid,
                                        kind=deblur.kernel, psf=deblur.psf, m=deblur.m,
@@ -129,6 +144,61 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
     return k, info
 
 
+def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
+                deblur: DeblurConfig) -> tuple[int, int]:
+    """The coarsest kernel grid (rows, cols) over which one kernel per cell is within
+    ``deblur.grid_tol_px`` of the true kernel everywhere in its cell; (1, 1) = uniform blur.
+
+    ``mode = "uniform"`` → (1, 1); ``"grid"`` → ``deblur.grid``; ``"adaptive"`` decides from the
+    gyro. Physics: a camera rotating at ω moves the pixel at p (relative to the principal point,
+    focal length f) with the flow  ṗ = ω_z·(p rotated 90°) + f·(ω_x, ω_y)-terms·(1 + |p|²/f²)  (the
+    rotational flow field). Against the kernel at a cell's centre, a pixel h away is displaced
+    differently by
+
+        roll:        ω_z · h                      (a rotation moves a pixel at radius r by ω_z·r)
+        pan / tilt:  ω_⊥ · (2·r_max·h − h²) / f   (the 1 + r²/f² growth of the flow off-axis)
+
+    per second, with ω_⊥ = √(ω_x² + ω_y²) and r_max the farthest corner's radius. The kernel's
+    centroid and spread move by that rate times the kernel's effective duration t_eff (τ for the
+    thermal kernel of Eq. 18, whose weights decay as e^(−s/τ); half the exposure for the photon box
+    of Eq. 17). The rates are the kernel-weighted means of |ω_z| and ω_⊥ over the frame's window
+    (calibrated camera frame). A cell's half-diagonal h must keep t_eff·(…) ≤ grid_tol_px; grids
+    are tried coarse to fine (1×1, 2×3, 3×4 on a 4:3 sensor) up to ``deblur.grid``.
+    """
+    if deblur.mode == "uniform":
+        return (1, 1)
+    if deblur.mode == "grid":
+        return tuple(deblur.grid)
+    t_cam, w = calib.gyro_to_camera(gyro_t, gyro_rate)
+    t0, t1 = kernel_window(calib, deblur, t_frame)
+    sel = (t_cam > t0) & (t_cam <= t1)
+    if not np.any(sel):
+        return (1, 1)
+    age = t_frame - t_cam[sel]
+    if deblur.kernel == "photon":
+        t_eff = 0.5 * (deblur.exposure_s or default_photon_exposure_s(calib.frame_rate_hz))
+        weights = np.ones_like(age)
+    else:
+        t_eff = calib.tau_s
+        weights = np.exp(-age / calib.tau_s)
+    weights /= weights.sum()
+    roll = float(weights @ np.abs(w[sel, 2]))
+    perp = float(weights @ np.hypot(w[sel, 0], w[sel, 1]))
+    h_img, w_img = calib.height, calib.width
+    f = 0.5 * (calib.fx + calib.fy)
+    r_max = max(np.hypot(x - calib.cx, y - calib.cy) for x in (-0.5, w_img - 0.5)
+                for y in (-0.5, h_img - 0.5))
+
+    def deviation_px(rows: int, cols: int) -> float:
+        h = 0.5 * np.hypot(h_img / rows, w_img / cols)
+        return t_eff * (roll * h + perp * max(2 * r_max * h - h * h, 0.0) / f)
+
+    for g in reversed(coarser_grids(tuple(deblur.grid), w_img / h_img)):
+        if deviation_px(*g) <= deblur.grid_tol_px:
+            return g
+    return tuple(deblur.grid)
+
+
 def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple[float, float]:
     """Camera-clock span the kernel of a frame read at t_frame needs: (t_k − m·τ − readout, t_k]."""
     if deblur.kernel == "photon":
@@ -143,7 +213,30 @@ def make_deconvolver(deblur: DeblurConfig):
     # live kernels never repeat: an OTF cache would only hold ~3 MB per entry of dead weight
     # realtime: an FFT size first seen mid-stream is estimated, not measured (a measured plan would
     # stall the queue ~0.7 s on a machine without wisdom); warmup() measures the common sizes first.
-    return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True)
+    d = Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True)
+    if deblur.method == "kf" and deblur.kf_iterations is not None:
+        _set_kf_iterations(d, deblur.kf_iterations)
+    return d
+
+
+def _set_kf_iterations(d, n: int) -> None:
+    """K&F with n β steps: the same continuation from β = 1 towards 256 at the coarser ratio
+    BETA_RATE^(6/n) (n = 3: β = 1, 8, 64). The Deconvolver keeps its schedule in private fields;
+    if they are gone, the deconvolver runs its full schedule (and the governor measures that)."""
+    from thermod.physics.deconv import BETA_MAX, BETA_RATE, BETA_START, beta_schedule, shrink_threshold
+    from thermod.physics.deconv.wstep import shrink_lut
+
+    if not all(hasattr(d, a) for a in ("_betas", "_luts", "_taus")):
+        log.warning("deconvolver without a β schedule to shorten: kf_iterations=%d ignored", n)
+        return
+    full = len(beta_schedule())
+    betas = beta_schedule(BETA_START, BETA_MAX, BETA_RATE ** (full / n))[:n]
+    d._betas = betas
+    if d.alpha < 1:
+        d._luts = [shrink_lut(d.alpha, b) for b in betas]
+        d._taus = [shrink_threshold(d.alpha, b) for b in betas]
+    else:
+        d._luts, d._taus = d._luts[:len(betas)], d._taus[:len(betas)]
 
 
 def default_workers() -> int:
@@ -151,6 +244,12 @@ def default_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:   # pragma: no cover - non-Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _timed(fn, *args) -> float:
+    t0 = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t0
 
 
 # ------------------------------------------------------------------------------- pipeline
@@ -195,36 +294,61 @@ class Pipeline:
         self._prebuilt: list = []
         self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
         self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
+        self.governor = self._new_governor(calib, deblur)
+
+    def _new_governor(self, calib: Calibration, deblur: DeblurConfig) -> Governor:
+        return Governor(deblur, calib.frame_rate_hz, self.n_workers, calib.width / calib.height)
 
     # ------------------------------------------------------------------ lifecycle
     def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0) -> float:
-        """Compile the numba renderer and build every worker's deconvolver before the first frame:
-        LUTs, and the FFT plans of every padded shape a kernel up to `max_kernel_px` can need (plans
-        are per padded shape; building one mid-stream costs a frame or ten). Returns seconds spent."""
+        """Compile the numba renderer and build every worker's deconvolvers (one per rung of the
+        governor's ladder) before the first frame: LUTs, the FFT plans of every padded shape a kernel
+        up to `max_kernel_px` can need (plans are per padded shape; building one mid-stream costs a
+        frame or ten), and the governor's first cost of each rung, uniform and over the finest grid
+        (timed on the first worker, after its plans are built). Returns seconds spent."""
         t0 = time.monotonic()
         s = self._settings
+        gov = self.governor
         tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
-        rate = np.tile(np.float32([0.01, 0.2, 0.0]), (len(tg), 1))
-        kernel, _ = self._render(tg, rate, s.calib, 0.0, s.deblur)
+        # a roll: a grid of distinct kernels, so that the tiles' plans are built too
+        rate = np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
         img = np.zeros(self.frame_ring.shape, np.float32)
+        uniform, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="uniform"))
+        finest = tuple(s.deblur.grid)
+        grid = None
+        if any(r.varying for r in gov.rungs) and finest != (1, 1):
+            grid, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="grid"))
         self._prebuilt = []
-        for _ in range(self.n_workers):
-            d = self._factory(s.deblur)
-            live = getattr(d, "realtime", False)
-            d.realtime = False  # measure plans now, while no frame is waiting
-            d.run_varying(img, kernel) if hasattr(kernel, "kernels") else d.run(img, kernel)
-            if hasattr(d, "padded_shape") and s.deblur.mode == "uniform":
-                sizes = {}
-                for kh in range(1, max_kernel_px + 1, 2):
-                    for kw in range(1, max_kernel_px + 1, 2):
-                        sizes.setdefault(tuple(d.padded_shape(img.shape, (kh, kw))), (kh, kw))
-                for kh, kw in sizes.values():
-                    if time.monotonic() - t0 > budget_s:
-                        break
-                    box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
-                    d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
-            d.realtime = live
-            self._prebuilt.append((d, s.deblur))
+        for w in range(self.n_workers):
+            decs = {}
+            for rung in gov.rungs:
+                fam = gov.family(rung)
+                if fam in decs:
+                    continue
+                d = decs[fam] = self._factory(rung.deblur(s.deblur))
+                live = getattr(d, "realtime", False)
+                d.realtime = False  # measure plans now, while no frame is waiting
+                kernels_ = [(uniform, 1)]
+                if grid is not None and rung.varying:
+                    kernels_.append((grid, finest[0] * finest[1]))
+                for k, cells in kernels_:
+                    solve = d.run_varying if hasattr(k, "kernels") else d.run
+                    solve(img, k)
+                    if w == 0:
+                        # the faster of two: a preempted run would make the rung look dearer than it is
+                        gov.seed(fam, cells, min(_timed(solve, img, k) for _ in range(2)))
+                if hasattr(d, "padded_shape"):
+                    sizes = {}
+                    for kh in range(1, max_kernel_px + 1, 2):
+                        for kw in range(1, max_kernel_px + 1, 2):
+                            sizes.setdefault(tuple(d.padded_shape(img.shape, (kh, kw))), (kh, kw))
+                    for kh, kw in sizes.values():
+                        if time.monotonic() - t0 > budget_s:
+                            break
+                        box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
+                        d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
+                d.realtime = live
+            self._prebuilt.append((decs, s.deblur))
         return time.monotonic() - t0
 
     def start(self, start_index: int | None = None) -> Pipeline:
@@ -260,7 +384,11 @@ class Pipeline:
         """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
         workers rebuild their deconvolver when the deblur settings change."""
         s = self._settings
-        self._settings = _Settings(calib or s.calib, deblur or s.deblur, s.generation + 1)
+        self._settings = new = _Settings(calib or s.calib, deblur or s.deblur, s.generation + 1)
+        if new.deblur != s.deblur or new.calib.frame_rate_hz != s.calib.frame_rate_hz:
+            gov = self._new_governor(new.calib, new.deblur)
+            gov.inherit(self.governor)
+            self.governor = gov
         self._count("reloads", 1)
 
     @property
@@ -346,7 +474,11 @@ class Pipeline:
                               {"coverage": 0.0, "n_samples": len(w)})
             return
         try:
-            kernel, info = self._render(w.t, w.rate, s.calib, slot.t, s.deblur)
+            needed = grid_needed(w.t, w.rate, s.calib, slot.t, s.deblur)
+            choice = self.governor.choose(needed, time.monotonic())
+            g = choice.grid
+            deblur = dataclasses.replace(s.deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
+            kernel, info = self._render(w.t, w.rate, s.calib, slot.t, deblur)
         except Exception as e:
             self._count("kernel_errors", 1)
             log.error("kernel rendering failed for frame %d: %s", slot.frame_id, e)
@@ -355,7 +487,7 @@ class Pipeline:
         if info["coverage"] < s.deblur.min_coverage:
             self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
             return
-        self._enqueue(_Job(slot, kernel, info, s.generation))
+        self._enqueue(_Job(slot, kernel, info, s.generation, choice))
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
         """Whether a frame must pass through because of a flat-field correction (FFC).
@@ -388,6 +520,7 @@ class Pipeline:
             self._jobs_cond.notify()
         if dropped is not None:
             self._count("jobs_dropped", 1)
+            self.governor.overloaded(time.monotonic())
             self._passthrough(dropped.slot, "overload", dropped.info)
 
     # ------------------------------------------------------------------ workers
@@ -398,7 +531,7 @@ class Pipeline:
 
     def _work_loop(self, i: int) -> None:
         name = f"worker{i}"
-        deconv, gen_deblur = self._prebuilt.pop() if self._prebuilt else (None, None)
+        decs, gen_deblur = self._prebuilt.pop() if self._prebuilt else ({}, None)
         while not self._stop.is_set():
             self.heartbeat[name] = time.monotonic()
             with self._jobs_cond:
@@ -410,13 +543,23 @@ class Pipeline:
             self._worker_busy_since[i] = time.monotonic()
             try:
                 deblur = self._settings.deblur
-                if deconv is None or gen_deblur is not deblur:
-                    deconv, gen_deblur = self._factory(deblur), deblur
+                if gen_deblur is not deblur:
+                    decs, gen_deblur = {}, deblur
+                gov = self.governor
+                rung = job.choice.rung if job.choice is not None else gov.rungs[0]
+                # the governor stepped down since this job was queued: solve it the cheaper way now
+                if job.choice is not None and job.choice.rung in gov.rungs and gov.index > job.choice.index:
+                    rung = gov.rungs[gov.index]
+                fam = gov.family(rung)
+                deconv = decs.get(fam)
+                if deconv is None:
+                    deconv = decs[fam] = self._factory(rung.deblur(deblur))
                 img = job.slot.image.astype(np.float32)
-                if hasattr(job.kernel, "kernels"):
-                    out = deconv.run_varying(img, job.kernel)
-                else:
-                    out = deconv.run(img, job.kernel)
+                varying = hasattr(job.kernel, "kernels")
+                t0 = time.perf_counter()
+                out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
+                dt = time.perf_counter() - t0
+                gov.observe(fam, int(np.prod(job.kernel.grid)) if varying else 1, dt, time.monotonic())
                 out = np.asarray(out, dtype=np.float32)
                 if out.shape != img.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
@@ -429,7 +572,11 @@ class Pipeline:
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
-            self._complete(self._out(job.slot, out, True, None, job.info, job.kernel))
+            self._count(f"method_{rung.name}", 1)
+            o = self._out(job.slot, out, True, None, job.info, job.kernel)
+            o.method = rung.name
+            o.grid = tuple(job.kernel.grid) if varying else (1, 1)
+            self._complete(o)
 
     # ------------------------------------------------------------------ output (in order)
     def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict,
@@ -511,4 +658,5 @@ class Pipeline:
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
             "worker_busy_max_s": max(busy) if busy else 0.0,
+            "governor": self.governor.state(),
         }

@@ -3,7 +3,7 @@
 `thermod discrepancy REC.h5 [REC2.h5 …] --out DIR [--config model.toml]`
 
 A recording made by the payload starts with a static segment (the gyro reads ≈ its bias) followed
-by motion. The workflow
+by motion (or is motion only: see below). The workflow
 
 1. builds a **reference scene** from the static frames (their mean: the detector is settled and the
    camera still, so this is the sharp view, with the static optical PSF and the fixed-pattern noise);
@@ -23,6 +23,19 @@ by motion. The workflow
    the gyro bias also uses the static segment's mean raw rate as a prior (a direct measurement);
 5. says ``unexplained: true`` when the remaining residual is still well above the noise floor but no
    candidate explains it, rather than naming a wrong effect.
+
+**Motion only.** A recording without a static lead-in (fewer than 3 frames before the gyro sees motion)
+gets a motion-only reference instead (report: ``"reference": "motion"``): a scene canvas S, somewhat
+larger than the frame where the motion needs it, in the camera frame at t_ref (the frame whose
+preceding 5τ moved least). S starts as the frames back-projected and averaged (a blurred mosaic) with
+the t_ref frame on top, and is refined by a few Jacobi-preconditioned CGLS iterations of
+min Σ (M − F − A S)² (the forward model A is linear in S; `ForwardModel.adjoint` is Aᵀ), alternating
+with the FPN estimate once per step in `Problem.refresh` — never inside a candidate's fit. S is shared
+by every frame, so it cannot follow an error that differs from frame to frame (every candidate effect
+moves or blurs each frame according to its own motion); canvas pixels seen by fewer than 2.5 frames
+are left out so no frame predicts what only it saw. There is no static segment to measure the noise:
+it is the spatial high-pass (Immerkær) of the motion residual, an upper bound while model errors
+remain (``noise_source`` says which estimate was used); there is no static bias prior either.
 
 Fixed-pattern noise (FPN) sits still on the sensor while the scene moves, so it is estimated as the
 temporal mean of the motion residual and added back to every prediction (and removed from the

@@ -14,9 +14,10 @@ from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext
 from thermod.calib.discrepancy.report import format_params, jsonable, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
 
-GAP_DEFINITION = ("gap = ||measured - predicted|| / ||measured - static reference|| over pixels valid "
-                  "in every view of the working-resolution motion frames; noise_floor = the gap of a perfect "
-                  "model given the static segment's temporal noise")
+GAP_DEFINITION = ("gap = ||measured - predicted|| / ||measured - reference view|| over pixels valid "
+                  "in every view of the working-resolution motion frames (reference view: the static mean, "
+                  "or for motion-only recordings the estimated scene seen from the pose at t_ref); "
+                  "noise_floor = the gap of a perfect model given the temporal noise (see noise_source)")
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,8 @@ class Analysis:
     candidates_tried: list = field(default_factory=list)
     unobservable: dict = field(default_factory=dict)
     seconds: float = 0.0
+    reference: str = "static"       # "static" (mean of a static lead-in) | "motion" (estimated scene)
+    noise_source: str = "static frames"
 
     @property
     def named(self) -> list[str]:
@@ -82,6 +85,7 @@ class Analysis:
             "nominal": self.nominal.final_calibration().as_dict(),
             "unobservable": self.unobservable, "candidates": self.candidates_tried,
             "definition": GAP_DEFINITION, "seconds": self.seconds,
+            "reference": self.reference, "noise_source": self.noise_source,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -184,6 +188,9 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     _check_overlap(recs, min_pixels)
     ev = problem.evaluate(model, keep=True)
     ana = Analysis(problem.gap(ev.ssr), problem.gap(ev.ssr), problem.noise_floor(), [], False, model, model)
+    kinds = sorted({d.reference for d in recs})
+    ana.reference = kinds[0] if len(kinds) == 1 else "+".join(kinds)
+    ana.noise_source = "; ".join(sorted({d.noise_source for d in recs}))
     say(f"gap {ana.gap_initial:.4f} (noise floor {ana.noise_floor:.4f}) over {ev.n} pixels of "
         f"{sum(len(d.frame_t) for d in recs)} motion frames at {recs[0].fm.w}×{recs[0].fm.h}")
     ana.snapshot("nominal", problem, ev)

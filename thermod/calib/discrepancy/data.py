@@ -18,6 +18,8 @@ from thermod.physics.calibration import Calibration
 MAX_GYRO_RATE_RAD_S = math.radians(4000.0)
 # Working resolution and forward-model memory: the warped views of every time step are held at once.
 MIN_WORK_PX = 16
+MIN_STATIC_FRAMES = 3         # fewer before the motion: no static reference, the motion-only one
+MIN_COVERAGE = 2.5            # motion-only: canvas pixels seen by fewer frames are not part of the scene
 MAX_VIEWS_MB = 2048.0
 
 
@@ -57,6 +59,11 @@ class RecData:
     motion_rms_rad_s: np.ndarray  # per gyro axis, bias-removed
     fpn: np.ndarray | None = None
     mask: np.ndarray | None = None
+    reference: str = "static"     # "static": mean of the static frames; "motion": estimated scene canvas
+    scene: np.ndarray | None = None       # motion: float32 canvas (FPN-free sharp scene at t_ref's pose)
+    origin: tuple = (0.0, 0.0)            # motion: canvas position of the reference view's pixel (0, 0)
+    coverage: np.ndarray | None = None    # motion: frames' summed weight per canvas pixel
+    noise_source: str = "static frames"   # how noise_var was measured
 
 
 def detect_static(gyro_t, gyro_rate, *, head_s: float = 0.05, min_rate: float = math.radians(0.5),
@@ -129,7 +136,7 @@ def _working_scale(calib: Calibration, work_width: int) -> float:
 
 def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<recording>",
             scale: float | None = None, work_width: int = 160,
-            offset_margin_s: float = 0.03, max_step_px: float = 0.5, smooth_px: float = 0.0,
+            offset_margin_s: float = 0.03, max_step_px: float = 1.0, smooth_px: float = 0.0,
             max_views_mb: float = MAX_VIEWS_MB) -> RecData:
     """Split a recording into reference and motion frames and build its forward model.
 
@@ -146,6 +153,8 @@ def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<re
         raise RecordingError(name, "camera/frames", f"{calib.width}×{calib.height} frames give a "
                              f"{work.width}×{work.height} working image; need ≥ {MIN_WORK_PX} px a side")
     seg = _segments(rec, calib, name, offset_margin_s)
+    if seg is None:
+        return _prepare_motion(rec, calib, name, scale, offset_margin_s, max_step_px, smooth_px, max_views_mb)
     static, moving, t_onset, t_ref = seg.static, seg.moving, seg.t_onset, seg.t_ref
     n_static = int(static.sum())
     st = rec.frames[static].astype(np.float32)
@@ -180,7 +189,7 @@ class _Segments:
     static_rate: np.ndarray | None
 
 
-def _segments(rec, calib: Calibration, name: str, offset_margin_s: float) -> _Segments:
+def _segments(rec, calib: Calibration, name: str, offset_margin_s: float) -> _Segments | None:
     t_on_g, static_rate = detect_static(rec.gyro_t, rec.gyro_rate)
     if t_on_g is None:
         raise RecordingError(name, "gyro/rate", "no motion found: the workflow needs a static segment "
@@ -189,13 +198,111 @@ def _segments(rec, calib: Calibration, name: str, offset_margin_s: float) -> _Se
     t_ref = t_onset - offset_margin_s
     static = rec.t <= t_ref
     n_static = int(static.sum())
-    if n_static < 3:
-        raise RecordingError(name, "camera/frames", f"only {n_static} frames before the motion starts at "
-                             f"t={t_onset:.3f} s (minus a {offset_margin_s * 1e3:.0f} ms margin for the time "
-                             "offset); need ≥ 3 static frames for a reference")
+    if n_static < MIN_STATIC_FRAMES:
+        return None            # no static lead-in: the motion-only reference (`_prepare_motion`)
     gyro_end = rec.gyro_t[-1] + calib.time_offset_s - offset_margin_s
     moving = (rec.t > t_ref) & (rec.t <= gyro_end)
     if moving.sum() < 2:
         raise RecordingError(name, "camera/t", "fewer than 2 frames during the motion are covered by gyro "
                              "samples")
     return _Segments(static, moving, t_onset, t_on_g, t_ref, static_rate)
+
+
+# ----------------------------------------------------------------------------------------- motion only
+def noise_variance_spatial(frames: np.ndarray) -> float:
+    """Temporal-noise variance of single frames from their spatial high frequencies (Immerkær 1996):
+    the 3×3 operator [1 −2 1; −2 4 −2; 1 −2 1] cancels locally planar signal and has gain 36 on white
+    noise; the median of its magnitude over the flattest half of the pixels (σ = √(π/2)·mean|L|/6 for
+    Gaussian noise, here from the median) resists edges. Scene texture at the pixel scale still
+    leaks in, so on textured scenes this is an upper bound (the report says which estimate it used)."""
+    import cv2
+
+    k = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    vals = []
+    for f in np.asarray(frames, np.float32):
+        L = np.abs(cv2.filter2D(f, -1, k, borderType=cv2.BORDER_REFLECT))[1:-1, 1:-1]
+        gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1]
+        gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1]
+        g = np.hypot(gx, gy)
+        flat = L[g <= np.median(g)]
+        vals.append(np.median(flat))
+    sigma = float(np.median(vals)) / 0.6745 / 6.0      # median |N(0, 36σ²)| = 0.6745·6σ
+    return sigma * sigma
+
+
+def _pixel_speed(calib: Calibration, gyro_t, gyro_rate, scale: float):
+    """Camera-clock times and image speed (working px/s at the frame corners) of the gyro samples."""
+    t_cam, w = calib.gyro_to_camera(gyro_t, gyro_rate)
+    intr = calib.intrinsics.scaled(scale)
+    r = math.hypot(intr.width, intr.height) / 2.0
+    return t_cam, max(intr.fx, intr.fy) * np.hypot(w[:, 0], w[:, 1]) + r * np.abs(w[:, 2])
+
+
+def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_margin_s: float,
+                    max_step_px: float, smooth_px: float, max_views_mb: float) -> RecData:
+    """No static lead-in: every frame read ≥ 5τ after the gyro starts is predicted from a scene canvas
+    estimated from the frames themselves (`problem.estimate_scene`), anchored at the pose of the frame
+    whose preceding 5τ moved least (t_ref)."""
+    tau = calib.tau_s
+    period = 1.0 / calib.frame_rate_hz
+    t_cam0 = float(rec.gyro_t[0]) + calib.time_offset_s + offset_margin_s
+    gyro_end = float(rec.gyro_t[-1]) + calib.time_offset_s - offset_margin_s
+    t_start = max(t_cam0, float(rec.t[0]) - period - 6.0 * tau)
+    moving = (rec.t - period - 5.0 * tau > t_start) & (rec.t <= gyro_end)
+    if moving.sum() < 3:
+        raise RecordingError(name, "camera/t", "fewer than 3 frames are covered by gyro samples from 5τ "
+                             "before their first row (no static segment either, so the reference must be "
+                             "estimated from the moving frames)")
+    frame_t = rec.t[moving]
+    t_cam, speed = _pixel_speed(calib, rec.gyro_t, rec.gyro_rate, scale)
+    blur = [float(np.mean(speed[(t_cam >= t - period - 5 * tau) & (t_cam <= t)] if np.any(
+        (t_cam >= t - period - 5 * tau) & (t_cam <= t)) else np.inf)) for t in frame_t]
+    k_ref = int(np.argmin(blur))
+    t_ref = float(frame_t[k_ref])
+    idx = np.flatnonzero(moving)
+    try:
+        fm = ForwardModel(rec.frames[idx[k_ref]].astype(np.float32), frame_t, rec.gyro_t, rec.gyro_rate,
+                          calib, t_ref=t_ref, t_start=t_start, scale=scale, max_step_px=max_step_px,
+                          max_views_mb=max_views_mb)
+    except GridTooLarge as e:
+        raise RecordingError(name, "camera/t, gyro/rate", f"{e}; shorten the recording, lower "
+                             "--work-width, or check fx and tau_s") from None
+    measured = downsample(rec.frames[moving], scale, smooth_px)
+    origin, shape = _canvas(fm, calib)
+    scene = np.zeros(shape, np.float32)
+    ix, iy = int(round(origin[0])), int(round(origin[1]))
+    scene[iy:iy + fm.h, ix:ix + fm.w] = measured[k_ref]
+    fm.set_reference(scene, None, prescaled=True, origin=origin)
+    noise_var = noise_variance_spatial(measured)
+    motion_rms = np.sqrt(np.mean((rec.gyro_rate - rec.gyro_rate.mean(axis=0)) ** 2, axis=0))
+    d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(),
+                rec.frames[idx[k_ref]].astype(np.float32), noise_var, int(moving.sum()), t_ref, t_start,
+                rec.gyro_t, rec.gyro_rate, None, None, motion_rms,
+                reference="motion", scene=scene, origin=origin,
+                noise_source="spatial high-pass of the motion frames")
+    return d
+
+
+def _canvas(fm: ForwardModel, calib: Calibration, pad: int = 4, max_factor: float = 3.0):
+    """Canvas covering every view of the recording (frame corners mapped by H(s) into the reference
+    camera), at most `max_factor` × the frame per side; returns (origin, shape)."""
+    times = fm.t_views[:: max(1, len(fm.t_views) // 200)]
+    Hs = fm.homographies(calib, times)
+    w, h = fm.w, fm.h
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+    p = Hs @ corners
+    z = p[:, 2]
+    ok = z > 1e-6
+    xs = (p[:, 0] / np.where(ok, z, 1))[ok]
+    ys = (p[:, 1] / np.where(ok, z, 1))[ok]
+    ext_x = (max_factor - 1) / 2 * w
+    ext_y = (max_factor - 1) / 2 * h
+    x0 = max(float(np.floor(xs.min())) - pad, -ext_x) if xs.size else 0.0
+    x1 = min(float(np.ceil(xs.max())) + pad, w - 1 + ext_x) if xs.size else w - 1
+    y0 = max(float(np.floor(ys.min())) - pad, -ext_y) if ys.size else 0.0
+    y1 = min(float(np.ceil(ys.max())) + pad, h - 1 + ext_y) if ys.size else h - 1
+    x0, y0 = min(x0, 0.0), min(y0, 0.0)
+    x1, y1 = max(x1, w - 1.0), max(y1, h - 1.0)
+    origin = (-int(x0), -int(y0))
+    shape = (int(y1 - int(y0)) + 1, int(x1 - int(x0)) + 1)
+    return (float(origin[0]), float(origin[1])), shape

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from thermod.calib.discrepancy.data import Model, RecData
+from thermod.calib.discrepancy.data import MIN_COVERAGE, Model, RecData, noise_variance_spatial
 
 
 @dataclass
@@ -23,9 +23,10 @@ class Evaluation:
 class Problem:
     """Residuals of all recordings under a candidate model, over fixed per-step masks."""
 
-    def __init__(self, recs: list[RecData]):
+    def __init__(self, recs: list[RecData], scene_iters: int = 3):
         self.recs = recs
         self.n_evals = 0
+        self.scene_iters = scene_iters
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1
@@ -58,10 +59,16 @@ class Problem:
         common over time: F ← F + HP(mean_k r_k), iterated from F = 0 under the current model. Only
         its high-pass part is kept: low spatial frequencies are nearly the same in the reference and
         the moved views (so they barely matter) and would absorb slow model errors instead.
+
+        Motion-only recordings also re-estimate their scene canvas here (`estimate_scene`), alternating
+        with the FPN, under the current model: once per step, never inside a candidate's fit.
         """
         for d in self.recs:
-            d.fpn = _estimate_fpn(d, model, fpn_iters, fpn_highpass_px) if fpn else None
-            d.fm.set_reference(d.static_mean, d.fpn, prescaled=True)
+            if d.reference == "motion":
+                _refresh_motion(d, model, fpn, fpn_iters, fpn_highpass_px, self.scene_iters)
+            else:
+                d.fpn = _estimate_fpn(d, model, fpn_iters, fpn_highpass_px) if fpn else None
+                d.fm.set_reference(d.static_mean, d.fpn, prescaled=True)
             _, v = d.fm.predict(model.calib, model.extra_psf_px)
             k = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8)
             d.mask = np.stack([cv2.erode(x.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
@@ -76,7 +83,14 @@ class Problem:
         tot = 0.0
         for d in self.recs:
             n_m = max(len(d.frame_t), 2)
-            f = (1.0 + 1.0 / d.n_static) * ((1.0 - 1.0 / n_m) if d.fpn is not None else 1.0)
+            if d.reference == "motion":
+                # the scene canvas is fitted to the same frames: it takes one degree of freedom per
+                # known canvas pixel out of the residual (fewer when CG stops early: an upper bound)
+                n_obs = max(float(d.mask.sum()), 1.0)
+                f = max(0.0, 1.0 - float(np.sum(d.fm.support > 0)) / n_obs)
+            else:
+                f = 1.0 + 1.0 / d.n_static
+            f *= (1.0 - 1.0 / n_m) if d.fpn is not None else 1.0
             tot += d.noise_var * f * float(d.mask.sum())
         return tot
 
@@ -99,6 +113,104 @@ def _estimate_fpn(d: RecData, model: Model, iters: int, highpass_px: float) -> n
         upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
         F = F + upd
     return F
+
+
+def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px: float, scene_iters: int):
+    """Scene canvas and FPN of a motion-only recording, alternating (the FPN moves with the sensor, the
+    scene with the world; only their common part at zero motion is ambiguous, and stays in the scene)."""
+    F = d.fpn if (fpn and d.fpn is not None) else np.zeros_like(d.measured[0])
+    for i in range(1):   # one scene/FPN round per refresh: refreshes repeat every step
+        first = i == 0 and d.coverage is None
+        estimate_scene(d, model, F, scene_iters if first else max(2, scene_iters // 2))
+        if not fpn:
+            F = None
+            break
+        p, v = d.fm.predict(model.calib, model.extra_psf_px)
+        r = np.where(v, d.measured - p, 0.0)
+        cnt = v.sum(axis=0)
+        upd = np.where(cnt > 0, r.sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
+        upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
+        F = F + upd
+        d.fm.set_reference(d.scene, F, prescaled=True, origin=d.origin, support=d.fm.support,
+                           subtract_fpn=False)
+    d.fpn = F
+    d.static_mean = d.fm.reference_view + (F if F is not None else 0.0)
+    if d.noise_source == "spatial high-pass of the motion frames":
+        # No static frames to measure the temporal noise: the residual's own spatial high frequencies
+        # (scene texture mostly cancelled by the prediction), an upper bound while model errors remain.
+        p, v = d.fm.predict(model.calib, model.extra_psf_px)
+        r = np.where(v, d.measured - p, 0.0).astype(np.float32)
+        d.noise_var = min(d.noise_var, noise_variance_spatial(r))
+        d.noise_source = "spatial high-pass of the motion residual (upper bound)"
+
+
+def estimate_scene(d: RecData, model: Model, fpn, iters: int) -> None:
+    """Least-squares scene canvas S of a motion-only recording under `model`: min Σ_valid (M − F − A S)²,
+    A = the forward model (views, IIR, normalisation, extra PSF: linear in S), by Jacobi-preconditioned
+    CGLS from the current canvas (the first time: the frames back-projected and averaged, a blurred
+    mosaic, with the sharpest frame at t_ref on top). Canvas pixels seen by fewer than MIN_COVERAGE
+    frames are left out (support 0), so the frames never predict what only they themselves saw.
+
+    S is shared by every frame: it cannot follow an error that changes from frame to frame (a time
+    offset, bias, scale, misalignment, τ or readout error moves or blurs each frame differently with
+    its own motion), only what is common to all of them. It is re-estimated once per search step
+    (`Problem.refresh`), never inside a candidate's fit, so candidates are compared on the same scene.
+    """
+    fm, calib, psf = d.fm, model.calib, model.extra_psf_px
+    target = d.measured - (fpn if fpn is not None else 0.0)
+    first = d.coverage is None
+    # coverage: how many frames (IIR weight) see each canvas pixel
+    fm.set_reference(d.scene, None, prescaled=True, origin=d.origin, support=None)
+    _, m_full = fm.predict_raw(calib)
+    inside = (m_full >= 0.99).astype(np.float32)
+    C = fm.adjoint(calib, inside, weight=m_full)
+    support = (C >= MIN_COVERAGE).astype(np.float32)
+    S = d.scene.astype(np.float64) * support
+    if first:
+        mosaic = fm.adjoint(calib, target * inside, weight=m_full) / np.maximum(C, 1e-6)
+        ix, iy = int(round(d.origin[0])), int(round(d.origin[1]))
+        S = mosaic * support
+        own = S[iy:iy + fm.h, ix:ix + fm.w]
+        keep = support[iy:iy + fm.h, ix:ix + fm.w] > 0
+        own[keep] = d.scene[iy:iy + fm.h, ix:ix + fm.w][keep]
+    fm.set_reference(S.astype(np.float32), None, prescaled=True, origin=d.origin, support=support)
+    _, m = fm.predict_raw(calib)
+    valid = (m >= 0.99).astype(np.float32)
+    dinv = np.where(support > 0, 1.0 / np.maximum(C, 1.0), 0.0)
+
+    def forward(x):
+        fm.set_reference(x.astype(np.float32), None, prescaled=True, origin=d.origin, support=support)
+        num, _ = fm.predict_raw(calib)
+        out = np.where(m > 0.5, num / np.maximum(m, 0.5), 0.0).astype(np.float32)
+        if psf > 0:
+            g = fm._psf_kernel(psf)
+            out = np.stack([cv2.sepFilter2D(o, -1, g, g, borderType=cv2.BORDER_REPLICATE) for o in out])
+        return out * valid
+
+    r = (target - forward(S)) * valid
+    s = fm.adjoint(calib, r, psf, weight=m) * support
+    z = dinv * s
+    pdir = z.copy()
+    gamma = float(np.sum(s * z))
+    for _ in range(iters):
+        if gamma <= 0:
+            break
+        q = forward(pdir)
+        qq = float(np.sum(q.astype(np.float64) ** 2))
+        if qq <= 0:
+            break
+        a = gamma / qq
+        S += a * pdir
+        r -= (a * q).astype(np.float32)
+        s = fm.adjoint(calib, r, psf, weight=m) * support
+        z = dinv * s
+        gamma_new = float(np.sum(s * z))
+        pdir = z + (gamma_new / gamma) * pdir
+        gamma = gamma_new
+    d.scene = (S * support).astype(np.float32)
+    d.coverage = C
+    fpn_arr = None if fpn is None else np.asarray(fpn, np.float32)
+    fm.set_reference(d.scene, fpn_arr, prescaled=True, origin=d.origin, support=support, subtract_fpn=False)
 
 
 def effective_area(residuals: list, max_lag: int = 6) -> float:

@@ -213,7 +213,11 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
           f"noise floor {ana.noise_floor:.4f}",
           "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the "
           "motion frames",
-          f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**", "",
+          f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**",
+          f"- reference: **{ana.reference}** ("
+          + ("mean of the static lead-in" if ana.reference == "static" else
+             "no static lead-in: a scene canvas estimated by least squares from the moving frames")
+          + f"); noise from {ana.noise_source}", "",
           "| step | effect | parameters | gap before | gap after | ΔBIC | excess explained |",
           "|---|---|---|---|---|---|---|"]
     for i, s in enumerate(ana.steps, 1):

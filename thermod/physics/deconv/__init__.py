@@ -30,10 +30,26 @@ size larger per axis, so any kernel size (100+ px) works and no ringing frame ap
 noise: `noise`.
 
 Spatially varying blur (`deconvolve_varying`): each cell of a kernel grid is deconvolved in its
-own tile (the cell's blending support plus a margin of real neighbouring pixels), and tiles are
-blended with separable raised-cosine weights that form a partition of unity, so there are no
-seams. A grid whose kernels all match the central one (centroid and spread within 0.5 px: pure
-pan/tilt with a narrow field of view) is solved once, as a uniform blur.
+own tile (the cell's blending support plus `margin_px` = `TILE_MARGIN_PX` = 8 real neighbouring
+pixels: a thermal kernel's inverse is local), and tiles are blended with separable raised-cosine
+weights that form a partition of unity, so there are no seams. A grid whose kernels all match
+the central one (`kernel_spread(grid)` ≤ 0.5 px: pure pan/tilt with a narrow field of view) is
+solved once, as a uniform blur.
+
+Knobs for a caller that must fit a time budget (the daemon's governor), cost relative to one
+uniform K&F solve at 640×480 (roll-heavy family, docs/design.md §1.5):
+
+- the grid (rendered by the caller) and ``run_varying(overlap=…)``: 3×4 with overlap 1 (full
+  blending, the reference) ≈ 4×; **6×8 with overlap 0.25 ≈ 2.1×, +1.1 dB over the reference**;
+  4×6 with overlap 0.25 ≈ 2×, equal to the reference; cost grows with overlap (every pixel is
+  solved (1 + overlap)² times), and quality with both grid size and overlap.
+- `kernel_spread(grid)`: 0 for a uniform grid; use the uniform solve (cost 1×) when it is small.
+- ``Deconvolver(iterations=n)``: n of the six K&F β steps (the last ones); cost ≈ n/6 of the
+  solve's FFT work. 5 steps cost ≤ 0.45 dB at 1280×1024 and nothing at 640×512 (measured,
+  `Deconvolver` docstring).
+- ``Deconvolver(split=(2, 2))``: large sensors — a uniform-blur frame solved in 2×2 cache-sized
+  tiles; at 1280×1024 0.70× the CPU time for ≤ 0.04 dB.
+- ``method="wiener"``: about 1/5 of a K&F solve (one Tikhonov solve per tile or frame).
 
 Modules: `wstep` (shrinkage, lookup tables), `xstep` (Fourier-domain solves, boundary extension),
 `plans` (FFT plans, FFTW wisdom), `noise` (robust range, σ̂, λ from noise), `tiles` (partition of
@@ -43,6 +59,7 @@ unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, 
 
 from .checks import DeconvError
 from .noise import (
+    KF_HYPER_LAPLACIAN,
     LAMBDA_RANGE,
     NOISE_KNEE,
     NOISE_LAMBDA,
@@ -53,6 +70,7 @@ from .noise import (
 )
 from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, wisdom_path
 from .solver import DEFAULT_ALPHA, Deconvolver, deconvolve, deconvolve_varying
+from .tiles import TILE_MARGIN_PX, kernel_spread
 from .wstep import (
     BETA_MAX,
     BETA_RATE,
@@ -64,8 +82,10 @@ from .wstep import (
 )
 
 __all__ = [
-    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "LAMBDA_RANGE", "MAX_PLANS", "NOISE_KNEE",
+    "BETA_MAX", "BETA_RATE", "BETA_START", "DEFAULT_ALPHA", "KF_HYPER_LAPLACIAN", "LAMBDA_RANGE", "MAX_PLANS",
+    "NOISE_KNEE",
     "NOISE_LAMBDA", "PLANNING_TIMELIMIT_S", "RANGE_PERCENTILES", "DeconvError", "Deconvolver",
-    "NoiseLambda", "beta_schedule", "deconvolve", "deconvolve_varying", "noise_sigma", "robust_range",
+    "NoiseLambda", "TILE_MARGIN_PX", "beta_schedule", "deconvolve", "deconvolve_varying", "kernel_spread",
+    "noise_sigma", "robust_range",
     "shrink_23_analytic", "shrink_numeric", "shrink_threshold", "wisdom_path",
 ]

@@ -15,11 +15,15 @@ from numba import njit
 
 from .checks import DeconvError, check_image
 
-# Defaults of `NoiseLambda` per method. Fitted on simulated SBTI recordings of six real scenes at
-# 12.5 and 75 °/s (best K&F λ 3000–6000 at σ̂ = 0.005, 50000–100000 at σ̂ = 0.0005, 100+ at
-# σ̂ = 0.05); benchmarks/bench_quality.py refits them on half of its scenes and reports the others.
-NOISE_LAMBDA = {"kf": 30.0, "wiener": 0.6}
-NOISE_KNEE = 0.006
+# Defaults of `NoiseLambda` per method (K&F: for the default α = 1). Fitted on simulated SBTI frames of
+# six real scenes at 6.25–100 °/s and NETD 30 and 100 mK (α = 1: best λ 950–3000 at σ̂ = 0.003,
+# 9500–40000 at σ̂ = 0.0006, ≤ 300–950 at σ̂ = 0.01); benchmarks/bench_quality.py refits them on
+# half of its scenes and reports the others.
+NOISE_LAMBDA = {"kf": 8.5, "wiener": 0.6}
+NOISE_KNEE = 0.012
+# K&F with α < 1 (hyper-Laplacian): the w-step zeroes small gradients outright, so it needs a
+# data weight ~3× stronger than α = 1 (fitted for α = 2/3 on the same frames; 12.5 and 75 °/s).
+KF_HYPER_LAPLACIAN = (30.0, 0.006)
 LAMBDA_RANGE = {"kf": (30.0, 300000.0), "wiener": (3.0, 30000.0)}
 RANGE_PERCENTILES = (0.5, 99.5)
 
@@ -44,7 +48,10 @@ class NoiseLambda:
             raise DeconvError(f"NoiseLambda: expected scale > 0, knee > 0 and 0 < lo ≤ hi, got {self}")
 
     @classmethod
-    def default(cls, method: str) -> NoiseLambda:
+    def default(cls, method: str, alpha: float = 1.0) -> NoiseLambda:
+        """The shipped rule for `method` (and, for "kf", the prior exponent `alpha`)."""
+        if method == "kf" and alpha < 1:
+            return cls(*KF_HYPER_LAPLACIAN, *LAMBDA_RANGE[method])
         return cls(NOISE_LAMBDA[method], NOISE_KNEE, *LAMBDA_RANGE[method])
 
     def __call__(self, sigma):

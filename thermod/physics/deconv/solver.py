@@ -8,16 +8,16 @@ import threading
 from collections import OrderedDict
 
 import numpy as np
-import scipy.fft
 
 from .checks import DeconvError, check_image, check_kernel
 from .noise import NOISE_LAMBDA, NoiseLambda, noise_sigma, value_range_of
 from .plans import MAX_PLANS, Plan, fast_len, pyfftw
-from .tiles import max_moment_deviation, tile_weights
+from .tiles import TILE_MARGIN_PX, max_moment_deviation, tile_weights
 from .wstep import LUT_SIZE, LUT_VMAX, beta_schedule, shrink_lut, shrink_threshold, wstep_div
 from .xstep import conj_mul, finish, prepare, wiener_solve, xstep
 
-DEFAULT_ALPHA = 2.0 / 3.0
+DEFAULT_ALPHA = 1.0   # TV: on real thermal scenes 0.1–0.7 dB above 2/3 at the best λ of each (bench_quality)
+SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
 
 class Deconvolver:
@@ -26,13 +26,22 @@ class Deconvolver:
     Parameters
     ----------
     method : "kf" (hyper-Laplacian, default) or "wiener" (one Tikhonov solve).
-    alpha : prior exponent for "kf": 1 (soft threshold), 2/3 (default, analytic LUT) or any in (0, 1).
+    alpha : prior exponent for "kf": 1 (default, soft threshold), 2/3 (analytic LUT) or any in (0, 1).
     lam : data weight λ for a unit-range frame (K&F convention). None (default): adapted to each
         frame's noise σ̂ (`noise_sigma`) by `lam_rule`.
     lam_rule : the `NoiseLambda` used when lam is None (default: `NoiseLambda.default(method)`).
     fft : "auto" (pyFFTW if installed), "fftw" or "scipy".
     workers : FFT threads (1 = one core; run several Deconvolvers in threads for throughput).
     margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
+    iterations : K&F β steps, the last ones of `beta_schedule()` (None: all six). A knob to
+        degrade by under a short time budget: each step is one FFT pair and one w-step. Measured
+        (bench_deconv scenes, 3 comets 17–65 px) 5 steps cost 0.15–0.45 dB at 1280×1024 and
+        nothing at 640×512; 4 steps 0.6–1.6 dB at 1280×1024 (Wiener: 5–7 dB).
+    split : (rows, cols) or None. Solve every uniform-blur frame in rows × cols tiles (blend ramp
+        `SPLIT_OVERLAP` of the spacing, `TILE_MARGIN_PX` margins) instead of one frame-sized FFT:
+        the faster mode for large sensors, whose frame-sized FFT buffers fall out of cache. At
+        1280×1024, (2, 2) took 0.70× the CPU time of the whole-frame solve for ≤ 0.04 dB
+        (benchmarks/results/deconv.md, loaded machine).
     realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
         estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
         For the daemon's workers, which warm up the common sizes before going live.
@@ -43,7 +52,8 @@ class Deconvolver:
 
     def __init__(self, method: str = "kf", alpha: float = DEFAULT_ALPHA, lam: float | None = None,
                  fft: str = "auto", workers: int = 1, margin: int = 8, cache_size: int = 16,
-                 realtime: bool = False, *, lam_rule: NoiseLambda | None = None):
+                 realtime: bool = False, *, lam_rule: NoiseLambda | None = None,
+                 iterations: int | None = None, split: tuple[int, int] | None = None):
         if method not in NOISE_LAMBDA:
             raise DeconvError(f"method: expected one of {sorted(NOISE_LAMBDA)}, got {method!r}")
         alpha = float(alpha)
@@ -60,7 +70,7 @@ class Deconvolver:
         if lam_rule is not None and not isinstance(lam_rule, NoiseLambda):
             raise DeconvError(f"lam_rule: expected a NoiseLambda, got {type(lam_rule).__name__}")
         self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
-        self.lam_rule = lam_rule or NoiseLambda.default(method)
+        self.lam_rule = lam_rule or NoiseLambda.default(method, alpha)
         self.last_lam = float("nan")   # λ used for the last frame (adaptive when lam is None)
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
         self.realtime = bool(realtime)
@@ -68,6 +78,22 @@ class Deconvolver:
         self._plans: OrderedDict[tuple[int, int], Plan] = OrderedDict()
         self._otfs: OrderedDict = OrderedDict()
         self._betas = beta_schedule()
+        if iterations is not None:
+            if (isinstance(iterations, bool) or not isinstance(iterations, (int, np.integer))
+                    or not 1 <= iterations <= len(self._betas)):
+                raise DeconvError(f"iterations: expected an integer in [1, {len(self._betas)}], "
+                                  f"got {iterations!r}")
+            self._betas = self._betas[-int(iterations):]
+        self.iterations = len(self._betas)
+        if split is not None:
+            try:
+                split = tuple(int(v) for v in split)
+                ok = len(split) == 2 and all(1 <= v <= 16 for v in split)
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise DeconvError(f"split: expected (rows, cols) integers in [1, 16] or None, got {split!r}")
+        self.split = split
         if method == "kf" and alpha < 1:
             self._luts = [shrink_lut(alpha, b) for b in self._betas]
             self._taus = [shrink_threshold(alpha, b) for b in self._betas]
@@ -99,12 +125,13 @@ class Deconvolver:
             self._otfs.move_to_end(key)
             return hit
         hp, wp = plan.shape
-        psf = np.zeros(plan.shape, np.float32)
+        psf = plan.rin   # the plan's own float32 FFT: a tile solve renders one OTF per tile per frame
+        psf.fill(0.0)
         kh, kw = w.shape
         rows = (np.arange(kh) - origin[0]) % hp
         cols = (np.arange(kw) - origin[1]) % wp
         psf[np.ix_(rows, cols)] = w
-        K = scipy.fft.rfft2(psf, workers=self.workers).astype(np.complex64)
+        K = np.array(plan.fwd(), np.complex64)
         K2 = (K.real * K.real + K.imag * K.imag).astype(np.float32)
         self._otfs[key] = (K, K2)
         while len(self._otfs) > self.cache_size:
@@ -124,8 +151,8 @@ class Deconvolver:
         hh, ww = y1 - y0, x1 - x0
         plan = self._plan(pshape or self.padded_shape((hh, ww), w.shape))
         rng = hi - lo
+        K, K2 = self._otf(plan, w, origin)   # before `prepare`: a cache miss uses plan.rin
         prepare(img, y0, x0, hh, ww, np.float32(lo), np.float32(1.0 / rng), plan.rin)
-        K, K2 = self._otf(plan, w, origin)
         kty = plan.spec
         conj_mul(K, plan.fwd(), kty)
         if self.method == "wiener":
@@ -151,20 +178,27 @@ class Deconvolver:
         """
         img = check_image(image)
         w, origin = check_kernel(kernel)
+        if self.split is not None and self.split != (1, 1):
+            return self.run_varying(img, _SplitGrid(kernel, img.shape, self.split), overlap=SPLIT_OVERLAP,
+                                    uniform_tol_px=0, value_range=value_range)
         lo, hi = value_range_of(img, value_range)
         lam = self.last_lam = self.lam_for(img, lo, hi)
         return self._solve(img, (0, img.shape[0], 0, img.shape[1]), w, origin, lo, hi, lam)
 
     def run_varying(self, image: np.ndarray, grid, *, overlap: float = 1.0, uniform_tol_px: float = 0.5,
-                    value_range: tuple[float, float] | None = None) -> np.ndarray:
+                    value_range: tuple[float, float] | None = None,
+                    margin_px: int | None = None) -> np.ndarray:
         """Spatially varying deconvolution over a kernel grid (``grid.kernels[r][c]``,
         ``grid.centers[r][c] = (y, x)``): one tile per cell, raised-cosine partition-of-unity blend.
 
-        Each tile is its cell's blending support plus a margin of real pixels (the kernel size + 8)
-        so that the tile's own boundary effects fall outside the pixels it contributes. When every
-        kernel's centroid and spread lie within `uniform_tol_px` of the central kernel's (no roll,
-        narrow field of view) the blur is uniform for all practical purposes and the frame is
-        solved once with the central kernel (0 disables the shortcut).
+        Each tile is its cell's blending support plus `margin_px` real neighbouring pixels (default
+        `TILE_MARGIN_PX`), extended periodically by `self.margin` px to an FFT size shared by all
+        tiles of the frame. The inverse of a thermal (exponential comet) kernel is local, so the
+        tile's boundary effects stay within a few pixels: a margin of the whole kernel size, as
+        before, changed no PSNR on the roll-heavy family and cost 20–40 % more. `overlap` is the
+        blend ramp as a fraction of the cell spacing (see the module docstring for the measured
+        grid × overlap trade-off). When `kernel_spread(grid)` ≤ `uniform_tol_px` (no roll, narrow
+        field of view) the frame is solved once with the central kernel (0 disables the shortcut).
         """
         img = check_image(image)
         kernels = getattr(grid, "kernels", None)
@@ -180,6 +214,9 @@ class Deconvolver:
                               f"and centers of shape {centers.shape}")
         if not 0 < overlap <= 1:
             raise DeconvError(f"overlap: expected a fraction in (0, 1], got {overlap}")
+        m = TILE_MARGIN_PX if margin_px is None else margin_px
+        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+            raise DeconvError(f"margin_px: expected a non-negative integer, got {margin_px!r}")
         h, wd = img.shape
         lo, hi = value_range_of(img, value_range)
         lam = self.last_lam = self.lam_for(img, lo, hi)   # one λ for every tile: consistent blending
@@ -192,9 +229,6 @@ class Deconvolver:
             return self._solve(img, (0, h, 0, wd), w, origin, lo, hi, lam)
         wys = tile_weights(h, centers[:, :, 0].mean(axis=1), overlap)
         wxs = tile_weights(wd, centers[:, :, 1].mean(axis=0), overlap)
-        shapes = np.array([w.shape for row in checked for w, _ in row])
-        kmax = (int(shapes[:, 0].max()), int(shapes[:, 1].max()))
-        m = max(kmax) + 8
         out = np.zeros((h, wd), np.float32)
         boxes = {}
         for r, (ys, ye, _) in enumerate(wys):
@@ -203,7 +237,7 @@ class Deconvolver:
         # every tile padded to one shape: one FFT plan for the frame
         th = max(b[1] - b[0] for b in boxes.values())
         tw = max(b[3] - b[2] for b in boxes.values())
-        pshape = self.padded_shape((th, tw), kmax)
+        pshape = (fast_len(th + self.margin), fast_len(tw + self.margin))
         for r, (ys, ye, wy) in enumerate(wys):
             for c, (xs, xe, wx) in enumerate(wxs):
                 w, origin = checked[r][c]
@@ -211,6 +245,18 @@ class Deconvolver:
                 tile = self._solve(img, boxes[r, c], w, origin, lo, hi, lam, pshape)
                 out[ys:ye, xs:xe] += tile[ys - by0:ye - by0, xs - bx0:xe - bx0] * wy[:, None] * wx[None, :]
         return out
+
+
+class _SplitGrid:
+    """One kernel on an even rows × cols grid (`Deconvolver(split=…)`)."""
+
+    def __init__(self, kernel, shape, split):
+        rows, cols = split
+        ye = np.linspace(0, shape[0], rows + 1)
+        xe = np.linspace(0, shape[1], cols + 1)
+        self.kernels = [[kernel] * cols for _ in range(rows)]
+        self.centers = np.array([[((ye[i] + ye[i + 1] - 1) / 2, (xe[j] + xe[j + 1] - 1) / 2)
+                                  for j in range(cols)] for i in range(rows)])
 
 
 _DEFAULT: dict = {}

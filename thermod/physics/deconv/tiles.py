@@ -7,6 +7,13 @@ import math
 
 import numpy as np
 
+from .checks import DeconvError, check_kernel
+
+# Real neighbouring pixels around each tile's blending support. Thermal (exponential comet) kernels
+# have a local inverse, so tile boundary effects reach a few pixels: 8 px gave the same PSNR on the
+# roll-heavy family as the kernel size + 8 (benchmarks/results/deconv.md).
+TILE_MARGIN_PX = 8
+
 
 def tile_weights(n: int, centers: np.ndarray, overlap: float) -> list[tuple[int, int, np.ndarray]]:
     """Separable raised-cosine partition of unity along one axis of length n.
@@ -50,4 +57,25 @@ def _moments(w: np.ndarray, origin) -> np.ndarray:
 def max_moment_deviation(checked, ref) -> float:
     m0 = _moments(*ref)
     return max(float(np.abs(_moments(w, o) - m0).max()) for row in checked for w, o in row)
+
+
+def kernel_spread(grid) -> float:
+    """How far a kernel grid is from one uniform blur (px): the largest difference of any cell's
+    kernel centroid or spread (per axis) from the central cell's.
+
+    ≤ 0.5 px: `Deconvolver.run_varying` solves the frame once, as a uniform blur (pure pan/tilt,
+    narrow field of view). Roll grows it with the distance from the roll axis; a caller (the
+    daemon's governor) can use it to choose uniform vs grid mode, or a finer grid.
+    """
+    kernels = getattr(grid, "kernels", None)
+    centers = getattr(grid, "centers", None)
+    if kernels is None or centers is None or len(kernels) == 0:
+        raise DeconvError(f"grid: expected an object with .kernels and .centers, got {type(grid).__name__}")
+    checked = [[check_kernel(k, f"grid.kernels[{r}][{c}]") for c, k in enumerate(row)]
+               for r, row in enumerate(kernels)]
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    mid = c.mean(axis=0)
+    i = int(np.argmin(((c - mid) ** 2).sum(axis=1)))
+    ncols = len(checked[0])
+    return max_moment_deviation(checked, checked[i // ncols][i % ncols])
 

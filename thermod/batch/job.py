@@ -1,0 +1,253 @@
+"""The per-file job of `thermod deblur`: one recording in, one deblurred recording out.
+
+A `Job` is plain data (paths, the `DeblurConfig`, the calibration file, the radiometric model), so
+the same `run_job` runs in this process (`thermod.batch.local`) or on a Dask worker
+(`thermod.batch.cluster`) and writes the same bytes: every frame's kernel comes from
+`thermod.runtime.pipeline.render` (the daemon's dispatch) and is removed by `thermod.physics.deconv`.
+
+`run_job` never raises for a bad file: it returns an `Outcome` whose `error` is one line naming the
+file (a `ThermodError`'s message, or "unexpected …" for a bug), so one file's failure costs no other.
+The output is written into ``DST.part`` and renamed to ``DST`` only when complete (`recording.Writer`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from thermod.errors import RecordingError, ThermodError
+from thermod.io import recording
+from thermod.runtime.config import DeblurConfig
+
+log = logging.getLogger(__name__)
+
+
+class OutputError(ThermodError):
+    """The output of one file cannot be written (disk full, permissions, a directory in the way)."""
+
+    def __init__(self, dst: Path, why):
+        super().__init__(f"{dst}: cannot write the output ({why})")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One recording to deblur. `src`/`dst` are the paths as the user gave them (messages, the
+    output's `source` attribute); `src_path`/`dst_path` are where to read and write (absolute on a
+    cluster, whose workers do not share this process's working directory)."""
+
+    src: Path
+    dst: Path
+    cfg: DeblurConfig
+    config: Path | None = None        # --config: calibration table overriding the recording's
+    celsius: bool = False
+    model: object | None = None       # radiometric model for --celsius (None: the recording's own)
+    src_path: Path | None = None
+    dst_path: Path | None = None
+
+    @property
+    def read_path(self) -> Path:
+        return self.src_path or self.src
+
+    @property
+    def write_path(self) -> Path:
+        return self.dst_path or self.dst
+
+
+@dataclass
+class FileReport:
+    """What one finished file did: frames, which were passed through and why, time per frame, λ."""
+
+    src: Path
+    dst: Path
+    n: int
+    passed: list[tuple[int, str]]
+    times: list[float]                # seconds per frame (render + deconvolve)
+    lams: np.ndarray                  # λ per frame (NaN where passed through)
+    seconds: float = 0.0              # the whole file, reading and writing included
+
+
+@dataclass
+class Outcome:
+    """A job's result: `report` when it succeeded, else `error` (one line naming the file)."""
+
+    job: Job
+    report: FileReport | None = None
+    error: str | None = None
+    worker: str = "local"             # where it ran (a Dask worker's address on a cluster)
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+class _NoBar:
+    """Stands in for a tqdm bar where nobody watches frames (a cluster worker)."""
+
+    total = 0
+
+    def refresh(self) -> None:
+        pass
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+
+_per_thread = threading.local()
+
+
+def deconvolver(cfg: DeblurConfig):
+    """This thread's `Deconvolver` for `cfg`'s method, α and λ: FFT plans and LUTs are built once
+    per thread and reused by every file it deblurs (one instance is not thread-safe)."""
+    from thermod.physics.deconv import Deconvolver  # numba start-up only when deblurring
+
+    key = (cfg.method, float(cfg.alpha), cfg.lam)
+    cache = getattr(_per_thread, "decs", None)
+    if cache is None:
+        cache = _per_thread.decs = {}
+    dec = cache.get(key)
+    if dec is None:
+        # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
+        dec = cache[key] = Deconvolver(method=cfg.method, alpha=cfg.alpha, lam=cfg.lam, cache_size=2)
+    return dec
+
+
+def run_job(job: Job, bar=None, worker: str = "local") -> Outcome:
+    """Deblur one file; failures come back as `Outcome.error`, never as an exception."""
+    t0 = time.perf_counter()
+    try:
+        report = deblur_file(job, bar or _NoBar())
+        report.seconds = time.perf_counter() - t0
+        return Outcome(job, report=report, worker=worker)
+    except ThermodError as e:
+        why = str(e)
+    except Exception as e:       # noqa: BLE001 - a bug must not cost the rest of the batch
+        log.debug("%s failed", job.src, exc_info=True)
+        why = f"{job.src}: unexpected {type(e).__name__}: {e} (-v for the traceback)"
+    if str(job.src) not in why and str(job.dst) not in why and str(job.read_path) not in why \
+            and str(job.write_path) not in why:
+        why = f"{job.src}: {why}"     # every failure line names its file
+    return Outcome(job, error=why, worker=worker)
+
+
+def recording_radiometry(r: recording.Reader, src: Path):
+    """The recording's own model, from its /radiometry attributes; a RecordingError naming the file
+    when it has none."""
+    from thermod.physics import radiometry
+
+    attrs = r.group_attrs().get(radiometry.RECORDING_GROUP)
+    if not attrs:
+        raise RecordingError(src, "/radiometry", "no attributes, and --celsius needs a radiometric model: "
+                             "give --radiometry FILE (a [radiometry] table) or --config with one")
+    try:
+        model = radiometry.from_mapping(attrs)
+    except radiometry.RadiometryError as e:
+        raise RecordingError(src, f"radiometry.attrs['{e.field}']", e.problem) from None
+    if model is None:
+        raise RecordingError(src, "radiometry.attrs['model']", "is 'none': no model to convert with")
+    return model
+
+
+def deblur_file(job: Job, bar) -> FileReport:
+    """Deblur one recording into `job.write_path`; with `job.celsius`, convert with `job.model`
+    (None: the recording's own)."""
+    src, dst = job.read_path, job.write_path
+    if dst.is_dir():
+        raise OutputError(dst, "a directory is in the way")
+    model = job.model
+    with recording.Reader(src) as r:
+        calib = r.calibration
+        if job.config is not None:
+            from thermod.runtime.config import load_calibration
+
+            calib = load_calibration(job.config, base=r.calibration)
+            if (calib.height, calib.width) != r.frame_shape:
+                raise ThermodError(f"{job.config}: calibration is {calib.width}×{calib.height} but {src} has "
+                                   f"{r.frame_shape[1]}×{r.frame_shape[0]} frames")
+        if job.celsius and model is None:       # before any output is written
+            model = recording_radiometry(r, src)
+        dec = deconvolver(job.cfg)
+        try:
+            writer = recording.Writer(dst)
+        except RecordingError as e:
+            raise OutputError(dst, e.problem) from None
+        try:
+            with writer:
+                report = _deblur_stream(r, calib, job, writer, dec, bar, model)
+        except OSError as e:   # output side: full disk, permissions, a directory in the way …
+            raise OutputError(dst, e) from None
+        except RecordingError as e:
+            if Path(e.path) != src:      # the writer's checks are about the output
+                raise OutputError(dst, f"{e.field}: {e.problem}") from None
+            raise
+    return report
+
+
+def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec):
+    """(deblurred frame, "") or (None, why it is passed through)."""
+    from thermod.runtime.pipeline import render
+
+    try:
+        kernel, info = render(reader.gyro_t, reader.gyro_rate, calib, t, cfg)
+        if info["coverage"] < cfg.min_coverage:
+            return None, f"gyro coverage {info['coverage']:.3f} < {cfg.min_coverage}"
+        return (dec.run_varying(frame, kernel) if cfg.mode == "grid" else dec.run(frame, kernel)), ""
+    except ThermodError as e:   # a kernel that cannot be rendered or inverted: keep the frame
+        return None, str(e)
+
+
+def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, dec, bar, model=None) \
+        -> FileReport:
+    cfg, src = job.cfg, job.read_path
+    n, (h, w_px) = r.n_frames, r.frame_shape
+    bar.total = (bar.total or 0) + n
+    bar.refresh()
+    w.reserve("camera/frames", n, (h, w_px), np.uint16)
+    w.reserve("camera/t", n, (), np.float64)
+    w.reserve("deblurred/frames", n, (h, w_px), np.float32)
+    if model is not None:
+        w.reserve("deblurred/celsius", n, (h, w_px), np.float32)
+        w.set_attrs("deblurred/celsius", {"units": "degC", **model.as_dict()})
+    w.put("gyro/t", r.gyro_t)
+    w.put("gyro/rate", r.gyro_rate)
+    r.copy_extras_into(w.file)
+    # Held open until `commit` closes the file, so their chunks reach the disk only when the chunk cache
+    # evicts them or at close: the layout (and so the bytes) does not depend on when each short-lived
+    # dataset handle dies — a Dask worker's profiler thread that briefly holds a frame of `append`
+    # delays that, and moved a chunk in a measured run.
+    open_datasets = [w.file[name] for name in w.rows]     # noqa: F841 - kept alive on purpose
+    passed: list[tuple[int, str]] = []
+    times = []
+    lams = np.full(n, np.nan)
+    ok = np.zeros(n, dtype=bool)
+    for i in range(n):
+        frame = r.frame(i)
+        w.append_frame(frame, r.t[i])
+        t0 = time.perf_counter()
+        out, why = _deblur_frame(frame, r, calib, float(r.t[i]), cfg, dec)
+        times.append(time.perf_counter() - t0)
+        if out is None:
+            passed.append((i, why))
+            log.info("%s: frame %d passed through: %s", src, i, why)
+            out = frame.astype(np.float32)
+        else:
+            ok[i] = True
+            lams[i] = dec.last_lam
+        w.append("deblurred/frames", out, np.float32)
+        if model is not None:     # °C after deblurring: counts, not temperatures, are linear in flux
+            w.append("deblurred/celsius", model.to_celsius(out), np.float32)
+        bar.update(1)
+    w.put("deblurred/t", r.t)
+    w.put("deblurred/deblurred", ok)
+    w.put("deblurred/lambda", lams)      # per frame (noise-adaptive unless --lambda)
+    w.set_attrs("deblurred", {"kernel": cfg.kernel, "method": dec.method, "mode": cfg.mode,
+                              "lambda_mode": "adaptive" if dec.lam is None else "fixed",
+                              "alpha": dec.alpha, "m": cfg.m,
+                              "grid": np.asarray((1, 1) if cfg.mode == "uniform" else cfg.grid),
+                              "psf": cfg.psf, "min_coverage": cfg.min_coverage, "source": str(job.src)})
+    w.commit(calib)
+    return FileReport(job.src, job.dst, n, passed, times, lams)

@@ -1,0 +1,286 @@
+"""The governor: degrade the deblurring method, never the share of frames deblurred.
+
+A frame whose solve does not fit the time the machine has for it is not dropped: the governor picks
+the best rung of a ladder of methods that the measured per-frame cost allows. The ladder, best
+first (rungs the configuration rules out are left out: ``method = "wiener"`` starts at Wiener,
+``mode = "uniform"`` has no grid):
+
+    kf        K&F (hyper-Laplacian, six β steps) over the kernel grid the frame needs; the grid is
+              coarsened (3×4 → 2×3 → 1×1 = uniform) before the method is given up
+    kf_fast   K&F with three β steps (β = 1, 8, 64: the same continuation, coarser), uniform
+    wiener    one Tikhonov solve over the grid the frame needs, coarsened down to uniform
+
+Only when even the last rung does not keep up does a full job queue pass frames through as
+``overload`` (counted, as before).
+
+Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
+in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
+bounds it further for latency (frame → published ≤ wait for the gyro + solve).
+
+Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
+a loaded or slower machine shows up as it is). Costs are kept per key (solver family, kernel cells)
+as the sliding median of the last `WINDOW` solves (one preemption moves nothing). A load factor L
+follows the machine: while a key is in use, L = L₀ · median / median₀, with (median₀, L₀) its
+anchor taken after its first `ANCHOR` solves of a stretch of use, so the machine's drift moves L
+and a key's own error (a warm-up cost that was off) moves only that key. A key not in use is
+predicted from its last median scaled by L / L_then: a method given up on a loaded machine is
+tried again when the method in use shows that the load is gone. Within a stretch L is a ratio of
+medians, not a running product of per-solve ratios, so noise does not walk it; across stretches the
+ratios chain, so a stretch's reference leaves out its first (cold) solve. A key's first solves after
+a pause count at once when slower than predicted (the cheaper rung is taken before a queue builds up).
+
+Hysteresis (no flapping): the governor steps down as soon as its current rung's predicted cost
+exceeds the budget, or when a job had to be dropped for overload; it steps up only to a rung
+whose predicted cost is within ``(1 − margin)`` of the budget, and only ``hold_s`` after its last
+change. A climb undone within two holds doubles the hold (up to ``max_hold_s``), so a rung that
+keeps failing is tried ever less often.
+
+The governor has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe`
+(workers) and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import statistics
+import threading
+from dataclasses import dataclass
+
+from thermod.runtime.config import DeblurConfig
+
+FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
+WINDOW = 15                       # solves per key in the sliding median
+ANCHOR = 8                        # solves of a stretch of use before the key moves the load factor; the
+                                  # stretch's first (cold: plans, caches) solve is left out of its
+                                  # reference, lest cold starts walk the load factor down stretch by stretch
+STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
+
+
+@dataclass(frozen=True)
+class Rung:
+    """One step of the ladder: a solver (`family`) and whether it may use a kernel grid."""
+
+    name: str                     # what frames carry in their header: kf | kf_fast | wiener
+    method: str                   # kf | wiener
+    kf_iterations: int | None     # None: the configuration's (K&F's six)
+    varying: bool                 # may use the grid the frame needs (else uniform)
+
+    def deblur(self, base: DeblurConfig) -> DeblurConfig:
+        """The DeblurConfig a worker builds this rung's deconvolver from."""
+        return dataclasses.replace(base, method=self.method, kf_iterations=self.kf_iterations)
+
+
+def ladder(deblur: DeblurConfig) -> list[Rung]:
+    """The rungs the configuration allows, best first."""
+    varying = deblur.mode != "uniform"
+    if deblur.method == "wiener":
+        return [Rung("wiener", "wiener", None, varying)]
+    rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]
+    if deblur.kf_iterations is None or deblur.kf_iterations > FAST_KF_ITERATIONS:
+        rungs.append(Rung("kf_fast", "kf", FAST_KF_ITERATIONS, False))
+    rungs.append(Rung("wiener", "wiener", None, varying))
+    return rungs
+
+
+def coarser_grids(grid: tuple[int, int], aspect: float) -> list[tuple[int, int]]:
+    """`grid` and the coarser near-square grids below it down to (1, 1), finest first
+    (rows r, cols round(r · aspect) with aspect = W/H, never more than `grid`'s)."""
+    rows, cols = grid
+    out = [(rows, cols)]
+    for r in range(rows - 1, 0, -1):
+        g = (r, max(1, min(cols, round(r * aspect))))
+        if g not in out:
+            out.append(g)
+    if (1, 1) not in out:
+        out.append((1, 1))
+    return out
+
+
+@dataclass
+class Choice:
+    """What the governor decided for one frame."""
+
+    rung: Rung
+    grid: tuple[int, int]         # the kernel grid to render, (1, 1) = one kernel
+    index: int                    # the rung's position in the ladder (0 = best)
+
+    @property
+    def label(self) -> str:
+        return self.rung.name if self.grid == (1, 1) else f"{self.rung.name} {self.grid[0]}×{self.grid[1]}"
+
+
+class Governor:
+    """Picks each frame's rung and grid from measured solve costs (see the module docstring).
+
+    Parameters
+    ----------
+    deblur : the configured settings (method, mode, grid, max_solve_s, headroom, governor).
+    frame_rate_hz, workers : the budget's frame period and worker count.
+    aspect : W / H, for the coarser grids.
+    hold_s, max_hold_s, margin : hysteresis (see the module docstring).
+    """
+
+    def __init__(self, deblur: DeblurConfig, frame_rate_hz: float, workers: int, aspect: float = 4 / 3, *,
+                 hold_s: float = 2.0, max_hold_s: float = 32.0, margin: float = 0.25):
+        self.deblur = deblur
+        self.rungs = ladder(deblur)
+        self.enabled = bool(deblur.governor)
+        self.aspect = float(aspect)
+        self.budget_s = min(workers / frame_rate_hz, deblur.max_solve_s) * (1.0 - deblur.headroom)
+        self.hold_s, self.base_hold_s, self.max_hold_s, self.margin = hold_s, hold_s, max_hold_s, margin
+        self.index = 0
+        self._last_change = -math.inf
+        self._last_climb = -math.inf
+        self._lock = threading.Lock()
+        self._cost: dict[tuple[str, int], float] = {}     # (family, cells) → last median (s) at load L_key
+        self._stamp: dict[tuple[str, int], float] = {}    # (family, cells) → L when that median was taken
+        self._recent: dict[tuple[str, int], collections.deque] = {}   # this stretch's solves (s)
+        self._last_seen: dict[tuple[str, int], float] = {}
+        self._anchor: dict[tuple[str, int], tuple[float, float]] = {}  # (median₀, L₀) of this stretch
+        self.load = 1.0
+        self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0}
+        self.frames: dict[str, int] = {}                   # frames per choice label
+
+    # ------------------------------------------------------------------ costs
+    @staticmethod
+    def family(rung: Rung) -> str:
+        """The solver a rung runs (costs are kept per family and cell count)."""
+        if rung.name == "kf" and rung.kf_iterations is not None:
+            return f"kf{rung.kf_iterations}"
+        return rung.name
+
+    def seed(self, family: str, cells: int, seconds: float) -> None:
+        """A cost measured before going live (warm-up): taken as is, at the current load."""
+        if seconds > 0 and math.isfinite(seconds):
+            with self._lock:
+                self._cost[family, cells] = float(seconds)
+                self._stamp[family, cells] = self.load
+
+    def predict(self, family: str, cells: int) -> float:
+        """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
+        with self._lock:
+            return self._predict(family, cells)
+
+    def _predict(self, family: str, cells: int) -> float:
+        key = (family, cells)
+        if key in self._cost:
+            return self._cost[key] * self.load / self._stamp[key]
+        # never measured: between the nearest measured cell counts of the family, linear in cells
+        known = sorted(c for f, c in self._cost if f == family)
+        if not known:
+            return 0.0          # nothing known: assume it fits, the first solve will tell
+        lo = max((c for c in known if c <= cells), default=known[0])
+        hi = min((c for c in known if c >= cells), default=known[-1])
+        plo, phi = self._predict(family, lo), self._predict(family, hi)
+        if hi == lo:
+            return plo * cells / lo
+        return plo + (phi - plo) * (cells - lo) / (hi - lo)
+
+    def observe(self, family: str, cells: int, seconds: float, now: float) -> None:
+        """A worker's measured solve time (s) at host time `now`."""
+        if not (seconds > 0 and math.isfinite(seconds)):
+            return
+        with self._lock:
+            key = (family, cells)
+            recent = self._recent.get(key)
+            if recent is None or now - self._last_seen.get(key, -math.inf) > STALE_S:
+                recent = self._recent[key] = collections.deque(maxlen=WINDOW)
+                self._anchor.pop(key, None)
+            self._last_seen[key] = now
+            recent.append(float(seconds))
+            if len(recent) < 3 and key in self._cost:   # a new stretch: believe a slower solve at once
+                self._cost[key] = max(self._predict(family, cells), min(recent))
+                self._stamp[key] = self.load
+                return
+            med = statistics.median(recent)
+            if key not in self._anchor and len(recent) >= ANCHOR:
+                self._anchor[key] = (statistics.median(list(recent)[1:]), self.load)
+            if key in self._anchor:
+                med0, load0 = self._anchor[key]
+                self.load = load0 * med / med0
+            self._cost[key], self._stamp[key] = med, self.load
+
+    def inherit(self, old: Governor) -> None:
+        """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
+        with old._lock:
+            costs, stamps, load = dict(old._cost), dict(old._stamp), old.load
+        with self._lock:
+            self._cost, self._stamp, self.load = costs, stamps, load
+
+    # ------------------------------------------------------------------ decisions
+    def _fits(self, i: int, needed: tuple[int, int], limit: float) -> tuple[int, int] | None:
+        """The finest grid (≤ needed) with which rung i's predicted cost is within `limit`, or None."""
+        r = self.rungs[i]
+        grids = coarser_grids(needed, self.aspect) if r.varying else [(1, 1)]
+        fam = self.family(r)
+        for g in grids:
+            if self._predict(fam, g[0] * g[1]) <= limit:
+                return g
+        return None
+
+    def choose(self, needed: tuple[int, int], now: float) -> Choice:
+        """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
+        with self._lock:
+            if not self.enabled:
+                r = self.rungs[0]
+                return Choice(r, needed if r.varying else (1, 1), 0)
+            g = self._fits(self.index, needed, self.budget_s)
+            if g is None:                                         # over budget: step down now
+                i = self.index + 1
+                while i < len(self.rungs) - 1 and self._fits(i, needed, self.budget_s) is None:
+                    i += 1
+                if i < len(self.rungs):
+                    self._move(i, now)
+                g = self._fits(self.index, needed, self.budget_s) or (1, 1)
+            elif self.index > 0 and now - self._last_change >= self.hold_s:
+                for i in range(self.index):                       # best rung that fits with margin
+                    if self._fits(i, needed, self.budget_s * (1 - self.margin)) is not None:
+                        self._move(i, now)
+                        g = self._fits(i, needed, self.budget_s)
+                        break
+            c = Choice(self.rungs[self.index], g, self.index)
+            self.frames[c.label] = self.frames.get(c.label, 0) + 1
+            return c
+
+    def overloaded(self, now: float) -> None:
+        """A job was dropped for overload: the predictions were too low; step down one rung now."""
+        with self._lock:
+            if self.enabled and self.index < len(self.rungs) - 1:
+                self.counts["overload_steps"] += 1
+                self._move(self.index + 1, now)
+
+    def _move(self, i: int, now: float) -> None:
+        if i == self.index:
+            return
+        if now - self._last_change > 4 * self.max_hold_s:           # long stable: forgive old failures
+            self.hold_s = self.base_hold_s
+        if i > self.index:
+            self.counts["degrades"] += 1
+            if now - self._last_climb < 2 * self.hold_s:          # the last climb did not hold
+                self.counts["failed_climbs"] += 1
+                self.hold_s = min(self.max_hold_s, 2 * self.hold_s)
+        else:
+            self.counts["climbs"] += 1
+            self._last_climb = now
+        self.index = i
+        self._last_change = now
+
+    # ------------------------------------------------------------------ health
+    def state(self) -> dict:
+        """For health: the current rung, budget, predictions and counters."""
+        with self._lock:
+            return {
+                "enabled": self.enabled,
+                "method": self.rungs[self.index].name,
+                "rung": self.index,
+                "ladder": [r.name for r in self.rungs],
+                "budget_ms": round(1e3 * self.budget_s, 2),
+                "load": round(self.load, 3),
+                "hold_s": self.hold_s,
+                "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._cost)},
+                "solves_measured": sum(len(d) for d in self._recent.values()),
+                "frames": dict(self.frames),
+                **self.counts,
+            }
