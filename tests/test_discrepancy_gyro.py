@@ -187,21 +187,33 @@ class _Sum(mo.Motion):
         return sum(p.omega(t) for p in self.parts)
 
 
-def _motion(broadband: bool, seed: int = 3):
-    from test_discrepancy import Ramped
+class _Ramped(mo.Motion):
+    """A motion faded in with a smoothstep over `ramp_s` (as in tests/test_discrepancy.py)."""
 
+    def __init__(self, inner: mo.Motion, ramp_s: float):
+        self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
+
+    def omega(self, t):
+        t = np.atleast_1d(np.asarray(t, float))
+        x = np.clip(t / self.ramp_s, 0.0, 1.0)
+        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
+
+
+_I = Calibration().intrinsics.scaled(0.5)
+NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
+
+
+def _motion(broadband: bool, seed: int = 3):
     inner = mo.shake(2.0, seed)
     if broadband:
         inner = _Sum(inner, mo.vibration(15.0, 10.0, seed))
-    return mo.sequence([(mo.static(), 0.2), (Ramped(inner, 0.04), None)])
+    return mo.sequence([(mo.static(), 0.2), (_Ramped(inner, 0.04), None)])
 
 
 _CACHE: dict = {}
 
 
 def _analysed(key: str, effects: dict, broadband: bool = False):
-    from test_discrepancy import NOMINAL
-
     from thermod.calib import discrepancy as D
 
     if key not in _CACHE:
