@@ -438,3 +438,18 @@ def flight(rms_deg_s: tuple = (8.0, 15.0, 12.0), seed: int = 0, n: int = 12) -> 
     amps = w_rms / (2 * np.pi * f)
     spec = "flight:" + ":".join(f"{r:g}" for r in rms_deg_s)
     return SumOfSines(f, amps, rng.uniform(0, 2 * np.pi, (n, 3)), spec=spec)
+
+
+class Ramped(Motion):
+    """`inner` faded in with a smoothstep over `ramp_s` from t = 0 (rates start from zero, so a
+    recording's gyro shows a clean onset after a static lead-in)."""
+
+    def __init__(self, inner: Motion, ramp_s: float):
+        if not ramp_s > 0:
+            raise ThermodError(f"ramped motion: expected a ramp > 0 s, got {ramp_s!r}")
+        self.inner, self.ramp_s, self.spec = inner, float(ramp_s), f"ramped({inner.spec})"
+
+    def omega(self, t):
+        t = np.atleast_1d(np.asarray(t, float))
+        x = np.clip(t / self.ramp_s, 0.0, 1.0)
+        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]

@@ -27,20 +27,10 @@ NOMINAL = Calibration(width=160, height=120, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I
 WORK_WIDTH = 80
 
 
-class Ramped(mo.Motion):
-    """A motion faded in with a smoothstep over `ramp_s` (rates start from zero)."""
-
-    def __init__(self, inner: mo.Motion, ramp_s: float):
-        self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
-
-    def omega(self, t):
-        t = np.atleast_1d(np.asarray(t, float))
-        x = np.clip(t / self.ramp_s, 0.0, 1.0)
-        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
 
 
 def motion(seed: int = 3):
-    return mo.sequence([(mo.static(), 0.15), (Ramped(mo.shake(2.0, seed), 0.04), None)])
+    return mo.sequence([(mo.static(), 0.15), (mo.Ramped(mo.shake(2.0, seed), 0.04), None)])
 
 
 def record(effects: dict, seconds: float = 0.5):

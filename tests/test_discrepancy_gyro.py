@@ -187,16 +187,6 @@ class _Sum(mo.Motion):
         return sum(p.omega(t) for p in self.parts)
 
 
-class _Ramped(mo.Motion):
-    """A motion faded in with a smoothstep over `ramp_s` (as in tests/test_discrepancy.py)."""
-
-    def __init__(self, inner: mo.Motion, ramp_s: float):
-        self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
-
-    def omega(self, t):
-        t = np.atleast_1d(np.asarray(t, float))
-        x = np.clip(t / self.ramp_s, 0.0, 1.0)
-        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
 
 
 _I = Calibration().intrinsics.scaled(0.5)
@@ -207,7 +197,7 @@ def _motion(broadband: bool, seed: int = 3):
     inner = mo.shake(2.0, seed)
     if broadband:
         inner = _Sum(inner, mo.vibration(15.0, 10.0, seed))
-    return mo.sequence([(mo.static(), 0.2), (_Ramped(inner, 0.04), None)])
+    return mo.sequence([(mo.static(), 0.2), (mo.Ramped(inner, 0.04), None)])
 
 
 _CACHE: dict = {}
