@@ -46,8 +46,9 @@ class SchedulerError(ThermodError):
 def _import_distributed():
     try:
         import distributed
-    except ImportError as e:   # pragma: no cover - a main dependency; a trimmed install may lack it
-        raise SchedulerError(f"--scheduler needs the 'distributed' package ({e})") from None
+    except ImportError as e:   # the optional extra: the payload's install leaves it out
+        raise SchedulerError(f"--scheduler needs the 'distributed' package: pip install 'thermod[fleet]' "
+                             f"({e})") from None
     return distributed
 
 
