@@ -54,7 +54,7 @@ def wisdom(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def local_cluster(wisdom):
-    distributed = pytest.importorskip("distributed")   # a main dependency: present in any install
+    import distributed   # in the test extra: a missing engine fails, never skips
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                   silence_logs=40) as c:
         yield c
@@ -150,7 +150,7 @@ def test_a_scheduler_that_does_not_answer_is_one_line_within_the_connect_timeout
 
 
 def test_a_scheduler_without_workers_is_one_line_not_a_wait_forever(fleet, tmp_path, capsys):
-    distributed = pytest.importorskip("distributed")
+    import distributed
     with distributed.LocalCluster(n_workers=0, processes=False, protocol="tcp", dashboard_address=":0",
                                   silence_logs=40) as c:
         rc, _, err = deblur(capsys, fleet[0][0], "-o", tmp_path / "o.h5", "--scheduler", c.scheduler_address,
