@@ -54,7 +54,7 @@ def wisdom(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def local_cluster(wisdom):
-    import distributed   # in the test extra: a missing engine fails, never skips
+    import distributed  # in the test extra: a missing engine fails, never skips
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                   silence_logs=40) as c:
         yield c
