@@ -235,8 +235,11 @@ def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     cal = config.load().calibration
     url = f"rtsp://127.0.0.1:{free_port()}/thermal"
     ep = f"tcp://127.0.0.1:{free_port()}"
+    # the hand-held shake these picture statistics were measured on (the default multirotor motion
+    # gives frames whose 1st percentile decodes at 72–168: an open question, see the closing note)
     proc = subprocess.Popen([str(THERMOD), "run", "--rtsp", url, "--endpoint", ep, "--seconds", "150",
-                             "--set", "deblur.method=wiener", "--set", f"rtsp.view={view}", "-v"],
+                             "--set", "deblur.method=wiener", "--set", f"rtsp.view={view}",
+                             "--set", "sim.motion=shake:3", "-v"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env(), text=True)
     try:
         width = 2 * cal.width if view == "side_by_side" else cal.width
