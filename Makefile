@@ -29,8 +29,9 @@ debian-deps:
 run: debian-deps $(STAMP)
 	$(BIN)/thermod run
 
+# Two workers, whole files each (module fixtures such as test_faults' daemon stay in one process).
 test: debian-deps $(STAMP)
-	$(BIN)/pytest
+	$(BIN)/pytest -n 2 --dist loadfile
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
