@@ -145,12 +145,18 @@ def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
         offset = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
         return _with(model, readout_s=float(x), time_offset_s=offset)
 
-    x, ssr = _scalar_fit(ctx, make, grid, 0.0, hi, None)
-    best = FitResult("rolling_readout", make(x), ssr)
+    return _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi)
+
+
+def _fit_keeping_timing(ctx: StepContext, name: str, make, make_centred, grid, lo: float, hi: float):
+    """`make(x)` fitted; once `time_offset` is in the model (it may have absorbed this effect's mean
+    timing shift), also `make_centred(x)`, which moves that shift out of the offset: the better fit."""
+    x, ssr = _scalar_fit(ctx, make, grid, lo, hi, None)
+    best = FitResult(name, make(x), ssr)
     if "time_offset" in ctx.named:
-        xc, ssrc = _scalar_fit(ctx, make_centred, grid, 0.0, hi, None)
+        xc, ssrc = _scalar_fit(ctx, make_centred, grid, lo, hi, None)
         if ssrc < ssr:
-            best = FitResult("rolling_readout", make_centred(xc), ssrc)
+            best = FitResult(name, make_centred(xc), ssrc)
     return best
 
 
@@ -365,12 +371,8 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
         # the delay delays the gyro: camera time of a sample = t + offset − d at low frequencies
         return _lowpass_model(model, float(d), c0.time_offset_s - d0 + float(d))
 
-    x, ssr = _scalar_fit(ctx, make, grid, 0.0, max_delay_s, None)
-    best = FitResult("gyro_lowpass", make(x), ssr)
+    best = _fit_keeping_timing(ctx, "gyro_lowpass", make, make_centred, grid, 0.0, max_delay_s)
     if "time_offset" in ctx.named:
-        xc, ssrc = _scalar_fit(ctx, make_centred, grid, 0.0, max_delay_s, None)
-        if ssrc < ssr:
-            best = FitResult("gyro_lowpass", make_centred(xc), ssrc)
         return best
     pure = fit_time_offset(ctx, model)
     if _beats(ctx, pure, best, 0):
