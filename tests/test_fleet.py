@@ -132,6 +132,46 @@ def test_workers_that_do_not_share_the_output_directory_stop_the_run(fleet, loca
     assert list(out.iterdir()) == []      # nothing was submitted
 
 
+@pytest.mark.slow
+def test_a_worker_killed_mid_file_costs_a_retry_not_the_file(tmp_path, local_cluster, capsys, monkeypatch):
+    """SIGKILL the worker the moment it announces a file (a crash, an OOM kill): the scheduler hands
+    the task to another worker, the file is written whole there, with the local run's bytes, and no
+    ``.part`` of the dead worker's attempt is left."""
+    import signal
+
+    import distributed
+
+    calib = Calibration(width=160, height=120, cx=79.5, cy=59.5)
+    src = tmp_path / "long.h5"        # long enough (60 frames) that the kill lands while it is deblurred
+    recording.write(src, synth.simulate("texture", "roll:60", seconds=1.2, calib=calib, seed=7, truth=False,
+                                        effects={"netd": 0.03}))
+    local = subprocess.run([sys.executable, "-m", "thermod.cli", "deblur", str(src), "-o",
+                            str(tmp_path / "local.h5")], capture_output=True, text=True, timeout=600)
+    assert local.returncode == 0, local.stderr
+    with distributed.Client(local_cluster.scheduler_address, set_as_default=False) as c:
+        pids = c.run(os.getpid)
+    killed = []
+
+    class KillOnStart(cluster.Lines):
+        def started(self, job, worker):
+            super().started(job, worker)
+            if not killed and worker in pids:
+                os.kill(pids[worker], signal.SIGKILL)
+                killed.append(worker)
+
+    monkeypatch.setattr(cluster, "Lines", KillOnStart)
+    address = local_cluster.scheduler_address
+    rc, _, err = deblur(capsys, src, "-o", tmp_path / "fleet.h5", "--scheduler", address)
+    assert killed, err
+    assert rc == 0, err
+    done = [ln for ln in err.splitlines() if ln.startswith(f"thermod deblur: {src}: done, 60 frames in ")]
+    assert len(done) == 1 and not done[0].endswith(killed[0]), err     # finished elsewhere
+    assert (tmp_path / "fleet.h5").read_bytes() == (tmp_path / "local.h5").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("fleet")) == ["fleet.h5"]
+    with distributed.Client(local_cluster.scheduler_address, set_as_default=False) as c:
+        c.wait_for_workers(2, timeout=120)     # the nanny restarted it: the module's cluster stays whole
+
+
 def test_a_scheduler_that_does_not_answer_is_one_line_within_the_connect_timeout(fleet, tmp_path):
     """A port that accepts connections but never speaks Dask's protocol (a hung or wrong service)."""
     with socket.socket() as silent:
