@@ -151,6 +151,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
         "workers_replaced": pc.get("workers_replaced", 0), "reasons": reasons, "cpu_s": cpu, "wall_s": wall,
         "lost_where": {k: v for k, v in lost_where.items() if v}, "methods": methods,
         "governor": last.get("governor", {}),
+        "governor_trace": [(h.get("governor") or h.get("pipeline", {}).get("governor", {})) for h in health],
     }
 
 

@@ -18,16 +18,22 @@ in N frame periods, so a solve may last that long without a queue building up; `
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
 
 Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
-a loaded or slower machine shows up as it is). Costs are kept per key (solver family, kernel cells)
-as the sliding median of the last `WINDOW` solves (one preemption moves nothing). A load factor L
-follows the machine: while a key is in use, L = L₀ · median / median₀, with (median₀, L₀) its
-anchor taken after its first `ANCHOR` solves of a stretch of use, so the machine's drift moves L
-and a key's own error (a warm-up cost that was off) moves only that key. A key not in use is
-predicted from its last median scaled by L / L_then: a method given up on a loaded machine is
-tried again when the method in use shows that the load is gone. Within a stretch L is a ratio of
-medians, not a running product of per-solve ratios, so noise does not walk it; across stretches the
-ratios chain, so a stretch's reference leaves out its first (cold) solve. A key's first solves after
-a pause count at once when slower than predicted (the cheaper rung is taken before a queue builds up).
+a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
+*reference* cost: its warm-up time (`seed`, measured alone on an idle worker before going live), or,
+for a key never seeded, the family's references interpolated in cells. Predicted cost = reference ×
+L, with ONE load factor L for the machine: L = (sliding median of the last `WINDOW` solves of the
+key in use) / (its reference), updated from each key's stretch of use once it has `MIN_SOLVES`
+solves. The references fix the ratios between keys (K&F 3 steps < K&F, Wiener < K&F, 2×3 < 3×4 for
+a family), so whatever the key in use measures moves every prediction alike: a method given up on a
+loaded machine is tried again when the method in use shows that the load is gone, and no
+prediction can drift relative to another. (Costs kept per key and chained through per-stretch
+anchors did drift: a stretch whose first medians were inflated by cold solves or a queue walked
+L down to 0.4 on a 2-core machine, predicting K&F at 0.4× its idle cost, so the climbs to it failed
+again and again while `kf_fast` — remembered from one loaded stretch — looked dearer than K&F.)
+A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
+(caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
+solve that took the deconvolver's uniform shortcut is reported as one cell by the pipeline, so a
+grid's cost is never learnt from frames that did not need it.
 
 Hysteresis (no flapping): the governor steps down as soon as its current rung's predicted cost
 exceeds the budget, or when a job had to be dropped for overload; it steps up only to a rung
@@ -52,9 +58,7 @@ from thermod.runtime.config import DeblurConfig
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
 WINDOW = 15                       # solves per key in the sliding median
-ANCHOR = 8                        # solves of a stretch of use before the key moves the load factor; the
-                                  # stretch's first (cold: plans, caches) solve is left out of its
-                                  # reference, lest cold starts walk the load factor down stretch by stretch
+MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) before the key moves L
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 
 
@@ -134,11 +138,11 @@ class Governor:
         self._last_change = -math.inf
         self._last_climb = -math.inf
         self._lock = threading.Lock()
-        self._cost: dict[tuple[str, int], float] = {}     # (family, cells) → last median (s) at load L_key
-        self._stamp: dict[tuple[str, int], float] = {}    # (family, cells) → L when that median was taken
+        self.workers = max(1, int(workers))
+        self._ref: dict[tuple[str, int], float] = {}      # (family, cells) → reference cost (s) at L = 1
         self._recent: dict[tuple[str, int], collections.deque] = {}   # this stretch's solves (s)
+        self._stretch: dict[tuple[str, int], int] = {}    # solves in this stretch, the cold ones included
         self._last_seen: dict[tuple[str, int], float] = {}
-        self._anchor: dict[tuple[str, int], tuple[float, float]] = {}  # (median₀, L₀) of this stretch
         self.load = 1.0
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
@@ -152,31 +156,34 @@ class Governor:
         return rung.name
 
     def seed(self, family: str, cells: int, seconds: float) -> None:
-        """A cost measured before going live (warm-up): taken as is, at the current load."""
+        """A key's reference cost, measured before going live (warm-up, an idle worker): the ratios
+        between the keys' references are what the load factor scales."""
         if seconds > 0 and math.isfinite(seconds):
             with self._lock:
-                self._cost[family, cells] = float(seconds)
-                self._stamp[family, cells] = self.load
+                self._ref[family, cells] = float(seconds) / self.load
 
     def predict(self, family: str, cells: int) -> float:
         """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
         with self._lock:
-            return self._predict(family, cells)
+            return self._reference(family, cells) * self.load
 
-    def _predict(self, family: str, cells: int) -> float:
+    def _reference(self, family: str, cells: int) -> float:
         key = (family, cells)
-        if key in self._cost:
-            return self._cost[key] * self.load / self._stamp[key]
-        # never measured: between the nearest measured cell counts of the family, linear in cells
-        known = sorted(c for f, c in self._cost if f == family)
+        if key in self._ref:
+            return self._ref[key]
+        # never seeded: between the family's nearest references, linear in cells
+        known = sorted(c for f, c in self._ref if f == family)
         if not known:
-            return 0.0          # nothing known: assume it fits, the first solve will tell
+            return 0.0          # nothing known: assume it fits, the first solves will tell
         lo = max((c for c in known if c <= cells), default=known[0])
         hi = min((c for c in known if c >= cells), default=known[-1])
-        plo, phi = self._predict(family, lo), self._predict(family, hi)
+        rlo, rhi = self._ref[family, lo], self._ref[family, hi]
         if hi == lo:
-            return plo * cells / lo
-        return plo + (phi - plo) * (cells - lo) / (hi - lo)
+            return rlo * cells / lo
+        return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
+
+    def _predict(self, family: str, cells: int) -> float:
+        return self._reference(family, cells) * self.load
 
     def observe(self, family: str, cells: int, seconds: float, now: float) -> None:
         """A worker's measured solve time (s) at host time `now`."""
@@ -184,30 +191,32 @@ class Governor:
             return
         with self._lock:
             key = (family, cells)
-            recent = self._recent.get(key)
-            if recent is None or now - self._last_seen.get(key, -math.inf) > STALE_S:
-                recent = self._recent[key] = collections.deque(maxlen=WINDOW)
-                self._anchor.pop(key, None)
+            if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
+                self._recent[key] = collections.deque(maxlen=WINDOW)
+                self._stretch[key] = 0
             self._last_seen[key] = now
+            self._stretch[key] += 1
+            if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
+                return
+            recent = self._recent[key]
             recent.append(float(seconds))
-            if len(recent) < 3 and key in self._cost:   # a new stretch: believe a slower solve at once
-                self._cost[key] = max(self._predict(family, cells), min(recent))
-                self._stamp[key] = self.load
+            if len(recent) < MIN_SOLVES:
                 return
             med = statistics.median(recent)
-            if key not in self._anchor and len(recent) >= ANCHOR:
-                self._anchor[key] = (statistics.median(list(recent)[1:]), self.load)
-            if key in self._anchor:
-                med0, load0 = self._anchor[key]
-                self.load = load0 * med / med0
-            self._cost[key], self._stamp[key] = med, self.load
+            ref = self._reference(family, cells)
+            if key not in self._ref:
+                if ref <= 0:                               # a family never seeded: learn it at today's L
+                    self._ref[key] = med / self.load
+                    return
+                self._ref[key] = ref                       # interpolated: fixed from now on
+            self.load = med / self._ref[key]
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            costs, stamps, load = dict(old._cost), dict(old._stamp), old.load
+            refs, load = dict(old._ref), old.load
         with self._lock:
-            self._cost, self._stamp, self.load = costs, stamps, load
+            self._ref, self.load = refs, load
 
     # ------------------------------------------------------------------ decisions
     def _fits(self, i: int, needed: tuple[int, int], limit: float) -> tuple[int, int] | None:
@@ -279,7 +288,7 @@ class Governor:
                 "budget_ms": round(1e3 * self.budget_s, 2),
                 "load": round(self.load, 3),
                 "hold_s": self.hold_s,
-                "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._cost)},
+                "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
                 "solves_measured": sum(len(d) for d in self._recent.values()),
                 "frames": dict(self.frames),
                 **self.counts,

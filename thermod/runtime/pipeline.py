@@ -199,6 +199,27 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
     return tuple(deblur.grid)
 
 
+def uniform_if_within(grid, info: dict, tol_px: float):
+    """``(kernel, info)``: the grid's central kernel when every cell's kernel is within `tol_px` of it
+    (`thermod.physics.deconv.kernel_spread`: centroid and spread per axis), else the grid unchanged.
+
+    Such a frame is solved once, as a uniform blur — what `Deconvolver.run_varying` would do itself —
+    but decided here, so that the frame's header says one kernel and the governor books the solve's
+    cost under one cell, not under the grid's (whose cost it would make look like a uniform one's).
+    """
+    from thermod.physics.deconv import kernel_spread
+
+    if kernel_spread(grid) > tol_px:
+        return grid, info
+    c = np.asarray(grid.centers, np.float64)
+    h, w = grid.image_shape
+    d2 = ((c - [(h - 1) / 2, (w - 1) / 2]) ** 2).sum(axis=2)
+    r, col = np.unravel_index(int(np.argmin(d2)), d2.shape)
+    k = grid.kernels[r][col]
+    return k, {**info, "kernel_size": tuple(int(n) for n in k.weights.shape),
+               "kernel_extent_px": float(k.extent_px)}
+
+
 def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple[float, float]:
     """Camera-clock span the kernel of a frame read at t_frame needs: (t_k − m·τ − readout, t_k]."""
     if deblur.kernel == "photon":
@@ -466,6 +487,8 @@ class Pipeline:
         if info["coverage"] < s.deblur.min_coverage:
             self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
             return
+        if hasattr(kernel, "kernels"):
+            kernel, info = uniform_if_within(kernel, info, s.deblur.grid_tol_px)
         self._enqueue(_Job(slot, kernel, info, s.generation, choice))
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
