@@ -6,6 +6,17 @@ latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro sampl
 
     .venv/bin/python benchmarks/bench_daemon.py [--seconds 60] [--quick] [--soak 600] [--methods kf,wiener]
     .venv/bin/python benchmarks/bench_daemon.py --squeeze [--seconds 30]     # the governor table
+    .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
+    .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
+
+`--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
+alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
+rfft2 + irfft2 pair at the solver's padded size) beside the frame period × workers, and the
+default daemon with the governor, once with the configured latency cap ``deblur.max_solve_s`` and
+once with the budget only throughput bounds (``max_solve_s`` = workers / fps: a solve may take
+as long as the workers can afford, at the price of latency). Prints deblurred %, latency p50/p99,
+the methods chosen (frame headers) and the solve costs the governor measured inside the daemon.
+The first run of a new size pre-renders the simulated loop (minutes; cached on disk).
 
 `--squeeze`: the default daemon (K&F, adaptive grid) squeezed onto fewer or slower cores — all
 cores, `taskset -c 0` (one core), and one core shared with a busy-loop process pinned to it (a
@@ -60,14 +71,19 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def size_settings(size: tuple[int, int]) -> tuple[str, ...]:
+    """`--set` overrides for a W×H simulated camera (the principal point follows the centre)."""
+    return (f"calibration.width={size[0]}", f"calibration.height={size[1]}")
+
+
 def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, cpus: str | None = None,
-               extra: tuple[str, ...] = ()) -> dict:
+               extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480)) -> dict:
     from thermod.runtime.publish import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
     cmd = [str(THERMOD), "run", "--endpoint", ep, "--set", f"deblur.method={method}",
            "--set", f"sim.frame_rate_hz={fps}", "--set", f"calibration.frame_rate_hz={fps}"]
-    for e in extra:
+    for e in (*size_settings(size), *extra):
         cmd += ["--set", e]
     if cpus is not None:
         cmd = ["taskset", "-c", cpus, *cmd]
@@ -142,7 +158,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
                   "subscriber": sub_gaps.get("frame", 0)}
     rss_growth = (rss[-1][1] - rss[min(len(rss) - 1, 3)][1]) / 1024 if len(rss) > 4 else float("nan")
     return {
-        "fps": fps, "method": method, "seconds": seconds, "frames": len(frames), "expected": int(expected),
+        "fps": fps, "method": method, "seconds": seconds, "size": size, "frames": len(frames),
+        "expected": int(expected),
         "published_all": len(frames) == expected and not sub_gaps.get("frame"),
         "deblurred_pct": 100.0 * deb.mean(), "p50_ms": float(np.percentile(lat, 50)),
         "p99_ms": float(np.percentile(lat, 99)), "gyro_gap_events": g_lost, "gyro_lost": int(g_lost_n),
@@ -155,12 +172,14 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
     }
 
 
-def payload_cpu(seconds: float) -> dict:
+def payload_cpu(seconds: float, size: tuple[int, int] = (640, 480), fps: float = 50.0) -> dict:
     """The simulated payload alone (camera loop + ICM-42688-P driver on its emulator), no pipeline."""
     from thermod.runtime import config
     from thermod.sim.payload import SimPayload
 
-    cfg = config.load()
+    sets = dict(e.split("=") for e in size_settings(size))
+    cfg = config.load(overrides={**{k: int(v) for k, v in sets.items()}, "sim.frame_rate_hz": fps,
+                                 "calibration.frame_rate_hz": fps})
     p = SimPayload(cfg.sim, cfg.calibration)
     p.prepare()
     p.start()
@@ -235,6 +254,84 @@ def print_squeeze(rows: list[dict]) -> None:
               f"{r['reasons'] or '-'} | {r['loadavg']:.1f} |")
 
 
+LARGE = (((1280, 1024), 30.0), ((640, 512), 60.0))     # goal 3: W×H at fps on 2 cores
+
+
+def fft_pair_ms(size: tuple[int, int], kernel_px: tuple[int, int] = (35, 61), reps: int = 15) -> tuple:
+    """The FFT floor of one frame: (padded shape, median ms of one float32 rfft2 + irfft2 pair at the
+    solver's padded size for a kernel of `kernel_px`, the same FFTW plan type the daemon uses)."""
+    from thermod.physics.deconv import Deconvolver
+    from thermod.physics.deconv.plans import Plan
+
+    d = Deconvolver()
+    shape = tuple(d.padded_shape((size[1], size[0]), kernel_px))
+    plan = Plan(shape, d.fft, 1)
+    plan.rin[:] = 0.5
+    ts = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        plan.cin[:] = plan.fwd()
+        plan.inv()
+        ts.append(time.perf_counter() - t0)
+    return shape, 1e3 * float(np.median(ts))
+
+
+def large(seconds: float) -> tuple[list[dict], list[dict]]:
+    """Goal 3's sizes: the payload alone, the FFT floor, and the governed default daemon with the
+    configured latency cap (``max_solve_s``) and with the budget only throughput bounds
+    (``max_solve_s`` = workers / fps), interleaved per size."""
+    n = len(os.sched_getaffinity(0))
+    floors, rows = [], []
+    for size, fps in LARGE:
+        name = f"{size[0]}×{size[1]} at {fps:g} fps"
+        print(f"large: {name}: payload alone, FFT floor …", file=sys.stderr, flush=True)
+        pc = payload_cpu(10.0, size, fps)
+        shape, pair = fft_pair_ms(size)
+        floors.append(dict(size=size, fps=fps, payload=pc, padded=shape, pair_ms=pair, workers=n))
+        for cap in (None, n / fps):
+            extra = () if cap is None else (f"deblur.max_solve_s={cap:.4f}",)
+            print(f"large: {name}, max_solve_s {cap or 'default'} …", file=sys.stderr, flush=True)
+            r = run_daemon(fps, seconds, "kf", size=size, extra=extra)
+            r.update(cap=cap, loadavg=os.getloadavg()[0])
+            rows.append(r)
+    return floors, rows
+
+
+def print_large(floors: list[dict], rows: list[dict]) -> None:
+    print("large sensors: the simulated payload alone and the FFT floor of one frame (one core)")
+    print("| frame | fps | payload alone cores | payload frames/s | padded FFT size | FFT pair ms "
+          "| pair ms/MP | frame period × workers ms |")
+    print("|---|---|---|---|---|---|---|---|")
+    for f in floors:
+        w, h = f["size"]
+        print(f"| {w}×{h} | {f['fps']:g} | {f['payload']['cores']:.2f} | {f['payload']['fps']:.1f} | "
+              f"{f['padded'][1]}×{f['padded'][0]} | {f['pair_ms']:.2f} | "
+              f"{f['pair_ms'] / (w * h / 1e6):.2f} | "
+              f"{1e3 * f['workers'] / f['fps']:.0f} |")
+    print()
+    print("large sensors: the default daemon (K&F, adaptive grid, governor on), "
+          "targets: all published, ≥ 99 % deblurred")
+    print("| frame | fps | max_solve_s | s | frames | all published | deblurred % | p50 ms | p99 ms "
+          "| deblurred by | not deblurred | governor budget ms | solve costs measured ms | daemon CPU cores "
+          "| load avg (1 min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        w, h = r["size"]
+        gov = r["governor"]
+        costs = ", ".join(f"{k} {v:.0f}" for k, v in gov.get("cost_ms", {}).items())
+        cap = "default" if r["cap"] is None else f"{r['cap']:.3f}"
+        print(f"| {w}×{h} | {r['fps']:g} | {cap} | "
+              f"{r['seconds']:g} | {r['frames']}/{r['expected']} | {'yes' if r['published_all'] else 'NO'} | "
+              f"{r['deblurred_pct']:.1f} | {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | {methods_text(r)} | "
+              f"{r['reasons'] or '-'} | {gov.get('budget_ms', float('nan')):.1f} | {costs or '-'} | "
+              f"{r['cpu_s'] / r['wall_s']:.2f} | {r['loadavg']:.1f} |")
+
+
+def methods_text(r: dict) -> str:
+    return ", ".join(f"{k} {100 * v / r['frames']:.0f} %" for k, v in
+                     sorted(r["methods"].items(), key=lambda kv: -kv[1])) or "-"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -243,13 +340,25 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="kf,wiener")
     ap.add_argument("--fps", default="50,60")
     ap.add_argument("--squeeze", action="store_true", help="only the governor table (fewer/slower cores)")
+    ap.add_argument("--size", default="640x480", help="the simulated camera's W×H (e.g. 1280x1024)")
+    ap.add_argument("--large", action="store_true",
+                    help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
     seconds = 15.0 if args.quick else args.seconds
+    try:
+        size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
+        if len(size) != 2 or min(size) < 8:
+            raise ValueError
+    except ValueError:
+        ap.error(f"--size: expected W×H such as 1280x1024, got {args.size!r}")
+    if args.large:
+        print_large(*large(seconds))
+        return 0
     if args.squeeze:
         print_squeeze(squeeze(seconds))
         return 0
 
-    pc = payload_cpu(10.0 if args.quick else 20.0)
+    pc = payload_cpu(10.0 if args.quick else 20.0, size)
     print("simulated payload alone (target ≤ 0.5 core, 1000 gyro samples/s, 50 fps)")
     print(f"| cores | gyro samples/s | frames/s |\n|---|---|---|\n| {pc['cores']:.3f} | {pc['gyro_hz']:.1f} "
           f"| {pc['fps']:.2f} |\n")
@@ -258,21 +367,22 @@ def main(argv=None) -> int:
     for method in args.methods.split(","):
         for fps in (float(f) for f in args.fps.split(",")):
             print(f"running {method} at {fps:g} fps for {seconds:g} s …", file=sys.stderr, flush=True)
-            rows.append(run_daemon(fps, seconds, method))
+            rows.append(run_daemon(fps, seconds, method, size=size))
     if args.soak:
         print(f"soak: {args.soak:g} s …", file=sys.stderr, flush=True)
         rows.append(run_daemon(50.0, args.soak, args.methods.split(",")[0], soak=True))
 
-    print("daemon, 640×480, 1 kHz gyro (targets: all published, ≥ 99 % deblurred, p50 ≤ 30 ms, p99 ≤ 60 ms, "
-          "0 gyro lost; soak: RSS growth < 5 MB, no thread deaths)")
+    print(f"daemon, {size[0]}×{size[1]}, 1 kHz gyro (targets: all published, ≥ 99 % deblurred, p50 ≤ 30 ms, "
+          "p99 ≤ 60 ms, 0 gyro lost; soak: RSS growth < 5 MB, no thread deaths)")
     print("| method | fps | s | frames | all published | deblurred % | latency p50 ms | p99 ms | gyro Hz "
-          "| gyro lost | RSS growth MB | threads ok | not deblurred | frames lost at | daemon CPU cores |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| gyro lost | RSS growth MB | threads ok | deblurred by | not deblurred | frames lost at "
+          "| daemon CPU cores |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['method']} | {r['fps']:g} | {r['seconds']:g} | {r['frames']}/{r['expected']} | "
               f"{'yes' if r['published_all'] else 'NO'} | {r['deblurred_pct']:.1f} | {r['p50_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_hz']:.1f} | {r['gyro_lost']} | {r['rss_growth_mb']:.1f} | "
-              f"{'yes' if r['threads_alive'] and not r['workers_replaced'] else 'NO'} | "
+              f"{'yes' if r['threads_alive'] and not r['workers_replaced'] else 'NO'} | {methods_text(r)} | "
               f"{r['reasons'] or '-'} | {r['lost_where'] or '-'} | {r['cpu_s'] / r['wall_s']:.2f} |")
     return 0
 
