@@ -12,9 +12,11 @@ For every frame k read at t_k (camera clock) the scheduler
 
 Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
 the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no
-extra cost). The governor (`thermod.runtime.governor`) then picks the best method — K&F over that
-grid or a coarser one, K&F with fewer steps, Wiener — that the measured solve cost allows within
-the frame budget; each frame says which in `FrameOut.method` / ``grid``.
+extra cost; a rendered grid whose kernels all lie within ``grid_tol_px`` of the central one is
+solved as that one kernel: `uniform_if_within`). The governor (`thermod.runtime.governor`) then
+picks the best method over that grid — K&F, K&F with fewer steps, Wiener (only Wiener coarsens
+the grid) — that the measured solve cost allows within the frame budget; each frame says which
+in `FrameOut.method` / ``grid``.
 
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
 ``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
