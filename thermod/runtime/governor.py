@@ -11,9 +11,10 @@ first (rungs the configuration rules out are left out: ``method = "wiener"`` sta
               is coarsened (6×8 → … → 2×3 → 1×1 = uniform) when even that does not fit
 
 The method is given up before the grid: on the simulated payload's roll (`multirotor:60`, 640×480,
-frames whose roll needs a 3×4 grid; PSNR against the loop's truth, 11 frames) one kernel instead
-of the grid cost 0.1–7 dB (median 2.6 dB) whatever the method, while Wiener or K&F in 3 steps over
-the grid stayed within ±0.7 dB of K&F over it (often above: that scene's noise is low).
+frames whose roll needs a grid; PSNR against the loop's truth, 11 frames) one kernel instead of
+the grid cost K&F 0–6.8 dB (median 1.1 dB), while over the grid the three methods stayed within
+0.9 dB of each other, and Wiener over the grid beat K&F over one kernel on every frame (by 0.4–6.9
+dB; benchmarks/results/daemon.md).
 
 Only when even the last rung does not keep up does a full job queue pass frames through as
 ``overload`` (counted, as before).
