@@ -306,8 +306,9 @@ class Pipeline:
         """Compile the numba renderer and build every worker's deconvolvers (one per rung of the
         governor's ladder) before the first frame: LUTs, the FFT plans of every padded shape a kernel
         up to `max_kernel_px` can need (plans are per padded shape; building one mid-stream costs a
-        frame or ten), and the governor's first cost of each rung, uniform and over the finest grid
-        (timed on the first worker, after its plans are built). Returns seconds spent."""
+        frame or ten), and the governor's reference cost of each rung, uniform and over every grid
+        the adaptive mode can render (the finest and its coarser ones: their tiles' plans are built
+        too), timed on the first worker after its plans are built. Returns seconds spent."""
         t0 = time.monotonic()
         s = self._settings
         gov = self.governor
@@ -316,10 +317,13 @@ class Pipeline:
         rate = np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
         img = np.zeros(self.frame_ring.shape, np.float32)
         uniform, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="uniform"))
-        finest = tuple(s.deblur.grid)
-        grid = None
-        if any(r.varying for r in gov.rungs) and finest != (1, 1):
-            grid, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="grid"))
+        grids = []
+        if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
+            for g in coarser_grids(tuple(s.deblur.grid), s.calib.width / s.calib.height)[:-1]:
+                at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
+                k, info = self._render(tg, rate, s.calib, 0.0, at_g)
+                if uniform_if_within(k, info, s.deblur.grid_tol_px)[0] is k:   # not one kernel in disguise
+                    grids.append((k, g[0] * g[1]))
         self._prebuilt = []
         for w in range(self.n_workers):
             decs = {}
@@ -330,9 +334,7 @@ class Pipeline:
                 d = decs[fam] = self._factory(rung.deblur(s.deblur))
                 live = getattr(d, "realtime", False)
                 d.realtime = False  # measure plans now, while no frame is waiting
-                kernels_ = [(uniform, 1)]
-                if grid is not None and rung.varying:
-                    kernels_.append((grid, finest[0] * finest[1]))
+                kernels_ = [(uniform, 1), *(grids if rung.varying else [])]
                 for k, cells in kernels_:
                     solve = d.run_varying if hasattr(k, "kernels") else d.run
                     solve(img, k)
