@@ -20,7 +20,14 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver, kernel_spread
 from thermod.runtime.config import DeblurConfig, PipelineConfig
 from thermod.runtime.governor import Governor, coarser_grids, ladder
-from thermod.runtime.pipeline import Pipeline, grid_needed, make_deconvolver, render, uniform_if_within
+from thermod.runtime.pipeline import (
+    Pipeline,
+    grid_needed,
+    make_deconvolver,
+    render,
+    rung_for,
+    uniform_if_within,
+)
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
 
@@ -181,6 +188,20 @@ def test_a_grid_within_tolerance_is_solved_and_booked_as_one_kernel():
     dec = make_deconvolver(DeblurConfig())
     assert np.array_equal(dec.run(img, k), dec.run_varying(img, pan))
     assert uniform_if_within(roll, info, d.grid_tol_px) == (roll, info)  # roll: the grid stays
+
+
+def test_a_job_that_waited_longer_than_a_solve_may_take_is_caught_up_by_the_cheapest_rung():
+    g = seeded()
+    c = g.choose((3, 4), 0.0)
+    assert c.label == "kf 3×4"
+    assert rung_for(g, c, 0.010) == (c.rung, False)                     # waited less than the budget
+    rung, caught_up = rung_for(g, c, 0.030)                             # > 25.5 ms: a burst backed up
+    assert caught_up and rung.name == "wiener"
+    g.overloaded(1.0)                                                   # stepped down since it was queued
+    assert rung_for(g, c, 0.010) == (g.rungs[1], False)
+    off = seeded(DeblurConfig(governor=False))
+    c = off.choose((3, 4), 0.0)
+    assert rung_for(off, c, 1.0) == (c.rung, False)                     # governor off: the method stays
 
 
 def test_overload_steps_down_and_the_last_rung_stays():

@@ -26,8 +26,10 @@ A frame that cannot be deblurred is *passed through*: published as float32 count
   → ``ffc`` (see `Pipeline._ffc_hold`);
 - gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``;
 - a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
-- job queue full even on the governor's cheapest rung → the OLDEST job is dropped (``overload``,
-  counted) and its frame passed through; the governor steps down a rung at once;
+- a job that waited in the queue longer than the governor's budget is solved by its cheapest rung
+  (``catch_up``, counted: a burst drains instead of overflowing); a job queue full even so → the
+  OLDEST job is dropped (``overload``, counted) and its frame passed through; the governor steps
+  down a rung at once;
 - a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
 - the scheduler fell more than the frame ring behind → the overwritten frames are counted
   (``frames_overrun``); they were never read, so there is nothing to publish.
@@ -239,6 +241,21 @@ def make_deconvolver(deblur: DeblurConfig):
     iterations = deblur.kf_iterations if deblur.method == "kf" else None
     return Deconvolver(method=deblur.method, alpha=deblur.alpha, lam=deblur.lam, cache_size=1, realtime=True,
                        iterations=iterations)
+
+
+def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
+    """``(rung, caught_up)``: the rung a worker solves a job with, chosen as `choice`, that waited
+    `waited_s` in the queue. The governor's current rung when it stepped down since (the cheaper way
+    now); its cheapest rung when the job waited longer than a solve may take (``caught_up``): the
+    queue backed up (a burst of frames, a stall) and drains that way before it overflows."""
+    if choice is None:
+        return gov.rungs[0], False
+    rung = choice.rung
+    if rung in gov.rungs and gov.index > choice.index:
+        rung = gov.rungs[gov.index]
+    if gov.enabled and rung is not gov.rungs[-1] and waited_s > gov.budget_s:
+        return gov.rungs[-1], True
+    return rung, False
 
 
 def default_workers() -> int:
@@ -552,10 +569,9 @@ class Pipeline:
                 if gen_deblur is not deblur:
                     decs, gen_deblur = {}, deblur
                 gov = self.governor
-                rung = job.choice.rung if job.choice is not None else gov.rungs[0]
-                # the governor stepped down since this job was queued: solve it the cheaper way now
-                if job.choice is not None and job.choice.rung in gov.rungs and gov.index > job.choice.index:
-                    rung = gov.rungs[gov.index]
+                rung, caught_up = rung_for(gov, job.choice, time.monotonic() - job.t_queued)
+                if caught_up:
+                    self._count("catch_up", 1)
                 fam = gov.family(rung)
                 deconv = decs.get(fam)
                 if deconv is None:
