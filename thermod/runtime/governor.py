@@ -33,13 +33,14 @@ solves. The references fix the ratios between keys (K&F 3 steps < K&F, Wiener < 
 a family), so whatever the key in use measures moves every prediction alike: a method given up on a
 loaded machine is tried again when the method in use shows that the load is gone, and no
 prediction can drift relative to another. (Costs kept per key and chained through per-stretch
-anchors did drift: a stretch whose first medians were inflated by cold solves or a queue walked
-L down to 0.4 on a 2-core machine, predicting K&F at 0.4× its idle cost, so the climbs to it failed
-again and again while `kf_fast` — remembered from one loaded stretch — looked dearer than K&F.)
+anchors did drift: stretches whose first medians were inflated by cold solves or a queue walked L
+down to 0.27–0.38 on a loaded 2-core machine, predicting K&F at a third of its idle cost, so the
+climbs to it failed again and again while `kf_fast` — remembered from one cold stretch — looked
+dearer than K&F: `health.governor` in benchmarks/results/daemon.md.)
 A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
 (caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
-solve that took the deconvolver's uniform shortcut is reported as one cell by the pipeline, so a
-grid's cost is never learnt from frames that did not need it.
+whose kernels are all within ``grid_tol_px`` of the central one reaches the worker as that one
+kernel (`pipeline.uniform_if_within`), so a grid's cost is never learnt from a uniform solve.
 
 Hysteresis (no flapping): rungs are judged on the finest grid the frames needed over the last
 `NEEDED_S` (the roll comes and goes within a second; a rung chosen for one uniform frame would be
