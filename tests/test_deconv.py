@@ -376,11 +376,14 @@ def test_stacked_tile_solve_matches_tile_by_tile(scene, method, monkeypatch):
     grid = _grid(_roll_grid(2, 3, crop.shape, crop=16, px_per_radius=0.1), shape)
     d = deconv.Deconvolver(method=method)
     span = float(b.max() - b.min())
+    tile_points = int(np.prod(d._layout(b.shape, np.asarray(grid.centers, np.float64), 0.5,
+                                        deconv.TILE_MARGIN_PX).pshape))
     outs = []
-    for stack in (None, 4, 1):      # 6 tiles: one stack; stacks of 3 and 3; six of one
-        monkeypatch.setattr(solver, "TILE_STACK", stack)
+    for stack in (6, 4, 1):      # 6 tiles: one stack; stacks of 3 and 3; six of one
+        monkeypatch.setattr(solver, "TILE_STACK_POINTS", stack * tile_points)
         outs.append(d.run_varying(b, grid, overlap=0.5))
         assert d.last_cells == 6
+    assert {k[0] for k in d._plans if len(k) == 3} == {6, 3, 1}   # the stacks solved
     ref = _tile_by_tile(d, b, grid, 0.5)
     for out in outs:
         assert np.abs(out - ref).max() < 2e-5 * span

@@ -42,7 +42,11 @@ from .xstep import (
 
 DEFAULT_ALPHA = 1.0   # TV: on real thermal scenes 0.1–0.7 dB above 2/3 at the best λ of each (bench_quality)
 TILE_OVERLAP = 0.25   # kernel-grid blend ramp: 6×8 at 0.25 costs 2.1× uniform, +1.1 dB over 3×4 at 1
-TILE_STACK = 4        # tiles per stacked FFT call: 2–8 measured alike (1.85× uniform), all 48 at once 2.08×
+# Tiles per stacked FFT call: as many as fit this many FFT points (4 tiles of 128×128 at 640×480 on a
+# 6×8 grid; bigger tiles alone). Stacks of 2–8 such tiles measured alike (1.85× uniform), all 48 at
+# once 2.08× and 3×4 tiles of 288×320 in threes 5 % slower than one at a time: a stack's buffers must
+# stay near the cache.
+TILE_STACK_POINTS = 4 * 128 * 128
 SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
 
@@ -267,7 +271,8 @@ class Deconvolver:
         lay = self._layout(img.shape, centers, overlap, int(m))
         out = np.zeros((h, wd), np.float32)
         n = nr * nc
-        step = -(-n // -(-n // (TILE_STACK or n)))   # equal stacks of at most TILE_STACK tiles
+        most = max(1, TILE_STACK_POINTS // (lay.pshape[0] * lay.pshape[1]))
+        step = -(-n // -(-n // most))   # equal stacks of at most `most` tiles
         for a in range(0, n, step):
             sel = slice(a, a + step)
             x = self._solve_stack(img, lay.boxes[sel], weights[sel], origins[sel], lo, hi, lam, lay.pshape)
