@@ -235,12 +235,15 @@ def roll_table(reps: int, n_frames: int = 2) -> None:
     from thermod.physics import kernels
     log = bq.mo.load_gyro_log()
     d = deconv.Deconvolver()
+    m = deconv.TILE_MARGIN_PX
     rows = {"uniform (one kernel per frame, as live)": None,
-            "3×4 tiles, overlap 1, one tile at a time (the reference)": ((3, 4), 1.0, False),
-            "6×8 tiles, overlap 0.25, one tile at a time (before)": ((6, 8), 0.25, False),
-            "**6×8 tiles, overlap 0.25, stacked (now)**": ((6, 8), 0.25, True),
-            "4×6 tiles, overlap 0.25, stacked": ((4, 6), 0.25, True),
-            "6×8 tiles, overlap 0.5, stacked": ((6, 8), 0.5, True)}
+            "3×4 tiles, overlap 1, one tile at a time (the reference)": ((3, 4), 1.0, m, False),
+            "6×8 tiles, overlap 0.25, one tile at a time (before)": ((6, 8), 0.25, m, False),
+            "**6×8 tiles, overlap 0.25, stacked (now)**": ((6, 8), 0.25, m, True),
+            "4×6 tiles, overlap 0.25, stacked": ((4, 6), 0.25, m, True),
+            "6×8 tiles, overlap 0.5, stacked": ((6, 8), 0.5, m, True),
+            "6×8 tiles, overlap 0.25, margins 0 (128² FFTs, 28 px periodic pad)": ((6, 8), 0.25, 0, True),
+            "7×10 tiles, overlap 0.25, margins 0 (96² FFTs)": ((7, 10), 0.25, 0, True)}
     scores = {k: [] for k in rows}
     times = {k: [] for k in rows}
     load0 = os.getloadavg()[0]
@@ -263,12 +266,12 @@ def roll_table(reps: int, n_frames: int = 2) -> None:
                         d._otfs.clear()   # the daemon's kernels never repeat
                         return d.run(b, k)
                 else:
-                    (gr, ov, stacked) = how
+                    (gr, ov, mp, stacked) = how
                     g = kernels.render_kernel_grid(rec.gyro_t, rec.gyro_rate, c, t, gr)
 
-                    def solve(g=g, ov=ov, stacked=stacked, b=b):
+                    def solve(g=g, ov=ov, mp=mp, stacked=stacked, b=b):
                         if stacked:
-                            return d.run_varying(b, g, overlap=ov, uniform_tol_px=0)
+                            return d.run_varying(b, g, overlap=ov, uniform_tol_px=0, margin_px=mp)
                         return tile_by_tile(d, b, g, ov)
                 solves[name] = solve
             for name, solve in solves.items():

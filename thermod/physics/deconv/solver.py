@@ -230,7 +230,13 @@ class Deconvolver:
 
         Each tile is its cell's blending support plus `margin_px` real neighbouring pixels (default
         `TILE_MARGIN_PX`), extended periodically by `self.margin` px to an FFT size shared by all
-        tiles of the frame. The inverse of a thermal (exponential comet) kernel is local, so the
+        tiles of the frame. The tiles are solved in stacks (`TILE_STACK_POINTS`): each K&F step is
+        one FFTW call and one numba pass over a stack, not one per tile — the same arithmetic with
+        a fraction of the per-call overhead (6×8 tiles: 1.75× a uniform solve instead of 2.0×,
+        benchmarks/results/deconv.md). `last_cells` then says how many cells were solved (1 when
+        the uniform shortcut below fired), for a caller that books the solve's cost.
+
+        The inverse of a thermal (exponential comet) kernel is local, so the
         tile's boundary effects stay within a few pixels: a margin of the whole kernel size, as
         before, changed no PSNR on the roll-heavy family and cost 20–40 % more. `overlap` is the
         blend ramp as a fraction of the cell spacing (see the module docstring for the measured
