@@ -41,11 +41,11 @@ from .xstep import (
 )
 
 DEFAULT_ALPHA = 1.0   # TV: on real thermal scenes 0.1–0.7 dB above 2/3 at the best λ of each (bench_quality)
-TILE_OVERLAP = 0.25   # kernel-grid blend ramp: 6×8 at 0.25 costs 2.1× uniform, +1.1 dB over 3×4 at 1
+TILE_OVERLAP = 0.25   # kernel-grid blend ramp: 6×8 at 0.25 costs 1.7× uniform, +1.2 dB over 3×4 at 1
 # Tiles per stacked FFT call: as many as fit this many FFT points (4 tiles of 128×128 at 640×480 on a
 # 6×8 grid; bigger tiles alone). Stacks of 2–8 such tiles measured alike (1.85× uniform), all 48 at
-# once 2.08× and 3×4 tiles of 288×320 in threes 5 % slower than one at a time: a stack's buffers must
-# stay near the cache.
+# once 2.08×, and 3×4 tiles of 384×384 (overlap 1) in stacks 5 % slower than one at a time: a
+# stack's buffers must stay near the cache.
 TILE_STACK_POINTS = 4 * 128 * 128
 SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
