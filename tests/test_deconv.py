@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from thermod.errors import ThermodError
 from thermod.physics import deconv
@@ -387,6 +389,33 @@ def test_stacked_tile_solve_matches_tile_by_tile(scene, method, monkeypatch):
     ref = _tile_by_tile(d, b, grid, 0.5)
     for out in outs:
         assert np.abs(out - ref).max() < 2e-5 * span
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rows=st.integers(1, 4), cols=st.integers(1, 5), overlap=st.sampled_from([0.1, 0.25, 0.6, 1.0]),
+       h=st.integers(40, 120), w=st.integers(40, 150), seed=st.integers(0, 2 ** 16),
+       stack=st.integers(1, 7))
+def test_stacked_tiles_match_tile_by_tile_on_any_grid(rows, cols, overlap, h, w, seed, stack):
+    """Any grid shape, frame shape, blend and stack size: the stacked solve is the tile-by-tile one
+    (scipy FFTs: no FFTW planning per random size; the stacking, layout and blending are the same)."""
+    from thermod.physics.deconv import solver
+    rng = np.random.default_rng(seed)
+    img = (1000 + 50 * rng.standard_normal((h, w))).astype(np.float32)
+    kernels = [[comet(int(rng.integers(2, 9)), 2.0, float(rng.uniform(0, 360))) for _ in range(cols)]
+               for _ in range(rows)]
+    grid = _grid(kernels, (h, w))
+    d = deconv.Deconvolver(fft="scipy")
+    old = solver.TILE_STACK_POINTS
+    try:
+        solver.TILE_STACK_POINTS = 1    # measure one tile's FFT points, then allow `stack` of them
+        d.run_varying(img, grid, overlap=overlap, uniform_tol_px=0)
+        solver.TILE_STACK_POINTS = stack * int(np.prod(next(iter(d._layouts.values())).pshape))
+        out = d.run_varying(img, grid, overlap=overlap, uniform_tol_px=0)
+    finally:
+        solver.TILE_STACK_POINTS = old
+    assert d.last_cells == rows * cols
+    ref = _tile_by_tile(d, img, grid, overlap)
+    assert np.abs(out - ref).max() < 1e-4 * float(img.max() - img.min())
 
 
 def test_last_cells_says_which_solve_ran(scene):
