@@ -10,10 +10,14 @@ iteration — the reference Matlab algorithm transcribed), the speed-up, both PS
 A second table compares the FFT back ends (pyFFTW vs scipy.fft) on the same solver.
 Target: 640×480 with a 65 px kernel ≤ 15 ms median on one core and ≥ 8× the plain version.
 
-Spatially varying table (640×480, roll blur rendered on a 12×16 grid of tangential comets): the
-uniform solve beside tile solves on 3×4 (full blending; kernel-sized margins as before, and the
-8 px margins now) and 6×8 (blend ramp 0.25 of the spacing) grids, interleaved medians, the ratio
-to uniform and PSNR. Target: spatially varying ≤ 2× uniform at ≥ the 3×4 reference's PSNR − 0.2 dB.
+Spatially varying table (`--only varying`; 640×480, roll blur rendered on a 12×16 grid of
+tangential comets): the uniform solve (OTF cached, and a new kernel every frame as in the daemon)
+beside tile solves on 3×4 (full blending: the reference) and 6×8 (blend ramp 0.25 of the spacing)
+grids, one tile at a time (the previous loop, `tile_by_tile`) and stacked (`run_varying`),
+interleaved medians of the thread's CPU time, the ratio to uniform ("× uniform") and PSNR.
+Roll-family table (`--only roll`): the same solves on bench_quality's roll-heavy family (real
+Betaflight roll segments, held-out scenes), mean 8-bit PSNR and median CPU time per frame.
+Target: spatially varying ≤ 2× uniform at ≥ the 3×4 reference's PSNR − 0.2 dB.
 
 Large-sensor table: K&F and Wiener at 640×480, 640×512, 1280×1024 beside the FFT floor (one
 float32 rfft2 + irfft2 pair at the solver's padded size, same plan type), in ms and ms per
