@@ -26,7 +26,7 @@ from thermod.runtime.pipeline import (
     make_deconvolver,
     render,
     rung_for,
-    uniform_if_within,
+    solved_grid,
 )
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
@@ -172,22 +172,22 @@ def test_cold_solves_and_a_slow_start_do_not_walk_the_costs_away_from_the_machin
     # from its cold solves (real: 9), Wiener 3×4 at 27 ms (real: 9))
 
 
-def test_a_grid_within_tolerance_is_solved_and_booked_as_one_kernel():
-    """A grid whose kernels all lie within grid_tol_px of the central one (pan, no roll) is one kernel:
-    the pipeline hands the worker the central kernel (its header says grid 1×1, the governor books the
-    cost under one cell) and the result is the deconvolver's own uniform shortcut, bit for bit."""
+def test_a_grid_solved_by_the_uniform_shortcut_is_booked_as_one_kernel():
+    """A grid whose kernels all lie within 0.5 px of the central one (pan, no roll) is solved by the
+    deconvolver as one kernel: its header says 1×1 and the governor books the cost under one cell."""
     t = np.arange(-0.1, 0.0005, 1e-3)
     d = DeblurConfig(mode="grid", grid=(3, 4))
     img = load_scene("texture", (H, W), seed=3).astype(np.float32)
     pan, _ = render(t, np.tile(np.float32([0.3, 0.5, 0.0]), (len(t), 1)), CAL, 0.0, d)
-    roll, info = render(t, np.tile(np.float32([0.0, 0.3, 1.0]), (len(t), 1)), CAL, 0.0, d)
+    roll, _ = render(t, np.tile(np.float32([0.0, 0.3, 1.0]), (len(t), 1)), CAL, 0.0, d)
     assert kernel_spread(pan) < 0.5 < kernel_spread(roll)
-    k, kinfo = uniform_if_within(pan, {"kernel_size": (0, 0)}, d.grid_tol_px)
-    assert not hasattr(k, "kernels") and k is pan.kernels[1][1]            # the cell nearest the centre
-    assert kinfo["kernel_size"] == k.weights.shape
     dec = make_deconvolver(DeblurConfig())
-    assert np.array_equal(dec.run(img, k), dec.run_varying(img, pan))
-    assert uniform_if_within(roll, info, d.grid_tol_px) == (roll, info)  # roll: the grid stays
+    dec.run_varying(img, pan)
+    assert solved_grid(dec, pan) == (1, 1)
+    dec.run_varying(img, roll)
+    assert solved_grid(dec, roll) == (3, 4)
+    dec.run(img, pan.kernels[1][1])
+    assert solved_grid(dec, pan.kernels[1][1]) == (1, 1)
 
 
 def test_a_job_that_waited_longer_than_a_solve_may_take_is_caught_up_by_the_cheapest_rung():

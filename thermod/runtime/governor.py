@@ -39,8 +39,8 @@ climbs to it failed again and again while `kf_fast` — remembered from one cold
 dearer than K&F: `health.governor` in benchmarks/results/daemon.md.)
 A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
 (caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
-whose kernels are all within ``grid_tol_px`` of the central one reaches the worker as that one
-kernel (`pipeline.uniform_if_within`), so a grid's cost is never learnt from a uniform solve.
+solve that took the deconvolver's uniform shortcut (`Deconvolver.last_cells` = 1) is booked under
+one cell (`pipeline.solved_grid`), so a grid's cost is never learnt from a uniform solve.
 
 Hysteresis (no flapping): rungs are judged on the finest grid the frames needed over the last
 `NEEDED_S` (the roll comes and goes within a second; a rung chosen for one uniform frame would be

@@ -12,8 +12,8 @@ For every frame k read at t_k (camera clock) the scheduler
 
 Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
 the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no
-extra cost; a rendered grid whose kernels all lie within ``grid_tol_px`` of the central one is
-solved as that one kernel: `uniform_if_within`). The governor (`thermod.runtime.governor`) then
+extra cost; a rendered grid whose kernels all lie within 0.5 px of the central one is solved as
+that one kernel by the deconvolver: `solved_grid`). The governor (`thermod.runtime.governor`) then
 picks the best method over that grid — K&F, K&F with fewer steps, Wiener (only Wiener coarsens
 the grid) — that the measured solve cost allows within the frame budget; each frame says which
 in `FrameOut.method` / ``grid``.
@@ -203,25 +203,14 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
     return tuple(deblur.grid)
 
 
-def uniform_if_within(grid, info: dict, tol_px: float):
-    """``(kernel, info)``: the grid's central kernel when every cell's kernel is within `tol_px` of it
-    (`thermod.physics.deconv.kernel_spread`: centroid and spread per axis), else the grid unchanged.
-
-    Such a frame is solved once, as a uniform blur — what `Deconvolver.run_varying` would do itself —
-    but decided here, so that the frame's header says one kernel and the governor books the solve's
-    cost under one cell, not under the grid's (whose cost it would make look like a uniform one's).
-    """
-    from thermod.physics.deconv import kernel_spread
-
-    if kernel_spread(grid) > tol_px:
-        return grid, info
-    c = np.asarray(grid.centers, np.float64)
-    h, w = grid.image_shape
-    d2 = ((c - [(h - 1) / 2, (w - 1) / 2]) ** 2).sum(axis=2)
-    r, col = np.unravel_index(int(np.argmin(d2)), d2.shape)
-    k = grid.kernels[r][col]
-    return k, {**info, "kernel_size": tuple(int(n) for n in k.weights.shape),
-               "kernel_extent_px": float(k.extent_px)}
+def solved_grid(deconv, kernel) -> tuple[int, int]:
+    """The kernel grid a frame was solved with: (1, 1) for one kernel, and also for a grid over which
+    the deconvolver took its uniform shortcut (``last_cells == 1``: every cell's kernel within its
+    tolerance of the central one). The frame's header says so, and the governor books the solve's cost
+    under one cell — under the grid's key it would make the grid look as cheap as a uniform solve."""
+    if not hasattr(kernel, "kernels"):
+        return (1, 1)
+    return (1, 1) if getattr(deconv, "last_cells", 0) == 1 else tuple(kernel.grid)
 
 
 def kernel_window(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple[float, float]:
@@ -338,9 +327,7 @@ class Pipeline:
         if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
             for g in coarser_grids(tuple(s.deblur.grid), s.calib.width / s.calib.height)[:-1]:
                 at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
-                k, info = self._render(tg, rate, s.calib, 0.0, at_g)
-                if uniform_if_within(k, info, s.deblur.grid_tol_px)[0] is k:   # not one kernel in disguise
-                    grids.append((k, g[0] * g[1]))
+                grids.append(self._render(tg, rate, s.calib, 0.0, at_g)[0])
         self._prebuilt = []
         for w in range(self.n_workers):
             decs = {}
@@ -351,10 +338,11 @@ class Pipeline:
                 d = decs[fam] = self._factory(rung.deblur(s.deblur))
                 live = getattr(d, "realtime", False)
                 d.realtime = False  # measure plans now, while no frame is waiting
-                kernels_ = [(uniform, 1), *(grids if rung.varying else [])]
-                for k, cells in kernels_:
+                for k in [uniform, *(grids if rung.varying else [])]:
                     solve = d.run_varying if hasattr(k, "kernels") else d.run
                     solve(img, k)
+                    g = solved_grid(d, k)                 # a coarse grid may be one kernel in disguise
+                    cells = g[0] * g[1]
                     if w == 0:
                         # the faster of two: a preempted run would make the rung look dearer than it is
                         gov.seed(fam, cells, min(_timed(solve, img, k) for _ in range(2)))
@@ -508,8 +496,6 @@ class Pipeline:
         if info["coverage"] < s.deblur.min_coverage:
             self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
             return
-        if hasattr(kernel, "kernels"):
-            kernel, info = uniform_if_within(kernel, info, s.deblur.grid_tol_px)
         self._enqueue(_Job(slot, kernel, info, s.generation, choice))
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
@@ -581,7 +567,8 @@ class Pipeline:
                 t0 = time.perf_counter()
                 out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
                 dt = time.perf_counter() - t0
-                gov.observe(fam, int(np.prod(job.kernel.grid)) if varying else 1, dt, time.monotonic())
+                grid = solved_grid(deconv, job.kernel)
+                gov.observe(fam, grid[0] * grid[1], dt, time.monotonic())
                 out = np.asarray(out, dtype=np.float32)
                 if out.shape != img.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
@@ -597,7 +584,7 @@ class Pipeline:
             self._count(f"method_{rung.name}", 1)
             o = self._out(job.slot, out, True, None, job.info, job.kernel)
             o.method = rung.name
-            o.grid = tuple(job.kernel.grid) if varying else (1, 1)
+            o.grid = grid
             self._complete(o)
 
     # ------------------------------------------------------------------ output (in order)
