@@ -31,6 +31,9 @@ log = logging.getLogger(__name__)
 
 # FFTW_MEASURE takes ~0.7 s per plan at 640×480; cut short, its plans ran 45 % slower (measured),
 # so plan fully once and keep the wisdom on disk ($THERMOD_CACHE_DIR, else ~/.cache/thermod).
+# Only the daemon's warm-up is capped (a slow payload must still start); offline runs plan without a
+# limit: a plan cut short on a loaded machine is not the full MEASURE wisdom another process finds,
+# so that process measures its own, and a fleet's outputs would differ in the last bits.
 PLANNING_TIMELIMIT_S = 3.0
 MAX_PLANS = 8                 # padded shapes kept (LRU), each with its buffers
 
@@ -98,7 +101,7 @@ class Plan:
     (`.K`, `.K2`). Results live in plan-owned buffers (FFTW) and are overwritten by the next call.
     """
 
-    def __init__(self, shape, backend, workers, measure_unseen=True):
+    def __init__(self, shape, backend, workers, measure_unseen=True, timelimit_s=None):
         self.shape = shape
         self.estimated = False  # planned with FFTW_ESTIMATE (no wisdom, real-time caller)
         hp, wp = shape[-2:]
@@ -120,10 +123,10 @@ class Plan:
                 t0 = time.perf_counter()
                 try:
                     flags = ("FFTW_MEASURE",) if measure_unseen else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
-                    self._make_fftw(flags, workers)
+                    self._make_fftw(flags, workers, timelimit_s)
                 except RuntimeError:
                     self.estimated = True
-                    self._make_fftw(("FFTW_ESTIMATE",), workers)
+                    self._make_fftw(("FFTW_ESTIMATE",), workers, None)
                 if not self.estimated and time.perf_counter() - t0 > 0.05:  # planned anew: remember it
                     save_wisdom()
         else:
@@ -142,12 +145,12 @@ class Plan:
             self.K = np.empty(cshape, np.complex64)
             self.K2 = np.empty(cshape, np.float32)
 
-    def _make_fftw(self, flags, workers) -> None:
+    def _make_fftw(self, flags, workers, timelimit_s) -> None:
         self._f = pyfftw.FFTW(self.rin, self.cout, axes=(-2, -1), flags=flags, threads=workers,
-                              planning_timelimit=PLANNING_TIMELIMIT_S)
+                              planning_timelimit=timelimit_s)
         self._b = pyfftw.FFTW(self.cin, self.rout, axes=(-2, -1), direction="FFTW_BACKWARD",
                               flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers,
-                              planning_timelimit=PLANNING_TIMELIMIT_S)
+                              planning_timelimit=timelimit_s)
 
     def fwd(self) -> np.ndarray:
         if self.backend == "fftw":

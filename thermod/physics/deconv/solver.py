@@ -11,7 +11,7 @@ import numpy as np
 
 from .checks import DeconvError, check_image, check_kernel
 from .noise import NOISE_LAMBDA, NoiseLambda, noise_sigma, value_range_of
-from .plans import MAX_PLANS, Plan, fast_len, pyfftw
+from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, Plan, fast_len, pyfftw
 from .tiles import TILE_MARGIN_PX, moments, stack_kernels, tile_weights
 from .wstep import (
     BETA_MAX,
@@ -105,6 +105,8 @@ class Deconvolver:
         self.last_cells = 0   # kernel cells the last frame was solved with (1: one uniform solve)
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
         self.realtime = bool(realtime)
+        # the daemon's plans (measured at warm-up) are time-capped; offline ones are not (plans.py)
+        self.planning_limit_s = PLANNING_TIMELIMIT_S if self.realtime else None
         self.estimated_plans = 0
         self._plans: OrderedDict[tuple[int, int], Plan] = OrderedDict()
         self._otfs: OrderedDict = OrderedDict()
@@ -144,7 +146,8 @@ class Deconvolver:
     def _plan(self, shape) -> Plan:
         p = self._plans.get(shape)
         if p is None:
-            p = self._plans[shape] = Plan(shape, self.fft, self.workers, measure_unseen=not self.realtime)
+            p = self._plans[shape] = Plan(shape, self.fft, self.workers, measure_unseen=not self.realtime,
+                                          timelimit_s=self.planning_limit_s)
             self.estimated_plans += p.estimated
             while len(self._plans) > MAX_PLANS:
                 self._plans.popitem(last=False)
