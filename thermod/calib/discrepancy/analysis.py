@@ -245,21 +245,24 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
 
 
 def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis,
-                   say, top: int = 3, rounds: int = 3, scene_iters: int = 4) -> tuple[list[Candidate], float]:
+                   say, top: int = 4, share: float = 0.25, rounds: int = 3,
+                   scene_iters: int = 4) -> tuple[list[Candidate], float]:
     """Motion only: rank the best few candidates on their SSR minimised over the scene too (variable
     projection). The step's scene canvas was estimated under the current, wrong model, so it has
     absorbed part of the missing effect, and a candidate that merely mimics what is left can beat the
-    right one. Each of the `top` candidates by explained excess gets `rounds` of scene (and FPN)
+    right one. Each of the `top` candidates by explained excess (those explaining at least `share` of
+    what the best one does) gets `rounds` of scene (and FPN)
     re-estimation (`scene_iters` CGLS iterations each) under its model then a warm-started refit of its
     parameters; the current model gets
     the same scene rounds (the baseline, so extra scene iterations are no candidate's merit). The valid
     mask stays fixed and the step's state is restored afterwards. Returns the candidates with their
     projected fits and statistics, and the baseline SSR."""
     problem = ctx.problem
-    fitted = [c for c in tried if c.fit.n_params > 0 and c.explained > 0]
-    best = sorted(fitted, key=lambda c: -c.explained)[:top]
+    fitted = sorted((c for c in tried if c.fit.n_params > 0 and c.explained > 0), key=lambda c: -c.explained)
+    best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
     if not best:
         return tried, ev.ssr
+    warm = dataclasses.replace(ctx, warm=True)
     saved, iters = problem.state(), problem.scene_iters
     problem.scene_iters = 2 * scene_iters      # (a refresh after the first runs half of them)
     try:
@@ -274,7 +277,7 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
             f = c.fit
             for _ in range(rounds):
                 problem.refresh(f.model, keep_mask=True)
-                g = c.effect.fit(ctx, f.model)
+                g = c.effect.fit(warm, f.model)
                 ssr_kept = problem.evaluate(f.model).ssr
                 f = g if g.ssr < ssr_kept else dataclasses.replace(f, ssr=ssr_kept)
             problem.restore(saved)

@@ -290,6 +290,7 @@ class StepContext:
     n_eff: float
     min_gain: float
     named: tuple[str, ...]
+    warm: bool = False      # refits near a fitted value (`analysis._project_scene`): local searches only
 
     @property
     def recs(self) -> list[RecData]:
