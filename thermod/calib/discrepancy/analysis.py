@@ -49,6 +49,7 @@ class Candidate:
     delta_bic: float
     explained: float        # fraction of the SSR's excess over the noise it removes
     seconds: float = 0.0
+    state: list | None = None   # motion only: the scene (`Problem.state`) its projected fit was made on
 
     def significant(self, crit: Criteria, ctx: StepContext, ssr_before: float) -> bool:
         return (self.fit.n_params > 0 and self.delta_bic > crit.bic_min
@@ -203,6 +204,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         diag = diagnostics(problem, model, ev)
         gap_before = problem.gap(ev.ssr)
         model = chosen.fit.model
+        if chosen.state is not None:      # keep the scene its projected fit was made on
+            problem.restore(chosen.state)
         problem.refresh(model, fpn=fpn)
         ctx = dataclasses.replace(ctx, named=ctx.named + (chosen.effect.name,))
         again = ([chosen.effect] if fpn else []) + [EFFECTS[n] for n in ana.named]
@@ -256,7 +259,8 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     parameters; the current model gets
     the same scene rounds (the baseline, so extra scene iterations are no candidate's merit). The valid
     mask stays fixed and the step's state is restored afterwards. Returns the candidates with their
-    projected fits and statistics, and the baseline SSR."""
+    projected fits, statistics and scene state (the search goes on from the chosen one's), and the
+    baseline SSR."""
     problem = ctx.problem
     fitted = sorted((c for c in tried if c.fit.n_params > 0 and c.explained > 0), key=lambda c: -c.explained)
     best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
@@ -280,9 +284,10 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
                 g = c.effect.fit(warm, f.model)
                 ssr_kept = problem.evaluate(f.model).ssr
                 f = g if g.ssr < ssr_kept else dataclasses.replace(f, ssr=ssr_kept)
+            state = problem.state()
             problem.restore(saved)
             p = Candidate(c.effect, f, ctx.delta_bic(base, f.ssr, f.n_params), (base - f.ssr) / excess,
-                          c.seconds + time.monotonic() - t0)
+                          c.seconds + time.monotonic() - t0, state)
             say(f"  projected {c.effect.name:16s} gap {problem.gap(f.ssr):.4f} (baseline "
                 f"{problem.gap(base):.4f})  explains {100 * p.explained:5.1f} %  ΔBIC {p.delta_bic:9.1f}  "
                 f"{format_params(c.effect.values(f.model, ana.nominal))}  ({time.monotonic() - t0:.1f} s)")
