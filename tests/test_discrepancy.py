@@ -2,7 +2,7 @@
 
 Every recording here is rendered by the simulator's own fine-time renderer (`thermod.sim.synth`),
 never by `thermod.calib.forward`. The hidden-effect tests use flight recordings with no static lead-in
-(`tests/flight_recordings.py`: 160×120 analysed at 80×60, 0.4 s, flight attitude with roll from the
+(`tests/flight_recordings.py`: 160×120 analysed at full resolution, 0.4 s, flight attitude with roll from the
 real Betaflight log when ../shared/data is there, the synthetic `sim.motion.flight` otherwise, NETD
 50 mK): the motion-only path. A few tests keep the static path (320×240, 0.2 s static then 0.3 s of
 three-axis hand-held shake with a smooth 40 ms onset): the static prior, the FPN estimate, blur only

@@ -1,15 +1,15 @@
 """Detector-side effects of the discrepancy workflow: flat-field corrections (`ffc_event`), a non-linear
-response (`detector_nonlinearity`), and an effect outside the vocabulary (a vignetting change).
+response (`detector_nonlinearity`), and effects outside the vocabulary (a vignetting change, parallax).
 
 Recordings come from the simulator's fine-time renderer (`thermod.sim.synth`), never from
-`thermod.calib.forward`: 160×120 (analysed at 80×60), 0.15 s static then 0.35 s of hand-held shake with a
-smooth 40 ms onset, NETD 50 mK, the simulator's seeded procedural texture. Thresholds were measured on
-these scenes.
+`thermod.calib.forward`. The whole-workflow tests use flight recordings with no static lead-in
+(`tests/flight_recordings.py`); the model tests use 160×120, 0.15 s static then 0.35 s of hand-held
+shake with a smooth 40 ms onset, NETD 50 mK, the simulator's seeded procedural texture. Thresholds were
+measured on these scenes.
 """
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -26,25 +26,10 @@ from thermod.sim.synth import check_effects, simulate
 
 _I = Calibration().intrinsics.scaled(0.25)
 NOMINAL = Calibration(width=160, height=120, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
-WORK_WIDTH = 80
-
-
 
 
 def motion(seed: int = 3):
     return mo.sequence([(mo.static(), 0.15), (mo.Ramped(mo.shake(2.0, seed), 0.04), None)])
-
-
-def record(effects: dict, seconds: float = 0.5):
-    return simulate("texture", motion(), seconds, NOMINAL, {"netd": 0.05, **effects}, seed=1)
-
-
-def analyse(rec, **kw):
-    return D.analyse([D.prepare(rec, NOMINAL, name="rec", work_width=WORK_WIDTH)], D.Model(NOMINAL), **kw)
-
-
-def excess(gap: float, floor: float) -> float:
-    return math.sqrt(max(gap * gap - floor * floor, 0.0))
 
 
 # ------------------------------------------------------------------ simulator
@@ -179,10 +164,10 @@ def test_ffc_prediction_freezes_then_steps(small_rec_data):
 
 
 # ------------------------------------------------------------------ in flight (no static lead-in)
-# tests/flight_recordings.py: 160×120 analysed at 80×60, 0.4 s, the real Betaflight log's attitude
+# tests/flight_recordings.py: 160×120 analysed at full resolution, 0.4 s, the real Betaflight log's attitude
 # when ../shared/data is there, else the synthetic flight; NETD 50 mK, the seeded texture.
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import SIZE, analysed, nominal_calibration  # noqa: E402
+from flight_recordings import SIZE, analysed, excess, nominal_calibration  # noqa: E402
 
 FFC = {"ffc_event": (0.2, 0.06, 20.0), "fpn": 0.05}      # 3 frozen frames 0.2 s in, then 20 counts
 

@@ -177,7 +177,7 @@ def test_kernel_renderer_applies_the_clock_drift():
 
 
 # ------------------------------------------------------------------ the workflow on hidden effects
-# Flight recordings with no static lead-in (tests/flight_recordings.py: 160×120 analysed at 80×60,
+# Flight recordings with no static lead-in (tests/flight_recordings.py: 160×120 analysed at full resolution,
 # 0.4 s, the real Betaflight log's attitude when ../shared/data is there, else the synthetic flight;
 # NETD 50 mK, the seeded texture), with a 10 Hz rotor vibration (15 °/s RMS, harmonics to 40 Hz)
 # added for the low-pass: its attenuation needs motion content near the cutoff.
