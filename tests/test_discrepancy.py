@@ -331,13 +331,17 @@ def test_deblurring_with_updated_model_beats_nominal(require):
     except ImportError:
         deconv = kernels = None
     require(deconv is not None and hasattr(kernels, "render_thermal_kernel"), "physics.kernels/deconv")
-    fr, ana = flight_analysed("time_offset", CASES["time_offset"][0])
-    rec = fr.rec
-    cals = {"nominal": fr.nominal, "fitted": ana.model.final_calibration(), "truth": fr.truth}
+    # On the static path's 320×240 shake (a 160×120 flight's blur is too small for a 6 ms offset to
+    # matter: the true model gains 0.05 dB over the nominal one on the real log, 0.01 on the synthetic
+    # flight). The search is limited to the hidden effect: the test is about deblurring with its fit.
+    rec = record({"time_offset": 0.006})
+    ana = D.analyse([D.prepare(rec, NOMINAL, name="deblur")], D.Model(NOMINAL), candidates=("time_offset",))
+    assert ana.named == ["time_offset"]
+    cals = {"nominal": NOMINAL, "fitted": ana.model.final_calibration(), "truth": truth_calibration(rec)}
     truth_sharp = rec.extras["truth/frames"]
     psnr = {k: [] for k in cals}
-    m = 12
-    for k in range(len(rec.t)):
+    m = 24
+    for k in range(14, 25):                      # the frames 80 ms or more into the motion
         blurry = rec.frames[k].astype(np.float32)
         ref = truth_sharp[k][m:-m, m:-m]
         peak = float(ref.max() - ref.min())
