@@ -1,15 +1,17 @@
-"""Fleets of recordings: `thermod deblur` throughput, local default vs a Dask LocalCluster of 1 and 2 workers.
+"""Fleets of recordings: `thermod deblur` throughput, local (one process; the default process pool) vs a
+Dask LocalCluster of 1 and 2 workers.
 
     .venv/bin/python benchmarks/bench_fleet.py [--quick] [--n N] [--frames F] [--size W H] [--reps R]
 
 One simulated recording (rolling camera, `--size`, `--frames`, NETD 30 mK) is copied to N files (the
 work per file is what matters, not its content; simulating N would dominate the run). Each engine
 deblurs all N with the default settings (K&F, kernel grid) through the real command line,
-`thermod deblur … -o DIR/ [--scheduler ADDR]`, start-up included; the clusters are started once
+`thermod deblur … -o DIR/ [--jobs 1 | --scheduler ADDR]`, start-up included (the local pool's
+processes start anew with every command); the clusters are started once
 (worker processes, 1 thread each) and stay warm between repetitions, as a standing fleet would.
 All share one FFTW wisdom file, planned by an untimed local warm-up. Repetitions are interleaved
-(local, 1 worker, 2 workers, local, …); the table prints the median wall time, recordings per hour
-and whether every output is byte-identical to the local run's.
+(one process, pool, 1 worker, 2 workers, one process, …); the table prints the median wall time,
+recordings per hour and whether every output is byte-identical to the one-process run's.
 """
 
 from __future__ import annotations
@@ -45,11 +47,10 @@ def make_fleet(d: Path, n: int, frames: int, size: tuple[int, int]) -> list[Path
     return paths
 
 
-def deblur(inputs: list[Path], out: Path, scheduler: str | None) -> float:
+def deblur(inputs: list[Path], out: Path, engine: list[str]) -> float:
     if out.exists():
         shutil.rmtree(out)
-    cmd = [sys.executable, "-m", "thermod.cli", "deblur", *map(str, inputs), "-o", f"{out}/"]
-    cmd += ["--scheduler", scheduler] if scheduler else []
+    cmd = [sys.executable, "-m", "thermod.cli", "deblur", *map(str, inputs), "-o", f"{out}/", *engine]
     t0 = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -101,27 +102,25 @@ def main() -> int:
         # ~/.cache/thermod is rewritten by any thermod process on the machine; a plan measured anew
         # under load can differ, and so do the last bits of the result.)
         os.environ["THERMOD_CACHE_DIR"] = str(tmp / "cache")
-        deblur(inputs[:1], tmp / "warmup", None)
+        deblur(inputs[:1], tmp / "warmup", ["--jobs", "1"])
         clusters = {k: LocalCluster(n_workers=k, threads_per_worker=1, processes=True,
                                     dashboard_address=":0", silence_logs=40) for k in (1, 2)}
-        engines = {"local (default)": None, "LocalCluster, 1 worker": clusters[1].scheduler_address,
-                   "LocalCluster, 2 workers": clusters[2].scheduler_address}
+        engines = {"local, this process (--jobs 1)": ["--jobs", "1"],
+                   "local processes (default: one per core)": [],
+                   "LocalCluster, 1 worker": ["--scheduler", clusters[1].scheduler_address],
+                   "LocalCluster, 2 workers": ["--scheduler", clusters[2].scheduler_address]}
         walls: dict[str, list[float]] = {e: [] for e in engines}
         same: dict[str, str] = {e: "yes" for e in engines}
         load = []
         try:
             for rep in range(args.reps):
-                for engine, address in engines.items():
-                    out = tmp / f"out_{engine.split()[0]}_{address is None or address[-5:]}"
-                    walls[engine].append(deblur(inputs, out, address))
+                for k, (engine, argv) in enumerate(engines.items()):
+                    out = tmp / f"out_{k}"
+                    walls[engine].append(deblur(inputs, out, argv))
                     load.append(os.getloadavg()[0])
-                    if address is None:
-                        local_out = tmp / "local_ref"
-                        if rep == 0:
-                            shutil.copytree(out, local_out)
-                        verdict = compare(out, local_out, names)
-                    else:
-                        verdict = compare(out, tmp / "local_ref", names)
+                    if k == 0 and rep == 0:         # the reference: one process, files in turn
+                        shutil.copytree(out, tmp / "local_ref")
+                    verdict = compare(out, tmp / "local_ref", names)
                     if verdict != "yes":
                         same[engine] = verdict
                     print(f"  rep {rep + 1} {engine}: {walls[engine][-1]:.1f} s", flush=True)
@@ -132,7 +131,7 @@ def main() -> int:
     print(f"\n{args.n} recordings × {args.frames} frames, {args.size[0]}×{args.size[1]}, K&F grid; "
           f"median of {args.reps} interleaved run(s); {os.cpu_count()} CPUs; "
           f"load average during runs {min(load):.1f}–{max(load):.1f}\n")
-    print("| engine | wall (s) | recordings/hour | ms/frame (wall) | bytes = local run |")
+    print("| engine | wall (s) | recordings/hour | ms/frame (wall) | bytes = one-process run |")
     print("|---|---:|---:|---:|---|")
     for engine in engines:
         wall = statistics.median(walls[engine])

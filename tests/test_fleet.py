@@ -172,6 +172,74 @@ def test_a_worker_killed_mid_file_costs_a_retry_not_the_file(tmp_path, local_clu
         c.wait_for_workers(2, timeout=120)     # the nanny restarted it: the module's cluster stays whole
 
 
+def spawned_workers(pid):
+    """PIDs of `pid`'s multiprocessing worker processes (spawned: `spawn_main` in their command line)."""
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            kids = open(f"/proc/{pid}/task/{task}/children").read().split()
+        except OSError:
+            continue
+        for k in kids:
+            try:
+                cmd = open(f"/proc/{k}/cmdline", "rb").read()
+            except OSError:
+                continue
+            if b"spawn_main" in cmd:
+                out.append(int(k))
+    return out
+
+
+@pytest.mark.slow
+def test_local_processes_write_the_in_process_bytes_and_survive_a_killed_worker(fleet, wisdom, tmp_path):
+    """`--jobs 2` (the default on 2 cores): the files in two local processes. One of them is SIGKILLed
+    while it writes its file: that file starts again in a new pool, every output is whole and has the
+    in-process (`--jobs 1`) run's bytes, and the corrupt file still fails alone."""
+    import signal
+    import time
+
+    paths, corrupt = fleet
+    calib = Calibration(width=160, height=120, cx=79.5, cy=59.5)
+    longer = []
+    for i in range(2):          # 60 frames each, so a worker is caught mid-file
+        longer.append(tmp_path / f"long{i}.h5")
+        rec = synth.simulate("texture", "roll:60", seconds=1.2, calib=calib, seed=10 + i, truth=False,
+                             effects={"netd": 0.03})
+        recording.write(longer[-1], rec)
+    inputs = [*longer, corrupt, *paths]
+    cli = [sys.executable, "-m", "thermod.cli", "deblur", *map(str, inputs), "-o"]
+    here = subprocess.run([*cli, str(tmp_path / "here"), "--jobs", "1"], capture_output=True, text=True,
+                          timeout=600)
+    assert here.returncode == 2, here.stderr
+    out = tmp_path / "pool"
+    p = subprocess.Popen([*cli, str(out), "--jobs", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    killed = None
+    deadline = time.monotonic() + 300
+    while killed is None and p.poll() is None and time.monotonic() < deadline:
+        workers = spawned_workers(p.pid)
+        if out.is_dir() and any(f.name.endswith(".part") for f in out.iterdir()) and workers:
+            killed = workers[0]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.05)
+    stdout, stderr = p.communicate(timeout=600)
+    assert killed is not None, stderr
+    assert p.returncode == 2, stderr
+    assert stderr.strip().splitlines()[-1] == f"thermod deblur: 1 of 6 file(s) failed: {corrupt}"
+    assert "Traceback" not in stderr
+    assert sorted(summary_counts(stdout)) == sorted(
+        s.replace(str(tmp_path / "here"), str(out)) for s in summary_counts(here.stdout))
+    names = sorted(q.name for q in [*longer, *paths])
+    assert sorted(q.name for q in out.iterdir()) == names           # no .part left
+    for name in names:
+        assert (out / name).read_bytes() == (tmp_path / "here" / name).read_bytes(), name
+
+
+def test_a_negative_jobs_count_is_one_line(fleet, tmp_path, capsys):
+    rc, _, err = deblur(capsys, fleet[0][0], "-o", tmp_path / "o.h5", "--jobs", "-1")
+    assert rc == 2 and "--jobs -1: expected 0 (one process per usable core) or a positive number" in err
+
+
 def test_a_scheduler_that_does_not_answer_is_one_line_within_the_connect_timeout(fleet, tmp_path):
     """A port that accepts connections but never speaks Dask's protocol (a hung or wrong service)."""
     with socket.socket() as silent:

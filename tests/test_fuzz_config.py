@@ -3,6 +3,7 @@ configurations with bytes flipped, inserted or cut, random TOML documents, and t
 configurations with one key set to a random TOML value. Whatever the input, `config.load` and
 `config.parse` either return a Config or raise ConfigError naming the file — nothing else escapes."""
 
+import dataclasses
 import datetime as dt
 import math
 import tempfile
@@ -13,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from thermod.errors import ConfigError
+from thermod.physics.calibration import Calibration
 from thermod.runtime import config
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
@@ -133,13 +135,24 @@ def _set(raw: dict, dotted: str, value) -> None:
     raw[last] = value
 
 
-SIM_KEYS = ["calibration.width", "calibration.fx", "calibration.tau_s", "calibration.R_cam_gyro",
-            "calibration.scale", "calibration.readout_s", "deblur.grid", "deblur.alpha", "deblur.lambda",
-            "publish.endpoint", "publish.curve_secret_key", "publish.hwm", "pipeline.workers", "sim.loop_s",
-            "sim.seed", "sources.gyro.kind", "sources.camera", "sources.gyro.path", "logging", "sources"]
+def _every_key() -> list[str]:
+    """Every key the parser takes, from the settings' dataclasses (a field added to a section is fuzzed
+    without anyone remembering to list it here), plus tables and keys in the wrong place."""
+    toml_name = {"lam": "lambda"}
+    sections = {"calibration": Calibration, "deblur": config.DeblurConfig, "publish": config.PublishConfig,
+                "pipeline": config.PipelineConfig, "sim": config.SimConfig, "rtsp": config.RtspConfig,
+                "logging": config.LoggingConfig, "sources.gyro": config.SourceConfig,
+                "sources.camera": config.SourceConfig}
+    keys = [f"{sec}.{toml_name.get(f.name, f.name)}" for sec, cls in sections.items()
+            for f in dataclasses.fields(cls) if f.name not in ("extra", "options")]
+    return sorted(set(keys)) + ["sources.gyro.path", "sources.camera.path", "logging", "sources",
+                                "radiometry"]
 
 
-@FUZZ
+SIM_KEYS = _every_key()
+
+
+@settings(FUZZ, max_examples=8 * len(SIM_KEYS))        # every key several values
 @given(st.sampled_from(SIM_KEYS), values)
 def test_one_key_of_a_valid_config_set_to_anything(dotted, value):
     raw = config.loads(SHIPPED["sim.toml"], NAME)

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from thermod.cli import main
 from thermod.errors import ThermodError
 from thermod.io import recording
-from thermod.physics.calibration import CAMERA_KEYS, Calibration
+from thermod.physics.calibration import CAMERA_KEYS, GYRO_KEYS, Calibration
 
 H, W, N = 12, 16, 3
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow],
@@ -44,8 +44,7 @@ def _valid_bytes() -> bytes:
 
 VALID = _valid_bytes()
 DATASETS = ("camera/frames", "camera/t", "gyro/t", "gyro/rate", "truth/frames")
-ATTR_KEYS = CAMERA_KEYS + ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s", "scale", "format",
-                           "version")
+ATTR_KEYS = CAMERA_KEYS + GYRO_KEYS + ("format", "version")    # every key the reader takes
 
 values = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True), st.integers(-2**63, 2**63 - 1), st.booleans(),

@@ -239,7 +239,8 @@ def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
         return real_frame(self, i)
     monkeypatch.setattr(recording.Reader, "frame", frame)
     inputs = [good[0], garbage, zero_scale, strings, damaged, blocked, buggy, good[1]]
-    rc, text, err = deblur(capsys, *inputs, "-o", out, "--uniform", "--method", "wiener")
+    # --jobs 1: in this process, where the patched reader is (the pool's processes would not see it)
+    rc, text, err = deblur(capsys, *inputs, "-o", out, "--uniform", "--method", "wiener", "--jobs", "1")
     assert rc == 2
     assert f"{garbage}: file: not a readable HDF5 file" in err
     assert f"{zero_scale}: gyro.attrs['scale']: expected 1 or 3 positive numbers" in err

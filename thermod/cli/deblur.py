@@ -22,7 +22,8 @@ into ``OUT.h5.part``, renamed to ``OUT.h5`` only when complete: an existing outp
 half-written. In a batch, a file that fails (input or output side) is reported and the others go
 on; the command then lists the failures and exits 2.
 
-The files run one after another in this process (`thermod.batch.local`), or with `--scheduler
+Several files run in local worker processes, one per usable core (`--jobs N`; `thermod.batch.local`;
+one file, or `--jobs 1`, runs in this process), or with `--scheduler
 tcp://HOST:8786` one task per file on a Dask distributed cluster (`thermod.batch.cluster`: the
 workers read and write the same paths, on a shared filesystem, which is checked first). Both run
 the same per-file job (`thermod.batch.job`) and write the same bytes; this module is the command line.
@@ -88,7 +89,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
                         help="run one task per file on this Dask distributed scheduler's workers (they "
                              "must see the inputs and the output directory at the same paths: a shared "
-                             "filesystem); default: the files one after another in this process")
+                             "filesystem); default: local processes (--jobs)")
+    parser.add_argument("--jobs", type=int, default=0, metavar="N",
+                        help="local worker processes for several files (default 0: one per usable core; "
+                             "1: one after another in this process)")
     parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
                         help="give up on --scheduler after this many seconds without an answer (default 10)")
 
@@ -153,6 +157,9 @@ def run(args) -> int:
     from thermod.batch import job as batch_job
 
     cfg = deblur_config(args)
+    if args.jobs < 0:
+        raise ThermodError(f"--jobs {args.jobs}: expected 0 (one process per usable core) or a positive "
+                           "number")
     celsius = args.celsius or args.radiometry is not None
     model = command_radiometry(args) if celsius else None
     outs = _outputs(list(args.inputs), args.output)
@@ -167,7 +174,8 @@ def run(args) -> int:
     else:
         from thermod.batch import local
 
-        outcomes = local.run(jobs)
+        processes = args.jobs if args.jobs > 0 else local.usable_cores()
+        outcomes = local.run(jobs, processes=processes)
     wall = time.perf_counter() - t_start
     reports = [o.report for o in outcomes if o.ok]
     failed = [o.job.src for o in outcomes if not o.ok]

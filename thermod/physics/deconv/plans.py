@@ -11,6 +11,8 @@ is kept in `wisdom_path()`.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import os
 import threading
@@ -54,6 +56,29 @@ def _load_wisdom() -> None:
             log.debug("no FFTW wisdom loaded (%s)", e)
 
 
+@contextlib.contextmanager
+def _planning_turn():
+    """One planner at a time among the processes sharing the wisdom file (a batch's local processes,
+    a Dask fleet's workers), holding it from reading the file to saving the new plan: the first
+    process to need a size measures it, the others take its plan. Two processes measuring the same
+    size can pick different FFTW algorithms, whose results differ in the last bits, so outputs
+    would depend on which process deblurred them."""
+    path = wisdom_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path.with_name(path.name + ".lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:                   # read-only cache: no sharing to coordinate
+        yield
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        with contextlib.suppress(OSError, ValueError, TypeError):    # absent or stale: plan anew
+            pyfftw.import_wisdom((b"", path.read_bytes(), b""))
+        yield
+    finally:
+        os.close(fd)                  # releases the lock
+
+
 def save_wisdom() -> None:
     path = wisdom_path()
     try:
@@ -85,17 +110,19 @@ class Plan:
             self.cout = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
             self.cin = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
             self.rout = pyfftw.empty_aligned(shape, "float32")
-            t0 = time.perf_counter()
-            try:
-                # A real-time caller cannot wait ~0.7 s for a measured plan mid-stream (it would hold
-                # up the frame queue): take the saved wisdom if it has this size, else estimate.
-                flags = ("FFTW_MEASURE",) if measure_unseen else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
-                self._make_fftw(flags, workers)
-            except RuntimeError:
-                self.estimated = True
-                self._make_fftw(("FFTW_ESTIMATE",), workers)
-            if not self.estimated and time.perf_counter() - t0 > 0.05:  # planned anew: remember it
-                save_wisdom()
+            # A real-time caller cannot wait ~0.7 s for a measured plan mid-stream (it would hold up
+            # the frame queue), nor for another process's planning: it takes the wisdom it loaded if
+            # that has this size, else estimates.
+            with _planning_turn() if measure_unseen else contextlib.nullcontext():
+                t0 = time.perf_counter()
+                try:
+                    flags = ("FFTW_MEASURE",) if measure_unseen else ("FFTW_MEASURE", "FFTW_WISDOM_ONLY")
+                    self._make_fftw(flags, workers)
+                except RuntimeError:
+                    self.estimated = True
+                    self._make_fftw(("FFTW_ESTIMATE",), workers)
+                if not self.estimated and time.perf_counter() - t0 > 0.05:  # planned anew: remember it
+                    save_wisdom()
         else:
             self.rin = np.empty(shape, np.float32)
             self.cin = np.empty((hp, wp // 2 + 1), np.complex64)
