@@ -1,13 +1,14 @@
 """The discrepancy workflow on simulator recordings with hidden effects.
 
 Every recording here is rendered by the simulator's own fine-time renderer (`thermod.sim.synth`),
-never by `thermod.calib.forward`. The hidden-effect tests use flight recordings with no static lead-in
-(`tests/flight_recordings.py`: 160×120 analysed at full resolution, 0.4 s, flight attitude with roll from the
-real Betaflight log when ../shared/data is there, the synthetic `sim.motion.flight` otherwise, NETD
-50 mK): the motion-only path. A few tests keep the static path (320×240, 0.2 s static then 0.3 s of
-three-axis hand-held shake with a smooth 40 ms onset): the static prior, the FPN estimate, blur only
-the moving frames have, unexcited axes, the command line. The nominal model is what the file's
-attributes say; the truth is hidden in the simulator's truth attributes.
+never by `thermod.calib.forward`. The hidden-effect tests use flight recordings with no static
+lead-in (`tests/flight_recordings.py`: 160×120 analysed at full resolution, 0.4 s, flight attitude
+with roll from the real Betaflight log when ../shared/data is there, the synthetic
+`sim.motion.flight` otherwise, NETD 50 mK): the motion-only path. A few tests keep the static path
+(320×240, 0.2 s static then 0.3 s of three-axis hand-held shake with a smooth 40 ms onset): the
+static prior, the FPN estimate, blur only the moving frames have, unexcited axes, deblurring with
+the fit, the command line. The nominal model is what the file's attributes say; the truth is hidden
+in the simulator's truth attributes.
 
 The scene is the simulator's seeded procedural texture (`SCENE`), so every threshold here was
 measured on a scene the tests make themselves; the tests on the real DJI frames say so and `require`
@@ -40,8 +41,7 @@ from thermod.sim import scenes as sim_scenes
 from thermod.sim.synth import simulate, truth_calibration
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import REAL_LOG, SIZE, excess, flight_motion, nominal_calibration  # noqa: E402
-from flight_recordings import analysed as flight_analysed  # noqa: E402
+from flight_recordings import REAL_LOG, SIZE, analysed, excess, flight_motion, nominal_calibration  # noqa: E402
 
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)
@@ -65,18 +65,6 @@ def rich_motion(seed: int = 3, deg: float = 2.0):
 
 def record(effects: dict, scene=SCENE, seed: int = 1, motion_seed: int = 3):
     return simulate(scene, rich_motion(motion_seed), 0.5, NOMINAL, {"netd": 0.05, **effects}, seed=seed)
-
-
-_CACHE: dict = {}
-
-
-def analysed(key: str, effects: dict, scene=SCENE):
-    """(recording, analysis) for hidden `effects`, computed once per test session."""
-    if key not in _CACHE:
-        rec = record(effects, scene)
-        d = D.prepare(rec, NOMINAL, name=key)
-        _CACHE[key] = (rec, D.analyse([d], D.Model(NOMINAL)))
-    return _CACHE[key]
 
 
 # ------------------------------------------------------------------ one hidden effect each, in flight
@@ -131,7 +119,7 @@ CASES = {
 @pytest.mark.parametrize("effect", list(CASES))
 def test_single_hidden_effect_in_flight_is_named_recovered_and_closes_the_gap(effect):
     effects, check = CASES[effect]
-    fr, ana = flight_analysed(effect, effects)
+    fr, ana = analysed(effect, effects)
     assert ana.reference == "motion"
     assert ana.named[:1] == [effect], ana.named
     assert ana.named == [effect], "only the hidden effect is added"
@@ -184,7 +172,7 @@ PAIRS = {
 @pytest.mark.parametrize("pair", list(PAIRS))
 def test_two_hidden_effects_in_flight_are_both_found(pair):
     eff = PAIRS[pair]
-    fr, ana = flight_analysed(pair, eff)
+    fr, ana = analysed(pair, eff)
     truth = fr.truth
     names = ana.named
     expect = {"time_offset": "time_offset", "gyro_bias": "gyro_bias", "rolling_readout": "rolling_readout"}
@@ -202,7 +190,7 @@ def test_two_hidden_effects_in_flight_are_both_found(pair):
 
 @pytest.mark.slow
 def test_clean_flight_recording_adds_nothing():
-    fr, ana = flight_analysed("clean", {})
+    fr, ana = analysed("clean", {})
     assert ana.reference == "motion"
     assert ana.steps == []
     assert not ana.unexplained
@@ -257,18 +245,9 @@ def _high_contrast_scene(calib: Calibration = NOMINAL, scene=SCENE):
 @pytest.mark.slow
 def test_high_contrast_clean_flight_is_not_unexplained():
     # The high-contrast scene alone is explained (its sharp edges stay within the model's precision).
-    fr, ana = flight_analysed("contrast-clean", {}, scene=_high_contrast_scene(nominal_calibration(SIZE)))
+    fr, ana = analysed("contrast-clean", {}, scene=_high_contrast_scene(nominal_calibration(SIZE)))
     assert not ana.unexplained
     assert ana.steps == []
-
-
-@pytest.mark.slow
-def test_common_optical_psf_is_not_misnamed():
-    # A PSF shared by the static and the moving frames is in the reference already: it leaves no
-    # static-vs-motion gap, so the workflow must not invent an effect (see DESIGN of optical_psf).
-    rec, ana = analysed("psf", {"optical_psf": 1.2})
-    assert ana.steps == []
-    assert not ana.unexplained
 
 
 def _motion_blurred(rec, sigma_px: float, t_motion: float):
