@@ -10,10 +10,14 @@ iteration — the reference Matlab algorithm transcribed), the speed-up, both PS
 A second table compares the FFT back ends (pyFFTW vs scipy.fft) on the same solver.
 Target: 640×480 with a 65 px kernel ≤ 15 ms median on one core and ≥ 8× the plain version.
 
-Spatially varying table (640×480, roll blur rendered on a 12×16 grid of tangential comets): the
-uniform solve beside tile solves on 3×4 (full blending; kernel-sized margins as before, and the
-8 px margins now) and 6×8 (blend ramp 0.25 of the spacing) grids, interleaved medians, the ratio
-to uniform and PSNR. Target: spatially varying ≤ 2× uniform at ≥ the 3×4 reference's PSNR − 0.2 dB.
+Spatially varying table (`--only varying`; 640×480, roll blur rendered on a 12×16 grid of
+tangential comets): the uniform solve (OTF cached, and a new kernel every frame as in the daemon)
+beside tile solves on 3×4 (full blending: the reference) and 6×8 (blend ramp 0.25 of the spacing)
+grids, one tile at a time (the previous loop, `tile_by_tile`) and stacked (`run_varying`),
+interleaved medians of the thread's CPU time, the ratio to uniform ("× uniform") and PSNR.
+Roll-family table (`--only roll`): the same solves on bench_quality's roll-heavy family (real
+Betaflight roll segments, held-out scenes), mean 8-bit PSNR and median CPU time per frame.
+Target: spatially varying ≤ 2× uniform at ≥ the 3×4 reference's PSNR − 0.2 dB.
 
 Large-sensor table: K&F and Wiener at 640×480, 640×512, 1280×1024 beside the FFT floor (one
 float32 rfft2 + irfft2 pair at the solver's padded size, same plan type), in ms and ms per
@@ -145,18 +149,45 @@ def roll_grid(rows, cols, full_shape, crop, px_per_radius=0.06):
     return KernelGrid(kernels, centers, bounds.astype(int), np.zeros(rows), (hh, ww))
 
 
-def interleaved_ms(fns: dict, reps: int) -> dict:
+def interleaved_ms(fns: dict, reps: int, clock=time.perf_counter) -> dict:
     """{name: median ms} of the callables run in turn `reps` times (after one warm-up each), so that
-    load from other processes hits them alike."""
+    load from other processes hits them alike. clock=time.thread_time: CPU time of this thread
+    (every FFT and numba pass of a one-core Deconvolver runs in it), which load inflates less."""
     for fn in fns.values():
         fn()
     ts = {k: [] for k in fns}
     for _ in range(reps):
         for k, fn in fns.items():
-            t0 = time.perf_counter()
+            t0 = clock()
             fn()
-            ts[k].append(time.perf_counter() - t0)
+            ts[k].append(clock() - t0)
     return {k: 1e3 * float(np.median(v)) for k, v in ts.items()}
+
+
+def tile_by_tile(d: deconv.Deconvolver, img: np.ndarray, grid, overlap: float) -> np.ndarray:
+    """The previous tile solve, kept as the reference: one tile at a time through the one-kernel
+    solver (`_solve`: its own FFT calls, numba passes and OTF per tile), blended in NumPy."""
+    from thermod.physics.deconv.plans import fast_len
+    from thermod.physics.deconv.tiles import tile_weights
+    h, w = img.shape
+    centers = np.asarray(grid.centers, np.float64)
+    lo, hi = deconv.robust_range(img)
+    lam = d.lam_for(img, lo, hi)
+    wys = tile_weights(h, centers[:, :, 0].mean(axis=1), overlap)
+    wxs = tile_weights(w, centers[:, :, 1].mean(axis=0), overlap)
+    m = deconv.TILE_MARGIN_PX
+    ybox = [(max(0, a - m), min(h, b + m)) for a, b, _ in wys]
+    xbox = [(max(0, a - m), min(w, b + m)) for a, b, _ in wxs]
+    pshape = (fast_len(max(b - a for a, b in ybox) + d.margin),
+              fast_len(max(b - a for a, b in xbox) + d.margin))
+    out = np.zeros((h, w), np.float32)
+    for r, (ys, ye, wy) in enumerate(wys):
+        for c, (xs, xe, wx) in enumerate(wxs):
+            (y0, y1), (x0, x1) = ybox[r], xbox[c]
+            k = grid.kernels[r][c]
+            tile = d._solve(img, (y0, y1, x0, x1), k.weights, k.origin, lo, hi, lam, pshape)
+            out[ys:ye, xs:xe] += tile[ys - y0:ye - y0, xs - x0:xe - x0] * wy[:, None] * wx[None, :]
+    return out
 
 
 def varying_table(reps: int) -> None:
@@ -169,25 +200,105 @@ def varying_table(reps: int) -> None:
     noise = np.random.default_rng(3).normal(0, 0.003 * (hi - lo), (h, w)).astype(np.float32)
     b = blur_varying(big, fine)[80:80 + h, 80:80 + w] + noise
     g34, g68 = roll_grid(3, 4, big.shape, 80), roll_grid(6, 8, big.shape, 80)
+    g710 = roll_grid(7, 10, big.shape, 80)
     kmax = max(max(k.weights.shape) for row in g34.kernels for k in row)
     d = deconv.Deconvolver()
+    live = deconv.Deconvolver(cache_size=1)
+
+    def uniform_live():
+        live._otfs.clear()   # the daemon's kernels never repeat: every frame computes its OTF
+        return live.run(b, g34.kernels[1][1])
     fns = {
-        "uniform (central kernel)": lambda: d.run(b, g34.kernels[1][1]),
-        f"3×4 tiles, overlap 1, margins kernel + 8 = {kmax + 8} px (before)":
-            lambda: d.run_varying(b, g34, margin_px=kmax + 8),
-        f"3×4 tiles, overlap 1, margins {deconv.TILE_MARGIN_PX} px": lambda: d.run_varying(b, g34),
-        f"6×8 tiles, overlap 0.25, margins {deconv.TILE_MARGIN_PX} px":
-            lambda: d.run_varying(b, g68, overlap=0.25),
+        "uniform (central kernel, OTF cached)": lambda: d.run(b, g34.kernels[1][1]),
+        "uniform (a new kernel every frame, as live)": uniform_live,
+        "3×4 tiles, overlap 1, one tile at a time (the reference)": lambda: tile_by_tile(d, b, g34, 1.0),
+        "3×4 tiles, overlap 1, stacked": lambda: d.run_varying(b, g34, overlap=1.0),
+        "6×8 tiles, overlap 0.25, one tile at a time (before)": lambda: tile_by_tile(d, b, g68, 0.25),
+        "**6×8 tiles, overlap 0.25, stacked (now)**": lambda: d.run_varying(b, g68, overlap=0.25),
+        "7×10 tiles, overlap 0.25, stacked, no real margins (96² FFTs)":
+            lambda: d.run_varying(b, g710, overlap=0.25, margin_px=0),
     }
-    t = interleaved_ms(fns, reps)
+    load0 = os.getloadavg()[0]
+    t = interleaved_ms(fns, reps, time.thread_time)
     emit(f"\n## Spatially varying, 640×480 ({name}, roll: comets tangential to the centre, 0.06 px of "
          f"tail per px of radius, up to {kmax} px; kernel_spread of the 3×4 grid "
-         f"{deconv.kernel_spread(g34):.1f} px; one core, interleaved medians of {reps})\n")
-    emit("| solve | ms | × uniform | PSNR dB |\n|---|---|---|---|")
-    emit(f"| blurry input | – | – | {psnr(b, truth):.2f} |")
-    t_uni = t["uniform (central kernel)"]
+         f"{deconv.kernel_spread(g34):.1f} px; one core, CPU time of the thread, interleaved medians of "
+         f"{reps}; load average {load0:.1f} before, {os.getloadavg()[0]:.1f} after, "
+         f"{os.cpu_count()} cores)\n")
+    emit("| solve | CPU ms | × uniform (OTF cached) | × uniform (as live) | PSNR dB |\n|---|---|---|---|---|")
+    emit(f"| blurry input | – | – | – | {psnr(b, truth):.2f} |")
+    t_uni = t["uniform (central kernel, OTF cached)"]
+    t_live = t["uniform (a new kernel every frame, as live)"]
     for k, fn in fns.items():
-        emit(f"| {k} | {t[k]:.1f} | {t[k] / t_uni:.2f}× | {psnr(fn(), truth):.2f} |")
+        emit(f"| {k} | {t[k]:.1f} | {t[k] / t_uni:.2f}× | {t[k] / t_live:.2f}× | {psnr(fn(), truth):.2f} |")
+
+
+def roll_table(reps: int, n_frames: int = 2) -> None:
+    """Quality and CPU time on bench_quality's roll-heavy family (real Betaflight roll segments over
+    its held-out scenes, 640×480, NETD 30 mK, paper gyro): per frame, every solve in turn."""
+    import bench_quality as bq
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from thermod.physics import kernels
+    log = bq.mo.load_gyro_log()
+    d = deconv.Deconvolver()
+    m = deconv.TILE_MARGIN_PX
+    rows = {"uniform (one kernel per frame, as live)": None,
+            "3×4 tiles, overlap 1, one tile at a time (the reference)": ((3, 4), 1.0, m, False),
+            "6×8 tiles, overlap 0.25, one tile at a time (before)": ((6, 8), 0.25, m, False),
+            "**6×8 tiles, overlap 0.25, stacked (now)**": ((6, 8), 0.25, None, True),
+            "6×8 tiles, overlap 0.25, stacked, no real margins (28 px periodic pad)": ((6, 8), 0.25, 0, True),
+            "6×8 tiles, overlap 0.5, stacked": ((6, 8), 0.5, None, True),
+            "4×6 tiles, overlap 0.25, stacked": ((4, 6), 0.25, None, True),
+            "7×10 tiles, overlap 0.25, stacked, no real margins (96² FFTs)": ((7, 10), 0.25, 0, True),
+            f"7×10 tiles, overlap 0.25, stacked, {m} px margins (128² FFTs)": ((7, 10), 0.25, m, True)}
+    scores = {k: [] for k in rows}
+    times = {k: [] for k in rows}
+    load0 = os.getloadavg()[0]
+    for j, start in enumerate(bq.ROLL_STARTS):
+        sc = bq.REPORT_SCENES[j % len(bq.REPORT_SCENES)]
+        motion = bq.mo.GyroLog(log.t_log, log.w_cam, start, spec=f"log:{start:g}")
+        rec = bq.simulate(sc, motion, n_frames, 7 + j)
+        c = rec.calibration
+        for i in range(n_frames):
+            truth = rec.extras["truth/frames"][i]
+            lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
+            b = rec.frames[i].astype(np.float32)
+            t = float(rec.t[i])
+            solves = {}
+            for name, how in rows.items():
+                if how is None:
+                    k = kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, c, t)
+
+                    def solve(k=k, b=b):
+                        d._otfs.clear()   # the daemon's kernels never repeat
+                        return d.run(b, k)
+                else:
+                    (gr, ov, mp, stacked) = how
+                    g = kernels.render_kernel_grid(rec.gyro_t, rec.gyro_rate, c, t, gr)
+
+                    def solve(g=g, ov=ov, mp=mp, stacked=stacked, b=b):
+                        if stacked:
+                            return d.run_varying(b, g, overlap=ov, uniform_tol_px=0, margin_px=mp)
+                        return tile_by_tile(d, b, g, ov)
+                solves[name] = solve
+            for name, solve in solves.items():
+                scores[name].append(peak_signal_noise_ratio(bq.to8(truth, lo, hi), bq.to8(solve(), lo, hi),
+                                                            data_range=255))
+            ms = interleaved_ms(solves, reps, time.thread_time)
+            for name in rows:
+                times[name].append(ms[name])
+    t_uni = float(np.median(times["uniform (one kernel per frame, as live)"]))
+    emit(f"\n## Spatially varying on the roll-heavy family ({len(bq.ROLL_STARTS)} log segments × "
+         f"{n_frames} frames of bench_quality's roll-heavy family: held-out scenes "
+         f"{', '.join(bq.REPORT_SCENES)}, 640×480, NETD 30 mK, paper gyro; K&F α = {deconv.DEFAULT_ALPHA:g}, "
+         f"shipped λ rule; kernels rendered from the gyro; per frame the solves run in turn, CPU time of "
+         f"the thread, median over frames of each frame's median of {reps}; load average {load0:.1f} "
+         f"before, {os.getloadavg()[0]:.1f} after, {os.cpu_count()} cores)\n")
+    emit("| solve | mean 8-bit PSNR dB | CPU ms | × uniform |\n|---|---|---|---|")
+    for name in rows:
+        ms = float(np.median(times[name]))
+        emit(f"| {name} | {np.mean(scores[name]):.2f} | {ms:.1f} | {ms / t_uni:.2f}× |")
 
 
 def floor_table(reps: int) -> None:
@@ -238,7 +349,7 @@ def emit(text: str = "") -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer repetitions and sizes")
-    ap.add_argument("--only", choices=("speed", "varying", "floor"), default=None,
+    ap.add_argument("--only", choices=("speed", "varying", "roll", "floor"), default=None,
                     help="run one table (speed: the per-size table and FFT back ends)")
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "deconv.md",
                     help="markdown copy of the tables (default benchmarks/results/deconv.md)")
@@ -253,9 +364,11 @@ def main(argv=None) -> int:
     emit("Scenes: " + "; ".join(f"{w}×{h} {scene((h, w))[1]}" for h, w in sizes) + ".\n")
     if args.only in (None, "varying"):
         varying_table(reps)
+    if args.only in (None, "roll"):
+        roll_table(max(3, reps // 5))
     if args.only in (None, "floor"):
         floor_table(reps)
-    if args.only in ("varying", "floor"):
+    if args.only in ("varying", "roll", "floor"):
         emit(f"\nload average after the run {os.getloadavg()[0]:.1f}")
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text("\n".join(LINES) + "\n")

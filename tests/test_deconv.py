@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from thermod.errors import ThermodError
 from thermod.physics import deconv
@@ -338,6 +340,99 @@ def test_small_margins_and_a_fine_narrow_grid_match_the_tiled_reference(scene):
     fast = d.run_varying(b, g68, overlap=0.25)
     assert psnr(fast, s) >= psnr(ref, s)
     assert psnr(ref, s) > psnr(d.run(b, g34.kernels[1][1]), s) + 5.0   # the grid matters here
+
+
+def _tile_by_tile(d, img, grid, overlap):
+    """The tile solve written out one tile at a time with the one-kernel solver (`_solve`), blended
+    with `tile_weights` in NumPy: what the stacked solve (one FFT call per step for all tiles)
+    must reproduce."""
+    h, w = img.shape
+    centers = np.asarray(grid.centers, np.float64)
+    lo, hi = deconv.robust_range(img)
+    wys = tiles.tile_weights(h, centers[:, :, 0].mean(axis=1), overlap)
+    wxs = tiles.tile_weights(w, centers[:, :, 1].mean(axis=0), overlap)
+    m = deconv.TILE_MARGIN_PX
+    box = lambda a, b, n: (max(0, a - m), min(n, b + m))  # noqa: E731
+    th = max(box(a, b, h)[1] - box(a, b, h)[0] for a, b, _ in wys)
+    tw = max(box(a, b, w)[1] - box(a, b, w)[0] for a, b, _ in wxs)
+    pshape = (plans.fast_len(th + d.margin), plans.fast_len(tw + d.margin))
+    out = np.zeros((h, w), np.float64)
+    for r, (ys, ye, wy) in enumerate(wys):
+        for c, (xs, xe, wx) in enumerate(wxs):
+            (y0, y1), (x0, x1) = box(ys, ye, h), box(xs, xe, w)
+            k = grid.kernels[r][c]
+            tile = d._solve(img, (y0, y1, x0, x1), k.weights, k.origin, lo, hi, d.last_lam, pshape)
+            out[ys:ye, xs:xe] += tile[ys - y0:ye - y0, xs - x0:xe - x0] * wy[:, None] * wx[None, :]
+    return out
+
+
+@pytest.mark.parametrize("method", ["kf", "wiener"])
+def test_stacked_tile_solve_matches_tile_by_tile(scene, method, monkeypatch):
+    """All tiles of a frame in stacked FFT calls give what solving them one by one gives, whatever
+    the stack size (float32 FFT rounding only)."""
+    from thermod.physics.deconv import solver
+    crop = scene[:272, :352]
+    shape = (crop.shape[0] - 32, crop.shape[1] - 32)
+    b = blur_varying(crop, _grid(_roll_grid(6, 8, crop.shape, crop=0, px_per_radius=0.1), crop.shape))
+    b = b[16:-16, 16:-16]
+    grid = _grid(_roll_grid(2, 3, crop.shape, crop=16, px_per_radius=0.1), shape)
+    d = deconv.Deconvolver(method=method)
+    span = float(b.max() - b.min())
+    tile_points = int(np.prod(d._layout(b.shape, np.asarray(grid.centers, np.float64), 0.5,
+                                        deconv.TILE_MARGIN_PX).pshape))
+    outs = []
+    for stack in (6, 4, 1):      # 6 tiles: one stack; stacks of 3 and 3; six of one
+        monkeypatch.setattr(solver, "TILE_STACK_POINTS", stack * tile_points)
+        outs.append(d.run_varying(b, grid, overlap=0.5))
+        assert d.last_cells == 6
+    assert {k[0] for k in d._plans if len(k) == 3} == {6, 3, 1}   # the stacks solved
+    ref = _tile_by_tile(d, b, grid, 0.5)
+    for out in outs:
+        assert np.abs(out - ref).max() < 2e-5 * span
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rows=st.integers(1, 4), cols=st.integers(1, 5), overlap=st.sampled_from([0.1, 0.25, 0.6, 1.0]),
+       h=st.integers(40, 120), w=st.integers(40, 150), seed=st.integers(0, 2 ** 16),
+       stack=st.integers(1, 7))
+def test_stacked_tiles_match_tile_by_tile_on_any_grid(rows, cols, overlap, h, w, seed, stack):
+    """Any grid shape, frame shape, blend and stack size: the stacked solve is the tile-by-tile one
+    (scipy FFTs: no FFTW planning per random size; the stacking, layout and blending are the same)."""
+    from thermod.physics.deconv import solver
+    rng = np.random.default_rng(seed)
+    img = (1000 + 50 * rng.standard_normal((h, w))).astype(np.float32)
+    kernels = [[comet(int(rng.integers(2, 9)), 2.0, float(rng.uniform(0, 360))) for _ in range(cols)]
+               for _ in range(rows)]
+    grid = _grid(kernels, (h, w))
+    d = deconv.Deconvolver(fft="scipy")
+    old = solver.TILE_STACK_POINTS
+    try:
+        solver.TILE_STACK_POINTS = 1    # measure one tile's FFT points, then allow `stack` of them
+        d.run_varying(img, grid, overlap=overlap, uniform_tol_px=0)
+        solver.TILE_STACK_POINTS = stack * int(np.prod(next(iter(d._layouts.values())).pshape))
+        out = d.run_varying(img, grid, overlap=overlap, uniform_tol_px=0)
+    finally:
+        solver.TILE_STACK_POINTS = old
+    assert d.last_cells == rows * cols
+    ref = _tile_by_tile(d, img, grid, overlap)
+    assert np.abs(out - ref).max() < 1e-4 * float(img.max() - img.min())
+
+
+def test_last_cells_says_which_solve_ran(scene):
+    """`last_cells`: the kernel cells the frame was solved with — 1 when the grid's kernels barely
+    differ (one uniform solve), R×C when every tile was solved, 1 for `run`."""
+    shape = (240, 320)
+    k = comet(9, 3.0, 30.0)
+    b = scene[:240, :320]
+    d = deconv.Deconvolver(method="wiener")
+    d.run_varying(b, _grid([[k] * 4 for _ in range(3)], shape))
+    assert d.last_cells == 1
+    d.run_varying(b, _grid([[k] * 4 for _ in range(3)], shape), uniform_tol_px=0)
+    assert d.last_cells == 12
+    d.run_varying(b, _grid(_roll_grid(3, 4, (400, 480)), shape))
+    assert d.last_cells == 12
+    d.run(b, k)
+    assert d.last_cells == 1
 
 
 def test_kernel_spread_is_zero_for_one_kernel_and_grows_with_roll():

@@ -32,7 +32,9 @@ noise: `noise`.
 Spatially varying blur (`deconvolve_varying`): each cell of a kernel grid is deconvolved in its
 own tile (the cell's blending support plus `margin_px` = `TILE_MARGIN_PX` = 8 real neighbouring
 pixels: a thermal kernel's inverse is local), and tiles are blended with separable raised-cosine
-weights that form a partition of unity, so there are no seams. A grid whose kernels all match
+weights that form a partition of unity, so there are no seams. The tiles of a frame share one FFT
+size and are solved in stacks of a few (one FFTW call and one numba pass per K&F step for the
+whole stack, `plans.Plan` with a 3-D shape). A grid whose kernels all match
 the central one (`kernel_spread(grid)` ≤ 0.5 px: pure pan/tilt with a narrow field of view) is
 solved once, as a uniform blur.
 
@@ -40,9 +42,10 @@ Knobs for a caller that must fit a time budget (the daemon's governor), cost rel
 uniform K&F solve at 640×480 (roll-heavy family, docs/design.md §1.5):
 
 - the grid (rendered by the caller) and ``run_varying(overlap=…)``: 3×4 with overlap 1 (full
-  blending, the reference) ≈ 4×; **6×8 with overlap 0.25 ≈ 2.1×, +1.1 dB over the reference**;
-  4×6 with overlap 0.25 ≈ 2×, equal to the reference; cost grows with overlap (every pixel is
-  solved (1 + overlap)² times), and quality with both grid size and overlap.
+  blending, the reference) ≈ 4×; **6×8 with overlap 0.25 ≈ 1.75×, +1.2 dB over the reference**;
+  4×6 with overlap 0.25 ≈ 1.75×, equal to the reference; cost grows with overlap (every pixel is
+  solved (1 + overlap)² times) in steps of the tiles' FFT size, and quality with both grid size
+  and overlap. ``last_cells`` after a solve: the cells it solved (1: the uniform shortcut).
 - `kernel_spread(grid)`: 0 for a uniform grid; use the uniform solve (cost 1×) when it is small.
 - ``Deconvolver(iterations=n)``: K&F's continuation from β = 1 in n coarser steps instead of six
   (n = 3: β = 1, 8, 64); cost ≈ n/6 of the solve's FFT work. 3 steps cost 0.03–0.25 dB on comet

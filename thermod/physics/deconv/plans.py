@@ -93,13 +93,16 @@ def save_wisdom() -> None:
 class Plan:
     """Real FFT pair for one padded shape: write into `.rin`/`.cin`, call `fwd()`/`inv()`.
 
-    Results live in plan-owned buffers (FFTW) and are overwritten by the next call.
+    A 3-D shape (n, hp, wp) is a stack of n tiles transformed in one call (FFTW's `howmany`): one
+    plan and one Python call per step for all tiles of a frame, which also holds their OTFs
+    (`.K`, `.K2`). Results live in plan-owned buffers (FFTW) and are overwritten by the next call.
     """
 
     def __init__(self, shape, backend, workers, measure_unseen=True):
         self.shape = shape
         self.estimated = False  # planned with FFTW_ESTIMATE (no wisdom, real-time caller)
-        hp, wp = shape
+        hp, wp = shape[-2:]
+        cshape = (*shape[:-1], wp // 2 + 1)   # half spectrum of each tile
         self.backend = backend
         self.workers = workers
         # FFTW's inverse is unnormalised: the x-step folds 1/N into its output for free
@@ -107,8 +110,8 @@ class Plan:
         if backend == "fftw":
             _load_wisdom()
             self.rin = pyfftw.empty_aligned(shape, "float32")
-            self.cout = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
-            self.cin = pyfftw.empty_aligned((hp, wp // 2 + 1), "complex64")
+            self.cout = pyfftw.empty_aligned(cshape, "complex64")
+            self.cin = pyfftw.empty_aligned(cshape, "complex64")
             self.rout = pyfftw.empty_aligned(shape, "float32")
             # A real-time caller cannot wait ~0.7 s for a measured plan mid-stream (it would hold up
             # the frame queue), nor for another process's planning: it takes the wisdom it loaded if
@@ -125,7 +128,7 @@ class Plan:
                     save_wisdom()
         else:
             self.rin = np.empty(shape, np.float32)
-            self.cin = np.empty((hp, wp // 2 + 1), np.complex64)
+            self.cin = np.empty(cshape, np.complex64)
         # |F∂x|² + |F∂y|² of the circular forward differences
         ky = np.fft.fftfreq(hp).astype(np.float64)[:, None]
         kx = np.fft.rfftfreq(wp).astype(np.float64)[None, :]
@@ -134,12 +137,15 @@ class Plan:
         self.wy = np.empty((2, wp), np.float32)
         self.idx = np.empty(wp, np.int32)
         self.div = self.rin  # the w-step writes its divergence straight into the FFT input
-        self.spec = np.empty((hp, wp // 2 + 1), np.complex64)
+        self.spec = np.empty(cshape, np.complex64)
+        if len(shape) == 3:   # the tiles' OTFs K and |K|² (a uniform solve caches its own per kernel)
+            self.K = np.empty(cshape, np.complex64)
+            self.K2 = np.empty(cshape, np.float32)
 
     def _make_fftw(self, flags, workers) -> None:
-        self._f = pyfftw.FFTW(self.rin, self.cout, axes=(0, 1), flags=flags, threads=workers,
+        self._f = pyfftw.FFTW(self.rin, self.cout, axes=(-2, -1), flags=flags, threads=workers,
                               planning_timelimit=PLANNING_TIMELIMIT_S)
-        self._b = pyfftw.FFTW(self.cin, self.rout, axes=(0, 1), direction="FFTW_BACKWARD",
+        self._b = pyfftw.FFTW(self.cin, self.rout, axes=(-2, -1), direction="FFTW_BACKWARD",
                               flags=(*flags, "FFTW_DESTROY_INPUT"), threads=workers,
                               planning_timelimit=PLANNING_TIMELIMIT_S)
 
@@ -153,7 +159,7 @@ class Plan:
         if self.backend == "fftw":
             self._b.execute()
             return self.rout
-        return scipy.fft.irfft2(self.cin, s=self.shape, workers=self.workers)
+        return scipy.fft.irfft2(self.cin, s=self.shape[-2:], workers=self.workers)
 
 
 def fast_len(n: int) -> int:

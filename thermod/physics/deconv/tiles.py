@@ -3,8 +3,6 @@ the kernel moments that decide when a grid is uniform for all practical purposes
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .checks import DeconvError, check_kernel
@@ -43,20 +41,37 @@ def tile_weights(n: int, centers: np.ndarray, overlap: float) -> list[tuple[int,
     return out
 
 
-def _moments(w: np.ndarray, origin) -> np.ndarray:
-    """(mean u_y, mean u_x, std u_y, std u_x) of a kernel (px)."""
-    iy, ix = np.indices(w.shape)
-    uy = (iy - origin[0]).ravel()
-    ux = (ix - origin[1]).ravel()
-    p = w.ravel().astype(np.float64)
-    p = p / p.sum()
-    my, mx = p @ uy, p @ ux
-    return np.array([my, mx, math.sqrt(max(p @ (uy - my) ** 2, 0)), math.sqrt(max(p @ (ux - mx) ** 2, 0))])
+def stack_kernels(checked) -> tuple[np.ndarray, np.ndarray]:
+    """Checked kernels [(weights, origin), …] → (weights zero-padded to one (n, kh, kw) float32
+    stack, origins (n, 2)): the form the tile solve and `moments` take."""
+    kh = max(w.shape[0] for w, _ in checked)
+    kw = max(w.shape[1] for w, _ in checked)
+    weights = np.zeros((len(checked), kh, kw), np.float32)
+    origins = np.empty((len(checked), 2), np.int64)
+    for t, (w, o) in enumerate(checked):
+        weights[t, :w.shape[0], :w.shape[1]] = w
+        origins[t] = o
+    return weights, origins
+
+
+def moments(weights: np.ndarray, origins: np.ndarray) -> np.ndarray:
+    """(mean u_y, mean u_x, std u_y, std u_x) in px of each kernel of a `stack_kernels` stack, (n, 4)."""
+    p = weights.astype(np.float64)
+    p /= p.sum(axis=(1, 2), keepdims=True)
+    out = np.empty((len(p), 4))
+    for axis, marginal in ((0, p.sum(axis=2)), (1, p.sum(axis=1))):
+        u = np.arange(marginal.shape[1]) - origins[:, axis:axis + 1]   # displacement of each index (px)
+        mean = (marginal * u).sum(axis=1)
+        out[:, axis] = mean
+        out[:, 2 + axis] = np.sqrt(np.maximum((marginal * (u - mean[:, None]) ** 2).sum(axis=1), 0))
+    return out
 
 
 def max_moment_deviation(checked, ref) -> float:
-    m0 = _moments(*ref)
-    return max(float(np.abs(_moments(w, o) - m0).max()) for row in checked for w, o in row)
+    """Largest difference (px) of any kernel's centroid or spread from those of `ref`."""
+    m = moments(*stack_kernels([k for row in checked for k in row]))
+    m0 = moments(*stack_kernels([ref]))[0]
+    return float(np.abs(m - m0).max())
 
 
 def kernel_spread(grid) -> float:

@@ -188,3 +188,10 @@ def wstep_div(x, mode, inv_beta, tau, lut, inv_step, alpha, wx, wy, div, idx):
         for j in range(1, w):
             div[i, j] = (wxr[j - 1] - wxr[j]) + (wprev[j] - wcur[j])
         wprev, wcur = wcur, wprev
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def wstep_div_stack(x, mode, inv_beta, tau, lut, inv_step, alpha, wx, wy, div, idx):
+    """`wstep_div` on every tile of a stack x (n, hp, wp), into div (n, hp, wp; may alias x)."""
+    for t in range(x.shape[0]):
+        wstep_div(x[t], mode, inv_beta, tau, lut, inv_step, alpha, wx, wy, div[t], idx)
