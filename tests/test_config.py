@@ -37,7 +37,10 @@ def test_default_is_the_packaged_sim_toml():
     assert cfg.calibration.tau_s == pytest.approx(0.008)
     # the paper's IFOV 0.0391° → fx = 1/IFOV
     assert cfg.calibration.fx == pytest.approx(1.0 / math.radians(0.0391))
-    assert cfg.deblur.method == "kf" and cfg.deblur.alpha == pytest.approx(2 / 3)
+    # the packaged default runs the solver's documented defaults (α = 1, the finest grid 6×8)
+    d = config.DeblurConfig()
+    assert cfg.deblur.method == d.method == "kf" and cfg.deblur.alpha == d.alpha == 1.0
+    assert tuple(cfg.deblur.grid) == tuple(d.grid) and cfg.deblur.mode == "adaptive"
     assert cfg.sim.frame_rate_hz == 50.0 and cfg.sim.gyro_rate_hz == 1000.0
     assert cfg.publish.endpoint == "tcp://127.0.0.1:5555"
 
