@@ -1,17 +1,15 @@
 """Detector-side effects of the discrepancy workflow: flat-field corrections (`ffc_event`), a non-linear
-response (`detector_nonlinearity`), and effects outside the vocabulary (a vignetting change, parallax).
+response (`detector_nonlinearity`), and an effect outside the vocabulary (a vignetting change).
 
 Recordings come from the simulator's fine-time renderer (`thermod.sim.synth`), never from
-`thermod.calib.forward`. The whole-workflow tests use flight recordings with no static lead-in
-(`tests/flight_recordings.py`); the model tests use 160×120, 0.15 s static then 0.35 s of hand-held
-shake with a smooth 40 ms onset, NETD 50 mK, the simulator's seeded procedural texture. Thresholds were
-measured on these scenes.
+`thermod.calib.forward`: 160×120 (analysed at 80×60), 0.15 s static then 0.35 s of hand-held shake with a
+smooth 40 ms onset, NETD 50 mK, the simulator's seeded procedural texture. Thresholds were measured on
+these scenes.
 """
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+import math
 
 import numpy as np
 import pytest
@@ -26,10 +24,25 @@ from thermod.sim.synth import check_effects, simulate
 
 _I = Calibration().intrinsics.scaled(0.25)
 NOMINAL = Calibration(width=160, height=120, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
+WORK_WIDTH = 80
+
+
 
 
 def motion(seed: int = 3):
     return mo.sequence([(mo.static(), 0.15), (mo.Ramped(mo.shake(2.0, seed), 0.04), None)])
+
+
+def record(effects: dict, seconds: float = 0.5):
+    return simulate("texture", motion(), seconds, NOMINAL, {"netd": 0.05, **effects}, seed=1)
+
+
+def analyse(rec, **kw):
+    return D.analyse([D.prepare(rec, NOMINAL, name="rec", work_width=WORK_WIDTH)], D.Model(NOMINAL), **kw)
+
+
+def excess(gap: float, floor: float) -> float:
+    return math.sqrt(max(gap * gap - floor * floor, 0.0))
 
 
 # ------------------------------------------------------------------ simulator
@@ -163,45 +176,51 @@ def test_ffc_prediction_freezes_then_steps(small_rec_data):
     assert np.array_equal(p[:a], p0[:a])
 
 
-# ------------------------------------------------------------------ in flight (no static lead-in)
-# tests/flight_recordings.py: 160×120 analysed at full resolution, 0.4 s, the real Betaflight log's attitude
-# when ../shared/data is there, else the synthetic flight; NETD 50 mK, the seeded texture.
-sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import SIZE, analysed, excess, nominal_calibration  # noqa: E402
+# ------------------------------------------------------------------ flat-field correction
+_CACHE: dict = {}
 
-FFC = {"ffc_event": (0.2, 0.06, 20.0), "fpn": 0.05}      # 3 frozen frames 0.2 s in, then 20 counts
+
+def analysed(key: str, effects: dict):
+    if key not in _CACHE:
+        rec = record(effects)
+        _CACHE[key] = (rec, analyse(rec))
+    return _CACHE[key]
+
+
+FFC = {"ffc_event": (0.3, 0.08, 20.0), "fpn": 0.05}
 
 
 @pytest.mark.slow
-def test_ffc_event_in_flight_is_named_with_its_times_and_step():
-    fr, ana = analysed("ffc", FFC)
-    rec = fr.rec
+def test_ffc_event_is_named_with_its_times_and_step():
+    rec, ana = analysed("ffc", FFC)
+    assert ana.named[:1] == ["ffc_event"], ana.named
     assert ana.named == ["ffc_event"], ana.named
     p = ana.steps[0]["params"]
     frozen_t = rec.t[rec.extras["truth/ffc_frozen"]]
     # the event is bracketed by whole frames: its first frozen frame and the first live one after it
     assert p["t_start_s"] == [pytest.approx(float(frozen_t[0]))]
-    assert p["t_end_s"] == [pytest.approx(float(frozen_t[-1]) + 1.0 / fr.nominal.frame_rate_hz)]
-    # the offset step: a mean over the ~7 post-event frames × 4800 pixels of residual
+    assert p["t_end_s"] == [pytest.approx(float(frozen_t[-1]) + 1.0 / NOMINAL.frame_rate_hz)]
+    # the offset step: a mean over ~12 post-event frames × 3000 pixels of residual (σ ≈ 2 counts):
+    # measured 19.97 for 20
     assert p["step_counts"][0] == pytest.approx(20.0, abs=1.0)
     e0, e1 = excess(ana.gap_initial, ana.noise_floor), excess(ana.gap_final, ana.noise_floor)
-    assert e1 <= 0.5 * e0, (ana.gap_initial, ana.gap_final, ana.noise_floor)
+    assert e1 <= 0.5 * e0, (ana.gap_initial, ana.gap_final, ana.noise_floor)     # measured 0.27 → 0.036
     assert not ana.unexplained
 
 
 @pytest.mark.slow
-def test_ffc_event_with_a_time_offset_in_flight_both_named():
-    fr, ana = analysed("ffc+offset", {**FFC, "time_offset": 0.006})
+def test_ffc_event_with_a_time_offset_both_named():
+    rec, ana = analysed("ffc+offset", {**FFC, "time_offset": 0.006})
     assert sorted(ana.named) == ["ffc_event", "time_offset"], ana.named
-    assert abs(ana.model.calib.time_offset_s - fr.truth.time_offset_s) < 1e-3
+    assert abs(ana.model.calib.time_offset_s - 0.006) < 1e-3
     assert ana.steps[ana.named.index("ffc_event")]["params"]["step_counts"][0] == pytest.approx(20.0, abs=1.5)
     assert excess(ana.gap_final, ana.noise_floor) <= 0.5 * excess(ana.gap_initial, ana.noise_floor)
 
 
 # ------------------------------------------------------------------ outside the vocabulary
-def _vignetting_drift(rec, corner_loss: float, t_from: float):
-    """`rec` with a vignetting that grows linearly from `t_from` to `corner_loss` (fraction of the
-    signal lost in the corners) at the end — a lens barrel warming up; not in the vocabulary. The
+def _vignetting_drift(rec, corner_loss: float, t_motion: float):
+    """`rec` with a vignetting that grows linearly from the motion onset to `corner_loss` (fraction of
+    the signal lost in the corners) at the end — a lens barrel warming up; not in the vocabulary. The
     noiseless render is darkened, the same noise realisation added back."""
     clean = rec.extras["truth/blurry_noiseless"]
     noise = rec.frames.astype(np.float32) - clean
@@ -210,40 +229,31 @@ def _vignetting_drift(rec, corner_loss: float, t_from: float):
     r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
     frames = rec.frames.copy()
     t1 = rec.t[-1]
-    for k in np.flatnonzero(rec.t >= t_from):
-        a = corner_loss * (rec.t[k] - t_from) / (t1 - t_from)
+    for k in np.flatnonzero(rec.t >= t_motion):
+        a = corner_loss * (rec.t[k] - t_motion) / (t1 - t_motion)
         frames[k] = np.clip(np.rint(clean[k] * (1 - a * r2) + noise[k]), 0, 65535).astype(np.uint16)
     rec.frames = frames
     return rec
 
 
-OUTSIDE = {
-    # a vignetting change over the flight: 1 % of the signal lost in the corners by the end
-    "vignetting": ({}, lambda rec: _vignetting_drift(rec, 0.01, t_from=float(rec.t[0]))),
-    # parallax: flat ground 3 m below, the camera swaying at 0.3 m/s RMS (≈ 2 px of shift in the
-    # bottom rows by the end; the sky half has none)
-    "parallax": ({"parallax": (3.0, 0.3)}, None),
-}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("case", list(OUTSIDE))
-def test_effect_outside_the_vocabulary_is_unexplained_not_misnamed(case):
-    fx, edit = OUTSIDE[case]
-    fr, ana = analysed(case, fx, edit=edit)
-    assert ana.unexplained, (ana.gap_initial, ana.gap_final, ana.noise_floor)
+def test_vignetting_change_is_unexplained_not_misnamed():
+    rec = record({})
+    rec = _vignetting_drift(rec, 0.01, t_motion=rec.t[0] + 0.15)
+    ana = analyse(rec)
+    assert ana.unexplained, (ana.gap_final, ana.noise_floor)
     assert ana.named == [], ana.named
 
 
 # ------------------------------------------------------------------ non-linear response
-def _high_contrast_scene(calib: Calibration = NOMINAL):
+def _high_contrast_scene():
     """The texture stretched to a 30 K span (1–99 %), on the sphere: blur mixes very different levels."""
     from thermod.sim import scenes as sim_scenes
-    tex = sim_scenes.load_scene("texture", (2 * calib.height, 2 * calib.width), 0)
+    tex = sim_scenes.load_scene("texture", (240, 320), 0)
     m = float(np.median(tex))
     lo, hi = np.percentile(tex, [1, 99])
     return sim_detector.SphereScene((m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32),
-                                    calib.fx, calib.fy)
+                                    NOMINAL.fx, NOMINAL.fy)
 
 
 @pytest.mark.slow
@@ -266,16 +276,3 @@ def test_nonlinearity_fit_recovers_the_curvature(c):
     gamma = fit.model.response.gamma
     assert abs(gamma - (-c / 1000.0)) < 0.6e-4 + 0.2 * c / 1000.0, gamma
     assert fit.ssr <= ev.ssr
-
-
-@pytest.mark.slow
-def test_nonlinearity_in_flight_is_named_and_recovered():
-    # The whole search on a high-contrast flight (c = 0.3, β = 3e-4): named first, γ within the
-    # fitter test's tolerance above, the excess halved.
-    scene = _high_contrast_scene(nominal_calibration(SIZE))
-    fr, ana = analysed("nonlinearity", {"detector_nonlinearity": 0.3}, scene=scene)
-    assert ana.named[:1] == ["detector_nonlinearity"], ana.named
-    gamma = ana.model.response.gamma
-    assert abs(gamma + 3e-4) < 0.6e-4 + 0.2 * 3e-4, gamma
-    assert excess(ana.gap_final, ana.noise_floor) <= 0.5 * excess(ana.gap_initial, ana.noise_floor)
-    assert not ana.unexplained
