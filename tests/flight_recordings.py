@@ -105,3 +105,35 @@ def analysed(key: str, effects: dict | None = None, edit=None, **kw):
         d = D.prepare(fr.rec, fr.nominal, name=key, work_width=WORK_WIDTH)
         _CACHE[key] = (fr, D.analyse([d], D.Model(fr.nominal)))
     return _CACHE[key]
+
+
+def high_contrast_scene(calib: Calibration, shape=None, scene="texture"):
+    """The seeded scene stretched to a 30 K span (1–99 %: a hot vehicle on a cool field) on the sphere
+    at `calib`'s angular pixel size; `shape` (rows, cols) of the texture, twice the frame by default
+    (as the simulator makes its procedural scenes). Blur then mixes very different levels."""
+    from thermod.sim import detector as sim_detector
+    from thermod.sim import scenes as sim_scenes
+
+    tex = sim_scenes.load_scene(scene, shape or (2 * calib.height, 2 * calib.width), 0)
+    m = float(np.median(tex))
+    lo, hi = np.percentile(tex, [1, 99])
+    t2 = (m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32)
+    return sim_detector.SphereScene(t2, calib.fx, calib.fy)
+
+
+def vignetting_drift(rec: Recording, corner_loss: float, t_from: float) -> Recording:
+    """`rec` with a vignetting that grows linearly from `t_from` to `corner_loss` (fraction of the
+    signal lost in the corners) at the end — a lens barrel warming up; not in the vocabulary. The
+    noiseless render is darkened, the same noise realisation added back."""
+    clean = rec.extras["truth/blurry_noiseless"]
+    noise = rec.frames.astype(np.float32) - clean
+    h, w = clean.shape[1:]
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    frames = rec.frames.copy()
+    t1 = rec.t[-1]
+    for k in np.flatnonzero(rec.t >= t_from):
+        a = corner_loss * (rec.t[k] - t_from) / (t1 - t_from)
+        frames[k] = np.clip(np.rint(clean[k] * (1 - a * r2) + noise[k]), 0, 65535).astype(np.uint16)
+    rec.frames = frames
+    return rec

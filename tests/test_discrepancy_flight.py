@@ -18,26 +18,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from thermod.physics import gyro_effects as G
-from thermod.physics.calibration import Calibration
-from thermod.sim import detector as sim_detector
-from thermod.sim import scenes as sim_scenes
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import SIZE, analysed, nominal_calibration  # noqa: E402
-
-
-def _high_contrast_scene(calib: Calibration):
-    """The texture stretched to a 30 K span (a hot vehicle on a cool field), on the sphere at `calib`'s
-    angular pixel size (texture twice the frame, as the simulator makes its procedural scenes)."""
-    tex = sim_scenes.load_scene("texture", (2 * calib.height, 2 * calib.width), 0)
-    m = float(np.median(tex))
-    lo, hi = np.percentile(tex, [1, 99])
-    t2 = (m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32)
-    return sim_detector.SphereScene(t2, calib.fx, calib.fy)
+from flight_recordings import SIZE, analysed, high_contrast_scene, nominal_calibration, vignetting_drift  # noqa: E402
 
 
 @pytest.mark.slow
@@ -56,7 +42,7 @@ def test_clean_flight_recording_adds_nothing():
 
 @pytest.mark.slow
 def test_high_contrast_clean_flight_is_not_unexplained():
-    fr, ana = analysed("contrast-clean", {}, scene=_high_contrast_scene(nominal_calibration(SIZE)))
+    fr, ana = analysed("contrast-clean", {}, scene=high_contrast_scene(nominal_calibration(SIZE)))
     assert not ana.unexplained
     assert ana.steps == []
 
@@ -81,27 +67,9 @@ def test_lowpass_under_slow_flight_motion_is_reported_as_the_simpler_time_offset
     assert not ana.unexplained
 
 
-def _vignetting_drift(rec, corner_loss: float, t_from: float):
-    """`rec` with a vignetting that grows linearly from `t_from` to `corner_loss` (fraction of the
-    signal lost in the corners) at the end — a lens barrel warming up; not in the vocabulary. The
-    noiseless render is darkened, the same noise realisation added back."""
-    clean = rec.extras["truth/blurry_noiseless"]
-    noise = rec.frames.astype(np.float32) - clean
-    h, w = clean.shape[1:]
-    yy, xx = np.mgrid[0:h, 0:w]
-    r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
-    frames = rec.frames.copy()
-    t1 = rec.t[-1]
-    for k in np.flatnonzero(rec.t >= t_from):
-        a = corner_loss * (rec.t[k] - t_from) / (t1 - t_from)
-        frames[k] = np.clip(np.rint(clean[k] * (1 - a * r2) + noise[k]), 0, 65535).astype(np.uint16)
-    rec.frames = frames
-    return rec
-
-
 OUTSIDE = {
     # a vignetting change over the flight: 1 % of the signal lost in the corners by the end
-    "vignetting": ({}, lambda rec: _vignetting_drift(rec, 0.01, t_from=float(rec.t[0]))),
+    "vignetting": ({}, lambda rec: vignetting_drift(rec, 0.01, t_from=float(rec.t[0]))),
     # parallax: flat ground 3 m below, the camera swaying at 0.3 m/s RMS (≈ 2 px of shift in the
     # bottom rows by the end; the sky half has none)
     "parallax": ({"parallax": (3.0, 0.3)}, None),
