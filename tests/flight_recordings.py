@@ -45,19 +45,11 @@ def nominal_calibration(size=(160, 120)) -> Calibration:
     return Calibration(width=w, height=h, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy)
 
 
-class _Sum(mo.Motion):
-    def __init__(self, *parts: mo.Motion):
-        self.parts, self.spec = parts, "+".join(p.spec for p in parts)
-
-    def omega(self, t):
-        return sum(p.omega(t) for p in self.parts)
-
-
 def flight_motion(seed: int = 0, real_log: bool = False, vibration_deg_s: float = 0.0) -> mo.Motion:
     """The flight attitude (module docstring), plus a 10 Hz rotor vibration of `vibration_deg_s` RMS
     (harmonics to 40 Hz: the broadband content a gyro low-pass needs to be told from a delay)."""
     m = mo.gyro_log(None, start_s=0.7 * seed + 1.0) if real_log else mo.flight(seed=seed)
-    return _Sum(m, mo.vibration(vibration_deg_s, 10.0, seed)) if vibration_deg_s else m
+    return mo.Summed(m, mo.vibration(vibration_deg_s, 10.0, seed)) if vibration_deg_s else m
 
 
 def flight_recording(effects: dict | None = None, seconds: float = 0.4, size=(160, 120), seed: int = 0,
