@@ -27,29 +27,11 @@ _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
 
 
-class _Ramped(mo.Motion):
-    def __init__(self, inner, ramp_s):
-        self.inner, self.ramp_s, self.spec = inner, ramp_s, f"ramped({inner.spec})"
-
-    def omega(self, t):
-        t = np.atleast_1d(np.asarray(t, float))
-        x = np.clip(t / self.ramp_s, 0.0, 1.0)
-        return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
-
-
-class _Sum(mo.Motion):
-    def __init__(self, *parts):
-        self.parts, self.spec = parts, "+".join(p.spec for p in parts)
-
-    def omega(self, t):
-        return sum(p.omega(t) for p in self.parts)
-
-
 def motion(broadband: bool, seed: int = 3) -> mo.Motion:
     inner = mo.shake(2.0, seed)
     if broadband:
-        inner = _Sum(inner, mo.vibration(15.0, 10.0, seed))
-    return mo.sequence([(mo.static(), 0.2), (_Ramped(inner, 0.04), None)])
+        inner = mo.Summed(inner, mo.vibration(15.0, 10.0, seed))
+    return mo.sequence([(mo.static(), 0.2), (mo.Ramped(inner, 0.04), None)])
 
 
 CASES = {   # effect: (hidden effects, broadband motion, the parameter to report)

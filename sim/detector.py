@@ -20,6 +20,11 @@ Rendering (per frame interval, with sub-segments when the motion is very fast):
 5. the optical PSF (Eq. 19, Gaussian σ px) is applied to the integrated frame (it commutes with the
    rotation warps for an isotropic PSF).
 
+With `parallax` (`thermod.sim.parallax.NearGround`: a near scene and a translating camera, outside
+the rotation-only model) each fine step's view is a cv2.remap of the canvas through the rotation
+homography plus the parallax shift of the step's mid time, and the sharp truth views include it
+(`frames_rolling`, the per-row truth under rolling readout, does not).
+
 The integration starts `history_tau` τ (≥ 5, default 8) before the first row of the first frame,
 from the view at that time (a settled detector: the error of that start is exp(−8) = 0.03 % of
 the contrast the motion sweeps past). The photon-detector variant (Eq. 2) box-averages the
@@ -121,7 +126,7 @@ def image_speed_bound(calib: Calibration, w_abs: np.ndarray, margin_px: float = 
 
 def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
            kind: str = "thermal", exposure_s: float | None = None, psf_sigma_px: float | None = None,
-           step_px: float = 0.5, history_tau: float = 8.0, progress=None) -> Rendered:
+           step_px: float = 0.5, history_tau: float = 8.0, progress=None, parallax=None) -> Rendered:
     """Render blurry frames at `frame_times` (absolute s, on the trajectory's clock) with the
     detector of `calib` (τ, readout, intrinsics, PSF). See the module docstring.
 
@@ -129,6 +134,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     default exposure = one frame period, `default_photon_exposure_s`).
     psf_sigma_px: None → calib.psf_sigma_px (Eq. 19).
     progress: optional callable(n_frames_done) for a progress bar.
+    parallax: optional `thermod.sim.parallax.NearGround` (module docstring).
     """
     t_frames = np.asarray(frame_times, dtype=np.float64)
     _check_render_args(t_frames, calib, kind, step_px, history_tau)
@@ -140,8 +146,11 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     cam = _Camera(calib)
     rows_t = row_read_time(t_frames[:, None], np.arange(cam.H)[None, :], float(calib.readout_s), cam.H)
     if kind == "thermal":
-        detector = _ThermalDetector(scene.view(traj.R(t_begin)[0], cam.K, cam.W, cam.H), rows_t,
-                                    float(calib.tau_s))
+        if parallax is None:
+            B0 = scene.view(traj.R(t_begin)[0], cam.K, cam.W, cam.H)
+        else:
+            B0 = _Segment.plan(scene, traj, cam, np.array([t_begin, t_begin]), parallax).view(cam, 0)
+        detector = _ThermalDetector(B0, rows_t, float(calib.tau_s))
     else:
         detector = _PhotonDetector(rows_t, exposure_s, cam.W)
     n = len(t_frames)
@@ -153,7 +162,7 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     for k in range(n):
         for a, b in _canvas_segments(cam, calib, traj, edges[k], edges[k + 1]):
             t_bounds = _fine_steps(calib, traj, a, b, step_px)
-            seg = _Segment.plan(scene, traj, cam, t_bounds)
+            seg = _Segment.plan(scene, traj, cam, t_bounds, parallax)
             max_step = max(max_step, cam.step_motion_px(seg.Q))
             for j in range(len(t_bounds) - 1):
                 detector.step(seg.view(cam, j), t_bounds[j], t_bounds[j + 1])
@@ -234,6 +243,8 @@ class _Camera:
         self.K_inv = np.linalg.inv(self.K)
         W, H = self.W, self.H
         self.corners = np.array([[0, 0, 1], [W - 1, 0, 1], [0, H - 1, 1], [W - 1, H - 1, 1]], float).T
+        u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+        self.rays = self.K_inv @ np.stack([u.ravel(), v.ravel(), np.ones(W * H)])    # K⁻¹ p, [3, W·H]
 
     def map_corners(self, Hs: np.ndarray) -> np.ndarray:
         """The image corners mapped by each homography of Hs [n, 3, 3] → pixels [n, 2, 4]."""
@@ -273,16 +284,22 @@ class _Segment:
 
     The canvas is the pinhole view at the segment end's orientation R_ref = R(b), with intrinsics
     K_c (K shifted by the canvas origin (x0, y0) in view pixels), large enough to hold every view;
-    Q[j] = R_refᵀ R(t_j) at step j's mid time (Eq. 16)."""
+    Q[j] = R_refᵀ R(t_j) at step j's mid time (Eq. 16); with `parallax`, the canvas has a margin for
+    its shifts and each view adds them (module docstring)."""
 
     canvas: np.ndarray
     K_c: np.ndarray
     Q: np.ndarray
     x0: int
     y0: int
+    R_ref: np.ndarray | None = None
+    t_mid: np.ndarray | None = None
+    t_end: float = 0.0
+    parallax: object = None
 
     @classmethod
-    def plan(cls, scene: SphereScene, traj: Trajectory, cam: _Camera, t_bounds: np.ndarray) -> _Segment:
+    def plan(cls, scene: SphereScene, traj: Trajectory, cam: _Camera, t_bounds: np.ndarray,
+             parallax=None) -> _Segment:
         """Sample the canvas for the steps bounded by `t_bounds` (one cv2.remap from the sphere)."""
         t_mid = 0.5 * (t_bounds[:-1] + t_bounds[1:])
         R_ref = traj.R(t_bounds[-1])[0]
@@ -291,17 +308,22 @@ class _Segment:
         if np.any(~np.isfinite(pc)) or np.abs(pc).max() > 1e5:
             raise ThermodError("detector: a view turned more than 90° within one frame interval; "
                                "raise the frame rate or slow the motion")
-        x0 = int(math.floor(min(pc[:, 0].min(), 0))) - 3
-        y0 = int(math.floor(min(pc[:, 1].min(), 0))) - 3
-        x1 = int(math.ceil(max(pc[:, 0].max(), cam.W - 1))) + 4
-        y1 = int(math.ceil(max(pc[:, 1].max(), cam.H - 1))) + 4
+        m = 0 if parallax is None else int(math.ceil(parallax.max_shift_px(
+            max(cam.K[0, 0], cam.K[1, 1]) * 1.1, t_bounds[0], t_bounds[-1])))
+        x0 = int(math.floor(min(pc[:, 0].min(), 0))) - 3 - m
+        y0 = int(math.floor(min(pc[:, 1].min(), 0))) - 3 - m
+        x1 = int(math.ceil(max(pc[:, 0].max(), cam.W - 1))) + 4 + m
+        y1 = int(math.ceil(max(pc[:, 1].max(), cam.H - 1))) + 4 + m
         K_c = cam.K.copy()
         K_c[0, 2] -= x0
         K_c[1, 2] -= y0
-        return cls(scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1), K_c, Q, x0, y0)
+        return cls(scene.view(R_ref, K_c, x1 - x0 + 1, y1 - y0 + 1), K_c, Q, x0, y0, R_ref, t_mid,
+                   float(t_bounds[-1]), parallax)
 
     def view(self, cam: _Camera, j: int) -> np.ndarray:
         """The sharp view at step j's mid time: the canvas warped by K_c Q_j K⁻¹ (Eq. 16)."""
+        if self.parallax is not None:
+            return self._parallax_view(cam, self.Q[j], float(self.t_mid[j]))
         Hj = self.K_c @ self.Q[j] @ cam.K_inv
         return cv2.warpPerspective(self.canvas, Hj, (cam.W, cam.H),
                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -309,7 +331,19 @@ class _Segment:
 
     def frame_view(self, cam: _Camera) -> np.ndarray:
         """The sharp view at the segment's end (R_ref): the canvas cropped to the frame."""
+        if self.parallax is not None:
+            return self._parallax_view(cam, np.eye(3), self.t_end)
         return self.canvas[-self.y0:-self.y0 + cam.H, -self.x0:-self.x0 + cam.W]
+
+
+    def _parallax_view(self, cam: _Camera, Q: np.ndarray, t: float) -> np.ndarray:
+        """The view at orientation R_ref·Q and time t with the parallax shift: each pixel samples the
+        canvas where its source ray (`NearGround.source_rays`) lands."""
+        src = self.parallax.source_rays(self.R_ref @ Q @ cam.rays, t)
+        h = self.K_c @ self.R_ref.T @ src
+        mx = (h[0] / h[2]).reshape(cam.H, cam.W).astype(np.float32)
+        my = (h[1] / h[2]).reshape(cam.H, cam.W).astype(np.float32)
+        return cv2.remap(self.canvas, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 class _ThermalDetector:

@@ -453,3 +453,15 @@ class Ramped(Motion):
         t = np.atleast_1d(np.asarray(t, float))
         x = np.clip(t / self.ramp_s, 0.0, 1.0)
         return self.inner.omega(t) * (x * x * (3 - 2 * x))[:, None]
+
+
+class Summed(Motion):
+    """Several motions at once, their rates added (a flight attitude plus a rotor vibration)."""
+
+    def __init__(self, *parts: Motion):
+        if not parts:
+            raise ThermodError("summed motion: expected at least one part")
+        self.parts, self.spec = parts, "+".join(p.spec for p in parts)
+
+    def omega(self, t):
+        return sum(p.omega(t) for p in self.parts)

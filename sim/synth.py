@@ -23,6 +23,10 @@ has to explain:
     gyro_lowpass           Hz     cutoff of the gyro chip's DLPF (2nd-order Butterworth: group delay
                                   √2/(2π f_c) plus attenuation 1/√(1 + (f/f_c)⁴))
     gyro_saturation        rad/s  the gyro's full-scale range: raw samples clip at ±this
+    parallax               m,m/s  HEIGHT,SPEED: flat ground HEIGHT below the camera, which translates in a
+                                  seeded sway of SPEED RMS (`thermod.sim.parallax.NearGround`): a near
+                                  scene under translation, outside the rotation-only model (no
+                                  calibration field, no candidate: the workflow must call it unexplained)
     ffc_event              s,s[,counts]  T_START,DURATION[,STEP_COUNTS]: a flat-field correction T_START
                                   after the first frame: frames frozen for DURATION, then a new NUC
                                   (offset step, default 20 counts, and a new FPN realisation);
@@ -55,14 +59,16 @@ from thermod.sim import detector as det
 from thermod.sim import motion as mo
 from thermod.sim import scenes
 from thermod.sim.gyro_model import DEG, GyroErrorModel
+from thermod.sim.parallax import NearGround
 
 EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
            "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
            "gyro_noise", "clock_drift", "gyro_lowpass", "gyro_saturation",
-           "ffc_event")
+           "ffc_event", "parallax")
 EFFECT_ALIASES = {"clock_drift_ppm": "clock_drift", "gyro_lowpass_hz": "gyro_lowpass"}
 MAX_BYTES = 6e9          # the whole recording is built in memory
-_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,), "ffc_event": (2, 3)}
+_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,), "ffc_event": (2, 3),
+           "parallax": (2,)}
 
 
 def check_effects(effects: Mapping | None) -> dict:
@@ -92,6 +98,8 @@ def check_effects(effects: Mapping | None) -> dict:
                            "(c = 1: +100 % response 1000 counts above the level)")
     if "ffc_event" in out:
         _ffc_event(out).validate()
+    if "parallax" in out:
+        NearGround(*out["parallax"])
     return out
 
 
@@ -144,7 +152,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
     (`detector.render_time_compressed`); thermal detector only, no rolling readout.
     """
-    _check_method(method, kind)
+    _check_method(method, kind, effects)
     nominal = _nominal_calibration(calib, frame_rate)
     fps = float(nominal.frame_rate_hz)
     n = _frame_count(seconds, nominal)
@@ -160,8 +168,11 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     traj, gyro_lo, gyro_hi = _trajectory(mot, t_frames, truth_cal, kind, exposure_s, history_tau)
     with _progress_bar(n if progress else 0) as bar:
         if method == "fine":
+            par = (NearGround(*fx["parallax"], seed=seed, t_ref=float(t_frames[0])) if "parallax" in fx
+                   else None)
             r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
-                           psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau, progress=bar)
+                           psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau, progress=bar,
+                           parallax=par)
         else:
             r = det.render_time_compressed(sc, traj, t_frames, truth_cal, compression=compression,
                                            slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
@@ -185,10 +196,12 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
                      extra_attrs={"truth": _truth_attrs(truth_cal, run, fx)})
 
 
-def _check_method(method: str, kind: str) -> None:
+def _check_method(method: str, kind: str, effects: Mapping | None = None) -> None:
     """Reject unknown synthesis methods and time compression of a photon detector."""
     if method not in ("fine", "time_compression"):
         raise ThermodError(f"simulate: method must be 'fine' or 'time_compression', got {method!r}")
+    if method == "time_compression" and "parallax" in (effects or {}):
+        raise ThermodError("simulate: parallax needs the fine-time renderer (method='fine')")
     if method == "time_compression" and kind != "thermal":
         raise ThermodError("simulate: time compression synthesises the thermal detector only")
 

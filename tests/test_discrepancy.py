@@ -36,6 +36,9 @@ from thermod.sim import motion as mo
 from thermod.sim import scenes as sim_scenes
 from thermod.sim.synth import simulate, truth_calibration
 
+sys.path.insert(0, str(Path(__file__).parent))
+from flight_recordings import flight_recording, high_contrast_scene  # noqa: E402
+
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
@@ -218,19 +221,10 @@ def test_fixed_pattern_noise_is_estimated_not_blamed_on_the_model(scene, require
     assert np.corrcoef(d.fpn[m], hp[m])[0, 1] > min_corr
 
 
-def _high_contrast_scene(scene=SCENE):
-    """The scene stretched to a 30 K span (a hot vehicle on a cool field), on the sphere."""
-    tex = sim_scenes.load_scene(scene, (240, 320), 0)
-    m = float(np.median(tex))
-    lo, hi = np.percentile(tex, [1, 99])
-    t2 = (m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32)
-    return sim_detector.SphereScene(t2, NOMINAL.fx, NOMINAL.fy)
-
-
 @pytest.mark.slow
 def test_high_contrast_clean_recording_is_not_unexplained():
     # The high-contrast scene alone is explained (its sharp edges stay within the model's precision).
-    rec, ana = analysed("contrast-clean", {}, scene=_high_contrast_scene())
+    rec, ana = analysed("contrast-clean", {}, scene=high_contrast_scene(NOMINAL, shape=(240, 320)))
     assert not ana.unexplained
     assert ana.steps == []
 
@@ -400,9 +394,6 @@ def test_static_only_recording_is_rejected_with_the_file_named(tmp_path):
 def test_recording_without_static_segment_is_analysed_motion_only(tmp_path):
     # No static lead-in: the reference is a scene canvas estimated from the moving frames, and the
     # report says so. Small and short (64×48 working image), so this stays cheap.
-    sys.path.insert(0, str(Path(__file__).parent))
-    from flight_recordings import flight_recording
-
     fr = flight_recording({}, seconds=0.3, size=(128, 96), seed=2)
     d = D.prepare(fr.rec, fr.nominal, name="flight.h5", work_width=64)
     assert d.reference == "motion" and d.static_gyro_mean is None

@@ -10,6 +10,8 @@ these scenes.
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,9 @@ from thermod.physics.calibration import Calibration
 from thermod.sim import detector as sim_detector
 from thermod.sim import motion as mo
 from thermod.sim.synth import check_effects, simulate
+
+sys.path.insert(0, str(Path(__file__).parent))
+from flight_recordings import high_contrast_scene, vignetting_drift  # noqa: E402
 
 _I = Calibration().intrinsics.scaled(0.25)
 NOMINAL = Calibration(width=160, height=120, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
@@ -82,6 +87,46 @@ def test_sim_nonlinearity_is_validated():
     cal = NOMINAL.replace(width=48, height=40, cx=23.5, cy=19.5)
     with pytest.raises(ThermodError, match="turns over"):
         simulate(scene, "static", 0.04, cal, {"detector_nonlinearity": 0.5})
+
+
+def _lk_shift(a: np.ndarray, b: np.ndarray, sl, iterations: int = 4) -> np.ndarray:
+    """The translation s (px, x then y) with b ≈ a moved by s over the window `sl` (Lucas–Kanade)."""
+    import cv2
+    s = np.zeros(2)
+    yy, xx = np.mgrid[0:a.shape[0], 0:a.shape[1]].astype(np.float32)
+    for _ in range(iterations):
+        aw = cv2.remap(a, xx - np.float32(s[0]), yy - np.float32(s[1]), cv2.INTER_CUBIC,
+                       borderMode=cv2.BORDER_REFLECT)
+        gy, gx = np.gradient(aw.astype(np.float64))
+        m = np.stack([gx[sl].ravel(), gy[sl].ravel()], axis=1)
+        s += np.linalg.lstsq(m, (aw - b)[sl].astype(np.float64).ravel(), rcond=None)[0]
+    return s
+
+
+def test_sim_parallax_moves_the_near_ground_not_the_sky():
+    # A static camera 2 m above flat ground, translating (0.4 m/s RMS sway): rows above the horizon
+    # (the far background) are the rotation-only view exactly; a ground row r is moved by
+    # −f ρ (T_x, T_y − y_n T_z), ρ = y_n / height (first-order parallax). Measured 0.231 px for 0.265
+    # at row 84 and 0.476 for 0.485 at row 104 (LK on the rendered views).
+    from thermod.sim.parallax import NearGround
+
+    a = simulate("texture", "static", 0.2, NOMINAL, {}, seed=1).extras["truth/frames"]
+    rec = simulate("texture", "static", 0.2, NOMINAL, {"parallax": (2.0, 0.4)}, seed=1)
+    b = rec.extras["truth/frames"]
+    horizon = int(NOMINAL.cy)
+    assert np.array_equal(b[:, :horizon - 2], a[:, :horizon - 2])
+    k = len(rec.t) - 1
+    T = NearGround(2.0, 0.4, seed=1, t_ref=float(rec.t[0])).position(rec.t[k])[0]
+    for r0 in (80, 100):
+        yn = (r0 + 3.5 - NOMINAL.cy) / NOMINAL.fy
+        want_y = -NOMINAL.fy * yn / 2.0 * (T[1] - yn * T[2])
+        got = _lk_shift(a[k], b[k], (slice(r0, r0 + 8), slice(16, 144)))
+        assert got[1] == pytest.approx(want_y, rel=0.2), (r0, got, want_y)
+        assert np.sign(got[0]) == np.sign(-T[0])
+    with pytest.raises(ThermodError, match="parallax: height"):
+        check_effects({"parallax": (0.0, 0.3)})
+    with pytest.raises(ThermodError, match="fine-time renderer"):
+        simulate("texture", "static", 0.04, NOMINAL, {"parallax": (2.0, 0.4)}, method="time_compression")
 
 
 # ------------------------------------------------------------------ the response model
@@ -178,44 +223,16 @@ def test_ffc_event_with_a_time_offset_both_named():
 
 
 # ------------------------------------------------------------------ outside the vocabulary
-def _vignetting_drift(rec, corner_loss: float, t_motion: float):
-    """`rec` with a vignetting that grows linearly from the motion onset to `corner_loss` (fraction of
-    the signal lost in the corners) at the end — a lens barrel warming up; not in the vocabulary. The
-    noiseless render is darkened, the same noise realisation added back."""
-    clean = rec.extras["truth/blurry_noiseless"]
-    noise = rec.frames.astype(np.float32) - clean
-    h, w = clean.shape[1:]
-    yy, xx = np.mgrid[0:h, 0:w]
-    r2 = ((xx - (w - 1) / 2) ** 2 + (yy - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
-    frames = rec.frames.copy()
-    t1 = rec.t[-1]
-    for k in np.flatnonzero(rec.t >= t_motion):
-        a = corner_loss * (rec.t[k] - t_motion) / (t1 - t_motion)
-        frames[k] = np.clip(np.rint(clean[k] * (1 - a * r2) + noise[k]), 0, 65535).astype(np.uint16)
-    rec.frames = frames
-    return rec
-
-
 @pytest.mark.slow
 def test_vignetting_change_is_unexplained_not_misnamed():
     rec = record({})
-    rec = _vignetting_drift(rec, 0.01, t_motion=rec.t[0] + 0.15)
+    rec = vignetting_drift(rec, 0.01, t_from=rec.t[0] + 0.15)
     ana = analyse(rec)
     assert ana.unexplained, (ana.gap_final, ana.noise_floor)
     assert ana.named == [], ana.named
 
 
 # ------------------------------------------------------------------ non-linear response
-def _high_contrast_scene():
-    """The texture stretched to a 30 K span (1–99 %), on the sphere: blur mixes very different levels."""
-    from thermod.sim import scenes as sim_scenes
-    tex = sim_scenes.load_scene("texture", (240, 320), 0)
-    m = float(np.median(tex))
-    lo, hi = np.percentile(tex, [1, 99])
-    return sim_detector.SphereScene((m + (tex - m) * (30.0 * 40.0 / (hi - lo))).astype(np.float32),
-                                    NOMINAL.fx, NOMINAL.fy)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("c", [0.0, 0.3])
 def test_nonlinearity_fit_recovers_the_curvature(c):
@@ -225,8 +242,8 @@ def test_nonlinearity_fit_recovers_the_curvature(c):
     # linearisation γ ≈ −β about m; measured −3.08e-4 for β = 3e-4 and −1e-5 for a linear detector.
     from thermod.calib.discrepancy.effects import EFFECTS
     from thermod.calib.discrepancy.problem import Problem, StepContext
-    rec = simulate(_high_contrast_scene(), motion(), 0.5, NOMINAL, {"netd": 0.05, "detector_nonlinearity": c},
-                   seed=1)
+    rec = simulate(high_contrast_scene(NOMINAL, shape=(240, 320)), motion(), 0.5, NOMINAL,
+                   {"netd": 0.05, "detector_nonlinearity": c}, seed=1)
     d = D.prepare(rec, NOMINAL, name="nl")
     problem = Problem([d])
     m0 = D.Model(NOMINAL)

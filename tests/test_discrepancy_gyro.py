@@ -177,18 +177,8 @@ def test_kernel_renderer_applies_the_clock_drift():
 # ------------------------------------------------------------------ the workflow on hidden effects
 # The recordings of tests/test_discrepancy.py (320×240, 0.2 s static then 0.3 s of three-axis shake,
 # NETD 50 mK, the seeded texture), with a 10 Hz vibration added for the low-pass: its attenuation
-# needs motion content near the cutoff. (Flight-like recordings without a static lead-in come with
-# tests/flight_recordings.py; switch to them once it is in main.)
-class _Sum(mo.Motion):
-    def __init__(self, *parts):
-        self.parts, self.spec = parts, "+".join(p.spec for p in parts)
-
-    def omega(self, t):
-        return sum(p.omega(t) for p in self.parts)
-
-
-
-
+# needs motion content near the cutoff. (On flight recordings with no static lead-in these effects are
+# not named yet: tests/test_discrepancy_flight.py says what holds there.)
 _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
 
@@ -196,7 +186,7 @@ NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I
 def _motion(broadband: bool, seed: int = 3):
     inner = mo.shake(2.0, seed)
     if broadband:
-        inner = _Sum(inner, mo.vibration(15.0, 10.0, seed))
+        inner = mo.Summed(inner, mo.vibration(15.0, 10.0, seed))
     return mo.sequence([(mo.static(), 0.2), (mo.Ramped(inner, 0.04), None)])
 
 

@@ -172,3 +172,24 @@ def test_matches_the_simulator_fine_time_renderer():
     assert gap(truth_cal.replace(tau_s=0.004)) > 2 * g           # the thermal lag matters …
     assert gap(truth_cal.replace(time_offset_s=0.0)) > 2 * g     # … and so does timing,
     assert gap(truth_cal.replace(time_offset_s=-0.003)) > gap(truth_cal.replace(time_offset_s=0.0))  # signed
+
+
+@pytest.mark.parametrize("readout", [0.0, 0.011])
+def test_adjoint_is_the_transpose_of_the_prediction(readout):
+    # ⟨A S, c⟩ = ⟨S, Aᵀ c⟩ for the raw prediction (views, IIR, rows read inside steps), on a canvas
+    # larger than the frame with a strip of unknown support.
+    cal = Calibration(width=80, height=60, fx=200.0, fy=200.0, cx=39.5, cy=29.5, tau_s=0.008,
+                      readout_s=readout)
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 0.3, 0.001)
+    w = np.c_[0.3 * np.sin(20 * t), 0.4 * np.sin(13 * t + 1), 0.5 * np.sin(9 * t)]
+    fm = ForwardModel(np.zeros((60, 80), np.float32), np.arange(0.1, 0.3, 0.02), t, w, cal, t_ref=0.15,
+                      t_start=0.05, max_step_px=1.0)
+    S = rng.normal(0, 1, (90, 110)).astype(np.float32)
+    sup = np.ones_like(S)
+    sup[:5] = 0
+    fm.set_reference(S, None, prescaled=True, origin=(15.0, 15.0), support=sup)
+    num, _ = fm.predict_raw(cal)
+    c = rng.normal(0, 1, num.shape).astype(np.float32)
+    lhs = float(np.sum(num.astype(np.float64) * c))
+    assert float(np.sum(fm.adjoint(cal, c) * S)) == pytest.approx(lhs, rel=1e-5)

@@ -78,6 +78,18 @@ def orientations(t_query: np.ndarray, t_cam: np.ndarray, omega_cam: np.ndarray, 
     return integrate_rotations(tt, ww, t_ref)[inv[: len(t_query)]]
 
 
+def _weight_centroid(h: np.ndarray, tau: float) -> np.ndarray:
+    """Mean age of the exponential weight e^{−a/τ} over a step's a ∈ [0, h]: τ − h/(e^{h/τ} − 1)
+    (h/2 − h²/(12τ) for short steps, 0 without thermal lag)."""
+    h = np.asarray(h, np.float64)
+    if tau <= 0:
+        return np.zeros_like(h)
+    x = h / tau
+    small = x < 1e-3
+    xs = np.where(small, 1.0, x)
+    return np.where(small, h / 2 - h * x / 12, tau - h / np.expm1(xs))
+
+
 # ------------------------------------------------------------------ compiled kernels (one core, no threads)
 @njit(cache=True, nogil=True, fastmath=True, inline="always")
 def _taps(f, cubic, w):
@@ -98,10 +110,43 @@ def _taps(f, cubic, w):
         w[3] = 0.0
 
 
+@njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _cubic_taps(f):
+    """OpenCV's cubic weights (Keys a = −0.75) of the taps at offsets −1..2 for fractional position f."""
+    a = -0.75
+    x = f + 1.0
+    w0 = ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a
+    w1 = ((a + 2.0) * f - (a + 3.0)) * f * f + 1.0
+    g = 1.0 - f
+    w2 = ((a + 2.0) * g - (a + 3.0)) * g * g + 1.0
+    return w0, w1, w2, 1.0 - w0 - w1 - w2
+
+
 @njit(cache=True, nogil=True, fastmath=True)
-def _warp_views(S, sup, Hs, ox, oy, cubic, full, out_v, out_m):
+def _interior(sup):
+    """1 at (iv, iu) where all 16 taps rows iv−1..iv+2, columns iu−1..iu+2 lie in the canvas and its
+    support: there a view pixel is one plain 4×4 sum and its support weight is exactly 1."""
+    ch, cw = sup.shape
+    out = np.zeros((ch, cw), np.uint8)
+    for iv in range(1, ch - 2):
+        for iu in range(1, cw - 2):
+            ok = 1
+            for a in range(-1, 3):
+                for b in range(-1, 3):
+                    if sup[iv + a, iu + b] != 1.0:
+                        ok = 0
+            out[iv, iu] = ok
+    return out
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _warp_views(S, sup, inner, Hs, ox, oy, cubic, out_v, out_m):
     """out_v[j](x) = S(H_j x + o), out_m[j](x) = support(H_j x + o): the canvas sampled with zero outside
-    it (what OpenCV's warpPerspective with WARP_INVERSE_MAP and a constant 0 border does)."""
+    it (what OpenCV's warpPerspective with WARP_INVERSE_MAP and a constant 0 border does).
+
+    `inner` (`_interior` of the support) marks the positions whose taps are all known: one 4×4 sum
+    there (most pixels), the bounds- and support-checked sum only near the canvas edge.
+    """
     n, h, w = out_v.shape
     ch, cw = S.shape
     wx = np.empty(4)
@@ -109,33 +154,44 @@ def _warp_views(S, sup, Hs, ox, oy, cubic, full, out_v, out_m):
     for j in range(n):
         H = Hs[j]
         for y in range(h):
+            ov = out_v[j, y]
+            om = out_m[j, y]
+            X = H[0, 1] * y + H[0, 2]
+            Y = H[1, 1] * y + H[1, 2]
+            Z = H[2, 1] * y + H[2, 2]
             for x in range(w):
-                Z = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-                if Z <= 1e-9:
-                    out_v[j, y, x] = 0.0
-                    out_m[j, y, x] = 0.0
+                Xx = X + H[0, 0] * x
+                Yx = Y + H[1, 0] * x
+                Zx = Z + H[2, 0] * x
+                if Zx <= 1e-9:
+                    ov[x] = 0.0
+                    om[x] = 0.0
                     continue
-                u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / Z + ox
-                v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / Z + oy
+                u = Xx / Zx + ox
+                v = Yx / Zx + oy
                 if u < -2.0 or v < -2.0 or u > cw + 1.0 or v > ch + 1.0:
-                    out_v[j, y, x] = 0.0
-                    out_m[j, y, x] = 0.0
+                    ov[x] = 0.0
+                    om[x] = 0.0
                     continue
                 iu = int(math.floor(u))
                 iv = int(math.floor(v))
+                if cubic and iu >= 1 and iv >= 1 and iu + 2 < cw and iv + 2 < ch and inner[iv, iu]:
+                    x0, x1, x2, x3 = _cubic_taps(u - iu)
+                    y0, y1, y2, y3 = _cubic_taps(v - iv)
+                    r0 = S[iv - 1]
+                    r1 = S[iv]
+                    r2 = S[iv + 1]
+                    r3 = S[iv + 2]
+                    ov[x] = (y0 * (x0 * r0[iu - 1] + x1 * r0[iu] + x2 * r0[iu + 1] + x3 * r0[iu + 2])
+                             + y1 * (x0 * r1[iu - 1] + x1 * r1[iu] + x2 * r1[iu + 1] + x3 * r1[iu + 2])
+                             + y2 * (x0 * r2[iu - 1] + x1 * r2[iu] + x2 * r2[iu + 1] + x3 * r2[iu + 2])
+                             + y3 * (x0 * r3[iu - 1] + x1 * r3[iu] + x2 * r3[iu + 1] + x3 * r3[iu + 2]))
+                    om[x] = 1.0
+                    continue
                 _taps(u - iu, cubic, wx)
                 _taps(v - iv, cubic, wy)
                 acc = 0.0
                 accm = 0.0
-                if full and iu >= 1 and iv >= 1 and iu + 2 < cw and iv + 2 < ch:
-                    # all taps inside a canvas known everywhere: the support is 1
-                    for a in range(4):
-                        r = S[iv - 1 + a]
-                        acc += wy[a] * (wx[0] * r[iu - 1] + wx[1] * r[iu] + wx[2] * r[iu + 1]
-                                        + wx[3] * r[iu + 2])
-                    out_v[j, y, x] = acc
-                    out_m[j, y, x] = 1.0
-                    continue
                 for a in range(4):
                     yy = iv - 1 + a
                     if yy < 0 or yy >= ch or wy[a] == 0.0:
@@ -150,21 +206,25 @@ def _warp_views(S, sup, Hs, ox, oy, cubic, full, out_v, out_m):
                         rm += wx[b] * sup[yy, xx]
                     acc += wy[a] * ra
                     accm += wy[a] * rm
-                out_v[j, y, x] = acc
-                out_m[j, y, x] = accm
+                ov[x] = acc
+                om[x] = accm
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _iir_rows(V, M, alpha, jj, frac, out_v, out_m):
-    """Eq. 10/11 over the grid, row by row: B_0 = V_0, B_j = B_{j−1} + α (V_j − B_{j−1}); row y of frame k
-    is B_{j−1} + f (B_j − B_{j−1}) with (j, f) = (jj[k, y], frac[k, y]) (frames in time order)."""
+def _iir_rows(V, M, alpha, jj, share, lam, out_v, out_m):
+    """Eq. 10/11 over the grid, row by row: B_0 = V_0, B_j = B_{j−1} + α_j (V_j − B_{j−1}).
+
+    Row y of frame k, read in step j = jj[k, y] (after t_{j−1}, at or before t_j), is
+    B_{j−1} + φ (V' − B_{j−1}) with φ = share[k, y] = 1 − e^{−s/τ} the weight of the s it spent in the
+    step, and V' = λ V_j + (1 − λ) V_{j−1} (λ = lam[k, y]) the view at the centroid of that weight
+    (φ = λ = 1 for a row read at a grid node: B_j). j = 0: B_0 (φ = 0). Frames in time order.
+    """
     n1, h, w = V.shape
     nf = jj.shape[0]
     b = np.empty(w, np.float32)
     bm = np.empty(w, np.float32)
     pb = np.empty(w, np.float32)
     pm = np.empty(w, np.float32)
-    a = np.float32(alpha)
     for y in range(h):
         for x in range(w):
             b[x] = V[0, y, x]
@@ -176,28 +236,40 @@ def _iir_rows(V, M, alpha, jj, frac, out_v, out_m):
             t = jj[k, y]
             while j < t:
                 j += 1
+                a = alpha[j]
+                vj = V[j, y]
+                mj = M[j, y]
                 for x in range(w):
                     pb[x] = b[x]
                     pm[x] = bm[x]
-                    b[x] += a * (V[j, y, x] - b[x])
-                    bm[x] += a * (M[j, y, x] - bm[x])
-            f = frac[k, y]
+                    b[x] += a * (vj[x] - b[x])
+                    bm[x] += a * (mj[x] - bm[x])
+            f = share[k, y]
+            lj = lam[k, y]
+            li = 1.0 - lj
+            v1 = V[t, y]
+            m1 = M[t, y]
+            v0 = V[max(t - 1, 0), y]
+            m0 = M[max(t - 1, 0), y]
             for x in range(w):
-                out_v[k, y, x] = pb[x] + f * (b[x] - pb[x])
-                out_m[k, y, x] = pm[x] + f * (bm[x] - pm[x])
+                out_v[k, y, x] = pb[x] + f * (lj * v1[x] + li * v0[x] - pb[x])
+                out_m[k, y, x] = pm[x] + f * (lj * m1[x] + li * m0[x] - pm[x])
 
 
 @njit(cache=True, nogil=True, fastmath=True)
-def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
+def _adjoint_rows(C, alpha, jj, share, lam, Hs, ox, oy, cubic, grad):
     """Adjoint of `_iir_rows` ∘ `_warp_views` with respect to the canvas S: grad += Aᵀ C.
 
-    C: cotangent of the predicted frames [n_frames, h, w]. The IIR is run backwards in time
-    (g_{j−1} = (1 − α) g_j + direct), each step's share α·g_j (all of g_0 for the initial view)
-    is scattered through the interpolation taps at H_j x + o.
+    C: cotangent of the predicted frames [n_frames, h, w]. The IIR is run backwards in time: g, the
+    cotangent of B_j, collects (1 − φ) C of the rows read in step j + 1 and (1 − α_{j+1}) of the
+    later state's; view j gets α_j g (all of g for the initial view B_0 = V_0) plus its direct share
+    φλ C (rows read in step j) and φ(1 − λ) C (rows read in step j + 1), scattered through the
+    interpolation taps at H_j x + o.
     """
     nf, h, w = C.shape
     ch, cw = grad.shape
     g = np.zeros(w)
+    dv = np.zeros(w)
     wx = np.empty(4)
     wy = np.empty(4)
     for y in range(h):
@@ -207,21 +279,24 @@ def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
         for kk in range(nf):
             jmax = max(jmax, jj[kk, y])
         for j in range(jmax, -1, -1):
-            # frames read in (t_{j−1}, t_j] or (t_j, t_{j+1}]: their share of B_j
+            for x in range(w):
+                dv[x] = 0.0
             for kk in range(nf):
                 t = jj[kk, y]
                 if t == j:
-                    f = frac[kk, y]
+                    c1 = share[kk, y] * lam[kk, y]
                     for x in range(w):
-                        g[x] += f * C[kk, y, x]
+                        dv[x] += c1 * C[kk, y, x]
                 elif t == j + 1:
-                    f = 1.0 - frac[kk, y]
+                    f = share[kk, y]
+                    c0 = f * (1.0 - lam[kk, y])
                     for x in range(w):
-                        g[x] += f * C[kk, y, x]
-            share = alpha if j > 0 else 1.0
+                        g[x] += (1.0 - f) * C[kk, y, x]
+                        dv[x] += c0 * C[kk, y, x]
+            a_j = alpha[j] if j > 0 else 1.0
             H = Hs[j]
             for x in range(w):
-                gv = share * g[x]
+                gv = a_j * g[x] + dv[x]
                 if gv == 0.0:
                     continue
                 Z = H[2, 0] * x + H[2, 1] * y + H[2, 2]
@@ -246,7 +321,7 @@ def _adjoint_rows(C, alpha, jj, frac, Hs, ox, oy, cubic, grad):
                         grad[yy, xx] += gv * wy[a] * wx[bb]
             if j > 0:
                 for x in range(w):
-                    g[x] *= 1.0 - alpha
+                    g[x] *= 1.0 - alpha[j]
 
 
 class ForwardModel:
@@ -276,6 +351,10 @@ class ForwardModel:
         Largest image motion per time step (Eq. 12), at the working resolution.
     max_rate_factor : float
         Head-room on the gyro rate when choosing the step, so candidate scales stay sub-pixel.
+    max_step_tau : float
+        Largest time step as a fraction of the nominal τ (or τ_min/4 when `tau_min_s` is given).
+    time_margin_s : float
+        The step near a time t follows the fastest motion within ± this (candidate time offsets move it).
     cache_mb : float
         Memory allowed for cached warped views (skipped when larger).
     max_views_mb : float
@@ -291,7 +370,8 @@ class ForwardModel:
     def __init__(self, reference, frame_t, gyro_t, gyro_rate, calib: Calibration, *, t_ref: float,
                  scale: float = 1.0, fpn=None, max_step_px: float = 0.5, max_rate_factor: float = 1.3,
                  tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic",
-                 max_views_mb: float = 4096.0, t_start: float | None = None):
+                 max_views_mb: float = 4096.0, t_start: float | None = None, max_step_tau: float = 1 / 3,
+                 time_margin_s: float = 0.03):
         self.calib0 = calib
         self.scale = float(scale)
         self.intr = calib.intrinsics.scaled(self.scale)
@@ -305,28 +385,37 @@ class ForwardModel:
             raise ValueError("every frame to predict must be read after the grid start")
         if len(self.frame_t) > 1 and np.any(np.diff(self.frame_t) <= 0):
             raise ValueError("frame times must increase")
-        # Fixed time grid: from t_start (detector settled there) to the last frame.
-        speed = self._max_pixel_speed(calib) * max_rate_factor
-        # α ≤ 0.22 at τ_min: rows read between grid points interpolate well. τ_min = τ/1.5 by default:
-        # on the simulator's shake (320×240 at half resolution) the gaps of the true model, a 1 ms offset
-        # error and τ/2 or 2τ moved by < 0.001 from τ/3 with max_step_px 1.0 (234 steps instead of 467)
-        tau_min = tau_min_s if tau_min_s is not None else calib.tau_s / 1.5
-        h_max = max(tau_min, 1e-4) / 4.0
-        self.dt = min(h_max, max_step_px / speed) if speed > 0 else h_max
-        t_end = float(self.frame_t.max()) if len(self.frame_t) else self.t_start
-        n_float = max(1.0, math.ceil((t_end - self.t_start) / self.dt))
+        # Fixed time grid from t_start (detector settled there) to the last frame, with a node at every
+        # frame's read time (rows read there need no interpolation) and sub-steps short enough for the
+        # image to move ≤ max_step_px (Eq. 12, local speed) and for the thermal response (≤ τ_min/4).
+        tau_min = tau_min_s if tau_min_s is not None else calib.tau_s * 4.0 * max_step_tau
+        h_tau = max(tau_min, 1e-4) / 4.0
+        nodes = np.unique(np.r_[self.t_start, self.frame_t])
+        if len(nodes) == 1:
+            nodes = np.r_[self.t_start, self.t_start + h_tau]
+        span = np.diff(nodes)
+        speed = self._interval_speeds(calib, nodes, time_margin_s) * max_rate_factor
+        with np.errstate(divide="ignore"):
+            h_move = np.where(speed > 0, max_step_px / np.where(speed > 0, speed, 1.0), np.inf)
+        n_sub = np.maximum(1.0, np.ceil(span / np.minimum(h_tau, h_move) - 1e-9))
+        n_float = float(np.sum(n_sub))
         views_mb = (n_float + 1) * self.h * self.w * 2 * 4 / 1e6
         if not views_mb <= max_views_mb:
             raise GridTooLarge(f"the forward model needs {n_float:.3g} time steps ({views_mb / 1e3:.3g} GB "
                                f"of warped views, limit {max_views_mb / 1e3:.3g} GB) for "
-                               f"{t_end - self.t_start:.3g} s of motion at up to {speed:.3g} px/s "
-                               f"(working fx {self.intr.fx:.4g}, τ {calib.tau_s:.3g} s)")
-        n = int(n_float)
-        self.dt = (t_end - self.t_start) / n if t_end > self.t_start else self.dt
-        self.t_grid = self.t_start + self.dt * np.arange(n + 1)
-        self.t_mid = 0.5 * (self.t_grid[1:] + self.t_grid[:-1])
-        # the view times: the grid start (initial state), then every step's mid-point
-        self.t_views = np.r_[self.t_grid[0], self.t_mid]
+                               f"{nodes[-1] - self.t_start:.3g} s of motion at up to "
+                               f"{float(speed.max()):.3g} px/s (working fx {self.intr.fx:.4g}, "
+                               f"τ {calib.tau_s:.3g} s)")
+        n_sub = n_sub.astype(np.int64)
+        first = np.repeat(np.cumsum(n_sub) - n_sub, n_sub)
+        k = np.arange(int(n_sub.sum())) - first
+        self.t_grid = np.r_[np.repeat(nodes[:-1], n_sub) + k * np.repeat(span / n_sub, n_sub), nodes[-1]]
+        self.h_steps = np.diff(self.t_grid)
+        self.dt = float(self.h_steps.max())
+        # The view of a step is taken at the centroid of its exponential weight under the nominal τ
+        # (τ − h/(e^{h/τ} − 1) before its end, h/2 for τ → ∞): first-order exact for a view that moves
+        # steadily over the step; the IIR then weighs it exactly (Eq. 11).
+        self.t_views = np.r_[self.t_grid[0], self.t_grid[1:] - _weight_centroid(self.h_steps, calib.tau_s)]
         if interpolation not in ("linear", "cubic"):
             raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
         self._cubic = interpolation == "cubic"
@@ -360,7 +449,7 @@ class ForwardModel:
         if self.support.shape != self.reference.shape:
             raise ValueError("support must have the reference canvas's shape")
         self.origin = (ox, oy)
-        self._full_support = bool(np.all(self.support == 1.0))
+        self._inner = _interior(self.support)
         iy, ix = int(round(oy)), int(round(ox))
         view = np.zeros((self.h, self.w), np.float32)
         crop = self.reference[iy:iy + self.h, ix:ix + self.w]
@@ -369,14 +458,20 @@ class ForwardModel:
         self._views, self._cache_key = None, None
 
     # ------------------------------------------------------------------ geometry
-    def _max_pixel_speed(self, calib: Calibration) -> float:
-        _, w = calib.gyro_to_camera(self.gyro_t, self.gyro_rate)
+    def _interval_speeds(self, calib: Calibration, nodes: np.ndarray, margin_s: float) -> np.ndarray:
+        """Fastest image motion (working px/s at the frame corners) of the gyro samples within ± margin_s
+        of each interval between consecutive nodes (and the samples either side: the rate is
+        interpolated between them); 0 without gyro samples."""
+        t, w = calib.gyro_to_camera(self.gyro_t, self.gyro_rate)
         if len(w) == 0:
-            return 0.0
+            return np.zeros(len(nodes) - 1)
         f = max(self.intr.fx, self.intr.fy)
         r = math.hypot(self.w, self.h) / 2.0   # roll moves the corners by |ω_z|·r
         speed = f * np.hypot(w[:, 0], w[:, 1]) + r * np.abs(w[:, 2])
-        return float(np.max(speed))
+        i0 = np.clip(np.searchsorted(t, nodes[:-1] - margin_s, side="right") - 1, 0, len(t) - 1)
+        i1 = np.clip(np.searchsorted(t, nodes[1:] + margin_s, side="left") + 1, 1, len(t))
+        # a range maximum per interval; intervals are few (one per frame)
+        return np.array([speed[a:max(b, a + 1)].max() for a, b in zip(i0.tolist(), i1.tolist(), strict=True)])
 
     def homographies(self, calib: Calibration, times: np.ndarray) -> np.ndarray:
         """H(s) = K Q(s) K⁻¹ (Eq. 16) at the working resolution for camera times `times`."""
@@ -398,8 +493,8 @@ class ForwardModel:
         Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
         V = np.empty((len(Hs), self.h, self.w), np.float32)
         M = np.empty_like(V)
-        _warp_views(self.reference, self.support, Hs, self.origin[0], self.origin[1], self._cubic,
-                    self._full_support, V, M)
+        _warp_views(self.reference, self.support, self._inner, Hs, self.origin[0], self.origin[1],
+                    self._cubic, V, M)
         if self._cache_ok:
             self._views, self._cache_key = (V, M), key
         return V, M
@@ -410,11 +505,27 @@ class ForwardModel:
         return row_read_time(self.frame_t[:, None], y_full[None, :], calib.readout_s, calib.height)
 
     def _row_steps(self, calib: Calibration):
-        """(j, f) per frame row: read in (t_{j−1}, t_j] at fraction f (j = 0, f = 1 at or before t_start)."""
+        """Where each frame row is read on the grid (see `_iir_rows`): (j, φ, λ) per row, [n_frames, h]:
+        read in step j (in (t_{j−1}, t_j]) after s of it, φ = 1 − e^{−s/τ}, λ placing the view at the
+        centroid of that weight between the views of steps j − 1 and j (j = 0, φ = 0 at or before
+        t_start)."""
         rt = np.clip(self.row_times(calib), self.t_grid[0], self.t_grid[-1])
         jj = np.clip(np.searchsorted(self.t_grid, rt, side="left"), 0, len(self.t_grid) - 1)
-        frac = np.where(jj > 0, (rt - self.t_grid[np.maximum(jj - 1, 0)]) / self.dt, 1.0)
-        return np.ascontiguousarray(jj, np.int64), np.ascontiguousarray(frac, np.float32)
+        jm = np.maximum(jj - 1, 0)
+        s = np.clip(rt - self.t_grid[jm], 0.0, self.h_steps[jm])
+        share = -np.expm1(-s / calib.tau_s) if calib.tau_s > 0 else (s > 0).astype(np.float64)
+        tv = self.t_views
+        t_seen = self.t_grid[jm] + s - _weight_centroid(s, calib.tau_s)
+        lam = np.clip((t_seen - tv[jm]) / np.maximum(tv[jm + (jj > 0)] - tv[jm], 1e-12), 0.0, 1.0)
+        # a row read at a node takes the whole step: its view is V_j whatever the τ
+        lam = np.where(s >= self.h_steps[jm] * (1 - 1e-9), 1.0, lam)
+        share = np.where(jj > 0, share, 0.0)
+        return (np.ascontiguousarray(jj, np.int64), np.ascontiguousarray(share, np.float32),
+                np.ascontiguousarray(lam, np.float32))
+
+    def _alphas(self, calib: Calibration) -> np.ndarray:
+        """α_j = 1 − e^{−h_j/τ} of every step j ≥ 1 (index 0: the initial state), float32."""
+        return np.r_[1.0, iir_alpha(self.h_steps, calib.tau_s)].astype(np.float32)
 
     # ------------------------------------------------------------------ detector
     def predict_raw(self, calib: Calibration):
@@ -424,8 +535,8 @@ class ForwardModel:
         num = np.empty((n, self.h, self.w), np.float32)
         wgt = np.empty_like(num)
         if n:
-            jj, frac = self._row_steps(calib)
-            _iir_rows(V, M, float(iir_alpha(self.dt, calib.tau_s)), jj, frac, num, wgt)
+            jj, share, lam = self._row_steps(calib)
+            _iir_rows(V, M, self._alphas(calib), jj, share, lam, num, wgt)
         return num, wgt
 
     def predict(self, calib: Calibration, extra_psf_px: float = 0.0, valid_min: float = 0.99):
@@ -469,9 +580,9 @@ class ForwardModel:
             c = np.where(weight > 0.5, c / np.maximum(weight, 0.5), 0.0).astype(np.float32)
         grad = np.zeros(self.reference.shape, np.float64)
         if len(c):
-            jj, frac = self._row_steps(calib)
+            jj, share, lam = self._row_steps(calib)
             Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
-            _adjoint_rows(np.ascontiguousarray(c), float(iir_alpha(self.dt, calib.tau_s)), jj, frac, Hs,
+            _adjoint_rows(np.ascontiguousarray(c), self._alphas(calib), jj, share, lam, Hs,
                           self.origin[0], self.origin[1], self._cubic, grad)
         return grad
 

@@ -33,7 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "gyro side: clock_drift=PPM (clocks agree at the first frame), gyro_lowpass=HZ "
                         "(2nd-order Butterworth DLPF cutoff), gyro_saturation=RAD_S (full-scale range); "
                         "detector side: detector_nonlinearity=0.3 (quadratic response, 1/1000 counts), "
-                        "ffc_event=T_START,DURATION[,STEP_COUNTS] (frozen frames, then a new NUC)")
+                        "ffc_event=T_START,DURATION[,STEP_COUNTS] (frozen frames, then a new NUC); "
+                        "outside the calibration model: parallax=HEIGHT_M,SPEED_M_S (flat ground below a "
+                        "translating camera)")
     p.add_argument("--seed", type=int, default=0, help="random seed (scene, shake, noise)")
     p.add_argument("--width", type=int, default=None, help="image width (px, default 640)")
     p.add_argument("--height", type=int, default=None, help="image height (px, default 480)")

@@ -49,6 +49,7 @@ class Candidate:
     delta_bic: float
     explained: float        # fraction of the SSR's excess over the noise it removes
     seconds: float = 0.0
+    state: list | None = None   # motion only: the scene (`Problem.state`) its projected fit was made on
 
     def significant(self, crit: Criteria, ctx: StepContext, ssr_before: float) -> bool:
         return (self.fit.n_params > 0 and self.delta_bic > crit.bic_min
@@ -203,6 +204,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         diag = diagnostics(problem, model, ev)
         gap_before = problem.gap(ev.ssr)
         model = chosen.fit.model
+        if chosen.state is not None:      # keep the scene its projected fit was made on
+            problem.restore(chosen.state)
         problem.refresh(model, fpn=fpn)
         ctx = dataclasses.replace(ctx, named=ctx.named + (chosen.effect.name,))
         again = ([chosen.effect] if fpn else []) + [EFFECTS[n] for n in ana.named]
@@ -234,8 +237,62 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
             f"explains {100 * c.explained:5.1f} % of the excess  ΔBIC {c.delta_bic:9.1f}  "
             f"{format_params(effect.values(c.fit.model, ana.nominal))}  ({c.seconds:.1f} s)")
         tried.append(c)
-    ok = [c for c in tried if c.significant(crit, ctx, ev.ssr)]
+    ssr_before = ev.ssr
+    if ctx.problem.has_motion_reference:
+        tried, ssr_before = _project_scene(ctx, model, ev, tried, ana, say)
+    ok = [c for c in tried if c.significant(crit, ctx, ssr_before)]
     if not ok:
         say("  no candidate is significant")
         return None
     return max(ok, key=lambda c: c.explained)
+
+
+def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis,
+                   say, top: int = 4, share: float = 0.25, rounds: int = 3,
+                   scene_iters: int = 4) -> tuple[list[Candidate], float]:
+    """Motion only: rank the best few candidates on their SSR minimised over the scene too (variable
+    projection). The step's scene canvas was estimated under the current, wrong model, so it has
+    absorbed part of the missing effect, and a candidate that merely mimics what is left can beat the
+    right one. Each of the `top` candidates by explained excess (those explaining at least `share` of
+    what the best one does) gets `rounds` of scene (and FPN)
+    re-estimation (`scene_iters` CGLS iterations each) under its model then a warm-started refit of its
+    parameters; the current model gets
+    the same scene rounds (the baseline, so extra scene iterations are no candidate's merit). The valid
+    mask stays fixed and the step's state is restored afterwards. Returns the candidates with their
+    projected fits, statistics and scene state (the search goes on from the chosen one's), and the
+    baseline SSR."""
+    problem = ctx.problem
+    fitted = sorted((c for c in tried if c.fit.n_params > 0 and c.explained > 0), key=lambda c: -c.explained)
+    best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
+    if not best:
+        return tried, ev.ssr
+    warm = dataclasses.replace(ctx, warm=True)
+    saved, iters = problem.state(), problem.scene_iters
+    problem.scene_iters = 2 * scene_iters      # (a refresh after the first runs half of them)
+    try:
+        for _ in range(rounds):
+            problem.refresh(model, keep_mask=True)
+        base = problem.evaluate(model).ssr
+        problem.restore(saved)
+        out = []
+        excess = max(base - problem.noise_ss(), 1e-30)
+        for c in best:
+            t0 = time.monotonic()
+            f = c.fit
+            for _ in range(rounds):
+                problem.refresh(f.model, keep_mask=True)
+                g = c.effect.fit(warm, f.model)
+                ssr_kept = problem.evaluate(f.model).ssr
+                f = g if g.ssr < ssr_kept else dataclasses.replace(f, ssr=ssr_kept)
+            state = problem.state()
+            problem.restore(saved)
+            p = Candidate(c.effect, f, ctx.delta_bic(base, f.ssr, f.n_params), (base - f.ssr) / excess,
+                          c.seconds + time.monotonic() - t0, state)
+            say(f"  projected {c.effect.name:16s} gap {problem.gap(f.ssr):.4f} (baseline "
+                f"{problem.gap(base):.4f})  explains {100 * p.explained:5.1f} %  ΔBIC {p.delta_bic:9.1f}  "
+                f"{format_params(c.effect.values(f.model, ana.nominal))}  ({time.monotonic() - t0:.1f} s)")
+            out.append(p)
+    finally:
+        problem.restore(saved)
+        problem.scene_iters = iters
+    return out, base

@@ -50,11 +50,20 @@ class Effect:
 
 
 # ----------------------------------------------------------------------------------------- search
-def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width):
-    """Coarse grid then bounded Brent refinement of a one-parameter family `make(x) -> Model`."""
+def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width, x0=None):
+    """Coarse grid then bounded Brent refinement of a one-parameter family `make(x) -> Model`.
+    A warm context (`StepContext.warm`) with the current value `x0` refines within ±2 grid steps of it
+    instead."""
     def cost(x):
         return ctx.problem.evaluate(make(x)).ssr
 
+    if ctx.warm and x0 is not None and len(grid) > 1:
+        step = float(grid[1] - grid[0])
+        a, b = max(lo, x0 - 2 * step), min(hi, x0 + 2 * step)
+        c0 = cost(x0)
+        res = optimize.minimize_scalar(cost, bounds=(a, b), method="bounded",
+                                       options={"xatol": (b - a) * 5e-3, "maxiter": 10})
+        return (float(res.x), float(res.fun)) if res.fun < c0 else (float(x0), c0)
     costs = [cost(x) for x in grid]
     i = int(np.argmin(costs))
     a = max(lo, grid[max(i - 1, 0)] if refine_width is None else grid[i] - refine_width)
@@ -89,7 +98,7 @@ def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: flo
 
     x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
     lam = 1e-3
-    for _ in range(iters if len(x) else 0):
+    for _ in range((min(iters, 2) if ctx.warm else iters) if len(x) else 0):
         r0 = residuals(x)
         J = np.empty((len(r0), len(x)))
         for i in range(len(x)):
@@ -126,7 +135,7 @@ def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) 
 
     def make(x):
         return _with(model, time_offset_s=float(x))
-    x, ssr = _scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005)
+    x, ssr = _scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005, x0=t0)
     return FitResult("time_offset", make(x), ssr)
 
 
@@ -145,16 +154,17 @@ def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
         offset = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
         return _with(model, readout_s=float(x), time_offset_s=offset)
 
-    return _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi)
+    return _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi, x0=c0.readout_s)
 
 
-def _fit_keeping_timing(ctx: StepContext, name: str, make, make_centred, grid, lo: float, hi: float):
+def _fit_keeping_timing(ctx: StepContext, name: str, make, make_centred, grid, lo: float, hi: float,
+                        x0=None):
     """`make(x)` fitted; once `time_offset` is in the model (it may have absorbed this effect's mean
     timing shift), also `make_centred(x)`, which moves that shift out of the offset: the better fit."""
-    x, ssr = _scalar_fit(ctx, make, grid, lo, hi, None)
+    x, ssr = _scalar_fit(ctx, make, grid, lo, hi, None, x0=x0)
     best = FitResult(name, make(x), ssr)
     if "time_offset" in ctx.named:
-        xc, ssrc = _scalar_fit(ctx, make_centred, grid, lo, hi, None)
+        xc, ssrc = _scalar_fit(ctx, make_centred, grid, lo, hi, None, x0=x0)
         if ssrc < ssr:
             best = FitResult(name, make_centred(xc), ssrc)
     return best
@@ -166,7 +176,7 @@ def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
 
     def make(x):
         return _with(model, tau_s=float(math.exp(x)))
-    x, ssr = _scalar_fit(ctx, make, np.linspace(lo, hi, 13), lo, hi, None)
+    x, ssr = _scalar_fit(ctx, make, np.linspace(lo, hi, 13), lo, hi, None, x0=math.log(tau))
     return FitResult("time_constant", make(x), ssr)
 
 

@@ -53,7 +53,7 @@ class Problem:
         return np.concatenate(out)
 
     def refresh(self, model: Model, fpn: bool = True, erode_px: int = 2, fpn_iters: int = 2,
-                fpn_highpass_px: float = 1.5):
+                fpn_highpass_px: float = 1.5, keep_mask: bool = False):
         """Per-step state: FPN estimate (per NUC segment: `sensor.estimate_fpn`) and the fixed valid mask.
 
         FPN stays put on the sensor while the scene moves, so it is what the motion residual has in
@@ -62,7 +62,8 @@ class Problem:
         the moved views (so they barely matter) and would absorb slow model errors instead.
 
         Motion-only recordings also re-estimate their scene canvas here (`estimate_scene`), alternating
-        with the FPN, under the current model: once per step, never inside a candidate's fit.
+        with the FPN, under the current model: once per step, never inside a candidate's fit (but see
+        `analysis._project_scene`). `keep_mask`: leave the valid mask as it is (SSRs stay comparable).
         """
         for d in self.recs:
             d.aux["ffc_fpn"] = None
@@ -71,10 +72,28 @@ class Problem:
             else:
                 d.fpn = sensor.estimate_fpn(d, model, fpn_iters, fpn_highpass_px) if fpn else None
                 d.fm.set_reference(d.static_mean, d.fpn, prescaled=True)
+            if keep_mask and d.mask is not None:
+                continue
             _, v = sensor.predict(d, model)
             k = np.ones((2 * erode_px + 1, 2 * erode_px + 1), np.uint8)
             d.mask = np.stack([cv2.erode(x.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
                                for x in v]).astype(bool)
+
+    @property
+    def has_motion_reference(self) -> bool:
+        return any(d.reference == "motion" for d in self.recs)
+
+    def state(self) -> list:
+        """What `refresh` changes, per recording (`restore` puts it back)."""
+        return [(d.scene, d.fpn, d.coverage, d.mask, d.static_mean, d.noise_var, d.noise_source, dict(d.aux),
+                 d.fm.reference, d.fm.fpn, d.fm.support, d.fm.origin) for d in self.recs]
+
+    def restore(self, state: list) -> None:
+        for d, st in zip(self.recs, state, strict=True):
+            (d.scene, d.fpn, d.coverage, d.mask, d.static_mean, d.noise_var, d.noise_source, aux,
+             ref, fpn, support, origin) = st
+            d.aux = dict(aux)
+            d.fm.set_reference(ref, fpn, prescaled=True, origin=origin, support=support, subtract_fpn=False)
 
     def signal_ss(self) -> float:
         return float(sum(np.sum(((d.measured - d.static_mean) * d.mask).astype(np.float64) ** 2)
@@ -106,34 +125,62 @@ class Problem:
 
 def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px: float, scene_iters: int):
     """Scene canvas and FPN of a motion-only recording, alternating (the FPN moves with the sensor, the
-    scene with the world; only their common part at zero motion is ambiguous, and stays in the scene)."""
+    scene with the world; only their common part at zero motion is ambiguous, and stays in the scene).
+
+    Flat-field corrections in the model (`sensor`) are honoured as in `sensor.estimate_fpn`: frozen frames
+    say nothing about the scene or the FPN, and every segment after an event has its own offset step
+    and FPN change (d.aux["ffc_fpn"], warm-started from the last refresh when the events are the same)."""
     F = d.fpn if (fpn and d.fpn is not None) else np.zeros_like(d.measured[0])
-    for i in range(1):   # one scene/FPN round per refresh: refreshes repeat every step
-        first = i == 0 and d.coverage is None
-        estimate_scene(d, model, F, scene_iters if first else max(2, scene_iters // 2))
-        if not fpn:
-            F = None
-            break
+    events = sensor.events_of(d, model)
+    seg = sensor.segments(d, model)
+    live = seg >= 0
+    prev = d.aux.get("motion_ffc_fpn")
+    steps = list(prev[1]) if prev is not None and prev[0] == len(events) else [None] * len(events)
+
+    def offsets():
+        """Per frame: what the detector adds after the FPN (the events' steps and FPN changes)."""
+        if not events:
+            return None
+        out = np.zeros_like(d.measured)
+        for i, e in enumerate(events):
+            after = e.after(d.frame_t)
+            out[after] += np.float32(e.step_counts) + (steps[i] if steps[i] is not None else np.float32(0.0))
+        return out
+
+    first = d.coverage is None
+    estimate_scene(d, model, F if fpn else None, scene_iters if first else max(2, scene_iters // 2),
+                   extra=offsets(), live=live)
+    if fpn:
         p, v = d.fm.predict(model.calib, model.extra_psf_px)
-        r = np.where(v, d.measured - p, 0.0)
-        cnt = v.sum(axis=0)
-        upd = np.where(cnt > 0, r.sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
-        upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
-        F = F + upd
+        extra = offsets()
+        r = np.where(v, d.measured - p - (extra if extra is not None else 0.0), 0.0)
+        for sgm in range(len(events) + 1):
+            sel = seg == sgm
+            cnt = v[sel].sum(axis=0)
+            upd = np.where(cnt > 0, r[sel].sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
+            upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
+            if sgm == 0:
+                F = F + upd
+            else:
+                steps[sgm - 1] = upd if steps[sgm - 1] is None else steps[sgm - 1] + upd
         d.fm.set_reference(d.scene, F, prescaled=True, origin=d.origin, support=d.fm.support,
                            subtract_fpn=False)
+    else:
+        F = None
     d.fpn = F
+    d.aux["ffc_fpn"] = steps if events else None
+    d.aux["motion_ffc_fpn"] = (len(events), steps)
     d.static_mean = d.fm.reference_view + (F if F is not None else 0.0)
     if d.noise_source == "spatial high-pass of the motion frames":
         # No static frames to measure the temporal noise: the residual's own spatial high frequencies
         # (scene texture mostly cancelled by the prediction), an upper bound while model errors remain.
-        p, v = d.fm.predict(model.calib, model.extra_psf_px)
-        r = np.where(v, d.measured - p, 0.0).astype(np.float32)
-        d.noise_var = min(d.noise_var, noise_variance_spatial(r))
+        p, v = sensor.predict(d, model)
+        r = np.where(v & live[:, None, None], d.measured - p, 0.0).astype(np.float32)
+        d.noise_var = min(d.noise_var, noise_variance_spatial(r[live]))
         d.noise_source = "spatial high-pass of the motion residual (upper bound)"
 
 
-def estimate_scene(d: RecData, model: Model, fpn, iters: int) -> None:
+def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=None) -> None:
     """Least-squares scene canvas S of a motion-only recording under `model`: min Σ_valid (M − F − A S)²,
     A = the forward model (views, IIR, normalisation, extra PSF: linear in S), by Jacobi-preconditioned
     CGLS from the current canvas (the first time: the frames back-projected and averaged, a blurred
@@ -144,14 +191,18 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int) -> None:
     offset, bias, scale, misalignment, τ or readout error moves or blurs each frame differently with
     its own motion), only what is common to all of them. It is re-estimated once per search step
     (`Problem.refresh`), never inside a candidate's fit, so candidates are compared on the same scene.
+    `extra`: per-frame offsets beyond the FPN (flat-field corrections' steps); `live`: the frames that
+    see the scene (bool per frame; frozen frames of a flat-field correction do not).
     """
     fm, calib, psf = d.fm, model.calib, model.extra_psf_px
-    target = d.measured - (fpn if fpn is not None else 0.0)
+    target = d.measured - (fpn if fpn is not None else 0.0) - (extra if extra is not None else 0.0)
+    w_live = (np.ones(len(d.measured), np.float32) if live is None
+              else np.asarray(live, np.float32))[:, None, None]
     first = d.coverage is None
     # coverage: how many frames (IIR weight) see each canvas pixel
     fm.set_reference(d.scene, None, prescaled=True, origin=d.origin, support=None)
     _, m_full = fm.predict_raw(calib)
-    inside = (m_full >= 0.99).astype(np.float32)
+    inside = (m_full >= 0.99).astype(np.float32) * w_live
     C = fm.adjoint(calib, inside, weight=m_full)
     support = (C >= MIN_COVERAGE).astype(np.float32)
     S = d.scene.astype(np.float64) * support
@@ -164,7 +215,7 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int) -> None:
         own[keep] = d.scene[iy:iy + fm.h, ix:ix + fm.w][keep]
     fm.set_reference(S.astype(np.float32), None, prescaled=True, origin=d.origin, support=support)
     _, m = fm.predict_raw(calib)
-    valid = (m >= 0.99).astype(np.float32)
+    valid = (m >= 0.99).astype(np.float32) * w_live
     dinv = np.where(support > 0, 1.0 / np.maximum(C, 1.0), 0.0)
 
     def forward(x):
@@ -239,6 +290,7 @@ class StepContext:
     n_eff: float
     min_gain: float
     named: tuple[str, ...]
+    warm: bool = False      # refits near a fitted value (`analysis._project_scene`): local searches only
 
     @property
     def recs(self) -> list[RecData]:
