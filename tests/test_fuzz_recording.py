@@ -14,7 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
 from thermod.cli import main
@@ -185,6 +185,8 @@ def test_read_and_iterate_raise_only_recording_errors(workdir, muts):
 
 @FUZZ
 @given(muts=mutations)
+# found by this fuzzer: the flipped last byte made tau_s 2.8e-306 s, positive, and the renderer divided by 0
+@example(muts=[("attr", "camera", "tau_s", 0.0078125), ("flip", [(0.9999999999999999, 0)])])
 def test_deblur_never_fails_unexpectedly(workdir, muts):
     p = _mutated(workdir, muts)
     out = workdir / "out.h5"

@@ -37,6 +37,12 @@ PAPER_IFOV_RAD = math.radians(0.0391)
 # What a pinhole camera can be: a field of view between a long telephoto's and a wide angle's.
 MIN_FOV_DEG, MAX_FOV_DEG = 0.1, 175.0
 MAX_SIDE_PX = 16384
+# A detector time constant no detector has (microbolometers: 3–20 ms) still renders (the renderer was
+# checked down to 1e-8 s), but a positive 1e-300 from a corrupt file underflows it: bound it physically.
+MIN_TAU_S, MAX_TAU_S = 1e-6, 1.0
+# Eq. 19's σ in pixels: a lens blurring beyond this is no imaging camera, and the PSF kernel (radius
+# 3σ, squared) is allocated from it — from file contents, so it is bounded.
+MAX_PSF_SIGMA_PX = 64.0
 ROTATION_TOL = 1e-4     # |R Rᵀ − I| allowed: six printed decimals, not a shear
 
 
@@ -97,9 +103,16 @@ class Calibration:
         if not 0 < self.psf_beta <= 1:
             raise CalibrationError("psf_beta", f"expected a value in (0, 1] (1 = diffraction limited), "
                                                f"got {self.psf_beta!r}")
-        if not self.tau_s <= 1.0:
-            raise CalibrationError("tau_s", f"expected a detector time constant in (0, 1] s, "
-                                            f"got {self.tau_s!r}")
+        if not MIN_TAU_S <= self.tau_s <= MAX_TAU_S:
+            raise CalibrationError("tau_s", f"expected a detector time constant in [{MIN_TAU_S:g}, "
+                                            f"{MAX_TAU_S:g}] s, got {self.tau_s!r}")
+        if not self.psf_sigma_px <= MAX_PSF_SIGMA_PX:
+            raise CalibrationError("psf", f"expected an optical PSF σ ≤ {MAX_PSF_SIGMA_PX:g} px (Eq. 19: "
+                                          f"0.45·wavelength_um·f_number/psf_beta/pixel_pitch_um), got "
+                                          f"{self.psf_sigma_px:.4g} px from wavelength_um="
+                                          f"{self.wavelength_um!r}, f_number={self.f_number!r}, "
+                                          f"psf_beta={self.psf_beta!r}, "
+                                          f"pixel_pitch_um={self.pixel_pitch_um!r}")
         period = 1.0 / self.frame_rate_hz
         if not 0 <= self.readout_s <= period * (1 + 1e-9):
             raise CalibrationError("readout_s", f"expected a value in [0, {period:.6g}] s (one frame "

@@ -36,7 +36,7 @@ _NO_PSF.setflags(write=False)   # read-only like the cached Gaussians: one numba
 @functools.lru_cache(maxsize=32)
 def _gauss_1d(sigma: float) -> np.ndarray:
     """Sampled, normalised Gaussian, radius ceil(3σ) (as cv2.getGaussianKernel samples it)."""
-    if sigma <= 0:
+    if sigma < 1e-3:          # below a thousandth of a pixel the sampled Gaussian is a delta
         return _NO_PSF
     r = max(1, int(math.ceil(3.0 * sigma)))
     x = np.arange(-r, r + 1, dtype=np.float64)
