@@ -154,15 +154,7 @@ def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px
         p, v = d.fm.predict(model.calib, model.extra_psf_px)
         extra = offsets()
         r = np.where(v, d.measured - p - (extra if extra is not None else 0.0), 0.0)
-        for sgm in range(len(events) + 1):
-            sel = seg == sgm
-            cnt = v[sel].sum(axis=0)
-            upd = np.where(cnt > 0, r[sel].sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
-            upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
-            if sgm == 0:
-                F = F + upd
-            else:
-                steps[sgm - 1] = upd if steps[sgm - 1] is None else steps[sgm - 1] + upd
+        F = sensor.add_segment_fpn(r, v, seg, len(events) + 1, highpass_px, F, steps)
         d.fm.set_reference(d.scene, F, prescaled=True, origin=d.origin, support=d.fm.support,
                            subtract_fpn=False)
     else:

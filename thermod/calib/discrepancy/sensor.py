@@ -127,6 +127,23 @@ def segments(d, model) -> np.ndarray:
     return seg
 
 
+def add_segment_fpn(r, v, seg, n_seg: int, highpass_px: float, F, steps: list):
+    """One update of the fixed-pattern noise per flat-field segment from the residual `r` (frames ×
+    H × W, valid where `v`; `seg` gives each frame's segment): the high-passed temporal mean of each
+    segment's residual is added to `F` (segment 0) or to `steps[s − 1]` (the offset a correction
+    left after event s, updated in place). Returns the new F."""
+    for s in range(n_seg):
+        sel = seg == s
+        cnt = v[sel].sum(axis=0)
+        upd = np.where(cnt > 0, r[sel].sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
+        upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
+        if s == 0:
+            F = F + upd
+        else:
+            steps[s - 1] = upd if steps[s - 1] is None else steps[s - 1] + upd
+    return F
+
+
 def estimate_fpn(d, model, iters: int, highpass_px: float) -> np.ndarray:
     """FPN of the reference's NUC segment, and (in d.aux["ffc_fpn"]) the change after each FFC event.
 
@@ -144,16 +161,7 @@ def estimate_fpn(d, model, iters: int, highpass_px: float) -> np.ndarray:
         d.fm.set_reference(d.static_mean, F, prescaled=True)
         d.aux["ffc_fpn"] = steps
         p, v = predict(d, model)
-        r = np.where(v, d.measured - p, 0.0)
-        for s in range(n_seg):
-            sel = seg == s
-            cnt = v[sel].sum(axis=0)
-            upd = np.where(cnt > 0, r[sel].sum(axis=0) / np.maximum(cnt, 1), 0.0).astype(np.float32)
-            upd -= cv2.GaussianBlur(upd, (0, 0), highpass_px, borderType=cv2.BORDER_REPLICATE)
-            if s == 0:
-                F = F + upd
-            else:
-                steps[s - 1] = upd if steps[s - 1] is None else steps[s - 1] + upd
+        F = add_segment_fpn(np.where(v, d.measured - p, 0.0), v, seg, n_seg, highpass_px, F, steps)
     d.aux["ffc_fpn"] = steps
     return F
 
