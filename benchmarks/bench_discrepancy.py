@@ -13,6 +13,16 @@ single-core time; numba kernels are single-threaded.
 
     .venv/bin/python benchmarks/bench_discrepancy.py [--quick] [--repeat N] [--motion-only]
     .venv/bin/python benchmarks/bench_discrepancy.py --detector-effects   # PSNR fitted vs nominal
+
+Hidden effects on the real log's flight (`--flight-effects`): for each hidden effect of the tests'
+vocabulary (tests/test_discrepancy.py CASES, test_discrepancy_gyro.py GYRO_CASES, the detector tests'
+flat-field event and nonlinearity, same values) and a clean recording, a recording with no static lead-in
+on the real Betaflight log's attitude from 1.0 s in (what tests/flight_recordings.py renders at 160×120,
+0.4 s), NETD 50 mK, the seeded texture, analysed motion-only with every candidate at the full resolution
+of `--size` (or `--work-width`), on one core. Prints a markdown table row per effect as it finishes.
+
+    .venv/bin/python benchmarks/bench_discrepancy.py --flight-effects [--size 320x240] [--seconds 1.0]
+        [--effects time_offset,gyro_bias,...] [--work-width W]
 """
 
 from __future__ import annotations
@@ -46,9 +56,22 @@ def main() -> None:
     ap.add_argument("--motion-only", action="store_true", help="only the motion-only case")
     ap.add_argument("--detector-effects", action="store_true",
                     help="only the deblurring PSNR of the detector-side effects, fitted vs nominal model")
+    ap.add_argument("--flight-effects", action="store_true",
+                    help="only the hidden effects on the real log's flight (no static lead-in)")
+    ap.add_argument("--size", default="320x240", help="--flight-effects frame size WxH (default 320x240)")
+    ap.add_argument("--seconds", type=float, default=1.0, help="--flight-effects duration (default 1.0)")
+    ap.add_argument("--work-width", type=int, default=None,
+                    help="--flight-effects analysis width (default: the frame width, full resolution)")
+    ap.add_argument("--effects", default=",".join(FLIGHT_EFFECTS),
+                    help="--flight-effects: comma-separated subset of " + ", ".join(FLIGHT_EFFECTS))
     args = ap.parse_args()
     if args.detector_effects:
         deblur_detector_effects()
+        return
+    if args.flight_effects:
+        _one_core()
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        flight_effects(args.effects.split(","), (w, h), args.seconds, args.work_width or w)
         return
     _one_core()
     if args.motion_only:
@@ -138,6 +161,86 @@ def deblur_detector_effects() -> None:
     for label, v in psnr.items():
         v = np.asarray(v)
         print(f"{label:8s} {np.mean(v[:nf]):17.2f} {np.mean(v[nf:]):16.2f} {np.mean(v):9.2f}")
+
+
+# hidden effect: (simulator effects, rotor vibration °/s RMS, high-contrast scene); the tests' values
+DEG = np.pi / 180
+FLIGHT_EFFECTS = {
+    "none": ({}, 0.0, False),
+    "time_offset": ({"time_offset": 0.006}, 0.0, False),
+    "gyro_bias": ({"gyro_bias": (0.03, -0.02, 0.015)}, 0.0, False),
+    "time_constant": ({"time_constant": 0.012}, 0.0, False),
+    "gyro_scale": ({"gyro_scale": (1.04, 0.97, 1.05)}, 0.0, False),
+    "rolling_readout": ({"rolling_readout": 0.012}, 0.0, False),
+    "misalignment": ({"misalignment": (0.03, -0.02, 0.025)}, 0.0, False),
+    "optical_psf": ({"optical_psf": 1.5}, 0.0, False),
+    "clock_drift": ({"clock_drift": 10000.0}, 0.0, False),
+    "gyro_lowpass": ({"gyro_lowpass": 20.0}, 15.0, False),        # broadband: + 10 Hz rotor vibration
+    "gyro_saturation": ({"gyro_saturation": None}, 0.0, False),   # 0.7 × the flight's peak rate
+    "ffc_event": ({"ffc_event": (0.3, 0.08, 20.0), "fpn": 0.05}, 0.0, False),
+    "detector_nonlinearity": ({"detector_nonlinearity": 0.3}, 0.0, True),
+}
+
+
+def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work_width: int) -> None:
+    """The `--flight-effects` table (module docstring): what the motion-only search names for each hidden
+    effect, the hidden effect's fitted value (its final value when named, else its best first-step
+    candidate's, with the excess it explained and its ΔBIC), the gap, and the analysis's CPU time."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from flight_recordings import high_contrast_scene, nominal_calibration
+
+    unknown = [n for n in names if n not in FLIGHT_EFFECTS]
+    if unknown:
+        raise SystemExit(f"--effects: unknown {unknown}; known: {', '.join(FLIGHT_EFFECTS)}")
+    nominal = nominal_calibration(size)
+    if mo.default_log_path() is not None:
+        base, what = mo.gyro_log(None, start_s=1.0), "the real Betaflight log from 1.0 s"
+    else:
+        base, what = mo.flight(seed=0), "the synthetic flight (sim.motion.flight, seed 0)"
+        print("note: no real gyro log (../shared/data/gyro); falling back to the synthetic flight")
+    t = np.arange(-0.1, seconds + 0.05, 1e-3)
+    rms = "/".join(f"{r:.1f}" for r in np.sqrt(np.mean(base.omega(t) ** 2, axis=0)) / DEG)
+    print(f"{size[0]}×{size[1]}, {seconds:g} s, motion {what} (RMS {rms} °/s about camera x/y/z), "
+          f"no static lead-in, NETD 50 mK, texture scene; analysed motion-only at "
+          f"work width {work_width}, every candidate, one core\n", flush=True)
+    head = ("| hidden | true value | named (in order) | hidden effect's fitted value | gap → final (floor) "
+            "| unexplained | CPU s |")
+    print(head + "\n|---|---|---|---|---|---|---:|", flush=True)
+    rows = []
+    for name in names:
+        effects, vib, contrast = FLIGHT_EFFECTS[name]
+        motion = mo.Summed(base, mo.vibration(vib, 10.0, 0)) if vib else base
+        effects = dict(effects)
+        if "gyro_saturation" in effects:      # like tests/flight_recordings.saturation_level
+            effects["gyro_saturation"] = round(0.7 * float(np.abs(motion.omega(t)).max()), 3)
+        scene = high_contrast_scene(nominal) if contrast else "texture"
+        rec = simulate(scene, motion, seconds, nominal, {"netd": 0.05, **effects}, seed=0)
+        c0 = time.process_time()
+        d = D.prepare(rec, nominal, name=name, work_width=work_width)
+        ana = D.analyse([d], D.Model(nominal))
+        cpu = time.process_time() - c0
+        truth = {k: v for k, v in effects.items() if k != "fpn"}
+        true_s = ", ".join(f"{k} {v}" for k, v in truth.items())
+        true_s += f" (+{vib:g} °/s vibration)" if vib else ""
+        if name == "none":
+            fitted = "—"
+        elif name in ana.named:
+            fitted = D.format_params(ana.steps[ana.named.index(name)]["params"]) + " (named)"
+        else:
+            c = next((c for c in ana.candidates_tried if c["effect"] == name and c["step"] == 1), None)
+            fitted = "not tried" if c is None else (
+                f"step-1 candidate {D.format_params(c['params'])}, explained {c['excess_explained']:.0%}, "
+                f"ΔBIC {c['delta_bic']:.0f}")
+        named = ", ".join(f"{s['effect']} {D.format_params(s['params'])}" for s in ana.steps) or "nothing"
+        row = (f"| {name} | {true_s or '—'} | {named} | {fitted} | "
+               f"{ana.gap_initial:.4f} → {ana.gap_final:.4f} ({ana.noise_floor:.4f}) | "
+               f"{'yes' if ana.unexplained else 'no'} | {cpu:.0f} |")
+        rows.append(row)
+        print(row, flush=True)
+    print(f"\nload average {tuple(round(x, 2) for x in os.getloadavg())}", flush=True)
 
 
 def _one_core() -> None:
