@@ -517,11 +517,15 @@ def test_bad_input_is_a_one_line_error_exit_2(case, good_recording, tmp_path, ca
 
 
 def test_derived_sizes_are_guarded_before_allocation(good_recording):
-    # A τ of 1 ns asks for a time step of 25 µs: 12 000 steps of 160×120 warped views is more than
-    # a 100 MB budget allows; the error says so instead of allocating.
+    # A τ of 1 µs (the smallest a Calibration accepts) asks for sub-steps of τ/3: hundreds of
+    # thousands of warped views, more than a 100 MB budget allows; the error says so instead of
+    # allocating.
     rec = recording.read(good_recording)
     with pytest.raises(RecordingError, match=r"good\.h5: camera/t, gyro/rate: .*time steps .*GB"):
-        D.prepare(rec, NOMINAL.replace(tau_s=1e-9), name="good.h5", max_views_mb=100)
+        D.prepare(rec, NOMINAL.replace(tau_s=1e-6), name="good.h5", max_views_mb=100)
+    # below that, no detector: the Calibration refuses it before prepare() sees it
+    with pytest.raises(CalibrationError, match=r"tau_s: expected a detector time constant"):
+        NOMINAL.replace(tau_s=1e-9)
     # a focal length that is not a number never reaches prepare(): the Calibration refuses it
     with pytest.raises(CalibrationError, match=r"fy: expected a finite number"):
         NOMINAL.replace(fy=float("nan"))
