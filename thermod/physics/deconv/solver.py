@@ -197,14 +197,7 @@ class Deconvolver:
             wiener_solve(kty, K2, plan.g2, np.float32(1.0 / lam), plan.norm, plan.cin)
             x = plan.inv()
         else:
-            x = plan.rin  # the w-step reads x fully before writing div into the same buffer
-            mode = 0 if self.alpha == 1.0 else 1
-            inv_step = np.float32((LUT_SIZE - 1) / LUT_VMAX)
-            for beta, lut, tau in zip(self._betas, self._luts, self._taus, strict=True):
-                wstep_div(x, mode, np.float32(1.0 / beta), np.float32(tau), lut, inv_step,
-                           np.float32(self.alpha), plan.wx, plan.wy, plan.div, plan.idx)
-                xstep(kty, K2, plan.g2, plan.fwd(), np.float32(beta / lam), plan.norm, plan.cin)
-                x = plan.inv()
+            x = self._kf_steps(plan, kty, K2, lam, wstep_div, xstep)
         out = np.empty((hh, ww), np.float32)
         finish(x, hh, ww, np.float32(lo), np.float32(rng), out)
         return out
@@ -315,13 +308,18 @@ class Deconvolver:
         if self.method == "wiener":
             wiener_stack(kty, plan.K2, plan.g2, np.float32(1.0 / lam), plan.norm, plan.cin)
             return plan.inv()
+        return self._kf_steps(plan, kty, plan.K2, lam, wstep_div_stack, xstep_stack)
+
+    def _kf_steps(self, plan: Plan, kty, K2, lam: float, wstep, xstep) -> np.ndarray:
+        """K&F's half-quadratic continuation (w-step, then x-step, per β) on a plan's buffers, with the
+        numba passes for one frame (`wstep_div`, `xstep`) or a stack of tiles (`*_stack`)."""
         x = plan.rin  # the w-step reads x fully before writing div into the same buffer
         mode = 0 if self.alpha == 1.0 else 1
         inv_step = np.float32((LUT_SIZE - 1) / LUT_VMAX)
         for beta, lut, tau in zip(self._betas, self._luts, self._taus, strict=True):
-            wstep_div_stack(x, mode, np.float32(1.0 / beta), np.float32(tau), lut, inv_step,
-                            np.float32(self.alpha), plan.wx, plan.wy, plan.div, plan.idx)
-            xstep_stack(kty, plan.K2, plan.g2, plan.fwd(), np.float32(beta / lam), plan.norm, plan.cin)
+            wstep(x, mode, np.float32(1.0 / beta), np.float32(tau), lut, inv_step,
+                  np.float32(self.alpha), plan.wx, plan.wy, plan.div, plan.idx)
+            xstep(kty, K2, plan.g2, plan.fwd(), np.float32(beta / lam), plan.norm, plan.cin)
             x = plan.inv()
         return x
 
