@@ -190,7 +190,7 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from flight_recordings import high_contrast_scene, nominal_calibration
+    from flight_recordings import clipping_range, high_contrast_scene, nominal_calibration
 
     unknown = [n for n in names if n not in FLIGHT_EFFECTS]
     if unknown:
@@ -209,13 +209,12 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
     head = ("| hidden | true value | named (in order) | hidden effect's fitted value | gap → final (floor) "
             "| unexplained | CPU s |")
     print(head + "\n|---|---|---|---|---|---|---:|", flush=True)
-    rows = []
     for name in names:
         effects, vib, contrast = FLIGHT_EFFECTS[name]
         motion = mo.Summed(base, mo.vibration(vib, 10.0, 0)) if vib else base
         effects = dict(effects)
-        if "gyro_saturation" in effects:      # like tests/flight_recordings.saturation_level
-            effects["gyro_saturation"] = round(0.7 * float(np.abs(motion.omega(t)).max()), 3)
+        if "gyro_saturation" in effects:      # the tests' level: 0.7 × the flight's peak rate
+            effects["gyro_saturation"] = clipping_range(motion, seconds)
         scene = high_contrast_scene(nominal) if contrast else "texture"
         rec = simulate(scene, motion, seconds, nominal, {"netd": 0.05, **effects}, seed=0)
         c0 = time.process_time()
@@ -238,7 +237,6 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
         row = (f"| {name} | {true_s or '—'} | {named} | {fitted} | "
                f"{ana.gap_initial:.4f} → {ana.gap_final:.4f} ({ana.noise_floor:.4f}) | "
                f"{'yes' if ana.unexplained else 'no'} | {cpu:.0f} |")
-        rows.append(row)
         print(row, flush=True)
     print(f"\nload average {tuple(round(x, 2) for x in os.getloadavg())}", flush=True)
 

@@ -73,8 +73,13 @@ def saturation_level(seed: int = 0, fraction: float = 0.7, **kw) -> float:
     """A gyro range (rad/s) at `fraction` of the flight's peak rate over the recording: its largest
     swings clip, whichever motion (log or synthetic) the tests run on."""
     kw = {"real_log": REAL_LOG, **kw}
-    t = np.arange(-0.1, SECONDS + 0.05, 1e-3)
-    return round(fraction * float(np.abs(flight_motion(seed, **kw).omega(t)).max()), 3)
+    return clipping_range(flight_motion(seed, **kw), SECONDS, fraction)
+
+
+def clipping_range(motion: mo.Motion, seconds: float, fraction: float = 0.7) -> float:
+    """A gyro range (rad/s) at `fraction` of `motion`'s peak rate over a recording of `seconds`."""
+    t = np.arange(-0.1, seconds + 0.05, 1e-3)
+    return round(fraction * float(np.abs(motion.omega(t)).max()), 3)
 
 
 def excess(gap: float, floor: float) -> float:

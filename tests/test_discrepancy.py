@@ -37,7 +37,7 @@ from thermod.sim import scenes as sim_scenes
 from thermod.sim.synth import simulate, truth_calibration
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import flight_recording, high_contrast_scene  # noqa: E402
+from flight_recordings import excess, flight_recording, high_contrast_scene  # noqa: E402
 
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)
@@ -75,9 +75,6 @@ def analysed(key: str, effects: dict, scene=SCENE):
     return _CACHE[key]
 
 
-def excess(gap: float, floor: float) -> float:
-    """Gap above the noise floor (what an effect can remove)."""
-    return math.sqrt(max(gap * gap - floor * floor, 0.0))
 
 
 # ------------------------------------------------------------------ one hidden effect each

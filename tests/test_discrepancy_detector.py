@@ -9,7 +9,6 @@ these scenes.
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from thermod.sim import motion as mo
 from thermod.sim.synth import check_effects, simulate
 
 sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import high_contrast_scene, vignetting_drift  # noqa: E402
+from flight_recordings import excess, high_contrast_scene, vignetting_drift  # noqa: E402
 
 _I = Calibration().intrinsics.scaled(0.25)
 NOMINAL = Calibration(width=160, height=120, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
@@ -46,8 +45,6 @@ def analyse(rec, **kw):
     return D.analyse([D.prepare(rec, NOMINAL, name="rec", work_width=WORK_WIDTH)], D.Model(NOMINAL), **kw)
 
 
-def excess(gap: float, floor: float) -> float:
-    return math.sqrt(max(gap * gap - floor * floor, 0.0))
 
 
 # ------------------------------------------------------------------ simulator
