@@ -179,7 +179,15 @@ FLIGHT_EFFECTS = {
     "gyro_saturation": ({"gyro_saturation": None}, 0.0, False),   # 0.7 × the flight's peak rate
     "ffc_event": ({"ffc_event": (0.3, 0.08, 20.0), "fpn": 0.05}, 0.0, False),
     "detector_nonlinearity": ({"detector_nonlinearity": 0.3}, 0.0, True),
+    "time_offset+gyro_bias": ({"time_offset": 0.006, "gyro_bias": (0.03, -0.02, 0.015)}, 0.0, False),
+    "time_offset+rolling_readout": ({"time_offset": 0.008, "rolling_readout": 0.010}, 0.0, False),
+    "none+vibration": ({}, 15.0, False),
+    "none+contrast": ({}, 0.0, True),
+    "parallax": ({"parallax": (3.0, 0.3)}, 0.0, False),     # outside the vocabulary
 }
+
+
+EFFECTS_OF_SIM = set(D.EFFECTS)     # rows named after one vocabulary effect report its fitted value
 
 
 def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work_width: int) -> None:
@@ -224,7 +232,7 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
         truth = {k: v for k, v in effects.items() if k != "fpn"}
         true_s = ", ".join(f"{k} {v}" for k, v in truth.items())
         true_s += f" (+{vib:g} °/s vibration)" if vib else ""
-        if name == "none":
+        if name.startswith("none") or name not in EFFECTS_OF_SIM:
             fitted = "—"
         elif name in ana.named:
             fitted = D.format_params(ana.steps[ana.named.index(name)]["params"]) + " (named)"
@@ -234,6 +242,8 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
                 f"step-1 candidate {D.format_params(c['params'])}, explained {c['excess_explained']:.0%}, "
                 f"ΔBIC {c['delta_bic']:.0f}")
         named = ", ".join(f"{s['effect']} {D.format_params(s['params'])}" for s in ana.steps) or "nothing"
+        if ana.pruned:
+            named += " (dropped as redundant: " + ", ".join(p["effect"] for p in ana.pruned) + ")"
         row = (f"| {name} | {true_s or '—'} | {named} | {fitted} | "
                f"{ana.gap_initial:.4f} → {ana.gap_final:.4f} ({ana.noise_floor:.4f}) | "
                f"{'yes' if ana.unexplained else 'no'} | {cpu:.0f} |")

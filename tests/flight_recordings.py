@@ -69,16 +69,11 @@ def flight(effects: dict | None = None, **kw) -> FlightRecording:
     return flight_recording(effects, **kw)
 
 
-def saturation_level(seed: int = 0, fraction: float = 0.7, **kw) -> float:
-    """A gyro range (rad/s) at `fraction` of the flight's peak rate over the recording: its largest
-    swings clip, whichever motion (log or synthetic) the tests run on."""
-    kw = {"real_log": REAL_LOG, **kw}
-    return clipping_range(flight_motion(seed, **kw), SECONDS, fraction)
-
-
-def clipping_range(motion: mo.Motion, seconds: float, fraction: float = 0.7) -> float:
-    """A gyro range (rad/s) at `fraction` of `motion`'s peak rate over a recording of `seconds`."""
-    t = np.arange(-0.1, seconds + 0.05, 1e-3)
+def clipping_range(motion: mo.Motion, seconds: float, fraction: float = 0.7, fps: float = 50.0) -> float:
+    """A gyro range (rad/s) at `fraction` of `motion`'s peak rate while a recording of `seconds` at
+    `fps` is exposed (its first frame's 5τ history to its last frame), so the clipped swings are
+    ones the frames see."""
+    t = np.arange(-0.05, seconds - 1.0 / fps + 1e-9, 1e-3)
     return round(fraction * float(np.abs(motion.omega(t)).max()), 3)
 
 

@@ -534,3 +534,19 @@ def test_figures_need_no_test_extra():
     reqs = importlib.metadata.requires("thermod") or []
     main_deps = [r for r in reqs if "extra ==" not in r]
     assert any(r.lower().startswith("matplotlib") for r in main_deps), main_deps
+
+
+def test_an_effect_can_be_put_back_to_nominal():
+    # (the backward elimination's test of whether a named effect is still needed)
+    from dataclasses import replace
+
+    from thermod.calib.discrepancy import EFFECTS, Model
+
+    nominal = Model(NOMINAL)
+    fitted = Model(replace(NOMINAL, time_offset_s=0.004, readout_s=0.01, tau_s=0.012),
+                   extra_psf_px=0.8)
+    back = EFFECTS["rolling_readout"].without(fitted, nominal)
+    assert (back.calib.readout_s, back.calib.time_offset_s) == (NOMINAL.readout_s, NOMINAL.time_offset_s)
+    assert back.calib.tau_s == 0.012 and back.extra_psf_px == 0.8          # the others untouched
+    assert EFFECTS["optical_psf"].without(fitted, nominal).extra_psf_px == 0.0
+    assert EFFECTS["time_constant"].without(fitted, nominal).calib.tau_s == NOMINAL.tau_s

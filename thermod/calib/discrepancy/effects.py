@@ -37,7 +37,7 @@ class Effect:
 
     fit(ctx, model) -> FitResult: the model with the effect fitted in.
     diagnostic: the panel of `diagnostics` that shows it (the figure highlights it).
-    fields: the calibration (or `Model`) fields it changes.
+    fields: the `Model` (or its calibration's) fields it changes (`without` resets them).
     values(model, nominal) -> dict: its parameters as they stand in `model` (what the report says
     and what goes into model.toml), relative to `nominal` where the field composes (misalignment).
     """
@@ -47,6 +47,13 @@ class Effect:
     diagnostic: str
     fields: tuple[str, ...]
     values: Callable[[Model, Model], dict]
+
+    def without(self, model: Model, nominal: Model) -> Model:
+        """`model` with every field this effect owns put back to `nominal`'s value."""
+        own = {f.name for f in dataclasses.fields(Model)}
+        m = dataclasses.replace(model, **{f: getattr(nominal, f) for f in self.fields if f in own})
+        cal = {f: getattr(nominal.calib, f) for f in self.fields if f not in own}
+        return dataclasses.replace(m, calib=dataclasses.replace(m.calib, **cal)) if cal else m
 
 
 # ----------------------------------------------------------------------------------------- search
@@ -181,7 +188,15 @@ def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
 
 
 def fit_optical_psf(ctx: StepContext, model: Model, max_sigma_px: float = 3.0) -> FitResult:
-    """Extra Gaussian blur σ_e of the motion frames beyond the static ones (adds in quadrature)."""
+    """Extra Gaussian blur σ_e of the motion frames beyond the static ones (adds in quadrature).
+
+    Without a static reference there is nothing to be extra to: a Gaussian blur shared by every frame
+    commutes with their motion (shifts and rotations) and with the thermal IIR, so the estimated scene
+    takes it whole, and the fit would only chase the forward model's resampling error."""
+    if not any(d.reference == "static" for d in ctx.recs):
+        return FitResult("optical_psf", model, ctx.problem.evaluate(model).ssr, n_params=0, unobservable=[
+            "optical_psf: no static reference; a blur common to every frame is part of the estimated scene"])
+
     def make(x):
         return dataclasses.replace(model, extra_psf_px=float(math.hypot(model.extra_psf_px, x)))
     x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_sigma_px, 13), 0.0, max_sigma_px, None)
@@ -294,7 +309,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("gyro_scale", fit_gyro_scale, "rate", ("scale",), _calib_values("scale")),
     Effect("misalignment", fit_misalignment, "rate", ("R_cam_gyro",), _misalignment_values),
     Effect("time_constant", fit_time_constant, "accel", ("tau_s",), _calib_values("tau_s")),
-    Effect("optical_psf", fit_optical_psf, "spectrum", ("psf_beta",), _psf_values),
+    Effect("optical_psf", fit_optical_psf, "spectrum", ("extra_psf_px",), _psf_values),
 )}
 
 CANDIDATES = tuple(EFFECTS)
@@ -458,17 +473,19 @@ def fit_detector_nonlinearity(ctx: StepContext, model: Model, max_curvature: flo
 
 
 def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
-    """Flat-field corrections: runs of frozen motion frames (`sensor.detect_frozen`, on top of the events
-    already in the model), each with the global offset step of the new NUC, fitted as the difference of
-    the mean residual after and before it (least squares; the per-pixel part is the per-segment FPN
-    `sensor.estimate_fpn` makes once the event is in the model). No frozen run: no parameter. Steps of
-    events already in the model are refitted too (the search's refit after later effects)."""
-    events = list(model.ffc)
+    """Flat-field corrections: runs of frozen motion frames (`sensor.detect_frozen`, together with the
+    frames of the events already in the model), each with the global offset step of the new NUC, fitted
+    as the difference of the mean residual after and before it (least squares; the per-pixel part is the
+    per-segment FPN `sensor.estimate_fpn` makes once the event is in the model). No frozen run: no
+    parameter. Steps of events already in the model are refitted too (the search's refit after later
+    effects). A frozen frame found next to a known event lengthens it: a frame the model saw hardly
+    move at first is still part of the same hold, not an event of its own."""
+    events = [e for e in model.ffc if e.recording not in {d.name for d in ctx.recs}]
     for d in ctx.recs:
         p, _ = ctx.problem.predict(model, d)
         frozen = sensor.detect_frozen(d, p, d.mask)
         for e in sensor.events_of(d, model):
-            frozen &= ~e.frozen(d.frame_t)
+            frozen |= e.frozen(d.frame_t)
         period = 1.0 / model.calib.frame_rate_hz
         for a, b in sensor.frozen_runs(frozen):
             t_end = float(d.frame_t[b]) if b < len(d.frame_t) else float(d.frame_t[-1]) + period
@@ -487,8 +504,10 @@ def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
         r = np.where(d.mask, d.measured - p, np.nan)
         level = [float(np.nanmean(r[seg == s])) if np.any(seg == s) else 0.0 for s in range(len(evs) + 1)]
         fitted += [dataclasses.replace(e, step_counts=level[i + 1] - level[i]) for i, e in enumerate(evs)]
+    fitted += [e for e in events if e.recording not in {d.name for d in ctx.recs}]
     new = dataclasses.replace(model, ffc=tuple(fitted))
-    n_new = len(events) - len(model.ffc)
+    known = {(e.recording, e.t_start, e.t_end) for e in model.ffc}
+    n_new = sum((e.recording, e.t_start, e.t_end) not in known for e in fitted)
     return FitResult("ffc_event", new, ctx.problem.evaluate(new).ssr, n_params=2 * n_new)
 
 

@@ -53,7 +53,7 @@ class Problem:
         return np.concatenate(out)
 
     def refresh(self, model: Model, fpn: bool = True, erode_px: int = 2, fpn_iters: int = 2,
-                fpn_highpass_px: float = 1.5, keep_mask: bool = False):
+                fpn_highpass_px: float = 1.5, keep_mask: bool = False, rebuild_scene: bool = False):
         """Per-step state: FPN estimate (per NUC segment: `sensor.estimate_fpn`) and the fixed valid mask.
 
         FPN stays put on the sensor while the scene moves, so it is what the motion residual has in
@@ -64,9 +64,13 @@ class Problem:
         Motion-only recordings also re-estimate their scene canvas here (`estimate_scene`), alternating
         with the FPN, under the current model: once per step, never inside a candidate's fit (but see
         `analysis._project_scene`). `keep_mask`: leave the valid mask as it is (SSRs stay comparable).
+        `rebuild_scene`: start the canvas again from the mosaic under `model` instead of refining the one
+        estimated under an older model (after a step: that one holds ghosts of the effect just found).
         """
         for d in self.recs:
             d.aux["ffc_fpn"] = None
+            if rebuild_scene and d.reference == "motion":
+                d.coverage = None
             if d.reference == "motion":
                 _refresh_motion(d, model, fpn, fpn_iters, fpn_highpass_px, self.scene_iters)
             else:
@@ -292,7 +296,7 @@ class StepContext:
     def at(cls, problem: Problem, ev: Evaluation, named, model_tol: float) -> StepContext:
         area = effective_area(ev.residuals)
         return cls(problem, chi2_scale=problem.noise_ss() / max(ev.n, 1) * area, n_eff=ev.n / area,
-                   min_gain=model_tol ** 2 * problem.signal_ss(), named=tuple(named))
+                   min_gain=(0.5 * model_tol) ** 2 * problem.signal_ss(), named=tuple(named))
 
     def delta_bic(self, ssr_before: float, ssr_after: float, n_params: int) -> float:
         """BIC gain on effective samples of a fit with `n_params` more parameters."""

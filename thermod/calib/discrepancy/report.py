@@ -272,14 +272,25 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
                   f"{s['gap_after']:.4f} | {s['delta_bic']:.0f} | {100 * s['excess_explained']:.0f} % |")
     if not ana.steps:
         md.append("| – | nothing added | | | | | |")
-    md += ["", "Notes:", "",
-           "- The reference is the mean of the static frames, so it already carries the optics' PSF and the "
-           "fixed-pattern noise: a PSF shared by static and moving frames leaves no gap and cannot be "
-           "estimated here; `optical_psf` fits only blur that the moving frames have *in addition*.",
-           "- FPN is estimated as the high-passed temporal mean of the motion residual (it stays on the "
-           "sensor while the scene moves) and added back to every prediction.",
-           "- A gyro bias hypothesis uses the static segment's mean raw rate as a prior (the camera is "
-           "still there), refined by the images."]
+    for p in ana.pruned:
+        md.append(f"| – | {p['effect']} (dropped) | {format_params(p['params'])} | | | | "
+                  f"redundant: gap {p['gap_with']:.4f} with it, {p['gap_without']:.4f} without |")
+    static = ana.reference != "motion"
+    md += ["", "Notes:", ""]
+    md += (["- The reference is the mean of the static frames, so it already carries the optics' PSF and the "
+            "fixed-pattern noise: a PSF shared by static and moving frames leaves no gap and cannot be "
+            "estimated here; `optical_psf` fits only blur that the moving frames have *in addition*."]
+           if static else
+           ["- There is no static reference: a blur every frame shares (the optics' PSF) is part of the "
+            "estimated scene, so `optical_psf` cannot be estimated from this recording; neither can a "
+            "uniform offset or gain common to all frames. A detector response curve is mostly taken up "
+            "by the scene too (only where the motion blur mixes levels does it leave a trace): record a "
+            "static lead-in to measure it."])
+    md += ["- FPN is estimated as the high-passed temporal mean of the motion residual (it stays on the "
+           "sensor while the scene moves) and added back to every prediction."]
+    md += (["- A gyro bias hypothesis uses the static segment's mean raw rate as a prior (the camera is "
+            "still there), refined by the images."] if static else
+           ["- No static segment: the gyro bias is fitted from the images alone (no prior)."])
     md += _detector_notes(ana)
     if ana.unobservable:
         md += ["", "Not observable with this motion (left at their previous values):"]
