@@ -62,6 +62,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=1.0, help="--flight-effects duration (default 1.0)")
     ap.add_argument("--work-width", type=int, default=None,
                     help="--flight-effects analysis width (default: the frame width, full resolution)")
+    ap.add_argument("--log-start", type=float, default=1.0,
+                    help="--flight-effects: where in the real gyro log the flight starts (s, default 1.0)")
     ap.add_argument("--effects", default=",".join(FLIGHT_EFFECTS),
                     help="--flight-effects: comma-separated subset of " + ", ".join(FLIGHT_EFFECTS))
     args = ap.parse_args()
@@ -71,7 +73,8 @@ def main() -> None:
     if args.flight_effects:
         _one_core()
         w, h = (int(v) for v in args.size.lower().split("x"))
-        flight_effects(args.effects.split(","), (w, h), args.seconds, args.work_width or w)
+        flight_effects(args.effects.split(","), (w, h), args.seconds, args.work_width or w,
+                       args.log_start)
         return
     _one_core()
     if args.motion_only:
@@ -190,7 +193,8 @@ FLIGHT_EFFECTS = {
 EFFECTS_OF_SIM = set(D.EFFECTS)     # rows named after one vocabulary effect report its fitted value
 
 
-def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work_width: int) -> None:
+def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work_width: int,
+                   log_start: float = 1.0) -> None:
     """The `--flight-effects` table (module docstring): what the motion-only search names for each hidden
     effect, the hidden effect's fitted value (its final value when named, else its best first-step
     candidate's, with the excess it explained and its ΔBIC), the gap, and the analysis's CPU time."""
@@ -205,7 +209,7 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
         raise SystemExit(f"--effects: unknown {unknown}; known: {', '.join(FLIGHT_EFFECTS)}")
     nominal = nominal_calibration(size)
     if mo.default_log_path() is not None:
-        base, what = mo.gyro_log(None, start_s=1.0), "the real Betaflight log from 1.0 s"
+        base, what = mo.gyro_log(None, start_s=log_start), f"the real Betaflight log from {log_start:g} s"
     else:
         base, what = mo.flight(seed=0), "the synthetic flight (sim.motion.flight, seed 0)"
         print("note: no real gyro log (../shared/data/gyro); falling back to the synthetic flight")

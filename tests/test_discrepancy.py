@@ -550,3 +550,27 @@ def test_an_effect_can_be_put_back_to_nominal():
     assert back.calib.tau_s == 0.012 and back.extra_psf_px == 0.8          # the others untouched
     assert EFFECTS["optical_psf"].without(fitted, nominal).extra_psf_px == 0.0
     assert EFFECTS["time_constant"].without(fitted, nominal).calib.tau_s == NOMINAL.tau_s
+
+
+@pytest.mark.slow
+def test_backward_elimination_drops_only_what_the_others_make_redundant():
+    # A model with the hidden 6 ms offset fitted and a τ "named" at its nominal value (as a step that
+    # later refits walked back would leave it): the τ step goes, the offset stays.
+    from dataclasses import replace
+
+    from thermod.calib.discrepancy.analysis import Analysis, Criteria, _prune
+
+    rec, ana0 = analysed("time_offset", CASES["time_offset"][0])
+    d = D.prepare(rec, NOMINAL, name="prune")
+    problem = D.Problem([d])
+    model = D.Model(replace(NOMINAL, time_offset_s=ana0.model.calib.time_offset_s))
+    problem.refresh(model)
+    ev = problem.evaluate(model, keep=True)
+    ctx = D.StepContext.at(problem, ev, ("time_offset", "time_constant"), 0.05)
+    steps = [{"effect": n, "n_params": 1} for n in ("time_offset", "time_constant")]
+    ana = Analysis(0.0, 0.0, 0.0, steps, False, model, D.Model(NOMINAL), diags=[("a", {}), ("b", {})])
+    kept = _prune(ctx, model, Criteria(), ana, lambda msg: None)
+    assert ana.named == ["time_offset"]
+    assert [p["effect"] for p in ana.pruned] == ["time_constant"] and len(ana.diags) == 1
+    assert kept.calib.time_offset_s == model.calib.time_offset_s
+    assert ana.pruned[0]["gap_without"] == pytest.approx(ana.pruned[0]["gap_with"], rel=1e-6)

@@ -101,8 +101,6 @@ class Analysis:
             "step": len(self.steps) + 1, "effect": c.effect.name,
             "params": jsonable(c.effect.values(c.fit.model, self.nominal)), "gap": problem.gap(c.fit.ssr),
             "delta_bic": c.delta_bic, "excess_explained": c.explained, "unobservable": c.fit.unobservable})
-        if c.fit.n_params == 0 and c.fit.unobservable:      # nothing it could fit: say why
-            self.unobservable.setdefault(c.effect.name, c.fit.unobservable)
 
     def record_step(self, c: Candidate, gap_before: float, gap_after: float, diag: dict) -> None:
         self.steps.append({
