@@ -88,7 +88,7 @@ class Analysis:
             "unobservable": self.unobservable, "candidates": self.candidates_tried,
             "definition": GAP_DEFINITION, "seconds": self.seconds,
             "reference": self.reference, "noise_source": self.noise_source,
-            "dropped": [{k: v for k, v in p.items() if k != "step"} for p in self.pruned],
+            "dropped": self.pruned,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -176,12 +176,11 @@ def _settle(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, no
     for _ in range(rounds):
         saved = problem.state()
         problem.refresh(model, fpn=fpn, keep_mask=True)
-        new = model
+        new, ssr_new = model, problem.evaluate(model).ssr
         for effect in effects:
             f = effect.fit(warm, new)
-            if f.ssr < problem.evaluate(new).ssr:
-                new = f.model
-        ssr_new = problem.evaluate(new).ssr
+            if f.ssr < ssr_new:
+                new, ssr_new = f.model, f.ssr
         if ssr_new >= ssr:
             problem.restore(saved)
             break
@@ -211,11 +210,10 @@ def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -
         if ssr_without - ssr >= ctx.min_gain and ctx.delta_bic(ssr_without, ssr, n_params) > crit.bic_min:
             break
         i = ana.named.index(name)
-        step = ana.steps.pop(i)
+        ana.steps.pop(i)
         ana.diags.pop(i)
         ana.pruned.append({"effect": name, "params": jsonable(EFFECTS[name].values(model, ana.nominal)),
-                           "gap_without": problem.gap(ssr_without), "gap_with": problem.gap(ssr),
-                           "step": step})
+                           "gap_without": problem.gap(ssr_without), "gap_with": problem.gap(ssr)})
         ana.unobservable.pop(name, None)
         model = reduced
         say(f"  dropped {name}: the other effects make it redundant (gap {problem.gap(ssr):.4f} → "

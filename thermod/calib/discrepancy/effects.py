@@ -480,7 +480,9 @@ def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
     parameter. Steps of events already in the model are refitted too (the search's refit after later
     effects). A frozen frame found next to a known event lengthens it: a frame the model saw hardly
     move at first is still part of the same hold, not an event of its own."""
-    events = [e for e in model.ffc if e.recording not in {d.name for d in ctx.recs}]
+    here = {d.name for d in ctx.recs}
+    elsewhere = [e for e in model.ffc if e.recording not in here]
+    events = list(elsewhere)
     for d in ctx.recs:
         p, _ = ctx.problem.predict(model, d)
         frozen = sensor.detect_frozen(d, p, d.mask)
@@ -504,7 +506,7 @@ def fit_ffc_event(ctx: StepContext, model: Model) -> FitResult:
         r = np.where(d.mask, d.measured - p, np.nan)
         level = [float(np.nanmean(r[seg == s])) if np.any(seg == s) else 0.0 for s in range(len(evs) + 1)]
         fitted += [dataclasses.replace(e, step_counts=level[i + 1] - level[i]) for i, e in enumerate(evs)]
-    fitted += [e for e in events if e.recording not in {d.name for d in ctx.recs}]
+    fitted += elsewhere
     new = dataclasses.replace(model, ffc=tuple(fitted))
     known = {(e.recording, e.t_start, e.t_end) for e in model.ffc}
     n_new = sum((e.recording, e.t_start, e.t_end) not in known for e in fitted)
