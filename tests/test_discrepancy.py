@@ -567,10 +567,18 @@ def test_backward_elimination_drops_only_what_the_others_make_redundant():
     problem.refresh(model)
     ev = problem.evaluate(model, keep=True)
     ctx = D.StepContext.at(problem, ev, ("time_offset", "time_constant"), 0.05)
-    steps = [{"effect": n, "n_params": 1} for n in ("time_offset", "time_constant")]
+    steps = [{"effect": n, "n_params": 1, "params": {}, "gap_before": 0.1, "gap_after": 0.05,
+              "delta_bic": 1e3, "excess_explained": 0.5} for n in ("time_offset", "time_constant")]
     ana = Analysis(0.0, 0.0, 0.0, steps, False, model, D.Model(NOMINAL), diags=[("a", {}), ("b", {})])
     kept = _prune(ctx, model, Criteria(), ana, lambda msg: None)
     assert ana.named == ["time_offset"]
     assert [p["effect"] for p in ana.pruned] == ["time_constant"] and len(ana.diags) == 1
     assert kept.calib.time_offset_s == model.calib.time_offset_s
     assert ana.pruned[0]["gap_without"] == pytest.approx(ana.pruned[0]["gap_with"], rel=1e-6)
+    from thermod.calib.discrepancy.report import _markdown, jsonable
+
+    ana.finish(kept, problem, problem.evaluate(kept, keep=True), Criteria(), 0.0)
+    md = _markdown(ana, ["prune.h5"], [])
+    assert "| 1 | time_offset | time_offset_s=" in md
+    assert "| – | time_constant (dropped) | tau_s=" in md
+    assert json.loads(json.dumps(jsonable(ana.report())))["dropped"][0]["effect"] == "time_constant"
