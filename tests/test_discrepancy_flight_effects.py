@@ -92,15 +92,16 @@ def test_the_true_model_keeps_its_pixels_where_the_flight_reaches_the_scene_edge
     the scene canvas's edge. The valid mask is made under the nominal model; with a 5 % scale error the
     true model moves the extreme frames' views by a few pixels, and with a 2 px margin they left the
     known scene: the truth measured gap 0.0485 against a floor of 0.0091, and no search could name it.
-    With the motion-only margin (`problem.ERODE_PX`): 0.0128."""
+    With the motion-only margin (`problem.MOTION_MARGIN_RAD`, 5 px here): 0.0128."""
     require(REAL_LOG, "../shared/data/gyro (the real Betaflight log)")
     from thermod.calib import discrepancy as D
-    from thermod.calib.discrepancy.problem import Problem
+    from thermod.calib.discrepancy.problem import Problem, mask_margin_px
 
     fr = flight_recording({"gyro_scale": (1.04, 0.97, 1.05)}, seconds=SECONDS, size=SIZE, real_log=True,
                           log_start_s=9.0)
     d = D.prepare(fr.rec, fr.nominal, name="edge", work_width=WORK_WIDTH)
     problem = Problem([d])
+    assert mask_margin_px(d) == 5
     nominal, truth = D.Model(fr.nominal), D.Model(fr.truth)
     problem.refresh(nominal)
     gap_nominal = problem.gap(problem.evaluate(nominal).ssr)

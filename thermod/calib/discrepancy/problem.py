@@ -28,8 +28,17 @@ class Evaluation:
 # frames alike; a motion-only scene canvas ends where fewer than MIN_COVERAGE frames saw it, an edge
 # that the extreme poses of the flight reach and that moves with the model. There a 2 px margin made the
 # true calibration look worse than the nominal one (pitch 41 °/s RMS, scale error 4–5 %: gap 0.0485
-# against a noise floor 0.0091; 0.0128 with 5 px, for 9 % fewer pixels).
-ERODE_PX = {"static": 2, "motion": 5}
+# against a noise floor 0.0091; 0.0128 with 5 px at work width 160, for 9 % fewer pixels). As an angle,
+# so it keeps that meaning at any working resolution: 0.8° is 5 px at work width 160.
+STATIC_MARGIN_PX = 2
+MOTION_MARGIN_RAD = math.radians(0.8)
+
+
+def mask_margin_px(d: RecData) -> int:
+    """The valid mask's erosion (working px) for recording `d` (see MOTION_MARGIN_RAD)."""
+    if d.reference != "motion":
+        return STATIC_MARGIN_PX
+    return max(STATIC_MARGIN_PX, int(round(MOTION_MARGIN_RAD * max(d.fm.intr.fx, d.fm.intr.fy))))
 
 
 class Problem:
@@ -77,7 +86,7 @@ class Problem:
         `analysis._project_scene`). `keep_mask`: leave the valid mask as it is (SSRs stay comparable).
         `rebuild_scene`: start the canvas again from the mosaic under `model` instead of refining the one
         estimated under an older model (after a step: that one holds ghosts of the effect just found).
-        `erode_px`: the valid mask's margin (default: `ERODE_PX` for the recording's reference kind).
+        `erode_px`: the valid mask's margin (default: `mask_margin_px`).
         """
         for d in self.recs:
             d.aux["ffc_fpn"] = None
@@ -91,7 +100,7 @@ class Problem:
             if keep_mask and d.mask is not None:
                 continue
             _, v = sensor.predict(d, model)
-            e = ERODE_PX[d.reference] if erode_px is None else erode_px
+            e = mask_margin_px(d) if erode_px is None else erode_px
             k = np.ones((2 * e + 1, 2 * e + 1), np.uint8)
             d.mask = np.stack([cv2.erode(x.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
                                for x in v]).astype(bool)
