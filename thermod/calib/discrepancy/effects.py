@@ -50,26 +50,8 @@ class Effect:
     values: Callable[[Model, Model], dict]
 
     def along(self, model: Model, fitted: Model, k: float) -> Model | None:
-        """`model` moved k times the way `fitted` moved it, in this effect's fields (k = 1: `fitted`);
-        None when one of them has no such line (events, curves, filter cut-offs) or the result is
-        not a valid calibration. Scale factors and τ move geometrically, the rotation on SO(3)."""
-        changes = {}
-        for name in self.fields:
-            kind = _LINE_FIELDS.get(name)
-            if kind is None:
-                return None
-            a, b = getattr(model.calib, name), getattr(fitted.calib, name)
-            if kind == "rotation":
-                Ra, Rb = np.asarray(a, float).reshape(3, 3), np.asarray(b, float).reshape(3, 3)
-                changes[name] = tuple(map(tuple, so3_exp(k * so3_log(Rb @ Ra.T)) @ Ra))
-                continue
-            a, b = np.asarray(a, float), np.asarray(b, float)
-            v = a * (b / a) ** k if kind == "ratio" else a + k * (b - a)
-            changes[name] = float(v) if v.ndim == 0 else tuple(float(x) for x in v)
-        try:
-            return dataclasses.replace(model, calib=model.calib.replace(**changes))
-        except (ValueError, ThermodError):
-            return None
+        """`model` moved k times the way `fitted` moved it, in this effect's fields (`along`)."""
+        return along(model, fitted, k, self.fields)
 
     def without(self, model: Model, nominal: Model) -> Model:
         """`model` with every field this effect owns put back to `nominal`'s value."""
@@ -79,9 +61,32 @@ class Effect:
         return dataclasses.replace(m, calib=dataclasses.replace(m.calib, **cal)) if cal else m
 
 
-# calibration fields with a straight line through two values (`Effect.along`)
+# calibration fields with a straight line through two values (`along`)
 _LINE_FIELDS = {"time_offset_s": "difference", "readout_s": "difference", "bias_rad_s": "difference",
                 "scale": "ratio", "tau_s": "ratio", "R_cam_gyro": "rotation"}
+
+
+def along(model: Model, fitted: Model, k: float, fields) -> Model | None:
+    """`model` moved k times the way `fitted` moved it in the calibration `fields` (k = 1: `fitted`'s
+    values); None when one of them has no such line (events, curves, filter cut-offs) or the result
+    is not a valid calibration. Scale factors and τ move geometrically, the rotation on SO(3)."""
+    changes = {}
+    for name in dict.fromkeys(fields):
+        kind = _LINE_FIELDS.get(name)
+        if kind is None:
+            return None
+        a, b = getattr(model.calib, name), getattr(fitted.calib, name)
+        if kind == "rotation":
+            Ra, Rb = np.asarray(a, float).reshape(3, 3), np.asarray(b, float).reshape(3, 3)
+            changes[name] = tuple(map(tuple, so3_exp(k * so3_log(Rb @ Ra.T)) @ Ra))
+            continue
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        v = a * (b / a) ** k if kind == "ratio" else a + k * (b - a)
+        changes[name] = float(v) if v.ndim == 0 else tuple(float(x) for x in v)
+    try:
+        return dataclasses.replace(model, calib=model.calib.replace(**changes))
+    except (ValueError, ThermodError):
+        return None
 
 
 # ----------------------------------------------------------------------------------------- search
