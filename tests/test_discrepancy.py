@@ -564,7 +564,8 @@ def test_an_effect_extends_along_the_line_its_fit_moved_the_model():
     fitted = Model(replace(NOMINAL, bias_rad_s=(0.001, -0.002, 0.0005), scale=(1.01, 1.0, 1.02),
                            time_offset_s=0.001).with_misalignment((0.002, 0.0, -0.001)))
     bias = EFFECTS["gyro_bias"].along(model, fitted, 4.0).calib
-    assert np.allclose(bias.bias_rad_s, np.asarray(NOMINAL.bias_rad_s) + 4 * np.array([0.001, -0.002, 0.0005]))
+    step = np.array([0.001, -0.002, 0.0005])
+    assert np.allclose(bias.bias_rad_s, np.asarray(NOMINAL.bias_rad_s) + 4 * step)
     assert bias.scale == NOMINAL.scale and bias.time_offset_s == NOMINAL.time_offset_s   # its fields only
     scale = EFFECTS["gyro_scale"].along(model, fitted, 2.0).calib.scale_vector
     assert np.allclose(scale, np.asarray(NOMINAL.scale_vector) * np.array([1.01, 1.0, 1.02]) ** 2)
