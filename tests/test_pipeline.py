@@ -257,6 +257,25 @@ def test_disabled_passes_everything_through(sharp):
     assert [o.reason for o in outs] == ["disabled"] * 3
 
 
+def test_frames_the_ring_overwrote_are_said_in_the_next_frames_header(sharp):
+    # a scheduler that falls more than the ring behind (starved by the load) never reads those frames:
+    # they are counted, and the next published frame says how many were lost just before it
+    col = Collector()
+    gr, fr = GyroRing(5000), FrameRing(4, (H, W))
+    cfg = PipelineConfig(workers=1, job_queue=4, wait_timeout_s=0.05, reorder_timeout_s=2.0)
+    p = Pipeline(gr, fr, CAL, DeblurConfig(enabled=False), cfg, col)
+    for i in range(10):                       # before the scheduler reads: frames 0–5 overwritten
+        fr.write(sharp.astype(np.uint16), time.monotonic(), frame_id=100 + i, arrival=time.monotonic())
+    p.start(start_index=0)
+    try:
+        outs = col.wait(4)
+    finally:
+        p.stop()
+    assert [o.frame_id for o in outs] == [106, 107, 108, 109]
+    assert [o.overrun_before for o in outs] == [6, 0, 0, 0]
+    assert p.stats()["counters"]["frames_overrun"] == 6
+
+
 class SlowDeconvolver(Deconvolver):
     """The real deconvolver on a slow machine (fault injection for overload): 1 s per frame, far
     longer than the test takes to write its frames however loaded the machine (0.16 s nominal)."""

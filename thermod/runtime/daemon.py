@@ -156,6 +156,7 @@ class Daemon:
                                      kernel_size=o.kernel_size, kernel_extent_px=o.kernel_extent_px,
                                      coverage=o.coverage, reason=o.reason, copy=False, n_samples=o.n_samples,
                                      latency_s=o.latency_s, camera_gap_before=o.camera_gap_before,
+                                     overrun_before=o.overrun_before,
                                      **frame_method_fields(o.method, o.grid))
         if self.cfg.publish.kernel and o.kernel is not None:
             self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)

@@ -32,7 +32,8 @@ A frame that cannot be deblurred is *passed through*: published as float32 count
   down a rung at once;
 - a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
 - the scheduler fell more than the frame ring behind → the overwritten frames are counted
-  (``frames_overrun``); they were never read, so there is nothing to publish.
+  (``frames_overrun``, and the next frame's ``overrun_before``); they were never read, so there is
+  nothing to publish.
 
 Outputs are released in frame order (a small reorder stage; a frame more than
 ``reorder_timeout_s`` late is released out of order rather than holding the stream). Every wait
@@ -81,6 +82,7 @@ class FrameOut:
     coverage: float | None = None
     n_samples: int = 0
     camera_gap_before: int = 0
+    overrun_before: int = 0         # frames the frame ring overwrote unread just before this one
     t_done: float = 0.0             # host monotonic when released
     kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
     method: str | None = None       # the governor's rung that deblurred it: kf | kf_fast | wiener
@@ -289,6 +291,7 @@ class Pipeline:
         self._jobs_cond = threading.Condition()
         self._out_lock = threading.Lock()
         self._pending: dict[int, tuple[FrameOut, float]] = {}
+        self._overrun_at: dict[int, int] = {}    # ring index → frames overwritten just before it
         self._next_out = 0
         self._scheduler: threading.Thread | None = None
         self._workers: list[threading.Thread | None] = []
@@ -441,6 +444,7 @@ class Pipeline:
             if isinstance(got, int):   # overwritten before we read them: never seen, count them
                 lost = got - i
                 self._count("frames_overrun", lost)
+                self._overrun_at[got] = self._overrun_at.get(got, 0) + lost   # said in its header
                 log.warning("scheduler fell behind: %d frames overwritten in the frame ring", lost)
                 self._skip_outputs(i, got)
                 i = got
@@ -594,7 +598,7 @@ class Pipeline:
                         deblurred=deblurred, reason=reason, kernel_size=info.get("kernel_size"),
                         kernel_extent_px=info.get("kernel_extent_px"), coverage=info.get("coverage"),
                         n_samples=int(info.get("n_samples", 0)), camera_gap_before=slot.gap_before,
-                        kernel=kernel)
+                        overrun_before=self._overrun_at.pop(slot.index, 0), kernel=kernel)
 
     def _passthrough(self, slot: FrameSlot, reason: str, info: dict) -> None:
         self._count(f"passthrough_{reason}", 1)
