@@ -200,13 +200,16 @@ def _settle(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, no
 
 
 def _stretch(problem: Problem, model: Model, new: Model, ssr_new: float, fields, fpn: bool,
-             max_k: float = 16.0, scene_iters: int = 3) -> tuple[Model, float, float]:
+             max_k: float = 16.0, scene_iters: int = 3, rebuild_from: list | None = None
+             ) -> tuple[Model, float, float]:
     """Line search on the projected cost (scene rebuilt under each model) along the step model → new:
     k = 2, 4, … up to `max_k` while it falls. The first longer step must beat `ssr_new`, measured on
     the warm-refined canvas, with a canvas rebuilt in `scene_iters` iterations: a handicap that
-    keeps this to real valleys. Returns (model, SSR, k) with the problem holding that model's rebuilt
+    keeps this to real valleys. Each scene is rebuilt from `rebuild_from` (a `Problem.state`; default
+    the problem as it is). Returns (model, SSR, k) with the problem holding that model's rebuilt
     scene, or (new, ssr_new, 1) and the problem as it was."""
     kept = problem.state()
+    start = kept if rebuild_from is None else rebuild_from
     iters = problem.scene_iters
     problem.scene_iters = scene_iters
     best = (new, ssr_new, 1.0, kept)
@@ -216,7 +219,7 @@ def _stretch(problem: Problem, model: Model, new: Model, ssr_new: float, fields,
             m = along(model, new, k, fields)
             if m is None:
                 break
-            problem.restore(kept)
+            problem.restore(start)
             problem.refresh(m, fpn=fpn, keep_mask=True, rebuild_scene=True)
             ssr = problem.evaluate(m).ssr
             if ssr >= best[1]:
@@ -361,7 +364,7 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     holds none of the old canvas's compromise. The baseline is the current model's projected cost.
     Each of the `top` candidates by explained excess (those explaining at least `share` of what the
     best one does) is then line-searched on the projected cost along the direction its fit moved the
-    model (`Effect.along`: k = 1, 2, 4, … up to `max_stretch` while the cost falls), then refitted
+    model (`_stretch`: k = 1, 2, 4, … up to `max_stretch` while the cost falls), then refitted
     warm on the best k's canvas. Returns the candidates with their projected fits, statistics and
     scene state (the search goes on from the chosen one's), and the baseline SSR."""
     problem = ctx.problem
@@ -385,17 +388,10 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
         excess = max(base - problem.noise_ss(), 1e-30)
         for c in best:
             t0 = time.monotonic()
-            m_best, ssr_best, k = c.fit.model, projected(c.fit.model), 1.0
+            m_best, ssr_best, k = _stretch(problem, model, c.fit.model, projected(c.fit.model),
+                                           c.effect.fields, True, max_k=max_stretch,
+                                           scene_iters=scene_iters, rebuild_from=saved)
             state = problem.state()
-            while 2 * k <= max_stretch:
-                m = c.effect.along(model, c.fit.model, 2 * k)
-                if m is None:
-                    break
-                ssr = projected(m)
-                if ssr >= ssr_best:
-                    break
-                m_best, ssr_best, k, state = m, ssr, 2 * k, problem.state()
-            problem.restore(state)
             g = c.effect.fit(warm, m_best)
             if g.ssr < ssr_best:
                 ssr_g = projected(g.model)

@@ -49,10 +49,6 @@ class Effect:
     fields: tuple[str, ...]
     values: Callable[[Model, Model], dict]
 
-    def along(self, model: Model, fitted: Model, k: float) -> Model | None:
-        """`model` moved k times the way `fitted` moved it, in this effect's fields (`along`)."""
-        return along(model, fitted, k, self.fields)
-
     def without(self, model: Model, nominal: Model) -> Model:
         """`model` with every field this effect owns put back to `nominal`'s value."""
         own = {f.name for f in dataclasses.fields(Model)}
