@@ -135,6 +135,27 @@ def test_clipped_runs_are_found_and_continued():
     assert G.unclip(s.t, raw, level, gain=0.0) == pytest.approx(raw)
 
 
+def test_a_quantised_log_is_not_taken_for_a_clipped_one():
+    # A log quantised to whole °/s piles samples up at an axis's own peak. The real log's
+    # roll-dominated stretch sat at exactly 15 °/s for a while on its quiet axis while another axis
+    # (mapped into the camera frame, so no longer whole numbers) turned at 133 °/s: the 15 °/s was
+    # taken for the gyro's range, and the continuation rewrote every busy-axis sample above it.
+    # One full-scale range serves all three axes.
+    t = np.arange(0.0, 1.0, 1e-3)
+    quiet = np.round(15.0 * np.sin(np.pi * t))                                  # °/s, whole numbers
+    level_flight = np.round(3.0 * np.sin(6 * np.pi * t))
+    busy = 133.0 * np.sin(16 * np.pi * t + 0.3) * np.exp(-((t - 0.5) / 0.2) ** 2)   # one highest peak
+    raw = np.radians(np.stack([quiet, level_flight, busy], axis=1))
+    assert G.detect_clip_level(raw) == 0.0          # no pile-up at the largest rate
+    # quantised too: the busy axis's peak is a pile-up, but a natural peak's run is rounded off on
+    # both sides, so continuing it (what the saturation fit tries first) adds next to nothing
+    raw[:, 2] = np.radians(np.round(np.degrees(raw[:, 2])))
+    level = G.detect_clip_level(raw)
+    assert level == pytest.approx(np.abs(raw).max())
+    extra = G.unclip(t, raw, level, gain=3.0) - raw
+    assert float(np.max(np.sum(np.abs(extra), axis=0)) * 1e-3) < 1e-4     # rad: < 0.04 px at fx = 360
+
+
 # ------------------------------------------------------------------ simulator effects
 def test_sim_effects_are_validated_with_clear_errors():
     assert synth.check_effects({"clock_drift_ppm": 5.0, "gyro_lowpass_hz": 30}) == {

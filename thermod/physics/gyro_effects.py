@@ -104,16 +104,18 @@ def unclip(t: np.ndarray, rate: np.ndarray, range_rad_s: float, gain: float = 1.
 
 
 def detect_clip_level(rate: np.ndarray, min_samples: int = 3) -> float:
-    """The range a gyro clipped at: the largest |rate| that ≥ `min_samples` samples sit on exactly
-    (a pile-up at the extreme of the distribution, in runs of ≥ 2), or 0 when no axis shows one."""
+    """The range a gyro clipped at: the largest |rate| of all axes, when ≥ `min_samples` samples sit on
+    it exactly (a pile-up at the extreme of the distribution), or 0 when there is none.
+
+    A MEMS gyro has one full-scale range for its three axes, so a level below another axis's peak is
+    no range: a log quantised to 1 °/s piles samples up at each axis's own peak (15 °/s on an axis
+    that barely turns, while another turns at 130 °/s), which would otherwise "clip" the busy axis.
+    """
     r = np.abs(np.asarray(rate, np.float64))
-    level = 0.0
-    for a in range(r.shape[1]):
-        top = float(r[:, a].max(initial=0.0))
-        if top <= 0:
-            continue
-        at = r[:, a] >= top * (1.0 - CLIP_TOL)
-        runs = [j - i for i, j, _ in clipped_runs(np.asarray(rate, np.float64)[:, a], top)]
-        if at.sum() >= min_samples and max(runs, default=0) >= 1:
-            level = max(level, top)
-    return level
+    if r.ndim != 2 or r.size == 0:
+        return 0.0
+    top = float(r.max(initial=0.0))
+    if not top > 0:
+        return 0.0
+    at = int(np.sum(r >= top * (1.0 - CLIP_TOL)))
+    return top if at >= min_samples else 0.0

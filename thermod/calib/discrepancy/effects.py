@@ -20,7 +20,7 @@ from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
 from thermod.errors import ThermodError
 from thermod.physics.geometry import so3_exp, so3_log
-from thermod.physics.gyro_effects import detect_clip_level, group_delay_s
+from thermod.physics.gyro_effects import detect_clip_level, group_delay_s, unclip
 
 
 @dataclass
@@ -166,6 +166,13 @@ def _with(model: Model, **changes) -> Model:
 
 # ----------------------------------------------------------------------------------------- fits
 def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) -> FitResult:
+    """Constant gyro → camera clock offset (memoised per step state: clock drift and the gyro low-pass
+    compare themselves with this same fit)."""
+    return ctx.problem.memo(("time_offset", ctx.warm, max_offset_s), model,
+                            lambda: _fit_time_offset(ctx, model, max_offset_s))
+
+
+def _fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float) -> FitResult:
     t0 = model.calib.time_offset_s
     grid = t0 + np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
 
@@ -436,6 +443,27 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
                                    "little content near the cutoff to show the attenuation)"])
 
 
+# Below this image shift (working px) no continuation of the clipped runs can be told from the clip.
+MIN_CONTINUATION_PX = 0.1
+
+
+def _continuation_px(d, calib, level: float, gain: float) -> float:
+    """An upper bound of the image shift (working px) that continuing the clipped runs at `gain` adds
+    to the frames: ∫|Δω| dt over the samples they integrate (5τ and the readout before the first frame
+    to the last), times the larger of the focal length and the half diagonal (a rotation moves no
+    pixel of the working frame by more)."""
+    extra = unclip(d.gyro_t, d.gyro_rate, level, gain) - np.asarray(d.gyro_rate, np.float64)
+    t_cam = np.asarray(d.gyro_t, np.float64) + calib.time_offset_s
+    lo = d.frame_t[0] - 5.0 * calib.tau_s - calib.readout_s
+    keep = (t_cam >= lo) & (t_cam <= d.frame_t[-1])
+    if keep.sum() < 2:
+        return 0.0
+    dt = np.gradient(np.asarray(d.gyro_t, np.float64))
+    angle = float(np.max(np.sum(np.abs(extra[keep]) * dt[keep, None], axis=0)))
+    intr = d.fm.intr
+    return angle * max(intr.fx, intr.fy, math.hypot(intr.width, intr.height) / 2.0)
+
+
 def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -> FitResult:
     """Clipping at the gyro's range: the range is read off the raw samples (the largest |rate| that
     samples pile up at, in runs), the clipped runs are continued smoothly and the continuation's
@@ -445,6 +473,12 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0) -
     if level <= 0:
         return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
                          unobservable=["gyro_saturation: no raw samples pile up at a constant |rate|"])
+    reach = max(_continuation_px(d, model.calib, level, max_gain) for d in ctx.recs)
+    if reach < MIN_CONTINUATION_PX:
+        return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0, unobservable=[
+            f"gyro_saturation: the samples at {math.degrees(level):.1f} °/s, continued at gain {max_gain:g}, "
+            f"would move the frames by {reach:.2g} px at most (a peak of a quantised log, or too short a "
+            "clip to see)"])
 
     def make(g):
         return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g))
