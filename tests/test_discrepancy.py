@@ -552,34 +552,6 @@ def test_an_effect_can_be_put_back_to_nominal():
     assert EFFECTS["time_constant"].without(fitted, nominal).calib.tau_s == NOMINAL.tau_s
 
 
-def test_an_effect_extends_along_the_line_its_fit_moved_the_model():
-    # (the motion-only projection's line search: a fit on a canvas that absorbed part of the effect
-    # falls short, the same direction further on does not)
-    from dataclasses import replace
-
-    from thermod.calib.discrepancy import EFFECTS, Model
-    from thermod.calib.discrepancy.effects import along
-    from thermod.physics.geometry import so3_log
-
-    model = Model(NOMINAL)
-    fitted = Model(replace(NOMINAL, bias_rad_s=(0.001, -0.002, 0.0005), scale=(1.01, 1.0, 1.02),
-                           time_offset_s=0.001).with_misalignment((0.002, 0.0, -0.001)))
-    bias = along(model, fitted, 4.0, EFFECTS["gyro_bias"].fields).calib
-    step = np.array([0.001, -0.002, 0.0005])
-    assert np.allclose(bias.bias_rad_s, np.asarray(NOMINAL.bias_rad_s) + 4 * step)
-    assert bias.scale == NOMINAL.scale and bias.time_offset_s == NOMINAL.time_offset_s   # its fields only
-    scale = along(model, fitted, 2.0, EFFECTS["gyro_scale"].fields).calib.scale_vector
-    assert np.allclose(scale, np.asarray(NOMINAL.scale_vector) * np.array([1.01, 1.0, 1.02]) ** 2)
-    R = along(model, fitted, 3.0, EFFECTS["misalignment"].fields).calib.R_cam_gyro_matrix
-    assert np.allclose(so3_log(R @ NOMINAL.R_cam_gyro_matrix.T), [0.006, 0.0, -0.003], atol=1e-9)
-    assert along(model, fitted, 1.0, EFFECTS["gyro_bias"].fields).calib.bias_rad_s == fitted.calib.bias_rad_s
-    # no line through events or a response curve; none that leaves the valid calibrations
-    assert along(model, fitted, 2.0, EFFECTS["ffc_event"].fields) is None
-    assert along(model, fitted, 2.0, EFFECTS["gyro_lowpass"].fields) is None
-    late = Model(replace(NOMINAL, readout_s=0.015))
-    assert along(model, late, 20.0, EFFECTS["rolling_readout"].fields) is None     # longer than a frame
-
-
 @pytest.mark.slow
 def test_backward_elimination_drops_only_what_the_others_make_redundant():
     # A model with the hidden 6 ms offset fitted and a τ "named" at its nominal value (as a step that

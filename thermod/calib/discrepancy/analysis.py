@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.diagnostics import diagnostics
-from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult, along
+from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult
 from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext
 from thermod.calib.discrepancy.report import format_params, jsonable, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
@@ -164,72 +164,29 @@ def _refit(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nom
     return model
 
 
-def _settle(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nominal: Model, say,
-            rounds: int = 8, min_drop: float = 0.02) -> Model:
-    """Motion only: alternate the scene (and FPN) with local refits of `effects` until the SSR drops by
-    less than `min_drop` a round and no longer step helps. The scene was estimated under a model that
-    lacked the new effect and absorbed part of it (a 0.03 rad misalignment was first fitted at 0.022
-    rad): each round gives back some of what it took. Alternating along that valley is slow (a
-    roll-axis bias moved 0.0025 rad/s a round from the wrong sign, and near the floor the SSR hardly
-    shows it), so each round that still moves it is followed by a line search on the projected cost
-    along its step (`_stretch`; one rebuilt scene when it fails)."""
+def _settle(ctx: StepContext, model: Model, effects: list[Effect], nominal: Model, say,
+            rounds: int = 4, min_drop: float = 0.02) -> Model:
+    """Motion only: refit `effects` in turn on the projected cost (`projection`: the canvas and FPN move
+    with each step) until a round lowers the SSR by less than `min_drop`. The canvas was estimated
+    under a model that lacked the new effect and absorbed part of it (a 0.03 rad misalignment was first
+    fitted at 0.022 rad; alternating canvas and model moved a roll-axis bias 0.0025 rad/s a round)."""
     problem = ctx.problem
-    warm = dataclasses.replace(ctx, warm=True)
-    fields = [f for e in effects for f in e.fields]
+    proj = dataclasses.replace(ctx, project=True)
     ssr = problem.evaluate(model).ssr
     for _ in range(rounds):
-        saved = problem.state()
-        problem.refresh(model, fpn=fpn, keep_mask=True)
-        new, ssr_new = model, problem.evaluate(model).ssr
+        before = ssr
         for effect in effects:
-            f = effect.fit(warm, new)
-            if f.ssr < ssr_new:
-                new, ssr_new = f.model, f.ssr
-        if ssr_new >= ssr:
-            problem.restore(saved)
-            break
-        k = 1.0
-        if 1.0 - ssr_new / ssr >= min_drop:
-            new, ssr_new, k = _stretch(problem, model, new, ssr_new, fields, fpn)
-        model, drop, ssr = new, 1.0 - ssr_new / ssr, ssr_new
-        say(f"  settled: gap {problem.gap(ssr):.4f}{f' (step ×{k:g})' if k > 1 else ''}; "
+            f = effect.fit(proj, model)
+            if f.ssr < ssr and problem.recall(f.model):
+                model, ssr = f.model, f.ssr
+            elif not problem.recall(model):
+                problem.refresh(model, fpn=ctx.fpn, keep_mask=True)
+                ssr = problem.evaluate(model).ssr
+        say(f"  settled: gap {problem.gap(ssr):.4f}; "
             + "; ".join(f"{e.name} {format_params(e.values(model, nominal))}" for e in effects))
-        if drop < min_drop:
+        if 1.0 - ssr / before < min_drop:
             break
     return model
-
-
-def _stretch(problem: Problem, model: Model, new: Model, ssr_new: float, fields, fpn: bool,
-             max_k: float = 16.0, scene_iters: int = 3, rebuild_from: list | None = None
-             ) -> tuple[Model, float, float]:
-    """Line search on the projected cost (scene rebuilt under each model) along the step model → new:
-    k = 2, 4, … up to `max_k` while it falls. The first longer step must beat `ssr_new`, measured on
-    the warm-refined canvas, with a canvas rebuilt in `scene_iters` iterations: a handicap that
-    keeps this to real valleys. Each scene is rebuilt from `rebuild_from` (a `Problem.state`; default
-    the problem as it is). Returns (model, SSR, k) with the problem holding that model's rebuilt
-    scene, or (new, ssr_new, 1) and the problem as it was."""
-    kept = problem.state()
-    start = kept if rebuild_from is None else rebuild_from
-    iters = problem.scene_iters
-    problem.scene_iters = scene_iters
-    best = (new, ssr_new, 1.0, kept)
-    try:
-        k = 2.0
-        while k <= max_k:
-            m = along(model, new, k, fields)
-            if m is None:
-                break
-            problem.restore(start)
-            problem.refresh(m, fpn=fpn, keep_mask=True, rebuild_scene=True)
-            ssr = problem.evaluate(m).ssr
-            if ssr >= best[1]:
-                break
-            best = (m, ssr, k, problem.state())
-            k *= 2
-    finally:
-        problem.scene_iters = iters
-        problem.restore(best[3])
-    return best[0], best[1], best[2]
 
 
 def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -> Model:
@@ -296,22 +253,22 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     ana.snapshot("nominal", problem, ev)
     ctx = None
     while remaining and len(ana.steps) < max_steps and crit.worth_searching(problem, ev.ssr):
-        ctx = StepContext.at(problem, ev, ana.named, model_tol)
+        ctx = StepContext.at(problem, ev, ana.named, model_tol, fpn)
         chosen = _search_step(ctx, model, ev, remaining, crit, ana, say)
         if chosen is None:
             break
         diag = diagnostics(problem, model, ev)
         gap_before = problem.gap(ev.ssr)
         model = chosen.fit.model
-        if chosen.state is not None:      # keep the scene its projected fit was made on
+        if chosen.state is not None:      # motion only: the scene its projected fit moved with it
             problem.restore(chosen.state)
-        problem.refresh(model, fpn=fpn, rebuild_scene=True)
+        problem.refresh(model, fpn=fpn, rebuild_scene=chosen.state is None)
         ctx = dataclasses.replace(ctx, named=ctx.named + (chosen.effect.name,))
-        again = ([chosen.effect] if fpn else []) + [EFFECTS[n] for n in ana.named]
-        model = _refit(ctx, model, again, fpn, ana.nominal, say)
         if problem.has_motion_reference:
-            model = _settle(ctx, model, [chosen.effect] + [EFFECTS[n] for n in ana.named], fpn,
-                            ana.nominal, say)
+            model = _settle(ctx, model, [chosen.effect] + [EFFECTS[n] for n in ana.named], ana.nominal, say)
+        else:
+            again = ([chosen.effect] if fpn else []) + [EFFECTS[n] for n in ana.named]
+            model = _refit(ctx, model, again, fpn, ana.nominal, say)
         ev = problem.evaluate(model, keep=True)
         ana.record_step(chosen, gap_before, problem.gap(ev.ssr), diag)
         ana.snapshot(chosen.effect.name, problem, ev)
@@ -350,60 +307,55 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
     return max(ok, key=lambda c: c.explained)
 
 
-def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis,
-                   say, top: int = 4, share: float = 0.25, scene_iters: int = 3,
-                   max_stretch: float = 32.0) -> tuple[list[Candidate], float]:
-    """Motion only: rank the best few candidates on their SSR minimised over the scene too (variable
-    projection). The step's scene canvas was estimated under the current, wrong model, so it has
-    absorbed part of the missing effect: on it a candidate's fit falls short of the effect (a 4–5 %
-    scale error on a pitch-and-roll flight was fitted at 0.3 %), and one that merely mimics what is
-    left can beat the right one.
+def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis, say,
+                   top: int = 4, share: float = 0.25, scene_iters: int = 3) -> tuple[list[Candidate], float]:
+    """Motion only: rank the best few candidates on the projected cost, the SSR minimised over the scene
+    too. The step's scene canvas was estimated under the current, wrong model, so it has absorbed part
+    of the missing effect: on it a candidate's fit falls short of the effect (a 4–5 % scale error on a
+    pitch-and-roll flight was fitted at 0.3 %), and one that merely mimics what is left can beat the
+    right one.
 
-    The projected cost of a model is its SSR on a scene canvas rebuilt under it (`Problem.refresh`
-    with `rebuild_scene`: the mosaic, then `scene_iters` CGLS iterations, the FPN with it), which
-    holds none of the old canvas's compromise. The baseline is the current model's projected cost.
     Each of the `top` candidates by explained excess (those explaining at least `share` of what the
-    best one does) is then line-searched on the projected cost along the direction its fit moved the
-    model (`_stretch`: k = 1, 2, 4, … up to `max_stretch` while the cost falls), then refitted
-    warm on the best k's canvas. Returns the candidates with their projected fits, statistics and
-    scene state (the search goes on from the chosen one's), and the baseline SSR."""
+    best one does) gets a canvas rebuilt under its step-canvas fit (`Problem.refresh` with
+    `rebuild_scene`: the mosaic, then `scene_iters` CGLS iterations, the FPN with it) and is refitted
+    from there on the projected cost (`projection.projected_lm`). The baseline is the current model's
+    cost on a canvas rebuilt and refined alike. Returns the candidates with their projected fits,
+    statistics and scene state (the search goes on from the chosen one's), and the baseline SSR."""
     problem = ctx.problem
     fitted = sorted((c for c in tried if c.fit.n_params > 0 and c.explained > 0), key=lambda c: -c.explained)
     best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
     if not best:
         return tried, ev.ssr
-    warm = dataclasses.replace(ctx, warm=True)
+    proj = dataclasses.replace(ctx, project=True)
     saved, iters = problem.state(), problem.scene_iters
     problem.scene_iters = scene_iters
 
-    def projected(m: Model) -> float:
+    def rebuilt(m: Model) -> float:
         problem.restore(saved)
-        problem.refresh(m, keep_mask=True, rebuild_scene=True)
+        problem.refresh(m, fpn=ctx.fpn, keep_mask=True, rebuild_scene=True)
         return problem.evaluate(m).ssr
 
     try:
-        base = projected(model)
+        rebuilt(model)
+        for _ in range(2):      # as much canvas refinement as a projected fit's two accepted steps
+            problem.refresh(model, fpn=ctx.fpn, keep_mask=True)
+        base = problem.evaluate(model).ssr
         base_gap = problem.gap(base)
         out = []
         excess = max(base - problem.noise_ss(), 1e-30)
         for c in best:
             t0 = time.monotonic()
-            m_best, ssr_best, k = _stretch(problem, model, c.fit.model, projected(c.fit.model),
-                                           c.effect.fields, True, max_k=max_stretch,
-                                           scene_iters=scene_iters, rebuild_from=saved)
+            m_best, ssr_best = c.fit.model, rebuilt(c.fit.model)
             state = problem.state()
-            g = c.effect.fit(warm, m_best)
-            if g.ssr < ssr_best:
-                ssr_g = projected(g.model)
-                if ssr_g < ssr_best:
-                    m_best, ssr_best, state = g.model, ssr_g, problem.state()
+            g = c.effect.fit(proj, m_best)
+            if g.ssr < ssr_best and problem.recall(g.model):
+                m_best, ssr_best, state = g.model, g.ssr, problem.state()
             f = dataclasses.replace(c.fit, model=m_best, ssr=ssr_best)
             p = Candidate(c.effect, f, ctx.delta_bic(base, f.ssr, f.n_params), (base - f.ssr) / excess,
                           c.seconds + time.monotonic() - t0, state)
             say(f"  projected {c.effect.name:16s} gap {problem.gap(f.ssr):.4f} (baseline "
                 f"{base_gap:.4f})  explains {100 * p.explained:5.1f} %  ΔBIC {p.delta_bic:9.1f}  "
-                f"×{k:g}  {format_params(c.effect.values(f.model, ana.nominal))}  "
-                f"({time.monotonic() - t0:.1f} s)")
+                f"{format_params(c.effect.values(f.model, ana.nominal))}  ({time.monotonic() - t0:.1f} s)")
             out.append(p)
     finally:
         problem.restore(saved)

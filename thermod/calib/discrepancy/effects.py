@@ -18,8 +18,8 @@ from scipy import optimize
 from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
-from thermod.errors import ThermodError
-from thermod.physics.geometry import so3_exp, so3_log
+from thermod.calib.discrepancy.projection import projected_lm
+from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import detect_clip_level, group_delay_s, unclip
 
 
@@ -57,34 +57,6 @@ class Effect:
         return dataclasses.replace(m, calib=dataclasses.replace(m.calib, **cal)) if cal else m
 
 
-# calibration fields with a straight line through two values (`along`)
-_LINE_FIELDS = {"time_offset_s": "difference", "readout_s": "difference", "bias_rad_s": "difference",
-                "scale": "ratio", "tau_s": "ratio", "R_cam_gyro": "rotation"}
-
-
-def along(model: Model, fitted: Model, k: float, fields) -> Model | None:
-    """`model` moved k times the way `fitted` moved it in the calibration `fields` (k = 1: `fitted`'s
-    values); None when one of them has no such line (events, curves, filter cut-offs) or the result
-    is not a valid calibration. Scale factors and τ move geometrically, the rotation on SO(3)."""
-    changes = {}
-    for name in dict.fromkeys(fields):
-        kind = _LINE_FIELDS.get(name)
-        if kind is None:
-            return None
-        a, b = getattr(model.calib, name), getattr(fitted.calib, name)
-        if kind == "rotation":
-            Ra, Rb = np.asarray(a, float).reshape(3, 3), np.asarray(b, float).reshape(3, 3)
-            changes[name] = tuple(map(tuple, so3_exp(k * so3_log(Rb @ Ra.T)) @ Ra))
-            continue
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        v = a * (b / a) ** k if kind == "ratio" else a + k * (b - a)
-        changes[name] = float(v) if v.ndim == 0 else tuple(float(x) for x in v)
-    try:
-        return dataclasses.replace(model, calib=model.calib.replace(**changes))
-    except (ValueError, ThermodError):
-        return None
-
-
 # ----------------------------------------------------------------------------------------- search
 def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width, x0=None):
     """Coarse grid then bounded Brent refinement of a one-parameter family `make(x) -> Model`.
@@ -93,6 +65,13 @@ def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width, x0=None):
     def cost(x):
         return ctx.problem.evaluate(make(x)).ssr
 
+    if ctx.project and x0 is not None and len(grid) > 1 and ctx.problem.has_motion_reference:
+        step = float(grid[1] - grid[0])        # one unit: a grid step
+
+        def make_u(u):
+            return make(float(x0 + step * u[0]))
+        u, ssr = projected_lm(ctx, make_u, np.zeros(1), (lo - x0) / step, (hi - x0) / step)
+        return float(x0 + step * u[0]), ssr
     if ctx.warm and x0 is not None and len(grid) > 1:
         step = float(grid[1] - grid[0])
         a, b = max(lo, x0 - 2 * step), min(hi, x0 + 2 * step)
@@ -132,6 +111,10 @@ def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: flo
         r = residuals(x)
         return float(r @ r)
 
+    if ctx.project and problem.has_motion_reference:
+        x, ssr = projected_lm(ctx, lambda u: make(u * unit), np.asarray(x0s[0], float), -bound, bound,
+                              h=h, prior=prior)
+        return x * unit, ssr
     x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
     lam = 1e-3
     for _ in range((min(iters, 2) if ctx.warm else iters) if len(x) else 0):

@@ -49,6 +49,7 @@ class Problem:
         self.n_evals = 0
         self.scene_iters = scene_iters
         self._memo: dict = {}
+        self._projected: list = []      # (model, state) of the last projected fits (`remember`)
 
     def memo(self, key, model: Model, compute):
         """`compute()`, computed once per (`key`, `model` object) while the problem's state (scene, FPN,
@@ -117,6 +118,20 @@ class Problem:
             k = np.ones((2 * e + 1, 2 * e + 1), np.uint8)
             d.mask = np.stack([cv2.erode(x.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
                                for x in v]).astype(bool)
+
+    def remember(self, model: Model, keep: int = 4) -> None:
+        """Keep the state (canvas, FPN) as `model`'s: a fit that tries several projected fits returns one
+        of them, and its caller takes that one's canvas back with `recall`."""
+        self._projected = [(m, s) for m, s in self._projected if m != model][-(keep - 1):]
+        self._projected.append((model, self.state()))
+
+    def recall(self, model: Model) -> bool:
+        """Put back the state remembered for a model equal to `model`; False when there is none."""
+        for m, st in reversed(self._projected):
+            if m == model:
+                self.restore(st)
+                return True
+        return False
 
     @property
     def has_motion_reference(self) -> bool:
@@ -222,16 +237,16 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=N
     S is shared by every frame: it cannot follow an error that changes from frame to frame (a time
     offset, bias, scale, misalignment, τ or readout error moves or blurs each frame differently with
     its own motion), only what is common to all of them. It is re-estimated once per search step
-    (`Problem.refresh`), never inside a candidate's fit, so candidates are compared on the same scene.
+    (`Problem.refresh`), never inside a candidate's step-canvas fit, so candidates are compared on the
+    same scene (the projected fits of `projection` move it with the model).
     `extra`: per-frame offsets beyond the FPN (flat-field corrections' steps); `live`: the frames that
     see the scene (bool per frame; frozen frames of a flat-field correction do not).
     """
-    fm, calib, psf = d.fm, model.calib, model.extra_psf_px
+    fm, calib = d.fm, model.calib
     target = d.measured - (fpn if fpn is not None else 0.0) - (extra if extra is not None else 0.0)
-    w_live = (np.ones(len(d.measured), np.float32) if live is None
-              else np.asarray(live, np.float32))[:, None, None]
     first = d.coverage is None
     # coverage: how many frames (IIR weight) see each canvas pixel
+    w_live = _live_weight(d, live)
     fm.set_reference(d.scene, None, prescaled=True, origin=d.origin, support=None)
     _, m_full = fm.predict_raw(calib)
     inside = (m_full >= 0.99).astype(np.float32) * w_live
@@ -245,44 +260,87 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=N
         own = S[iy:iy + fm.h, ix:ix + fm.w]
         keep = support[iy:iy + fm.h, ix:ix + fm.w] > 0
         own[keep] = d.scene[iy:iy + fm.h, ix:ix + fm.w][keep]
-    fm.set_reference(S.astype(np.float32), None, prescaled=True, origin=d.origin, support=support)
-    _, m = fm.predict_raw(calib)
-    valid = (m >= 0.99).astype(np.float32) * w_live
-    dinv = np.where(support > 0, 1.0 / np.maximum(C, 1.0), 0.0)
-
-    def forward(x):
-        fm.set_reference(x.astype(np.float32), None, prescaled=True, origin=d.origin, support=support)
-        num, _ = fm.predict_raw(calib)
-        out = np.where(m > 0.5, num / np.maximum(m, 0.5), 0.0).astype(np.float32)
-        if psf > 0:
-            g = fm._psf_kernel(psf)
-            out = np.stack([cv2.sepFilter2D(o, -1, g, g, borderType=cv2.BORDER_REPLICATE) for o in out])
-        return out * valid
-
-    r = (target - forward(S)) * valid
-    s = fm.adjoint(calib, r, psf, weight=m) * support
-    z = dinv * s
-    pdir = z.copy()
-    gamma = float(np.sum(s * z))
-    for _ in range(iters):
-        if gamma <= 0:
-            break
-        q = forward(pdir)
-        qq = float(np.sum(q.astype(np.float64) ** 2))
-        if qq <= 0:
-            break
-        a = gamma / qq
-        S += a * pdir
-        r -= (a * q).astype(np.float32)
-        s = fm.adjoint(calib, r, psf, weight=m) * support
-        z = dinv * s
-        gamma_new = float(np.sum(s * z))
-        pdir = z + (gamma_new / gamma) * pdir
-        gamma = gamma_new
-    d.scene = (S * support).astype(np.float32)
     d.coverage = C
+    S = SceneOperator(d, model, support, live).solve(target, S, iters)
+    d.scene = (S * support).astype(np.float32)
     fpn_arr = None if fpn is None else np.asarray(fpn, np.float32)
     fm.set_reference(d.scene, fpn_arr, prescaled=True, origin=d.origin, support=support, subtract_fpn=False)
+
+
+def _live_weight(d: RecData, live) -> np.ndarray:
+    return (np.ones(len(d.measured), np.float32) if live is None
+            else np.asarray(live, np.float32))[:, None, None]
+
+
+class SceneOperator:
+    """A: scene canvas → predicted motion frames of `d` under `model` (views, IIR, normalisation by the
+    known-support weight, extra PSF), over the frames' valid pixels; its adjoint and a Jacobi
+    preconditioner (the coverage). Linear in the canvas; leaves `d.fm`'s reference as it was."""
+
+    def __init__(self, d: RecData, model: Model, support=None, live=None):
+        self.d, self.calib, self.psf = d, model.calib, model.extra_psf_px
+        fm = d.fm
+        self._saved = (fm.reference, fm.fpn, fm.support, fm.origin)
+        self.support = fm.support if support is None else support
+        fm.set_reference(d.scene, None, prescaled=True, origin=d.origin, support=self.support)
+        _, self.m = fm.predict_raw(self.calib)
+        self.valid = (self.m >= 0.99).astype(np.float32) * _live_weight(d, live)
+        self.dinv = np.where(self.support > 0, 1.0 / np.maximum(d.coverage, 1.0), 0.0)
+        self._restore()
+
+    def _restore(self):
+        ref, fpn, support, origin = self._saved
+        self.d.fm.set_reference(ref, fpn, prescaled=True, origin=origin, support=support, subtract_fpn=False)
+
+    def apply(self, x) -> np.ndarray:
+        """A x (the reference of `d.fm` left as it was)."""
+        try:
+            return self._forward(x)
+        finally:
+            self._restore()
+
+    def _forward(self, x) -> np.ndarray:
+        fm = self.d.fm
+        fm.set_reference(np.asarray(x, np.float32), None, prescaled=True, origin=self.d.origin,
+                         support=self.support)
+        num, _ = fm.predict_raw(self.calib)
+        out = np.where(self.m > 0.5, num / np.maximum(self.m, 0.5), 0.0).astype(np.float32)
+        if self.psf > 0:
+            g = fm._psf_kernel(self.psf)
+            out = np.stack([cv2.sepFilter2D(o, -1, g, g, borderType=cv2.BORDER_REPLICATE) for o in out])
+        return out * self.valid
+
+    def adjoint(self, r) -> np.ndarray:
+        return self.d.fm.adjoint(self.calib, r, self.psf, weight=self.m) * self.support
+
+    def solve(self, target, x0, iters: int) -> np.ndarray:
+        """x minimising Σ_valid (target − A x)² by Jacobi-preconditioned CGLS from `x0` (`iters` steps)."""
+        try:
+            S = np.asarray(x0, np.float64) * self.support
+            r = ((target - self._forward(S)) if np.any(S) else target * self.valid).astype(np.float32)
+            r *= self.valid
+            s = self.adjoint(r)
+            z = self.dinv * s
+            pdir = z.copy()
+            gamma = float(np.sum(s * z))
+            for _ in range(iters):
+                if gamma <= 0:
+                    break
+                q = self._forward(pdir)
+                qq = float(np.sum(q.astype(np.float64) ** 2))
+                if qq <= 0:
+                    break
+                a = gamma / qq
+                S += a * pdir
+                r -= (a * q).astype(np.float32)
+                s = self.adjoint(r)
+                z = self.dinv * s
+                gamma_new = float(np.sum(s * z))
+                pdir = z + (gamma_new / gamma) * pdir
+                gamma = gamma_new
+            return S
+        finally:
+            self._restore()
 
 
 def effective_area(residuals: list, max_lag: int = 6) -> float:
@@ -322,17 +380,19 @@ class StepContext:
     n_eff: float
     min_gain: float
     named: tuple[str, ...]
-    warm: bool = False      # refits near a fitted value (`analysis._project_scene`): local searches only
+    warm: bool = False      # refits near a fitted value: local searches only
+    project: bool = False   # motion only: local fits on the projected cost (`projection`), the canvas moving
+    fpn: bool = True        # the FPN is estimated (what `Problem.refresh` is told)
 
     @property
     def recs(self) -> list[RecData]:
         return self.problem.recs
 
     @classmethod
-    def at(cls, problem: Problem, ev: Evaluation, named, model_tol: float) -> StepContext:
+    def at(cls, problem: Problem, ev: Evaluation, named, model_tol: float, fpn: bool = True) -> StepContext:
         area = effective_area(ev.residuals)
         return cls(problem, chi2_scale=problem.noise_ss() / max(ev.n, 1) * area, n_eff=ev.n / area,
-                   min_gain=(0.5 * model_tol) ** 2 * problem.signal_ss(), named=tuple(named))
+                   min_gain=(0.5 * model_tol) ** 2 * problem.signal_ss(), named=tuple(named), fpn=fpn)
 
     def delta_bic(self, ssr_before: float, ssr_after: float, n_params: int) -> float:
         """BIC gain on effective samples of a fit with `n_params` more parameters."""
