@@ -308,7 +308,8 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
 
 
 def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis, say,
-                   top: int = 4, share: float = 0.25, scene_iters: int = 3) -> tuple[list[Candidate], float]:
+                   top: int = 3, share: float = 0.25, scene_iters: int = 3, steps: int = 2
+                   ) -> tuple[list[Candidate], float]:
     """Motion only: rank the best few candidates on the projected cost, the SSR minimised over the scene
     too. The step's scene canvas was estimated under the current, wrong model, so it has absorbed part
     of the missing effect: on it a candidate's fit falls short of the effect (a 4–5 % scale error on a
@@ -318,7 +319,8 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     Each of the `top` candidates by explained excess (those explaining at least `share` of what the
     best one does) gets a canvas rebuilt under its step-canvas fit (`Problem.refresh` with
     `rebuild_scene`: the mosaic, then `scene_iters` CGLS iterations, the FPN with it) and is refitted
-    from there on the projected cost (`projection.projected_lm`). The baseline is the current model's
+    from there on the projected cost (`projection.projected_lm`, `steps` steps: enough to rank them; the
+    chosen one goes on in `_settle`). The baseline is the current model's
     cost on a canvas rebuilt and refined alike. Returns the candidates with their projected fits,
     statistics and scene state (the search goes on from the chosen one's), and the baseline SSR."""
     problem = ctx.problem
@@ -326,7 +328,7 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
     if not best:
         return tried, ev.ssr
-    proj = dataclasses.replace(ctx, project=True)
+    proj = dataclasses.replace(ctx, project=True, project_iters=steps)
     saved, iters = problem.state(), problem.scene_iters
     problem.scene_iters = scene_iters
 
@@ -337,7 +339,7 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
 
     try:
         rebuilt(model)
-        for _ in range(2):      # as much canvas refinement as a projected fit's two accepted steps
+        for _ in range(steps):      # as much canvas refinement as a projected fit's accepted steps
             problem.refresh(model, fpn=ctx.fpn, keep_mask=True)
         base = problem.evaluate(model).ssr
         base_gap = problem.gap(base)

@@ -70,7 +70,8 @@ def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width, x0=None):
 
         def make_u(u):
             return make(float(x0 + step * u[0]))
-        u, ssr = projected_lm(ctx, make_u, np.zeros(1), (lo - x0) / step, (hi - x0) / step)
+        u, ssr = projected_lm(ctx, make_u, np.zeros(1), (lo - x0) / step, (hi - x0) / step,
+                              iters=ctx.project_iters)
         return float(x0 + step * u[0]), ssr
     if ctx.warm and x0 is not None and len(grid) > 1:
         step = float(grid[1] - grid[0])
@@ -113,7 +114,7 @@ def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: flo
 
     if ctx.project and problem.has_motion_reference:
         x, ssr = projected_lm(ctx, lambda u: make(u * unit), np.asarray(x0s[0], float), -bound, bound,
-                              h=h, prior=prior)
+                              h=h, prior=prior, iters=ctx.project_iters)
         return x * unit, ssr
     x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
     lam = 1e-3

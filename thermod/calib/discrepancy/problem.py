@@ -382,6 +382,7 @@ class StepContext:
     named: tuple[str, ...]
     warm: bool = False      # refits near a fitted value: local searches only
     project: bool = False   # motion only: local fits on the projected cost (`projection`), the canvas moving
+    project_iters: int = 3  # their Levenberg–Marquardt steps
     fpn: bool = True        # the FPN is estimated (what `Problem.refresh` is told)
 
     @property
