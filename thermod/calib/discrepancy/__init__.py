@@ -36,13 +36,14 @@ by every frame, so it cannot follow an error that differs from frame to frame (e
 moves or blurs each frame according to its own motion); canvas pixels seen by fewer than 2.5 frames
 are left out so no frame predicts what only it saw. Estimated under the current, wrong model, S still
 absorbs part of the missing effect (a 6 ms offset was fitted at 3.2 ms, and half its gap stayed), so the
-best few candidates (up to four, explaining ≥ ¼ of what the best does) are re-ranked on their SSR
-minimised over S too (variable projection: three rounds of S re-estimation under the candidate's model
-and a warm-started local refit; the current model gets the same rounds as the baseline). Once an
-effect is named, S is rebuilt from the mosaic under the new model (the old canvas holds ghosts of the
-effect) and then alternates with local refits of the named effects until the SSR drops by less than
-2 % a round (at most 8): a 0.03 rad misalignment fitted at 0.022 rad on the first canvas settles at
-0.027, a gyro bias within 0.001 rad/s of the truth. Flat-field
+best few candidates (up to three, explaining ≥ ¼ of what the best does) are refitted on their SSR
+minimised over S too, from a canvas rebuilt under each one's first fit (`projection`: Levenberg–
+Marquardt steps whose Jacobian has the share a canvas change could explain projected out, with the
+canvas moving along; the current model's canvas gets as much refinement as the baseline). Once an
+effect is named, the named effects are refitted in turn the same way until the SSR drops by less than
+2 % a round (at most 6): on a three-axis flight a 4 % scale error ends at (1.039, 0.972, 1.034) for
+(1.04, 0.97, 1.05), where alternating S and local refits ended at (1.031, 0.986, 0.966), and a
+roll-axis bias of 0.015 rad/s at 0.0150 rather than 0.0213. Flat-field
 corrections in the model are honoured there as in the static path: frozen frames are left out of S
 and of the FPN, and each segment after an event has its own FPN. There is no static segment to
 measure the noise: it is the spatial high-pass (Immerkær) of the motion residual, an upper bound while

@@ -165,28 +165,45 @@ def _refit(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nom
 
 
 def _settle(ctx: StepContext, model: Model, effects: list[Effect], nominal: Model, say,
-            rounds: int = 4, min_drop: float = 0.02) -> Model:
+            rounds: int = 6, min_drop: float = 0.02) -> Model:
     """Motion only: refit `effects` in turn on the projected cost (`projection`: the canvas and FPN move
     with each step) until a round lowers the SSR by less than `min_drop`. The canvas was estimated
     under a model that lacked the new effect and absorbed part of it (a 0.03 rad misalignment was first
     fitted at 0.022 rad; alternating canvas and model moved a roll-axis bias 0.0025 rad/s a round)."""
     problem = ctx.problem
-    proj = dataclasses.replace(ctx, project=True)
-    ssr = problem.evaluate(model).ssr
+    proj = dataclasses.replace(ctx, project=True, warm=True)
+    before = problem.evaluate(model).ssr
     for _ in range(rounds):
-        before = ssr
+        problem.refresh(model, fpn=ctx.fpn, keep_mask=True)     # the canvas and FPN go on converging
+        ssr = problem.evaluate(model).ssr
+        problem.remember(model)
         for effect in effects:
-            f = effect.fit(proj, model)
-            if f.ssr < ssr and problem.recall(f.model):
-                model, ssr = f.model, f.ssr
-            elif not problem.recall(model):
-                problem.refresh(model, fpn=ctx.fpn, keep_mask=True)
-                ssr = problem.evaluate(model).ssr
+            model, ssr = _adopt(problem, ctx.fpn, model, ssr, effect.fit(proj, model))
         say(f"  settled: gap {problem.gap(ssr):.4f}; "
             + "; ".join(f"{e.name} {format_params(e.values(model, nominal))}" for e in effects))
-        if 1.0 - ssr / before < min_drop:
+        drop, before = 1.0 - ssr / before, ssr
+        if drop < min_drop:
             break
     return model
+
+
+def _adopt(problem: Problem, fpn: bool, model: Model, ssr: float, f: FitResult) -> tuple[Model, float]:
+    """After a local fit on the projected cost: its model and SSR with the problem holding its canvas
+    when it did better, else `model`'s. Fits without a projected mode (events, curves) were made on the
+    canvas as it is: a better one is taken with a warm refresh of the canvas under it."""
+    if f.ssr < ssr and problem.recall(f.model):
+        return f.model, f.ssr
+    if not problem.recall(model):
+        problem.refresh(model, fpn=fpn, keep_mask=True)
+    if f.ssr < ssr:
+        problem.refresh(f.model, fpn=fpn, keep_mask=True)
+        ssr_f = problem.evaluate(f.model).ssr
+        if ssr_f < ssr:
+            problem.remember(f.model)
+            return f.model, ssr_f
+        if not problem.recall(model):
+            problem.refresh(model, fpn=fpn, keep_mask=True)
+    return model, problem.evaluate(model).ssr
 
 
 def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -> Model:
@@ -328,7 +345,7 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
     if not best:
         return tried, ev.ssr
-    proj = dataclasses.replace(ctx, project=True, project_iters=steps)
+    proj = dataclasses.replace(ctx, project=True, warm=True, project_iters=steps)
     saved, iters = problem.state(), problem.scene_iters
     problem.scene_iters = scene_iters
 
@@ -348,10 +365,9 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
         for c in best:
             t0 = time.monotonic()
             m_best, ssr_best = c.fit.model, rebuilt(c.fit.model)
+            problem.remember(m_best)
+            m_best, ssr_best = _adopt(problem, ctx.fpn, m_best, ssr_best, c.effect.fit(proj, m_best))
             state = problem.state()
-            g = c.effect.fit(proj, m_best)
-            if g.ssr < ssr_best and problem.recall(g.model):
-                m_best, ssr_best, state = g.model, g.ssr, problem.state()
             f = dataclasses.replace(c.fit, model=m_best, ssr=ssr_best)
             p = Candidate(c.effect, f, ctx.delta_bic(base, f.ssr, f.n_params), (base - f.ssr) / excess,
                           c.seconds + time.monotonic() - t0, state)
