@@ -41,9 +41,9 @@ minimised over S too, from a canvas rebuilt under each one's first fit (`project
 Marquardt steps whose Jacobian has the share a canvas change could explain projected out, with the
 canvas moving along; the current model's canvas gets as much refinement as the baseline). Once an
 effect is named, the named effects are refitted in turn the same way until the SSR drops by less than
-2 % a round (at most 6): on a three-axis flight a 4 % scale error ends at (1.039, 0.972, 1.034) for
+2 % a round (at most 6): on a three-axis flight a 4 % scale error ends at (1.040, 0.970, 1.048) for
 (1.04, 0.97, 1.05), where alternating S and local refits ended at (1.031, 0.986, 0.966), and a
-roll-axis bias of 0.015 rad/s at 0.0150 rather than 0.0213. Flat-field
+roll-axis bias of 0.015 rad/s at 0.01495 rather than 0.0213. Flat-field
 corrections in the model are honoured there as in the static path: frozen frames are left out of S
 and of the FPN, and each segment after an event has its own FPN. There is no static segment to
 measure the noise: it is the spatial high-pass (Immerkær) of the motion residual, an upper bound while

@@ -276,6 +276,11 @@ def fit_gyro_scale(ctx: StepContext, model: Model, bic_min: float = 10.0) -> Fit
 
     if len(idx) == 0:
         return FitResult("gyro_scale", model, ctx.problem.evaluate(model).ssr, unobservable=un, n_params=0)
+    if ctx.warm and len(idx) > 1 and np.ptp(s0[idx]) > 0:
+        # a refit of per-axis factors the search chose: refined per axis (a common factor's fit first
+        # would keep their ratios, and per-axis steps would have to beat it by a whole min_gain again)
+        x3, ssr3 = _vector_fit(ctx, make, [np.zeros(len(idx))], unit, bound=20.0)
+        return FitResult("gyro_scale", make(x3), ssr3, unobservable=un, n_params=len(idx))
     x1, ssr1 = _vector_fit(ctx, make, [np.zeros(1)], unit, bound=20.0)
     best = FitResult("gyro_scale", make(x1), ssr1, unobservable=un, n_params=1)
     if len(idx) > 1:
