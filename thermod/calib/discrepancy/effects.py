@@ -18,7 +18,7 @@ from scipy import optimize
 from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.problem import StepContext
-from thermod.calib.discrepancy.projection import projected_lm
+from thermod.calib.discrepancy.projection import lm_step, projected_lm
 from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import detect_clip_level, group_delay_s, unclip
 
@@ -125,23 +125,10 @@ def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: flo
             e = np.zeros(len(x))
             e[i] = h if x[i] + h <= bound else -h
             J[:, i] = (residuals(x + e) - r0) / e[i]
-        x, step, lam = _lm_step(J, r0, x, cost, bound, lam)
+        x, step, lam = lm_step(J, r0, x, cost, -bound, bound, lam)
         if step is None or np.max(np.abs(step)) < 0.02:
             break
     return x * unit, problem.evaluate(make(x * unit)).ssr
-
-
-def _lm_step(J, r0, x, cost, bound, lam: float):
-    """One damped Gauss–Newton step that lowers the cost: (new x, step, λ), or (x, None, λ)."""
-    c0 = float(r0 @ r0)
-    g, A = J.T @ r0, J.T @ J
-    for _ in range(4):
-        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
-        xn = np.clip(x + step, -bound, bound)
-        if cost(xn) < c0:
-            return xn, step, lam / 3
-        lam *= 10
-    return x, None, lam
 
 
 def _with(model: Model, **changes) -> Model:

@@ -39,29 +39,44 @@ def projected_lm(ctx: StepContext, make, x0, lo, hi, *, h: float = 0.25, iters: 
             sw = np.sqrt(prior[1]) * np.ones(len(x))
             J = np.vstack([J, np.diag(sw)])
             r = np.concatenate([r, -sw * (x - prior[0])])
-        g, A = J.T @ r, J.T @ J
-        saved, accepted, step = problem.state(), False, None
-        for _ in range(4):
-            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), g)
-            xn = np.clip(x + step, lo, hi)
-            step = xn - x
-            mn = make(xn)
+        saved, trial = problem.state(), {}
+
+        def cost_at(xn, x=x, saved=saved, X=X, trial=trial):     # this step's trial
+            problem.restore(saved)
             for d, Xd in zip(problem.recs, X, strict=True):
                 if Xd is not None:      # the canvas follows the step (what J̃ left out)
-                    moved = (d.scene - np.tensordot(step, Xd, axes=1)) * (d.fm.support > 0)
+                    moved = (d.scene - np.tensordot(xn - x, Xd, axes=1)) * (d.fm.support > 0)
                     d.scene = moved.astype(np.float32)
+            mn = make(xn)
             problem.refresh(mn, fpn=ctx.fpn, keep_mask=True)
-            evn = problem.evaluate(mn, keep=True)
-            cost_n = evn.ssr + _prior_ss(xn, prior)
-            if cost_n < cost:
-                x, model, ev, cost, lam, accepted = xn, mn, evn, cost_n, lam / 3, True
-                break
+            trial.update(x=xn, model=mn, ev=problem.evaluate(mn, keep=True))
+            return trial["ev"].ssr + _prior_ss(xn, prior)
+
+        xn, step, lam = lm_step(-J, r, x, cost_at, lo, hi, lam, c0=cost)
+        if step is None:
             problem.restore(saved)
-            lam *= 10
-        if not accepted or np.max(np.abs(step)) < min_step:
+            break
+        x_prev = x
+        x, model, ev = trial["x"], trial["model"], trial["ev"]      # the accepted trial: the last one
+        cost = ev.ssr + _prior_ss(x, prior)
+        if np.max(np.abs(x - x_prev)) < min_step:
             break
     problem.remember(model)
     return x, ev.ssr
+
+
+def lm_step(J, r0, x, cost, lo, hi, lam: float, c0: float | None = None):
+    """One damped Gauss–Newton step on the residuals r0 (Jacobian J = ∂r/∂x) that lowers `cost` below
+    `c0` (default ‖r0‖²), x kept in [lo, hi]: (new x, step, λ), or (x, None, λ) after 4 dampings."""
+    c0 = float(r0 @ r0) if c0 is None else c0
+    g, A = J.T @ r0, J.T @ J
+    for _ in range(4):
+        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
+        xn = np.clip(x + step, lo, hi)
+        if cost(xn) < c0:
+            return xn, step, lam / 3
+        lam *= 10
+    return x, None, lam
 
 
 def _prior_ss(x, prior) -> float:
