@@ -425,7 +425,7 @@ def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, wor
         crowd.set_stalled(0)
         # silence the camera and drain: every delivered frame is now published or counted
         camera.stall(1e6)
-        drained = _drain(d, acct)
+        drained, not_drained = _drain(d, acct)
         h = d.health()
     finally:
         stop.set()
@@ -438,7 +438,8 @@ def run(seconds: float = 600.0, *, seed: int = 0, method: str | None = None, wor
             tmp.cleanup()
     return _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld,
                    notify.longest_gap(t0, t_checked), len(notify.pings(t0)), rss0, rss1, alive,
-                   published_quiet, deblurred_quiet, drained, watchdog_s, recovered, recovery_s, t0)
+                   published_quiet, deblurred_quiet, (drained, not_drained), watchdog_s, recovered,
+                   recovery_s, t0)
 
 
 def _inject(f: Fault, payload, gyro: HiccupGyro, camera, crowd: SubscriberCrowd) -> None:
@@ -509,28 +510,40 @@ def _dead_threads(d: Daemon) -> set[str]:
     return dead
 
 
-def _drain(d: Daemon, acct: AccountingSubscriber, timeout: float = 20.0) -> bool:
-    """Wait until the pipeline and the publisher are empty and the subscriber has stopped receiving."""
-    last, since = -1, time.monotonic()
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
+def _drain(d: Daemon, acct: AccountingSubscriber, quiet_s: float = 1.0, stuck_s: float = 30.0,
+           cap_s: float = 300.0) -> tuple[bool, str]:
+    """Wait until the pipeline and the publisher are empty and the subscriber has stopped receiving.
+
+    Gives up only when nothing has moved for `stuck_s` (a loaded machine works a backlog off slowly,
+    so a fixed deadline would fail a pipeline that is merely behind), or after `cap_s`. Returns
+    (drained, what was last not empty)."""
+    def state():
         ps, pub = d.pipeline.stats(), d.publisher.stats()
-        idle = (ps["frames_behind"] == 0 and ps["job_queue_depth"] == 0 and ps["pending_reorder"] == 0
-                and pub.get("queue_depth", 0) == 0)
-        n = acct.count()
-        if n != last or not idle:
-            last, since = n, time.monotonic()
-        elif time.monotonic() - since > 1.0:
-            return True
+        return (ps["frames_behind"], ps["job_queue_depth"], ps["pending_reorder"], pub.get("queue_depth", 0),
+                acct.count())
+
+    last, since, moved = None, time.monotonic(), time.monotonic()
+    end = time.monotonic() + cap_s
+    while time.monotonic() < end:
+        s = state()
+        now = time.monotonic()
+        if s != last:
+            last, since, moved = s, now, now
+        elif not any(s[:4]) and now - since > quiet_s:
+            return True, ""
+        elif now - moved > stuck_s:
+            break
         time.sleep(0.05)
-    return False
+    return False, ("frames behind {}, job queue {}, reorder buffer {}, publisher queue {}, "
+                   "subscriber count {}".format(*last))
 
 
 def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, withheld, wd_gap, wd_pings,
-            rss0, rss1, alive, published_quiet, deblurred_quiet, drained, watchdog_s, recovered,
+            rss0, rss1, alive, published_quiet, deblurred_quiet, drain, watchdog_s, recovered,
             recovery_s, t0) -> dict:
     pc = h["pipeline"]["counters"]
     drops = h["drops"]
+    drained, not_drained = drain
     written = d.camera_state.items
     rejected = int(drops.get("camera_items_rejected", 0))
     delivered = written + rejected
@@ -565,7 +578,8 @@ def _result(seconds, seed, d, h, acct, crowd, faults, reloads, thread_deaths, wi
         "frames": {"camera_lost": int(drops.get("camera_frames_lost", 0)),
                    "sensor": delivered + int(drops.get("camera_frames_lost", 0)),
                    "delivered": delivered, "published": published, "dropped": named,
-                   "in_flight": in_flight, "drained": drained, "unaccounted": unaccounted,
+                   "in_flight": in_flight, "drained": drained, "not_drained": not_drained,
+                   "unaccounted": unaccounted,
                    "received": received, "wire_lost": published - received,
                    "wire_gaps_at_s": [(round(t - t0, 1), n) for t, n in acct.gap_events[:20]],
                    "seq_gaps": seq_gaps, "duplicates": duplicates, "ids_spanned": span,
@@ -608,7 +622,8 @@ def table(r: dict) -> str:
              + "".join(f" + {v} {k}" for k, v in f["dropped"].items() if v)),
             ("frame ids missing from the stream", f"{f['ids_missing']} of {f['ids_spanned']}; not camera "
                                                   f"losses or drops: {f['ids_unexplained']}"),
-            ("unaccounted", f"{f['unaccounted']}" + ("" if f["drained"] else " (pipeline not drained)")),
+            ("unaccounted", f"{f['unaccounted']}"
+             + ("" if f["drained"] else f" (pipeline not drained: {f['not_drained']})")),
             ("accounting subscriber: received", f"{f['received']} of {f['published']} published; seq gaps "
                                                 f"{f['seq_gaps']}, duplicate ids {f['duplicates']}"
              + (f"; lost on the wire (ZeroMQ HWM, uncounted) {f['wire_lost']} at "

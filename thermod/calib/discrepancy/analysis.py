@@ -325,11 +325,25 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
     ssr_before = ev.ssr
     if ctx.problem.has_motion_reference:
         tried, ssr_before = _project_scene(ctx, model, ev, tried, ana, say)
-    ok = [c for c in tried if c.significant(crit, ctx, ssr_before)]
+    ok = [c for c in tried if c.significant(crit, ctx, ssr_before) and _beats_simpler(c, tried, ctx, crit)]
     if not ok:
         say("  no candidate is significant")
         return None
     return max(ok, key=lambda c: c.explained)
+
+
+def _beats_simpler(c: Candidate, tried: list[Candidate], ctx: StepContext, crit: Criteria) -> bool:
+    """A candidate that generalises another (`Effect.simpler`: clock drift and the gyro low-pass a time
+    offset) must beat that one's fit, made on the same footing (fixed canvas, or both projected),
+    decisively: ΔBIC > `bic_min` for its extra parameters and `min_explained` of what the simpler one
+    leaves above the noise. Otherwise the simpler one is what the data show."""
+    s = next((t for t in tried if t.effect.name == c.effect.simpler), None)
+    if s is None or s.fit.n_params == 0 or (s.state is None) != (c.state is None):
+        return True
+    excess = max(s.fit.ssr - ctx.problem.noise_ss(), 1e-30)
+    extra = max(c.fit.n_params - s.fit.n_params, 0)
+    return (ctx.delta_bic(s.fit.ssr, c.fit.ssr, extra) > crit.bic_min
+            and s.fit.ssr - c.fit.ssr >= crit.min_explained * excess)
 
 
 def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis, say,
@@ -351,6 +365,10 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
     problem = ctx.problem
     fitted = sorted((c for c in tried if c.fit.n_params > 0 and c.explained > 0), key=lambda c: -c.explained)
     best = [c for c in fitted[:top] if c.explained >= share * fitted[0].explained] if fitted else []
+    # the effects these generalise are projected too: a nested one is judged against them (`_beats_simpler`)
+    names = {c.effect.name for c in best}
+    best += [c for c in fitted if c.effect.name not in names
+             and any(b.effect.simpler == c.effect.name for b in best)]
     if not best:
         return tried, ev.ssr
     proj = dataclasses.replace(ctx, project=True, warm=True, project_iters=steps)

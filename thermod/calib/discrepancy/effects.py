@@ -41,6 +41,9 @@ class Effect:
     fields: the `Model` (or its calibration's) fields it changes (`without` resets them).
     values(model, nominal) -> dict: its parameters as they stand in `model` (what the report says
     and what goes into model.toml), relative to `nominal` where the field composes (misalignment).
+    simpler: the effect it generalises ("" if none): it is named only when it beats that one
+    decisively (`analysis._beats_simpler`), so a clock line or a DLPF that acts as a plain delay is
+    reported as the time offset it amounts to.
     """
 
     name: str
@@ -48,6 +51,7 @@ class Effect:
     diagnostic: str
     fields: tuple[str, ...]
     values: Callable[[Model, Model], dict]
+    simpler: str = ""
 
     def without(self, model: Model, nominal: Model) -> Model:
         """`model` with every field this effect owns put back to `nominal`'s value."""
@@ -137,13 +141,7 @@ def _with(model: Model, **changes) -> Model:
 
 # ----------------------------------------------------------------------------------------- fits
 def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) -> FitResult:
-    """Constant gyro → camera clock offset (memoised per step state: clock drift and the gyro low-pass
-    compare themselves with this same fit)."""
-    return ctx.problem.memo(("time_offset", ctx.warm, max_offset_s), model,
-                            lambda: _fit_time_offset(ctx, model, max_offset_s))
-
-
-def _fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float) -> FitResult:
+    """Constant gyro → camera clock offset."""
     t0 = model.calib.time_offset_s
     grid = t0 + np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
 
@@ -330,18 +328,6 @@ CANDIDATES = tuple(EFFECTS)
 # ----------------------------------------------------------------------------------------- gyro-side effects
 # clock_drift, gyro_lowpass, gyro_saturation (issue 12): fields of `Calibration.condition_gyro`, so the
 # forward model, `thermod deblur` and the daemon all apply what is fitted here.
-_GYRO_BIC_MIN = 10.0      # decisive, as `Criteria.bic_min`
-_GYRO_MIN_EXPLAINED = 0.3  # of what the simpler model leaves above the noise, as `Criteria.min_explained`
-
-
-def _beats(ctx: StepContext, simpler: FitResult, fit: FitResult, extra_params: int) -> bool:
-    """Whether `fit` beats the simpler model decisively: ΔBIC > 10 for its extra parameters and at
-    least 30 % of the simpler model's excess SSR over the noise removed."""
-    excess = max(simpler.ssr - ctx.problem.noise_ss(), 1e-30)
-    return (ctx.delta_bic(simpler.ssr, fit.ssr, extra_params) > _GYRO_BIC_MIN
-            and simpler.ssr - fit.ssr >= _GYRO_MIN_EXPLAINED * excess)
-
-
 def _current_ssr(ctx: StepContext, model: Model) -> float:
     return ctx.problem.evaluate(model).ssr
 
@@ -349,10 +335,10 @@ def _current_ssr(ctx: StepContext, model: Model) -> float:
 def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) -> FitResult:
     """Gyro clock rate error ε (ppm) with the offset at its epoch: t_cam = t_gyro + offset + ε (t_gyro −
     epoch), the epoch being the gyro-clock time of the first analysed frame (or the model's own once it
-    has a drift). The clock map is a line, so both are fitted; it is kept only if it beats the best
-    pure time offset decisively (otherwise the simpler `time_offset` explains it). ±2 % covers an
-    RC-clocked MEMS output data rate; a crystal's ±100 ppm moves a 1 s recording by ±0.1 ms, which
-    only long recordings resolve."""
+    has a drift). The clock map is a line, so both are fitted; the search names it only if it beats
+    the best pure time offset decisively (`Effect.simpler`). ±2 % covers an RC-clocked MEMS output
+    data rate; a crystal's ±100 ppm moves a 1 s recording by ±0.1 ms, which only long recordings
+    resolve."""
     c0 = model.calib
     epoch = c0.clock_epoch_s if c0.clock_drift_ppm else float(
         min(d.frame_t[0] for d in ctx.recs) - c0.time_offset_s)
@@ -365,14 +351,7 @@ def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) ->
         return _with(model, time_offset_s=float(off0 + x[0]), clock_drift_ppm=ppm, clock_epoch_s=epoch)
     starts = [np.zeros(2)] + [np.array([0.0, s]) for s in (-4.0, 4.0)]
     x, ssr = _vector_fit(ctx, make, starts, unit, bound=max_ppm / 1000.0)
-    best = FitResult("clock_drift", make(x), ssr, n_params=2)
-    if "time_offset" in ctx.named or c0.clock_drift_ppm:
-        return best
-    pure = fit_time_offset(ctx, model)
-    if _beats(ctx, pure, best, 1):
-        return best
-    return FitResult("clock_drift", model, _current_ssr(ctx, model), n_params=0,
-                     unobservable=["clock_drift: no better than a constant time offset over this recording"])
+    return FitResult("clock_drift", make(x), ssr, n_params=2)
 
 
 def _lowpass_model(model: Model, delay_s: float, offset_s: float | None = None) -> Model:
@@ -390,10 +369,9 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
     """The gyro chip's low-pass, parametrised by its DC group delay d = √2/(2π f_c).
 
     At low frequencies it is a pure delay, which `time_offset` explains as well with one parameter
-    too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart. So
-    while no time offset is named, the fit is kept only if it beats the best pure time offset
-    decisively (ΔBIC > 10 and 30 % of what the offset leaves above the noise); otherwise it reports no
-    gain and the simpler time offset is named instead. Once a time offset is named it has absorbed
+    too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart, so the
+    search names it only if it beats the best pure time offset decisively (`Effect.simpler`: ΔBIC > 10
+    and 30 % of what the offset leaves above the noise). Once a time offset is named it has absorbed
     the filter's delay, so the delay is also tried moved from the offset into the filter (total
     low-frequency delay kept), as the readout fit does with its mean delay.
     """
@@ -408,15 +386,8 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
         # the delay delays the gyro: camera time of a sample = t + offset − d at low frequencies
         return _lowpass_model(model, float(d), c0.time_offset_s - d0 + float(d))
 
-    best = _fit_keeping_timing(ctx, "gyro_lowpass", make, make_centred, grid, 0.0, max_delay_s)
-    if "time_offset" in ctx.named:
-        return best
-    pure = fit_time_offset(ctx, model)
-    if _beats(ctx, pure, best, 0):
-        return best
-    return FitResult("gyro_lowpass", model, _current_ssr(ctx, model), n_params=0,
-                     unobservable=["gyro_lowpass: no better than a pure time offset (the motion has too "
-                                   "little content near the cutoff to show the attenuation)"])
+    return _fit_keeping_timing(ctx, "gyro_lowpass", make, make_centred, grid, 0.0, max_delay_s,
+                               x0=d0 if d0 else None)
 
 
 # Below this image shift (working px) no continuation of the clipped runs can be told from the clip.
@@ -476,9 +447,9 @@ def _saturation_values(model: Model, nominal: Model) -> dict:
 GYRO_EFFECTS = (
     Effect("clock_drift", fit_clock_drift, "lag_trend",
            ("clock_drift_ppm", "clock_epoch_s", "time_offset_s"),
-           _calib_values("clock_drift_ppm", "clock_epoch_s", "time_offset_s")),
+           _calib_values("clock_drift_ppm", "clock_epoch_s", "time_offset_s"), simpler="time_offset"),
     Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"),
-           _lowpass_values),
+           _lowpass_values, simpler="time_offset"),
     Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
            _saturation_values),
 )

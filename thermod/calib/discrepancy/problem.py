@@ -48,19 +48,7 @@ class Problem:
         self.recs = recs
         self.n_evals = 0
         self.scene_iters = scene_iters
-        self._memo: dict = {}
         self._projected: list = []      # (model, state) of the last projected fits (`remember`)
-
-    def memo(self, key, model: Model, compute):
-        """`compute()`, computed once per (`key`, `model` object) while the problem's state (scene, FPN,
-        mask) stays as it is: `refresh` and `restore` forget every memo. For fits that several candidates
-        need on the same step (the best pure time offset that clock drift and the gyro low-pass must beat)."""
-        hit = self._memo.get((key, id(model)))
-        if hit is not None and hit[0] is model:
-            return hit[1]
-        value = compute()
-        self._memo[(key, id(model))] = (model, value)
-        return value
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1
@@ -101,7 +89,6 @@ class Problem:
         estimated under an older model (after a step: that one holds ghosts of the effect just found).
         `erode_px`: the valid mask's margin (default: `mask_margin_px`).
         """
-        self._memo.clear()
         for d in self.recs:
             d.aux["ffc_fpn"] = None
             if rebuild_scene and d.reference == "motion":
@@ -143,7 +130,6 @@ class Problem:
                  d.fm.reference, d.fm.fpn, d.fm.support, d.fm.origin) for d in self.recs]
 
     def restore(self, state: list) -> None:
-        self._memo.clear()
         for d, st in zip(self.recs, state, strict=True):
             (d.scene, d.fpn, d.coverage, d.mask, d.static_mean, d.noise_var, d.noise_source, aux,
              ref, fpn, support, origin) = st
