@@ -29,9 +29,10 @@ debian-deps:
 run: debian-deps $(STAMP)
 	$(BIN)/thermod run
 
-# Two workers, whole files each (module fixtures such as test_faults' daemon stay in one process).
+# Two workers, whole files each (module fixtures such as test_faults' daemon stay in one process),
+# in collection order: the `heavy` analysis files first (tests/conftest.py).
 test: debian-deps $(STAMP)
-	$(BIN)/pytest -n 2 --dist loadfile
+	$(BIN)/pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

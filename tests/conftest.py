@@ -31,3 +31,14 @@ def require():
 def shared_data() -> Path:
     """shared/data (real thermal frames and gyro log); check `.exists()` before use."""
     return SHARED_DATA
+
+
+def pytest_collection_modifyitems(config, items):
+    """Modules marked `heavy(minutes)` first, longest first, each file's tests kept together and in
+    order: `make test` gives whole files to two workers in collection order (--dist loadfile
+    --no-loadscope-reorder), so the long analysis files start at once and the short ones fill in
+    around them, instead of one long file running alone at the end."""
+    def minutes(item) -> float:
+        m = item.get_closest_marker("heavy")
+        return float(m.args[0]) if m is not None and m.args else 0.0
+    items.sort(key=lambda item: -minutes(item))      # stable: file and test order kept otherwise

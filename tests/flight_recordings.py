@@ -132,3 +132,24 @@ def vignetting_drift(rec: Recording, corner_loss: float, t_from: float) -> Recor
         frames[k] = np.clip(np.rint(clean[k] * (1 - a * r2) + noise[k]), 0, 65535).astype(np.uint16)
     rec.frames = frames
     return rec
+
+
+def assert_named_from_flight(hidden: str, effects: dict, candidates, check, *, seconds: float = 1.0,
+                             size=(640, 480), work_width: int = 160, vibration_deg_s: float = 0.0) -> None:
+    """`hidden` ("effect" or "effect@start_s") simulated on the real log's attitude from `start_s` (1.0
+    by default), analysed motion-only among `candidates`: the effect is named first, `check(ana,
+    fitted_calib, true_calib)` holds, the gap's excess over the floor is at least halved and nothing is
+    left unexplained."""
+    from thermod.calib import discrepancy as D
+
+    effect, _, start = hidden.partition("@")
+    fr = flight_recording(effects, seconds=seconds, size=size, real_log=True, vibration_deg_s=vibration_deg_s,
+                          log_start_s=float(start) if start else None)
+    d = D.prepare(fr.rec, fr.nominal, name=hidden, work_width=work_width)
+    ana = D.analyse([d], D.Model(fr.nominal), candidates=candidates)
+    assert ana.reference == "motion", ana.reference
+    assert ana.named[:1] == [effect], ana.named
+    assert check(ana, ana.model.calib, fr.truth), ana.steps
+    left, before = excess(ana.gap_final, ana.noise_floor), excess(ana.gap_initial, ana.noise_floor)
+    assert left <= 0.5 * before, (ana.gap_initial, ana.gap_final, ana.noise_floor)
+    assert not ana.unexplained, (ana.gap_final, ana.noise_floor)

@@ -39,6 +39,8 @@ from thermod.sim.synth import simulate, truth_calibration
 sys.path.insert(0, str(Path(__file__).parent))
 from flight_recordings import excess, flight_recording, high_contrast_scene  # noqa: E402
 
+pytestmark = pytest.mark.heavy(7)      # CPU minutes on one core (measured ≈ 6.5, loaded)
+
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)

@@ -32,6 +32,8 @@ from flight_recordings import (  # noqa: E402
     vignetting_drift,
 )
 
+pytestmark = pytest.mark.heavy(6)      # CPU minutes on one core (measured 5.9)
+
 
 @pytest.mark.slow
 def test_clean_flight_recording_adds_nothing():

@@ -17,6 +17,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from flight_recordings import flight_recording  # noqa: E402
 
+pytestmark = pytest.mark.heavy(2)      # CPU minutes on one core (measured 2.0)
+
 SCALE = (1.05, 0.96, 1.04)
 
 

@@ -61,8 +61,9 @@ Parameters the motion does not excite (a gyro axis that barely turns; misalignme
 the only rotation axis) are not fitted and are listed under `unobservable`.
 
 The gyro-side effects compete with simpler ones: a clock drift (a line: offset at an epoch plus
-ε) and a DLPF (a delay at low frequencies) are kept only if they beat the best pure time offset
-decisively, so with motion that lacks the content to tell them apart the report names the simpler
+ε) and a DLPF (a delay at low frequencies) are named only if they beat the best pure time offset,
+fitted on the same footing (both on the step's canvas, or both projected), decisively
+(`Effect.simpler`), so with motion that lacks the content to tell them apart the report names the simpler
 `time_offset`. Saturation reads the range off the raw samples (a pile-up at a constant |rate|) and
 fits only the amplitude of the clipped runs' continuation.
 

@@ -1,0 +1,61 @@
+"""A second stretch of the real log (from 9.0 s in), where pitch turns as much as roll (41 / 1 / 46 °/s
+RMS about camera x / y / z): there the first scene canvas absorbs most of a scale error, and the
+flight's extreme poses reach the canvas's edge. 640×480, 1 s, analysed at a working width of 160, as
+test_discrepancy_flight_effects.py (whose stretch, from 1.0 s, is roll-dominated)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from flight_recordings import REAL_LOG, assert_named_from_flight, flight_recording  # noqa: E402
+
+pytestmark = pytest.mark.heavy(5)      # CPU minutes on one core (measured 4.8)
+SIZE, SECONDS, WORK_WIDTH, START_S = (640, 480), 1.0, 160, 9.0
+SCALE = (1.04, 0.97, 1.05)
+
+
+def _observable_scale_within(ana, fitted, truth, tol: float) -> bool:
+    off = np.abs(fitted.scale_vector / truth.scale_vector - 1)
+    hidden = {int(n[6]) for n in ana.unobservable.get("gyro_scale", [])}     # "scale[i]"
+    return all(off[i] < tol for i in range(3) if i not in hidden)
+
+
+@pytest.mark.slow
+def test_a_scale_error_the_first_canvas_absorbs_is_named(require):
+    """The fit on the first canvas finds 1.003 for a 4–5 % error; before the projection rebuilt the
+    scene it was named gyro_bias. Measured: common 1.041 (the pitch-axis factor is unobservable),
+    gap 0.0619 → 0.0149 (floor 0.0090)."""
+    require(REAL_LOG, "../shared/data/gyro (the real Betaflight log)")
+    assert_named_from_flight(f"gyro_scale@{START_S}", {"gyro_scale": SCALE},
+                             ("gyro_scale", "gyro_bias", "misalignment", "time_offset"),
+                             lambda a, c, t: _observable_scale_within(a, c, t, 0.02),
+                             seconds=SECONDS, size=SIZE, work_width=WORK_WIDTH)
+
+
+@pytest.mark.slow
+def test_the_true_model_keeps_its_pixels_where_the_flight_reaches_the_scene_edge(require):
+    """The valid mask is made under the nominal model; with a 5 % scale error the true model moves the
+    extreme frames' views by a few pixels, and with a 2 px margin they left the known scene: the truth
+    measured gap 0.0485 against a floor of 0.0091, and no search could name it. With the motion-only
+    margin (`problem.MOTION_MARGIN_RAD`, 5 px here): 0.0128."""
+    require(REAL_LOG, "../shared/data/gyro (the real Betaflight log)")
+    from thermod.calib import discrepancy as D
+    from thermod.calib.discrepancy.problem import Problem, mask_margin_px
+
+    fr = flight_recording({"gyro_scale": SCALE}, seconds=SECONDS, size=SIZE, real_log=True,
+                          log_start_s=START_S)
+    d = D.prepare(fr.rec, fr.nominal, name="edge", work_width=WORK_WIDTH)
+    problem = Problem([d])
+    assert mask_margin_px(d) == 5
+    nominal, truth = D.Model(fr.nominal), D.Model(fr.truth)
+    problem.refresh(nominal)
+    gap_nominal = problem.gap(problem.evaluate(nominal).ssr)
+    problem.refresh(truth, keep_mask=True, rebuild_scene=True)      # the same pixels, the truth's scene
+    gap_truth = problem.gap(problem.evaluate(truth).ssr)
+    assert gap_truth < 2.0 * problem.noise_floor(), (gap_truth, problem.noise_floor())
+    assert gap_truth < 0.5 * gap_nominal, (gap_truth, gap_nominal)
