@@ -338,15 +338,18 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
 def _beats_simpler(c: Candidate, tried: list[Candidate], ctx: StepContext, crit: Criteria) -> bool:
     """A candidate that generalises another (`Effect.simpler`: clock drift and the gyro low-pass a time
     offset) must beat that one's fit, made on the same footing (fixed canvas, or both projected),
-    decisively: ΔBIC > `bic_min` for its extra parameters and `min_explained` of what the simpler one
-    leaves above the noise. Otherwise the simpler one is what the data show."""
+    decisively: ΔBIC > `bic_min` for its extra parameters, and it removes `min_explained` of what the
+    simpler one leaves above the noise and at least what any candidate must (`min_gain`: where the
+    simpler one is at the floor already, a share of nothing is no test; a 6 ms offset beside a gyro
+    bias was named a 595 ppm clock drift so). Otherwise the simpler one is what the data show."""
     s = next((t for t in tried if t.effect.name == c.effect.simpler), None)
     if s is None or s.fit.n_params == 0 or (s.state is None) != (c.state is None):
         return True
-    excess = max(s.fit.ssr - ctx.problem.noise_ss(), 1e-30)
+    excess = max(s.fit.ssr - ctx.problem.noise_ss(), 0.0)
     extra = max(c.fit.n_params - s.fit.n_params, 0)
+    gain = s.fit.ssr - c.fit.ssr
     return (ctx.delta_bic(s.fit.ssr, c.fit.ssr, extra) > crit.bic_min
-            and s.fit.ssr - c.fit.ssr >= crit.min_explained * excess)
+            and gain >= max(crit.min_explained * excess, ctx.min_gain))
 
 
 def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[Candidate], ana: Analysis, say,

@@ -83,6 +83,14 @@ def _planning_turn():
 
 
 def save_wisdom() -> None:
+    """This process's wisdom merged into the file (under the planners' lock: the file's newer plans
+    are read in first, so a process never writes back the older wisdom it started with)."""
+    with _planning_turn():
+        _write_wisdom()
+
+
+def _write_wisdom() -> None:
+    """Write this process's wisdom (the caller holds `_planning_turn`, which read the file in)."""
     path = wisdom_path()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -127,8 +135,13 @@ class Plan:
                 except RuntimeError:
                     self.estimated = True
                     self._make_fftw(("FFTW_ESTIMATE",), workers, None)
-                if not self.estimated and time.perf_counter() - t0 > 0.05:  # planned anew: remember it
-                    save_wisdom()
+                # planned anew (not taken from wisdom): remember it. Only inside the planning turn: a
+                # real-time plan taken from the wisdom loaded at start can take > 50 ms on a loaded
+                # machine, and writing that older wisdom back dropped plans other processes had saved
+                # since (a fleet's workers then measured their own, and their outputs differed in the
+                # last bits from the local run's)
+                if measure_unseen and not self.estimated and time.perf_counter() - t0 > 0.05:
+                    _write_wisdom()
         else:
             self.rin = np.empty(shape, np.float32)
             self.cin = np.empty(cshape, np.complex64)
