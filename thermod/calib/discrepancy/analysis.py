@@ -328,7 +328,10 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
     ssr_before = ev.ssr
     if ctx.problem.has_motion_reference:
         tried, ssr_before = _project_scene(ctx, model, ev, tried, ana, say)
-    ok = [c for c in tried if c.significant(crit, ctx, ssr_before) and _beats_simpler(c, tried, ctx, crit)]
+    ok = [c for c in tried if c.significant(crit, ctx, ssr_before)]
+    for c in [c for c in ok if not _beats_simpler(c, tried, ctx, crit)]:
+        say(f"  {c.effect.name}: not decisively better than {c.effect.simpler}, which it generalises")
+        ok.remove(c)
     if not ok:
         say("  no candidate is significant")
         return None

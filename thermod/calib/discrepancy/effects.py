@@ -370,10 +370,10 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
 
     At low frequencies it is a pure delay, which `time_offset` explains as well with one parameter
     too: only its frequency dependence (attenuation 1/√(1 + (f/f_c)⁴), phase) tells it apart, so the
-    search names it only if it beats the best pure time offset decisively (`Effect.simpler`: ΔBIC > 10
-    and 30 % of what the offset leaves above the noise). Once a time offset is named it has absorbed
-    the filter's delay, so the delay is also tried moved from the offset into the filter (total
-    low-frequency delay kept), as the readout fit does with its mean delay.
+    search names it only if it beats the best pure time offset decisively (`Effect.simpler`). Once a
+    time offset is named it has absorbed the filter's delay, so the delay is also tried moved from the
+    offset into the filter (total low-frequency delay kept), as the readout fit does with its mean
+    delay.
     """
     c0 = model.calib
     d0 = group_delay_s(c0.gyro_lowpass_hz) if c0.gyro_lowpass_hz else 0.0
