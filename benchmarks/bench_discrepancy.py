@@ -187,7 +187,10 @@ FLIGHT_EFFECTS = {
     "none+vibration": ({}, 15.0, False),
     "none+contrast": ({}, 0.0, True),
     "parallax": ({"parallax": (3.0, 0.3)}, 0.0, False),     # outside the vocabulary
+    "vignetting": ({}, 0.0, False),     # outside the vocabulary: FLIGHT_EDITS darkens the corners
 }
+# hidden effects the simulator has no switch for: the recording edited after rendering (tests' helpers)
+FLIGHT_EDITS = {"vignetting": lambda fr, rec: fr.vignetting_drift(rec, 0.01, t_from=float(rec.t[0]))}
 
 
 EFFECTS_OF_SIM = set(D.EFFECTS)     # rows named after one vocabulary effect report its fitted value
@@ -202,6 +205,7 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import flight_recordings
     from flight_recordings import clipping_range, high_contrast_scene, nominal_calibration
 
     unknown = [n for n in names if n not in FLIGHT_EFFECTS]
@@ -229,6 +233,8 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
             effects["gyro_saturation"] = clipping_range(motion, seconds)
         scene = high_contrast_scene(nominal) if contrast else "texture"
         rec = simulate(scene, motion, seconds, nominal, {"netd": 0.05, **effects}, seed=0)
+        if name in FLIGHT_EDITS:
+            rec = FLIGHT_EDITS[name](flight_recordings, rec)
         c0 = time.process_time()
         d = D.prepare(rec, nominal, name=name, work_width=work_width)
         ana = D.analyse([d], D.Model(nominal))

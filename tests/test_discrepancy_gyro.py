@@ -137,6 +137,59 @@ def test_clipped_runs_are_found_and_continued():
     assert G.unclip(s.t, raw, level, gain=0.0) == pytest.approx(raw)
 
 
+def test_clipped_peaks_of_a_quantised_log_are_continued_from_fitted_edges():
+    # A log quantised to 1 °/s at 1 kHz: a one-sample difference is 0 or ±17.5 rad/s², so slopes
+    # taken from the last two samples before a run continued one of these peaks with nothing (0 of
+    # its missing angle) and others at random; fitted over EDGE_SAMPLES each side, every run of these
+    # sine peaks is continued to 0.78–1.04 of what the range cut off.
+    t = np.arange(0.0, 1.0, 1e-3)
+    rng = np.random.default_rng(0)
+    ratios = []
+    for f, amp in ((1.5, 100.0), (2.5, 120.0), (3.0, 90.0)):
+        w = np.radians(amp * np.sin(2 * np.pi * f * t + 0.4))
+        quantised = np.radians(np.round(np.degrees(w) + rng.normal(0, 0.3, len(t))))
+        level = np.radians(0.8 * amp)
+        raw = np.clip(quantised, -level, level)[:, None] * np.array([[1.0, 0.1, 0.05]])
+        assert G.detect_clip_level(raw) == pytest.approx(level)
+        fixed = G.unclip(t, raw, level)
+        for c in G.continuations(t, raw, level):
+            run = slice(c.i0, c.i1 + 1)
+            assert c.axis == 0 and c.two_sided
+            ratios.append(np.sum(fixed[run, 0] - raw[run, 0]) / np.sum(w[run] - raw[run, 0]))
+    assert len(ratios) == 14
+    assert 0.7 < min(ratios) and max(ratios) < 1.15, np.round(ratios, 3)
+
+
+def test_run_gains_continue_each_clipped_run_on_its_own():
+    # One gain per run (the fit's answer when the guessed shapes are off by different factors), runs
+    # at the ends of the series included, which one common gain leaves clipped (one side unknown).
+    t = np.arange(0.0, 0.52, 1e-3)        # from one peak's top to another's
+    w = np.radians(np.stack([150.0 * np.cos(2 * np.pi * 2.0 * t), 5.0 * np.ones_like(t),
+                             np.zeros_like(t)], axis=1))
+    level = np.radians(120.0)
+    raw = np.clip(w, -level, level)
+    runs = G.continuations(t, raw, level)
+    assert [(c.axis, c.two_sided) for c in runs] == [(0, False), (0, True), (0, False)]
+    common = G.unclip(t, raw, level, gain=1.0)
+    assert np.array_equal(common[: runs[0].i1 + 1], raw[: runs[0].i1 + 1])      # the end runs stay clipped
+    gains = (0.5, 2.0, 1.0)
+    each = G.unclip(t, raw, level, gain=1.0, run_gains=gains)
+    for c, g in zip(runs, gains, strict=True):
+        run = slice(c.i0, c.i1 + 1)
+        assert each[run, 0] == pytest.approx(c.sign * (level + g * c.excess))
+        assert np.all(c.excess >= 0) and c.excess.max() > 0
+    with pytest.raises(ValueError, match="2 run gains for 3 clipped runs"):
+        G.unclip(t, raw, level, run_gains=(1.0, 1.0))
+    # a calibration carries them for the series they were fitted on, never into a file or a window
+    cal = Calibration(gyro_range_rad_s=float(level), gyro_clip_run_gains=gains)
+    assert "gyro_clip_run_gains" not in cal.as_dict()
+    _, whole = cal.condition_gyro(t, raw)
+    _, window = cal.condition_gyro(t, raw, whole_series=False)
+    assert whole == pytest.approx(each) and window == pytest.approx(common)
+    with pytest.raises(CalibrationError, match="gyro_clip_run_gains"):
+        Calibration(gyro_clip_run_gains=(1.0,))
+
+
 def test_a_quantised_log_is_not_taken_for_a_clipped_one():
     # A log quantised to whole °/s piles samples up at an axis's own peak. The real log's
     # roll-dominated stretch sat at exactly 15 °/s for a while on its quiet axis while another axis

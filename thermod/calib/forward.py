@@ -482,7 +482,7 @@ class ForwardModel:
 
     def _gyro_key(self, calib: Calibration):
         return (calib.time_offset_s, tuple(calib.bias_rad_s), tuple(np.ravel(calib.gyro_to_camera_matrix)),
-                tuple(getattr(calib, k) for k in GYRO_EFFECT_KEYS))
+                tuple(getattr(calib, k) for k in GYRO_EFFECT_KEYS), calib.gyro_clip_run_gains)
 
     def views(self, calib: Calibration):
         """Reference and support sampled at the view times (grid start, then every step's mid-point):

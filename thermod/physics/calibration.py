@@ -80,6 +80,10 @@ class Calibration:
     gyro_lowpass_hz: float = 0.0
     gyro_range_rad_s: float = 0.0
     gyro_clip_gain: float = 1.0
+    # One recording's fitted continuation gain per clipped run (`gyro_effects.continuations` of its whole
+    # series; the discrepancy fit's): not a property of the payload, so never written out, and a live
+    # stream's windows, which see parts of runs, use `gyro_clip_gain`.
+    gyro_clip_run_gains: tuple = ()
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self):
@@ -121,6 +125,7 @@ class Calibration:
             raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, "
                                                     f"got {self.time_offset_s!r}")
         _check_gyro_effects(self)
+        set_(self, "gyro_clip_run_gains", _run_gains(self))
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
         scale = _vector("scale", self.scale, (1, 3))
         scale = scale * 3 if len(scale) == 1 else scale
@@ -182,16 +187,18 @@ class Calibration:
     def has_gyro_effects(self) -> bool:
         return bool(self.clock_drift_ppm or self.gyro_lowpass_hz or self.gyro_range_rad_s)
 
-    def condition_gyro(self, t_gyro, rate_gyro) -> tuple[np.ndarray, np.ndarray]:
+    def condition_gyro(self, t_gyro, rate_gyro, whole_series: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Raw samples as an ideal gyro on a drift-free clock would give them (float64; gyro frame,
         bias kept): clipped runs reconstructed, the low-pass inverted, the clock drift removed
         (times on the gyro clock rescaled about `clock_epoch_s`; `time_offset_s` is added by
-        `gyro_to_camera`). A no-op copy when none of the three is set."""
+        `gyro_to_camera`). A no-op copy when none of the three is set. `whole_series`: the samples
+        are the series `gyro_clip_run_gains` were fitted on (else one gain for every run)."""
         t = np.asarray(t_gyro, np.float64)
         r = np.asarray(rate_gyro, np.float64)
         if r.ndim == 2 and len(r) >= 4:
             if self.gyro_range_rad_s > 0:
-                r = gyro_effects.unclip(t, r, self.gyro_range_rad_s, self.gyro_clip_gain)
+                runs = self.gyro_clip_run_gains if whole_series else ()
+                r = gyro_effects.unclip(t, r, self.gyro_range_rad_s, self.gyro_clip_gain, runs)
             if self.gyro_lowpass_hz > 0:
                 r = gyro_effects.inverse_lowpass(t, r, self.gyro_lowpass_hz)
         if self.clock_drift_ppm:
@@ -219,7 +226,7 @@ class Calibration:
         lo, hi = self.camera_time_to_gyro(np.array([t_cam_lo, t_cam_hi]))
         i0, i1 = np.searchsorted(t, [lo - m, hi + m])
         i0, i1 = max(int(i0) - 2, 0), min(int(i1) + 2, len(t))
-        return self.condition_gyro(t[i0:i1], np.asarray(rate_gyro)[i0:i1])
+        return self.condition_gyro(t[i0:i1], np.asarray(rate_gyro)[i0:i1], whole_series=False)
 
     def gyro_clock_to_ideal(self, t_gyro):
         """Gyro-clock stamps → drift-free gyro time: t + ε (t − epoch)."""
@@ -320,6 +327,21 @@ def _check_gyro_effects(c: Calibration) -> None:
     if not 0 <= c.gyro_clip_gain <= MAX_CLIP_GAIN:
         raise CalibrationError("gyro_clip_gain", f"expected a gain in [0, {MAX_CLIP_GAIN:g}] for the "
                                                  f"continuation of clipped runs, got {c.gyro_clip_gain!r}")
+
+
+def _run_gains(c: Calibration) -> tuple:
+    v = c.gyro_clip_run_gains
+    n = len(v) if isinstance(v, (tuple, list, np.ndarray)) else -1
+    if n < 0:
+        raise CalibrationError("gyro_clip_run_gains", f"expected a sequence of gains, got {_show(v)}")
+    g = _vector("gyro_clip_run_gains", v, (n,)) if n else ()
+    if g and not c.gyro_range_rad_s > 0:
+        raise CalibrationError("gyro_clip_run_gains", "expected none without a clipping range "
+                                                      "(gyro_range_rad_s)")
+    if not all(0 <= x <= MAX_CLIP_GAIN for x in g):
+        raise CalibrationError("gyro_clip_run_gains", f"expected gains in [0, {MAX_CLIP_GAIN:g}], "
+                                                      f"got {list(g)}")
+    return g
 
 
 def _scalar(key, v):

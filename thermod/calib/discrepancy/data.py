@@ -35,11 +35,15 @@ class Model:
     ffc: tuple[FFCEvent, ...] = ()
 
     def final_calibration(self) -> Calibration:
-        """Calibration with the extra blur folded into Eq. 19's σ (static blur taken as nominal)."""
+        """Calibration with the extra blur folded into Eq. 19's σ (static blur taken as nominal) and one
+        recording's per-run continuation gains folded into one (their median: what a live stream,
+        whose windows see parts of runs, can apply)."""
+        c = self.calib
+        if c.gyro_clip_run_gains:
+            c = c.replace(gyro_clip_gain=float(np.median(c.gyro_clip_run_gains)), gyro_clip_run_gains=())
         if self.extra_psf_px <= 0:
-            return self.calib
-        sigma = math.hypot(self.calib.psf_sigma_px, self.extra_psf_px)
-        return self.calib.with_psf_sigma_px(sigma)
+            return c
+        return c.with_psf_sigma_px(math.hypot(c.psf_sigma_px, self.extra_psf_px))
 
 
 @dataclass
