@@ -58,14 +58,20 @@ reference before warping). The optical PSF of the static frames is in the refere
 as √(σ_nominal² + σ_e²) (the static blur is taken to be the nominal one). A PSF that static and
 moving frames share is therefore *unobservable* from this comparison — the workflow leaves it alone.
 Parameters the motion does not excite (a gyro axis that barely turns; misalignment directions about
-the only rotation axis) are not fitted and are listed under `unobservable`.
+the only rotation axis) are not fitted and are listed under `unobservable`. Flat-field steps, fitted
+first as the difference of the mean residuals after and before an event, are refined on the projected
+cost without a static reference (a canvas made without the step takes it in).
 
 The gyro-side effects compete with simpler ones: a clock drift (a line: offset at an epoch plus
 ε) and a DLPF (a delay at low frequencies) are named only if they beat the best pure time offset,
 fitted on the same footing (both on the step's canvas, or both projected), decisively
 (`Effect.simpler`), so with motion that lacks the content to tell them apart the report names the simpler
 `time_offset`. Saturation reads the range off the raw samples (a pile-up at a constant |rate|) and
-fits only the amplitude of the clipped runs' continuation.
+fits only the amplitude of the clipped runs' continuation: one gain, or for one recording a gain per
+run when that is decisively better (the guessed shape of a long run is off by more than a short one's).
+Parameters the motion does not excite are judged by the rate that shows them (a scale axis by its own
+rate, a misalignment direction by the rate across it: ≥ 2 °/s RMS and ≥ 0.2 % of the information),
+not by their share of it.
 
 The forward model's own precision (resampling at the working resolution, ≈ 1–5 % of the motion
 signal on simulator data; 2.2–2.4 % above the noise floor on clean flight recordings) is allowed for

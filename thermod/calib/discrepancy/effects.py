@@ -208,13 +208,20 @@ def fit_optical_psf(ctx: StepContext, model: Model, max_sigma_px: float = 3.0) -
     return FitResult("optical_psf", make(x), ssr)
 
 
-def _axis_observable(recs, min_rms=math.radians(2.0), rel=0.045):
-    """Gyro axes whose motion RMS (rad/s) is ≥ min_rms (2 °/s) and ≥ rel × the strongest axis (a share
-    of the information ≥ 0.2 %, as `fit_misalignment`'s directions). A scale error shows as (s − 1) ω:
-    the axis's own rate decides, not its share. With a 10 % cut, the real log's roll axis from 25 s
-    (6.8 °/s beside 118 °/s) was left out and its 4 % error named as a 0.003 rad/s gyro bias."""
+# A parameter shows in the images through a rate: below this RMS (and below this share of the strongest
+# direction's information) a gyro axis or a misalignment direction is listed unobservable, not fitted.
+MIN_EXCITATION_RAD_S = math.radians(2.0)
+MIN_INFORMATION_SHARE = 0.002
+
+
+def _axis_observable(recs, min_rms: float = MIN_EXCITATION_RAD_S, min_share: float = MIN_INFORMATION_SHARE):
+    """Gyro axes whose motion RMS (rad/s) is ≥ min_rms (2 °/s) and whose share of the information
+    (RMS²) is ≥ min_share × the strongest axis's (0.2 %: an RMS ≥ 4.5 % of it), as `fit_misalignment`
+    judges directions. A scale error shows as (s − 1) ω: the axis's own rate decides, not its share.
+    With a 10 % cut the real log's pitch axis from 25 s (6.8 °/s beside 118 °/s of roll) was left out and its
+    4 % error named as a 0.003 rad/s gyro bias."""
     rms = np.sqrt(np.mean([d.motion_rms_rad_s**2 for d in recs], axis=0))
-    return (rms >= min_rms) & (rms >= rel * rms.max())
+    return (rms >= min_rms) & (rms**2 >= min_share * rms.max() ** 2)
 
 
 def static_bias_prior(ctx: StepContext, b0, unit: float, bias_stability_rad_s: float):
@@ -278,8 +285,8 @@ def fit_gyro_scale(ctx: StepContext, model: Model, bic_min: float = 10.0) -> Fit
     return best
 
 
-def fit_misalignment(ctx: StepContext, model: Model, min_rms: float = math.radians(2.0),
-                     min_rel: float = 0.002) -> FitResult:
+def fit_misalignment(ctx: StepContext, model: Model, min_rms: float = MIN_EXCITATION_RAD_S,
+                     min_rel: float = MIN_INFORMATION_SHARE) -> FitResult:
     """Extra camera-side rotation δ: ω_cam' = exp(δ) ω_cam. Only directions the motion excites are fitted:
     Δω ≈ δ × ω, whose information matrix M = Σ(|ω|² I − ω ωᵀ) is singular for single-axis motion. A
     direction v is kept when the rate across it, √(vᵀMv / N), is ≥ `min_rms` (2 °/s) and its eigenvalue is
@@ -441,7 +448,7 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
             f"would move the frames by {top:.2g} px at most (a peak of a quantised log, or too short a "
             "clip to see)"])
     c0 = model.calib
-    per_run = len(ctx.recs) == 1 and len(reach[0]) > 0
+    per_run = len(ctx.recs) == 1 and bool(np.any(reach[0] >= MIN_CONTINUATION_PX))
     if per_run and ctx.warm and c0.gyro_clip_run_gains and c0.gyro_range_rad_s == level:
         return _fit_run_gains(ctx, model, level, reach[0], np.array(c0.gyro_clip_run_gains), max_gain)
 
@@ -460,15 +467,18 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
 
 def _fit_run_gains(ctx: StepContext, model: Model, level: float, reach: np.ndarray, g0: np.ndarray,
                    max_gain: float) -> FitResult:
-    """A continuation gain per clipped run, from `g0`, in units that move each run's image by ≈ 2 px."""
-    unit = 2.0 / np.maximum(reach, 1e-3)
+    """A continuation gain per clipped run the frames see (the others keep `g0`), from `g0`, in units
+    that move each run's image by ≈ 2 px."""
+    seen = np.flatnonzero(reach >= MIN_CONTINUATION_PX)
+    unit = 2.0 / reach[seen]
 
     def make(x):        # the common gain shown (and kept by `Model.final_calibration`): their median
-        g = np.clip(g0 + np.asarray(x, float) * unit, 0.0, max_gain)
-        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(np.median(g)),
+        g = np.asarray(g0, float).copy()
+        g[seen] = np.clip(g[seen] + np.asarray(x, float) * unit, 0.0, max_gain)
+        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(np.median(g[seen])),
                      gyro_clip_run_gains=tuple(float(v) for v in g))
-    x, ssr = _vector_fit(ctx, make, [np.zeros(len(g0))], 1.0, bound=float(np.max(max_gain / unit)))
-    return FitResult("gyro_saturation", make(x), ssr, n_params=len(g0))
+    x, ssr = _vector_fit(ctx, make, [np.zeros(len(seen))], 1.0, bound=float(np.max(max_gain / unit)))
+    return FitResult("gyro_saturation", make(x), ssr, n_params=len(seen))
 
 
 def _lowpass_values(model: Model, nominal: Model) -> dict:
