@@ -188,6 +188,11 @@ def test_run_gains_continue_each_clipped_run_on_its_own():
     assert whole == pytest.approx(each) and window == pytest.approx(common)
     with pytest.raises(CalibrationError, match="gyro_clip_run_gains"):
         Calibration(gyro_clip_run_gains=(1.0,))
+    # what the discrepancy workflow writes to model.toml: their median, as the one gain
+    from thermod.calib.discrepancy import Model
+
+    final = Model(cal).final_calibration()
+    assert final.gyro_clip_run_gains == () and final.gyro_clip_gain == 1.0
 
 
 def test_a_quantised_log_is_not_taken_for_a_clipped_one():
