@@ -384,3 +384,20 @@ def test_grid_mode_renders_a_kernel_grid(sharp):
         p.stop()
     assert outs[0].deblurred and outs[0].coverage > 0.99
     assert outs[0].kernel_extent_px == pytest.approx(k.extent_px, rel=0.25)
+
+
+def test_a_grid_frame_reports_the_kernel_size_its_kernel_message_has():
+    # Under roll the cells' kernels point different ways, so their origins differ and the grid travels
+    # zero-padded onto one origin (`wire.pack_kernel`): the frame header's kernel_size must be that
+    # array's, not the largest cell's (a frame said [95, 15] for a [6, 8, 95, 22] kernel message).
+    from thermod.io.wire import pack_kernel
+
+    calib = Calibration()
+    t = np.arange(-0.2, 0.01, 1e-3)
+    rate = np.tile([0.0, 0.0, 3.0], (len(t), 1))        # 172 °/s of roll about the optical axis
+    g, info = render(t, rate, calib, 0.0, DeblurConfig(mode="grid", grid=(3, 4)))
+    cells = [k for row in g.kernels for k in row]
+    assert len({k.origin for k in cells}) > 1
+    _, payload = pack_kernel(g)
+    assert tuple(payload.shape[-2:]) == info["kernel_size"]
+    assert info["kernel_size"][1] > max(k.weights.shape[1] for k in cells)

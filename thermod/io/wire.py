@@ -113,11 +113,7 @@ def pack_kernel(kernel) -> tuple[dict, np.ndarray]:
     (weights keep their displacements, so cells compare pixel for pixel)."""
     if hasattr(kernel, "kernels"):
         cells = kernel.kernels
-        flat = [k for row in cells for k in row]
-        oy = max(k.origin[0] for k in flat)
-        ox = max(k.origin[1] for k in flat)
-        kh = oy + max(k.weights.shape[0] - k.origin[0] for k in flat)
-        kw = ox + max(k.weights.shape[1] - k.origin[1] for k in flat)
+        (oy, ox), (kh, kw) = kernel.common_frame
         out = np.zeros((len(cells), len(cells[0]), kh, kw), "<f4")
         for r, row in enumerate(cells):
             for c, k in enumerate(row):

@@ -136,7 +136,9 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
                                        kind=deblur.kernel, psf=deblur.psf, m=deblur.m,
                                        exposure_s=deblur.exposure_s)
         cells = [k for row in g.kernels for k in row]
-        info = dict(kernel_size=tuple(int(max(k.weights.shape[i] for k in cells)) for i in (0, 1)),
+        # the shape the grid travels in (`wire.pack_kernel`): the largest cell's when they share an
+        # origin, larger when they do not (a frame reported [95, 15] for a [.., 95, 22] kernel message)
+        info = dict(kernel_size=g.common_frame[1],
                     kernel_extent_px=float(g.max_extent_px), coverage=float(g.coverage),
                     n_samples=int(min(k.n_samples for k in cells)))
         return g, info

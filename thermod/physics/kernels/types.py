@@ -113,6 +113,19 @@ class KernelGrid:
     def max_extent_px(self) -> float:
         return max(k.extent_px for row in self.kernels for k in row)
 
+    @property
+    def common_frame(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """(origin, (kh, kw)) of the smallest array holding every cell on one shared origin (cells keep
+        their displacements): the shape a grid travels in (`thermod.io.wire.pack_kernel`) and the
+        ``kernel_size`` a frame deblurred with it reports. Larger than the largest cell when the cells'
+        origins differ."""
+        flat = [k for row in self.kernels for k in row]
+        oy = max(k.origin[0] for k in flat)
+        ox = max(k.origin[1] for k in flat)
+        kh = oy + max(k.weights.shape[0] - k.origin[0] for k in flat)
+        kw = ox + max(k.weights.shape[1] - k.origin[1] for k in flat)
+        return (int(oy), int(ox)), (int(kh), int(kw))
+
     def kernel_at(self, y: float, x: float) -> Kernel:
         """The kernel of the cell containing pixel (y, x)."""
         r = int(np.clip(np.searchsorted(self.bounds[:, 0, 1], y, side="right"), 0, self.grid[0] - 1))
