@@ -77,7 +77,7 @@ def test_the_true_model_keeps_its_pixels_where_the_flight_reaches_the_scene_edge
 
 @pytest.mark.slow
 def test_a_misalignment_under_pitch_only_motion_is_recovered_about_every_axis(require):
-    """Pitching alone, a misalignment's pitch-axis part shows only through the 5 °/s of yaw across it
+    """Pitching alone, a misalignment's pitch-axis part shows only through the 5 °/s of roll across it
     (0.5 % of the rate information). Left out as unexcited (a 5 % share was the old cut), its 0.03 rad
     held the fitted y and z at 77 % of the truth and the gap's excess at 0.53 of what it was. Measured
     now (every candidate): (0.0274, −0.0167, 0.0230) rad, gap 0.0660 → 0.0308 (floor 0.0175; the truth's

@@ -291,7 +291,7 @@ def fit_misalignment(ctx: StepContext, model: Model, min_rms: float = MIN_EXCITA
     Δω ≈ δ × ω, whose information matrix M = Σ(|ω|² I − ω ωᵀ) is singular for single-axis motion. A
     direction v is kept when the rate across it, √(vᵀMv / N), is ≥ `min_rms` (2 °/s) and its eigenvalue is
     ≥ `min_rel` × the largest (a bounded condition number). What matters is the rate across v, not its
-    share: on the real log from 12 s (pitch 72 °/s, yaw 5 °/s RMS) the pitch direction holds 0.5 % of
+    share: on the real log from 12 s (pitch 72 °/s, roll 5 °/s RMS) the pitch direction holds 0.5 % of
     the information, and leaving its 0.03 rad out (the old 5 % cut) stopped the others at 77 %."""
     c0 = model.calib
     M, n = np.zeros((3, 3)), 0
