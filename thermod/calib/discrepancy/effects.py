@@ -410,11 +410,11 @@ def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) 
 MIN_CONTINUATION_PX = 0.1
 
 
-def _run_reach_px(d, calib, level: float) -> np.ndarray:
-    """Per clipped run (`continuations`), an upper bound of the image shift (working px) its continuation
-    at gain 1 adds to the frames: ∫|Δω| dt over the samples they integrate (5τ and the readout before
-    the first frame to the last), times the larger of the focal length and the half diagonal (a
-    rotation moves no pixel of the working frame by more)."""
+def _run_reach_px(d, calib, runs) -> np.ndarray:
+    """Per clipped run of `d` (`continuations`), an upper bound of the image shift (working px) its
+    continuation at gain 1 adds to the frames: ∫|Δω| dt over the samples they integrate (5τ and the
+    readout before the first frame to the last), times the larger of the focal length and the half
+    diagonal (a rotation moves no pixel of the working frame by more)."""
     t_cam = np.asarray(d.gyro_t, np.float64) + calib.time_offset_s
     lo = d.frame_t[0] - 5.0 * calib.tau_s - calib.readout_s
     seen = (t_cam >= lo) & (t_cam <= d.frame_t[-1])
@@ -422,7 +422,7 @@ def _run_reach_px(d, calib, level: float) -> np.ndarray:
     intr = d.fm.intr
     focal = max(intr.fx, intr.fy, math.hypot(intr.width, intr.height) / 2.0)
     return np.array([float(np.sum((c.excess * dt[c.i0:c.i1 + 1])[seen[c.i0:c.i1 + 1]])) * focal
-                     for c in continuations(d.gyro_t, d.gyro_rate, level)])
+                     for c in runs])
 
 
 def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
@@ -440,7 +440,8 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
     if level <= 0:
         return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
                          unobservable=["gyro_saturation: no raw samples pile up at a constant |rate|"])
-    reach = [_run_reach_px(d, model.calib, level) for d in ctx.recs]
+    runs = [continuations(d.gyro_t, d.gyro_rate, level) for d in ctx.recs]
+    reach = [_run_reach_px(d, model.calib, r) for d, r in zip(ctx.recs, runs, strict=True)]
     top = max((float(r.max(initial=0.0)) for r in reach), default=0.0) * max_gain
     if top < MIN_CONTINUATION_PX:
         return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0, unobservable=[
@@ -457,11 +458,11 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
     x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_gain, 13), 0.0, max_gain, None)
     best = FitResult("gyro_saturation", make(x), ssr)
     if per_run:
-        two_sided = [c.two_sided for c in continuations(ctx.recs[0].gyro_t, ctx.recs[0].gyro_rate, level)]
-        runs = _fit_run_gains(ctx, best.model, level, reach[0], np.where(two_sided, x, 0.0), max_gain)
-        if (ctx.delta_bic(ssr, runs.ssr, runs.n_params - 1) > bic_min
-                and ssr - runs.ssr >= ctx.min_gain):
-            best = runs
+        two_sided = [c.two_sided for c in runs[0]]
+        each = _fit_run_gains(ctx, best.model, level, reach[0], np.where(two_sided, x, 0.0), max_gain)
+        if (ctx.delta_bic(ssr, each.ssr, each.n_params - 1) > bic_min
+                and ssr - each.ssr >= ctx.min_gain):
+            best = each
     return best
 
 
