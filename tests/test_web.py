@@ -132,6 +132,12 @@ def test_kernel_image_scales_to_peak_and_tiles_cells():
     assert img[20:40, 80:100].min() == 255 and img[0:20, 0:20].max() == 128   # 127.5 rounds up
     grid = np.stack([np.stack([w, w])] * 3)             # 3 rows × 2 cols of 3 × 5
     assert kernel_image(grid, size=100, gap=2).shape == (7 * (3 * (3 + 2) - 2), 7 * (2 * (5 + 2) - 2))
+    # a grid larger than the box is shrunk here, block maxima kept: every cell's peak stays white
+    big = np.zeros((6, 8, 95, 22), np.float32)
+    big[:, :, 50, 3:20] = 1.0 / 17                       # one-pixel-high streaks
+    img = kernel_image(big, size=192)
+    assert max(img.shape) <= 192 and img.max() == 255
+    assert np.sum(img == 255) >= 6 * 8 * 4                 # no streak averaged away
 
 
 # ------------------------------------------------------------------------------------------ the page
