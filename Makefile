@@ -34,8 +34,10 @@ run: debian-deps $(STAMP)
 test: debian-deps $(STAMP)
 	$(BIN)/pytest -n 2 --dist loadfile --no-loadscope-reorder
 
+# ruff, and the layers contract of pyproject.toml (import-linter; .ci/lint_imports.py says why a wrapper)
 lint: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/python .ci/lint_imports.py
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks

@@ -3,7 +3,7 @@ gyro drivers on their emulators in real time.
 
 The device oscillator runs +250 ppm off nominal; each read counts the samples in the FIFO, then
 takes the host time. 1 % of reads are preempted between the count and the time stamp (2–20 ms
-late). Compares thermod.runtime.clock.ClockMapper (causal: each batch is mapped with the fit as it stood
+late). Compares thermod.io.clock.ClockMapper (causal: each batch is mapped with the fit as it stood
 right after that batch was observed) with stamping samples by the read time.
 
 Second table: a real-time run of each register driver on its register emulator (and the serial
@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 
 def simulate_reads(seconds: float, *, rate_hz=1000.0, drift_ppm=250.0, read_every_s=0.005,

@@ -78,7 +78,7 @@ def size_settings(size: tuple[int, int]) -> tuple[str, ...]:
 
 def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, cpus: str | None = None,
                extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480)) -> dict:
-    from thermod.runtime.publish import Subscriber
+    from thermod.client.subscriber import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
     cmd = [str(THERMOD), "run", "--endpoint", ep, "--set", f"deblur.method={method}",

@@ -12,9 +12,10 @@ import time
 
 import numpy as np
 
+from benchmarks.chaos import FROZEN_SUBSCRIBER, rss_mb
+from thermod.client.subscriber import Subscriber
 from thermod.io.wire import decode, encode_header
-from thermod.runtime.publish import DEFAULT_MAX_QUEUE_BYTES, Publisher, Subscriber
-from thermod.sim.chaos import FROZEN_SUBSCRIBER, rss_mb
+from thermod.runtime.publish import DEFAULT_MAX_QUEUE_BYTES, Publisher
 
 H, W = 512, 640
 

@@ -53,7 +53,7 @@ from thermod.physics import (
     kernels,
 )
 from thermod.physics.calibration import Calibration  # noqa: E402
-from thermod.runtime.config import DeblurConfig  # noqa: E402
+from thermod.restore.settings import DeblurConfig  # noqa: E402
 from thermod.sim import motion as mo  # noqa: E402
 from thermod.sim import synth  # noqa: E402
 from thermod.sim.gyro_model import GyroErrorModel  # noqa: E402

@@ -33,7 +33,7 @@ from thermod.drivers.camera_base import (
     measured_rate_hz,
 )
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 GVCP_PORT = 3956
 _GVCP_DISCOVERY_CMD = 0x0002

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 FRAME_ID_BITS = 16   # GigE Vision block ids (GVSP) and most USB cameras: 16 bits, 0 reserved as "invalid"
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 
 @dataclass
@@ -21,7 +21,7 @@ class GyroBatch:
     ----------
     t : float64 [n]
         Host CLOCK_MONOTONIC seconds of each sample, mapped from the device counter by
-        :class:`thermod.runtime.clock.ClockMapper` (never the read time).
+        :class:`thermod.io.clock.ClockMapper` (never the read time).
     rate : float32 [n, 3]
         Raw angular rate in rad/s, gyro frame (uncalibrated; DESIGN §2).
     seq : int
@@ -97,7 +97,7 @@ class FifoGyro(GyroSource):
     A subclass supplies the register map and ``_identify``, ``_configure``, ``_fifo_status``,
     ``_flush``, ``_read_fifo`` and ``_decode``. This class owns the timing: read the FIFO every
     ``read_interval_s``, count samples (the unwrapped sequence number is the device clock), map
-    ``seq × period`` to host time with :class:`thermod.runtime.clock.ClockMapper` fed with the time taken
+    ``seq × period`` to host time with :class:`thermod.io.clock.ClockMapper` fed with the time taken
     right after the FIFO count was read (every counted sample existed by then), flush and mark a gap
     on overflow or an impossible FIFO count (``overflows``, ``bad_counts``), and after an I/O error
     (a NACK, a short transfer: ``io_errors``, raised once as the driver's DeviceError) re-identify,

@@ -13,7 +13,7 @@ largest element; ``*_type`` is ``[be|le]:[s|u]bits/storagebits[Xrepeat]>>shift``
 (rad/s; per-channel ``in_anglvel_x_scale`` wins when present).
 
 Timing: samples are counted (sequence = device clock) and mapped to host time by
-:class:`thermod.runtime.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
+:class:`thermod.io.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
 (the data-ready interrupt time, never earlier than the sample) or, without a timestamp channel,
 the time the read returned. The kernel drops new samples silently when its buffer is full; the
 timestamps show the hole (``gap_before``, ``n_lost``). A stamp that cannot be a sample time (zero,
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 TYPE_RE = re.compile(r"^(be|le):([su])(\d{1,3})/(\d{1,3})(?:X(\d{1,3}))?>>(\d{1,3})$", re.ASCII)
 AXES = ("x", "y", "z")

@@ -21,7 +21,7 @@ rates are NaN, infinite or beyond ``max_rate_rad_s`` is dropped and counted as `
 (seq or time going back or standing still, or a time step that does not match the seq step)
 start a new epoch, counted in ``resets``: the clock fit restarts and the samples lost meanwhile
 are estimated from host time. Sample times come from the device timestamps (unwrapped µs)
-mapped to host time by :class:`thermod.runtime.clock.ClockMapper`, fed with the time each read returned.
+mapped to host time by :class:`thermod.io.clock.ClockMapper`, fed with the time each read returned.
 
 The port is a path (``/dev/serial/by-id/usb-FTDI_…-if00-port0`` survives re-enumeration; so does
 ``usb:VID:PID[:SERIAL]``, resolved through :mod:`thermod.drivers.usb_lookup` at every (re)open).
@@ -40,7 +40,7 @@ import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch, GyroDeviceError, GyroSource
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 SYNC = b"\xa5\x5a"
 TYPE_F32, TYPE_I16 = 1, 2

@@ -42,7 +42,7 @@ from thermod.drivers.camera_base import (
     measured_rate_hz,
 )
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 FOURCC_Y16 = "Y16 "
 

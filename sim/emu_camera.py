@@ -28,7 +28,7 @@ import numpy as np
 from thermod.drivers.camera_base import CameraSource, Frame, FrameIdTracker
 from thermod.drivers.v4l2_camera import BOSON_FFC_IN_PROGRESS, BOSON_STATUS_WORD
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 FrameProvider = Callable[[float], np.ndarray]
 

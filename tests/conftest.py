@@ -2,11 +2,15 @@
 and fails it instead under THERMOD_STRICT=1 (CI), so nothing real is silently skipped there."""
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
 from thermod.sim.scenes import shared_data_dir
+
+# tests share harnesses with the benchmarks (benchmarks.chaos): the repository root is importable
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 STRICT = os.environ.get("THERMOD_STRICT") == "1"
 # $THERMOD_SHARED_DATA, else the first shared/data above the checkout (the lookup thermod.sim uses);

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from thermod.runtime.publish import Subscriber
+from thermod.client.subscriber import Subscriber
 
 
 @contextlib.contextmanager

@@ -4,13 +4,15 @@ runtime code: importing every core module in a fresh interpreter must leave thos
 import pkgutil
 import subprocess
 import sys
+from pathlib import Path
 
 import thermod.calib
 import thermod.io
 import thermod.physics
 
 CORE = (thermod.physics, thermod.io, thermod.calib)
-FORBIDDEN = ("zmq", "gi", "thermod.runtime", "thermod.sim", "thermod.drivers", "thermod.cli")
+FORBIDDEN = ("zmq", "gi", "thermod.runtime", "thermod.sim", "thermod.drivers", "thermod.cli",
+             "thermod.client", "thermod.batch", "thermod.restore")
 
 
 def _core_modules() -> list[str]:
@@ -32,3 +34,12 @@ def test_core_imports_no_transport_hardware_or_runtime():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "", f"the core pulled in: {r.stdout.split()}"
+
+
+def test_layers_contract_holds():
+    """import-linter's `layers` contract (pyproject.toml): every layer imports only the ones below it."""
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / ".ci" / "lint_imports.py")], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert "1 kept, 0 broken" in r.stdout

@@ -146,7 +146,7 @@ def test_from_attrs_names_the_attribute():
 
 def test_config_file_gets_the_same_check_with_its_name(tmp_path):
     from thermod.errors import ConfigError
-    from thermod.runtime.config import load_calibration
+    from thermod.io.calibration_file import load_calibration
 
     p = tmp_path / "model.toml"
     p.write_text("[calibration]\nfx = 1e9\n")      # in range for the key alone, not for the camera

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from thermod.errors import DeviceError
-from thermod.runtime.clock import ClockMapper
+from thermod.io.clock import ClockMapper
 
 
 def fifo_reads(seconds, *, drift_ppm=250.0, p_late=0.01, t0=500.0, seed=0, latency=60e-6):

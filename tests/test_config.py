@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from thermod.errors import ConfigError
+from thermod.io import calibration_file
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config
 
@@ -185,7 +186,7 @@ def test_non_utf8_byte_is_a_config_error_naming_the_line(tmp_path):
     with pytest.raises(ConfigError, match=r"t\.toml: line 7: expected UTF-8 text, got byte 0xe9"):
         config.load(p)
     with pytest.raises(ConfigError, match=r"t\.toml: line 7: expected UTF-8"):
-        config.load_calibration(p)
+        calibration_file.load_calibration(p)
 
 
 def test_calibration_own_checks_become_config_errors_naming_the_file(tmp_path):
@@ -195,7 +196,7 @@ def test_calibration_own_checks_become_config_errors_naming_the_file(tmp_path):
     with pytest.raises(ConfigError, match=r"t\.toml: calibration\.fx: "):
         config.load(p)
     with pytest.raises(ConfigError, match=r"t\.toml: calibration\.fx: "):
-        config.load_calibration(p)
+        calibration_file.load_calibration(p)
 
 
 def test_registry_is_the_one_list_of_kinds():

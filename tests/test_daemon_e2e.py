@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from thermod.client.subscriber import Subscriber
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config
-from thermod.runtime.publish import Subscriber
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]

@@ -27,7 +27,7 @@ import pytest
 from thermod.calib import discrepancy as D
 from thermod.cli import discrepancy as discrepancy_cli
 from thermod.errors import ConfigError, RecordingError
-from thermod.io import recording
+from thermod.io import calibration_file, recording
 from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.physics.geometry import so3_log
 from thermod.runtime import config
@@ -286,7 +286,7 @@ def test_single_axis_motion_reports_unexcited_scale_axes(tmp_path):
     # model.toml is a whole configuration: `thermod run --config` and `thermod deblur --config` take it
     fitted = config.load(tmp_path / "model.toml", check_devices=False).calibration
     assert fitted.scale_vector[1] == pytest.approx(s[1]) and fitted.width == NOMINAL.width
-    assert config.load_calibration(tmp_path / "model.toml") == fitted
+    assert calibration_file.load_calibration(tmp_path / "model.toml") == fitted
 
 
 # ------------------------------------------------------------------ deblurring with the fitted model
@@ -577,7 +577,8 @@ def test_backward_elimination_drops_only_what_the_others_make_redundant():
     assert [p["effect"] for p in ana.pruned] == ["time_constant"] and len(ana.diags) == 1
     assert kept.calib.time_offset_s == model.calib.time_offset_s
     assert ana.pruned[0]["gap_without"] == pytest.approx(ana.pruned[0]["gap_with"], rel=1e-6)
-    from thermod.calib.discrepancy.report import _markdown, jsonable
+    from thermod.calib.discrepancy.report import _markdown
+    from thermod.io.json_safe import jsonable
 
     ana.finish(kept, problem, problem.evaluate(kept, keep=True), Criteria(), 0.0)
     md = _markdown(ana, ["prune.h5"], [])

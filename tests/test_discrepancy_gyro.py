@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from thermod.errors import ConfigError, ThermodError
+from thermod.io import calibration_file
 from thermod.physics import gyro_effects as G
 from thermod.physics.calibration import Calibration, CalibrationError
 from thermod.sim import motion as mo
@@ -42,7 +43,7 @@ def test_gyro_effect_fields_round_trip_and_are_range_checked(tmp_path):
     assert Calibration.from_dict(c.as_dict()) == c
     p = tmp_path / "model.toml"
     p.write_text(replace_calibration_table(config.default_path().read_text(), c))
-    assert config.load_calibration(p) == c
+    assert calibration_file.load_calibration(p) == c
     # files written before these fields exist read as "off"
     old = {k: v for k, v in c.gyro_attrs().items()
            if k in ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s")}
@@ -56,7 +57,7 @@ def test_gyro_effect_fields_round_trip_and_are_range_checked(tmp_path):
             Calibration(**{k: v})
     p.write_text(p.read_text().replace("gyro_lowpass_hz = 25.0", "gyro_lowpass_hz = 0.5"))
     with pytest.raises(ConfigError, match=r"model\.toml: calibration\.gyro_lowpass_hz: .*\[1, 500\) Hz"):
-        config.load_calibration(p)
+        calibration_file.load_calibration(p)
 
 
 def test_clock_map_has_its_offset_at_the_epoch_and_inverts():

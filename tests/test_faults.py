@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import zmq
 
+from benchmarks.chaos import HiccupGyro
+from thermod.client.subscriber import Subscriber
 from thermod.runtime import config
 from thermod.runtime.daemon import Daemon
-from thermod.runtime.publish import Subscriber
 from thermod.runtime.sdnotify import Notifier
-from thermod.sim.chaos import HiccupGyro
 from thermod.sim.payload import SimPayload
 
 pytestmark = pytest.mark.slow

@@ -19,9 +19,11 @@ import pytest
 
 from thermod.drivers.v4l2_camera import BOSON_FFC_IN_PROGRESS, BOSON_STATUS_WORD, V4L2Camera, boson_ffc_state
 from thermod.physics.calibration import Calibration
+from thermod.restore.plan import kernel_window
+from thermod.restore.settings import DeblurConfig
 from thermod.runtime import config
-from thermod.runtime.config import DeblurConfig, PipelineConfig
-from thermod.runtime.pipeline import REASONS, Pipeline, kernel_window
+from thermod.runtime.config import PipelineConfig
+from thermod.runtime.pipeline import REASONS, Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.emu_camera import EmuCamera, EmuV4L2Device, FFCSchedule
 from thermod.sim.scenes import load_scene
@@ -251,8 +253,8 @@ def test_daemon_on_simulated_payload_with_ffc_schedule(tmp_path):
     last frozen frame — no more, no less — is published with reason "ffc" and not deblurred; every
     other frame is deblurred (or passed through for load: overload); every frame is published; health
     counts the same."""
+    from thermod.client.subscriber import Subscriber
     from thermod.runtime.daemon import Daemon
-    from thermod.runtime.publish import Subscriber
     from thermod.runtime.sdnotify import Notifier
     from thermod.sim.payload import SimPayload
 

@@ -1,4 +1,4 @@
-"""The governor (thermod.runtime.governor) and the adaptive kernel grid (pipeline.grid_needed).
+"""The governor (thermod.runtime.governor) and the adaptive kernel grid (restore.plan.grid_needed).
 
 Governor logic runs on a deterministic cost feed (no clock, no threads): it steps down when the
 measured cost exceeds the budget, climbs back when the machine recovers, and does not flap on a
@@ -18,16 +18,11 @@ import pytest
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver, kernel_spread
-from thermod.runtime.config import DeblurConfig, PipelineConfig
-from thermod.runtime.governor import Governor, coarser_grids, ladder
-from thermod.runtime.pipeline import (
-    Pipeline,
-    grid_needed,
-    make_deconvolver,
-    render,
-    rung_for,
-    solved_grid,
-)
+from thermod.restore.plan import coarser_grids, grid_needed, make_deconvolver, render, solved_grid
+from thermod.restore.settings import DeblurConfig
+from thermod.runtime.config import PipelineConfig
+from thermod.runtime.governor import Governor, ladder
+from thermod.runtime.pipeline import Pipeline, rung_for
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
 

@@ -16,10 +16,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from thermod import cli
 from thermod.cli.record import record
+from thermod.client.subscriber import Subscriber
 from thermod.errors import RecordingError
 from thermod.io import mcap, recording
 from thermod.physics.calibration import Calibration
-from thermod.runtime.publish import Publisher, Subscriber
+from thermod.runtime.publish import Publisher
 
 sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
 from daemon_process import running_daemon  # noqa: E402

@@ -313,7 +313,7 @@ def test_defaults_are_deblur_configs():
     import dataclasses
 
     from thermod.cli import deblur as cmd
-    from thermod.runtime.config import DeblurConfig
+    from thermod.restore.settings import DeblurConfig
 
     p = argparse.ArgumentParser()
     cmd.add_arguments(p)

@@ -18,8 +18,10 @@ import pytest
 from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver
-from thermod.runtime.config import DeblurConfig, PipelineConfig
-from thermod.runtime.pipeline import Pipeline, kernel_window, render
+from thermod.restore.plan import kernel_window, render
+from thermod.restore.settings import DeblurConfig
+from thermod.runtime.config import PipelineConfig
+from thermod.runtime.pipeline import Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim import synth
 from thermod.sim.scenes import load_scene

@@ -9,17 +9,13 @@ import pytest
 import zmq
 import zmq.auth
 
+from benchmarks.chaos import FROZEN_SUBSCRIBER
+from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
 from thermod.io.wire import MessageError, decode
 from thermod.runtime import config
-from thermod.runtime.publish import (
-    BUDGETED_STALLED_SUBSCRIBERS,
-    Publisher,
-    Subscriber,
-    TransportError,
-    is_loopback,
-)
-from thermod.sim.chaos import FROZEN_SUBSCRIBER
+from thermod.runtime.endpoints import TransportError, is_loopback
+from thermod.runtime.publish import BUDGETED_STALLED_SUBSCRIBERS, Publisher
 
 EP = "tcp://127.0.0.1:*"
 

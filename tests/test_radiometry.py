@@ -171,8 +171,8 @@ def _free_port() -> int:
 def test_daemon_publishes_celsius_next_to_each_frame(source):
     """With Planck constants from the configuration, or (model = "camera") the ones the camera reports:
     the simulated camera reports its own, as a FLIR camera does over GenICam."""
+    from thermod.client.subscriber import Subscriber
     from thermod.runtime.daemon import Daemon
-    from thermod.runtime.publish import Subscriber
     from thermod.runtime.sdnotify import Notifier
     from thermod.sim.payload import SimCamera
 

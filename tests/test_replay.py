@@ -229,7 +229,7 @@ def test_every_source_offers_name_clock_and_stats():
     from thermod.drivers.iio import IIOGyro
     from thermod.drivers.serial_imu import SerialIMU
     from thermod.drivers.v4l2_camera import V4L2Camera
-    from thermod.runtime.clock import ClockMapper
+    from thermod.io.clock import ClockMapper
     from thermod.sim.emu_camera import EmuCamera
     from thermod.sim.emu_registers import EmuSPI, ICM42688Emu
 

@@ -231,7 +231,7 @@ def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     require(shutil.which("ffmpeg") is not None, "ffmpeg (Debian package ffmpeg)")
     require(_gstreamer_ok(), "GStreamer RTSP server, x264enc (Debian gir1.2-gst-rtsp-server-1.0 "
             "gstreamer1.0-plugins-ugly)")
-    from thermod.runtime.publish import Subscriber
+    from thermod.client.subscriber import Subscriber
     cal = config.load().calibration
     url = f"rtsp://127.0.0.1:{free_port()}/thermal"
     ep = f"tcp://127.0.0.1:{free_port()}"

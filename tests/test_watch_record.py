@@ -16,10 +16,11 @@ import pytest
 from thermod import cli
 from thermod.cli.record import RecordWriter, record
 from thermod.cli.watch import Agc, PreviewWriter, WatchStats, side_by_side, to_u8, watch
+from thermod.client.subscriber import Subscriber
 from thermod.errors import RecordingError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
-from thermod.runtime.publish import Publisher, Subscriber
+from thermod.runtime.publish import Publisher
 
 sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
 from daemon_process import running_daemon  # noqa: E402

@@ -1,4 +1,4 @@
-"""`thermod watch --http`: the live page (thermod.runtime.web) and the wire's `kernel` topic.
+"""`thermod watch --http`: the live page (thermod.client.web) and the wire's `kernel` topic.
 
 Real parts throughout: a ZeroMQ Publisher/Subscriber pair, the stdlib HTTP server read by urllib, and
 at the end headless Chromium (Debian `chromium`) rendering the page served by `thermod watch --http`
@@ -24,10 +24,11 @@ import cv2
 import numpy as np
 import pytest
 
+from thermod.client.subscriber import Subscriber
+from thermod.client.web import LAYOUT, LiveView, WebError, WebServer, kernel_image, parse_bind
 from thermod.io.wire import MessageError, decode, pack_kernel
 from thermod.physics.kernels import Kernel, KernelGrid
-from thermod.runtime.publish import Publisher, Subscriber
-from thermod.runtime.web import LAYOUT, LiveView, WebError, WebServer, kernel_image, parse_bind
+from thermod.runtime.publish import Publisher
 
 REPO = Path(__file__).resolve().parents[1]
 THERMOD = Path(sys.executable).with_name("thermod")

@@ -3,7 +3,7 @@
 A `Job` is plain data (paths, the `DeblurConfig`, the calibration file, the radiometric model), so
 the same `run_job` runs in this process (`thermod.batch.local`) or on a Dask worker
 (`thermod.batch.cluster`) and writes the same bytes: every frame's kernel comes from
-`thermod.runtime.pipeline.render` (the daemon's dispatch) and is removed by `thermod.physics.deconv`.
+`thermod.restore.plan.render` (the dispatch the daemon uses too) and is removed by `thermod.physics.deconv`.
 
 `run_job` never raises for a bad file: it returns an `Outcome` whose `error` is one line naming the
 file (a `ThermodError`'s message, or "unexpected …" for a bug), so one file's failure costs no other.
@@ -22,7 +22,7 @@ import numpy as np
 
 from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
-from thermod.runtime.config import DeblurConfig
+from thermod.restore.settings import DeblurConfig
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ def deblur_file(job: Job, bar) -> FileReport:
     with recording.Reader(src) as r:
         calib = r.calibration
         if job.config is not None:
-            from thermod.runtime.config import load_calibration
+            from thermod.io.calibration_file import load_calibration
 
             calib = load_calibration(job.config, base=r.calibration)
             if (calib.height, calib.width) != r.frame_shape:
@@ -189,7 +189,7 @@ def deblur_file(job: Job, bar) -> FileReport:
 
 def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec):
     """(deblurred frame, "") or (None, why it is passed through)."""
-    from thermod.runtime.pipeline import render
+    from thermod.restore.plan import render
 
     try:
         kernel, info = render(reader.gyro_t, reader.gyro_rate, calib, t, cfg)

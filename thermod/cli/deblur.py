@@ -1,7 +1,7 @@
 """`thermod deblur IN.h5 -o OUT.h5` / `thermod deblur A.h5 B.h5 … -o DIR/`: offline deblurring.
 
 For every frame the gyro samples of its m·τ history give the blur kernel (Eq. 18, thermal, or
-Eq. 17, photon baseline) through `thermod.runtime.pipeline.render` — the same dispatch as the
+Eq. 17, photon baseline) through `thermod.restore.plan.render` — the same dispatch as the
 daemon — and `thermod.physics.deconv` removes it: by default spatially varying (a grid of kernels,
 deconvolved in blended tiles — camera roll makes the blur vary across the frame), or one kernel
 per frame with `--uniform` (the paper's method). Every other default is `DeblurConfig()`'s.
@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
-from thermod.runtime.config import DeblurConfig
+from thermod.restore.settings import DeblurConfig
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def deblur_config(args) -> DeblurConfig:
-    """The command line's settings as the DeblurConfig that `pipeline.render` takes."""
+    """The command line's settings as the DeblurConfig that `thermod.restore.plan.render` takes."""
     grid = tuple(int(g) for g in args.grid)
     if grid[0] < 1 or grid[1] < 1:
         raise ThermodError(f"--grid {grid[0]} {grid[1]}: expected at least 1 row and 1 column")

@@ -220,7 +220,7 @@ def _calibration(bag, base, info, frame_t, gyro_t, args) -> Calibration:
             "--calibration to set them"
         )
     if args.calibration is not None:
-        from thermod.runtime import config
+        from thermod.io import calibration_file
 
-        return config.load_calibration(args.calibration, base)
+        return calibration_file.load_calibration(args.calibration, base)
     return base

@@ -23,10 +23,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from thermod.client.subscriber import Subscriber
 from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
-from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
+from thermod.runtime.endpoints import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ governor's choice in each frame's header: ``kf``, ``kf_fast``, ``wiener``, with 
 why the other frames were not deblurred. With ``--png DIR`` it writes raw|deblurred side-by-side
 previews (one percentile stretch for both halves, so brightness compares) at most every
 ``--png-interval`` seconds. With ``--http HOST:PORT`` it also serves a live page there
-(`thermod.runtime.web`): raw | deblurred, the current blur kernel and health plots.
+(`thermod.client.web`): raw | deblurred, the current blur kernel and health plots.
 """
 
 from __future__ import annotations
@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
+from thermod.io.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
 from thermod.io.wire import MAX_PAYLOAD_BYTES
-from thermod.runtime.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
-from thermod.runtime.publish import DEFAULT_ENDPOINT, Subscriber
+from thermod.runtime.endpoints import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ def _trim(d: collections.OrderedDict, keep: int) -> None:
 def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
           previews: PreviewWriter | None = None, view=None, out=None) -> WatchStats:
     """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`;
-    every message also goes to `view` (a `thermod.runtime.web.LiveView`), sampled once a second."""
+    every message also goes to `view` (a `thermod.client.web.LiveView`), sampled once a second."""
     out = sys.stdout if out is None else out
     stats = WatchStats()
     t_end = None if seconds is None else time.monotonic() + seconds
@@ -265,7 +266,7 @@ def run(args) -> int:
         raise ThermodError(f"--max-frame-mb: expected a positive size in MiB, got {args.max_frame_mb}")
     view = server = None
     if args.http:
-        from thermod.runtime.web import LiveView, WebServer
+        from thermod.client.web import LiveView, WebServer
 
         topics += ("kernel",)
         view = LiveView(args.endpoint)

@@ -14,6 +14,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from thermod.errors import ThermodError
+from thermod.io.json_safe import jsonable
+
 WIRE_VERSION = 1
 TOPICS = ("frame", "raw", "gyro", "health", "kernel", "celsius")
 # Array dtypes a payload may carry (little-endian numpy strings); "packed" = concatenated `layout` parts.
@@ -28,7 +31,7 @@ MAX_PAYLOAD_BYTES = 4096 * 4096 * 4
 assert not any(a != b and b.startswith(a) for a in TOPICS for b in TOPICS), "a topic prefixes another"
 
 
-class MessageError(ValueError):
+class MessageError(ThermodError, ValueError):
     """A received message violates wire v1 (counted by `kind` and logged by `Subscriber`, never raised
     out of it). `kind`: framing, topic, header_size, json, version, header, dtype, shape, layout,
     payload_size."""
@@ -39,28 +42,6 @@ class MessageError(ValueError):
 
 
 # ------------------------------------------------------------------------------------------ encode
-def jsonable(x):
-    """Plain JSON types; non-finite floats become null so non-Python parsers accept the header."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    if x is None or isinstance(x, str):
-        return x
-    if hasattr(x, "as_dict"):
-        return jsonable(x.as_dict())
-    raise TypeError(f"header value of type {type(x).__name__} is not JSON-serialisable")
-
-
 def encode_header(header: dict) -> bytes:
     """The header frame: compact UTF-8 JSON. Raises TypeError/ValueError if it cannot be serialised."""
     return json.dumps(jsonable(header), separators=(",", ":"), allow_nan=False).encode()

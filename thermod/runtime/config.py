@@ -14,7 +14,6 @@ Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simul
 
 from __future__ import annotations
 
-import math
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -23,11 +22,12 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
-
 from thermod.errors import ConfigError
+from thermod.io.calibration_file import calibration_from_table
+from thermod.io.toml_tables import Section, read_toml
 from thermod.physics import radiometry as radiometrymod
-from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration, CalibrationError
+from thermod.physics.calibration import Calibration
+from thermod.restore.settings import DeblurConfig
 from thermod.runtime import sources
 
 
@@ -60,27 +60,6 @@ class SimConfig:
     ffc_interval_s: float = 0.0      # a flat-field correction (shutter/NUC) every this many s; 0 = never
     ffc_duration_s: float = 0.5      # frames frozen (shutter closed) for this long per FFC
     ffc_step_counts: float = 20.0    # offset step of the new NUC after each FFC (raw counts)
-
-
-@dataclass(frozen=True)
-class DeblurConfig:
-    enabled: bool = True
-    method: str = "kf"               # kf | wiener
-    lam: float | None = None         # data weight (K&F convention); None = thermod.physics.deconv default
-    alpha: float = 1.0               # prior exponent: 1 (TV, default) or 2/3 (hyper-Laplacian)
-    kernel: str = "thermal"          # thermal (Eq. 18) | photon (Eq. 17, baseline)
-    exposure_s: float | None = None  # photon kernel exposure; None = 1 / frame rate
-    psf: bool = True                 # optical PSF refinement (Eq. 19)
-    mode: str = "adaptive"           # adaptive (grid from the roll, `pipeline.grid_needed`) | uniform | grid
-    grid: tuple[int, int] = (6, 8)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
-    grid_tol_px: float = 0.5         # adaptive: kernel shift allowed across a cell (px) before it is split
-    kf_iterations: int | None = None  # K&F β steps (None: K&F's six); the governor's faster rung uses 3
-    governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)
-    max_solve_s: float = 0.030       # governor: longest solve wanted per frame, for latency (s)
-    headroom: float = 0.15           # governor: share of the budget kept free for jitter
-    m: float = 5.0                   # kernel window = m·τ
-    min_coverage: float = 0.99       # gyro coverage below this → pass through
-    ffc_settle_s: float | None = None  # after a flat-field correction: pass through this long (None: m·τ)
 
 
 @dataclass(frozen=True)
@@ -148,91 +127,11 @@ class Config:
         return "sim" in (self.gyro.kind, self.camera.kind)
 
 
-# ------------------------------------------------------------------------------ checks
-class _Section:
-    """Pops and checks the keys of one TOML table; `done()` rejects whatever is left."""
-
-    def __init__(self, path: str, prefix: str, table: Any):
-        self.path, self.prefix = path, prefix
-        if not isinstance(table, dict):
-            raise ConfigError(f"{path}: {prefix}: expected a table, got {_tname(table)}")
-        self.t = dict(table)
-
-    def key(self, k: str) -> str:
-        return f"{self.prefix}.{k}" if self.prefix else k
-
-    def fail(self, k: str, expected: str, got: Any = None, show_got: bool = True) -> ConfigError:
-        extra = f", got {got!r}" if show_got else ""
-        return ConfigError(f"{self.path}: {self.key(k)}: expected {expected}{extra}")
-
-    def has(self, k: str) -> bool:
-        return k in self.t
-
-    def pop(self, k, default, kind, *, lo=None, hi=None, lo_open=False, choices=None, required=False):
-        if k not in self.t:
-            if required:
-                raise ConfigError(f"{self.path}: {self.key(k)}: missing (expected {_describe(kind)})")
-            return default
-        v = self.t.pop(k)
-        if kind is float and isinstance(v, int) and not isinstance(v, bool):
-            v = float(v)
-        if kind is bool and not isinstance(v, bool) or kind is not bool and isinstance(v, bool) \
-                or not isinstance(v, kind):
-            raise self.fail(k, _describe(kind), v)
-        if kind is float and not math.isfinite(v):
-            raise self.fail(k, "a finite number", v)
-        if choices is not None and v not in choices:
-            raise self.fail(k, "one of " + ", ".join(repr(c) for c in choices), v)
-        if lo is not None and (v <= lo if lo_open else v < lo) or hi is not None and v > hi:
-            rng = f"{'(' if lo_open else '['}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}]"
-            raise self.fail(k, f"a value in {rng}", v)
-        return v
-
-    def pop_floats(self, k, default, n_allowed: tuple[int, ...], *, positive=False):
-        if k not in self.t:
-            return default
-        v = self.t.pop(k)
-        ok = isinstance(v, list) and len(v) in n_allowed and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
-        if not ok or positive and any(x <= 0 for x in v):
-            what = " or ".join(str(n) for n in n_allowed)
-            raise self.fail(k, f"an array of {what} {'positive ' if positive else ''}numbers", v)
-        return tuple(float(x) for x in v)
-
-    def pop_file(self, k, default=None, *, required=False, must_exist=True, what="file"):
-        v = self.pop(k, default, str, required=required)
-        if v is None:
-            return None
-        p = os.path.expanduser(v)
-        if not os.path.isabs(p) and not p.startswith("/dev/"):
-            p = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(self.path)), p)) \
-                if not self.path.startswith("<") else os.path.abspath(p)
-        if "\0" in p:
-            raise self.fail(k, "a path without NUL characters", v)
-        if must_exist and not os.path.exists(p):
-            raise ConfigError(f"{self.path}: {self.key(k)}: {what} {p!r} does not exist")
-        return p
-
-    def done(self) -> None:
-        if self.t:
-            k = sorted(self.t)[0]
-            raise ConfigError(f"{self.path}: {self.key(k)}: unknown key")
-
-
-def _tname(v) -> str:
-    return {bool: "a boolean", int: "an integer", float: "a number", str: "a string", list: "an array",
-            dict: "a table"}.get(type(v), type(v).__name__)
-
-
-def _describe(kind) -> str:
-    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(kind, str(kind))
-
-
 # ------------------------------------------------------------------------------ sources
 def _source(path: str, role: str, table: Any, check_devices: bool):
     """One ``[sources.<role>]`` table, checked against the driver registry's schema for its kind."""
     drivers = sources.REGISTRY[role]
-    s = _Section(path, f"sources.{role}", table)
+    s = Section(path, f"sources.{role}", table)
     kind = s.pop("kind", None, str, choices=tuple(drivers), required=True)
     dev_kind = drivers[kind].device
     device = None
@@ -255,55 +154,8 @@ def _source(path: str, role: str, table: Any, check_devices: bool):
 
 
 # ------------------------------------------------------------------------------ sections
-def _calibration(path: str, table: Any, base: Calibration | None = None) -> Calibration:
-    """Validate a [calibration] table; keys it omits keep `base`'s values (default: the paper camera)."""
-    s = _Section(path, "calibration", table)
-    d = base or Calibration()
-    kw: dict[str, Any] = {}
-    kw["width"] = s.pop("width", d.width, int, lo=8, hi=16384)
-    kw["height"] = s.pop("height", d.height, int, lo=8, hi=16384)
-    for k in ("fx", "fy"):
-        kw[k] = s.pop(k, getattr(d, k), float, lo=0.0, lo_open=True)
-    cx0, cy0 = (d.cx, d.cy) if base is not None else ((kw["width"] - 1) / 2.0, (kw["height"] - 1) / 2.0)
-    kw["cx"] = s.pop("cx", cx0, float, lo=-kw["width"], hi=2.0 * kw["width"])
-    kw["cy"] = s.pop("cy", cy0, float, lo=-kw["height"], hi=2.0 * kw["height"])
-    kw["tau_s"] = s.pop("tau_s", d.tau_s, float, lo=0.0, lo_open=True, hi=1.0)
-    kw["frame_rate_hz"] = s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=0.0, lo_open=True, hi=10000.0)
-    kw["wavelength_um"] = s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0)
-    kw["f_number"] = s.pop("f_number", d.f_number, float, lo=0.1, hi=100.0)
-    kw["psf_beta"] = s.pop("psf_beta", d.psf_beta, float, lo=0.0, lo_open=True, hi=1.0)
-    kw["pixel_pitch_um"] = s.pop("pixel_pitch_um", d.pixel_pitch_um, float, lo=0.0, lo_open=True, hi=1000.0)
-    kw["readout_s"] = s.pop("readout_s", d.readout_s, float, lo=0.0, hi=1.0 / kw["frame_rate_hz"])
-    kw["rate_hz"] = s.pop("rate_hz", d.rate_hz, float, lo=0.0, lo_open=True, hi=100000.0)
-    kw["time_offset_s"] = s.pop("time_offset_s", d.time_offset_s, float, lo=-1.0, hi=1.0)
-    kw["bias_rad_s"] = s.pop_floats("bias_rad_s", d.bias_rad_s, (3,))
-    for k in GYRO_EFFECT_KEYS:      # ranges checked by Calibration (CalibrationError below names the key)
-        kw[k] = s.pop(k, getattr(d, k), float)
-    sc = s.pop_floats("scale", d.scale, (1, 3), positive=True)
-    kw["scale"] = sc * 3 if len(sc) == 1 else sc
-    if s.has("R_cam_gyro"):
-        v = s.t.pop("R_cam_gyro")
-        ok = isinstance(v, list) and len(v) == 3 and all(
-            isinstance(row, list) and len(row) == 3 and all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in row) for row in v)
-        R = np.asarray(v, dtype=np.float64) if ok else None
-        ok = ok and bool(np.all(np.isfinite(R)))
-        if not ok:
-            raise s.fail("R_cam_gyro", "a 3×3 array of numbers", v)
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
-            raise s.fail("R_cam_gyro", "a rotation matrix (orthonormal, det +1)", v)
-        kw["R_cam_gyro"] = tuple(tuple(float(x) for x in row) for row in R)
-    else:
-        kw["R_cam_gyro"] = d.R_cam_gyro
-    s.done()
-    try:
-        return Calibration(**kw)
-    except CalibrationError as e:  # the checks the keys share (e.g. the field of view): name the file
-        raise ConfigError(f"{path}: calibration.{e.field}: {e.problem}") from None
-
-
 def _deblur(path: str, table: Any) -> DeblurConfig:
-    s = _Section(path, "deblur", table)
+    s = Section(path, "deblur", table)
     d = DeblurConfig()
     kw: dict[str, Any] = dict(
         enabled=s.pop("enabled", d.enabled, bool),
@@ -337,9 +189,9 @@ def _deblur(path: str, table: Any) -> DeblurConfig:
 
 
 def _publish(path: str, table: Any) -> PublishConfig:
-    s = _Section(path, "publish", table)
+    s = Section(path, "publish", table)
     d = PublishConfig()
-    from thermod.runtime.publish import endpoint_problem, is_loopback
+    from thermod.runtime.endpoints import endpoint_problem, is_loopback
     endpoint = s.pop("endpoint", d.endpoint, str)
     if (problem := endpoint_problem(endpoint)) is not None:
         raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or "
@@ -364,7 +216,7 @@ def _publish(path: str, table: Any) -> PublishConfig:
 
 
 def _pipeline(path: str, table: Any) -> PipelineConfig:
-    s = _Section(path, "pipeline", table)
+    s = Section(path, "pipeline", table)
     d = PipelineConfig()
     kw = dict(workers=s.pop("workers", d.workers, int, lo=0, hi=64),
               job_queue=s.pop("job_queue", d.job_queue, int, lo=1, hi=64),
@@ -378,7 +230,7 @@ def _pipeline(path: str, table: Any) -> PipelineConfig:
 
 
 def _sim(path: str, table: Any) -> SimConfig:
-    s = _Section(path, "sim", table)
+    s = Section(path, "sim", table)
     d = SimConfig()
     kw = dict(scene=s.pop("scene", d.scene, str), motion=s.pop("motion", d.motion, str),
               loop_s=s.pop("loop_s", d.loop_s, float, lo=0.2, hi=120.0),
@@ -400,7 +252,7 @@ def _sim(path: str, table: Any) -> SimConfig:
 
 def _rtsp(path: str, table: Any) -> RtspConfig:
     from thermod.runtime.rtsp import COLORMAPS, VIEWS, RtspError, parse_url
-    s = _Section(path, "rtsp", table)
+    s = Section(path, "rtsp", table)
     d = RtspConfig()
     url = s.pop("url", d.url, str)
     try:
@@ -422,7 +274,7 @@ def _rtsp(path: str, table: Any) -> RtspConfig:
 
 
 def _logging(path: str, table: Any) -> LoggingConfig:
-    s = _Section(path, "logging", table)
+    s = Section(path, "logging", table)
     lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
     s.done()
     return LoggingConfig(level=lvl)
@@ -434,7 +286,7 @@ CAMERA_RADIOMETRY = "camera"     # [radiometry] model = "camera": the Planck con
 def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | str | None:
     """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset) |
     "camera" (the constants the camera itself reports, read once it streams: `CAMERA_RADIOMETRY`)."""
-    s = _Section(path, "radiometry", table)
+    s = Section(path, "radiometry", table)
     model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY))
     if model == CAMERA_RADIOMETRY:
         s.done()
@@ -453,7 +305,7 @@ def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
     `load`; None when the file has no such table or says model = "none". Offline there is no camera to
     ask, so model = "camera" is an error here."""
     p = Path(path)
-    raw = _read_toml(p)
+    raw = read_toml(p)
     model = _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
     if model == CAMERA_RADIOMETRY:
         raise ConfigError(f"{p}: radiometry.model: 'camera' needs a live camera; give 'planck' constants "
@@ -480,8 +332,8 @@ def _apply_override(path: str, raw: dict, dotted: str, value: Any) -> None:
 
 def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> Config:
     """Validate an already-parsed TOML document."""
-    top = _Section(path, "", raw)
-    src = _Section(path, "sources", top.t.pop("sources", {}))
+    top = Section(path, "", raw)
+    src = Section(path, "sources", top.t.pop("sources", {}))
     if not src.has("gyro") or not src.has("camera"):
         missing = "sources.gyro" if not src.has("gyro") else "sources.camera"
         raise ConfigError(f"{path}: {missing}: missing (expected a table with `kind = ...`)")
@@ -493,7 +345,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
     cfg = Config(
         gyro=gyro, camera=camera,
         sim=_sim(path, top.t.pop("sim", {})),
-        calibration=_calibration(path, top.t.pop("calibration", {})),
+        calibration=calibration_from_table(path, top.t.pop("calibration", {})),
         deblur=_deblur(path, top.t.pop("deblur", {})),
         publish=_publish(path, top.t.pop("publish", {})),
         pipeline=_pipeline(path, top.t.pop("pipeline", {})),
@@ -521,49 +373,10 @@ def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None
     configuration on another machine); recordings and key files are always checked.
     """
     p = default_path() if path is None else Path(path)
-    name, raw = str(p), _read_toml(p)
+    name, raw = str(p), read_toml(p)
     for k, v in (overrides or {}).items():
         _apply_override(name, raw, k, v)
     return parse(raw, name, check_devices=check_devices)
-
-
-def load_calibration(path: str | os.PathLike, base: Calibration | None = None) -> Calibration:
-    """The [calibration] table of a TOML file (a full configuration, or the `model.toml` written by
-    `thermod discrepancy`), validated as in `load`; keys it omits keep `base`'s values (e.g. the
-    calibration stored in the recording being processed). Other tables are ignored."""
-    p = Path(path)
-    raw = _read_toml(p)
-    if "calibration" not in raw:
-        raise ConfigError(f"{p}: no [calibration] table")
-    return _calibration(str(p), raw["calibration"], base)
-
-
-def _read_toml(p: Path) -> dict:
-    name = str(p)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{name}: no such configuration file") from None
-    except OSError as e:
-        raise ConfigError(f"{name}: cannot read: {e.strerror or e}") from None
-    return loads(data, name)
-
-
-def loads(data: bytes | str, name: str = "<memory>") -> dict:
-    """Parse TOML text (bytes must be UTF-8); every problem is a ConfigError naming `name` and where."""
-    if isinstance(data, bytes):
-        try:
-            data = data.decode("utf-8")
-        except UnicodeDecodeError as e:
-            line = data[:e.start].count(b"\n") + 1
-            raise ConfigError(f"{name}: line {line}: expected UTF-8 text, got byte 0x{data[e.start]:02x} "
-                              f"at offset {e.start}") from None
-    try:
-        return tomllib.loads(data)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{name}: not valid TOML: {e}") from None
-    except RecursionError:
-        raise ConfigError(f"{name}: not valid TOML: arrays or tables nested too deeply") from None
 
 
 def parse_override(text: str) -> tuple[str, Any]:

@@ -38,7 +38,7 @@ from thermod.io.wire import frame_method_fields
 from thermod.runtime import config as configmod
 from thermod.runtime import sources
 from thermod.runtime.driver_thread import DeviceState, DriverThread
-from thermod.runtime.health import Health, status_line
+from thermod.runtime.health import Health, Snapshot, status_line
 from thermod.runtime.pipeline import FrameOut, Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.runtime.sources import Source
@@ -306,7 +306,29 @@ class Daemon:
 
     def health(self, now: float | None = None, *, update_rates: bool = False) -> dict:
         """The health message (see `thermod.runtime.health`)."""
-        return self._health.message(self, time.monotonic() if now is None else now, update_rates=update_rates)
+        now = time.monotonic() if now is None else now
+        return self._health.message(self._snapshot(now), now, update_rates=update_rates)
+
+    def _snapshot(self, now: float) -> Snapshot:
+        return Snapshot(
+            pipeline=self.pipeline.stats(), gyro_items=self.gyro_state.items,
+            camera_items=self.camera_state.items,
+            sources={"gyro": (self.gyro, self.gyro_state.as_dict(now)),
+                     "camera": (self.camera, self.camera_state.as_dict(now))},
+            sink_drops={f"{th.kind}_items_rejected": th.sink_drops for th in self.driver_threads},
+            counters=dict(self.counters), gyro_ring_clock_jumps=self.gyro_ring.clock_jumps,
+            gyro_ring_time_holes=self.gyro_ring.time_holes, publisher=self.publisher.stats(),
+            threads=self.critical_alive(), ready=self.ready, gyro_online=self.pipeline.gyro_online,
+            reload=dict(self.reload_status), rtsp=self.rtsp.stats() if self.rtsp is not None else None,
+            radiometry=self._radiometry_report())
+
+    def _radiometry_report(self) -> dict:
+        """Which counts → °C model the daemon converts with, and where it came from."""
+        if self.cfg.radiometry is None:
+            return {"source": None, "model": None}
+        model = self.radiometry()
+        return {"source": "camera" if self.cfg.radiometry == configmod.CAMERA_RADIOMETRY else "config",
+                "model": model.as_dict() if model is not None else None}
 
     def publish_health(self, now: float | None = None) -> dict:
         now = time.monotonic() if now is None else now

@@ -63,7 +63,8 @@ import statistics
 import threading
 from dataclasses import dataclass
 
-from thermod.runtime.config import DeblurConfig
+from thermod.restore.plan import coarser_grids
+from thermod.restore.settings import DeblurConfig
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
 WINDOW = 15                       # solves per key in the sliding median
@@ -96,20 +97,6 @@ def ladder(deblur: DeblurConfig) -> list[Rung]:
         rungs.append(Rung("kf_fast", "kf", FAST_KF_ITERATIONS, varying))
     rungs.append(Rung("wiener", "wiener", None, varying))
     return rungs
-
-
-def coarser_grids(grid: tuple[int, int], aspect: float) -> list[tuple[int, int]]:
-    """`grid` and the coarser near-square grids below it down to (1, 1), finest first
-    (rows r, cols round(r · aspect) with aspect = W/H, never more than `grid`'s)."""
-    rows, cols = grid
-    out = [(rows, cols)]
-    for r in range(rows - 1, 0, -1):
-        g = (r, max(1, min(cols, round(r * aspect))))
-        if g not in out:
-            out.append(g)
-    if (1, 1) not in out:
-        out.append((1, 1))
-    return out
 
 
 @dataclass

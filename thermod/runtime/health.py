@@ -3,19 +3,18 @@ under its reason, device and clock state, thread liveness, the last reload's out
 governor's state (``governor``: the method it runs now, its budget, measured costs, how often it
 stepped down or up, frames per method; `thermod.runtime.governor`).
 
-Sources are read through the `thermod.runtime.sources.Source` protocol (``name``, ``clock``,
-``stats()``); a driver whose ``stats()`` raises is reported, never allowed to stop the message.
+The daemon hands `Health.message` a `Snapshot`: plain values and the two sources, nothing that
+reaches back into the daemon. Sources are read through the `thermod.runtime.sources.Source` protocol
+(``name``, ``clock``, ``stats()``); a driver whose ``stats()`` raises is reported, never allowed to stop
+the message.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 from thermod.runtime.sources import Source
-
-if TYPE_CHECKING:
-    from thermod.runtime.daemon import Daemon
 
 # pipeline counters that are frames not deblurred or not delivered, reported under their reason
 _DROP_PREFIXES = ("passthrough_", "jobs_dropped", "frames_overrun", "worker_errors", "camera_frames_lost")
@@ -45,6 +44,27 @@ PUBLISHER_KEYS = ("queue_depth", "queue_dropped", "send_errors", "hwm", "held_by
                   "budget_dropped", "warnings")
 
 
+@dataclass(frozen=True)
+class Snapshot:
+    """What one health message reports, taken from the daemon at one instant."""
+
+    pipeline: dict                 # Pipeline.stats()
+    gyro_items: int                # samples / frames the driver threads delivered
+    camera_items: int
+    sources: dict                  # role → (Source, DeviceState.as_dict(now))
+    sink_drops: dict               # "<kind>_items_rejected" → count, per driver thread
+    counters: dict                 # the daemon's own counters (gyro_gaps, gyro_lost, camera_frames_lost, …)
+    gyro_ring_clock_jumps: int
+    gyro_ring_time_holes: int
+    publisher: dict                # Publisher.stats()
+    threads: dict                  # critical thread → alive
+    ready: bool
+    gyro_online: bool
+    reload: dict
+    rtsp: dict | None
+    radiometry: dict
+
+
 class Health:
     """Builds the health message of one daemon; keeps the totals of the previous period for rates."""
 
@@ -58,28 +78,27 @@ class Health:
                       for k, name in _RATES}
         self._prev = {**totals, "_t": now}
 
-    def message(self, d: Daemon, now: float, *, update_rates: bool = False) -> dict:
-        """The health message of `d` at host time `now`; `update_rates` closes a rate period (the
+    def message(self, snap: Snapshot, now: float, *, update_rates: bool = False) -> dict:
+        """The health message of `snap` at host time `now`; `update_rates` closes a rate period (the
         1 Hz publisher does, other callers see the last period's rates)."""
-        ps = d.pipeline.stats()
+        ps = snap.pipeline
         pc = ps["counters"]
-        totals = {"gyro_samples": d.gyro_state.items, "frames_in": d.camera_state.items,
+        totals = {"gyro_samples": snap.gyro_items, "frames_in": snap.camera_items,
                   "frames_out": pc.get("frames_out", 0), "deblurred": pc.get("deblurred", 0)}
         if update_rates:
             self._update_rates(totals, now)
         drops = {k: v for k, v in pc.items() if k.startswith(_DROP_PREFIXES)}
-        for th in d.driver_threads:
-            drops[f"{th.kind}_items_rejected"] = th.sink_drops
-        drops.update(gyro_gaps=d.counters["gyro_gaps"], gyro_lost=d.counters["gyro_lost"],
-                     gyro_ring_clock_jumps=d.gyro_ring.clock_jumps,
-                     gyro_ring_time_holes=d.gyro_ring.time_holes,
-                     camera_frames_lost=d.counters["camera_frames_lost"])
-        pub = d.publisher.stats()
+        drops.update(snap.sink_drops)
+        drops.update(gyro_gaps=snap.counters.get("gyro_gaps", 0), gyro_lost=snap.counters.get("gyro_lost", 0),
+                     gyro_ring_clock_jumps=snap.gyro_ring_clock_jumps,
+                     gyro_ring_time_holes=snap.gyro_ring_time_holes,
+                     camera_frames_lost=snap.counters.get("camera_frames_lost", 0))
+        pub = snap.publisher
         drops["publish_queue_dropped"] = pub.get("queue_dropped", 0)
         drops["publish_budget_dropped"] = pub.get("budget_dropped_total", 0)
         devices, clocks = {}, {}
-        for role, src, st in (("gyro", d.gyro, d.gyro_state), ("camera", d.camera, d.camera_state)):
-            devices[role] = {**st.as_dict(now), "stats": source_stats(src)}
+        for role, (src, state) in snap.sources.items():
+            devices[role] = {**state, "stats": source_stats(src)}
             clk = source_clock(src)
             if clk is not None:
                 clocks[role] = clk
@@ -93,23 +112,13 @@ class Health:
             "rates": dict(self.rates), "drops": drops, "devices": devices, "totals": totals, "clocks": clocks,
             "governor": gov,
             "pipeline": {k: v for k, v in ps.items() if k not in ("counters", "governor")} | {"counters": pc},
-            "threads": d.critical_alive(), "ready": d.ready, "gyro_online": d.pipeline.gyro_online,
+            "threads": snap.threads, "ready": snap.ready, "gyro_online": snap.gyro_online,
             "publisher": {k: pub[k] for k in PUBLISHER_KEYS if k in pub},
-            "daemon": dict(d.counters),
-            "reload": dict(d.reload_status),
-            "rtsp": d.rtsp.stats() if getattr(d, "rtsp", None) is not None else None,
-            "radiometry": _radiometry(d),
+            "daemon": dict(snap.counters),
+            "reload": dict(snap.reload),
+            "rtsp": snap.rtsp,
+            "radiometry": snap.radiometry,
         }
-
-
-def _radiometry(d) -> dict:
-    """Which counts → °C model the daemon converts with, and where it came from."""
-    from thermod.runtime.config import CAMERA_RADIOMETRY
-
-    source = "camera" if d.cfg.radiometry == CAMERA_RADIOMETRY else "config"
-    model = d.radiometry() if d.cfg.radiometry is not None else None
-    return {"source": source if d.cfg.radiometry is not None else None,
-            "model": model.as_dict() if model is not None else None}
 
 
 def status_line(h: dict, gyro_state: str, camera_state: str) -> str:

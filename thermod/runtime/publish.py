@@ -1,18 +1,8 @@
-"""ZeroMQ transport for wire format v1 (docs/wire.md); the codec itself is `thermod.io.wire`.
+"""The daemon's ZeroMQ publisher for wire format v1 (docs/wire.md); the codec is `thermod.io.wire`, the
+endpoint and key rules `thermod.runtime.endpoints`, the subscriber `thermod.client.subscriber`.
 
 The daemon binds one PUB socket; every message is three frames ``[topic, header, payload]``.
-`Publisher` owns that socket in one thread and never blocks its callers; `Subscriber` validates every
-message (`thermod.io.wire.decode`) and counts sequence gaps.
-
-Example (a subscriber on the same host)::
-
-    from thermod.runtime.publish import Subscriber
-
-    with Subscriber("tcp://127.0.0.1:5555", topics=("frame", "health")) as sub:
-        for topic, header, array in sub:          # array is read-only, owned by the message
-            if topic == "frame":
-                print(header["frame_id"], header["deblurred"], array.shape, array.dtype)
-            print("lost so far:", sub.gaps)
+`Publisher` owns that socket in one thread and never blocks its callers.
 
 Security: the publisher binds loopback (or ``ipc://``) unless it has CURVE keys or is told
 ``allow_insecure_remote``. With ``curve_secret_key_file`` (a file written by
@@ -31,15 +21,10 @@ disconnect the stalled ones and free what they pinned.
 from __future__ import annotations
 
 import collections
-import ipaddress
 import logging
 import os
-import re
-import socket
-import stat
 import threading
 import time
-from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -47,18 +32,10 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from thermod.errors import ThermodError
-from thermod.io.wire import (  # noqa: F401 - re-exported: the transport's users need the codec's names
-    ARRAY_DTYPES,
-    GYRO_LAYOUT_DTYPES,
-    MAX_HEADER_BYTES,
-    MAX_PAYLOAD_BYTES,
-    PACKED,
+from thermod.io.wire import (
     TOPICS,
     WIRE_VERSION,
-    MessageError,
     array_header,
-    decode,
     encode_header,
     jsonable,
     nbytes,
@@ -66,10 +43,18 @@ from thermod.io.wire import (  # noqa: F401 - re-exported: the transport's users
     pack_kernel,
     wire_array,
 )
+from thermod.runtime.endpoints import (
+    DEFAULT_ENDPOINT,
+    TransportError,
+    check_endpoint,
+    claim_ipc,
+    ipc_path,
+    is_loopback,
+    load_keypair,
+)
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 # The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
 # full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
@@ -77,136 +62,6 @@ DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 BUDGETED_STALLED_SUBSCRIBERS = 1
 DEFAULT_STALL_TIMEOUT_S = 5.0
 MIN_HWM = 2
-
-
-class TransportError(ThermodError):
-    """The ZeroMQ endpoint could not be bound/connected, or a key file is unusable."""
-
-
-# ----------------------------------------------------------------------------------------- endpoints
-_TCP = re.compile(r"^tcp://(?P<host>\[[0-9A-Fa-f:.]+\]|[^:\[\]/;]+):(?P<port>[^:/]+)$")
-
-
-def endpoint_problem(endpoint) -> str | None:
-    """What is wrong with ``endpoint`` as a ZeroMQ bind address, or None if it is well formed:
-    ``tcp://HOST:PORT`` (HOST an address, ``[IPv6]``, a name or ``*``; PORT 1–65535 or ``*``),
-    ``ipc://PATH`` or ``inproc://NAME``."""
-    if not isinstance(endpoint, str):
-        return "expected a string like 'tcp://127.0.0.1:5555'"
-    scheme, sep, rest = endpoint.partition("://")
-    if not sep or scheme not in ("tcp", "ipc", "inproc"):
-        return "expected tcp://HOST:PORT, ipc://PATH or inproc://NAME"
-    if not rest or any(c.isspace() or not c.isprintable() for c in rest):
-        return f"the {scheme} address is empty or has blanks/control characters"
-    if scheme != "tcp":
-        return None
-    m = _TCP.match(endpoint)
-    if m is None:
-        return "expected tcp://HOST:PORT, e.g. tcp://127.0.0.1:5555 (IPv6: tcp://[::1]:5555)"
-    port, host = m["port"], m["host"]
-    if port != "*" and not (port.isdigit() and 1 <= int(port) <= 65535):
-        return f"port {port!r} is not a number in 1–65535 (or * for any free port)"
-    if host.startswith("["):
-        try:
-            ipaddress.IPv6Address(host[1:-1])
-        except ValueError:
-            return f"{host} is not an IPv6 address"
-    return None
-
-
-def check_endpoint(endpoint: str, what: str = "publish.endpoint") -> str:
-    """``endpoint`` unchanged, or `TransportError` naming ``what`` and the problem (`endpoint_problem`)."""
-    problem = endpoint_problem(endpoint)
-    if problem is not None:
-        raise TransportError(f"{what} {endpoint!r}: {problem}")
-    return endpoint
-
-
-def is_loopback(endpoint: str) -> bool:
-    """Only this host can reach it: ``ipc``/``inproc``, or tcp on a loopback address/``localhost``."""
-    if not endpoint.startswith("tcp://"):
-        return True
-    m = _TCP.match(endpoint)
-    host = m["host"].strip("[]") if m else ""
-    if host in ("localhost", "lo"):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # "*", an interface name or a host name: assume reachable from outside
-        return False
-
-
-def _ipc_path(endpoint: str) -> str | None:
-    """The socket file of a filesystem ``ipc://`` endpoint (not abstract ``@name`` nor wildcard ``*``)."""
-    if not endpoint.startswith("ipc://"):
-        return None
-    path = endpoint[len("ipc://"):]
-    return None if path.startswith("@") or path == "*" else path
-
-
-def _claim_ipc(path: str, what: str) -> None:
-    """ZeroMQ's bind unlinks whatever is at ``path``, stealing a live daemon's socket. Refuse if
-    something accepts connections there; remove a stale socket file nobody listens on."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return
-    except OSError as e:
-        raise TransportError(f"{what} ipc://{path}: cannot inspect the socket file ({e})") from None
-    if not stat.S_ISSOCK(st.st_mode):
-        raise TransportError(f"{what} ipc://{path}: exists and is not a socket; not replacing it")
-    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        probe.settimeout(1.0)
-        probe.connect(path)
-    except (ConnectionRefusedError, FileNotFoundError):
-        live = False
-    except OSError as e:  # e.g. permission denied: cannot tell, so do not touch it
-        raise TransportError(f"{what} ipc://{path}: cannot probe the existing socket ({e})") from None
-    else:
-        live = True
-    finally:
-        probe.close()
-    if live:
-        raise TransportError(f"{what} ipc://{path}: another process is already publishing there "
-                             "(is a second thermod running?); stop it or choose another endpoint")
-    log.warning("removing stale socket file %s (nothing listening)", path)
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-    except OSError as e:
-        raise TransportError(f"{what} ipc://{path}: cannot remove the stale socket file ({e})") from None
-
-
-# ------------------------------------------------------------------------------------------ keys
-def _load_keypair(path, what: str) -> tuple[bytes, bytes]:
-    try:
-        public, secret = zmq.auth.load_certificate(os.fspath(path))
-        mode = os.stat(path).st_mode
-    except (OSError, ValueError) as e:
-        raise TransportError(f"{what} {path}: cannot read CURVE certificate ({e}); make one with "
-                             "zmq.auth.create_certificates(dir, name)") from None
-    if secret is None:
-        raise TransportError(f"{what} {path}: has no secret key; pass the '.key_secret' file")
-    if mode & 0o077:
-        raise TransportError(f"{what} {path}: the secret key is readable by group or others "
-                             f"(mode {stat.S_IMODE(mode):04o}); chmod 600 it")
-    return public, secret
-
-
-def _load_public_key(key) -> bytes:
-    """A z85 public key given as bytes/str (40 chars) or as a path to a certificate file."""
-    if isinstance(key, bytes) and len(key) == 40:
-        return key
-    if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
-        return key.encode("ascii")
-    try:
-        public, _ = zmq.auth.load_certificate(os.fspath(key))
-    except (OSError, ValueError) as e:
-        raise TransportError(f"CURVE server key {key}: expected a 40-character z85 key or a certificate "
-                             f"file ({e})") from None
-    return public
 
 
 # --------------------------------------------------------------------------------------- publisher
@@ -286,7 +141,7 @@ class Publisher:
         self._shared_ctx = context
         self._keys = None
         if curve_secret_key_file is not None:
-            self._keys = _load_keypair(curve_secret_key_file, "curve_secret_key_file")
+            self._keys = load_keypair(curve_secret_key_file, "curve_secret_key_file")
         if authorized_keys_dir is not None:
             if self._keys is None:
                 raise TransportError("authorized_keys_dir needs curve_secret_key_file (client "
@@ -505,9 +360,9 @@ class Publisher:
         auth = sock = None
         try:
             try:
-                path = _ipc_path(self.endpoint)
+                path = ipc_path(self.endpoint)
                 if path is not None:
-                    _claim_ipc(path, "publish.endpoint")
+                    claim_ipc(path, "publish.endpoint")
                 if self.authorized_keys_dir is not None:
                     auth = ThreadAuthenticator(ctx, log=log.getChild("auth"))
                     auth.start()
@@ -603,169 +458,3 @@ class Publisher:
                     self._held.append((tracker, size))
                     self._held_bytes += size
                     self._held_peak = max(self._held_peak, self._held_bytes)
-
-
-# -------------------------------------------------------------------------------------- subscriber
-class Subscriber:
-    """Wire-v1 SUB client: validated ``(topic, header, array)`` messages, seq gaps counted per topic.
-
-    Parameters
-    ----------
-    endpoint : str
-        The publisher's address.
-    topics : iterable of str
-        Exact topics to receive (ZeroMQ matches prefixes; `recv` also checks equality).
-    curve_server_key : bytes | str | path, optional
-        The publisher's public key (z85) or its certificate file → CURVE.
-    curve_client_key_file : path, optional
-        This client's certificate (``*.key_secret``); a throwaway key pair is made if omitted.
-    max_header_bytes : int
-        Larger headers are rejected.
-    max_message_bytes : int
-        The largest frame (payload) this subscriber expects, default a 4096 × 4096 float32 image.
-        Set as ZMQ_MAXMSGSIZE: a publisher that announces a larger frame is disconnected on its
-        size prefix, before the frame's bytes are received.
-    context : zmq.Context, optional
-        Share a context (needed for ``inproc://`` endpoints); by default the subscriber owns one.
-    rcvhwm : int
-        Receive high-water mark, in messages (ZeroMQ's default, 1000): beyond it messages are dropped
-        and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
-
-    Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
-    (`MessageError.kind` → count of rejected messages), ``disconnects`` (connections dropped, e.g. by a
-    frame above ``max_message_bytes``; each is redialled), ``restarts`` (seq went backwards: the
-    publisher restarted). Each returned header gains ``received`` (host monotonic at receipt).
-    Like any ZeroMQ socket, a Subscriber belongs to one thread.
-    """
-
-    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, topics: Iterable[str] = ("frame",), *,
-                 curve_server_key=None, curve_client_key_file=None, max_header_bytes: int = MAX_HEADER_BYTES,
-                 max_message_bytes: int = MAX_PAYLOAD_BYTES, rcvhwm: int = 1000,
-                 context: zmq.Context | None = None):
-        check_endpoint(endpoint, "subscriber endpoint")
-        self.topics = tuple(topics)
-        unknown = [t for t in self.topics if t not in TOPICS]
-        if unknown or not self.topics:
-            raise ValueError(f"topics must be a non-empty subset of {TOPICS}, got {self.topics}")
-        self.endpoint, self.max_header_bytes = endpoint, int(max_header_bytes)
-        if max_message_bytes < 1:
-            raise ValueError("max_message_bytes must be positive")
-        self.max_message_bytes = int(max_message_bytes)
-        self.gaps = collections.Counter()
-        self.received = collections.Counter()
-        self.restarts = collections.Counter()
-        self.errors = collections.Counter()
-        self._last_seq: dict[str, int] = {}
-        self._own_ctx = context is None
-        self._ctx = zmq.Context() if context is None else context
-        self._sock = self._ctx.socket(zmq.SUB)
-        self._monitor = None
-        self._poller = zmq.Poller()
-        self.disconnects = 0
-        self._redial_pending = False
-        try:
-            self._sock.setsockopt(zmq.RCVHWM, int(rcvhwm))
-            # checked per frame against its size prefix; the header is bounded by max_header_bytes
-            self._sock.setsockopt(zmq.MAXMSGSIZE, max(self.max_message_bytes, self.max_header_bytes))
-            self._sock.setsockopt(zmq.LINGER, 0)
-            if curve_server_key is not None:
-                self._sock.curve_serverkey = _load_public_key(curve_server_key)
-                if curve_client_key_file is not None:
-                    public, secret = _load_keypair(curve_client_key_file, "curve_client_key_file")
-                else:
-                    public, secret = zmq.curve_keypair()
-                self._sock.curve_publickey, self._sock.curve_secretkey = public, secret
-            for t in self.topics:
-                self._sock.setsockopt(zmq.SUBSCRIBE, t.encode())
-            self._sock.connect(endpoint)
-            self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
-            self._poller.register(self._sock, zmq.POLLIN)
-            self._poller.register(self._monitor, zmq.POLLIN)
-        except zmq.ZMQError as e:
-            self.close()
-            raise TransportError(f"cannot connect subscriber to {endpoint}: {e}") from None
-        except TransportError:
-            self.close()
-            raise
-
-    def recv(self, timeout: float | None = None):
-        """Next valid message, or None after ``timeout`` seconds (None = wait forever).
-        Malformed messages are counted in ``errors``, logged and skipped."""
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            wait_ms = 200 if deadline is None else max(0, int((deadline - time.monotonic()) * 1000))
-            ready = dict(self._poller.poll(wait_ms))
-            if self._monitor in ready:
-                self._count_disconnects()
-            if self._sock not in ready:
-                if self._redial_pending:  # only when idle: libzmq aborts if a pipe goes mid-message
-                    self._redial()
-                if deadline is not None and time.monotonic() >= deadline:
-                    return None
-                continue
-            frames = self._sock.recv_multipart(copy=False)
-            try:
-                topic, header, array = decode(frames, max_header_bytes=self.max_header_bytes,
-                                              topics=self.topics)
-            except MessageError as e:
-                self.errors[e.kind] += 1
-                n = sum(self.errors.values())
-                if n <= 10 or n % 1000 == 0:
-                    log.warning("rejected message #%d from %s: %s", n, self.endpoint, e)
-                continue
-            header["received"] = time.monotonic()
-            self._track(topic, header["seq"])
-            return topic, header, array
-
-    def _count_disconnects(self) -> None:
-        while self._monitor.poll(0):
-            self._monitor.recv_multipart()
-            self.disconnects += 1
-            self._redial_pending = True
-
-    def _redial(self) -> None:
-        """The connection dropped. ZeroMQ retries by itself after a network fault, but not after a
-        protocol error such as a frame above MAXMSGSIZE; dial again in both cases, replacing its
-        retry so that exactly one connection remains."""
-        self._redial_pending = False
-        if self.disconnects <= 10 or self.disconnects % 1000 == 0:
-            log.warning("connection to %s dropped (#%d: a frame above max_message_bytes=%d, or the "
-                        "publisher went away); reconnecting", self.endpoint, self.disconnects,
-                        self.max_message_bytes)
-        try:
-            self._sock.disconnect(self.endpoint)
-        except zmq.ZMQError:
-            pass  # already gone
-        self._sock.connect(self.endpoint)
-
-    def _track(self, topic: str, seq: int) -> None:
-        last = self._last_seq.get(topic)
-        if last is not None:
-            if seq > last + 1:
-                self.gaps[topic] += seq - last - 1
-            elif seq <= last:
-                self.restarts[topic] += 1
-        self._last_seq[topic] = seq
-        self.received[topic] += 1
-
-    def __iter__(self) -> Iterator:
-        while True:
-            msg = self.recv(None)
-            if msg is not None:
-                yield msg
-
-    def close(self) -> None:
-        if self._monitor is not None and not self._sock.closed:
-            self._sock.disable_monitor()
-            self._monitor.close(linger=0)
-            self._monitor = None
-        if not self._sock.closed:
-            self._sock.close(linger=0)
-        if self._own_ctx:
-            self._ctx.term()
-
-    def __enter__(self) -> Subscriber:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

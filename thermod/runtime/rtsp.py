@@ -28,8 +28,8 @@ import urllib.parse
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.io.display import Agc, side_by_side
 from thermod.runtime.config import RtspConfig
-from thermod.runtime.display import Agc, side_by_side
 
 log = logging.getLogger("thermod.runtime.rtsp")
 

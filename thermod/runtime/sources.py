@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 from thermod.errors import ConfigError
 
 if TYPE_CHECKING:
-    from thermod.runtime.clock import ClockMapper
+    from thermod.io.clock import ClockMapper
     from thermod.runtime.config import Config
 
 

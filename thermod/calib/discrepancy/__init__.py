@@ -107,15 +107,11 @@ from thermod.calib.discrepancy.effects import (
     FitResult,
     fit_gyro_bias,
     fit_optical_psf,
+    format_params,
     static_bias_prior,
 )
 from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, effective_area
-from thermod.calib.discrepancy.report import (
-    calibration_toml,
-    format_params,
-    replace_calibration_table,
-    write_report,
-)
+from thermod.calib.discrepancy.report import calibration_toml, replace_calibration_table, write_report
 
 __all__ = ["CANDIDATES", "EFFECTS", "MAX_GYRO_RATE_RAD_S", "Analysis", "Candidate", "Criteria", "Effect",
            "Evaluation", "FitResult", "Model", "Problem", "RecData", "StepContext", "analyse",

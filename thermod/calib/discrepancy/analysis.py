@@ -9,10 +9,10 @@ from dataclasses import dataclass, field
 
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.diagnostics import diagnostics
-from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult
-from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext
-from thermod.calib.discrepancy.report import format_params, jsonable, mean_residual_map
+from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult, format_params
+from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
+from thermod.io.json_safe import jsonable
 
 GAP_DEFINITION = ("gap = ||measured - predicted|| / ||measured - reference view|| over pixels valid "
                   "in every view of the working-resolution motion frames (reference view: the static mean, "

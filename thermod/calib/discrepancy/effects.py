@@ -611,3 +611,14 @@ EFFECTS.update({e.name: e for e in (
     Effect("ffc_event", fit_ffc_event, "ffc", ("ffc",), _ffc_values),
 )})
 CANDIDATES = tuple(EFFECTS)
+
+
+def format_params(p: dict) -> str:
+    """An effect's parameters on one line, four significant digits each."""
+    out = []
+    for k, v in p.items():
+        if isinstance(v, (list, tuple)):
+            out.append(f"{k}=[{', '.join(f'{x:.4g}' for x in v)}]")
+        else:
+            out.append(f"{k}={v:.4g}")
+    return " ".join(out)

@@ -384,3 +384,9 @@ class StepContext:
     def delta_bic(self, ssr_before: float, ssr_after: float, n_params: int) -> float:
         """BIC gain on effective samples of a fit with `n_params` more parameters."""
         return self.n_eff * math.log(ssr_before / max(ssr_after, 1e-30)) - n_params * math.log(self.n_eff)
+
+
+def mean_residual_map(ev: Evaluation, problem: Problem) -> np.ndarray:
+    """RMS residual over the motion frames of the first recording (for the figures)."""
+    d, r = problem.recs[0], ev.residuals[0]
+    return np.sqrt(np.sum(r.astype(np.float64) ** 2, axis=0) / np.maximum(d.mask.sum(axis=0), 1))

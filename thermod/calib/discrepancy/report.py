@@ -9,38 +9,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from thermod.calib.discrepancy.effects import format_params
 from thermod.errors import ConfigError
+from thermod.io.json_safe import jsonable
 from thermod.physics.calibration import Calibration
 
 if TYPE_CHECKING:
     from thermod.calib.discrepancy.analysis import Analysis
-    from thermod.calib.discrepancy.problem import Evaluation, Problem
-
-
-def mean_residual_map(ev: Evaluation, problem: Problem) -> np.ndarray:
-    """RMS residual over the motion frames of the first recording (for the figures)."""
-    d, r = problem.recs[0], ev.residuals[0]
-    return np.sqrt(np.sum(r.astype(np.float64) ** 2, axis=0) / np.maximum(d.mask.sum(axis=0), 1))
-
-
-def jsonable(v):
-    if isinstance(v, dict):
-        return {k: jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return [jsonable(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return v
-
-
-def format_params(p: dict) -> str:
-    out = []
-    for k, v in p.items():
-        if isinstance(v, (list, tuple)):
-            out.append(f"{k}=[{', '.join(f'{x:.4g}' for x in v)}]")
-        else:
-            out.append(f"{k}={v:.4g}")
-    return " ".join(out)
 
 
 def calibration_toml(calib: Calibration) -> str:
@@ -230,7 +205,7 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     rep = jsonable(ana.report())
     rep["inputs"] = [str(p) for p in inputs]
     try:
-        (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=True) + "\n")
+        (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=False) + "\n")
         (out / "model.toml").write_text(replace_calibration_table(config_text, ana.model.final_calibration()))
         figs = _figures(ana, out)
         (out / "report.md").write_text(_markdown(ana, rep["inputs"], figs))

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import zmq
 
+from thermod.client.subscriber import Subscriber
 from thermod.runtime import config as configmod
 from thermod.runtime.daemon import Daemon
-from thermod.runtime.publish import Subscriber
 from thermod.runtime.sdnotify import Notifier
 from thermod.sim.payload import SimPayload
 

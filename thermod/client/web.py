@@ -33,8 +33,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import numpy as np
 
 from thermod.errors import ThermodError
-from thermod.io.wire import jsonable
-from thermod.runtime.display import side_by_side, to_u8
+from thermod.io.display import side_by_side, to_u8
+from thermod.io.json_safe import jsonable
 
 log = logging.getLogger(__name__)
 
