@@ -45,17 +45,19 @@ from thermod.io.wire import (
 )
 from thermod.runtime.endpoints import (
     DEFAULT_ENDPOINT,
+    DEFAULT_HWM,
+    DEFAULT_MAX_QUEUE_BYTES,
     TransportError,
     check_endpoint,
     claim_ipc,
     ipc_path,
     is_loopback,
     load_keypair,
+    security_problem,
 )
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 # The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
 # full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
 # dropped and counted until then.
@@ -112,7 +114,7 @@ class Publisher:
     ownership over: the caller must never write to that array again.
     """
 
-    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64,
+    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = DEFAULT_HWM,
                  max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES, max_message_bytes: int | None = None,
                  curve_secret_key_file=None, authorized_keys_dir=None, allow_insecure_remote: bool = False,
                  stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
@@ -142,19 +144,14 @@ class Publisher:
         self._keys = None
         if curve_secret_key_file is not None:
             self._keys = load_keypair(curve_secret_key_file, "curve_secret_key_file")
-        if authorized_keys_dir is not None:
-            if self._keys is None:
-                raise TransportError("authorized_keys_dir needs curve_secret_key_file (client "
-                                     "authentication runs inside the CURVE handshake)")
-            if not Path(authorized_keys_dir).is_dir():
-                raise TransportError(f"authorized_keys_dir {authorized_keys_dir}: not a directory")
+        bad = security_problem(self.endpoint, self._keys is not None, authorized_keys_dir is not None,
+                               allow_insecure_remote)
+        if bad is not None:
+            raise TransportError(f"publish.{bad[0]}: {bad[1]}")
+        if authorized_keys_dir is not None and not Path(authorized_keys_dir).is_dir():
+            raise TransportError(f"authorized_keys_dir {authorized_keys_dir}: not a directory")
         self.warnings: list[str] = []
         if self._keys is None and not is_loopback(self.endpoint):
-            if not allow_insecure_remote:
-                raise TransportError(
-                    f"publish.endpoint {self.endpoint!r}: binds beyond loopback without CURVE, so anyone on "
-                    "the network could read the stream; set publish.curve_secret_key, bind 127.0.0.1/ipc, "
-                    "or set publish.allow_insecure_remote = true")
             self.warnings.append(f"insecure_remote: {self.endpoint} is reachable from the network "
                                  "without CURVE (publish.allow_insecure_remote = true)")
         self.authorized_keys_dir = authorized_keys_dir
@@ -458,3 +455,4 @@ class Publisher:
                     self._held.append((tracker, size))
                     self._held_bytes += size
                     self._held_peak = max(self._held_peak, self._held_bytes)
+
