@@ -53,3 +53,19 @@ def test_thermod_error_exits_2_without_traceback(monkeypatch, capsys):
     monkeypatch.setattr(sim, "run", refuses)
     assert cli.main(["sim", "-o", "x.h5"]) == 2
     assert capsys.readouterr().err == "thermod sim: error: x.h5: camera/t: expected floats\n"
+
+
+def test_bench_finds_the_benchmarks_of_the_checkout(tmp_path):
+    """`thermod bench` in a checkout reaches benchmarks/ (which lists its suites for an unknown name),
+    whether started at the checkout's root or in a subdirectory; elsewhere it says where it looked."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for cwd in (root, root / "docs"):
+        r = subprocess.run([sys.executable, "-m", "thermod.cli", "bench", "no_such_suite"], cwd=cwd,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and "available:" in r.stderr, r.stderr
+    # outside a checkout the package's own checkout is used (an editable install)
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", "bench", "no_such_suite"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "available:" in r.stderr, r.stderr
