@@ -193,6 +193,22 @@ def test_bad_config_is_one_line_exit_2(tmp_path):
         f"thermod run: error: {p}: deblur.lambda: expected a value in (0.0, 1000000000.0], got -1.0"]
 
 
+def test_every_config_problem_is_a_line_naming_its_source(tmp_path):
+    """Mistakes in the file and on the command line are all reported at once, each blamed on where it
+    was made, with a suggestion for a misspelt key."""
+    p = tmp_path / "bad.toml"
+    p.write_text("[sources.gyro]\nkind = 'sim'\n[sources.camera]\nkind = 'sim'\n[deblur]\nlambda = -1\n")
+    r = subprocess.run([str(THERMOD), "run", "--config", str(p), "--set", "deblur.metod=wiener",
+                        "--endpoint", "tcp://127.0.0.1"], capture_output=True, text=True, env=env(), timeout=60)
+    assert r.returncode == 2
+    assert sorted(r.stderr.strip().splitlines()) == sorted([
+        f"thermod run: error: {p}: deblur.lambda: expected a value in (0.0, 1000000000.0], got -1.0",
+        "thermod run: error: --set deblur.metod=wiener: unknown key (did you mean deblur.method?)",
+        "thermod run: error: --endpoint tcp://127.0.0.1: expected a ZeroMQ endpoint like "
+        "'tcp://127.0.0.1:5555' or 'ipc:///run/thermod.sock' (expected tcp://HOST:PORT, e.g. "
+        "tcp://127.0.0.1:5555 (IPv6: tcp://[::1]:5555)), got 'tcp://127.0.0.1'"]), r.stderr
+
+
 def test_non_utf8_config_is_one_line_exit_2(tmp_path):
     p = tmp_path / "latin1.toml"
     p.write_bytes(b"# r\xe9glage\n[sources.gyro]\nkind = 'sim'\n[sources.camera]\nkind = 'sim'\n")
@@ -302,3 +318,4 @@ endpoint = "tcp://127.0.0.1:{free_port()}"
     assert any(o.deblurred for o in got[5:])
     assert h["devices"]["gyro"]["state"] == "running" and h["devices"]["camera"]["state"] == "running"
     assert h["totals"]["gyro_samples"] >= 900
+

@@ -31,16 +31,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
 
 
-def _overrides(args) -> dict:
+def _overrides(args) -> tuple[dict, dict]:
+    """({dotted key: value}, {dotted key: the option that set it}) from the command line."""
     ov = dict(config.parse_override(s) for s in args.overrides)
+    origins = {}
     if args.endpoint:
-        ov["publish.endpoint"] = args.endpoint
+        ov["publish.endpoint"], origins["publish.endpoint"] = args.endpoint, f"--endpoint {args.endpoint}"
     if args.raw:
-        ov["publish.raw"] = True
+        ov["publish.raw"], origins["publish.raw"] = True, "--raw"
     if args.rtsp:
-        ov["rtsp.enabled"] = True
-        ov["rtsp.url"] = args.rtsp
-    return ov
+        ov["rtsp.enabled"], origins["rtsp.enabled"] = True, "--rtsp"
+        ov["rtsp.url"], origins["rtsp.url"] = args.rtsp, f"--rtsp {args.rtsp}"
+    return ov, origins
 
 
 def _warn_if_open(path: str) -> None:
@@ -55,8 +57,8 @@ def _warn_if_open(path: str) -> None:
 
 
 def run(args) -> int:
-    ov = _overrides(args)
-    cfg = config.load(args.config, ov)
+    ov, origins = _overrides(args)
+    cfg = config.load(args.config, ov, origins=origins)
     logging.getLogger("thermod").setLevel(cfg.logging.level.upper())
     if not logging.getLogger().handlers:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")

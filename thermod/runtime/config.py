@@ -362,17 +362,18 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True,
 
 
 def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None = None, *,
-         check_devices: bool = True) -> Config:
+         check_devices: bool = True, origins: Mapping[str, str] | None = None) -> Config:
     """Read and validate a TOML configuration (None = the packaged simulated-payload default).
 
     `overrides` maps dotted keys to values applied before validation ({"publish.endpoint": ...}); a
-    problem with one names ``--set KEY=VALUE``, not the file. `check_devices=False` skips the existence
+    problem with one names ``--set KEY=VALUE`` (or what `origins` says gave that key, e.g.
+    ``--endpoint EP``), not the file. `check_devices=False` skips the existence
     check of device nodes (for inspecting a hardware configuration on another machine); recordings and
     key files are always checked.
     """
     p = default_path() if path is None else Path(path)
     name, raw = str(p), read_toml(p)
-    origins = {k: override_text(k, v) for k, v in (overrides or {}).items()}
+    origins = {**{k: override_text(k, v) for k, v in (overrides or {}).items()}, **(origins or {})}
     problems = Problems(name, origins)
     for k, v in (overrides or {}).items():
         _apply_override(problems, raw, k, v)
