@@ -354,7 +354,7 @@ class Publisher:
     # -------------------------------------------------------------- sender thread
     def _run(self, ready: threading.Event, failure: list) -> None:
         ctx = self._shared_ctx or zmq.Context()
-        auth = sock = None
+        auth = sock = owned = None
         try:
             try:
                 path = ipc_path(self.endpoint)
@@ -376,6 +376,7 @@ class Publisher:
                     sock.curve_publickey, sock.curve_secretkey = self._keys
                 sock.bind(self.endpoint)
                 self.endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+                owned = _socket_file(ipc_path(self.endpoint))
             except zmq.ZMQError as e:
                 hint = " (another process holds the port; is a second thermod running?)" \
                     if e.errno == zmq.EADDRINUSE else ""
@@ -407,6 +408,7 @@ class Publisher:
                 auth.stop()
             if self._shared_ctx is None:
                 ctx.term()
+            _remove_socket_file(owned)
 
     def _release_held(self) -> None:
         """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them)."""
@@ -456,3 +458,27 @@ class Publisher:
                     self._held_bytes += size
                     self._held_peak = max(self._held_peak, self._held_bytes)
 
+
+def _socket_file(path: str | None) -> tuple[str, int, int] | None:
+    """(path, device, inode) of the ``ipc://`` socket file just bound, to remove it on close."""
+    if path is None:
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return path, st.st_dev, st.st_ino
+
+
+def _remove_socket_file(owned: tuple[str, int, int] | None) -> None:
+    """ZeroMQ leaves an ``ipc://`` socket file behind on close; remove it, unless the file at that path
+    is no longer the one this publisher bound (another daemon took over the path)."""
+    if owned is None:
+        return
+    path, dev, ino = owned
+    try:
+        st = os.stat(path)
+        if (st.st_dev, st.st_ino) == (dev, ino):
+            os.unlink(path)
+    except OSError:
+        pass
