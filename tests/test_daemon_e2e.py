@@ -199,7 +199,8 @@ def test_every_config_problem_is_a_line_naming_its_source(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text("[sources.gyro]\nkind = 'sim'\n[sources.camera]\nkind = 'sim'\n[deblur]\nlambda = -1\n")
     r = subprocess.run([str(THERMOD), "run", "--config", str(p), "--set", "deblur.metod=wiener",
-                        "--endpoint", "tcp://127.0.0.1"], capture_output=True, text=True, env=env(), timeout=60)
+                        "--endpoint", "tcp://127.0.0.1"], capture_output=True, text=True, env=env(),
+                       timeout=60)
     assert r.returncode == 2
     assert sorted(r.stderr.strip().splitlines()) == sorted([
         f"thermod run: error: {p}: deblur.lambda: expected a value in (0.0, 1000000000.0], got -1.0",
