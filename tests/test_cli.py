@@ -69,3 +69,15 @@ def test_bench_finds_the_benchmarks_of_the_checkout(tmp_path):
     r = subprocess.run([sys.executable, "-m", "thermod.cli", "bench", "no_such_suite"], cwd=tmp_path,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "available:" in r.stderr, r.stderr
+
+
+def test_a_failed_deblur_prints_no_per_frame_time(tmp_path, capsys):
+    """A run whose only input fails has no frames to time: it names the failure, not "0 frames …
+    53.0 ms/frame" (the wall time of the failure divided by one)."""
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not HDF5")
+    rc = cli.main(["deblur", str(bad), "-o", str(tmp_path / "out.h5"), "--jobs", "1"])
+    out, err = capsys.readouterr()
+    assert rc == 2
+    assert "ms/frame" not in out and "0 frames" not in out, out
+    assert f"1 of 1 file(s) failed: {bad}" in err and "not a readable HDF5 file" in err, err
