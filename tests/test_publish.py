@@ -703,3 +703,18 @@ def test_one_loopback_rule_and_one_set_of_transport_defaults():
     assert Publisher().hwm == cfg.publish.hwm == DEFAULT_HWM
     assert Publisher().max_queue_bytes == int(cfg.publish.max_queue_mb * 2**20)
     assert Publisher().endpoint == cfg.publish.endpoint
+
+
+def test_an_ipc_publisher_removes_its_socket_file_and_listening_tells(tmp_path):
+    from thermod.runtime.endpoints import listening
+
+    ep = f"ipc://{tmp_path / 'p.sock'}"
+    assert listening(ep) is False                   # no file yet
+    with Publisher(ep):
+        assert (tmp_path / "p.sock").is_socket() and listening(ep) is True
+    assert not (tmp_path / "p.sock").exists() and listening(ep) is False
+    with Publisher("tcp://127.0.0.1:*") as p:
+        port_ep = p.endpoint
+        assert listening(port_ep) is True
+    assert listening(port_ep) is False
+    assert listening("inproc://x") is None

@@ -26,7 +26,7 @@ from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
 from thermod.io.wire import MAX_PAYLOAD_BYTES
-from thermod.runtime.endpoints import DEFAULT_ENDPOINT
+from thermod.runtime.endpoints import DEFAULT_ENDPOINT, listening
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +38,9 @@ def add_arguments(p) -> None:
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between status lines")
     p.add_argument("--timeout", type=float, default=SILENCE_S,
-                   help="give up (exit 1) when nothing arrives for this many seconds (0: wait forever; "
-                        "default %(default)s: the daemon publishes health every second)")
+                   help="when nothing arrives for this many seconds, check the endpoint and give up (exit 1) "
+                        "if nothing listens there (0: never; default %(default)s: the daemon publishes "
+                        "health every second)")
     p.add_argument("--png", metavar="DIR", default=None, help="write raw|deblurred preview PNGs to DIR")
     p.add_argument("--png-interval", type=float, default=1.0, help="seconds between previews")
     p.add_argument("--http", metavar="HOST:PORT", default=None,
@@ -71,7 +72,8 @@ class WatchStats:
         self.gyro_lost = 0
         self.health: dict | None = None
         self.messages = 0
-        self.silent_s: float | None = None     # set when watching stopped because nothing arrived
+        self.silent_s: float | None = None     # set when watching stopped: nothing arrived, nobody there
+        self.listening: bool | None = None     # after a silence: whether something listened at the endpoint
 
     def add(self, topic: str, header: dict, array) -> None:
         self.messages += 1
@@ -151,8 +153,10 @@ class WatchStats:
 
     def status_line(self, gaps: dict | None = None) -> str:
         if self.frames == 0:
-            return f"no frames yet ({self.messages} other messages)" if self.messages else \
-                "nothing received yet"
+            if self.messages:
+                return f"no frames yet ({self.messages} other messages)"
+            return "nothing received yet" + (" (the endpoint is bound: daemon starting?)" if self.listening
+                                              else "")
         s = self.summary(gaps)
         lp = s["latency_publish_ms"]["p50"]
         lr = s["latency_receive_ms"]["p50"]
@@ -263,23 +267,29 @@ def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
           timeout: float = SILENCE_S) -> WatchStats:
     """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`;
     every message also goes to `view` (a `thermod.client.web.LiveView`), sampled once a second.
-    Nothing received for `timeout` s (0: no limit) stops it early, with ``stats.silent_s`` set."""
+    After `timeout` s (0: no limit) with nothing received it checks the endpoint: if nothing listens
+    there (`endpoints.listening`) it stops early, with ``stats.silent_s`` set; a bound but silent
+    publisher (a daemon still starting up) is waited for."""
     out = sys.stdout if out is None else out
     stats = WatchStats()
     t_end = None if seconds is None else time.monotonic() + seconds
     next_line = time.monotonic() + interval
     next_sample = time.monotonic() + 1.0 if view is not None else np.inf
     last_msg = time.monotonic()
+    check_at = last_msg + timeout if timeout > 0 else np.inf     # when silence makes it look
     try:
         while t_end is None or time.monotonic() < t_end:
-            give_up = last_msg + timeout if timeout > 0 else np.inf
-            wait = min(next_line, next_sample, t_end or np.inf, give_up) - time.monotonic()
+            wait = min(next_line, next_sample, t_end or np.inf, check_at) - time.monotonic()
             msg = sub.recv(max(0.0, wait))
-            if msg is None and timeout > 0 and time.monotonic() >= give_up:
-                stats.silent_s = time.monotonic() - last_msg
-                break
+            if msg is None and time.monotonic() >= check_at:
+                stats.listening = listening(sub.endpoint)
+                if stats.listening is False:
+                    stats.silent_s = time.monotonic() - last_msg
+                    break
+                check_at = time.monotonic() + timeout
             if msg is not None:
                 last_msg = time.monotonic()
+                check_at = last_msg + timeout if timeout > 0 else np.inf
                 stats.add(*msg)
                 if previews is not None and msg[0] in ("frame", "raw"):
                     previews.add(*msg)
@@ -326,9 +336,9 @@ def run(args) -> int:
     if previews is not None and previews.written:
         print(f"previews: {len(previews.written)} PNGs in {previews.dir} (latest.png = newest)", flush=True)
     if stats.silent_s is not None:
-        what = "nothing arrived" if not stats.messages else "the daemon went silent"
-        print(f"thermod watch: {what} from {args.endpoint} for {stats.silent_s:.1f} s; is `thermod run` up "
-              "and publishing there? (--timeout 0 waits forever)", file=sys.stderr)
+        what = "nothing arrived" if not stats.messages else "the daemon went away"
+        print(f"thermod watch: {what} from {args.endpoint} for {stats.silent_s:.1f} s and nothing listens "
+              "there; is `thermod run` up and publishing there? (--timeout 0 waits forever)", file=sys.stderr)
         return 1
     if stats.frames == 0:
         print(f"thermod watch: no frames from {args.endpoint}; is `thermod run` up and publishing there?",

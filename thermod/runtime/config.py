@@ -339,7 +339,8 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True,
         if src.has(role):
             roles[role] = _source(problems, role, src.take(role), check_devices)
         else:
-            src.problem(role, "missing (expected a table with `kind = ...`)")
+            if "" not in src.bad:        # ([sources] itself not a table is the one problem to report)
+                src.problem(role, "missing (expected a table with `kind = ...`)")
             roles[role] = SourceConfig(kind="sim")
     src.done()
     uses_sim = "sim" in (roles["gyro"].kind, roles["camera"].kind)

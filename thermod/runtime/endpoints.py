@@ -137,6 +137,30 @@ def ipc_path(endpoint: str) -> str | None:
     return None if path.startswith("@") or path == "*" else path
 
 
+def listening(endpoint: str, timeout: float = 1.0) -> bool | None:
+    """Whether something accepts connections at ``endpoint`` (a bound publisher, even one still
+    starting up and silent): False when the connection is refused or the ``ipc://`` file is missing,
+    None when it cannot tell (``inproc``, an unresolvable name, a timeout)."""
+    if (path := ipc_path(endpoint)) is not None:
+        family, address = socket.AF_UNIX, path
+    elif (m := _TCP.match(endpoint)) is not None and m["port"].isdigit():
+        family, address = socket.AF_INET6 if m["host"].startswith("[") else socket.AF_INET, \
+            (m["host"].strip("[]"), int(m["port"]))
+    else:
+        return None
+    probe = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        probe.settimeout(timeout)
+        probe.connect(address)
+    except (ConnectionRefusedError, FileNotFoundError):
+        return False
+    except OSError:
+        return None
+    finally:
+        probe.close()
+    return True
+
+
 def claim_ipc(path: str, what: str) -> None:
     """ZeroMQ's bind unlinks whatever is at ``path``, stealing a live daemon's socket. Refuse if
     something accepts connections there; remove a stale socket file nobody listens on."""
