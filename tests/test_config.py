@@ -360,3 +360,22 @@ def test_dataclass_defaults_are_the_schema_defaults():
         assert schema and all(getattr(cls(), k.attr) == k.default for k in schema.values()), name
     assert cfg.deblur == config.DeblurConfig()
     assert config.PublishConfig().hwm == config.endpoints.DEFAULT_HWM
+
+
+def test_the_key_reference_is_the_loader_schema():
+    """`thermod run --list-keys` prints the schema the loader checks: as a TOML file (with both sources
+    set to sim) it loads, and gives exactly the defaults of an empty configuration."""
+    import tomllib
+
+    from thermod import cli
+
+    text = config.reference()
+    doc = text.replace("kind = ...  #", 'kind = "sim"  #')
+    parsed = config.parse(tomllib.loads(doc), "reference.toml")
+    assert parsed == config.parse({"sources": {"gyro": {"kind": "sim"}, "camera": {"kind": "sim"}}},
+                                  "reference.toml")
+    for line in ("hwm = 100  # messages queued per subscriber; a value in [1, 1000000]",
+                 "# lambda = ...  # data weight; absent = the solver's; a value in (0.0, 1000000000.0]",
+                 '#   timestamp_clock = "auto"  # one of \'auto\', \'monotonic\', \'device\''):
+        assert line in text.splitlines(), line
+    assert cli.main(["run", "--list-keys"]) == 0

@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rtsp", metavar="URL", help="serve the live view as H.264 over RTSP, e.g. "
                         "rtsp://127.0.0.1:8554/thermal (rtsp.enabled = true, rtsp.url = URL)")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
+    parser.add_argument("--list-keys", action="store_true", help="print every configuration key with its "
+                        "default, meaning and allowed values (a TOML reference), and exit")
 
 
 def _overrides(args) -> tuple[dict, dict]:
@@ -58,6 +60,9 @@ def _warn_if_open(path: str) -> None:
 
 
 def run(args) -> int:
+    if args.list_keys:
+        print(config.reference(), end="")
+        return 0
     ov, origins = _overrides(args)
     cfg = config.load(args.config, ov, origins=origins)
     logging.getLogger("thermod").setLevel(cfg.logging.level.upper())

@@ -50,6 +50,7 @@ class Key:
     item: type = float
     positive: bool = False
     rule: Callable[[Any], str | None] | None = None    # a further check: None, or what was expected
+    accepts: str = ""                # what the key accepts, when `rule` decides it
 
     def expected(self) -> str:
         """What this key accepts, as an error message says it."""
@@ -58,6 +59,10 @@ class Key:
             what = "integers" if self.item is int else "numbers"
             rng = f" in {self.range()}" if self.lo is not None or self.hi is not None else ""
             return f"an array of {n} {'positive ' if self.positive else ''}{what}{rng}"
+        if self.accepts:
+            return self.accepts
+        if self.file is not None:
+            return f"a path ({self.file})"
         if self.choices is not None:
             return "one of " + ", ".join(repr(c) for c in self.choices)
         if self.lo is not None or self.hi is not None:
@@ -131,6 +136,30 @@ def with_defaults(cls, rules: Mapping[str, Key]) -> dict[str, Key]:
     defaults = {f.name: f.default for f in dataclasses.fields(cls)}
     return {name: dataclasses.replace(k, attr=k.attr or name, default=defaults[k.attr or name])
             for name, k in rules.items()}
+
+
+def reference(table: str, schema: Mapping[str, Key]) -> list[str]:
+    """The ``[table]`` of a reference document: one ``key = default  # doc; what it accepts`` line per
+    key (a key without a default is shown commented out)."""
+    lines = [f"[{table}]"]
+    for name, k in schema.items():
+        rule = f"{k.doc}; {k.expected()}" if k.doc else k.expected()
+        if k.default is None or k.default is REQUIRED:
+            lines.append(f"# {name} = ...  # {rule}{'' if k.default is None else ' (required)'}")
+        else:
+            lines.append(f"{name} = {toml_literal(k.default)}  # {rule}")
+    return lines
+
+
+def toml_literal(v: Any) -> str:
+    """`v` (bool, number, string, tuple) written as TOML."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, tuple):
+        return "[" + ", ".join(toml_literal(x) for x in v) + "]"
+    return repr(v)
 
 
 class Problems:

@@ -42,6 +42,7 @@ from thermod.io.toml_tables import (
     setting,
     with_defaults,
 )
+from thermod.io.toml_tables import reference as toml_reference
 from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration
 from thermod.restore.settings import DeblurConfig
@@ -78,7 +79,7 @@ class SimConfig:
     """The simulated payload (sim/payload.py): a pre-rendered loop played in real time."""
 
     scene: str = setting("real:1", doc="real:N (a thermal PNG of the data set) or a procedural scene")
-    motion: str = setting("multirotor:60", doc="motion model:amplitude")
+    motion: str = setting("multirotor:60", doc="a thermod.sim.motion spec (multirotor: RMS roll rate °/s)")
     loop_s: float = setting(2.0, lo=0.2, hi=120.0, doc="length of the pre-rendered loop")
     seed: int = setting(0, lo=0)
     frame_rate_hz: float = setting(50.0, lo=1.0, hi=500.0)
@@ -100,7 +101,8 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class PublishConfig:
-    endpoint: str = setting(endpoints.DEFAULT_ENDPOINT, rule=_endpoint_rule)
+    endpoint: str = setting(endpoints.DEFAULT_ENDPOINT, rule=_endpoint_rule,
+                            accepts="tcp://HOST:PORT, ipc://PATH or inproc://NAME")
     raw: bool = setting(False, doc="publish the raw frames too (topic raw)")
     gyro: bool = setting(True)
     kernel: bool = setting(True, doc="the blur kernel of every deblurred frame (topic kernel)")
@@ -145,7 +147,8 @@ class RtspConfig:
     """``[rtsp]``: the live view served as H.264 over RTSP (`thermod.runtime.rtsp`)."""
 
     enabled: bool = setting(False)
-    url: str = setting(endpoints.DEFAULT_RTSP_URL, rule=endpoints.rtsp_url_problem)
+    url: str = setting(endpoints.DEFAULT_RTSP_URL, rule=endpoints.rtsp_url_problem,
+                       accepts="rtsp://HOST:PORT/PATH")
     view: str = setting("deblurred", choices=VIEWS, doc="side_by_side: raw left, deblurred right")
     agc_low_pct: float = setting(1.0, lo=0.0, hi=50.0, doc="percentile of the frame mapped to black")
     agc_high_pct: float = setting(99.0, lo=50.0, hi=100.0, doc="percentile mapped to white")
@@ -193,20 +196,21 @@ DEBLUR = with_defaults(DeblurConfig, {
     "method": Key(str, choices=("kf", "wiener")),
     "lambda": Key(float, lo=0.0, lo_open=True, hi=1e9, attr="lam", doc="data weight; absent = the solver's"),
     "alpha": Key(float, rule=lambda a: None if abs(a - 1.0) < 1e-9 or abs(a - 2.0 / 3.0) < 1e-3 else
-                 "1 or 2/3 (0.667) — the exponents with a closed-form w-step", doc="prior exponent"),
+                 "1 or 2/3 (0.667) — the exponents with a closed-form w-step", doc="prior exponent",
+                 accepts="1 (TV) or 2/3 (hyper-Laplacian)"),
     "kernel": Key(str, choices=("thermal", "photon")),
     "exposure_s": Key(float, lo=0.0, lo_open=True, hi=1.0, doc="photon kernel exposure; absent: 1/fps"),
     "psf": Key(bool),
     "mode": Key(str, choices=("adaptive", "uniform", "grid")),
     "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
-    "grid_tol_px": Key(float, lo=0.05, hi=100.0),
-    "kf_iterations": Key(int, lo=1, hi=12),
-    "governor": Key(bool),
-    "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0),
-    "headroom": Key(float, lo=0.0, hi=0.9),
+    "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
+    "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
+    "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
+    "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
+    "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
     "m": Key(float, lo=1.0, hi=20.0, doc="kernel window = m·τ"),
-    "min_coverage": Key(float, lo=0.0, hi=1.0),
-    "ffc_settle_s": Key(float, lo=0.0, hi=60.0),
+    "min_coverage": Key(float, lo=0.0, hi=1.0, doc="gyro coverage below this → pass through"),
+    "ffc_settle_s": Key(float, lo=0.0, hi=60.0, doc="pass through this long after an FFC; absent: m·τ"),
 })
 
 
@@ -288,6 +292,42 @@ def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
         raise ConfigError(f"{p}: radiometry.model: 'camera' needs a live camera; give 'planck' constants "
                           "(R, B, F, O) or 'linear' (gain, offset) for offline use")
     return model
+
+
+def reference() -> str:
+    """Every key of the configuration with its default, meaning and allowed values, as a TOML document
+    (`thermod run --list-keys`), generated from the schemas the loader checks against."""
+    from thermod.io.calibration_file import SCHEMA as CALIBRATION
+
+    out = []
+    for role, drivers in sources.REGISTRY.items():
+        out += [f"[sources.{role}]", f"kind = ...  # one of {', '.join(repr(k) for k in drivers)}"]
+        out += reference_lines(schema_of(SourceConfig))
+        for kind, d in drivers.items():
+            device = {"device file": "device = PATH", "recording": "path = RECORDING",
+                      "id": "device = ID"}.get(d.device or "", "")
+            if device or d.options:
+                out.append(f"#   kind = {kind!r}: {device or 'no device'}")
+                out += ["#   " + ln for ln in reference_lines(d.options)]
+        out.append("")
+    calibration = {k: dataclasses.replace(key, default=getattr(Calibration(), k))
+                   for k, key in CALIBRATION.items()}
+    tables = {**{name: schema_of(cls) for name, cls in _config_sections().items()}, "deblur": DEBLUR,
+              "calibration": calibration}
+    for name, schema in tables.items():
+        out += toml_reference(name, schema)
+        if name == "calibration":
+            out += ["# cx, cy = the image centre  # principal point (px)",
+                    "# readout_s = 0.0  # rolling-shutter readout, at most one frame period",
+                    "# R_cam_gyro = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]  # gyro → camera rotation"]
+        out.append("")
+    models = ", ".join(repr(m) for m in ("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY))
+    out += ["[radiometry]", f'model = "none"  # one of {models}; planck: R, B, F, O; linear: gain, offset']
+    return "\n".join(out) + "\n"
+
+
+def reference_lines(schema: Mapping[str, Key]) -> list[str]:
+    return toml_reference("", schema)[1:]
 
 
 # ------------------------------------------------------------------------------ entry points
