@@ -53,12 +53,13 @@ from .xstep import finish, prepare, wiener_solve, xstep
 
 DEFAULT_VIEWS = 4          # frame t and its three predecessors
 WINDOW_PX = 9              # box of the local mean square disagreement
-DISAGREE = (3.0, 8.0)      # local disagreement / its frame median: full weight below, none above
+DISAGREE = (1.5, 3.0)      # local disagreement / its reference: full weight below, none above
 GLOBAL_DISAGREE = 30.0     # a view whose median disagreement is this × the noise floor is dropped
 SPREAD_GAIN = 4.0          # data weight falls to 0 once a quarter of a pixel's kernel sees a fault
 SUPPORT_INSET_PX = 2       # warped support shrunk by this much (interpolation at the edge)
 LAM_SCALE = 1.0
-EDGE_PX = 0.5              # registration/artefact tolerance at edges: a shift of this many px
+LEVEL_PERCENTILE = 20.0    # the agreement level: this percentile of the local disagreement
+EDGE_PX = 0.2              # registration/artefact tolerance at edges: a shift of this many px
 
 
 @dataclass(frozen=True)
@@ -179,14 +180,19 @@ def _blur_support(img: np.ndarray, kernel) -> np.ndarray:
 
 
 def agreement_weights(x0: np.ndarray, xj: np.ndarray, support: np.ndarray, kernel_j, noise_floor: float,
-                      *, window: int = WINDOW_PX, disagree=DISAGREE, global_disagree=GLOBAL_DISAGREE,
-                      spread_gain: float = SPREAD_GAIN, edge_px: float = EDGE_PX):
+                      *, window: int | None = None, disagree=None, global_disagree: float | None = None,
+                      spread_gain: float | None = None, edge_px: float | None = None):
     """(data weight [H, W] float32, offset, median disagreement / noise floor) of one neighbour.
 
     x0: frame t's single-frame estimate; xj: the neighbour's, warped into t (same units); support:
     where the warp lands in the neighbour; noise_floor: the mean square difference expected of two
     agreeing estimates (their noise). The weight is 0 everywhere when the view disagrees globally.
     """
+    window = WINDOW_PX if window is None else window
+    disagree = DISAGREE if disagree is None else disagree
+    global_disagree = GLOBAL_DISAGREE if global_disagree is None else global_disagree
+    spread_gain = SPREAD_GAIN if spread_gain is None else spread_gain
+    edge_px = EDGE_PX if edge_px is None else edge_px
     ok = support > 0
     if ok.sum() < 0.05 * ok.size:
         return np.zeros_like(support), 0.0, math.inf
@@ -194,7 +200,7 @@ def agreement_weights(x0: np.ndarray, xj: np.ndarray, support: np.ndarray, kerne
     offset = float(np.median(diff[ok][::7]))   # FFC offset step (and any slow drift)
     diff -= np.float32(offset)
     e = cv2.blur(diff * diff, (window, window))
-    level = float(np.median(e[ok][::7]))
+    level = float(np.percentile(e[ok][::7], LEVEL_PERCENTILE))
     ratio = level / max(noise_floor, 1e-12)
     if ratio > global_disagree:
         return np.zeros_like(support), offset, ratio
@@ -375,7 +381,7 @@ class TemporalDeconvolver:
                 continue
             wj = warp(past.frame, maps, self.interpolation)
             if offset:
-                wj -= np.float32(offset)
+                wj += np.float32(offset)
             out.append((wj, m, past.kernel, maps))
             self.last_weights.append(mean)
         return out
