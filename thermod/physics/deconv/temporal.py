@@ -58,6 +58,14 @@ GLOBAL_DISAGREE = 30.0     # a view whose median disagreement is this × the noi
 SPREAD_GAIN = 4.0          # data weight falls to 0 once a quarter of a pixel's kernel sees a fault
 SUPPORT_INSET_PX = 2       # warped support shrunk by this much (interpolation at the edge)
 LAM_SCALE = 1.0
+JOINT_UNIFORM_TOL_PX = 0.5  # a grid within this of uniform is solved jointly as one tile (its centre kernel)
+MIN_VIEW_WEIGHT = 0.5      # a view whose data weight in a tile falls below this share of its support is left out
+BLEND = True
+DATA_DISAGREE = (1.5, 3.0)  # a neighbour's local misfit to x₀ / frame t's: full weight below, none above
+JOINT_MARGIN_PX = 24       # tile margin of the joint solve: its views wrap long comets at the tile edges
+EDGE_EXEMPT_PX = 3         # frame t's border band where x₀, not the neighbour, is suspect
+PAD_SELF = False
+PAD_PRED = False
 LEVEL_PERCENTILE = 20.0    # the agreement level: this percentile of the local disagreement
 EDGE_PX = 0.2              # registration/artefact tolerance at edges: a shift of this many px
 
@@ -199,6 +207,13 @@ def agreement_weights(x0: np.ndarray, xj: np.ndarray, support: np.ndarray, kerne
     diff = x0 - xj
     offset = float(np.median(diff[ok][::7]))   # FFC offset step (and any slow drift)
     diff -= np.float32(offset)
+    # x₀ is at its worst on frame t's outermost pixels (its boundary extension): a difference there
+    # is x₀'s error, not the neighbour's, and must not spread (box filter) into a band of lost data
+    b = EDGE_EXEMPT_PX
+    diff[:b] = 0
+    diff[-b:] = 0
+    diff[:, :b] = 0
+    diff[:, -b:] = 0
     e = cv2.blur(diff * diff, (window, window))
     level = float(np.percentile(e[ok][::7], LEVEL_PERCENTILE))
     ratio = level / max(noise_floor, 1e-12)
@@ -244,6 +259,22 @@ def _fill(w, p, m, lo, scale, out):
         for j in range(wd):
             mm = m[i, j]
             out[i, j] = mm * (w[i, j] - lo) * scale + (1 - mm) * p[i, j]
+
+
+def _misfit(data, pred, y0, x0, hh, ww, lo, scale) -> np.ndarray:
+    """Local mean square of (data − prediction) over the tile (unit range, `WINDOW_PX` box)."""
+    r = (data[y0:y0 + hh, x0:x0 + ww] - lo) * scale - pred[:hh, :ww]
+    return cv2.blur(r * r, (WINDOW_PX, WINDOW_PX))
+
+
+@njit(cache=True, nogil=True)
+def _embed(tile, pred, out):
+    """out = pred (the padded prediction) with tile written over its top-left corner."""
+    hp, wp = out.shape
+    hh, ww = tile.shape
+    for i in range(hp):
+        for j in range(wp):
+            out[i, j] = tile[i, j] if i < hh and j < ww else pred[i, j]
 
 
 # ---------------------------------------------------------------------------------- the solver
@@ -302,6 +333,7 @@ class TemporalDeconvolver:
         self.last_fft_pairs = 0.0    # FFT pairs (one forward + one inverse of the solve's size)
         self.last_single: np.ndarray | None = None
         self.last_seconds = (0.0, 0.0)  # (single solve, temporal part) wall time
+        self.last_cpu_seconds = (0.0, 0.0)  # the same in process CPU time
 
     def reset(self) -> None:
         """Forget the history (after a discontinuity the caller knows of: a restart, a seek)."""
@@ -319,7 +351,7 @@ class TemporalDeconvolver:
                               f"(the calibration's), got {img.shape[0]}×{img.shape[1]}")
         t_frame = float(t_frame)
         img = np.asarray(img, np.float32)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         lo, hi = value_range_of(img, value_range)
         grid = hasattr(kernel, "kernels")
         if grid:
@@ -329,7 +361,7 @@ class TemporalDeconvolver:
             x0 = self.single.run(img, kernel, value_range=(lo, hi))
         lam = self.single.last_lam
         cells = self.single.last_cells
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         self.last_single = x0
         k0 = kernel.kernel_at((img.shape[0] - 1) / 2, (img.shape[1] - 1) / 2) if grid else kernel
         fp = self.single.padded_shape(img.shape, check_kernel(k0)[0].shape)
@@ -341,12 +373,16 @@ class TemporalDeconvolver:
             self.last_fft_pairs = (steps + 1) * cells * lay.pshape[0] * lay.pshape[1] / self._frame_points
         else:
             self.last_fft_pairs = float(steps + 1)
+        self._sigma = noise_sigma(img, (lo, hi))
         neighbours = self._neighbours(x0, img, t_frame, lo, hi, gyro_t, gyro_rate)
+        self._data_weight = []
         out = x0
         if neighbours:
-            out = self._joint(img, kernel, x0, neighbours, lo, hi, lam, grid and cells > 1)
+            tiled = grid and cells > 1 and kernel_spread(kernel) > JOINT_UNIFORM_TOL_PX
+            out = self._joint(img, kernel, x0, neighbours, lo, hi, lam, tiled)
         self.last_views = 1 + len(neighbours)
         self.last_seconds = (t1 - t0, time.perf_counter() - t1)
+        self.last_cpu_seconds = (c1 - c0, time.process_time() - c1)
         while self.history and t_frame - self.history[0].t_frame > self.max_age_s:
             self.history.popleft()
         if self.views > 1:
@@ -400,7 +436,7 @@ class TemporalDeconvolver:
             finish(x, h, wd, np.float32(lo), np.float32(hi - lo), out)
             return out
         centers = np.asarray(kernel.centers, np.float64)
-        lay = dec._layout(img.shape, centers, self.overlap, TILE_MARGIN_PX)
+        lay = dec._layout(img.shape, centers, self.overlap, JOINT_MARGIN_PX)
         out = np.zeros((h, wd), np.float32)
         nr, nc = centers.shape[:2]
         for t in range(len(lay.boxes)):
@@ -414,50 +450,65 @@ class TemporalDeconvolver:
         return out
 
     def _solve_box(self, img, x0, box, k0, neighbours, lo, hi, lam, pshape) -> np.ndarray:
-        """The joint solve of img[box] (unit range, padded plan buffer) with the neighbours' data."""
+        """The joint solve of img[box] (unit range; returns the plan's padded solution buffer).
+
+        Every view's padding (beyond the box, up to the FFT size) is its kernel applied to x₀'s
+        periodic extension, not a taper of its own data: the views then agree out there (the
+        solution's extension is x₀'s) instead of each wrapping its own edges around a long comet.
+        """
         dec = self.single
         y0, y1, xa, xb = box
         hh, ww = y1 - y0, xb - xa
-        kmax = [check_kernel(k0)[0].shape]
-        kernels = []
-        cy, cx = (y0 + y1 - 1) / 2, (xa + xb - 1) / 2
-        for wj, m, kj, maps in neighbours:
-            my_, mx_ = int(round(cy)), int(round(cx))
-            kk = _kernel_of(kj, float(maps[1][my_, mx_]), float(maps[0][my_, mx_]))
-            kernels.append(kk)
-            kmax.append(check_kernel(kk)[0].shape)
+        cy, cx = int(round((y0 + y1 - 1) / 2)), int(round((xa + xb - 1) / 2))
+        kernels = [k0] + [_kernel_of(kj, float(maps[1][cy, cx]), float(maps[0][cy, cx]))
+                          for _, _, kj, maps in neighbours]
+        checked = [check_kernel(k) for k in kernels]
         if pshape is None:
-            pshape = dec.padded_shape((hh, ww), (max(s[0] for s in kmax), max(s[1] for s in kmax)))
+            pshape = dec.padded_shape((hh, ww), (max(w.shape[0] for w, _ in checked),
+                                                 max(w.shape[1] for w, _ in checked)))
         plan = dec._plan(tuple(pshape))
         lo32, scale = np.float32(lo), np.float32(1.0 / (hi - lo))
-        w0, o0 = check_kernel(k0)
-        K0, K20 = dec._otf(plan, w0, o0)
-        otfs = [dec._otf(plan, *check_kernel(k)) for k in kernels]
-        kty = np.empty_like(plan.spec)
-        k2 = np.empty_like(K20)
-        kty[:] = 0
-        k2[:] = 0
-        prepare(img, y0, xa, hh, ww, lo32, scale, plan.rin)
-        _acc_view(K0, K20, plan.fwd(), kty, k2)
-        X0 = None
-        tile = np.empty((hh, ww), np.float32)
+        otfs = [dec._otf(plan, w, o) for w, o in checked]   # before any prepare: a miss uses plan.rin
+        kty = np.zeros_like(plan.spec)
+        k2 = np.zeros(otfs[0][1].shape, np.float32)
+        prepare(x0, y0, xa, hh, ww, lo32, scale, plan.rin)
+        X0 = plan.fwd().copy()
         pairs = 0.5
-        for (wj, m, _, _), (K, K2) in zip(neighbours, otfs, strict=True):
-            mb = m[y0:y1, xa:xb]
-            if mb.min() >= 0.999:
-                prepare(wj, y0, xa, hh, ww, lo32, scale, plan.rin)
-                pairs += 0.5
-            else:
-                if X0 is None:
-                    prepare(x0, y0, xa, hh, ww, lo32, scale, plan.rin)
-                    X0 = plan.fwd().copy()
-                    pairs += 0.5
-                _predict(K, X0, plan.norm, plan.cin)
-                p = plan.inv()
-                _fill(wj[y0:y1, xa:xb], p[:hh, :ww], np.ascontiguousarray(mb), lo32, scale, tile)
-                prepare(tile, 0, 0, hh, ww, np.float32(0.0), np.float32(1.0), plan.rin)
+        tile = np.empty((hh, ww), np.float32)
+        ones = np.ones((hh, ww), np.float32)
+        views = [(img, ones)] + [(wj, m[y0:y1, xa:xb]) for wj, m, _, _ in neighbours]
+        e0 = None
+        evidence = np.zeros((hh, ww), np.float32)
+        for v, ((data, mb), (K, K2)) in enumerate(zip(views, otfs, strict=True)):
+            _predict(K, X0, plan.norm, plan.cin)
+            p = plan.inv()
+            if v == 0:
+                # frame t's own misfit to x₀ (its noise and x₀'s bias, blurred): the yardstick of a
+                # neighbour's misfit, which adds its registration and interpolation errors
+                # x₀ was fitted to this very noise, so e₀ understates it: an agreeing neighbour's
+                # misfit is e₀ plus its own noise and the part of frame t's that x₀ absorbed
+                e0 = _misfit(img, p, y0, xa, hh, ww, lo32, scale)
+                e0 += np.float32(max(2.0 * self._sigma * self._sigma, 1e-12))
+                prepare(img, y0, xa, hh, ww, lo32, scale, plan.rin)
+                _acc_view(K, K2, plan.fwd(), kty, k2)
                 pairs += 1.0
+                continue
+            ej = _misfit(data, p, y0, xa, hh, ww, lo32, scale)
+            dlo, dhi = DATA_DISAGREE
+            mb = mb * np.clip((dhi * e0 - ej) / ((dhi - dlo) * e0), 0.0, 1.0)
+            if float(mb.mean()) < MIN_VIEW_WEIGHT * float(views[v][1].mean()):
+                # a view that mostly disagrees at the noise level (its registration or the model is
+                # the limit, not the noise): its few agreeing pixels are not worth a weaker prior
+                mb = np.zeros_like(mb)
+            self._data_weight.append(float(mb.mean()))
+            evidence += mb
+            _fill(data[y0:y1, xa:xb], p[:hh, :ww], np.ascontiguousarray(mb, np.float32), lo32, scale, tile)
+            if PAD_PRED:
+                _embed(tile, p, plan.rin)
+            else:
+                prepare(tile, 0, 0, hh, ww, np.float32(0.0), np.float32(1.0), plan.rin)
             _acc_view(K, K2, plan.fwd(), kty, k2)
+            pairs += 1.0
         start = x0 if self.warm_start else img
         prepare(start, y0, xa, hh, ww, lo32, scale, plan.rin)
         if dec.method == "wiener":
@@ -467,6 +518,12 @@ class TemporalDeconvolver:
         else:
             x = self._kf(plan, kty, k2, lam)
             pairs += len(self._steps)
+        if BLEND:
+            # where the neighbours said nothing (all filled from x₀), the joint solve is x₀ under a
+            # weaker prior, not x₀: return x₀ there, the joint solution where they all agreed
+            b = cv2.blur(evidence * np.float32(1.0 / len(neighbours)), (WINDOW_PX, WINDOW_PX))
+            x0u = (x0[y0:y1, xa:xb] - lo32) * scale
+            x[:hh, :ww] = b * x[:hh, :ww] + (1 - b) * x0u
         self.last_fft_pairs += pairs * plan.shape[0] * plan.shape[1] / self._frame_points
         return x
 
