@@ -102,7 +102,7 @@ def _object_track(obj, rec, i):
 
 
 def test_a_moving_hot_object_leaves_no_ghost():
-    obj = HotObject((100, 70), (-900, -300), 5.0, 8.0)      # 18 px per frame across the view
+    obj = HotObject((40, 40), (700, 300), 5.0, 8.0)    # ~11 px per frame across the panning view
     rec = record(pan(20), movers=(obj,), seed=5)
     td = TemporalDeconvolver(SMALL, views=4)
     res = run_all(rec, td)
@@ -113,13 +113,13 @@ def test_a_moving_hot_object_leaves_no_ghost():
     H, W = truth.shape
     yy, xx = np.mgrid[:H, :W]
     cx, cy = _object_track(obj, rec, N - 1)
-    now = np.hypot(xx - cx, yy - cy) < obj.radius_px + 12
+    now = np.hypot(xx - cx, yy - cy) < obj.radius_px + 2
     for j in (N - 2, N - 3, N - 4):
         px, py = _object_track(obj, rec, j)
         disc = np.hypot(xx - px, yy - py) < obj.radius_px + 1.5
         ring = np.hypot(xx - px, yy - py) < obj.radius_px + 4
         sel = ring & ~now
-        assert sel.sum() > 40
+        assert sel.sum() > 30
         rt, rs = (x - truth)[sel], (s - truth)[sel]
         assert np.abs(rt).mean() < 1.1 * np.abs(rs).mean() + 1.0
         corr = np.corrcoef(rt, disc[sel].astype(float))[0, 1]
