@@ -95,9 +95,9 @@ def test_one_view_is_the_single_frame_solve():
     assert td.last_views == 1 and not td.history
 
 
-def _object_track(obj, rec, i):
-    """The disc's centre in frame i (world = the camera at the first frame)."""
-    R = rec.extras["truth/frame_R"][i]
+def _object_track(obj, rec, i, view=N - 1):
+    """Where the disc was at frame i's time, in frame `view`'s pixels (world = the first frame's camera)."""
+    R = rec.extras["truth/frame_R"][view]
     return obj.at(float(rec.t[0])).centre_px(R, rec.calibration.K, float(rec.t[i]))
 
 
@@ -123,7 +123,7 @@ def test_a_moving_hot_object_leaves_no_ghost():
         rt, rs = (x - truth)[sel], (s - truth)[sel]
         assert np.abs(rt).mean() < 1.1 * np.abs(rs).mean() + 1.0
         corr = np.corrcoef(rt, disc[sel].astype(float))[0, 1]
-        assert corr < 0.3, (j, corr)
+        assert corr < 0.1, (j, corr)
 
 
 def test_parallax_costs_nothing():
