@@ -36,7 +36,8 @@ class HotObject:
     def __post_init__(self):
         vals = (*self.p0, *self.v_px_s, self.radius_px, self.delta_k)
         if len(self.p0) != 2 or len(self.v_px_s) != 2 or not all(math.isfinite(float(v)) for v in vals):
-            raise ThermodError(f"HotObject: expected finite p0 (x, y), v_px_s (vx, vy), radius, delta; got {self}")
+            raise ThermodError(f"HotObject: expected finite p0 (x, y), v_px_s (vx, vy), radius and delta; "
+                               f"got {self}")
         if not 0.5 <= self.radius_px <= 1000:
             raise ThermodError(f"HotObject: radius_px {self.radius_px} outside [0.5, 1000]")
 
