@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from thermod.errors import ThermodError
 from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import DeconvError, Deconvolver
@@ -181,3 +182,22 @@ def test_bad_arguments_are_named():
     k = kernels.Kernel(np.ones((1, 1), np.float32), (0, 0))
     with pytest.raises(DeconvError, match="frame"):
         td.run(np.zeros((50, 60), np.float32), k, 0.0, np.arange(3.0), np.zeros((3, 3)))
+
+
+def test_a_hot_object_is_drawn_where_its_track_says():
+    obj = HotObject((50, 60), (400, -200), 4.0, 5.0)
+    plain = record(pan(10), netd=0.0, seed=2)
+    rec = record(pan(10), netd=0.0, seed=2, movers=(obj,))
+    for i in (0, N - 1):
+        d = rec.extras["truth/frames"][i] - plain.extras["truth/frames"][i]
+        yy, xx = np.mgrid[:d.shape[0], :d.shape[1]]
+        cx, cy = (d * xx).sum() / d.sum(), (d * yy).sum() / d.sum()
+        ex, ey = _object_track(obj, rec, i, view=i)
+        assert math.hypot(cx - ex, cy - ey) < 0.3
+        assert d.sum() == pytest.approx(math.pi * obj.radius_px ** 2 * obj.delta_k * 40.0, rel=0.03)
+    # the blurry frames carry it too, smeared along its path (the blur keeps its total)
+    blur = rec.extras["truth/blurry_noiseless"][N - 1] - plain.extras["truth/blurry_noiseless"][N - 1]
+    assert blur.sum() == pytest.approx(d.sum(), rel=0.05)
+    assert blur.max() < 0.99 * d.max()
+    with pytest.raises(ThermodError, match="radius"):
+        HotObject((0, 0), (0, 0), radius_px=0.1)

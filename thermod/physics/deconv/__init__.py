@@ -57,7 +57,8 @@ uniform K&F solve at 640×480 (roll-heavy family, docs/design.md §1.5):
 Modules: `wstep` (shrinkage, lookup tables), `xstep` (Fourier-domain solves, boundary extension),
 `plans` (FFT plans, FFTW wisdom), `noise` (robust range, σ̂, λ from noise), `tiles` (partition of
 unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, `deconvolve`,
-`deconvolve_varying`).
+`deconvolve_varying`), `temporal` (`TemporalDeconvolver`: frame t from t−N…t, gyro-warped, one
+kernel per view, weights falling where the views disagree; imported on its own, it needs OpenCV).
 """
 
 from .checks import DeconvError
