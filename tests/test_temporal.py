@@ -13,7 +13,7 @@ from thermod.errors import ThermodError
 from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import DeconvError, Deconvolver
-from thermod.physics.deconv.temporal import TemporalDeconvolver, warp, warp_maps, warped_support
+from thermod.physics.deconv.temporal import PastFrame, TemporalDeconvolver, warp, warp_maps, warped_support
 from thermod.sim import motion as mo
 from thermod.sim import synth
 from thermod.sim.gyro_model import GyroErrorModel
@@ -171,6 +171,22 @@ def test_new_scene_at_the_borders_comes_from_the_frame_alone():
     assert 0.05 < new.mean() < 0.6
     assert psnr(x, t, new) > psnr(s, t, new) - 0.1
     assert psnr(x, t) > psnr(s, t) - 0.1
+
+
+def test_solve_with_an_outside_ring_equals_run():
+    rec = record(pan(25), seed=6)
+    a, b = TemporalDeconvolver(SMALL, views=3), TemporalDeconvolver(SMALL, views=3)
+    ring = []
+    for i in range(4):
+        t = float(rec.t[i])
+        k = kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, SMALL, t)
+        x = a.run(rec.frames[i], k, t, rec.gyro_t, rec.gyro_rate)
+        y = b.solve(rec.frames[i], k, t, rec.gyro_t, rec.gyro_rate, ring[::-1])   # any order
+        ring.append(PastFrame(rec.frames[i].astype(np.float32), k, t))
+        np.testing.assert_array_equal(x, y)
+    assert a.last_views == 3 and len(a.history) == 2 and not b.history
+    with pytest.raises(DeconvError, match="read order"):
+        a.push(rec.frames[0], k, float(rec.t[0]))
 
 
 def test_bad_arguments_are_named():

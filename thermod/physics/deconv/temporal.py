@@ -253,7 +253,9 @@ class TemporalDeconvolver:
 
     Call `run(frame, kernel, t_frame, gyro_t, gyro_rate)` once per frame, in read order. It solves
     the frame alone with `single` (x₀: today's single-frame result, also `last_single`), then
-    jointly with the history's frames, and appends the frame to the history.
+    jointly with the history's frames, and appends the frame to the history (`history`, a deque of
+    `PastFrame`). `solve` + `push` split it for callers that keep the ring themselves (several
+    worker threads, one TemporalDeconvolver each, sharing one ordered ring).
 
     Parameters
     ----------
@@ -311,12 +313,33 @@ class TemporalDeconvolver:
     # ------------------------------------------------------------------ per frame
     def run(self, frame: np.ndarray, kernel, t_frame: float, gyro_t, gyro_rate, *,
             value_range: tuple[float, float] | None = None) -> np.ndarray:
+        """`solve` the frame with the object's own history, then `push` it (one caller, read order)."""
+        out = self.solve(frame, kernel, t_frame, gyro_t, gyro_rate, self.history, value_range=value_range)
+        self.push(frame, kernel, t_frame)
+        return out
+
+    def push(self, frame: np.ndarray, kernel, t_frame: float) -> None:
+        """Append a frame (as read, with its kernel and read time) to the history, dropping frames
+        older than `max_age_s`. Frames must come in read order; a frozen (FFC) frame must not."""
+        img = np.asarray(check_image(frame), np.float32)
+        t_frame = float(t_frame)
+        if self.history and not t_frame > self.history[-1].t_frame:
+            raise DeconvError(f"t_frame: {t_frame} is not after the history's last frame "
+                              f"({self.history[-1].t_frame}); frames must come in read order")
+        while self.history and t_frame - self.history[0].t_frame > self.max_age_s:
+            self.history.popleft()
+        if self.views > 1:
+            self.history.append(PastFrame(img, kernel, t_frame))
+
+    def solve(self, frame: np.ndarray, kernel, t_frame: float, gyro_t, gyro_rate, history=(), *,
+              value_range: tuple[float, float] | None = None) -> np.ndarray:
         """Restore `frame` (counts, calibration-sized) read at `t_frame` (camera clock, last row) with
-        its `kernel` (Kernel or KernelGrid), from it and the history; appends it to the history.
+        its `kernel` (Kernel or KernelGrid), jointly with the newest `views` − 1 frames of `history`
+        (`PastFrame`s read before it, any order; nothing is stored: a thread-safe core for callers
+        that keep their own ring). Returns float32 counts.
 
         `gyro_t`, `gyro_rate`: raw gyro samples (as for the kernel renderers; a ring buffer may be
         passed whole) spanning the history's frames — a frame they do not reach is left out.
-        Returns float32 counts.
         """
         img = check_image(frame)
         if img.shape != (int(self.calib.height), int(self.calib.width)):
@@ -339,22 +362,19 @@ class TemporalDeconvolver:
         self.last_single = x0
         self._count_single(img.shape, kernel, grid, cells)
         self._sigma = noise_sigma(img, (lo, hi))
-        neighbours = self._neighbours(img, t_frame, gyro_t, gyro_rate)
+        past = sorted((p for p in history if p.t_frame < t_frame), key=lambda p: p.t_frame)
+        newest = past[-(self.views - 1):] if self.views > 1 else []
+        neighbours = self._neighbours(img, t_frame, gyro_t, gyro_rate, newest)
         out = x0
+        self.last_weights = []
         if neighbours:
             weights = np.zeros(len(neighbours))
             out = self._joint(img, kernel, x0, neighbours, lo, hi, lam * self.lam_scale, grid and cells > 1,
                               weights)
             self.last_weights = [float(w) for w in weights]
-        else:
-            self.last_weights = []
         self.last_views = 1 + sum(w > 0 for w in self.last_weights)
         self.last_seconds = (t1 - t0, time.perf_counter() - t1)
         self.last_cpu_seconds = (c1 - c0, time.process_time() - c1)
-        while self.history and t_frame - self.history[0].t_frame > self.max_age_s:
-            self.history.popleft()
-        if self.views > 1:
-            self.history.append(PastFrame(img, kernel, t_frame))
         return out
 
     def _count_single(self, shape, kernel, grid, cells) -> None:
@@ -370,10 +390,10 @@ class TemporalDeconvolver:
             self.last_fft_pairs = float(steps + 1)
         self.last_fft_pairs_single = self.last_fft_pairs
 
-    def _neighbours(self, img, t_frame, gyro_t, gyro_rate) -> list:
+    def _neighbours(self, img, t_frame, gyro_t, gyro_rate, history) -> list:
         """[(warped frame, warped support, kernel, maps)] of the usable history frames, newest first."""
         out = []
-        for past in reversed(self.history):
+        for past in reversed(history):
             if t_frame - past.t_frame > self.max_age_s or past.t_frame >= t_frame:
                 continue
             if getattr(past.kernel, "coverage", 1.0) < self.min_coverage:
