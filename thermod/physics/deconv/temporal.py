@@ -27,9 +27,9 @@ Weights enter the Fourier solve by filling (EM-style): view j's data becomes
 m_j = 0 it repeats what frame t's solve says. The joint solution is blended with x₀ by the local
 mean weight, so where no neighbour agreed the output is x₀ itself, not x₀ under a weaker prior.
 
-A kernel grid (roll) is solved jointly in `JOINT_GRID` tiles laid out and blended as
-`Deconvolver.run_varying` does, with a wider margin (`JOINT_MARGIN_PX`: the views' long comets wrap
-at tile edges), each view with its grid's kernel at the tile centre's position in that view.
+A kernel grid (roll) is solved jointly in the grid's cells, laid out and blended as
+`Deconvolver.run_varying` does but with a wider margin (`JOINT_MARGIN_PX`: the views' long comets
+wrap at tile edges), each view with its own grid's kernel at the cell centre's position in that view.
 
 Cost per frame (one frame-sized FFT pair = a forward and an inverse real FFT of the padded frame):
 the single-frame solve, then ½ (x₀'s spectrum) + 1½ per view (its prediction, its data, its OTF)
@@ -63,11 +63,10 @@ WINDOW_PX = 9              # box of the local mean square misfit
 DATA_DISAGREE = (1.5, 3.0)  # neighbour's misfit / frame t's (+ 2σ̂²): full weight below, none above
 MIN_VIEW_WEIGHT = 0.5      # a view below this share of its support in a tile is dropped there
 SUPPORT_INSET_PX = 2       # warped support shrunk by this much (interpolation at the edge)
-# tiles of the joint solve under a kernel grid: coarser and wider than the single solve's (the views'
-# long comets wrap at tile edges; 6×8 with 8 px lost 0.3 dB at 100 °/s; 4×6/32 px beat 6×8/24 px and
-# 3×4/48 px, bench_temporal's cases at 100 °/s and on the log, for the same FFT points within 15 %)
-JOINT_GRID = (4, 6)
-JOINT_MARGIN_PX = 32
+# tile margin of the joint solve under a kernel grid: the views' long comets wrap at tile edges (8 px
+# lost 0.3 dB at 100 °/s; 48 px gained 0.06 dB more for 1.8× the points; coarser 4×6 tiles with
+# 32 px lost up to 0.5 dB under roll, bench_temporal)
+JOINT_MARGIN_PX = 24
 MAP_STEP_PX = 8            # the warp is solved every 8 px and interpolated bilinearly (it is smooth)
 
 
@@ -416,18 +415,15 @@ class TemporalDeconvolver:
             out = np.empty((h, wd), np.float32)
             finish(x, h, wd, np.float32(lo), np.float32(hi - lo), out)
             return out
-        nr, nc = JOINT_GRID
-        ye, xe = np.linspace(0, h, nr + 1), np.linspace(0, wd, nc + 1)
-        centers = np.array([[((ye[i] + ye[i + 1] - 1) / 2, (xe[j] + xe[j + 1] - 1) / 2)
-                             for j in range(nc)] for i in range(nr)])
+        centers = np.asarray(kernel.centers, np.float64)
         lay = self.single._layout(img.shape, centers, self.overlap, JOINT_MARGIN_PX)
         out = np.zeros((h, wd), np.float32)
         share = np.zeros(len(neighbours))
         for t in range(len(lay.boxes)):
             r, c = int(lay.rows[t]), int(lay.cols[t])
             box = tuple(int(v) for v in lay.boxes[t])
-            k0 = kernel.kernel_at(*centers[r, c])
-            x = self._solve_box(img, x0, box, k0, neighbours, lo, hi, lam, lay.pshape, share)
+            x = self._solve_box(img, x0, box, kernel.kernels[r][c], neighbours, lo, hi, lam, lay.pshape,
+                                share)
             weights += share / len(lay.boxes)
             y0, _, xa, _ = box
             ys, ye, xs, xe = (int(v) for v in lay.supports[t])
