@@ -2,10 +2,12 @@
 gyro rotation (rolling readout included) and each with its own blur kernel.
 
 Model. Frame j is its sharp view blurred by its own kernel, ``y_j = k_j ⊛ S_j + n_j``, and for a
-distant scene S_j(p) = S_t(π(H p)) with H = K R(s_j)ᵀ R(s_t) K⁻¹ per row (Eq. 16; s the read time of
-the row). Warped into t's pixels (`warp_maps`, `warp`), ``w_j ≈ k_j ⊛ S_t + n_j``: the views share one
-unknown and differ in kernel and noise. K&F over all of them (K&F Eq. 1 with one data term per
-view) keeps the closed-form x-step, with sums over the views::
+distant scene pixel q of frame t sees what pixel π(H q) of frame j sees, H = K R(s_j)ᵀ R(s_t) K⁻¹
+(Eq. 16; s the read time of each pixel's row, so under rolling readout H changes row by row).
+Warped into t's pixels (`warp_maps`, `warp`), ``w_j(q) = y_j(π(H q)) ≈ (k_j ⊛ S_t)(q) + n_j``: the
+views share one unknown and differ in kernel and noise (the warp's local rotation of k_j, a roll of
+a few tenths of a degree between neighbours, is neglected). K&F over all of them (K&F Eq. 1 with
+one data term per view) keeps the closed-form x-step, with sums over the views::
 
     X = (Σ_j K̄_j D_j + (β/λ') F(∇ᵀw)) / (Σ_j |K_j|² + (β/λ')(|F∂x|² + |F∂y|²))
 
@@ -182,6 +184,7 @@ def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
 
 
 def warp(img: np.ndarray, maps, interpolation: int = cv2.INTER_CUBIC) -> np.ndarray:
+    """`img` resampled at `maps` (float32; beyond its edges replicated: `warped_support` says where)."""
     return cv2.remap(np.asarray(img, np.float32), maps[0], maps[1], interpolation,
                      borderMode=cv2.BORDER_REPLICATE)
 
