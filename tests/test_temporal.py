@@ -76,6 +76,21 @@ def test_gyro_warp_maps_the_previous_truth_onto_the_current_one():
     assert np.abs(warp(rolling[2], g) - rolling[4])[sup].mean() > 1.3 * err
 
 
+def test_rolling_readout_frames_gain_and_a_wrong_readout_costs_nothing():
+    cal = SMALL.replace(readout_s=0.015)
+    rec = record(pan(40), calib=cal, seed=12)
+    rolling = rec.extras["truth/frames_rolling"]      # each row's sharp view at its read time
+    for readout, least in ((0.015, 0.6), (0.0, -0.05)):
+        td = TemporalDeconvolver(cal.replace(readout_s=readout), views=4)
+        for i in range(N):
+            t = float(rec.t[i])
+            k = kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, cal, t)
+            x = td.run(rec.frames[i], k, t, rec.gyro_t, rec.gyro_rate)
+        gain = psnr(x, rolling[-1]) - psnr(td.last_single, rolling[-1])
+        assert gain > least, (readout, gain)
+    assert td.last_views == 1       # a global-shutter warp of rolling frames disagrees: every view dropped
+
+
 def test_agreeing_frames_gain_over_the_single_frame_solve():
     rec = record(pan(25))
     td = TemporalDeconvolver(SMALL, views=4)
