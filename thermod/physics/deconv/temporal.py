@@ -323,7 +323,7 @@ class TemporalDeconvolver:
     def push(self, frame: np.ndarray, kernel, t_frame: float) -> None:
         """Append a frame (as read, with its kernel and read time) to the history, dropping frames
         older than `max_age_s`. Frames must come in read order; a frozen (FFC) frame must not."""
-        img = np.asarray(check_image(frame), np.float32)
+        img = np.array(check_image(frame), np.float32)   # a copy: the caller may reuse its buffer
         t_frame = float(t_frame)
         if self.history and not t_frame > self.history[-1].t_frame:
             raise DeconvError(f"t_frame: {t_frame} is not after the history's last frame "
