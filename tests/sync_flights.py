@@ -45,6 +45,7 @@ class SyncFlight:
     misalignment_rad: np.ndarray
     bias_rad_s: np.ndarray
     motion: str
+    raw: np.ndarray | None = None   # uint16 [N, H, W]: the detector counts before the AGC
 
     @property
     def true_R(self) -> np.ndarray:
@@ -71,8 +72,10 @@ def procedural_motion(seed: int) -> mo.Motion:
 def make_flight(seed: int = 0, seconds: float = 3.0, *, motion: str = "auto", static: bool = False,
                 log_s: float = 40.0, mount_index: int | None = None, bias=(0.01, -0.006, 0.004),
                 misalignment=(0.01, -0.008, 0.012), gyro_noise_deg_s: float = 0.5,
-                netd: float = 0.05) -> SyncFlight:
-    """A video of `seconds` somewhere in a log of `log_s` (the real log's length when it is used)."""
+                netd: float = 0.05, width: int = WIDTH, effects: dict | None = None) -> SyncFlight:
+    """A video of `seconds` somewhere in a log of `log_s` (the real log's length when it is used),
+    `width` px wide (4:3, a 50° field of view); `effects` are hidden simulator effects (the nominal
+    τ and readout stay `TAU_S` and 0)."""
     rng = np.random.default_rng([seed, 24])
     log = real_log() if motion in ("auto", "real") else None
     if motion == "real" and log is None:
@@ -85,10 +88,12 @@ def make_flight(seed: int = 0, seconds: float = 3.0, *, motion: str = "auto", st
         source, name = procedural_motion(seed), "procedural"
     start = float(rng.uniform(1.0, log_t[-1] - seconds - 1.0))
     video_motion = mo.Static() if static else _Shifted(source, start)
-    f_px = 1 / math.radians(IFOV_DEG)
-    cal = Calibration(width=WIDTH, height=HEIGHT, fx=f_px, fy=f_px,
-                      cx=(WIDTH - 1) / 2, cy=(HEIGHT - 1) / 2, tau_s=TAU_S, frame_rate_hz=FPS)
-    rec = simulate("texture", video_motion, seconds, cal, effects={"netd": netd}, seed=seed, truth=False)
+    height = width * HEIGHT // WIDTH
+    f_px = width / WIDTH / math.radians(IFOV_DEG)        # the same 50° field of view at any width
+    cal = Calibration(width=width, height=height, fx=f_px, fy=f_px,
+                      cx=(width - 1) / 2, cy=(height - 1) / 2, tau_s=TAU_S, frame_rate_hz=FPS)
+    hidden = {"netd": netd, **(effects or {})}
+    rec = simulate("texture", video_motion, seconds, cal, effects=hidden, seed=seed, truth=False)
     mount = int(rng.integers(0, len(MOUNTS))) if mount_index is None else int(mount_index)
     from thermod.physics.geometry import so3_exp
     R = so3_exp(np.asarray(misalignment, float)) @ MOUNTS[mount]
@@ -98,7 +103,7 @@ def make_flight(seed: int = 0, seconds: float = 3.0, *, motion: str = "auto", st
     frames = agc_8bit(rec.frames, rng)
     return SyncFlight(frames, rec.t.copy(), log_t, rate, cal.intrinsics, TAU_S, T_VIDEO0 - start, mount,
                       np.asarray(misalignment, float), np.asarray(bias, float),
-                      "static" if static else f"{name} from {start:.2f} s")
+                      "static" if static else f"{name} from {start:.2f} s", rec.frames)
 
 
 class _Shifted(mo.Motion):

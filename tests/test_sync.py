@@ -81,7 +81,8 @@ def test_report_and_figure(procedural, tmp_path):
     assert d["time_offset_s"]["sigma"] > 0 and d["time_offset_s"]["lag_bound"] == pytest.approx(fl.tau_s / 2)
     assert len(d["gyro_bias_rad_s"]["sigma"]) == 3
     changes = res.calibration_changes()
-    assert set(changes) == {"time_offset_s", "R_cam_gyro", "bias_rad_s"}
+    assert set(changes) == {"time_offset_s", "R_cam_gyro", "bias_rad_s"} and changes["time_offset_s"] == 0
+    assert res.camera_clock(fl.gyro_t)[0] == pytest.approx(fl.gyro_t[0] + res.time_offset_s)
     png = tmp_path / "sync.png"
     S.plot_sync(res, fl.gyro_t, fl.gyro_rate, png)
     assert png.stat().st_size > 20_000

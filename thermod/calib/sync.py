@@ -55,7 +55,7 @@ MIN_INTERVALS = 20            # picture intervals with a rotation estimate a syn
 MIN_FEATURES = 8              # tracked corners a rotation estimate needs
 MIN_MOTION_SNR = 5.0          # picture rotation RMS over its measurement noise RMS
 MIN_MOTION_PX = 0.25          # picture rotation RMS per interval, in working-image pixels
-MIN_NCC = 0.6                 # the correlation peak a log must reach
+MIN_NCC = 0.75                # the correlation peak a log must reach (null peaks of a 3 s video: ≤ 0.63)
 MIN_RESIDUAL_RATIO = 3.0      # the best place elsewhere must leave ≥ this × the peak's residual (1 − ρ²)
 MAX_MISALIGNMENT_RAD = 0.2    # the fine fit's rotation on top of an axis-aligned mount (11.5°)
 MAX_GRID_S = 0.005            # coarse correlation grid step
@@ -608,9 +608,15 @@ class SyncResult:
         others = [c for i, c in self.fine.mount_costs.items() if i != self.fine.mount_index]
         return min(others) / self.fine.cost if others and self.fine.cost > 0 else math.inf
 
+    def camera_clock(self, gyro_t) -> np.ndarray:
+        """Gyro sample times moved onto the video clock (t + time_offset_s): a recording's `/gyro/t`,
+        whose calibration then needs `time_offset_s` = 0 (`calibration_changes`; its range is ±1 s)."""
+        return np.asarray(gyro_t, np.float64) + self.fine.time_offset_s
+
     def calibration_changes(self) -> dict:
-        """Keyword arguments for `Calibration.replace`: the synced gyro chain."""
-        return {"time_offset_s": float(self.fine.time_offset_s),
+        """Keyword arguments for `Calibration.replace`: the synced gyro chain, for gyro times already
+        on the video clock (`camera_clock`)."""
+        return {"time_offset_s": 0.0,
                 "R_cam_gyro": tuple(tuple(float(v) for v in row) for row in self.fine.R_cam_gyro),
                 "bias_rad_s": tuple(float(v) for v in self.fine.bias_rad_s)}
 
