@@ -24,17 +24,30 @@ elsewhere), in three stages:
    below h. Conventions: ω_cam = M ω_gyro, t_cam = t_gyro + time_offset_s.
 3. **Fine** (`refine`). Weighted robust least squares (Huber) of the picture rotations φ_k against the
    gyro's, integrated over each interval: φ̂_k = exp([δ]×) M (∫ ω_τ(t − off) dt − b Δt) with the
-   offset off, a small misalignment δ on top of the mount and the gyro bias b (gyro frame); the
-   uncertainties are a delete-one-block jackknife over 8 contiguous stretches of the video (residuals
-   are correlated in time, so the fit's own covariance would be optimistic).
+   offset off, a small misalignment δ (≤ 0.2 rad) on top of the mount and the gyro bias b (gyro
+   frame), for the best few mounts by correlation (the lowest cost wins: a mount that differs only
+   about an axis the motion barely turns correlates almost as well, but fits worse). Then the
+   rolling readout: the rotation is also fitted on the corners of three horizontal bands alone, and
+   band b's rows are read lead_b·readout before the frame time (lead = 1 − (row + 1)/H), so where the
+   rate changes the bands see it at times a share of the readout apart; the readout joins the fit
+   (0 to one frame period). Uncertainties: a delete-one-block jackknife over 8 contiguous stretches
+   of the video (residuals are correlated in time, so the fit's own covariance would be optimistic).
+
+The picture lags the gyro through the detector: the centroid of its exponential response is τ
+behind, which the gyro's τ filter models; Lucas–Kanade on a comet-tailed corner follows the sharper
+head more than the centroid, so the measured lag is shorter than τ, and by how much depends on the
+blur. The frames are smoothed (σ = 1.5 working px) so the tracker sees more of the tail, and the
+offset carries a systematic bound of ½ τ (`FineSync.lag_bound_s`) beside its jackknife σ. The lag is
+common to every band, so it does not bias the readout. τ itself is as given (it shows only as this
+lag, which the offset absorbs).
 
 Refused, never guessed (`SyncError` subclasses): a video whose picture rotation does not rise above
 its own measurement noise (`TooLittleMotion`); a log shorter than the video (`DurationMismatch`); a
 log in which no place correlates significantly, or two places equally (`LogMismatch`).
 
-Readout time and τ, which act on the rotation rates as a delay of ≈ readout/2 + τ indistinguishable
-from the offset, are for the motion-only discrepancy workflow (`discrepancy_recording`,
-`DISCREPANCY_CANDIDATES`), run on the synced recording.
+The motion-only discrepancy workflow (`thermod.calib.sync_discrepancy`, `DISCREPANCY_CANDIDATES`)
+can refine all of these, τ included, on a stretch of the synced video through the detector's forward
+model.
 """
 
 from __future__ import annotations
@@ -53,6 +66,7 @@ from thermod.physics.geometry import Intrinsics, so3_exp, so3_log
 DISCREPANCY_CANDIDATES = ("time_offset", "misalignment", "gyro_bias", "rolling_readout", "time_constant")
 MIN_INTERVALS = 20            # picture intervals with a rotation estimate a sync needs
 MIN_FEATURES = 8              # tracked corners a rotation estimate needs
+BANDS = 3                     # horizontal bands of a frame fitted apart (rolling readout)
 MIN_MOTION_SNR = 5.0          # picture rotation RMS over its measurement noise RMS
 MIN_MOTION_PX = 0.25          # picture rotation RMS per interval, in working-image pixels
 MIN_NCC = 0.75                # the correlation peak a log must reach (null peaks of a 3 s video: ≤ 0.63)
@@ -105,7 +119,11 @@ class PictureMotion:
     Interval k runs from frame k to frame k+1 (times `t0[k]`, `t1[k]`, video clock); `rotvec[k]` is
     the rotation vector of Q = R(t0)ᵀ R(t1) in the camera frame (rad; NaN where not measured);
     `info[k]` its 3×3 information matrix (rad⁻²); `n_features[k]` the corners it was fitted on;
-    `residual_px[k]` the fit's RMS reprojection residual at the working resolution."""
+    `residual_px[k]` the fit's RMS reprojection residual at the working resolution.
+
+    Rolling readout: the same rotation fitted on the corners of each of `BANDS` horizontal bands of
+    the frame alone (`band_rotvec`, `band_info`; NaN where a band has too few), whose rows are read
+    `band_lead[k, b]` · readout before the frame time on average (1 − (row + 1)/H over its corners)."""
 
     t0: np.ndarray
     t1: np.ndarray
@@ -114,6 +132,16 @@ class PictureMotion:
     n_features: np.ndarray
     residual_px: np.ndarray
     work: Intrinsics
+    band_rotvec: np.ndarray
+    band_info: np.ndarray
+    band_lead: np.ndarray
+
+    def sliced(self, i0: int, i1: int) -> PictureMotion:
+        """The intervals between frames i0 … i1 − 1."""
+        s = slice(i0, i1 - 1)
+        return PictureMotion(self.t0[s], self.t1[s], self.rotvec[s], self.info[s], self.n_features[s],
+                             self.residual_px[s], self.work, self.band_rotvec[s], self.band_info[s],
+                             self.band_lead[s])
 
     @property
     def valid(self) -> np.ndarray:
@@ -237,6 +265,10 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
     info = np.zeros((n - 1, 3, 3))
     nfeat = np.zeros(n - 1, dtype=np.int64)
     resid = np.full(n - 1, np.nan)
+    brot = np.full((n - 1, BANDS, 3), np.nan)
+    binfo = np.zeros((n - 1, BANDS, 3, 3))
+    blead = np.full((n - 1, BANDS), np.nan)
+    row_full = lambda y: (y + 0.5) / scale - 0.5        # noqa: E731  (working row → full-frame row)
     prev = prepared(0)
     for k in range(1, n):
         cur = prepared(k)
@@ -251,15 +283,28 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
             if fit is not None:
                 Q, mask, sigma = fit
                 rotvec[k - 1] = so3_log(Q)
-                v = _rays(b, K_inv)[mask]
-                # J of the residual a − Q b w.r.t. a small rotation of Q: −[Q b]×, so JᵀJ = Σ [v]×ᵀ[v]×
-                info[k - 1] = (mask.sum() * np.eye(3) - v.T @ v) / sigma**2
+                ra, rb = _rays(a, K_inv)[mask], _rays(b, K_inv)[mask]
+                info[k - 1] = _information(rb, sigma)
                 nfeat[k - 1] = int(mask.sum())
                 resid[k - 1] = sigma * f_px
+                band = np.minimum((b[mask, 1] / work.height * BANDS).astype(int), BANDS - 1)
+                lead = 1.0 - (row_full(b[mask, 1]) + 1.0) / intrinsics.height
+                for j in range(BANDS):
+                    sel = band == j
+                    if sel.sum() >= MIN_FEATURES:
+                        brot[k - 1, j] = so3_log(_kabsch(ra[sel], rb[sel]))
+                        binfo[k - 1, j] = _information(rb[sel], sigma)
+                        blead[k - 1, j] = float(np.mean(lead[sel]))
         prev = cur
         if progress is not None:
             progress(k, n - 1)
-    return PictureMotion(t[:-1].copy(), t[1:].copy(), rotvec, info, nfeat, resid, work)
+    return PictureMotion(t[:-1].copy(), t[1:].copy(), rotvec, info, nfeat, resid, work, brot, binfo, blead)
+
+
+def _information(rays: np.ndarray, sigma: float) -> np.ndarray:
+    """Information matrix of a rotation fitted on `rays` with residual σ (rad): the residual
+    a − Q b moves by −[Q b]× δ under a small rotation δ, so JᵀJ = Σ [v]×ᵀ[v]× = Σ (I − v vᵀ)."""
+    return (len(rays) * np.eye(3) - rays.T @ rays) / sigma**2
 
 
 def check_motion(pm: PictureMotion) -> dict:
@@ -476,6 +521,8 @@ class FineSync:
     n_intervals: int
     cost: float
     mount_costs: dict = field(default_factory=dict)
+    readout_s: float = 0.0
+    readout_sigma_s: float = math.nan       # NaN: not fitted (bands too sparse, or not asked)
 
 
 class _GyroIntegral:
@@ -497,26 +544,46 @@ class _GyroIntegral:
 
 
 class _FineProblem:
-    """φ_k against exp([δ]×) M (∫ω_τ − b Δt) over the measured intervals, whitened by their information."""
+    """φ against exp([δ]×) M (∫ω_τ − b Δt) over the measured intervals, each whitened by its information.
 
-    SCALE = np.r_[1e-3, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2]
-    BOUND = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3]
+    Whole frames (`bands` False): the rows are read ½ readout before the frame time on average, the
+    readout fixed. Bands: each band's rotation over its own rows' read times (lead · readout before),
+    the readout a parameter (x[7]) in [0, one frame period]: a rate that changes shows up in the bands
+    at times that differ by a share of the readout."""
 
-    def __init__(self, pm: PictureMotion, gyro_t, gyro_rate, offset_s: float, tau_s: float, readout_s: float):
-        self.idx = idx = np.flatnonzero(pm.valid)
-        # a row is read readout·(1 − (r+1)/H) before the frame time: ½ readout on average
-        self.a = pm.t0[idx] - 0.5 * readout_s
-        self.b = pm.t1[idx] - 0.5 * readout_s
-        span = max(1.0, 0.25 * (self.b[-1] - self.a[0]))
-        lo = max(self.a[0] - offset_s - span, float(gyro_t[0]))
-        hi = min(self.b[-1] - offset_s + span, float(gyro_t[-1]))
+    def __init__(self, pm: PictureMotion, gyro_t, gyro_rate, offset_s: float, tau_s: float, readout_s: float,
+                 bands: bool = False):
+        if bands:
+            ok = np.all(np.isfinite(pm.band_rotvec), axis=2)
+            k, j = np.nonzero(ok)
+            self.phi, info, self.lead = pm.band_rotvec[k, j], pm.band_info[k, j], pm.band_lead[k, j]
+        else:
+            k = np.flatnonzero(pm.valid)
+            self.phi, info, self.lead = pm.rotvec[k], pm.info[k], np.full(len(k), 0.5)
+        self.interval = k
+        self.t0, self.t1 = pm.t0[k], pm.t1[k]
+        self.fit_readout = bands
+        self.readout_s = readout_s
+        self.period = float(np.median(pm.t1 - pm.t0))
+        span = max(1.0, 0.25 * (self.t1[-1] - self.t0[0]))
+        lo = max(self.t0[0] - self.period - offset_s - span, float(gyro_t[0]))
+        hi = min(self.t1[-1] - offset_s + span, float(gyro_t[-1]))
         self.gi = _GyroIntegral(gyro_t, gyro_rate, lo, hi, tau_s)
-        self.L = np.linalg.cholesky(pm.info[idx]).transpose(0, 2, 1)     # ‖L r‖² = rᵀ info r
-        self.phi = pm.rotvec[idx]
-        self.dts = self.b - self.a
+        self.L = np.linalg.cholesky(info).transpose(0, 2, 1)           # ‖L r‖² = rᵀ info r
+        self.dts = self.t1 - self.t0
+        n = 8 if bands else 7
+        self.scale = np.r_[1e-3, [1e-2] * 6, 1e-3][:n]
+        self.lower = np.r_[-np.inf, [-MAX_MISALIGNMENT_RAD] * 3, [-np.inf] * 3, 0.0][:n]
+        self.upper = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3, self.period][:n]
+
+    def start(self, offset_s: float, x=None) -> np.ndarray:
+        x0 = np.r_[offset_s, np.zeros(6)] if x is None else np.asarray(x[:7], float)
+        return np.r_[x0, self.readout_s] if self.fit_readout else x0
 
     def predicted(self, x, M, sel=slice(None)):
-        ig = self.gi.integral(self.a[sel] - x[0], self.b[sel] - x[0]) - x[4:7] * self.dts[sel, None]
+        ro = x[7] if self.fit_readout else self.readout_s
+        shift = x[0] + ro * self.lead[sel]
+        ig = self.gi.integral(self.t0[sel] - shift, self.t1[sel] - shift) - x[4:7] * self.dts[sel, None]
         return ig @ (so3_exp(x[1:4]) @ M).T
 
     def residual(self, x, M, sel=slice(None)):
@@ -526,47 +593,64 @@ class _FineProblem:
         """Robust (Huber) fit from `x_start`; returns (x, cost)."""
         from scipy.optimize import least_squares
 
-        r0 = self.residual(x_start, M, sel)
+        inset = 1e-3 * np.minimum(self.upper - self.lower, 1.0)
+        x = np.clip(x_start, self.lower + inset, self.upper - inset)
+        r0 = self.residual(x, M, sel)
         f_scale = 3.0 * max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-9)
-        x = np.clip(x_start, -0.999 * self.BOUND, 0.999 * self.BOUND)
         for _ in range(2):
             sol = least_squares(self.residual, x, args=(M, sel), loss="huber", f_scale=f_scale,
-                                x_scale=self.SCALE, method="trf", bounds=(-self.BOUND, self.BOUND))
+                                x_scale=self.scale, method="trf", bounds=(self.lower, self.upper))
             x = sol.x
-        return sol.x, float(sol.cost)
+        return x, float(sol.cost)
+
+    def jackknife(self, x, M, blocks: int) -> np.ndarray:
+        """Delete-one-block jackknife standard errors over `blocks` contiguous stretches of the video."""
+        ivals = np.unique(self.interval)
+        edges = ivals[np.linspace(0, len(ivals) - 1, blocks + 1).astype(int)]
+        edges[-1] += 1
+        jk = []
+        for b in range(blocks):
+            sel = ~((self.interval >= edges[b]) & (self.interval < edges[b + 1]))
+            jk.append(self.fit(x, M, sel)[0])
+        jk = np.array(jk)
+        return np.sqrt((blocks - 1) / blocks * np.sum((jk - jk.mean(axis=0)) ** 2, axis=0))
 
 
 def refine(pm: PictureMotion, gyro_t, gyro_rate, coarse: CoarseSync, *, tau_s: float = 0.0,
-           readout_s: float = 0.0, mounts: tuple[int, ...] | None = None, blocks: int = 8) -> FineSync:
+           readout_s: float = 0.0, mounts: tuple[int, ...] | None = None, fit_readout: bool = True,
+           blocks: int = 8) -> FineSync:
     """Stage 3 (module docstring): offset, misalignment and bias by robust weighted least squares, for
     each mount in `mounts` (default: the coarse one and every mount whose correlation came within 0.05
     of it); the mount with the lowest cost wins (a mount differing only about an axis the motion
-    barely turns correlates almost as well, but fits worse)."""
+    barely turns correlates almost as well, but fits worse). Then, with `fit_readout` and bands measured
+    in at least half the intervals, the readout time too, on the bands."""
     if mounts is None:
         best = coarse.ncc_curves.max(axis=1)
         near = np.argsort(best)[::-1]
         mounts = tuple(int(i) for i in near[:4] if best[i] >= coarse.ncc - 0.05)
     prob = _FineProblem(pm, gyro_t, gyro_rate, coarse.time_offset_s, tau_s, readout_s)
-    x0 = np.r_[coarse.time_offset_s, np.zeros(6)]
+    x0 = prob.start(coarse.time_offset_s)
     fits = {i: prob.fit(x0, MOUNTS[i]) for i in mounts}
     mi = min(fits, key=lambda i: fits[i][1])
     M = MOUNTS[mi]
     x, cost = fits[mi]
-    n = len(prob.idx)
-    edges = np.linspace(0, n, blocks + 1).astype(int)
-    jk = []
-    for b in range(blocks):
-        sel = np.ones(n, bool)
-        sel[edges[b]:edges[b + 1]] = False
-        jk.append(prob.fit(x, M, sel)[0])
-    jk = np.array(jk)
-    sigma = np.sqrt((blocks - 1) / blocks * np.sum((jk - jk.mean(axis=0)) ** 2, axis=0))
+    banded = np.sum(np.all(np.isfinite(pm.band_rotvec), axis=2), axis=1) >= 2
+    readout_sigma = math.nan
+    if fit_readout and banded.sum() >= 0.5 * len(banded):
+        prob = _FineProblem(pm, gyro_t, gyro_rate, x[0], tau_s, readout_s, bands=True)
+        x, _ = prob.fit(prob.start(x[0], x), M)
+        sigma = prob.jackknife(x, M, blocks)
+        readout, readout_sigma = float(x[7]), float(sigma[7])
+    else:
+        sigma = prob.jackknife(x, M, blocks)
+        readout = readout_s
+    whole = _FineProblem(pm, gyro_t, gyro_rate, x[0], tau_s, readout)
     R = so3_exp(x[1:4]) @ M
-    res_rate = (prob.phi - prob.predicted(x, M)) / prob.dts[:, None]
+    res_rate = (whole.phi - whole.predicted(x[:7], M)) / whole.dts[:, None]
     return FineSync(float(x[0]), float(sigma[0]), 0.5 * tau_s, x[1:4].copy(), sigma[1:4].copy(),
                     x[4:7].copy(), sigma[4:7].copy(), R, mi, float(np.sqrt(np.mean(res_rate**2))),
-                    float(np.sqrt(np.mean((prob.phi / prob.dts[:, None]) ** 2))), n, cost,
-                    {int(i): c for i, (_, c) in fits.items()})
+                    float(np.sqrt(np.mean((whole.phi / whole.dts[:, None]) ** 2))), len(whole.phi), cost,
+                    {int(i): c for i, (_, c) in fits.items()}, readout, readout_sigma)
 
 
 # --------------------------------------------------------------------------------------------- result
@@ -584,8 +668,8 @@ class SyncResult:
     motion: dict
     picture: PictureMotion
     seconds: dict = field(default_factory=dict)
-    tau_s: float = 0.0
-    readout_s: float = 0.0
+    tau_s: float = 0.0              # as given (the sync does not fit it)
+    readout_given_s: float = 0.0    # as given; the fitted value is `fine.readout_s`
 
     @property
     def time_offset_s(self) -> float:
@@ -616,9 +700,11 @@ class SyncResult:
     def calibration_changes(self) -> dict:
         """Keyword arguments for `Calibration.replace`: the synced gyro chain, for gyro times already
         on the video clock (`camera_clock`)."""
+        period = float(np.median(self.picture.t1 - self.picture.t0))
         return {"time_offset_s": 0.0,
                 "R_cam_gyro": tuple(tuple(float(v) for v in row) for row in self.fine.R_cam_gyro),
-                "bias_rad_s": tuple(float(v) for v in self.fine.bias_rad_s)}
+                "bias_rad_s": tuple(float(v) for v in self.fine.bias_rad_s),
+                "readout_s": min(float(self.fine.readout_s), 0.99 * period)}
 
     def to_dict(self) -> dict:
         c, f = self.coarse, self.fine
@@ -638,6 +724,9 @@ class SyncResult:
                                  "sigma": f.misalignment_sigma_rad.tolist()},
             "R_cam_gyro": f.R_cam_gyro.tolist(),
             "gyro_bias_rad_s": {"value": f.bias_rad_s.tolist(), "sigma": f.bias_sigma_rad_s.tolist()},
+            "readout_s": {"value": f.readout_s,
+                          "sigma": f.readout_sigma_s if math.isfinite(f.readout_sigma_s) else None},
+            "tau_s": {"value": self.tau_s, "sigma": None, "note": "as given; see sync_discrepancy"},
             "residual_rms_rad_s": f.residual_rms_rad_s, "picture_rms_rad_s": f.picture_rms_rad_s,
             "intervals": f.n_intervals, "motion": self.motion, "grid_s": c.grid_s,
             "uncertainty": "sigma: delete-one-block jackknife over 8 contiguous stretches of the video; "
@@ -694,13 +783,13 @@ def plot_sync(result: SyncResult, gyro_t, gyro_rate, path) -> None:
     gr = np.asarray(gyro_rate, np.float64)
     pm, fine, coarse = result.picture, result.fine, result.coarse
     naive_offset = float(pm.t0[0] - gt[0])
-    after = _FineProblem(pm, gt, gr, fine.time_offset_s, result.tau_s, result.readout_s)
+    after = _FineProblem(pm, gt, gr, fine.time_offset_s, result.tau_s, fine.readout_s)
     x_after = np.r_[fine.time_offset_s, fine.misalignment_rad, fine.bias_rad_s]
     rate_after = after.predicted(x_after, MOUNTS[fine.mount_index]) / after.dts[:, None]
     before = _FineProblem(pm, gt, gr, naive_offset, 0.0, 0.0)
     rate_before = before.predicted(np.r_[naive_offset, np.zeros(6)], np.eye(3)) / before.dts[:, None]
-    tm = 0.5 * (pm.t0 + pm.t1)[after.idx] - pm.t0[0]
-    pic = pm.rate[after.idx]
+    tm = 0.5 * (after.t0 + after.t1) - pm.t0[0]
+    pic = after.phi / after.dts[:, None]
     fig = plt.figure(figsize=(12, 9), constrained_layout=True)
     grid = fig.add_gridspec(4, 2)
     deg = 180.0 / math.pi

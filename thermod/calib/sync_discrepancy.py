@@ -20,19 +20,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.calib.agc import fit_agc
-from thermod.calib.sync import DISCREPANCY_CANDIDATES, PictureMotion, SyncError, SyncResult
+from thermod.calib.sync import DISCREPANCY_CANDIDATES, SyncError, SyncResult
 from thermod.io.recording import Recording
 from thermod.physics.calibration import Calibration
 from thermod.physics.geometry import Intrinsics
 
 GYRO_LEAD_S = 0.3           # log before the stretch's first frame (the workflow's 5τ history and margins)
 GYRO_TAIL_S = 0.1
-
-
-def _slice_motion(pm: PictureMotion, i0: int, i1: int) -> PictureMotion:
-    s = slice(i0, i1 - 1)
-    return PictureMotion(pm.t0[s], pm.t1[s], pm.rotvec[s], pm.info[s], pm.n_features[s], pm.residual_px[s],
-                         pm.work)
 
 
 def stretches(result: SyncResult, window_s: float, count: int = 1) -> list[tuple[int, int]]:
@@ -70,7 +64,7 @@ def discrepancy_recording(frames, frame_t, gyro_t, gyro_rate, result: SyncResult
     gt = np.asarray(gyro_t, np.float64)
     i0, i1 = frames_range if frames_range is not None else stretches(result, window_s)[0]
     if agc:
-        fit = fit_agc(frames[i0:i1], _slice_motion(result.picture, i0, i1), intrinsics)
+        fit = fit_agc(frames[i0:i1], result.picture.sliced(i0, i1), intrinsics)
         counts = fit.to_uint16(frames[i0:i1])
     else:
         counts = np.asarray(frames[i0:i1])
@@ -84,8 +78,7 @@ def discrepancy_recording(frames, frame_t, gyro_t, gyro_rate, result: SyncResult
     rate_hz = 1.0 / float(np.median(np.diff(gt[g0:g1])))
     cal = Calibration(width=intrinsics.width, height=intrinsics.height, fx=intrinsics.fx, fy=intrinsics.fy,
                       cx=intrinsics.cx, cy=intrinsics.cy, tau_s=result.tau_s, frame_rate_hz=1.0 / period,
-                      readout_s=min(result.readout_s, 0.99 * period), rate_hz=rate_hz,
-                      **result.calibration_changes())
+                      rate_hz=rate_hz, **result.calibration_changes())
     rec = Recording(counts, t[i0:i1].copy(), result.camera_clock(gt[g0:g1]),
                     np.asarray(gyro_rate, np.float64)[g0:g1].astype(np.float32), cal)
     rec.validate("<synced video>")
