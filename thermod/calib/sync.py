@@ -624,6 +624,15 @@ def refine(pm: PictureMotion, gyro_t, gyro_rate, coarse: CoarseSync, *, tau_s: f
     of it); the mount with the lowest cost wins (a mount differing only about an axis the motion
     barely turns correlates almost as well, but fits worse). Then, with `fit_readout` and bands measured
     in at least half the intervals, the readout time too, on the bands."""
+    from threadpoolctl import threadpool_limits
+
+    # Each fit factors a few-thousand × 8 Jacobian: BLAS threads only contend for it (5× slower measured
+    # on a loaded 2-core machine).
+    with threadpool_limits(1):
+        return _refine(pm, gyro_t, gyro_rate, coarse, tau_s, readout_s, mounts, fit_readout, blocks)
+
+
+def _refine(pm, gyro_t, gyro_rate, coarse, tau_s, readout_s, mounts, fit_readout, blocks) -> FineSync:
     if mounts is None:
         best = coarse.ncc_curves.max(axis=1)
         near = np.argsort(best)[::-1]
