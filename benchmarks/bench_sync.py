@@ -1,7 +1,8 @@
 """Sync of a video to a gyro log from the pictures alone (`thermod.calib.sync`): offset error, mount
 found and time per minute of video, over seeds and motions.
 
-    python benchmarks/bench_sync.py [--quick]
+    python benchmarks/bench_sync.py [--quick] [--figure benchmarks/results/sync.png]
+    python benchmarks/bench_sync.py --discrepancy
 
 Flights (tests/sync_flights.py): the simulator's fine-time renderer, 50 Hz, τ = 8 ms, NETD 50 mK, a
 50° field of view, each frame through an 8-bit AGC (jittered gain and level); the video starts at a
@@ -55,6 +56,7 @@ def _effects(fx: dict) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="two seeds per motion, 3 s at 160×120 only")
+    ap.add_argument("--figure", metavar="PNG", help="also write the first flight's before/after figure")
     ap.add_argument("--discrepancy", action="store_true",
                     help="instead: the discrepancy workflow's fine stage on one flight (minutes)")
     args = ap.parse_args()
@@ -76,6 +78,8 @@ def main() -> None:
             print(f"| {fl.motion} | {seed} | {seconds:g} s | {size} | {_effects(fx)} | refused: {e} |")
             continue
         dt = time.perf_counter() - t0
+        if args.figure and not errs:
+            S.plot_sync(r, fl.gyro_t, fl.gyro_rate, args.figure)
         err = (r.time_offset_s - fl.true_offset_s) * 1e3
         errs.append(err)
         ang = math.degrees(float(np.linalg.norm(so3_log(fl.true_R.T @ r.R_cam_gyro))))

@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from thermod.calib import sync as S
 from thermod.errors import ThermodError
-from thermod.physics.geometry import so3_log
+from thermod.physics.geometry import Intrinsics, so3_log
 
 sys.path.insert(0, str(Path(__file__).parent))
 import sync_flights as sf  # noqa: E402
@@ -192,3 +194,20 @@ def test_the_discrepancy_recording_is_a_synced_format_v1_stretch(procedural):
     assert np.allclose(rec.calibration.R_cam_gyro_matrix, res.R_cam_gyro)
     d = prepare(rec, rec.calibration, name="stretch")
     assert d.reference == "motion" and len(d.frame_t) > 40
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(0, 40), h=st.integers(8, 24), w=st.integers(8, 24), m=st.integers(0, 300),
+       seed=st.integers(0, 2**16), dtype=st.sampled_from([np.uint8, np.uint16, np.float32]),
+       rate_hz=st.sampled_from([0.0, 1e-3, 50.0, 1e6]), log_rate=st.sampled_from([1e-3, 100.0, 8000.0]))
+def test_arbitrary_inputs_end_in_a_result_or_a_sync_error(n, h, w, m, seed, dtype, rate_hz, log_rate):
+    rng = np.random.default_rng(seed)
+    frames = (rng.random((n, h, w)) * 200).astype(dtype)
+    frame_t = np.cumsum(rng.exponential(1.0 / rate_hz, n)) if rate_hz > 0 else np.zeros(n)
+    gyro_t = np.cumsum(rng.exponential(1.0 / log_rate, m))
+    gyro_rate = rng.normal(0, 1, (m, 3))
+    intr = Intrinsics(w, h, 20.0, 20.0, (w - 1) / 2, (h - 1) / 2)
+    try:
+        S.synchronise(frames, frame_t, gyro_t, gyro_rate, intr)
+    except S.SyncError:
+        pass

@@ -73,6 +73,7 @@ MIN_NCC = 0.75                # the correlation peak a log must reach (null peak
 MIN_RESIDUAL_RATIO = 3.0      # the best place elsewhere must leave ≥ this × the peak's residual (1 − ρ²)
 MAX_MISALIGNMENT_RAD = 0.2    # the fine fit's rotation on top of an axis-aligned mount (11.5°)
 MAX_GRID_S = 0.005            # coarse correlation grid step
+MAX_GRID_SAMPLES = 1_000_000  # ... and its length over the whole log (a 1.4 h log at 5 ms)
 
 
 def _axis_aligned_rotations() -> tuple[np.ndarray, ...]:
@@ -423,10 +424,11 @@ def coarse_sync(pm: PictureMotion, gyro_t, gyro_rate, *, tau_s: float = 0.0, rea
 
     valid = pm.valid
     period = float(np.median(pm.t1 - pm.t0))
-    h = float(grid_s) if grid_s else min(MAX_GRID_S, period / 2.0)
     shift = 0.5 * readout_s
     v_lo, v_hi = pm.t0[0] - shift, pm.t1[-1] - shift
     video_s, log_s = v_hi - v_lo, float(gyro_t[-1] - gyro_t[0])
+    # the grid is at most MAX_GRID_SAMPLES long, so a long log coarsens it rather than the memory growing
+    h = max(float(grid_s) if grid_s else min(MAX_GRID_S, period / 2.0), log_s / MAX_GRID_SAMPLES)
     if video_s > log_s:
         raise DurationMismatch(f"the video lasts {video_s:.2f} s but the gyro log only {log_s:.2f} s: the "
                                "log cannot contain the video (a log of another flight, or cut short?)")
@@ -462,7 +464,7 @@ def coarse_sync(pm: PictureMotion, gyro_t, gyro_rate, *, tau_s: float = 0.0, rea
         raise LogMismatch("gyro log: the rates never change over the video's length (a log without gyro "
                           "data, or all zeros)")
     mounts = np.stack(MOUNTS)
-    curves = np.einsum("mij,ijl->ml", mounts, C) / np.maximum(norm, floor)
+    curves = (np.einsum("mij,ijl->ml", mounts, C) / np.maximum(norm, floor)).astype(np.float32)
     curves[:, norm < floor] = 0.0
     best_per_mount = curves.max(axis=1)
     order = np.argsort(best_per_mount)[::-1]
@@ -475,7 +477,7 @@ def coarse_sync(pm: PictureMotion, gyro_t, gyro_rate, *, tau_s: float = 0.0, rea
     rho_far = float(curves[:, far].max()) if far.any() else -1.0
     frac = 0.0
     if 0 < li < curves.shape[1] - 1:
-        y0, y1, y2 = curves[mi, li - 1:li + 2]
+        y0, y1, y2 = (float(v) for v in curves[mi, li - 1:li + 2])
         den = y0 - 2 * y1 + y2
         frac = float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) if den < 0 else 0.0
     lags = (v_lo - float(gyro_t[0])) - np.arange(curves.shape[1]) * h
