@@ -45,9 +45,10 @@ Refused, never guessed (`SyncError` subclasses): a video whose picture rotation 
 its own measurement noise (`TooLittleMotion`); a log shorter than the video (`DurationMismatch`); a
 log in which no place correlates significantly, or two places equally (`LogMismatch`).
 
-The motion-only discrepancy workflow (`thermod.calib.sync_discrepancy`, `DISCREPANCY_CANDIDATES`)
-can refine all of these, τ included, on a stretch of the synced video through the detector's forward
-model.
+The motion-only discrepancy workflow (`thermod.calib.sync_discrepancy`, `DISCREPANCY_CANDIDATES`) is
+the stage that sees τ apart from the offset (through the detector's forward model), and refits the
+rest on a stretch of the synced video; what it recovers at a given size is measured in
+benchmarks/results/sync.md.
 """
 
 from __future__ import annotations
