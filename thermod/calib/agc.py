@@ -5,12 +5,15 @@ frame k. Where only frame-to-frame motion matters (the optical flow of `thermod.
 is normalised on its own; the forward model of the discrepancy workflow, which predicts one frame from
 others through the detector's thermal response (Eq. 10), needs the counts on one scale. Frame j seen
 from frame k's pose (the rotation-only homography H = K Q_jk K⁻¹, Eq. 16, from the picture rotations)
-shows the same scene, so over the pixels both see the pair's relative map is y_k ≈ a_jk y_j + c_jk:
-a_jk = std(y_k)/std(y_j) (the symmetric, geometric-mean regression: noise in either frame does not
-pull it towards 0), both frames smoothed alike so their different motion blur matters less, and
-c_jk from the means. Pairs at several spacings (1, 2, 4, 8 frames) are combined by least squares on
-log g_k − log g_j = log a_jk and o_k − a_jk o_j = c_jk (frame 0: g = 1, o = 0), so one pair's error
-does not propagate down the whole chain as it would frame by frame.
+shows the same scene, so over the pixels both see the pair's relative map is y_k ≈ a_jk y_j + c_jk.
+It is fitted on the means of a grid of blocks (6 × 8, each ≥ ¾ seen by both): motion blur, which
+differs from frame to frame, moves a block's mean far less than its pixels' spread; a = std(means_k)
+/ std(means_j) (the symmetric, geometric-mean regression: misregistration in either frame does not
+pull it towards 0) when the means correlate (≥ 0.9), c from the means. Pairs at several spacings
+(1, 2, 4, 8 frames) are combined by least squares on log g_k − log g_j = log a_jk and
+o_k − a_jk o_j = c_jk (frame 0: g = 1, o = 0), so one pair's error does not propagate down the whole
+chain as it would frame by frame. What is left: a fast-turning frame's heavier blur still lowers its
+large-scale contrast a little, which reads as a lower gain.
 """
 
 from __future__ import annotations
