@@ -87,6 +87,28 @@ def test_the_rolling_readout_is_fitted_from_the_bands():
     assert res.calibration_changes()["readout_s"] == pytest.approx(res.fine.readout_s)
 
 
+class _LazyReader:
+    """A video reader that hands out one frame at a time and counts the reads."""
+
+    def __init__(self, frames):
+        self.frames, self.reads = frames, 0
+
+    def __len__(self):
+        return len(self.frames)
+
+    def __getitem__(self, k):
+        self.reads += 1
+        return self.frames[k]
+
+
+def test_a_lazy_reader_gives_the_same_sync_reading_each_frame_once(procedural):
+    fl, res = procedural
+    reader = _LazyReader(fl.frames)
+    lazy = _sync(fl, frames=reader)
+    assert reader.reads == len(fl.frames) + 1            # the shape check reads frame 0 once more
+    assert lazy.time_offset_s == res.time_offset_s and lazy.mount_index == res.mount_index
+
+
 def test_report_and_figure(procedural, tmp_path):
     fl, res = procedural
     d = json.loads(json.dumps(res.to_dict()))

@@ -236,11 +236,11 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
                    progress=None) -> PictureMotion:
     """The camera rotation between consecutive frames (module docstring, stage 1).
 
-    `frames` [N, H, W] grey (any integer or float type: each frame is normalised on its own);
+    `frames` [N, H, W] grey, or a sequence of [H, W] frames (any integer or float type: each frame is
+    normalised on its own, and read once);
     `frame_t` [N] seconds on the video clock; `intrinsics` of the full frame."""
     import cv2
 
-    frames = np.asarray(frames)
     t = np.asarray(frame_t, dtype=np.float64)
     n = len(frames)
     work, scale = _work_intrinsics(intrinsics, work_width)
@@ -755,13 +755,17 @@ def synchronise(frames, frame_t, gyro_t, gyro_rate, intrinsics: Intrinsics, *, t
     frames [N, H, W] grey (8- or 16-bit, AGC allowed); frame_t [N] s on the video clock (a frame's
     time: its last row read); gyro_t [M] s on the log clock; gyro_rate [M, 3] rad/s in the flight
     controller's frame; `intrinsics` of the frames; `tau_s` and `readout_s` as far as known (0: none).
-    Raises a `SyncError` subclass naming what was wrong."""
-    frames = np.asarray(frames)
-    if frames.ndim != 3 or frames.shape[1] < 16 or frames.shape[2] < 16:
-        raise SyncInputError(f"frames: expected [N, H, W] grey frames of ≥ 16×16 px, got shape "
-                             f"{frames.shape}")
-    if (frames.shape[2], frames.shape[1]) != (intrinsics.width, intrinsics.height):
-        raise SyncInputError(f"frames: {frames.shape[2]}×{frames.shape[1]} px but the intrinsics describe "
+    `frames` may also be any sequence of [H, W] frames with len() and indexing (a lazy reader: one
+    frame is read at a time). Raises a `SyncError` subclass naming what was wrong."""
+    lazy = hasattr(frames, "__len__") and hasattr(frames, "__getitem__")
+    if not isinstance(frames, np.ndarray) and not lazy:
+        frames = np.asarray(frames)
+    n = len(frames)
+    shape = (n, *np.shape(frames[0])) if n else np.shape(frames)
+    if len(shape) != 3 or shape[1] < 16 or shape[2] < 16:
+        raise SyncInputError(f"frames: expected [N, H, W] grey frames of ≥ 16×16 px, got shape {shape}")
+    if (shape[2], shape[1]) != (intrinsics.width, intrinsics.height):
+        raise SyncInputError(f"frames: {shape[2]}×{shape[1]} px but the intrinsics describe "
                              f"{intrinsics.width}×{intrinsics.height}")
     if not (0 <= tau_s <= 1 and 0 <= readout_s <= 1):
         raise SyncInputError(f"tau_s {tau_s!r}, readout_s {readout_s!r}: expected 0–1 s")

@@ -59,15 +59,15 @@ def discrepancy_recording(frames, frame_t, gyro_t, gyro_rate, result: SyncResult
     False: the frames are counts on one scale already and are kept as they are), the gyro
     samples from `GYRO_LEAD_S` before to `GYRO_TAIL_S` after it moved onto the video clock
     (`SyncResult.camera_clock`), and the sync's calibration."""
-    frames = np.asarray(frames)
     t = np.asarray(frame_t, np.float64)
     gt = np.asarray(gyro_t, np.float64)
     i0, i1 = frames_range if frames_range is not None else stretches(result, window_s)[0]
+    frames = np.stack([np.asarray(frames[i]) for i in range(i0, i1)])      # the stretch only
     if agc:
-        fit = fit_agc(frames[i0:i1], result.picture.sliced(i0, i1), intrinsics)
-        counts = fit.to_uint16(frames[i0:i1])
+        fit = fit_agc(frames, result.picture.sliced(i0, i1), intrinsics)
+        counts = fit.to_uint16(frames)
     else:
-        counts = np.asarray(frames[i0:i1])
+        counts = frames
         if counts.dtype != np.uint16:
             counts = np.clip(np.round(counts), 0, 65535).astype(np.uint16)
     off = result.time_offset_s
