@@ -46,6 +46,7 @@ class SyncFlight:
     bias_rad_s: np.ndarray
     motion: str
     raw: np.ndarray | None = None   # uint16 [N, H, W]: the detector counts before the AGC
+    drift_ppm: float = 0.0          # the log's clock runs at 1 + ε against the video's
 
     @property
     def true_R(self) -> np.ndarray:
@@ -72,10 +73,12 @@ def procedural_motion(seed: int) -> mo.Motion:
 def make_flight(seed: int = 0, seconds: float = 3.0, *, motion: str = "auto", static: bool = False,
                 log_s: float = 40.0, mount_index: int | None = None, bias=(0.01, -0.006, 0.004),
                 misalignment=(0.01, -0.008, 0.012), gyro_noise_deg_s: float = 0.5,
-                netd: float = 0.05, width: int = WIDTH, effects: dict | None = None) -> SyncFlight:
+                netd: float = 0.05, width: int = WIDTH, effects: dict | None = None,
+                drift_ppm: float = 0.0) -> SyncFlight:
     """A video of `seconds` somewhere in a log of `log_s` (the real log's length when it is used),
     `width` px wide (4:3, a 50° field of view); `effects` are hidden simulator effects (the nominal
-    τ and readout stay `TAU_S` and 0)."""
+    τ and readout stay `TAU_S` and 0). `drift_ppm`: the log's clock runs at 1 + ε against the video's,
+    the two agreeing at the video's middle (so `true_offset_s` holds there)."""
     rng = np.random.default_rng([seed, 24])
     log = real_log() if motion in ("auto", "real") else None
     if motion == "real" and log is None:
@@ -97,13 +100,15 @@ def make_flight(seed: int = 0, seconds: float = 3.0, *, motion: str = "auto", st
     mount = int(rng.integers(0, len(MOUNTS))) if mount_index is None else int(mount_index)
     from thermod.physics.geometry import so3_exp
     R = so3_exp(np.asarray(misalignment, float)) @ MOUNTS[mount]
-    w_cam = source.omega(log_t)
+    eps = drift_ppm * 1e-6
+    epoch = start + 0.5 * (round(seconds * FPS) - 1) / FPS
+    w_cam = source.omega(log_t + eps * (log_t - epoch))          # the log's stamps run at 1 + ε
     rate = w_cam @ R + np.asarray(bias, float)             # ω_gyro = Rᵀ ω_cam + b
     rate += math.radians(gyro_noise_deg_s) * rng.standard_normal(rate.shape)
     frames = agc_8bit(rec.frames, rng)
     return SyncFlight(frames, rec.t.copy(), log_t, rate, cal.intrinsics, TAU_S, T_VIDEO0 - start, mount,
                       np.asarray(misalignment, float), np.asarray(bias, float),
-                      "static" if static else f"{name} from {start:.2f} s", rec.frames)
+                      "static" if static else f"{name} from {start:.2f} s", rec.frames, drift_ppm)
 
 
 class _Shifted(mo.Motion):

@@ -77,7 +77,7 @@ def test_real_log_flight_is_synced_and_its_mount_found(require):
 
 
 def test_the_rolling_readout_is_fitted_from_the_bands():
-    # hidden 12 ms readout (the user's nominal: 0); measured 11.8 ± 0.3 ms, offset error +0.1 ms
+    # hidden 12 ms readout (the user's nominal: 0); measured 12.2 ± 0.2 ms, offset error −0.3 ms
     fl = sf.make_flight(4, motion="procedural", effects={"rolling_readout": 0.012})
     res = _sync(fl)
     assert res.fine.readout_s == pytest.approx(0.012, abs=0.0015)
@@ -85,6 +85,18 @@ def test_the_rolling_readout_is_fitted_from_the_bands():
     assert abs(res.time_offset_s - fl.true_offset_s) < 0.004
     assert res.mount_index == fl.mount_index
     assert res.calibration_changes()["readout_s"] == pytest.approx(res.fine.readout_s)
+
+
+def test_a_clock_drift_between_video_and_log_is_fitted():
+    # the log's clock 1000 ppm fast (a video stamped at a nominal rate): measured 1003 ± 49 ppm
+    fl = sf.make_flight(7, 6.0, motion="procedural", drift_ppm=1000.0)
+    res = _sync(fl)
+    assert res.fine.clock_drift_ppm == pytest.approx(1000.0, abs=200.0)
+    assert 0 < res.fine.clock_drift_sigma_ppm < 150
+    assert abs(res.time_offset_s - fl.true_offset_s) < 0.002
+    changes = res.calibration_changes()
+    assert changes["clock_drift_ppm"] == res.fine.clock_drift_ppm
+    assert changes["clock_epoch_s"] == pytest.approx(0.5 * (fl.frame_t[0] + fl.frame_t[-1]))
 
 
 class _LazyReader:
@@ -116,7 +128,8 @@ def test_report_and_figure(procedural, tmp_path):
     assert d["time_offset_s"]["sigma"] > 0 and d["time_offset_s"]["lag_bound"] == pytest.approx(fl.tau_s / 2)
     assert len(d["gyro_bias_rad_s"]["sigma"]) == 3
     changes = res.calibration_changes()
-    assert set(changes) == {"time_offset_s", "R_cam_gyro", "bias_rad_s", "readout_s"}
+    assert set(changes) == {"time_offset_s", "R_cam_gyro", "bias_rad_s", "readout_s", "clock_drift_ppm",
+                            "clock_epoch_s"}
     assert changes["time_offset_s"] == 0
     assert res.camera_clock(fl.gyro_t)[0] == pytest.approx(fl.gyro_t[0] + res.time_offset_s)
     png = tmp_path / "sync.png"

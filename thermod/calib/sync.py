@@ -23,15 +23,17 @@ elsewhere), in three stages:
    gyro bias does not count) picks the lag and the mount; a parabola through the peak refines the lag
    below h. Conventions: ω_cam = M ω_gyro, t_cam = t_gyro + time_offset_s.
 3. **Fine** (`refine`). Weighted robust least squares (Huber) of the picture rotations φ_k against the
-   gyro's, integrated over each interval: φ̂_k = exp([δ]×) M (∫ ω_τ(t − off) dt − b Δt) with the
-   offset off, a small misalignment δ (≤ 0.2 rad) on top of the mount and the gyro bias b (gyro
-   frame), for the best few mounts by correlation (the lowest cost wins: a mount that differs only
-   about an axis the motion barely turns correlates almost as well, but fits worse). Then the
-   rolling readout: the rotation is also fitted on the corners of three horizontal bands alone, and
-   band b's rows are read lead_b·readout before the frame time (lead = 1 − (row + 1)/H), so where the
-   rate changes the bands see it at times a share of the readout apart; the readout joins the fit
-   (0 to one frame period). Uncertainties: a delete-one-block jackknife over 8 contiguous stretches
-   of the video (residuals are correlated in time, so the fit's own covariance would be optimistic).
+   gyro's, integrated over each interval: φ̂_k = exp([δ]×) M (∫ ω_τ(t − off − ε (t − t_mid)) dt − b Δt)
+   with the offset off at the video's middle t_mid, the clocks' rate difference ε (a video stamped at
+   its nominal frame rate drifts against the log), a small misalignment δ (≤ 0.2 rad) on top of the
+   mount and the gyro bias b (gyro frame), for the best few mounts by correlation (the lowest cost
+   wins: a mount that differs only about an axis the motion barely turns correlates almost as well,
+   but fits worse). Then the rolling readout: the rotation is also fitted on the corners of three
+   horizontal bands alone, and band b's rows are read lead_b·readout before the frame time
+   (lead = 1 − (row + 1)/H), so where the rate changes the bands see it at times a share of the
+   readout apart; the readout joins the fit (0 to one frame period). Uncertainties: a delete-one-block
+   jackknife over 8 contiguous stretches of the video (residuals are correlated in time, so the fit's
+   own covariance would be optimistic).
 
 The picture lags the gyro through the detector: the centroid of its exponential response is τ
 behind, which the gyro's τ filter models; Lucas–Kanade on a comet-tailed corner follows the sharper
@@ -73,6 +75,7 @@ MIN_MOTION_PX = 0.25          # picture rotation RMS per interval, in working-im
 MIN_NCC = 0.75                # the correlation peak a log must reach (null peaks of a 3 s video: ≤ 0.63)
 MIN_RESIDUAL_RATIO = 3.0      # the best place elsewhere must leave ≥ this × the peak's residual (1 − ρ²)
 MAX_MISALIGNMENT_RAD = 0.2    # the fine fit's rotation on top of an axis-aligned mount (11.5°)
+MAX_DRIFT = 0.005             # the clocks' rate difference the fine fit allows (5000 ppm)
 MAX_GRID_S = 0.005            # coarse correlation grid step
 MAX_GRID_SAMPLES = 1_000_000  # ... and its length over the whole log (a 1.4 h log at 5 ms)
 
@@ -232,7 +235,7 @@ def _work_intrinsics(intr: Intrinsics, work_width: int) -> tuple[Intrinsics, flo
 
 
 def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int = 160,
-                   max_features: int = 300, seed: int = 0, smooth_px: float = 0.0,
+                   max_features: int = 150, seed: int = 0, smooth_px: float = 0.0,
                    progress=None) -> PictureMotion:
     """The camera rotation between consecutive frames (module docstring, stage 1).
 
@@ -526,6 +529,9 @@ class FineSync:
     mount_costs: dict = field(default_factory=dict)
     readout_s: float = 0.0
     readout_sigma_s: float = math.nan       # NaN: not fitted (bands too sparse, or not asked)
+    clock_drift_ppm: float = 0.0            # the gyro clock runs at 1 + ε against the video's
+    clock_drift_sigma_ppm: float = math.nan
+    clock_epoch_video_s: float = 0.0        # where `time_offset_s` holds: the video's middle (video clock)
 
 
 class _GyroIntegral:
@@ -549,10 +555,12 @@ class _GyroIntegral:
 class _FineProblem:
     """φ against exp([δ]×) M (∫ω_τ − b Δt) over the measured intervals, each whitened by its information.
 
-    Whole frames (`bands` False): the rows are read ½ readout before the frame time on average, the
-    readout fixed. Bands: each band's rotation over its own rows' read times (lead · readout before),
-    the readout a parameter (x[7]) in [0, one frame period]: a rate that changes shows up in the bands
-    at times that differ by a share of the readout."""
+    x = (offset, δ (3), bias (3), clock drift ε[, readout]): the gyro's time for camera time t is
+    t − offset − ε (t − t_mid), t_mid the middle of the video (the epoch), as `Calibration`'s clock
+    drift has it. Whole frames (`bands` False): the rows are read ½ readout before the frame time on
+    average, the readout fixed. Bands: each band's rotation over its own rows' read times (lead ·
+    readout before), the readout a parameter (x[8]) in [0, one frame period]: a rate that changes
+    shows up in the bands at times that differ by a share of the readout."""
 
     def __init__(self, pm: PictureMotion, gyro_t, gyro_rate, offset_s: float, tau_s: float, readout_s: float,
                  bands: bool = False):
@@ -565,6 +573,8 @@ class _FineProblem:
             self.phi, info, self.lead = pm.rotvec[k], pm.info[k], np.full(len(k), 0.5)
         self.interval = k
         self.t0, self.t1 = pm.t0[k], pm.t1[k]
+        self.t_mid = 0.5 * (float(pm.t0[0]) + float(pm.t1[-1]))
+        self.since_mid = 0.5 * (self.t0 + self.t1) - self.t_mid
         self.fit_readout = bands
         self.readout_s = readout_s
         self.period = float(np.median(pm.t1 - pm.t0))
@@ -574,18 +584,18 @@ class _FineProblem:
         self.gi = _GyroIntegral(gyro_t, gyro_rate, lo, hi, tau_s)
         self.L = np.linalg.cholesky(info).transpose(0, 2, 1)           # ‖L r‖² = rᵀ info r
         self.dts = self.t1 - self.t0
-        n = 8 if bands else 7
-        self.scale = np.r_[1e-3, [1e-2] * 6, 1e-3][:n]
-        self.lower = np.r_[-np.inf, [-MAX_MISALIGNMENT_RAD] * 3, [-np.inf] * 3, 0.0][:n]
-        self.upper = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3, self.period][:n]
+        n = 9 if bands else 8
+        self.scale = np.r_[1e-3, [1e-2] * 6, 1e-5, 1e-3][:n]
+        self.lower = np.r_[-np.inf, [-MAX_MISALIGNMENT_RAD] * 3, [-np.inf] * 3, -MAX_DRIFT, 0.0][:n]
+        self.upper = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3, MAX_DRIFT, self.period][:n]
 
     def start(self, offset_s: float, x=None) -> np.ndarray:
-        x0 = np.r_[offset_s, np.zeros(6)] if x is None else np.asarray(x[:7], float)
+        x0 = np.r_[offset_s, np.zeros(7)] if x is None else np.asarray(x[:8], float)
         return np.r_[x0, self.readout_s] if self.fit_readout else x0
 
     def predicted(self, x, M, sel=slice(None)):
-        ro = x[7] if self.fit_readout else self.readout_s
-        shift = x[0] + ro * self.lead[sel]
+        ro = x[8] if self.fit_readout else self.readout_s
+        shift = x[0] + x[7] * self.since_mid[sel] + ro * self.lead[sel]
         ig = self.gi.integral(self.t0[sel] - shift, self.t1[sel] - shift) - x[4:7] * self.dts[sel, None]
         return ig @ (so3_exp(x[1:4]) @ M).T
 
@@ -652,17 +662,18 @@ def _refine(pm, gyro_t, gyro_rate, coarse, tau_s, readout_s, mounts, fit_readout
         prob = _FineProblem(pm, gyro_t, gyro_rate, x[0], tau_s, readout_s, bands=True)
         x, _ = prob.fit(prob.start(x[0], x), M)
         sigma = prob.jackknife(x, M, blocks)
-        readout, readout_sigma = float(x[7]), float(sigma[7])
+        readout, readout_sigma = float(x[8]), float(sigma[8])
     else:
         sigma = prob.jackknife(x, M, blocks)
         readout = readout_s
     whole = _FineProblem(pm, gyro_t, gyro_rate, x[0], tau_s, readout)
     R = so3_exp(x[1:4]) @ M
-    res_rate = (whole.phi - whole.predicted(x[:7], M)) / whole.dts[:, None]
+    res_rate = (whole.phi - whole.predicted(x[:8], M)) / whole.dts[:, None]
     return FineSync(float(x[0]), float(sigma[0]), 0.5 * tau_s, x[1:4].copy(), sigma[1:4].copy(),
                     x[4:7].copy(), sigma[4:7].copy(), R, mi, float(np.sqrt(np.mean(res_rate**2))),
                     float(np.sqrt(np.mean((whole.phi / whole.dts[:, None]) ** 2))), len(whole.phi), cost,
-                    {int(i): c for i, (_, c) in fits.items()}, readout, readout_sigma)
+                    {int(i): c for i, (_, c) in fits.items()}, readout, readout_sigma,
+                    float(x[7] * 1e6), float(sigma[7] * 1e6), whole.t_mid)
 
 
 # --------------------------------------------------------------------------------------------- result
@@ -705,8 +716,9 @@ class SyncResult:
         return min(others) / self.fine.cost if others and self.fine.cost > 0 else math.inf
 
     def camera_clock(self, gyro_t) -> np.ndarray:
-        """Gyro sample times moved onto the video clock (t + time_offset_s): a recording's `/gyro/t`,
-        whose calibration then needs `time_offset_s` = 0 (`calibration_changes`; its range is ±1 s)."""
+        """Gyro sample times moved onto the video clock by the offset (t + time_offset_s): a recording's
+        `/gyro/t`, whose calibration then needs `time_offset_s` = 0 (`calibration_changes`; its range is
+        ±1 s) and carries the drift about the video's middle (`clock_drift_ppm`, `clock_epoch_s`)."""
         return np.asarray(gyro_t, np.float64) + self.fine.time_offset_s
 
     def calibration_changes(self) -> dict:
@@ -716,7 +728,9 @@ class SyncResult:
         return {"time_offset_s": 0.0,
                 "R_cam_gyro": tuple(tuple(float(v) for v in row) for row in self.fine.R_cam_gyro),
                 "bias_rad_s": tuple(float(v) for v in self.fine.bias_rad_s),
-                "readout_s": min(float(self.fine.readout_s), 0.99 * period)}
+                "readout_s": min(float(self.fine.readout_s), 0.99 * period),
+                "clock_drift_ppm": float(self.fine.clock_drift_ppm),
+                "clock_epoch_s": float(self.fine.clock_epoch_video_s)}
 
     def to_dict(self) -> dict:
         c, f = self.coarse, self.fine
@@ -736,6 +750,8 @@ class SyncResult:
                                  "sigma": f.misalignment_sigma_rad.tolist()},
             "R_cam_gyro": f.R_cam_gyro.tolist(),
             "gyro_bias_rad_s": {"value": f.bias_rad_s.tolist(), "sigma": f.bias_sigma_rad_s.tolist()},
+            "clock_drift_ppm": {"value": f.clock_drift_ppm, "sigma": f.clock_drift_sigma_ppm,
+                                "epoch_video_s": f.clock_epoch_video_s},
             "readout_s": {"value": f.readout_s,
                           "sigma": f.readout_sigma_s if math.isfinite(f.readout_sigma_s) else None},
             "tau_s": {"value": self.tau_s, "sigma": None, "note": "as given; see sync_discrepancy"},
@@ -800,10 +816,10 @@ def plot_sync(result: SyncResult, gyro_t, gyro_rate, path) -> None:
     pm, fine, coarse = result.picture, result.fine, result.coarse
     naive_offset = float(pm.t0[0] - gt[0])
     after = _FineProblem(pm, gt, gr, fine.time_offset_s, result.tau_s, fine.readout_s)
-    x_after = np.r_[fine.time_offset_s, fine.misalignment_rad, fine.bias_rad_s]
+    x_after = np.r_[fine.time_offset_s, fine.misalignment_rad, fine.bias_rad_s, 1e-6 * fine.clock_drift_ppm]
     rate_after = after.predicted(x_after, MOUNTS[fine.mount_index]) / after.dts[:, None]
     before = _FineProblem(pm, gt, gr, naive_offset, 0.0, 0.0)
-    rate_before = before.predicted(np.r_[naive_offset, np.zeros(6)], np.eye(3)) / before.dts[:, None]
+    rate_before = before.predicted(np.r_[naive_offset, np.zeros(7)], np.eye(3)) / before.dts[:, None]
     tm = 0.5 * (after.t0 + after.t1) - pm.t0[0]
     pic = after.phi / after.dts[:, None]
     fig = plt.figure(figsize=(12, 9), constrained_layout=True)
