@@ -25,15 +25,15 @@ elsewhere), in three stages:
 3. **Fine** (`refine`). Weighted robust least squares (Huber) of the picture rotations φ_k against the
    gyro's, integrated over each interval: φ̂_k = exp([δ]×) M (∫ ω_τ(t − off − ε (t − t_mid)) dt − b Δt)
    with the offset off at the video's middle t_mid, the clocks' rate difference ε (a video stamped at
-   its nominal frame rate drifts against the log), a small misalignment δ (≤ 0.2 rad) on top of the
-   mount and the gyro bias b (gyro frame), for the best few mounts by correlation (the lowest cost
-   wins: a mount that differs only about an axis the motion barely turns correlates almost as well,
-   but fits worse). Then the rolling readout: the rotation is also fitted on the corners of three
-   horizontal bands alone, and band b's rows are read lead_b·readout before the frame time
-   (lead = 1 − (row + 1)/H), so where the rate changes the bands see it at times a share of the
-   readout apart; the readout joins the fit (0 to one frame period). Uncertainties: a delete-one-block
-   jackknife over 8 contiguous stretches of the video (residuals are correlated in time, so the fit's
-   own covariance would be optimistic).
+   its nominal frame rate drifts against the log; fitted on videos of ≥ 5 s), a small misalignment δ
+   (≤ 0.2 rad) on top of the mount and the gyro bias b (gyro frame), for the best few mounts by
+   correlation (the lowest cost wins: a mount that differs only about an axis the motion barely turns
+   correlates almost as well, but fits worse). Then the rolling readout: the rotation is also fitted on
+   the corners of three horizontal bands alone, and band b's rows are read lead_b·readout before the
+   frame time (lead = 1 − (row + 1)/H), so where the rate changes the bands see it at times a share of
+   the readout apart; the readout joins the fit (0 to one frame period). Uncertainties: a
+   delete-one-block jackknife over 8 contiguous stretches of the video (residuals are correlated in
+   time, so the fit's own covariance would be optimistic).
 
 The picture lags the gyro through the detector: the centroid of its exponential response is τ
 behind, which the gyro's τ filter models; Lucas–Kanade on a comet-tailed corner follows the sharper
@@ -76,6 +76,7 @@ MIN_NCC = 0.75                # the correlation peak a log must reach (null peak
 MIN_RESIDUAL_RATIO = 3.0      # the best place elsewhere must leave ≥ this × the peak's residual (1 − ρ²)
 MAX_MISALIGNMENT_RAD = 0.2    # the fine fit's rotation on top of an axis-aligned mount (11.5°)
 MAX_DRIFT = 0.005             # the clocks' rate difference the fine fit allows (5000 ppm)
+MIN_DRIFT_VIDEO_S = 5.0       # ... fitted on videos at least this long (else held at 0)
 MAX_GRID_S = 0.005            # coarse correlation grid step
 MAX_GRID_SAMPLES = 1_000_000  # ... and its length over the whole log (a 1.4 h log at 5 ms)
 
@@ -530,7 +531,7 @@ class FineSync:
     readout_s: float = 0.0
     readout_sigma_s: float = math.nan       # NaN: not fitted (bands too sparse, or not asked)
     clock_drift_ppm: float = 0.0            # the gyro clock runs at 1 + ε against the video's
-    clock_drift_sigma_ppm: float = math.nan
+    clock_drift_sigma_ppm: float = math.nan  # NaN: not fitted (a video shorter than MIN_DRIFT_VIDEO_S)
     clock_epoch_video_s: float = 0.0        # where `time_offset_s` holds: the video's middle (video clock)
 
 
@@ -585,9 +586,12 @@ class _FineProblem:
         self.L = np.linalg.cholesky(info).transpose(0, 2, 1)           # ‖L r‖² = rᵀ info r
         self.dts = self.t1 - self.t0
         n = 9 if bands else 8
+        # a short video's drift would only take up model error (a bound of 1e-12 holds it at 0)
+        self.fit_drift = self.t1[-1] - self.t0[0] >= MIN_DRIFT_VIDEO_S
+        drift = MAX_DRIFT if self.fit_drift else 1e-12
         self.scale = np.r_[1e-3, [1e-2] * 6, 1e-5, 1e-3][:n]
-        self.lower = np.r_[-np.inf, [-MAX_MISALIGNMENT_RAD] * 3, [-np.inf] * 3, -MAX_DRIFT, 0.0][:n]
-        self.upper = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3, MAX_DRIFT, self.period][:n]
+        self.lower = np.r_[-np.inf, [-MAX_MISALIGNMENT_RAD] * 3, [-np.inf] * 3, -drift, 0.0][:n]
+        self.upper = np.r_[np.inf, [MAX_MISALIGNMENT_RAD] * 3, [np.inf] * 3, drift, self.period][:n]
 
     def start(self, offset_s: float, x=None) -> np.ndarray:
         x0 = np.r_[offset_s, np.zeros(7)] if x is None else np.asarray(x[:8], float)
@@ -673,7 +677,8 @@ def _refine(pm, gyro_t, gyro_rate, coarse, tau_s, readout_s, mounts, fit_readout
                     x[4:7].copy(), sigma[4:7].copy(), R, mi, float(np.sqrt(np.mean(res_rate**2))),
                     float(np.sqrt(np.mean((whole.phi / whole.dts[:, None]) ** 2))), len(whole.phi), cost,
                     {int(i): c for i, (_, c) in fits.items()}, readout, readout_sigma,
-                    float(x[7] * 1e6), float(sigma[7] * 1e6), whole.t_mid)
+                    float(x[7] * 1e6) if whole.fit_drift else 0.0,
+                    float(sigma[7] * 1e6) if whole.fit_drift else math.nan, whole.t_mid)
 
 
 # --------------------------------------------------------------------------------------------- result
@@ -750,8 +755,9 @@ class SyncResult:
                                  "sigma": f.misalignment_sigma_rad.tolist()},
             "R_cam_gyro": f.R_cam_gyro.tolist(),
             "gyro_bias_rad_s": {"value": f.bias_rad_s.tolist(), "sigma": f.bias_sigma_rad_s.tolist()},
-            "clock_drift_ppm": {"value": f.clock_drift_ppm, "sigma": f.clock_drift_sigma_ppm,
-                                "epoch_video_s": f.clock_epoch_video_s},
+            "clock_drift_ppm": {"value": f.clock_drift_ppm, "epoch_video_s": f.clock_epoch_video_s,
+                                "sigma": (f.clock_drift_sigma_ppm if math.isfinite(f.clock_drift_sigma_ppm)
+                                          else None)},
             "readout_s": {"value": f.readout_s,
                           "sigma": f.readout_sigma_s if math.isfinite(f.readout_sigma_s) else None},
             "tau_s": {"value": self.tau_s, "sigma": None, "note": "as given; see sync_discrepancy"},
