@@ -3,7 +3,9 @@
 A `Job` is plain data (paths, the `DeblurConfig`, the calibration file, the radiometric model), so
 the same `run_job` runs in this process (`thermod.batch.local`) or on a Dask worker
 (`thermod.batch.cluster`) and writes the same bytes: every frame's kernel comes from
-`thermod.restore.plan.render` (the dispatch the daemon uses too) and is removed by `thermod.physics.deconv`.
+`thermod.restore.plan.render` (the dispatch the daemon uses too) and is removed by `thermod.physics.deconv`:
+jointly with its `DeblurConfig.temporal_views` − 1 predecessors (one `TemporalDeconvolver` per file, fed
+every frame in read order), or alone when that is 1.
 
 `run_job` never raises for a bad file: it returns an `Outcome` whose `error` is one line naming the
 file (a `ThermodError`'s message, or "unexpected …" for a bug), so one file's failure costs no other.
@@ -187,14 +189,31 @@ def deblur_file(job: Job, bar) -> FileReport:
     return report
 
 
-def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec):
-    """(deblurred frame, "") or (None, why it is passed through)."""
+def temporal_deconvolver(cfg: DeblurConfig, calib, dec):
+    """A `TemporalDeconvolver` over `dec` for one file (its history is that file's), or None when
+    `cfg.temporal_views` is 1 (single-frame solves)."""
+    if cfg.temporal_views <= 1:
+        return None
+    from thermod.physics.deconv.temporal import TemporalDeconvolver  # OpenCV only when temporal
+
+    return TemporalDeconvolver(calib, views=cfg.temporal_views, single=dec, min_coverage=cfg.min_coverage)
+
+
+def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec,
+                  tdec=None):
+    """(deblurred frame, "") or (None, why it is passed through). With `tdec` every frame whose kernel
+    renders enters its history, a passed-through one too (its low coverage keeps it out of the joint
+    solves, while the history stays in read order)."""
     from thermod.restore.plan import render
 
     try:
         kernel, info = render(reader.gyro_t, reader.gyro_rate, calib, t, cfg)
         if info["coverage"] < cfg.min_coverage:
+            if tdec is not None:
+                tdec.push(frame, kernel, t)
             return None, f"gyro coverage {info['coverage']:.3f} < {cfg.min_coverage}"
+        if tdec is not None:
+            return tdec.run(frame, kernel, t, reader.gyro_t, reader.gyro_rate), ""
         return (dec.run_varying(frame, kernel) if cfg.mode == "grid" else dec.run(frame, kernel)), ""
     except ThermodError as e:   # a kernel that cannot be rendered or inverted: keep the frame
         return None, str(e)
@@ -224,11 +243,13 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     times = []
     lams = np.full(n, np.nan)
     ok = np.zeros(n, dtype=bool)
+    tdec = temporal_deconvolver(cfg, calib, dec)
+    views = np.zeros(n, dtype=np.int8)     # frames each solve used (0: passed through)
     for i in range(n):
         frame = r.frame(i)
         w.append_frame(frame, r.t[i])
         t0 = time.perf_counter()
-        out, why = _deblur_frame(frame, r, calib, float(r.t[i]), cfg, dec)
+        out, why = _deblur_frame(frame, r, calib, float(r.t[i]), cfg, dec, tdec)
         times.append(time.perf_counter() - t0)
         if out is None:
             passed.append((i, why))
@@ -237,6 +258,7 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
         else:
             ok[i] = True
             lams[i] = dec.last_lam
+            views[i] = tdec.last_views if tdec is not None else 1
         w.append("deblurred/frames", out, np.float32)
         if model is not None:     # °C after deblurring: counts, not temperatures, are linear in flux
             w.append("deblurred/celsius", model.to_celsius(out), np.float32)
@@ -244,7 +266,10 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     w.put("deblurred/t", r.t)
     w.put("deblurred/deblurred", ok)
     w.put("deblurred/lambda", lams)      # per frame (noise-adaptive unless --lambda)
+    w.put("deblurred/views", views)
     w.set_attrs("deblurred", {"kernel": cfg.kernel, "method": dec.method, "mode": cfg.mode,
+                              "solver": "temporal" if tdec is not None else "single-frame",
+                              "temporal_views": int(cfg.temporal_views),
                               "lambda_mode": "adaptive" if dec.lam is None else "fixed",
                               "alpha": dec.alpha, "m": cfg.m,
                               "grid": np.asarray((1, 1) if cfg.mode == "uniform" else cfg.grid),

@@ -4,13 +4,18 @@ For every frame the gyro samples of its m·τ history give the blur kernel (Eq. 
 Eq. 17, photon baseline) through `thermod.restore.plan.render` — the same dispatch as the
 daemon — and `thermod.physics.deconv` removes it: by default spatially varying (a grid of kernels,
 deconvolved in blended tiles — camera roll makes the blur vary across the frame), or one kernel
-per frame with `--uniform` (the paper's method). Every other default is `DeblurConfig()`'s.
+per frame with `--uniform` (the paper's method). Each frame is solved jointly with its predecessors
+(`DeblurConfig.temporal_views` frames in all, gyro-warped into its geometry, each with its own kernel:
+`thermod.physics.deconv.temporal`); `--single-frame` solves each frame alone. Every other default is
+`DeblurConfig()`'s.
 
 The output holds the input's /camera and /gyro (and any other datasets, e.g. /truth) plus
 /deblurred/frames (float32, the input's counts) and /deblurred/t. A frame whose gyro window is
 incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
 unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
-frames were deblurred and /deblurred/lambda (float64 [N]) the data weight each one used.
+frames were deblurred, /deblurred/lambda (float64 [N]) the data weight each one used and
+/deblurred/views (int8 [N]) how many frames each solve used; /deblurred's `solver` attribute says
+"temporal" or "single-frame".
 With `--celsius`, /deblurred/celsius (float32 [N, H, W], °C; attrs units = "degC" and the model's
 keys) converts each frame of /deblurred/frames — the deblurred counts, or a passed-through frame's
 raw counts, as the daemon does — with a radiometric model (`thermod.physics.radiometry`):
@@ -66,6 +71,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"Krishnan–Fergus hyper-Laplacian or Wiener/Tikhonov (fast); default {d.method}")
     parser.add_argument("--uniform", action="store_true",
                         help="one kernel per frame (the paper's method) instead of a kernel grid")
+    parser.add_argument("--views", type=int, default=d.temporal_views, metavar="N",
+                        help=f"frames per temporal solve, the frame itself included (default "
+                             f"{d.temporal_views}; 1 = --single-frame)")
+    parser.add_argument("--single-frame", action="store_true",
+                        help="solve each frame alone (no temporal solve; faster, noisier)")
     parser.add_argument("--lambda", dest="lam", type=float, default=d.lam,
                         help="data weight λ for a unit-range frame (K&F convention); default: adapted to "
                              "each frame's noise (see thermod.physics.deconv.Deconvolver)")
@@ -106,11 +116,14 @@ def deblur_config(args) -> DeblurConfig:
         raise ThermodError(f"--exposure {args.exposure}: expected a positive time in seconds")
     if not 0 <= args.min_coverage <= 1:
         raise ThermodError(f"--min-coverage {args.min_coverage}: expected a fraction in [0, 1]")
+    if not 1 <= args.views <= 16:
+        raise ThermodError(f"--views {args.views}: expected 1 (single-frame) to 16 frames per solve")
     uniform = args.uniform or grid == (1, 1)
     return dataclasses.replace(OFFLINE, method=args.method, lam=args.lam, alpha=float(args.alpha),
                                kernel=args.kernel, exposure_s=args.exposure, psf=not args.no_psf,
                                mode="uniform" if uniform else "grid", grid=grid,
-                               min_coverage=float(args.min_coverage))
+                               min_coverage=float(args.min_coverage),
+                               temporal_views=1 if args.single_frame else int(args.views))
 
 
 def _outputs(inputs: list[Path], output: str | Path) -> list[Path]:
@@ -191,6 +204,7 @@ def run(args) -> int:
         if len(r.passed) > 20:
             print(f"  … and {len(r.passed) - 20} more")
     mode = "uniform" if cfg.mode == "uniform" else f"grid {cfg.grid[0]}×{cfg.grid[1]}"
+    mode += f", temporal {cfg.temporal_views} views" if cfg.temporal_views > 1 else ", single-frame"
     where = f" on {args.scheduler}" if args.scheduler else ""
     if n_all:      # a per-frame time only over frames that exist (failed files have none)
         print(f"total: {n_all - n_pass} frames deblurred, {n_pass} passed through, {len(reports)} file(s) "

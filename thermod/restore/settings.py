@@ -23,6 +23,7 @@ class DeblurConfig:
     grid: tuple[int, int] = (6, 8)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
     grid_tol_px: float = 0.5         # adaptive: kernel shift allowed across a cell (px) before it is split
     kf_iterations: int | None = None  # K&F β steps (None: K&F's six); the governor's faster rung uses 3
+    temporal_views: int = 6          # frames per solve, the frame itself included (1: single-frame solve)
     governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)
     max_solve_s: float = 0.030       # governor: longest solve wanted per frame, for latency (s)
     headroom: float = 0.15           # governor: share of the budget kept free for jitter

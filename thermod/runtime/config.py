@@ -205,6 +205,8 @@ DEBLUR = with_defaults(DeblurConfig, {
     "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
     "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
     "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
+    "temporal_views": Key(int, lo=1, hi=16, doc="frames per temporal solve, the frame itself included "
+                          "(1: single-frame); offline only for now, the daemon solves single frames"),
     "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
     "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
     "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
