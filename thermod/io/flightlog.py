@@ -64,6 +64,22 @@ FORWARD_CAMERA_FROM_FRD = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0,
 FRD_FROM_BETAFLIGHT = np.diag([1.0, -1.0, -1.0])
 
 
+def axis_aligned_rotations() -> np.ndarray:
+    """The 24 proper rotations whose entries are 0 or ±1 (the axis-aligned camera mounts), [24, 3, 3],
+    in a fixed order: the signed permutation matrices with determinant +1, sorted by their entries
+    (the identity is the last)."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[range(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.array(sorted(out, key=lambda m: tuple(m.ravel())))
+
+
 class FlightLogError(ThermodError):
     """A flight log cannot be read as asked: names the file and what was expected."""
 
@@ -336,6 +352,39 @@ def write_betaflight_csv(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s:
     else:
         body = [f"{a},{b},{x:.4f},{y:.4f},{z:.4f}" for (a, b), (x, y, z) in zip(cols, deg, strict=True)]
     _atomic_text(path, "\n".join(lines) + "\n", body)
+    return path
+
+
+def write_ardupilot_bin(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: np.ndarray, *,
+                       n_imus: int = 1) -> Path:
+    """Write an ArduPilot DataFlash ``.bin`` holding FMT records and one ``IMU`` record
+    (TimeUS µs since boot, instance I, GyrX/Y/Z rad/s FRD, AccX/Y/Z m/s² = 0) per sample and IMU;
+    with `n_imus` > 1 each sample is logged once per instance in turn, as ArduPilot logs its IMUs
+    (instance i's rates are the same plus 0.001·i rad/s, so the instances can be told apart)."""
+    import struct
+
+    path = Path(path)
+    t, rate = _check_series(path, t, rate_frd_rad_s)
+    us = np.round(t * 1e6).astype(np.int64)
+    if np.any(np.diff(us) <= 0) or us[0] < 0:
+        raise FlightLogError(path, "times must be ≥ 0 and increase by ≥ 1 µs (ArduPilot logs µs since boot)")
+    if not 1 <= n_imus <= 3:
+        raise FlightLogError(path, f"n_imus {n_imus}: expected 1–3")
+
+    def fmt(msg_type, length, name, form, cols):
+        return struct.pack("<3BBB4s16s64s", 0xA3, 0x95, 0x80, msg_type, length, name.encode(), form.encode(),
+                           cols.encode())
+
+    imu = struct.Struct("<3BQB6f")
+    out = [fmt(0x80, 89, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"),
+           fmt(0x81, imu.size, "IMU", "QBffffff", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")]
+    for k in range(len(us)):
+        for i in range(n_imus):
+            w = rate[k] + 0.001 * i
+            out.append(imu.pack(0xA3, 0x95, 0x81, int(us[k]), i, *w.tolist(), 0.0, 0.0, 0.0))
+    part = path.with_name(path.name + ".part")
+    part.write_bytes(b"".join(out))
+    os.replace(part, path)
     return path
 
 
