@@ -1,6 +1,8 @@
 """thermod.io.flightlog on real logs (Betaflight blackbox, PX4 ULog: tests/data/flightlogs) and on files
 written in Gyroflow's gcsv and Betaflight's CSV, read back through telemetry-parser; errors; fuzzing."""
 
+import functools
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,9 @@ from thermod.io.flightlog import (
     FORWARD_CAMERA_FROM_FRD,
     FlightLog,
     FlightLogError,
+    axis_aligned_rotations,
     read_flight_log,
+    write_ardupilot_bin,
     write_betaflight_csv,
     write_gcsv,
 )
@@ -124,11 +128,33 @@ def test_betaflight_csv_is_read_as_blackbox_in_frd(tmp_path):
     np.testing.assert_allclose(log.rate, w, atol=1e-5)
 
 
+@pytest.mark.parametrize("n_imus", [1, 2, 3])
+def test_ardupilot_bin_is_read_in_frd_keeping_the_first_imu(tmp_path, n_imus):
+    rng = np.random.default_rng(n_imus)
+    t = 7.0 + np.arange(2000) / 400.0
+    w = rng.normal(0, 1.0, (2000, 3))
+    path = write_ardupilot_bin(tmp_path / "flight.bin", t, w, n_imus=n_imus)
+    assert path.read_bytes()[:4] == bytes([0xA3, 0x95, 0x80, 0x80])      # DataFlash FMT of FMT
+    assert telemetry_parser.Parser(str(path)).camera == "ArduPilot"
+    log = read_flight_log(path)
+    assert log.source_format == "ardupilot" and log.frame == "FRD" and len(log) == 2000
+    np.testing.assert_allclose(log.t, t, atol=1e-9)
+    np.testing.assert_allclose(log.rate, w, atol=1e-6)                     # instance 0, float32 in the file
+
+
 def test_a_sibling_gcsv_is_not_read_in_place_of_the_named_file(tmp_path):
     t = np.arange(100) / 1000.0 + 1
     write_gcsv(tmp_path / "x.gcsv", t, np.ones((100, 3)))
     log = read_flight_log(write_betaflight_csv(tmp_path / "x.csv", t, np.zeros((100, 3))))
     assert log.source_format == "betaflight-csv" and np.all(log.rate == 0)
+
+
+def test_the_24_axis_aligned_mounts():
+    r = axis_aligned_rotations()
+    assert r.shape == (24, 3, 3) and len({m.tobytes() for m in r}) == 24
+    assert np.allclose(np.einsum("kij,kil->kjl", r, r), np.eye(3)) and np.allclose(np.linalg.det(r), 1)
+    assert np.array_equal(r[-1], np.eye(3)) and np.array_equal(r, axis_aligned_rotations())
+    assert any(np.array_equal(m, FORWARD_CAMERA_FROM_FRD) for m in r)
 
 
 def test_forward_camera_mount_is_a_proper_rotation():
@@ -218,7 +244,15 @@ def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------- fuzzing
-SEEDS = {".bbl": BBL.read_bytes()[:6000], ".ulg": ULG.read_bytes()[:6000]}
+@functools.cache
+def _seeds() -> dict[str, bytes]:
+    """A small valid file of each family, to mutate."""
+    t, w = 1.0 + np.arange(200) / 500.0, np.random.default_rng(0).normal(0, 1, (200, 3))
+    with tempfile.TemporaryDirectory() as d:
+        return {".bbl": BBL.read_bytes()[:6000], ".ulg": ULG.read_bytes()[:6000],
+                ".bin": write_ardupilot_bin(Path(d) / "s.bin", t, w, n_imus=2).read_bytes(),
+                ".gcsv": write_gcsv(Path(d) / "s.gcsv", t, w).read_bytes(),
+                ".csv": write_betaflight_csv(Path(d) / "s.csv", t, w).read_bytes()}
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -236,7 +270,7 @@ def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
         body = data.draw(st.text(alphabet="0123456789,.-e\nabc\"", max_size=400))
         blob = (head + body).encode()
     else:
-        b = bytearray(SEEDS.get(suffix, SEEDS[".bbl"]))
+        b = bytearray(_seeds()[suffix])
         for _ in range(data.draw(st.integers(1, 12))):
             b[data.draw(st.integers(0, len(b) - 1))] = data.draw(st.integers(0, 255))
         blob = bytes(b[: data.draw(st.integers(1, len(b)))])
