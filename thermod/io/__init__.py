@@ -8,5 +8,6 @@ through OpenCV) and `thermod.io.flightlog` reads flight-controller gyro logs (te
 pyulog) and writes gcsv, Betaflight CSV and ArduPilot DataFlash (docs/design.md §3, "Flights from
 other tools"). Formats only: this package imports h5py, PyAV, OpenCV, telemetry-parser, pyulog,
 `thermod.physics` (for `Calibration`) and `thermod.errors`, and never `thermod.runtime`,
-`thermod.calib`, `thermod.cli`, `thermod.drivers`, `thermod.sim`, zmq or GStreamer — sending and receiving belong to `thermod.runtime.publish`.
+`thermod.calib`, `thermod.cli`, `thermod.drivers`, `thermod.sim`, zmq or GStreamer — sending and
+receiving belong to `thermod.runtime.publish`.
 """
