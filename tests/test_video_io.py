@@ -8,6 +8,7 @@ import av
 import cv2
 import numpy as np
 import pytest
+import tifffile
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -159,6 +160,11 @@ def test_tiff_sequence_errors_name_the_file(tmp_path):
     colour = _write_tiffs(tmp_path / "rgb", [np.zeros((8, 8, 3), np.uint16)])
     with pytest.raises(VideoError, match="single-channel"):
         read_video(colour, fps=10)
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    tifffile.imwrite(wide / "w.tif", np.zeros((2, 20000), np.uint16))     # refused from its header
+    with pytest.raises(VideoError, match=r"w\.tif: image shape \(2, 20000\)"):
+        read_video(wide, fps=10)
     (tmp_path / "no_tiffs").mkdir()
     with pytest.raises(VideoError, match="no .tif"):
         read_video(tmp_path / "no_tiffs", fps=10)
@@ -174,6 +180,21 @@ def test_truncated_videos_are_refused_naming_the_file(tmp_path):
     mp4.write_bytes(data[: len(data) // 2])                       # moov at the end: header lost
     with pytest.raises(VideoError, match=r"cut\.mp4: not a video FFmpeg can read, or truncated"):
         read_video(mp4)
+    with av.open(str(tmp_path / "fast.mp4"), "w", options={"movflags": "faststart"}) as c:   # moov first
+        s = c.add_stream("libx264", rate=25)
+        s.width, s.height, s.pix_fmt = 160, 120, "yuv420p"
+        for k, f in enumerate(frames):
+            vf = av.VideoFrame.from_ndarray(f, format="gray").reformat(format="yuv420p")
+            vf.pts, vf.time_base = k * 3600, Fraction(1, 90000)
+            for pk in s.encode(vf):
+                c.mux(pk)
+        for pk in s.encode():
+            c.mux(pk)
+    data = (tmp_path / "fast.mp4").read_bytes()
+    assert data[:64].find(b"moov") > 0
+    (tmp_path / "fast.mp4").write_bytes(data[: len(data) * 7 // 10])
+    with pytest.raises(VideoError, match=r"fast\.mp4: (decoding stopped at frame \d+|truncated)"):
+        read_video(tmp_path / "fast.mp4")
     mkv = _encode(tmp_path / "cut.mkv", "ffv1", "gray", frames, np.arange(20) * 40)
     data = mkv.read_bytes()
     mkv.write_bytes(data[: len(data) * 2 // 3])                   # clusters lost, duration declared
@@ -268,6 +289,8 @@ def test_percentile_agc_stretches_and_follows_the_scene_smoothly():
     steps = np.diff(gains)
     assert np.all(steps > 0)                                        # the offset follows, monotonic
     assert gains[-1] - offset == pytest.approx(400 * (1 - np.exp(-1.0 / 0.5)), rel=0.01)
+    y2, g2, o2 = agc.apply(base + 400.0, 1.1)
+    assert np.array_equal(PercentileAGC.stretch(base + 400.0, g2, o2), y2)    # another frame, same AGC
     with pytest.raises(ThermodError):
         PercentileAGC(low_pct=50, high_pct=10)
 
@@ -279,25 +302,35 @@ def seed_video(tmp_path_factory):
     return write_video(d / "seed.mp4", _texture(4, h=16, w=16, seed=14), np.arange(4) / 25.0).read_bytes()
 
 
+seed_tiff = cv2.imencode(".tif", np.arange(64, dtype=np.uint16).reshape(8, 8))[1].tobytes()
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_fuzzed_bytes_give_a_video_or_a_video_error(tmp_path, seed_video, data):
+    as_tiff = data.draw(st.booleans())        # a video file (FFmpeg) or one file of a TIFF sequence (OpenCV)
+    seed = seed_tiff if as_tiff else seed_video
     kind = data.draw(st.sampled_from(["random", "flip", "cut"]))
     if kind == "random":
         blob = data.draw(st.binary(max_size=4096))
     elif kind == "flip":
-        b = bytearray(seed_video)
+        b = bytearray(seed)
         for _ in range(data.draw(st.integers(1, 16))):
             b[data.draw(st.integers(0, len(b) - 1))] = data.draw(st.integers(0, 255))
         blob = bytes(b)
     else:
-        blob = seed_video[: data.draw(st.integers(0, len(seed_video)))]
-    path = tmp_path / "fuzz.mp4"
-    path.write_bytes(blob)
+        blob = seed[: data.draw(st.integers(0, len(seed)))]
+    if as_tiff:
+        path = tmp_path / "seq"
+        path.mkdir(exist_ok=True)
+        (path / "fuzz_0.tif").write_bytes(blob)
+    else:
+        path = tmp_path / "fuzz.mp4"
+        path.write_bytes(blob)
     try:
-        got = read_video(path, max_bytes=2**24)
+        got = read_video(path, fps=30.0 if as_tiff else None, max_bytes=2**24)
     except VideoError as e:
-        assert "fuzz.mp4" in str(e)
+        assert ("fuzz" in str(e)) or ("seq" in str(e))
         return
     assert got.frames.ndim == 3 and got.frames.shape[0] == got.t.shape[0] >= 1
     assert np.all(np.diff(got.t) > 0) and got.frames.dtype in (np.uint8, np.uint16)

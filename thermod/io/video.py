@@ -10,7 +10,8 @@ Reading (`iter_video`, `read_video`, `probe_video`):
   the grey level, and luma is the closest monotonic stand-in for it. Other colour formats (RGB,
   palettes) are converted to grey by FFmpeg's swscale (also `luma_only`).
 - **A 16-bit TIFF sequence**: a folder (its ``*.tif``/``*.tiff`` files) or a glob pattern, in
-  natural order of the file names (``f2`` before ``f10``), read with OpenCV (IMREAD_UNCHANGED).
+  natural order of the file names (``f2`` before ``f10``), each one's header checked with tifffile
+  and its pixels read with OpenCV (IMREAD_UNCHANGED).
   A sequence has no timestamps: ``fps`` must be given, and frame k is at ``t0 + k / fps``.
 
 **Time**: float64 seconds on the container's own clock, a frame's presentation timestamp
@@ -36,6 +37,7 @@ import glob
 import math
 import os
 import re
+import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -311,10 +313,22 @@ def _natural_key(p: Path):
 
 
 def _read_tiff(path: Path) -> np.ndarray:
+    """One grey TIFF: its declared size is checked (tifffile reads the header only) before OpenCV
+    decodes and allocates it."""
     import cv2
+    import tifffile
+
     try:
-        if path.stat().st_size > 4 * MAX_SIDE * MAX_SIDE:
-            raise VideoError(path, "larger than a 16384×16384 16-bit image can be")
+        with tifffile.TiffFile(str(path)) as tf:
+            page = tf.pages[0]
+            shape, samples = tuple(int(v) for v in page.shape), int(page.samplesperpixel)
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError, KeyError, struct.error) as e:
+        raise VideoError(path, f"not an image OpenCV can read (expected a 16-bit grey TIFF: {e})") from None
+    if samples != 1:
+        raise VideoError(path, f"{samples} channels: expected a single-channel grey TIFF")
+    if len(shape) != 2 or not all(1 <= v <= MAX_SIDE for v in shape):
+        raise VideoError(path, f"image shape {shape}: expected one grey plane of 1–{MAX_SIDE} px per side")
+    try:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     except cv2.error as e:
         raise VideoError(path, f"OpenCV cannot read it as an image ({e})") from None
@@ -500,5 +514,11 @@ class PercentileAGC:
             self._hi += a * (hi - self._hi)
         self._t = float(t)
         gain = 255.0 / max(self._hi - self._lo, self.min_span)
-        y = np.clip((x - self._lo) * gain + 0.5, 0, 255).astype(np.uint8)
-        return y, gain, self._lo
+        return self.stretch(x, gain, self._lo), gain, self._lo
+
+    @staticmethod
+    def stretch(frame: np.ndarray, gain: float, offset: float) -> np.ndarray:
+        """y = clip((x − offset) · gain, 0, 255) as uint8 (rounded): one frame's stretch applied to
+        another, e.g. a deblurred frame shown with its input's AGC."""
+        x = np.asarray(frame, dtype=np.float32)
+        return np.clip((x - offset) * gain + 0.5, 0, 255).astype(np.uint8)
