@@ -37,7 +37,6 @@ import glob
 import math
 import os
 import re
-import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from fractions import Fraction
@@ -183,6 +182,8 @@ def _info_from_container(path: Path, c) -> VideoInfo:
         raise VideoError(path, "contains no video stream")
     s = c.streams.video[0]
     cc = s.codec_context
+    if cc is None:
+        raise VideoError(path, "its video stream has no codec FFmpeg can decode (damaged header?)")
     w, h = int(cc.width or 0), int(cc.height or 0)
     _check_size(path, w, h)
     pix = cc.pix_fmt or (s.format.name if s.format else "") or ""
@@ -322,7 +323,7 @@ def _read_tiff(path: Path) -> np.ndarray:
         with tifffile.TiffFile(str(path)) as tf:
             page = tf.pages[0]
             shape, samples = tuple(int(v) for v in page.shape), int(page.samplesperpixel)
-    except (tifffile.TiffFileError, ValueError, OSError, IndexError, KeyError, struct.error) as e:
+    except Exception as e:   # noqa: BLE001 - tifffile raises many kinds (TypeError, AttributeError, …) on damage
         raise VideoError(path, f"not an image OpenCV can read (expected a 16-bit grey TIFF: {e})") from None
     if samples != 1:
         raise VideoError(path, f"{samples} channels: expected a single-channel grey TIFF")
