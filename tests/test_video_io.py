@@ -98,6 +98,22 @@ def test_16bit_grey_video_ffv1_mkv_keeps_every_count_and_vfr_times(tmp_path):
     np.testing.assert_allclose(got.t, pts / 1000.0, atol=1e-9)
 
 
+def test_10_12_16bit_formats_come_out_as_coded_in_uint16(tmp_path):
+    counts = np.random.default_rng(15).integers(0, 4096, (3, 16, 32), dtype=np.uint16)    # 12-bit
+    g12 = read_video(_encode(tmp_path / "g12.mkv", "ffv1", "gray12le", counts << 4, [0, 40, 80],
+                             fmt="gray16le"))
+    assert g12.info.pix_fmt == "gray12le" and g12.info.bit_depth == 16 and not g12.info.luma_only
+    assert np.abs(g12.frames.astype(int) - counts).max() <= 1          # 12-bit values, not rescaled
+    be = read_video(_encode(tmp_path / "be.nut", "rawvideo", "gray16be", counts * 16, [0, 40, 80],
+                            fmt="gray16le"))
+    assert be.info.pix_fmt == "gray16be" and np.array_equal(be.frames, counts * 16)
+    y10 = read_video(_encode(tmp_path / "y10.mkv", "libx265", "yuv420p10le", counts << 4, [0, 40, 80],
+                             fmt="gray16le", options={"x265-params": "lossless=1:log-level=error"}))
+    assert y10.info.luma_only and y10.frames.dtype == np.uint16
+    assert 64 <= y10.frames.min() and y10.frames.max() <= 940          # 10-bit limited-range luma as coded
+    assert np.corrcoef(y10.frames.ravel(), counts.ravel())[0, 1] > 0.999
+
+
 def test_8bit_grey_and_colour_codecs_give_grey_frames(tmp_path):
     frames = _texture(4, seed=5)
     g8 = read_video(_encode(tmp_path / "g8.mkv", "ffv1", "gray", frames, [0, 40, 80, 120]))
