@@ -132,6 +132,16 @@ def test_8bit_grey_and_colour_codecs_give_grey_frames(tmp_path):
     assert np.mean(hevc.frames) == pytest.approx(np.mean(expected), abs=3)
 
 
+def test_a_variable_rate_faster_than_the_nominal_one_is_read_whole(tmp_path):
+    """20 frames 10 ms apart in a stream declared at 25 fps: the header's duration counts the last frame
+    as 40 ms and its rate would size 7 frames; neither is taken for truncation or a limit."""
+    frames = _texture(20, h=16, w=32, seed=16)
+    got = read_video(_encode(tmp_path / "fast.mkv", "ffv1", "gray", frames, np.arange(20) * 10))
+    assert probe_video(tmp_path / "fast.mkv").frame_rate_hz == 25.0
+    assert np.array_equal(got.frames, frames)
+    np.testing.assert_allclose(got.t, np.arange(20) * 0.01)
+
+
 def test_iter_video_streams_one_frame_at_a_time(tmp_path):
     frames = _texture(6, seed=6)
     path = write_video(tmp_path / "s.mp4", frames, np.arange(6) * 0.02, crf=0)
