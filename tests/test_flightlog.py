@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from thermod.io.flightlog import (
     DEG,
     FORWARD_CAMERA_FROM_FRD,
+    GCSV_ORIENTATION_OPENCV_CAMERA,
     FlightLog,
     FlightLogError,
     axis_aligned_rotations,
@@ -157,6 +158,20 @@ def test_the_24_axis_aligned_mounts():
     assert np.allclose(np.einsum("kij,kil->kjl", r, r), np.eye(3)) and np.allclose(np.linalg.det(r), 1)
     assert np.array_equal(r[-1], np.eye(3)) and np.array_equal(r, axis_aligned_rotations())
     assert any(np.array_equal(m, FORWARD_CAMERA_FROM_FRD) for m in r)
+
+
+def test_gcsv_camera_orientation_gives_gyroflow_the_axes_it_gives_an_fc_log(tmp_path):
+    """Camera-frame rates written with GCSV_ORIENTATION_OPENCV_CAMERA reach Gyroflow's axes
+    (telemetry-parser's normalized_imu) as the same motion logged by a flight controller with a
+    forward camera does."""
+    t = 2.0 + np.arange(400) / 400.0
+    w_frd = np.random.default_rng(3).normal(0, 1.0, (400, 3))
+    fc = write_ardupilot_bin(tmp_path / "fc.bin", t, w_frd)
+    cam = write_gcsv(tmp_path / "cam.gcsv", t, w_frd @ FORWARD_CAMERA_FROM_FRD.T,
+                     orientation=GCSV_ORIENTATION_OPENCV_CAMERA)
+    g_fc = np.array([r["gyro"] for r in telemetry_parser.Parser(str(fc)).normalized_imu()])
+    g_cam = np.array([r["gyro"] for r in telemetry_parser.Parser(str(cam)).normalized_imu()])
+    np.testing.assert_allclose(g_cam, g_fc, atol=1e-4)               # °/s; float32 and µrad/s rounding
 
 
 def test_forward_camera_mount_is_a_proper_rotation():
