@@ -62,9 +62,10 @@ class MountedMotion(mo.Motion):
 @dataclass
 class SimulatedFlight:
     """The written files and the truth (module docstring). `recording` is the simulated recording
-    (uint16 counts on the simulator's own clock, frames at `recording.t`, with its truth extras);
-    `frame_t_video` the video's frame times as `read_video` reads them; `agc_gain`/`agc_offset`
-    each frame's stretch (8-bit = (counts − offset) · gain)."""
+    (uint16 counts on the simulator's own clock, frames at `recording.t`, with its truth extras:
+    recording.t[k] − recording.t[0] = frame_t_video[k] − frame_t_video[0]); `frame_t_video` the
+    video's frame times as `read_video` reads them; `agc_gain`/`agc_offset` each frame's stretch
+    (8-bit = (counts − offset) · gain, also in truth.json), to put the truth in the video's scale."""
 
     video_path: Path
     log_paths: dict[str, Path]
@@ -211,6 +212,8 @@ def _write_truth(sim: SimulatedFlight) -> None:
         "video": sim.video_path.name,
         "logs": {k: v.name for k, v in sim.log_paths.items()},
         "frames": int(len(sim.frame_t_video)),
+        "agc_gain": sim.agc_gain.tolist(),
+        "agc_offset": sim.agc_offset.tolist(),
         "calibration": {k: (list(v) if isinstance(v, tuple) else v)
                         for k, v in sim.recording.calibration.camera_attrs().items()},
     }
