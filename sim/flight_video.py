@@ -43,6 +43,8 @@ from thermod.physics.calibration import Calibration
 from thermod.sim import motion as mo
 
 LOG_FORMATS = {"gcsv": "log.gcsv", "betaflight-csv": "log.csv", "ardupilot": "log.bin"}
+GYRO_SIDE_EFFECTS = {"time_offset", "gyro_bias", "gyro_scale", "misalignment", "gyro_noise", "clock_drift",
+                     "gyro_lowpass", "gyro_saturation", "clock_drift_ppm", "gyro_lowpass_hz"}
 
 
 class MountedMotion(mo.Motion):
@@ -60,9 +62,10 @@ class MountedMotion(mo.Motion):
 @dataclass
 class SimulatedFlight:
     """The written files and the truth (module docstring). `recording` is the simulated recording
-    (uint16 counts on the simulator's own clock, frames at `recording.t`, with its truth extras);
-    `frame_t_video` the video's frame times as `read_video` reads them; `agc_gain`/`agc_offset`
-    each frame's stretch (8-bit = (counts − offset) · gain)."""
+    (uint16 counts on the simulator's own clock, frames at `recording.t`, with its truth extras:
+    recording.t[k] − recording.t[0] = frame_t_video[k] − frame_t_video[0]); `frame_t_video` the
+    video's frame times as `read_video` reads them; `agc_gain`/`agc_offset` each frame's stretch
+    (8-bit = (counts − offset) · gain, also in truth.json), to put the truth in the video's scale."""
 
     video_path: Path
     log_paths: dict[str, Path]
@@ -80,6 +83,7 @@ class SimulatedFlight:
     truth_path: Path
     body_t_log: np.ndarray = field(repr=False)          # the log's sample times (s, log clock)
     body_rate: np.ndarray = field(repr=False)           # the true FRD body rates there (rad/s, noise-free)
+    gyro_bias_rad_s: np.ndarray = field(default_factory=lambda: np.zeros(3))   # added to the log (FRD)
 
     @property
     def time_offset_s(self) -> float:
@@ -93,10 +97,14 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
                     body_rms_deg_s: tuple = (30.0, 25.0, 12.0), scene: str = "texture",
                     mount: int | np.ndarray | None = None, video_start_s: float | None = None,
                     log_start_s: float = 37.25, formats: tuple = ("gcsv", "betaflight-csv"),
-                    crf: int = 18, seed: int = 0, agc: video.PercentileAGC | None = None) -> SimulatedFlight:
+                    crf: int = 18, seed: int = 0, agc: video.PercentileAGC | None = None,
+                    effects: dict | None = None, gyro_bias_rad_s=(0.0, 0.0, 0.0)) -> SimulatedFlight:
     """Simulate and write a flight (module docstring). `mount` is an index into the 24 axis-aligned
     rotations or a 3×3 rotation (default: drawn from `seed`); `video_start_s` the video's start in
-    the log (default: drawn from `seed`, ≥ 1 s from either end); `formats` any of `LOG_FORMATS`."""
+    the log (default: drawn from `seed`, ≥ 1 s from either end); `formats` any of `LOG_FORMATS`.
+    `effects` are `thermod.sim.synth` effects of the camera side (rolling_readout, time_constant,
+    netd, …; the log is written here, so gyro-side effects are refused); `gyro_bias_rad_s` (FRD,
+    rad/s) is added to every logged sample."""
     from thermod.sim.synth import simulate
 
     out = Path(out_dir)
@@ -109,6 +117,13 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
     if not (0 < seconds and seconds + 2.0 <= log_seconds <= 3600):
         raise ThermodError(f"simulate_flight: expected a log ≥ 2 s longer than the video and ≤ 1 h, got "
                            f"video {seconds} s, log {log_seconds} s")
+    gyro_side = sorted(set(effects or {}) & GYRO_SIDE_EFFECTS)
+    if gyro_side:
+        raise ThermodError(f"simulate_flight: effects {gyro_side} act on the simulator's own gyro, not on "
+                           "the written log; give the log's bias as gyro_bias_rad_s")
+    bias = np.broadcast_to(np.asarray(gyro_bias_rad_s, dtype=np.float64), (3,))
+    if not np.all(np.isfinite(bias)):
+        raise ThermodError(f"simulate_flight: gyro_bias_rad_s {gyro_bias_rad_s!r}: expected finite rad/s")
     rng = np.random.default_rng([seed, 24])
     rotations = flightlog.axis_aligned_rotations()
     camera_from_body, mount_index = _mount(mount, rotations, rng)
@@ -124,7 +139,8 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
                                   cy=(height - 1) / 2, frame_rate_hz=float(fps), tau_s=float(tau_s),
                                   rate_hz=float(gyro_rate_hz))
     # motion time 0 = the first frame = log time log_start_s + video_start_s
-    rec = simulate(scene, MountedMotion(body, camera_from_body), seconds, calib, seed=seed, truth=True)
+    rec = simulate(scene, MountedMotion(body, camera_from_body), seconds, calib, effects=effects, seed=seed,
+                   truth=True)
 
     agc = agc or video.PercentileAGC()
     frames8, gains, offsets = [], [], []
@@ -142,8 +158,8 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
 
     t_log = log_start_s + np.arange(int(round(log_seconds * gyro_rate_hz))) / gyro_rate_hz
     w_body = body.omega(t_log - (log_start_s + video_start_s))
-    noisy = w_body + math.radians(gyro_noise_deg_s) * np.random.default_rng([seed, 25]).standard_normal(
-        w_body.shape)
+    noise = np.random.default_rng([seed, 25]).standard_normal(w_body.shape)
+    noisy = w_body + bias + math.radians(gyro_noise_deg_s) * noise
     log_paths = {}
     for fmt in formats:
         path = out / LOG_FORMATS[fmt]
@@ -159,7 +175,7 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
                              float(log_start_s), float(video_start_s), float(log_seconds),
                              float(gyro_rate_hz),
                              t_read, np.asarray(gains), np.asarray(offsets), rec, out / "truth.json",
-                             t_log, w_body)
+                             t_log, w_body, bias.copy())
     _write_truth(result)
     return result
 
@@ -190,9 +206,14 @@ def _write_truth(sim: SimulatedFlight) -> None:
         "video_start_s": sim.video_start_s,
         "log_seconds": sim.log_seconds,
         "gyro_rate_hz": sim.gyro_rate_hz,
+        "gyro_bias_rad_s": sim.gyro_bias_rad_s.tolist(),
+        "effects": {k: (list(v) if isinstance(v, tuple) else v)
+                    for k, v in json.loads(sim.recording.extra_attrs["truth"]["effects_json"]).items()},
         "video": sim.video_path.name,
         "logs": {k: v.name for k, v in sim.log_paths.items()},
         "frames": int(len(sim.frame_t_video)),
+        "agc_gain": sim.agc_gain.tolist(),
+        "agc_offset": sim.agc_offset.tolist(),
         "calibration": {k: (list(v) if isinstance(v, tuple) else v)
                         for k, v in sim.recording.calibration.camera_attrs().items()},
     }

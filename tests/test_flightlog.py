@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from thermod.io.flightlog import (
     DEG,
     FORWARD_CAMERA_FROM_FRD,
+    GCSV_ORIENTATION_OPENCV_CAMERA,
     FlightLog,
     FlightLogError,
     axis_aligned_rotations,
@@ -50,9 +51,11 @@ def test_real_betaflight_blackbox_gives_the_longest_log_in_frd_rad_s(bbl_log):
     assert log.t[0] == pytest.approx(191.882474)                       # the FC's clock, untouched
     assert "Betaflight 4.2.11" in log.model
     # gyroADC (°/s, x fwd / y left / z up) → FRD rad/s: (roll, −pitch, −yaw)
+    # the same samples as telemetry-parser's raw view of the second log, axes and clock undone
     raw = telemetry_parser.Parser(str(BBL)).telemetry()[1]["Gyroscope"]["Data"]
-    first = np.array([raw[0]["x"], raw[0]["y"], raw[0]["z"]]) * DEG
-    np.testing.assert_allclose(log.rate[0], first * [1, -1, -1])
+    np.testing.assert_allclose(log.t, [d["t"] for d in raw], atol=1e-9)
+    gyro_adc = np.array([(d["x"], d["y"], d["z"]) for d in raw]) * DEG
+    np.testing.assert_allclose(log.rate, gyro_adc * [1, -1, -1], atol=1e-12)
     assert 0.5 < np.abs(log.rate).max() < 40                            # a flight: up to a few 100 °/s
     short = read_flight_log(BBL, log_index=0)
     assert len(short) == 98 and short.log_index == 0
@@ -128,17 +131,17 @@ def test_betaflight_csv_is_read_as_blackbox_in_frd(tmp_path):
     np.testing.assert_allclose(log.rate, w, atol=1e-5)
 
 
-@pytest.mark.parametrize("n_imus", [1, 2, 3])
-def test_ardupilot_bin_is_read_in_frd_keeping_the_first_imu(tmp_path, n_imus):
+@pytest.mark.parametrize("n_imus,stagger_s", [(1, 0.0), (2, 0.0), (2, 5e-6), (3, 20e-6)])
+def test_ardupilot_bin_is_read_in_frd_keeping_the_first_imu(tmp_path, n_imus, stagger_s):
     rng = np.random.default_rng(n_imus)
-    t = 7.0 + np.arange(2000) / 400.0
+    t = 7.0 + np.arange(2000) / 400.0 + rng.normal(0, 20e-6, 2000)        # loop jitter
     w = rng.normal(0, 1.0, (2000, 3))
-    path = write_ardupilot_bin(tmp_path / "flight.bin", t, w, n_imus=n_imus)
+    path = write_ardupilot_bin(tmp_path / "flight.bin", t, w, n_imus=n_imus, stagger_s=stagger_s)
     assert path.read_bytes()[:4] == bytes([0xA3, 0x95, 0x80, 0x80])      # DataFlash FMT of FMT
     assert telemetry_parser.Parser(str(path)).camera == "ArduPilot"
     log = read_flight_log(path)
     assert log.source_format == "ardupilot" and log.frame == "FRD" and len(log) == 2000
-    np.testing.assert_allclose(log.t, t, atol=1e-9)
+    np.testing.assert_allclose(log.t, t, atol=0.6e-6)                      # µs in the file
     np.testing.assert_allclose(log.rate, w, atol=1e-6)                     # instance 0, float32 in the file
 
 
@@ -155,6 +158,20 @@ def test_the_24_axis_aligned_mounts():
     assert np.allclose(np.einsum("kij,kil->kjl", r, r), np.eye(3)) and np.allclose(np.linalg.det(r), 1)
     assert np.array_equal(r[-1], np.eye(3)) and np.array_equal(r, axis_aligned_rotations())
     assert any(np.array_equal(m, FORWARD_CAMERA_FROM_FRD) for m in r)
+
+
+def test_gcsv_camera_orientation_gives_gyroflow_the_axes_it_gives_an_fc_log(tmp_path):
+    """Camera-frame rates written with GCSV_ORIENTATION_OPENCV_CAMERA reach Gyroflow's axes
+    (telemetry-parser's normalized_imu) as the same motion logged by a flight controller with a
+    forward camera does."""
+    t = 2.0 + np.arange(400) / 400.0
+    w_frd = np.random.default_rng(3).normal(0, 1.0, (400, 3))
+    fc = write_ardupilot_bin(tmp_path / "fc.bin", t, w_frd)
+    cam = write_gcsv(tmp_path / "cam.gcsv", t, w_frd @ FORWARD_CAMERA_FROM_FRD.T,
+                     orientation=GCSV_ORIENTATION_OPENCV_CAMERA)
+    g_fc = np.array([r["gyro"] for r in telemetry_parser.Parser(str(fc)).normalized_imu()])
+    g_cam = np.array([r["gyro"] for r in telemetry_parser.Parser(str(cam)).normalized_imu()])
+    np.testing.assert_allclose(g_cam, g_fc, atol=1e-4)               # °/s; float32 and µrad/s rounding
 
 
 def test_forward_camera_mount_is_a_proper_rotation():

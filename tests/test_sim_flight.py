@@ -98,6 +98,20 @@ def test_seed_hides_a_different_offset_and_mount(tmp_path):
     assert b.log_offset_s == pytest.approx(b.log_start_s + 1.5 - b.frame_t_video[0])
 
 
+def test_camera_effects_and_a_log_bias_are_kept_in_the_truth(tmp_path):
+    sim = simulate_flight(tmp_path, seconds=0.5, log_seconds=3.0, seed=4, formats=("gcsv",),
+                          effects={"rolling_readout": 0.02, "time_constant": 0.012},
+                          gyro_bias_rad_s=(0.01, -0.02, 0.005))
+    truth = json.loads(sim.truth_path.read_text())
+    assert truth["effects"] == {"rolling_readout": 0.02, "time_constant": 0.012}
+    assert truth["gyro_bias_rad_s"] == [0.01, -0.02, 0.005]
+    assert sim.recording.extra_attrs["truth"]["readout_s"] == pytest.approx(0.02)
+    log = read_flight_log(sim.log_paths["gcsv"])
+    np.testing.assert_allclose(np.mean(log.rate - sim.body_rate, axis=0), [0.01, -0.02, 0.005], atol=2e-4)
+    with pytest.raises(ThermodError, match="gyro_bias_rad_s"):
+        simulate_flight(tmp_path, seconds=0.5, log_seconds=3.0, effects={"gyro_bias": 0.01})
+
+
 def test_bad_requests_are_refused(tmp_path):
     with pytest.raises(ThermodError, match="formats"):
         simulate_flight(tmp_path, formats=("px4",))

@@ -3,10 +3,14 @@
 `read_flight_log(path)` returns a `FlightLog`: the gyro samples of one log, on the log's own clock,
 as angular rates in one stated body frame. The parsers:
 
-- **telemetry-parser** (Gyroflow's, PyPI ``telemetry-parser``; its ``Parser(path).telemetry()``
-  raw samples): Betaflight/INAV blackbox (``.bbl``/``.bfl`` binary, and the CSV that Blackbox
-  Explorer exports), ArduPilot DataFlash (``.bin``), Gyroflow ``.gcsv``, and the other formats it
-  detects (camera metadata, phone loggers), which are read as `frame="imu"`.
+- **telemetry-parser** (Gyroflow's, PyPI ``telemetry-parser``): Betaflight/INAV blackbox
+  (``.bbl``/``.bfl`` binary, and the CSV that Blackbox Explorer exports), ArduPilot DataFlash
+  (``.bin``), Gyroflow ``.gcsv``, and the other formats it detects (camera metadata, phone
+  loggers), which are read in Gyroflow's axes (`frame="gyroflow"`). The gyro comes from
+  ``Parser.normalized_imu()`` (gyro only, in Gyroflow's axes, times from the file's first sample);
+  the raw samples (``Parser.telemetry()``) of the file's first bytes give that first time and the
+  axis mapping, which are undone. Files up to `MAX_TP_FILE_BYTES` (the parser holds every sample
+  as Python objects, ~1.4 kB each).
 - **pyulog**: PX4 ``.ulg`` (topic ``sensor_combined``, else ``vehicle_angular_velocity``).
 
 **Time** `t`: float64 seconds on the log's own clock (the flight controller's time since boot:
@@ -23,9 +27,16 @@ Betaflight's ``time``, ArduPilot's ``TimeUS``/``SampleUS``, PX4's ``timestamp``;
   become FRD as (roll, −pitch, −yaw). The same relation follows from the orientation strings
   telemetry-parser gives the two families ("ZYx" for Betaflight, "zyx" for ArduPilot, both
   mapped onto Gyroflow's one frame).
-- ``"imu"`` — a logger's own IMU axes (gcsv and the other telemetry-parser formats): kept as
-  logged; `orientation` carries the file's orientation string (Gyroflow's IMU-to-camera axis
-  mapping, e.g. ``"XYZ"``, a lower-case letter negates) without applying it.
+- ``"imu"`` — a gcsv logger's own IMU axes, as logged; `orientation` carries the file's
+  orientation string (Gyroflow's IMU-to-camera axis mapping, e.g. ``"XYZ"``, a lower-case letter
+  negates; telemetry-parser assumes ``"xzY"`` when there is none) without applying it.
+- ``"gyroflow"`` — the other telemetry-parser formats, in Gyroflow's normalized axes.
+
+**Logs in one file**: the clock is split where it steps back or pauses for more than
+`SEGMENT_GAP_S` (a ``.bbl``'s logs, one per arming; a reboot); the longest part is returned
+unless `log_index` picks another. A lone sample out of order with both neighbours is dropped and
+counted, as are isolated out-of-order samples (≤ 0.1 % in all). ArduPilot's IMU instances,
+interleaved under one message name, give the first instance.
 
 A camera mount is a proper rotation ``camera_from_body`` (3×3): ω_camera = camera_from_body ·
 ω_body, with the camera frame of docs/design.md §2 (OpenCV: x right, y down, z forward). For
@@ -52,6 +63,9 @@ import numpy as np
 from thermod.errors import ThermodError
 
 MAX_FILE_BYTES = 4 * 2**30
+MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
+PROBE_BYTES = (2**15, 2**20, 2**24)
+SEGMENT_GAP_S = 1.0
 MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
 MAX_DROPPED_FRACTION = 0.001       # isolated out-of-order samples a log may have
@@ -120,8 +134,9 @@ class FlightLog:
 def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> FlightLog:
     """Read the gyro of a flight-controller log (module docstring).
 
-    A file that holds several logs (a Betaflight ``.bbl`` with one log per arming) gives the
-    longest unless `log_index` (0-based) picks one; `FlightLog.n_logs` says how many there are."""
+    A file that holds several logs (a Betaflight ``.bbl`` with one log per arming: parts of the
+    clock split at steps back or pauses over `SEGMENT_GAP_S`) gives the longest unless `log_index`
+    (0-based) picks one; `FlightLog.n_logs` says how many there are."""
     path = Path(path)
     if not path.is_file():
         raise FlightLogError(path, "no such file (expected a flight-controller log)")
@@ -139,17 +154,89 @@ def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> Fl
 
 
 def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
+    """telemetry-parser's `normalized_imu()` carries the gyro alone (its `telemetry()` returns every
+    logged field as Python objects: 470 MB for a 0.66 MB blackbox log), but re-bases the times on
+    the file's first gyro sample and rotates the axes into Gyroflow's frame. The raw samples of a
+    short prefix of the file give that first time and the axis mapping, which are undone here."""
+    if path.stat().st_size > MAX_TP_FILE_BYTES:
+        raise FlightLogError(path, f"{path.stat().st_size / 2**20:.0f} MiB, over the "
+                                   f"{MAX_TP_FILE_BYTES / 2**20:.0f} MiB this reader accepts for this "
+                                   "format (telemetry-parser holds every sample in memory); cut the log")
+    with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
+        # alone in a folder: telemetry-parser reads a sibling NAME.gcsv instead of the file it is given
+        alone = Path(d) / path.name
+        alone.symlink_to(path.resolve())
+        parser = _tp_call(path, lambda: _tp_parser(alone))
+        camera, model = str(parser.camera or ""), str(parser.model or "")
+        imu = _tp_call(path, parser.normalized_imu)
+        probe = _probe_prefix(path, Path(d) / "prefix")
+    rows = [r for r in (imu or []) if isinstance(r, dict) and r.get("gyro") is not None]
+    if not rows:
+        raise FlightLogError(path, f"no gyro samples in this {camera or 'log'} (gyro logging disabled, "
+                                   "or the file is truncated)")
+    if len(rows) > MAX_SAMPLES:
+        raise FlightLogError(path, f"{len(rows)} gyro samples, over the {MAX_SAMPLES} this reader accepts")
+    try:
+        a = np.array([(r["timestamp_ms"], *r["gyro"]) for r in rows], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise FlightLogError(path, "gyro samples without a time and three rates (corrupt log)") from None
+    fmt, frame = _family(path, camera)
+    if probe is None:
+        raise FlightLogError(path, "no gyro sample with a time in the first "
+                                   f"{PROBE_BYTES[-1] // 2**20} MiB (expected a flight-controller log)")
+    t0, orientation = probe
+    t = a[:, 0] * 1e-3 + t0
+    normalized = a[:, 1:4] * DEG
+    if fmt.startswith("betaflight") or fmt == "ardupilot":
+        # both families land in Gyroflow's frame as G = (−z, −y, −x) of FRD (module docstring)
+        rate = -normalized[:, ::-1]
+    elif fmt == "gcsv":
+        rate = _unorient(path, normalized, orientation)
+    else:
+        rate, frame = normalized, "gyroflow"
+    finite = np.isfinite(t) & np.all(np.isfinite(rate), axis=1)
+    if not np.all(finite):
+        raise FlightLogError(path, f"{int(np.sum(~finite))} gyro samples with non-finite time or rate")
+    if fmt == "ardupilot":
+        t, rate = _first_imu(path, t, rate)
+    # a lone wild stamp is a glitch to drop, not a boundary between logs
+    lone = _lone_outliers(t)
+    t, rate = t[~lone], rate[~lone]
+    segments = _segments(t)
+    if log_index is None:
+        index = int(np.argmax([b - a for a, b in segments]))
+    elif 0 <= log_index < len(segments):
+        index = int(log_index)
+    else:
+        raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
+    lo, hi = segments[index]
+    t, rate = t[lo:hi], rate[lo:hi]
+    return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, len(segments),
+                   f"{camera} {model}".strip(), int(np.sum(lone)))
+
+
+def _lone_outliers(t: np.ndarray) -> np.ndarray:
+    """Samples whose stamp is out of order with both neighbours while the neighbours agree with each
+    other (within `SEGMENT_GAP_S`)."""
+    bad = np.zeros(len(t), dtype=bool)
+    if len(t) >= 3:
+        prev, cur, nxt = t[:-2], t[1:-1], t[2:]
+        bad[1:-1] = ~((prev < cur) & (cur < nxt)) & (prev < nxt) & (nxt - prev < SEGMENT_GAP_S)
+    return bad
+
+
+def _tp_parser(path: Path):
     import telemetry_parser
 
+    return telemetry_parser.Parser(str(path))
+
+
+def _tp_call(path: Path, fn):
+    """Call into telemetry-parser; its failures (a Rust panic arrives as a BaseException) become a
+    FlightLogError naming the file."""
     try:
-        # alone in a folder: telemetry-parser reads a sibling NAME.gcsv instead of the file it is given
-        with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
-            alone = Path(d) / path.name
-            alone.symlink_to(path.resolve())
-            p = telemetry_parser.Parser(str(alone))
-            samples = p.telemetry()
-            camera, model = str(p.camera or ""), str(p.model or "")
-    except BaseException as e:            # noqa: BLE001 - a Rust panic arrives as a BaseException
+        return fn()
+    except BaseException as e:            # noqa: BLE001 - pyo3's PanicException derives from BaseException
         if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
             raise
         msg = str(e) or type(e).__name__
@@ -157,51 +244,62 @@ def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
             raise FlightLogError(path, "not a log format telemetry-parser or pyulog reads (expected a "
                                        "Betaflight .bbl/.bfl/.csv, ArduPilot .bin, Gyroflow .gcsv or "
                                        "PX4 .ulg)") from None
+        if "No metadata" in msg:
+            raise FlightLogError(path, "no gyro samples (no telemetry in the file, or it is truncated)"
+                                 ) from None
         raise FlightLogError(path, f"the parser failed: truncated or corrupt ({msg})") from None
-    logs = [s for s in (samples or []) if isinstance(s, dict)]
-    gyros = [_gyro_group(s) for s in logs]
-    found = [i for i, g in enumerate(gyros) if g is not None and g[0]]
-    if not found:
-        raise FlightLogError(path, f"no gyro samples in this {camera or 'log'} (gyro logging disabled, "
-                                   "or the file is truncated)")
-    fmt, frame = _family(path, camera, model)
-    if log_index is None:
-        index = max(found, key=lambda i: len(gyros[i][0]))
-    elif 0 <= log_index < len(logs) and log_index in found:
-        index = log_index
-    else:
-        raise FlightLogError(path, f"log {log_index}: the file holds {len(logs)} log(s), with gyro in "
-                                   f"{found}")
-    data, scale, unit, orientation = gyros[index]
-    t, raw = _vectors(path, data)
-    # telemetry-parser's unit rule (TimeVector3::into_scaled): value / scale in `unit`, °/s by default
-    if not (math.isfinite(scale) and scale != 0):
-        raise FlightLogError(path, f"gyro scale {scale!r}: expected a finite non-zero number")
-    per_unit = 1.0 if unit == "rad/s" else DEG
-    rate = raw / scale * per_unit
-    if fmt.startswith("betaflight"):
-        rate = rate @ FRD_FROM_BETAFLIGHT.T
-    if fmt == "ardupilot":
-        t, rate = _first_imu(path, t, rate)
-    return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, len(logs),
-                   f"{camera} {model}".strip())
 
 
-def _gyro_group(sample: dict):
-    g = sample.get("Gyroscope")
-    if not isinstance(g, dict):
-        return None
-    data = g.get("Data")
-    if not isinstance(data, list):
-        return None
-    scale = g.get("Scale", 1.0)
-    scale = float(scale) if isinstance(scale, (int, float)) else 1.0
-    unit = g.get("Unit") if isinstance(g.get("Unit"), str) else "deg/s"
-    orientation = g.get("Orientation") if isinstance(g.get("Orientation"), str) else ""
-    return data, scale, unit, orientation
+def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
+    """(time of the file's first gyro sample, the gyro's orientation tag) from telemetry-parser's raw
+    samples of the file's first bytes (growing prefixes, then the whole file); None if there is none."""
+    folder.mkdir()
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        for n in PROBE_BYTES:
+            f.seek(0)
+            part = folder / path.name
+            part.write_bytes(f.read(min(n, size)))
+            try:
+                samples = _tp_parser(part).telemetry()
+            except BaseException as e:    # noqa: BLE001 - a cut record can make the parser panic
+                if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
+                    raise
+                samples = None
+            for s in samples or []:
+                g = s.get("Gyroscope") if isinstance(s, dict) else None
+                data = g.get("Data") if isinstance(g, dict) else None
+                if isinstance(data, list) and data and isinstance(data[0], dict) and "t" in data[0]:
+                    o = g.get("Orientation")
+                    return float(data[0]["t"]), (o if isinstance(o, str) else "")
+            if n >= size:
+                break
+    return None
 
 
-def _family(path: Path, camera: str, model: str) -> tuple[str, str]:
+def _unorient(path: Path, g: np.ndarray, orientation: str) -> np.ndarray:
+    """Undo Gyroflow's axis mapping: out[i] = ±raw[axis] for each letter (lower case negates)."""
+    o = orientation or "xzY"                       # telemetry-parser's default for a gcsv without one
+    if len(o) != 3 or sorted(o.upper()) != ["X", "Y", "Z"]:
+        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z")
+    raw = np.empty_like(g)
+    for i, c in enumerate(o):
+        raw[:, "XYZ".index(c.upper())] = g[:, i] * (1.0 if c.isupper() else -1.0)
+    return raw
+
+
+def _segments(t: np.ndarray) -> list[tuple[int, int]]:
+    """[lo, hi) index ranges between discontinuities of the log clock: a step back or a pause of more
+    than `SEGMENT_GAP_S` (the separate logs of one .bbl, an FC reboot)."""
+    if len(t) < 2:
+        return [(0, len(t))]
+    dt = np.diff(t)
+    cuts = np.flatnonzero((dt < -SEGMENT_GAP_S) | (dt > SEGMENT_GAP_S)) + 1
+    edges = [0, *cuts.tolist(), len(t)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def _family(path: Path, camera: str) -> tuple[str, str]:
     """(source_format, frame) from telemetry-parser's camera type."""
     if camera == "BlackBox":
         with open(path, "rb") as f:
@@ -213,28 +311,33 @@ def _family(path: Path, camera: str, model: str) -> tuple[str, str]:
         head = f.read(16)
     if head.startswith((b"GYROFLOW IMU LOG", b"CAMERA IMU LOG")):
         return "gcsv", "imu"
-    return (camera or "unknown").lower(), "imu"
-
-
-def _vectors(path: Path, data: list) -> tuple[np.ndarray, np.ndarray]:
-    if len(data) > MAX_SAMPLES:
-        raise FlightLogError(path, f"{len(data)} gyro samples, over the {MAX_SAMPLES} this reader accepts")
-    try:
-        a = np.array([(d["t"], d["x"], d["y"], d["z"]) for d in data], dtype=np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise FlightLogError(path, "gyro samples without t, x, y, z values (corrupt log)") from None
-    return a[:, 0], a[:, 1:4]
+    return (camera or "unknown").lower(), "gyroflow"
 
 
 def _first_imu(path: Path, t: np.ndarray, rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ArduPilot logs each IMU instance in turn under one message name, and telemetry-parser keeps
-    them in file order: k interleaved streams. Keep the first instance (the primary IMU)."""
-    if len(t) < 4 or np.all(np.diff(t) > 0):
+    """ArduPilot logs each IMU instance in turn under one message name, and telemetry-parser merges
+    them in file order without the instance number: k interleaved streams, stamped at the same or
+    nearly the same time. Their signature is an interval sequence that is irregular as a whole
+    (0 or a few µs, then a loop period) and regular in every k-th sample; the first instance (the
+    primary IMU) is kept."""
+    if len(t) < 8:
+        return t, rate
+    dt = np.diff(t)
+    if not (np.any(dt <= 0) or _irregular(dt)):
         return t, rate
     for k in (2, 3, 4):
-        if all(np.all(np.diff(t[j::k]) > 0) for j in range(k)) and len(t[0::k]) - len(t[k - 1::k]) <= 1:
+        streams = [t[j::k] for j in range(k)]
+        if len(streams[0]) - len(streams[-1]) <= 1 and all(
+                len(s) > 2 and np.all(np.diff(s) > 0) and not _irregular(np.diff(s)) for s in streams):
             return t[0::k], rate[0::k]
     return t, rate          # not an interleave: _finish judges the times
+
+
+def _irregular(dt: np.ndarray) -> bool:
+    """Intervals of two kinds: the 90th percentile over 1.5 × the 10th (one sensor's loop jitter is a
+    few %; interleaved instances alternate a few µs with a loop period)."""
+    q10, q90 = np.percentile(dt, (10, 90))
+    return bool(q10 <= 0 or q90 > 1.5 * q10)
 
 
 def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
@@ -263,7 +366,7 @@ def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
 
 
 def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, orientation: str,
-            index: int, n_logs: int, model: str) -> FlightLog:
+            index: int, n_logs: int, model: str, dropped_before: int = 0) -> FlightLog:
     """Check the samples: finite, ≥ 2, times strictly increasing (isolated out-of-order samples,
     ≤ 0.1 %, are dropped and counted), and a median rate within 10 Hz – 100 kHz."""
     if len(t) < 2:
@@ -274,12 +377,15 @@ def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, o
     keep = np.ones(len(t), dtype=bool)
     running = np.maximum.accumulate(t)
     keep[1:] = t[1:] > running[:-1]
-    dropped = int(np.sum(~keep))
-    if dropped > MAX_DROPPED_FRACTION * len(t):
+    dropped = int(np.sum(~keep)) + dropped_before
+    if dropped > MAX_DROPPED_FRACTION * (len(t) + dropped_before):
+        if np.all(keep):
+            raise FlightLogError(path, f"{dropped_before} of {len(t) + dropped_before} gyro samples out of "
+                                       "order with both neighbours: expected strictly increasing times")
         i = int(np.flatnonzero(~keep)[0])
         raise FlightLogError(path, f"gyro sample {i} at {t[i]:.6f} s is not after the one before "
                                    f"({t[i - 1]:.6f} s): expected strictly increasing times "
-                                   f"({dropped} of {len(t)} samples out of order)")
+                                   f"({dropped} of {len(t) + dropped_before} samples out of order)")
     t, rate = t[keep], rate[keep]
     dt = np.diff(t)
     med = float(np.median(dt))
@@ -356,11 +462,12 @@ def write_betaflight_csv(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s:
 
 
 def write_ardupilot_bin(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: np.ndarray, *,
-                       n_imus: int = 1) -> Path:
+                       n_imus: int = 1, stagger_s: float = 5e-6) -> Path:
     """Write an ArduPilot DataFlash ``.bin`` holding FMT records and one ``IMU`` record
     (TimeUS µs since boot, instance I, GyrX/Y/Z rad/s FRD, AccX/Y/Z m/s² = 0) per sample and IMU;
-    with `n_imus` > 1 each sample is logged once per instance in turn, as ArduPilot logs its IMUs
-    (instance i's rates are the same plus 0.001·i rad/s, so the instances can be told apart)."""
+    with `n_imus` > 1 each sample is logged once per instance in turn, as ArduPilot logs its IMUs,
+    instance i stamped `stagger_s`·i later (instance i's rates are the same plus 0.001·i rad/s, so
+    the instances can be told apart)."""
     import struct
 
     path = Path(path)
@@ -378,10 +485,13 @@ def write_ardupilot_bin(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: 
     imu = struct.Struct("<3BQB6f")
     out = [fmt(0x80, 89, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"),
            fmt(0x81, imu.size, "IMU", "QBffffff", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")]
+    step = int(round(stagger_s * 1e6))
+    if n_imus > 1 and not 0 <= step * (n_imus - 1) < np.min(np.diff(us)):
+        raise FlightLogError(path, f"stagger {stagger_s} s: the instances must fit between samples")
     for k in range(len(us)):
         for i in range(n_imus):
             w = rate[k] + 0.001 * i
-            out.append(imu.pack(0xA3, 0x95, 0x81, int(us[k]), i, *w.tolist(), 0.0, 0.0, 0.0))
+            out.append(imu.pack(0xA3, 0x95, 0x81, int(us[k]) + i * step, i, *w.tolist(), 0.0, 0.0, 0.0))
     part = path.with_name(path.name + ".part")
     part.write_bytes(b"".join(out))
     os.replace(part, path)

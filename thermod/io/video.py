@@ -507,9 +507,9 @@ class PercentileAGC:
     high_pct: float = 99.0
     smoothing_s: float = 0.5
     min_span: float = 1.0
-    _lo: float | None = None
-    _hi: float | None = None
-    _t: float | None = None
+    _lo: float | None = field(default=None, init=False, repr=False)
+    _hi: float | None = field(default=None, init=False, repr=False)
+    _t: float | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self):
         if not (0 <= self.low_pct < self.high_pct <= 100):
