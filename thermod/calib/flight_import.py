@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.calib.sync import SyncResult, plot_sync, synchronise
+from thermod.calib.sync import SyncError, SyncResult, plot_sync, synchronise
 from thermod.errors import ThermodError
 from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
@@ -125,7 +125,10 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     t_log = time.perf_counter()
 
     intr = camera.intrinsics
-    result = synchronise(vf.frames, vf.t, log.t, log.rate, intr, tau_s=camera.tau_s, readout_s=readout)
+    try:
+        result = synchronise(vf.frames, vf.t, log.t, log.rate, intr, tau_s=camera.tau_s, readout_s=readout)
+    except SyncError as e:      # the sync works on arrays: say which files
+        raise FlightImportError(f"{video_path} with {log_path}: {e}") from None
     t_sync = time.perf_counter()
     d = result.to_dict()
     say(f"sync: video at log time {vf.t[0] - result.time_offset_s:.3f} s "
