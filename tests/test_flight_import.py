@@ -235,3 +235,28 @@ def test_camera_presets_load_and_list():
         assert c.width >= 320 and 0 < c.tau_s < 0.05 and c.fx > 100
     r = thermod("import", "--list-cameras")
     assert r.returncode == 0 and r.stdout.split() == names
+
+
+def test_deblur_video_of_a_16_bit_recording_uses_one_agc_for_both_halves(tmp_path):
+    """A recording of raw counts (thermod sim) is shown through PercentileAGC; the deblurred half uses
+    the input frame's gain and offset, so a static scene looks the same on both sides."""
+    import av
+
+    rec, deb, mp4, gcsv = (tmp_path / n for n in ("sim.h5", "deb.h5", "deb.mp4", "out.gcsv"))
+    r = thermod("sim", "-o", rec, "--motion", "static", "--seconds", "0.4", "--width", 96, "--height", 64,
+                "--no-progress", "--no-truth")
+    assert r.returncode == 0, r.stderr
+    r = thermod("deblur", rec, "-o", deb, "--video", mp4, "--side-by-side", "--uniform", "--jobs", "1")
+    assert r.returncode == 0, r.stderr
+    with av.open(str(mp4)) as c:
+        frames = np.stack([f.to_ndarray(format="gray") for f in c.decode(video=0)]).astype(float)
+    from thermod.io.recording import read
+    raw = read(rec)
+    assert frames.shape == (raw.n_frames, 64, 192)
+    left, right = frames[:, :, :96], frames[:, :, 96:]
+    assert left.std() > 20 and np.median(np.abs(left - right)[:, 8:-8, 8:-8]) < 8
+    # export of a recording that was not imported: the first frame at 0 on the video clock
+    assert thermod("export", rec, "--gcsv", gcsv).returncode == 0
+    log = flightlog.read_flight_log(gcsv)
+    assert log.t[0] >= 0 and abs(log.t[0]) < 2 / raw.calibration.rate_hz
+    assert thermod("deblur", rec, "-o", tmp_path / "x.h5", "--side-by-side").returncode == 2
