@@ -65,7 +65,8 @@ def add_arguments(p) -> None:
         type=float,
         default=None,
         metavar="S",
-        help="detector time constant (s); needed when the calibration comes from CameraInfo",
+        help="detector time constant (s); needed when the calibration comes from CameraInfo; with "
+        "--gyro it overrides the camera file's",
     )
     import_flight.add_arguments(p)
 
