@@ -5,7 +5,8 @@ recording that `thermod deblur` and `thermod discrepancy` take.
 included) and the log (`thermod.io.flightlog`), finds where the video sits in the log and how the
 camera is mounted from the pictures alone (`thermod.calib.sync`), optionally refines offset, mount,
 gyro bias, readout and τ with the motion-only discrepancy workflow on the stretch that turns most
-(`thermod.calib.sync_discrepancy`), and writes the recording:
+(`thermod.calib.sync_discrepancy`; when it names the readout or τ but not the offset, the sync's fine
+stage is run again with them, as the offset it found absorbed their lag), and writes the recording:
 
 - ``/camera/frames``: the video's frames as delivered (8-bit AGC'd frames widened to uint16, values
   0–255, so a deblurred frame maps back to the same 8-bit scale); ``/camera/t`` the video's times;
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.calib.sync import SyncError, SyncResult, plot_sync, synchronise
+from thermod.calib.sync import refine as refine_fine
 from thermod.errors import ThermodError
 from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
@@ -150,6 +152,22 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
                        bias_rad_s=tuple(float(v) for v in s["gyro_bias_rad_s"]["value"]),
                        readout_s=min(float(s["readout_s"]["value"]), 0.99 * period),
                        tau_s=float(s["tau_s"]["value"]))
+        named = set(sum(ref.named, []))
+        if "time_offset" not in named and {"rolling_readout", "time_constant"} & named:
+            # the sync's offset absorbed the picture's lag for the readout and τ it was given (½ readout
+            # + τ); with the refined ones its fine stage places the video again (offset, and the mount's
+            # misalignment and the bias unless the workflow named them)
+            fine = refine_fine(result.picture, log.t, log.rate, result.coarse, tau_s=changes["tau_s"],
+                               readout_s=changes["readout_s"], mounts=(result.mount_index,))
+            offset = fine.time_offset_s
+            if "misalignment" not in named:
+                changes["R_cam_gyro"] = tuple(tuple(float(v) for v in row) for row in fine.R_cam_gyro)
+            if "gyro_bias" not in named:
+                changes["bias_rad_s"] = tuple(float(v) for v in fine.bias_rad_s)
+            refinement["fine_sync_again"] = {"time_offset_s": {"value": fine.time_offset_s,
+                                                               "sigma": fine.time_offset_sigma_s},
+                                             "R_cam_gyro": fine.R_cam_gyro.tolist(),
+                                             "gyro_bias_rad_s": fine.bias_rad_s.tolist()}
         say(f"refined on {refine_windows} stretch(es): named {', '.join(sum(ref.named, [])) or 'nothing'}; "
             f"offset {offset:+.4f} s, readout {changes['readout_s'] * 1e3:.2f} ms, "
             f"τ {changes['tau_s'] * 1e3:.2f} ms")
