@@ -19,6 +19,8 @@ from thermod.io import flightlog, video
 from thermod.physics.calibration import Calibration
 from thermod.sim.flight_video import MountedMotion, simulate_flight
 
+pytestmark = pytest.mark.heavy(2)      # CPU minutes on one core, subprocesses included (measured 1.5)
+
 REAL_LOGS = Path(__file__).parent / "data" / "flightlogs"
 WIDTH, HEIGHT, FPS, TAU = 160, 120, 30.0, 0.008
 
@@ -121,6 +123,7 @@ def test_deblur_video_and_gcsv_export_round_trip(flight, tmp_path):
     assert len(imu) == len(log.t)
 
 
+@pytest.mark.slow
 def test_refinement_keeps_the_sync(flight, tmp_path):
     sim, cam = flight
     out, rep = tmp_path / "rec.h5", tmp_path / "report"
