@@ -6,6 +6,8 @@
 - `detector`   the fine-time microbolometer (and photon-detector) renderer: the truth
 - `gyro_model` raw gyro samples with a realistic error budget, in the gyro frame and clock
 - `synth`      `simulate(...) -> thermod.io.recording.Recording` with hidden calibration effects
+- `flight_video` a flight as other tools hand it over: AGC'd H.264 video + a gyro log in a real format
+               (gcsv, Betaflight CSV, ArduPilot .bin) with a hidden time offset and camera mount
 - `playback`   a pre-rendered looping sequence for the real-time simulated payload
 - `cli`        `thermod sim`
 

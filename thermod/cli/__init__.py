@@ -1,4 +1,4 @@
-"""`thermod run|watch|deblur|sim|record|import|discrepancy|bench`.
+"""`thermod run|watch|record|import|deblur|export|sim|discrepancy|bench`.
 
 Each command lives in its own module exposing `add_arguments(parser)` and `run(args) -> int`;
 only the chosen module is imported, so `thermod watch` does not pay for numba start-up.
@@ -22,8 +22,9 @@ COMMANDS = {
     "run": ("thermod.cli.run", "run the acquisition and deblurring daemon (default: simulated payload)"),
     "watch": ("thermod.cli.watch", "subscribe to a running daemon: rates, latency, drops, previews"),
     "record": ("thermod.cli.record", "subscribe to raw frames and gyro samples and write a recording"),
-    "import": ("thermod.cli.import_", "convert a ROS recording (MCAP, rosbag2, ROS 1 .bag) to format v1"),
+    "import": ("thermod.cli.import_", "ROS bag, or thermal video + flight log (--gyro) → format v1"),
     "deblur": ("thermod.cli.deblur", "deblur recordings offline"),
+    "export": ("thermod.cli.export", "write a recording's synced gyro for Gyroflow (.gcsv)"),
     "sim": ("thermod.cli.sim", "simulate a recording with known truth"),
     "discrepancy": ("thermod.cli.discrepancy", "compare simulation with a recording and fix the model"),
     "bench": ("thermod.cli.bench", "run the benchmark suites and print their tables"),

@@ -22,6 +22,9 @@ raw counts, as the daemon does — with a radiometric model (`thermod.physics.ra
 `--radiometry FILE`'s [radiometry] table, else `--config`'s, else the recording's own /radiometry
 attributes (same keys as the table). A recording with no model fails before any output is written.
 
+`--video OUT.mp4` (one input) also writes the result as a video a person can play: 8-bit H.264 with
+the input's AGC (`write_playable`); `--side-by-side` puts the input left of the deblurred frame.
+
 Frames are read, deblurred and written one at a time (memory does not grow with the recording),
 into ``OUT.h5.part``, renamed to ``OUT.h5`` only when complete: an existing output is never left
 half-written. In a batch, a file that fails (input or output side) is reported and the others go
@@ -103,6 +106,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jobs", type=int, default=0, metavar="N",
                         help="local worker processes for several files (default 0: one per usable core; "
                              "1: one after another in this process)")
+    parser.add_argument("--video", type=Path, default=None, metavar="OUT.mp4",
+                        help="also write the deblurred frames as 8-bit H.264 with the input's AGC "
+                             "(one input)")
+    parser.add_argument("--side-by-side", action="store_true",
+                        help="with --video: input (left) and deblurred (right) in one picture")
     parser.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
                         help="give up on --scheduler after this many seconds without an answer (default 10)")
 
@@ -176,6 +184,13 @@ def run(args) -> int:
     celsius = args.celsius or args.radiometry is not None
     model = command_radiometry(args) if celsius else None
     outs = _outputs(list(args.inputs), args.output)
+    if args.side_by_side and args.video is None:
+        raise ThermodError("--side-by-side: applies to --video OUT.mp4")
+    if args.video is not None:
+        if len(args.inputs) != 1:
+            raise ThermodError(f"--video {args.video}: takes one input recording, got {len(args.inputs)}")
+        if not args.video.parent.is_dir():
+            raise ThermodError(f"--video {args.video}: directory {args.video.parent} does not exist")
     batch_job.deconvolver(cfg)     # bad --lambda/--alpha: one error before any file (and warm locally)
     jobs = [batch_job.Job(src, dst, cfg, args.config, celsius, model)
             for src, dst in zip(args.inputs, outs, strict=True)]
@@ -216,4 +231,39 @@ def run(args) -> int:
         print(f"thermod deblur: {len(failed)} of {len(outs)} file(s) failed: "
               f"{', '.join(str(src) for src in failed)}", file=sys.stderr)
         return 2
+    if args.video is not None:
+        n = write_playable(args.inputs[0], outs[0], args.video, args.side_by_side)
+        print(f"wrote {args.video}: {n} frames, 8-bit H.264" + (", input | deblurred" if args.side_by_side
+                                                                 else ""))
     return 0
+
+
+def write_playable(src: Path, deblurred: Path, out: Path, side_by_side: bool = False, crf: int = 18) -> int:
+    """Write `deblurred`'s /deblurred/frames as 8-bit H.264 with the input's AGC; returns the frames.
+
+    A recording imported from an 8-bit video (its /import ``video_bit_depth`` is 8) is already on that
+    video's AGC scale, frame by frame: the deblurred frame is rounded and clipped to 0–255. Any other
+    recording goes through `thermod.io.video.PercentileAGC`: each input frame sets the stretch and the
+    deblurred frame is shown with the same gain and offset (a blur kernel sums to one, so both share
+    a scale)."""
+    from thermod.io import video
+    from thermod.io.recording import Reader
+
+    with Reader(src) as r:
+        eight_bit = int(r.group_attrs().get("import", {}).get("video_bit_depth", 16)) == 8
+    agc = video.PercentileAGC()
+    with Reader(deblurred) as r:
+        deb = r.dataset("deblurred/frames")
+        width = r.calibration.width * (2 if side_by_side else 1)
+        rate = r.calibration.frame_rate_hz
+        with video.VideoWriter(out, width, r.calibration.height, crf=crf, nominal_fps=rate) as w:
+            for i, (t, frame) in enumerate(zip(r.t, r, strict=True)):
+                d = np.asarray(deb[i], np.float32)
+                if eight_bit:
+                    shown = np.clip(frame, 0, 255).astype(np.uint8)
+                    d8 = np.clip(d + 0.5, 0, 255).astype(np.uint8)
+                else:
+                    shown, gain, offset = agc.apply(frame, float(t))
+                    d8 = agc.stretch(d, gain, offset)
+                w.write(np.hstack([shown, d8]) if side_by_side else d8, float(t))
+            return w.n_frames

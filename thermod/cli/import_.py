@@ -1,4 +1,5 @@
-"""`thermod import IN -o OUT.h5`: a ROS recording (MCAP, rosbag2 directory, ROS 1 .bag) → format v1.
+"""`thermod import IN -o OUT.h5`: a ROS recording (MCAP, rosbag2 directory, ROS 1 .bag) → format v1;
+with ``--gyro LOG``, IN is a thermal video synced to a flight-controller log (`thermod.cli.import_flight`).
 
 Frames come from one sensor_msgs/Image topic (raw counts: mono16/16UC1, or 8-bit widened to
 uint16), gyro samples from one sensor_msgs/Imu topic (``angular_velocity``, taken as raw gyro-frame
@@ -30,8 +31,11 @@ GYRO_BATCH = 1024
 
 
 def add_arguments(p) -> None:
-    p.add_argument("input", help=".mcap file, rosbag2 directory or ROS 1 .bag")
-    p.add_argument("-o", "--output", required=True, help="recording to write (HDF5, format v1)")
+    from thermod.cli import import_flight
+
+    p.add_argument("input", nargs="?", default=None,
+                   help=".mcap file, rosbag2 directory or ROS 1 .bag; with --gyro a video or TIFF sequence")
+    p.add_argument("-o", "--output", default=None, help="recording to write (HDF5, format v1)")
     p.add_argument(
         "--image-topic",
         default=None,
@@ -53,15 +57,18 @@ def add_arguments(p) -> None:
         default=None,
         metavar="TOML",
         help="a thermod TOML with a [calibration] "
-        "table (e.g. thermod discrepancy's model.toml); its keys override the bag's",
+        "table (e.g. thermod discrepancy's model.toml); its keys override the bag's; with --gyro a "
+        "CAMERA.toml ([camera] or [calibration])",
     )
     p.add_argument(
         "--tau",
         type=float,
         default=None,
         metavar="S",
-        help="detector time constant (s); needed when the calibration comes from CameraInfo",
+        help="detector time constant (s); needed when the calibration comes from CameraInfo; with "
+        "--gyro it overrides the camera file's",
     )
+    import_flight.add_arguments(p)
 
 
 def pick_topic(
@@ -118,6 +125,26 @@ def _median_rate(t: list[float] | np.ndarray) -> float | None:
 
 
 def run(args) -> int:
+    from thermod.cli import import_flight
+
+    if args.list_cameras:
+        from thermod.io.camera_file import preset_names
+
+        print("\n".join(preset_names()))
+        return 0
+    if args.input is None or args.output is None:
+        raise ThermodError("thermod import: expected INPUT and -o OUTPUT")
+    if args.gyro is not None:
+        return import_flight.run(args)
+    flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report")
+                   if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else [])
+    if flight_only:
+        raise ThermodError(f"{args.input}: {', '.join(flight_only)} apply to a flight import "
+                           "(with --gyro LOG)")
+    return _run_bag(args)
+
+
+def _run_bag(args) -> int:
     from thermod.cli.record import RecordWriter
 
     out = Path(args.output)

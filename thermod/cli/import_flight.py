@@ -1,0 +1,73 @@
+"""`thermod import VIDEO --gyro LOG -o REC.h5`: a thermal video and a flight-controller log → a synced
+format-v1 recording (`thermod.calib.flight_import`).
+
+The camera comes from ``--calibration CAMERA.toml`` (a ``[camera]`` or ``[calibration]`` table,
+`thermod.io.camera_file`) or ``--camera PRESET`` (config/cameras/); one of the two is required, since
+the focal length and τ are not in the video. ``--fps`` gives a TIFF sequence's frame rate,
+``--log-index`` picks one log of a multi-log file, ``--no-refine`` skips the discrepancy refinement
+and ``--report DIR`` writes sync.json and sync.png.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from thermod.errors import ThermodError
+
+
+def add_arguments(p) -> None:
+    """The flight-import options, added to `thermod import`'s parser."""
+    g = p.add_argument_group("flight import (with --gyro: INPUT is a thermal video or a TIFF sequence)")
+    g.add_argument("--gyro", default=None, metavar="LOG",
+                   help="flight-controller log: Betaflight .bbl/.bfl/.csv, ArduPilot .bin, PX4 .ulg, "
+                        "Gyroflow .gcsv, …")
+    g.add_argument("--camera", default=None, metavar="PRESET",
+                   help="a camera preset instead of --calibration (thermod import --list-cameras)")
+    g.add_argument("--list-cameras", action="store_true", help="list the camera presets and exit")
+    g.add_argument("--fps", type=float, default=None, metavar="F",
+                   help="frame rate of a TIFF sequence (a video file's own timestamps are used)")
+    g.add_argument("--log-index", type=int, default=None, metavar="N",
+                   help="which log of a file holding several (0-based; default the longest)")
+    g.add_argument("--no-refine", action="store_true",
+                   help="skip the discrepancy refinement of offset, mount, bias, readout and τ")
+    g.add_argument("--report", default=None, metavar="DIR", help="write sync.json and sync.png here")
+
+
+def camera(args):
+    """The camera description from --calibration or --camera (exactly one)."""
+    from thermod.io.camera_file import load_camera, preset_path
+
+    if (args.calibration is None) == (args.camera is None):
+        raise ThermodError(f"{args.input}: a flight import needs the camera: give exactly one of "
+                           "--calibration CAMERA.toml or --camera PRESET")
+    cam = load_camera(args.calibration if args.calibration is not None else preset_path(args.camera))
+    if args.tau is not None:
+        if not 0 < args.tau <= 1:
+            raise ThermodError(f"--tau {args.tau}: expected a time constant in (0, 1] s")
+        cam = cam.replace(tau_s=float(args.tau))
+    return cam
+
+
+def run(args) -> int:
+    from thermod.calib.flight_import import import_flight
+
+    if args.fps is not None and not args.fps > 0:
+        raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
+    if args.log_index is not None and args.log_index < 0:
+        raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
+    cam = camera(args)
+    r = import_flight(args.input, args.gyro, out, cam, fps=args.fps, log_index=args.log_index,
+                      refine=not args.no_refine, report_dir=args.report,
+                      say=lambda m: print(m, file=sys.stderr))
+    for note in r.notes:
+        print(f"note: {note}", file=sys.stderr)
+    d = r.sync.to_dict()
+    print(f"wrote {r.path}: {r.n_frames} frames, {r.n_gyro} gyro samples ({r.log_format}); "
+          f"t_log = t_video {r.log_offset_s:+.4f} s (± {d['time_offset_s']['sigma'] * 1e3:.2f} ms), "
+          f"mount {d['mount']}"
+          + (f"; report in {args.report}" if args.report else ""))
+    return 0

@@ -1,0 +1,523 @@
+"""Gyro from flight-controller logs, through the flight stacks' own well-kept parsers.
+
+`read_flight_log(path)` returns a `FlightLog`: the gyro samples of one log, on the log's own clock,
+as angular rates in one stated body frame. The parsers:
+
+- **telemetry-parser** (Gyroflow's, PyPI ``telemetry-parser``): Betaflight/INAV blackbox
+  (``.bbl``/``.bfl`` binary, and the CSV that Blackbox Explorer exports), ArduPilot DataFlash
+  (``.bin``), Gyroflow ``.gcsv``, and the other formats it detects (camera metadata, phone
+  loggers), which are read in Gyroflow's axes (`frame="gyroflow"`). The gyro comes from
+  ``Parser.normalized_imu()`` (gyro only, in Gyroflow's axes, times from the file's first sample);
+  the raw samples (``Parser.telemetry()``) of the file's first bytes give that first time and the
+  axis mapping, which are undone. Files up to `MAX_TP_FILE_BYTES` (the parser holds every sample
+  as Python objects, ~1.4 kB each).
+- **pyulog**: PX4 ``.ulg`` (topic ``sensor_combined``, else ``vehicle_angular_velocity``).
+
+**Time** `t`: float64 seconds on the log's own clock (the flight controller's time since boot:
+Betaflight's ``time``, ArduPilot's ``TimeUS``/``SampleUS``, PX4's ``timestamp``; a gcsv's
+``t`` × ``tscale``). Nothing shifts it: the offset to the video is the sync's to find.
+
+**Rates** `rate`: float64 [N, 3] rad/s. `frame` names the axes:
+
+- ``"FRD"`` — the flight controller's body frame, aerospace convention: x forward, y right,
+  z down, right-handed; a positive rate turns by the right-hand rule (roll right, pitch nose up,
+  yaw nose right are positive). ArduPilot (``GyrX/Y/Z``) and PX4 (``gyro_rad``) log FRD as is.
+  Betaflight logs ``gyroADC`` roll, pitch, yaw in °/s about x forward, y left, z up (positive
+  roll right, pitch nose down, yaw nose left — the FLU frame, also right-handed), so its rates
+  become FRD as (roll, −pitch, −yaw). The same relation follows from the orientation strings
+  telemetry-parser gives the two families ("ZYx" for Betaflight, "zyx" for ArduPilot, both
+  mapped onto Gyroflow's one frame).
+- ``"imu"`` — a gcsv logger's own IMU axes, as logged; `orientation` carries the file's
+  orientation string (Gyroflow's IMU-to-camera axis mapping, e.g. ``"XYZ"``, a lower-case letter
+  negates; telemetry-parser assumes ``"xzY"`` when there is none) without applying it.
+- ``"gyroflow"`` — the other telemetry-parser formats, in Gyroflow's normalized axes.
+
+**Logs in one file**: the clock is split where it steps back or pauses for more than
+`SEGMENT_GAP_S` (a ``.bbl``'s logs, one per arming; a reboot); the longest part is returned
+unless `log_index` picks another. A lone sample out of order with both neighbours is dropped and
+counted, as are isolated out-of-order samples (≤ 0.1 % in all). ArduPilot's IMU instances,
+interleaved under one message name, give the first instance.
+
+A camera mount is a proper rotation ``camera_from_body`` (3×3): ω_camera = camera_from_body ·
+ω_body, with the camera frame of docs/design.md §2 (OpenCV: x right, y down, z forward). For
+a camera looking forward along the FRD x axis, upright, it is `FORWARD_CAMERA_FROM_FRD`. In a
+recording it is the calibration's ``R_cam_gyro`` when the log's body frame is the gyro frame.
+
+`write_gcsv` and `write_betaflight_csv` write the two text formats telemetry-parser reads back.
+
+Errors are `FlightLogError` naming the file: unsupported formats, logs without gyro samples, a
+sample rate of 0 or times that do not increase, truncated or corrupt files. File size and
+sample counts are bounded (`MAX_FILE_BYTES`, `MAX_SAMPLES`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from thermod.errors import ThermodError
+
+MAX_FILE_BYTES = 4 * 2**30
+MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
+PROBE_BYTES = (2**15, 2**20, 2**24)
+SEGMENT_GAP_S = 1.0
+MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
+MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
+MAX_DROPPED_FRACTION = 0.001       # isolated out-of-order samples a log may have
+DEG = math.pi / 180.0
+
+# ω_cam = M · ω_FRD for a camera looking along the body's x axis, upright (its x right = body y,
+# its y down = body z, its z forward = body x)
+FORWARD_CAMERA_FROM_FRD = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+# Betaflight's gyroADC axes (x forward, y left, z up) → FRD
+FRD_FROM_BETAFLIGHT = np.diag([1.0, -1.0, -1.0])
+
+
+def axis_aligned_rotations() -> np.ndarray:
+    """The 24 proper rotations whose entries are 0 or ±1 (the axis-aligned camera mounts), [24, 3, 3],
+    in a fixed order: the signed permutation matrices with determinant +1, sorted by their entries
+    (the identity is the last)."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[range(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.array(sorted(out, key=lambda m: tuple(m.ravel())))
+
+
+class FlightLogError(ThermodError):
+    """A flight log cannot be read as asked: names the file and what was expected."""
+
+    def __init__(self, path, problem: str):
+        self.path, self.problem = str(path), problem
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass(frozen=True)
+class FlightLog:
+    """One log's gyro: times t [N] (float64 s, strictly increasing, the log's own clock), rates
+    [N, 3] (float64 rad/s in `frame`, module docstring), the median sample rate (Hz), the
+    source format ("betaflight", "betaflight-csv", "ardupilot", "gcsv", "px4-ulog", or
+    telemetry-parser's name of another format), the file, which log of a multi-log file it is,
+    and how many out-of-order samples were dropped."""
+
+    path: str
+    source_format: str
+    t: np.ndarray
+    rate: np.ndarray
+    rate_hz: float
+    frame: str
+    orientation: str = ""
+    log_index: int = 0
+    n_logs: int = 1
+    n_dropped: int = 0
+    model: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t[-1] - self.t[0])
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+# ----------------------------------------------------------------------------------------- reading
+def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> FlightLog:
+    """Read the gyro of a flight-controller log (module docstring).
+
+    A file that holds several logs (a Betaflight ``.bbl`` with one log per arming: parts of the
+    clock split at steps back or pauses over `SEGMENT_GAP_S`) gives the longest unless `log_index`
+    (0-based) picks one; `FlightLog.n_logs` says how many there are."""
+    path = Path(path)
+    if not path.is_file():
+        raise FlightLogError(path, "no such file (expected a flight-controller log)")
+    size = path.stat().st_size
+    if size == 0:
+        raise FlightLogError(path, "empty file (expected a flight-controller log)")
+    if size > MAX_FILE_BYTES:
+        raise FlightLogError(path, f"{size / 2**30:.1f} GiB, over the {MAX_FILE_BYTES / 2**30:.0f} GiB "
+                                   "this reader accepts; cut the log to the flight")
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith(b"ULog\x01\x12\x35"):
+        return _read_ulog(path, log_index)
+    return _read_telemetry_parser(path, log_index)
+
+
+def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
+    """telemetry-parser's `normalized_imu()` carries the gyro alone (its `telemetry()` returns every
+    logged field as Python objects: 470 MB for a 0.66 MB blackbox log), but re-bases the times on
+    the file's first gyro sample and rotates the axes into Gyroflow's frame. The raw samples of a
+    short prefix of the file give that first time and the axis mapping, which are undone here."""
+    if path.stat().st_size > MAX_TP_FILE_BYTES:
+        raise FlightLogError(path, f"{path.stat().st_size / 2**20:.0f} MiB, over the "
+                                   f"{MAX_TP_FILE_BYTES / 2**20:.0f} MiB this reader accepts for this "
+                                   "format (telemetry-parser holds every sample in memory); cut the log")
+    with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
+        # alone in a folder: telemetry-parser reads a sibling NAME.gcsv instead of the file it is given
+        alone = Path(d) / path.name
+        alone.symlink_to(path.resolve())
+        parser = _tp_call(path, lambda: _tp_parser(alone))
+        camera, model = str(parser.camera or ""), str(parser.model or "")
+        imu = _tp_call(path, parser.normalized_imu)
+        probe = _probe_prefix(path, Path(d) / "prefix")
+    rows = [r for r in (imu or []) if isinstance(r, dict) and r.get("gyro") is not None]
+    if not rows:
+        raise FlightLogError(path, f"no gyro samples in this {camera or 'log'} (gyro logging disabled, "
+                                   "or the file is truncated)")
+    if len(rows) > MAX_SAMPLES:
+        raise FlightLogError(path, f"{len(rows)} gyro samples, over the {MAX_SAMPLES} this reader accepts")
+    try:
+        a = np.array([(r["timestamp_ms"], *r["gyro"]) for r in rows], dtype=np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise FlightLogError(path, "gyro samples without a time and three rates (corrupt log)") from None
+    fmt, frame = _family(path, camera)
+    if probe is None:
+        raise FlightLogError(path, "no gyro sample with a time in the first "
+                                   f"{PROBE_BYTES[-1] // 2**20} MiB (expected a flight-controller log)")
+    t0, orientation = probe
+    t = a[:, 0] * 1e-3 + t0
+    normalized = a[:, 1:4] * DEG
+    if fmt.startswith("betaflight") or fmt == "ardupilot":
+        # both families land in Gyroflow's frame as G = (−z, −y, −x) of FRD (module docstring)
+        rate = -normalized[:, ::-1]
+    elif fmt == "gcsv":
+        rate = _unorient(path, normalized, orientation)
+    else:
+        rate, frame = normalized, "gyroflow"
+    finite = np.isfinite(t) & np.all(np.isfinite(rate), axis=1)
+    if not np.all(finite):
+        raise FlightLogError(path, f"{int(np.sum(~finite))} gyro samples with non-finite time or rate")
+    if fmt == "ardupilot":
+        t, rate = _first_imu(path, t, rate)
+    # a lone wild stamp is a glitch to drop, not a boundary between logs
+    lone = _lone_outliers(t)
+    t, rate = t[~lone], rate[~lone]
+    segments = _segments(t)
+    if log_index is None:
+        index = int(np.argmax([b - a for a, b in segments]))
+    elif 0 <= log_index < len(segments):
+        index = int(log_index)
+    else:
+        raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
+    lo, hi = segments[index]
+    t, rate = t[lo:hi], rate[lo:hi]
+    return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, len(segments),
+                   f"{camera} {model}".strip(), int(np.sum(lone)))
+
+
+def _lone_outliers(t: np.ndarray) -> np.ndarray:
+    """Samples whose stamp is out of order with both neighbours while the neighbours agree with each
+    other (within `SEGMENT_GAP_S`)."""
+    bad = np.zeros(len(t), dtype=bool)
+    if len(t) >= 3:
+        prev, cur, nxt = t[:-2], t[1:-1], t[2:]
+        bad[1:-1] = ~((prev < cur) & (cur < nxt)) & (prev < nxt) & (nxt - prev < SEGMENT_GAP_S)
+    return bad
+
+
+def _tp_parser(path: Path):
+    import telemetry_parser
+
+    return telemetry_parser.Parser(str(path))
+
+
+def _tp_call(path: Path, fn):
+    """Call into telemetry-parser; its failures (a Rust panic arrives as a BaseException) become a
+    FlightLogError naming the file."""
+    try:
+        return fn()
+    except BaseException as e:            # noqa: BLE001 - pyo3's PanicException derives from BaseException
+        if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
+            raise
+        msg = str(e) or type(e).__name__
+        if "Unsupported file format" in msg:
+            raise FlightLogError(path, "not a log format telemetry-parser or pyulog reads (expected a "
+                                       "Betaflight .bbl/.bfl/.csv, ArduPilot .bin, Gyroflow .gcsv or "
+                                       "PX4 .ulg)") from None
+        if "No metadata" in msg:
+            raise FlightLogError(path, "no gyro samples (no telemetry in the file, or it is truncated)"
+                                 ) from None
+        raise FlightLogError(path, f"the parser failed: truncated or corrupt ({msg})") from None
+
+
+def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
+    """(time of the file's first gyro sample, the gyro's orientation tag) from telemetry-parser's raw
+    samples of the file's first bytes (growing prefixes, then the whole file); None if there is none."""
+    folder.mkdir()
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        for n in PROBE_BYTES:
+            f.seek(0)
+            part = folder / path.name
+            part.write_bytes(f.read(min(n, size)))
+            try:
+                samples = _tp_parser(part).telemetry()
+            except BaseException as e:    # noqa: BLE001 - a cut record can make the parser panic
+                if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
+                    raise
+                samples = None
+            for s in samples or []:
+                g = s.get("Gyroscope") if isinstance(s, dict) else None
+                data = g.get("Data") if isinstance(g, dict) else None
+                if isinstance(data, list) and data and isinstance(data[0], dict) and "t" in data[0]:
+                    o = g.get("Orientation")
+                    return float(data[0]["t"]), (o if isinstance(o, str) else "")
+            if n >= size:
+                break
+    return None
+
+
+def _unorient(path: Path, g: np.ndarray, orientation: str) -> np.ndarray:
+    """Undo Gyroflow's axis mapping: out[i] = ±raw[axis] for each letter (lower case negates)."""
+    o = orientation or "xzY"                       # telemetry-parser's default for a gcsv without one
+    if len(o) != 3 or sorted(o.upper()) != ["X", "Y", "Z"]:
+        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z")
+    raw = np.empty_like(g)
+    for i, c in enumerate(o):
+        raw[:, "XYZ".index(c.upper())] = g[:, i] * (1.0 if c.isupper() else -1.0)
+    return raw
+
+
+def _segments(t: np.ndarray) -> list[tuple[int, int]]:
+    """[lo, hi) index ranges between discontinuities of the log clock: a step back or a pause of more
+    than `SEGMENT_GAP_S` (the separate logs of one .bbl, an FC reboot)."""
+    if len(t) < 2:
+        return [(0, len(t))]
+    dt = np.diff(t)
+    cuts = np.flatnonzero((dt < -SEGMENT_GAP_S) | (dt > SEGMENT_GAP_S)) + 1
+    edges = [0, *cuts.tolist(), len(t)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def _family(path: Path, camera: str) -> tuple[str, str]:
+    """(source_format, frame) from telemetry-parser's camera type."""
+    if camera == "BlackBox":
+        with open(path, "rb") as f:
+            csv = b"H Product:Blackbox" not in f.read(4096)
+        return ("betaflight-csv" if csv else "betaflight"), "FRD"
+    if camera == "ArduPilot":
+        return "ardupilot", "FRD"
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head.startswith((b"GYROFLOW IMU LOG", b"CAMERA IMU LOG")):
+        return "gcsv", "imu"
+    return (camera or "unknown").lower(), "gyroflow"
+
+
+def _first_imu(path: Path, t: np.ndarray, rate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ArduPilot logs each IMU instance in turn under one message name, and telemetry-parser merges
+    them in file order without the instance number: k interleaved streams, stamped at the same or
+    nearly the same time. Their signature is an interval sequence that is irregular as a whole
+    (0 or a few µs, then a loop period) and regular in every k-th sample; the first instance (the
+    primary IMU) is kept."""
+    if len(t) < 8:
+        return t, rate
+    dt = np.diff(t)
+    if not (np.any(dt <= 0) or _irregular(dt)):
+        return t, rate
+    for k in (2, 3, 4):
+        streams = [t[j::k] for j in range(k)]
+        if len(streams[0]) - len(streams[-1]) <= 1 and all(
+                len(s) > 2 and np.all(np.diff(s) > 0) and not _irregular(np.diff(s)) for s in streams):
+            return t[0::k], rate[0::k]
+    return t, rate          # not an interleave: _finish judges the times
+
+
+def _irregular(dt: np.ndarray) -> bool:
+    """Intervals of two kinds: the 90th percentile over 1.5 × the 10th (one sensor's loop jitter is a
+    few %; interleaved instances alternate a few µs with a loop period)."""
+    q10, q90 = np.percentile(dt, (10, 90))
+    return bool(q10 <= 0 or q90 > 1.5 * q10)
+
+
+def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
+    from pyulog import ULog
+
+    if log_index not in (None, 0):
+        raise FlightLogError(path, f"log {log_index}: a ULog file holds one log")
+    topics = ["sensor_combined", "vehicle_angular_velocity"]
+    try:
+        ulog = ULog(str(path), message_name_filter_list=topics, disable_str_exceptions=True)
+    except Exception as e:                # noqa: BLE001 - pyulog raises plain Exceptions on damage
+        raise FlightLogError(path, f"pyulog cannot read it: truncated or corrupt ULog "
+                                   f"({type(e).__name__}: {e})") from None
+    for name, cols in (("sensor_combined", ("gyro_rad[0]", "gyro_rad[1]", "gyro_rad[2]")),
+                       ("vehicle_angular_velocity", ("xyz[0]", "xyz[1]", "xyz[2]"))):
+        ds = [d for d in ulog.data_list if d.name == name and all(c in d.data for c in cols)]
+        if ds:
+            d = min(ds, key=lambda d: d.multi_id)
+            if len(d.data["timestamp"]) > MAX_SAMPLES:
+                raise FlightLogError(path, f"{name}: over {MAX_SAMPLES} samples")
+            t = np.asarray(d.data["timestamp"], dtype=np.float64) * 1e-6
+            rate = np.stack([np.asarray(d.data[c], dtype=np.float64) for c in cols], axis=1)
+            return _finish(path, "px4-ulog", t, rate, "FRD", "", 0, 1, f"PX4 {name}")
+    raise FlightLogError(path, "no gyro samples (expected a sensor_combined or vehicle_angular_velocity "
+                               "topic; the log may be truncated)")
+
+
+def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, orientation: str,
+            index: int, n_logs: int, model: str, dropped_before: int = 0) -> FlightLog:
+    """Check the samples: finite, ≥ 2, times strictly increasing (isolated out-of-order samples,
+    ≤ 0.1 %, are dropped and counted), and a median rate within 10 Hz – 100 kHz."""
+    if len(t) < 2:
+        raise FlightLogError(path, f"{len(t)} gyro sample(s): expected a log of at least 2")
+    ok = np.isfinite(t) & np.all(np.isfinite(rate), axis=1)
+    if not np.all(ok):
+        raise FlightLogError(path, f"{int(np.sum(~ok))} gyro samples with non-finite time or rate")
+    keep = np.ones(len(t), dtype=bool)
+    running = np.maximum.accumulate(t)
+    keep[1:] = t[1:] > running[:-1]
+    dropped = int(np.sum(~keep)) + dropped_before
+    if dropped > MAX_DROPPED_FRACTION * (len(t) + dropped_before):
+        if np.all(keep):
+            raise FlightLogError(path, f"{dropped_before} of {len(t) + dropped_before} gyro samples out of "
+                                       "order with both neighbours: expected strictly increasing times")
+        i = int(np.flatnonzero(~keep)[0])
+        raise FlightLogError(path, f"gyro sample {i} at {t[i]:.6f} s is not after the one before "
+                                   f"({t[i - 1]:.6f} s): expected strictly increasing times "
+                                   f"({dropped} of {len(t) + dropped_before} samples out of order)")
+    t, rate = t[keep], rate[keep]
+    dt = np.diff(t)
+    med = float(np.median(dt))
+    hz = 1.0 / med if med > 0 else 0.0
+    if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:
+        raise FlightLogError(path, f"gyro sample rate {hz:.3g} Hz (median interval {med:.3g} s): expected "
+                                   f"{MIN_RATE_HZ:g}–{MAX_RATE_HZ:g} Hz")
+    return FlightLog(str(path), fmt, np.ascontiguousarray(t), np.ascontiguousarray(rate), hz, frame,
+                     orientation, index, n_logs, dropped, model)
+
+
+# ----------------------------------------------------------------------------------------- writing
+def write_gcsv(path: str | os.PathLike, t: np.ndarray, rate_rad_s: np.ndarray, *, orientation: str = "XYZ",
+               gscale: float = 1e-6, tscale: float = 1e-6, vendor: str = "thermod", note: str = "",
+               extra: dict | None = None) -> Path:
+    """Write a Gyroflow ``.gcsv`` (version 1.3): integer times in units of `tscale` s and
+    integer rates in units of `gscale` rad/s, with the axes as given and the IMU-to-camera
+    `orientation` string for Gyroflow (three of X/Y/Z, lower case negates). For rates already in
+    the camera frame of docs/design.md §2, `GCSV_ORIENTATION_OPENCV_CAMERA` is the string that
+    tells Gyroflow so. `extra` adds header rows (e.g. frame_readout_time in ms)."""
+    path = Path(path)
+    t, rate = _check_series(path, t, rate_rad_s)
+    if not (len(orientation) == 3 and sorted(orientation.upper()) == ["X", "Y", "Z"]):
+        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z "
+                                   "(lower case negates)")
+    if not (gscale > 0 and tscale > 0):
+        raise FlightLogError(path, "gscale and tscale must be > 0")
+    ticks = np.round(t / tscale).astype(np.int64)
+    if np.any(np.diff(ticks) <= 0):
+        raise FlightLogError(path, f"times closer than tscale {tscale:g} s: choose a finer tscale")
+    lsb = np.round(rate / gscale)
+    if np.any(np.abs(lsb) > 2**53):
+        raise FlightLogError(path, "rates too large for gscale: choose a coarser gscale")
+    header = [("version", "1.3"), ("id", "thermod"), ("orientation", orientation), ("vendor", vendor),
+              ("tscale", repr(float(tscale))), ("gscale", repr(float(gscale)))]
+    if note:
+        header.append(("note", note.replace(",", ";").replace("\n", " ")))
+    header += [(str(k), str(v)) for k, v in (extra or {}).items()]
+    lines = ["GYROFLOW IMU LOG"] + [f"{k},{v}" for k, v in header] + ["t,gx,gy,gz"]
+    body = np.column_stack([ticks, lsb.astype(np.int64)])
+    _atomic_text(path, "\n".join(lines) + "\n", body)
+    return path
+
+
+# Gyroflow's axes from the orientation strings telemetry-parser gives ArduPilot ("zyx") and
+# Betaflight ("ZYx"): G = (−z, −y, −x) of FRD; for OpenCV camera rates (x right = FRD y, y down =
+# FRD z, z forward = FRD x, forward camera) that is G = (−y, −x, −z) of the camera's axes.
+GCSV_ORIENTATION_OPENCV_CAMERA = "yxz"
+
+
+def write_betaflight_csv(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: np.ndarray, *,
+                         integer_deg_s: bool = True, firmware: str = "Betaflight 4.4.0 (thermod)"
+                         ) -> Path:
+    """Write a Betaflight blackbox CSV as Blackbox Explorer exports it (quoted header row,
+    ``loopIteration``, ``time`` in µs, ``gyroADC[0..2]`` roll/pitch/yaw in °/s about Betaflight's
+    x forward, y left, z up). Rates are given in FRD rad/s (module docstring); `integer_deg_s`
+    quantises to 1 °/s as Betaflight 4's log does."""
+    path = Path(path)
+    t, rate = _check_series(path, t, rate_frd_rad_s)
+    us = np.round(t * 1e6).astype(np.int64)
+    if np.any(np.diff(us) <= 0) or us[0] < 0:
+        raise FlightLogError(path, "times must be ≥ 0 and increase by ≥ 1 µs (Betaflight logs µs since boot)")
+    deg = (rate @ FRD_FROM_BETAFLIGHT.T) / DEG
+    lines = ['"Product","Blackbox flight data recorder by Nicholas Sherlock"',
+             f'"Firmware revision","{firmware}"',
+             '"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"']
+    cols = np.column_stack([np.arange(len(us)), us])
+    if integer_deg_s:
+        body = np.column_stack([cols, np.round(deg).astype(np.int64)])
+    else:
+        body = [f"{a},{b},{x:.4f},{y:.4f},{z:.4f}" for (a, b), (x, y, z) in zip(cols, deg, strict=True)]
+    _atomic_text(path, "\n".join(lines) + "\n", body)
+    return path
+
+
+def write_ardupilot_bin(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: np.ndarray, *,
+                       n_imus: int = 1, stagger_s: float = 5e-6) -> Path:
+    """Write an ArduPilot DataFlash ``.bin`` holding FMT records and one ``IMU`` record
+    (TimeUS µs since boot, instance I, GyrX/Y/Z rad/s FRD, AccX/Y/Z m/s² = 0) per sample and IMU;
+    with `n_imus` > 1 each sample is logged once per instance in turn, as ArduPilot logs its IMUs,
+    instance i stamped `stagger_s`·i later (instance i's rates are the same plus 0.001·i rad/s, so
+    the instances can be told apart)."""
+    import struct
+
+    path = Path(path)
+    t, rate = _check_series(path, t, rate_frd_rad_s)
+    us = np.round(t * 1e6).astype(np.int64)
+    if np.any(np.diff(us) <= 0) or us[0] < 0:
+        raise FlightLogError(path, "times must be ≥ 0 and increase by ≥ 1 µs (ArduPilot logs µs since boot)")
+    if not 1 <= n_imus <= 3:
+        raise FlightLogError(path, f"n_imus {n_imus}: expected 1–3")
+
+    def fmt(msg_type, length, name, form, cols):
+        return struct.pack("<3BBB4s16s64s", 0xA3, 0x95, 0x80, msg_type, length, name.encode(), form.encode(),
+                           cols.encode())
+
+    imu = struct.Struct("<3BQB6f")
+    out = [fmt(0x80, 89, "FMT", "BBnNZ", "Type,Length,Name,Format,Columns"),
+           fmt(0x81, imu.size, "IMU", "QBffffff", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ")]
+    step = int(round(stagger_s * 1e6))
+    if n_imus > 1 and not 0 <= step * (n_imus - 1) < np.min(np.diff(us)):
+        raise FlightLogError(path, f"stagger {stagger_s} s: the instances must fit between samples")
+    for k in range(len(us)):
+        for i in range(n_imus):
+            w = rate[k] + 0.001 * i
+            out.append(imu.pack(0xA3, 0x95, 0x81, int(us[k]) + i * step, i, *w.tolist(), 0.0, 0.0, 0.0))
+    part = path.with_name(path.name + ".part")
+    part.write_bytes(b"".join(out))
+    os.replace(part, path)
+    return path
+
+
+def _check_series(path: Path, t, rate) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(t, dtype=np.float64)
+    rate = np.asarray(rate, dtype=np.float64)
+    if t.ndim != 1 or len(t) < 2 or rate.shape != (len(t), 3):
+        raise FlightLogError(path, f"expected times [N ≥ 2] and rates [N, 3], got {t.shape} and {rate.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(rate))):
+        raise FlightLogError(path, "times and rates must be finite")
+    if np.any(np.diff(t) <= 0):
+        raise FlightLogError(path, "times must increase strictly")
+    if not path.parent.is_dir():
+        raise FlightLogError(path, f"directory {path.parent} does not exist")
+    return t, rate
+
+
+def _atomic_text(path: Path, header: str, body) -> None:
+    part = path.with_name(path.name + ".part")
+    with open(part, "w", encoding="ascii", newline="\n") as f:
+        f.write(header)
+        if isinstance(body, np.ndarray):
+            np.savetxt(f, body, fmt="%d", delimiter=",")
+        else:
+            f.write("\n".join(body) + "\n")
+    os.replace(part, path)

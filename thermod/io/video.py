@@ -1,0 +1,539 @@
+"""Thermal video in and out: grey frames with per-frame times, through FFmpeg (PyAV) or OpenCV.
+
+Reading (`iter_video`, `read_video`, `probe_video`):
+
+- **A video file**: anything FFmpeg decodes (MP4, MKV, AVI, NUT, …; H.264, H.265, MJPEG, FFV1,
+  rawvideo, …), decoded by PyAV. Grey formats come out as they are coded: ``gray`` → uint8,
+  ``gray10le``/``gray12le``/``gray16le``/``gray16be`` → uint16 (10/12-bit values as coded, not
+  rescaled). A YUV format gives its **luma plane** (Y as coded, limited-range values left as they
+  are; `VideoInfo.luma_only` is True): a thermal camera's colour video is a palette applied to
+  the grey level, and luma is the closest monotonic stand-in for it. Other colour formats (RGB,
+  palettes) are converted to grey by FFmpeg's swscale (also `luma_only`).
+- **A 16-bit TIFF sequence**: a folder (its ``*.tif``/``*.tiff`` files) or a glob pattern, in
+  natural order of the file names (``f2`` before ``f10``), each one's header checked with tifffile
+  and its pixels read with OpenCV (IMREAD_UNCHANGED).
+  A sequence has no timestamps: ``fps`` must be given, and frame k is at ``t0 + k / fps``.
+
+**Time**: float64 seconds on the container's own clock, a frame's presentation timestamp
+(pts × time base) — variable frame rate is kept as it is. Nothing maps this clock to the
+flight log's; that is the sync's job. Times must increase strictly; a repeated or decreasing
+timestamp is a `VideoError`, never re-ordered.
+
+**Bounds**: a side over `MAX_SIDE` px, more than `MAX_FRAMES` frames, or a loaded stack over
+`max_bytes` is refused before it is allocated; `iter_video` streams one frame at a time for
+longer inputs.
+
+Writing (`VideoWriter`, `write_video`): 8-bit grey frames to H.264 (libx264, yuv420p, playable
+everywhere) with the given per-frame times as timestamps (time base 1/90000 s), so a variable
+frame rate survives. `PercentileAGC` is the automatic gain control a thermal camera applies to
+make its 8-bit video: a percentile stretch whose gain and offset follow the scene smoothly.
+
+Errors are `VideoError` naming the file and what was expected.
+"""
+
+from __future__ import annotations
+
+import glob
+import math
+import os
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+from thermod.errors import ThermodError
+
+MAX_SIDE = 16384                  # px, as the recording format's calibration bounds
+MAX_FRAMES = 10_000_000
+DEFAULT_MAX_BYTES = 4 * 2**30     # read_video's in-memory stack
+WRITE_TIME_BASE = Fraction(1, 90000)
+TIFF_SUFFIXES = (".tif", ".tiff")
+# what FFmpeg and PyAV raise on a damaged file (av.error.FFmpegError is a ValueError, and PyAV decodes
+# metadata strings itself); each becomes a VideoError naming the file
+_DECODE_ERRORS = (av.error.FFmpegError, ValueError, UnicodeError, OSError, EOFError)
+_GREY16 = {"gray16le", "gray16be", "gray10le", "gray10be", "gray12le", "gray12be", "gray14le", "gray14be"}
+
+
+class VideoError(ThermodError):
+    """A video or image sequence cannot be read or written as asked: names the file and the problem."""
+
+    def __init__(self, path, problem: str):
+        self.path, self.problem = str(path), problem
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a video holds, before decoding it.
+
+    n_frames is the count the container declares (None when it declares none, as MKV does);
+    duration_s the stream's declared duration (None if unknown); bit_depth 8 or 16 (the dtype
+    frames come out as); luma_only True when colour input is read as its luma (module docstring).
+    """
+
+    path: str
+    kind: str                     # "video" or "tiff-sequence"
+    width: int
+    height: int
+    bit_depth: int
+    n_frames: int | None
+    duration_s: float | None
+    frame_rate_hz: float | None   # the container's average rate (None if unknown)
+    codec: str
+    pix_fmt: str
+    luma_only: bool = False
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.uint16 if self.bit_depth == 16 else np.uint8)
+
+    @property
+    def frame_bytes(self) -> int:
+        return self.width * self.height * self.dtype.itemsize
+
+
+@dataclass
+class VideoFrames:
+    """A loaded video: frames [N, H, W] (uint8 or uint16) and their times t [N] (float64 s,
+    strictly increasing, on the container's clock)."""
+
+    frames: np.ndarray
+    t: np.ndarray
+    info: VideoInfo
+    files: list[str] = field(default_factory=list)   # a TIFF sequence's files, in order
+
+
+# ----------------------------------------------------------------------------------------- reading
+def probe_video(source: str | os.PathLike, fps: float | None = None) -> VideoInfo:
+    """The `VideoInfo` of a video file, a folder of TIFFs or a TIFF glob (which needs `fps`)."""
+    files = _tiff_files(source)
+    if files is not None:
+        return _probe_tiffs(source, files, fps)
+    av = _av()
+    path = _existing_file(source)
+    try:
+        with av.open(str(path), metadata_errors="replace") as c:
+            return _info_from_container(path, c)
+    except _DECODE_ERRORS as e:
+        raise VideoError(path, f"not a video FFmpeg can read, or truncated before its header ends ({e})"
+                         ) from None
+
+
+def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0
+               ) -> Iterator[tuple[float, np.ndarray]]:
+    """Yield (t_s, frame) one frame at a time: frame is [H, W] uint8 or uint16 (module docstring).
+
+    For a TIFF sequence `fps` (Hz) is required and frame k is at t0 + k / fps; for a video file
+    `fps` and `t0` must be left unset (its own timestamps are used). Raises `VideoError` for a
+    truncated file, a missing video stream, zero frames or timestamps that do not increase."""
+    files = _tiff_files(source)
+    if files is not None:
+        info = _probe_tiffs(source, files, fps)
+        yield from _iter_tiffs(info, files, float(fps), float(t0))
+        return
+    if fps is not None or t0:
+        raise VideoError(source, "fps/t0 apply to TIFF sequences only; a video file's own timestamps "
+                                 "are used")
+    yield from _iter_av(_existing_file(source))
+
+
+def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0,
+               max_bytes: int = DEFAULT_MAX_BYTES) -> VideoFrames:
+    """Load a whole video (or TIFF sequence) into memory: `VideoFrames`.
+
+    Refuses, before decoding, a video whose declared frame count needs more than `max_bytes`,
+    and stops with a `VideoError` as soon as the decoded frames exceed it (use `iter_video` to
+    stream a longer one)."""
+    info = probe_video(source, fps)
+    if info.n_frames is not None and info.n_frames * info.frame_bytes > max_bytes:
+        raise VideoError(source, f"{info.n_frames} frames of {info.width}×{info.height} need "
+                                 f"{info.n_frames * info.frame_bytes / 2**30:.2f} GiB, over the "
+                                 f"{max_bytes / 2**30:.2f} GiB limit; stream it with iter_video")
+    cap = max(1, max_bytes // info.frame_bytes)
+    # one buffer sized from the header, grown by doubling when a header under-counts: the peak is the
+    # frames themselves, not a list of them plus the stacked copy
+    guess = info.n_frames or (int(info.duration_s * info.frame_rate_hz) + 2
+                              if info.duration_s and info.frame_rate_hz else 256)
+    buf = np.empty((min(max(guess, 1), cap), info.height, info.width), info.dtype)
+    times = []
+    for t, f in iter_video(source, fps, t0):
+        n = len(times)
+        if n == buf.shape[0]:
+            if n >= cap:
+                raise VideoError(source, f"more than {cap} frames of {info.width}×{info.height} "
+                                         f"({max_bytes / 2**30:.2f} GiB limit); stream it with iter_video")
+            grown = np.empty((min(2 * n, cap), info.height, info.width), info.dtype)
+            grown[:n] = buf
+            buf = grown
+        buf[n] = f
+        times.append(t)
+    n = len(times)
+    frames = buf[:n] if n > 0.9 * buf.shape[0] else buf[:n].copy()
+    files = _tiff_files(source) or []
+    return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files])
+
+
+def _av():
+    av.logging.set_level(av.logging.PANIC)    # errors reach the caller as exceptions, not stderr noise
+    return av
+
+
+def _existing_file(source) -> Path:
+    path = Path(source)
+    if not path.is_file():
+        raise VideoError(path, "no such file (expected a video file, a folder of TIFFs or a TIFF glob)")
+    return path
+
+
+def _info_from_container(path: Path, c) -> VideoInfo:
+    if not c.streams.video:
+        raise VideoError(path, "contains no video stream")
+    s = c.streams.video[0]
+    cc = s.codec_context
+    if cc is None:
+        raise VideoError(path, "its video stream has no codec FFmpeg can decode (damaged header?)")
+    w, h = int(cc.width or 0), int(cc.height or 0)
+    _check_size(path, w, h)
+    pix = cc.pix_fmt or (s.format.name if s.format else "") or ""
+    depth = 16 if pix in _GREY16 or _is_high_depth_yuv(pix) else 8
+    luma_only = pix not in ("gray",) and pix not in _GREY16
+    n = int(s.frames) if s.frames else None
+    if n is not None and n > MAX_FRAMES:
+        raise VideoError(path, f"declares {n} frames, over the {MAX_FRAMES} this reader accepts")
+    duration = None
+    if s.duration and s.time_base:
+        duration = float(s.duration * s.time_base)
+    elif c.duration and len(c.streams) == 1:
+        duration = c.duration / 1e6
+    rate = float(s.average_rate) if s.average_rate else None
+    return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only)
+
+
+def _is_high_depth_yuv(pix: str) -> bool:
+    return (bool(re.match(r"^(yuv|yuvj|nv|p0|p2)\w*?(9|10|12|14|16)(le|be)$", pix))
+            or pix.startswith(("p010", "p016")))
+
+
+def _check_size(path, w: int, h: int) -> None:
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+        raise VideoError(path, f"frame size {w}×{h}: expected 1–{MAX_SIDE} px per side")
+
+
+def _iter_av(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+    av = _av()
+    try:
+        c = av.open(str(path), metadata_errors="replace")
+    except _DECODE_ERRORS as e:
+        raise VideoError(path, f"not a video FFmpeg can read, or truncated before its header ends ({e})"
+                         ) from None
+    with c:
+        info = _info_from_container(path, c)
+        s = c.streams.video[0]
+        n, first, last, periods = 0, 0.0, -math.inf, []
+        try:
+            for frame in c.decode(s):
+                t = _frame_time(path, frame, n)
+                if not t > last:
+                    raise VideoError(path, f"frame {n} has timestamp {t:.6f} s, not after the previous "
+                                           f"{last:.6f} s (expected strictly increasing presentation times)")
+                if n >= MAX_FRAMES:
+                    raise VideoError(path, f"more than {MAX_FRAMES} frames")
+                if n == 0:
+                    first = t
+                elif len(periods) < 1000:          # enough for the typical frame period
+                    periods.append(t - last)
+                img = _grey(path, frame, info)
+                last = t
+                n += 1
+                yield t, img
+        except _DECODE_ERRORS as e:
+            raise VideoError(path, f"decoding stopped at frame {n}: truncated or corrupt ({e})") from None
+    if n == 0:
+        raise VideoError(path, "the video stream holds zero decodable frames (empty or truncated)")
+    _check_complete(path, info, n, last - first, periods)
+
+
+def _frame_time(path: Path, frame, k: int) -> float:
+    pts = frame.pts if frame.pts is not None else getattr(frame, "dts", None)
+    if pts is None or frame.time_base is None:
+        raise VideoError(path, f"frame {k} has no timestamp (expected a container with presentation times)")
+    t = float(pts * frame.time_base)
+    if not math.isfinite(t):
+        raise VideoError(path, f"frame {k} has a non-finite timestamp")
+    return t
+
+
+def _grey(path: Path, frame, info: VideoInfo) -> np.ndarray:
+    """The frame's grey level: the grey plane or the luma plane as coded, else swscale's grey."""
+    fmt = frame.format.name
+    if frame.width != info.width or frame.height != info.height:
+        raise VideoError(path, f"frame size changes from {info.width}×{info.height} to "
+                               f"{frame.width}×{frame.height} (expected one size for the whole video)")
+    h, w = frame.height, frame.width
+    if fmt == "gray" or (fmt.startswith(("yuv", "yuvj", "nv")) and info.bit_depth == 8):
+        plane = frame.planes[0]
+        a = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
+        return a[:h, :w].copy()
+    planar16 = info.bit_depth == 16 and fmt.startswith(("yuv", "yuvj")) and fmt.endswith(("le", "be"))
+    if fmt in _GREY16 or planar16:
+        plane = frame.planes[0]
+        dt = np.dtype("<u2" if fmt.endswith("le") else ">u2")
+        a = np.frombuffer(plane, dt).reshape(-1, plane.line_size // 2)
+        return a[:h, :w].astype(np.uint16)
+    target = "gray16le" if info.bit_depth == 16 else "gray"
+    return np.ascontiguousarray(frame.to_ndarray(format=target))
+
+
+def _check_complete(path: Path, info: VideoInfo, n: int, span: float, periods: list[float]) -> None:
+    """A stream that ends well before its header says it should was cut short: judged by the
+    declared duration when there is one (a frame count can count a CFR container's empty slots,
+    as AVI's does for variable-rate video), else by the declared frame count."""
+    if info.duration_s and periods:
+        period = float(np.median(periods))
+        missing = info.duration_s - span - period
+        # the last frame lasts a nominal period in the header's sum, which a variable rate can exceed
+        nominal = 1.0 / info.frame_rate_hz if info.frame_rate_hz else 0.0
+        if missing > max(3 * period, 2 * nominal, 0.02 * info.duration_s):
+            raise VideoError(path, f"truncated: the header declares {info.duration_s:.3f} s, the decodable "
+                                   f"frames cover {info.duration_s - missing:.3f} s")
+    elif info.n_frames is not None and n < info.n_frames:
+        raise VideoError(path, f"truncated: the header declares {info.n_frames} frames, {n} could be decoded")
+
+
+# ----------------------------------------------------------------------------------- TIFF sequences
+def _tiff_files(source) -> list[Path] | None:
+    """The files of a TIFF sequence (a folder or a glob), or None when `source` names one file."""
+    s = str(source)
+    if any(ch in s for ch in "*?["):
+        files = [Path(p) for p in glob.glob(s) if Path(p).is_file()]
+        if not files:
+            raise VideoError(source, "the pattern matches no files (expected a TIFF sequence)")
+    elif Path(s).is_dir():
+        files = [p for p in Path(s).iterdir() if p.is_file() and p.suffix.lower() in TIFF_SUFFIXES]
+        if not files:
+            raise VideoError(source, "the folder holds no .tif/.tiff files (expected a TIFF sequence)")
+    else:
+        return None
+    if len(files) > MAX_FRAMES:
+        raise VideoError(source, f"{len(files)} files, over the {MAX_FRAMES} frames this reader accepts")
+    return sorted(files, key=_natural_key)
+
+
+def _natural_key(p: Path):
+    return [int(x) if x.isdigit() else x.lower() for x in re.split(r"(\d+)", p.name)]
+
+
+def _read_tiff(path: Path) -> np.ndarray:
+    """One grey TIFF: its declared size is checked (tifffile reads the header only) before OpenCV
+    decodes and allocates it."""
+    import cv2
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(str(path)) as tf:
+            page = tf.pages[0]
+            shape, samples = tuple(int(v) for v in page.shape), int(page.samplesperpixel)
+    except Exception as e:   # noqa: BLE001 - tifffile raises many kinds (TypeError, AttributeError, …) on damage
+        raise VideoError(path, f"not an image OpenCV can read (expected a 16-bit grey TIFF: {e})") from None
+    if samples != 1:
+        raise VideoError(path, f"{samples} channels: expected a single-channel grey TIFF")
+    if len(shape) != 2 or not all(1 <= v <= MAX_SIDE for v in shape):
+        raise VideoError(path, f"image shape {shape}: expected one grey plane of 1–{MAX_SIDE} px per side")
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:
+        raise VideoError(path, f"OpenCV cannot read it as an image ({e})") from None
+    if img is None:
+        raise VideoError(path, "not an image OpenCV can read (expected a 16-bit grey TIFF)")
+    if img.ndim == 3:
+        raise VideoError(path, f"{img.shape[2]} channels: expected a single-channel grey TIFF")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise VideoError(path, f"pixel type {img.dtype}: expected 8- or 16-bit unsigned grey")
+    return img
+
+
+def _probe_tiffs(source, files: list[Path], fps: float | None) -> VideoInfo:
+    if fps is None or not (isinstance(fps, (int, float)) and math.isfinite(fps) and 0 < fps <= 100_000):
+        raise VideoError(source, "a TIFF sequence has no timestamps: give its frame rate "
+                                 f"(0 < fps ≤ 100000 Hz), got {fps!r}")
+    first = _read_tiff(files[0])
+    h, w = first.shape
+    _check_size(files[0], w, h)
+    depth = 16 if first.dtype == np.uint16 else 8
+    return VideoInfo(str(source), "tiff-sequence", w, h, depth, len(files), len(files) / fps, float(fps),
+                     "tiff", "gray16" if depth == 16 else "gray")
+
+
+def _iter_tiffs(info: VideoInfo, files: list[Path], fps: float, t0: float
+                ) -> Iterator[tuple[float, np.ndarray]]:
+    for k, p in enumerate(files):
+        img = _read_tiff(p)
+        if img.shape != (info.height, info.width) or img.dtype != info.dtype:
+            raise VideoError(p, f"{img.shape[1]}×{img.shape[0]} {img.dtype}: expected "
+                                f"{info.width}×{info.height} {info.dtype} like the sequence's first file")
+        yield t0 + k / fps, img
+
+
+# ----------------------------------------------------------------------------------------- writing
+class VideoWriter:
+    """Write 8-bit grey frames to a playable H.264 video (libx264, yuv420p) with given times.
+
+    The luma plane is the frame itself, flagged full range (0–255), and the chroma is neutral,
+    so `read_video` gives the frames back (exactly at crf=0). `write(frame, t)` takes an [H, W]
+    uint8 frame and its time (s); times must increase by at least one tick of the 1/90000 s time
+    base, and the file's timestamps start at 0 at the first frame (`t0` keeps its time). Odd sides
+    are padded by one edge row/column (yuv420p needs even sides). Use as a context manager; the
+    file is complete after `close()`. `crf` is x264's constant-quality factor (0 = lossless luma,
+    18 ≈ visually lossless).
+    """
+
+    def __init__(self, path: str | os.PathLike, width: int, height: int, *, crf: int = 18,
+                 preset: str = "medium", nominal_fps: float = 30.0):
+        self.path = Path(path)
+        _check_size(self.path, width, height)
+        if not self.path.parent.is_dir():
+            raise VideoError(self.path, f"directory {self.path.parent} does not exist")
+        if not 0 <= crf <= 51:
+            raise VideoError(self.path, f"crf {crf}: expected 0–51")
+        av = _av()
+        self.width, self.height = int(width), int(height)
+        self._pad = (self.height % 2, self.width % 2)
+        self._t0 = None
+        self._last_pts = -1
+        self.n_frames = 0
+        try:
+            self._c = av.open(str(self.path), "w")
+            rate = Fraction(nominal_fps).limit_denominator(1001) if nominal_fps > 0 else Fraction(30)
+            s = self._c.add_stream("libx264", rate=rate)
+            s.width, s.height = self.width + self._pad[1], self.height + self._pad[0]
+            s.pix_fmt = "yuv420p"
+            s.time_base = WRITE_TIME_BASE
+            s.codec_context.time_base = WRITE_TIME_BASE
+            s.options = {"crf": str(int(crf)), "preset": preset}
+            s.codec_context.color_range = 2          # full range: luma 0–255 is the frame as given
+            self._s = s
+        except _DECODE_ERRORS as e:
+            raise VideoError(self.path, f"cannot open for writing H.264 ({e})") from None
+
+    def write(self, frame: np.ndarray, t: float) -> None:
+        av = _av()
+        f = np.asarray(frame)
+        if f.shape != (self.height, self.width) or f.dtype != np.uint8:
+            raise VideoError(self.path, f"frame {self.n_frames}: got {f.dtype} {f.shape}, expected uint8 "
+                                        f"({self.height}, {self.width})")
+        if not math.isfinite(t):
+            raise VideoError(self.path, f"frame {self.n_frames}: time {t!r} is not finite")
+        if self._t0 is None:
+            self._t0 = float(t)
+        pts = int(round((float(t) - self._t0) / WRITE_TIME_BASE))
+        if pts <= self._last_pts:
+            raise VideoError(self.path, f"frame {self.n_frames}: time {t:.6f} s is not after the previous "
+                                        "frame's (expected times increasing by ≥ 1/90000 s)")
+        if any(self._pad):
+            f = np.pad(f, ((0, self._pad[0]), (0, self._pad[1])), mode="edge")
+        # the luma plane is the frame itself (full range), chroma neutral: no colour conversion to round
+        h, w = f.shape
+        planar = np.concatenate([f.ravel(), np.full(h * w // 2, 128, np.uint8)]).reshape(h * 3 // 2, w)
+        vf = av.VideoFrame.from_ndarray(planar, format="yuv420p")
+        vf.pts, vf.time_base, vf.color_range = pts, WRITE_TIME_BASE, 2
+        try:
+            for p in self._s.encode(vf):
+                self._c.mux(p)
+        except _DECODE_ERRORS as e:
+            raise VideoError(self.path, f"encoding frame {self.n_frames} failed ({e})") from None
+        self._last_pts = pts
+        self.n_frames += 1
+
+    @property
+    def t0(self) -> float | None:
+        """The first frame's time: the file's timestamps are relative to it."""
+        return self._t0
+
+    def close(self) -> None:
+        if self._c is None:
+            return
+        try:
+            for p in self._s.encode():
+                self._c.mux(p)
+            self._c.close()
+        except _DECODE_ERRORS as e:
+            raise VideoError(self.path, f"finishing the file failed ({e})") from None
+        finally:
+            self._c = None
+
+    def __enter__(self) -> VideoWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close()
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray | Sequence[np.ndarray], t: Sequence[float],
+                *, crf: int = 18, preset: str = "medium") -> Path:
+    """Write [N, H, W] uint8 frames at times t (s) as H.264 (`VideoWriter`); returns the path."""
+    t = np.asarray(t, dtype=np.float64)
+    n = len(frames)
+    if n == 0 or t.shape != (n,):
+        raise VideoError(path, f"expected ≥ 1 frame and one time per frame, got {n} frames and "
+                               f"{t.shape} times")
+    f0 = np.asarray(frames[0])
+    if f0.ndim != 2:
+        raise VideoError(path, f"frames must be [N, H, W] grey, got frame shape {f0.shape}")
+    fps = 1.0 / float(np.median(np.diff(t))) if n > 1 and np.all(np.diff(t) > 0) else 30.0
+    with VideoWriter(path, f0.shape[1], f0.shape[0], crf=crf, preset=preset, nominal_fps=fps) as w:
+        for f, tk in zip(frames, t, strict=True):
+            w.write(f, float(tk))
+    return Path(path)
+
+
+# --------------------------------------------------------------------------------------------- AGC
+@dataclass
+class PercentileAGC:
+    """A thermal camera's automatic gain control: counts → 8-bit by a percentile stretch.
+
+    Each frame's `low_pct` and `high_pct` percentiles are pulled towards by an exponential
+    smoother (time constant `smoothing_s`, so the gain and offset change gradually, as a
+    camera's do); the stretch maps the smoothed low level to 0 and the high level to 255:
+
+        y = clip((x − offset) · gain, 0, 255),   offset = lo,  gain = 255 / max(hi − lo, min_span)
+
+    `apply(frame, t)` returns (uint8 frame, gain, offset); the first frame sets the levels."""
+
+    low_pct: float = 1.0
+    high_pct: float = 99.0
+    smoothing_s: float = 0.5
+    min_span: float = 1.0
+    _lo: float | None = field(default=None, init=False, repr=False)
+    _hi: float | None = field(default=None, init=False, repr=False)
+    _t: float | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self):
+        if not (0 <= self.low_pct < self.high_pct <= 100):
+            raise ThermodError(f"AGC percentiles: expected 0 ≤ low < high ≤ 100, got {self.low_pct}, "
+                               f"{self.high_pct}")
+        if not (self.smoothing_s >= 0 and self.min_span > 0):
+            raise ThermodError("AGC: expected smoothing_s ≥ 0 and min_span > 0")
+
+    def apply(self, frame: np.ndarray, t: float) -> tuple[np.ndarray, float, float]:
+        x = np.asarray(frame, dtype=np.float32)
+        lo, hi = (float(v) for v in np.percentile(x, (self.low_pct, self.high_pct)))
+        if self._lo is None or self.smoothing_s == 0:
+            self._lo, self._hi = lo, hi
+        else:
+            a = 1.0 - math.exp(-max(float(t) - self._t, 0.0) / self.smoothing_s)
+            self._lo += a * (lo - self._lo)
+            self._hi += a * (hi - self._hi)
+        self._t = float(t)
+        gain = 255.0 / max(self._hi - self._lo, self.min_span)
+        return self.stretch(x, gain, self._lo), gain, self._lo
+
+    @staticmethod
+    def stretch(frame: np.ndarray, gain: float, offset: float) -> np.ndarray:
+        """y = clip((x − offset) · gain, 0, 255) as uint8 (rounded): one frame's stretch applied to
+        another, e.g. a deblurred frame shown with its input's AGC."""
+        x = np.asarray(frame, dtype=np.float32)
+        return np.clip((x - offset) * gain + 0.5, 0, 255).astype(np.uint8)
