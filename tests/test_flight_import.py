@@ -194,6 +194,11 @@ def test_refuses_bad_input(flight, tmp_path):
     slow = flightlog.write_gcsv(tmp_path / "slow.gcsv", t, np.zeros((len(t), 3)) + 0.1)
     refused(thermod("import", sim.video_path, "--gyro", slow, "-o", out, "--calibration", cam), "slow.gcsv",
             "100 Hz")
+    t = np.arange(0, 30, 1e-3)
+    still = 0.01 + 1e-4 * np.random.default_rng(0).standard_normal((len(t), 3))     # a log at rest
+    rest = flightlog.write_gcsv(tmp_path / "rest.gcsv", t, still)
+    refused(thermod("import", sim.video_path, "--gyro", rest, "-o", out, "--calibration", cam, "--no-refine"),
+            "rest.gcsv", "too little gyro motion")
     t = np.arange(0, 2, 1e-3)
     short = flightlog.write_gcsv(tmp_path / "short.gcsv", t, np.zeros((len(t), 3)) + 0.1)
     refused(thermod("import", sim.video_path, "--gyro", short, "-o", out, "--calibration", cam), "short.gcsv",

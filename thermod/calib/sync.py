@@ -74,6 +74,7 @@ MIN_MOTION_SNR = 5.0          # picture rotation RMS over its measurement noise 
 MIN_MOTION_PX = 0.25          # picture rotation RMS per interval, in working-image pixels
 MIN_NCC = 0.75                # the correlation peak a log must reach (null peaks of a 3 s video: ≤ 0.63)
 MIN_RESIDUAL_RATIO = 3.0      # the best place elsewhere must leave ≥ this × the peak's residual (1 − ρ²)
+MIN_LOG_MOTION_RATIO = 0.2     # the log's best stretch must turn ≥ this × the video's picture rotation (RMS)
 MAX_MISALIGNMENT_RAD = 0.2    # the fine fit's rotation on top of an axis-aligned mount (11.5°)
 MAX_DRIFT = 0.005             # the clocks' rate difference the fine fit allows (5000 ppm)
 MIN_DRIFT_VIDEO_S = 5.0       # ... fitted on videos at least this long (else held at 0)
@@ -468,6 +469,14 @@ def coarse_sync(pm: PictureMotion, gyro_t, gyro_rate, *, tau_s: float = 0.0, rea
     if not floor > 0:
         raise LogMismatch("gyro log: the rates never change over the video's length (a log without gyro "
                           "data, or all zeros)")
+    # the log's rotation over each stretch as long as the video, against the picture's: a log that
+    # barely turns anywhere cannot hold this video, and the correlation alone would only say "no match"
+    gyro_rms, picture_rms = math.sqrt(float(energy.max()) / W), math.sqrt(float((p**2).sum()) / W)
+    if gyro_rms < MIN_LOG_MOTION_RATIO * picture_rms:
+        raise LogMismatch(f"gyro log: it turns at most {math.degrees(gyro_rms):.2g} °/s RMS over any "
+                          f"stretch as long as the video, which turns {math.degrees(picture_rms):.2g} °/s: "
+                          "too little gyro motion to find the video in it (a log recorded at rest, or "
+                          "another flight's?)")
     mounts = np.stack(MOUNTS)
     curves = (np.einsum("mij,ijl->ml", mounts, C) / np.maximum(norm, floor)).astype(np.float32)
     curves[:, norm < floor] = 0.0

@@ -51,36 +51,45 @@ def preset_path(name: str) -> Path:
 
 
 def camera_from_table(path: str, table, base: Calibration | None = None) -> Calibration:
-    """Validate a ``[camera]`` table; what it omits keeps `base`'s values (default: `Calibration()`)."""
+    """Validate a ``[camera]`` table; what it omits keeps `base`'s values (default: `Calibration()`).
+    Every bad key is reported in one ConfigError naming the file."""
     s = Section(path, "camera", table)
     d = base or Calibration()
     width = s.pop("width", None, int, lo=8, hi=16384, required=True)
     height = s.pop("height", None, int, lo=8, hi=16384, required=True)
     given = [k for k in FOCAL_KEYS if s.has(k)]
     if len(given) != 1:
-        raise ConfigError(f"{path}: camera: expected exactly one of {', '.join(FOCAL_KEYS)} (the focal "
-                          f"length), got {', '.join(given) or 'none'}")
+        s.problem(FOCAL_KEYS[0], f"expected exactly one of {', '.join(FOCAL_KEYS)} (the focal length), got "
+                                 f"{', '.join(given) or 'none'}")
     pitch_given = s.has("pixel_pitch_um")
     pitch = s.pop("pixel_pitch_um", d.pixel_pitch_um, float, lo=0.0, lo_open=True, hi=1000.0)
-    if given[0] == "hfov_deg":
-        hfov = s.pop("hfov_deg", None, float, lo=0.1, hi=175.0)
-        fx = 0.5 * width / math.tan(math.radians(hfov) / 2.0)
-    elif given[0] == "focal_length_mm":
-        if not pitch_given:
-            raise ConfigError(f"{path}: camera.pixel_pitch_um: missing (focal_length_mm needs the pitch)")
-        fx = s.pop("focal_length_mm", None, float, lo=0.0, lo_open=True, hi=10000.0) * 1000.0 / pitch
-    else:
-        fx = s.pop("fx", None, float, lo=0.0, lo_open=True)
-    kw = dict(width=width, height=height, fx=fx, fy=fx, pixel_pitch_um=pitch,
-              cx=s.pop("cx", (width - 1) / 2.0, float, lo=-width, hi=2.0 * width),
-              cy=s.pop("cy", (height - 1) / 2.0, float, lo=-height, hi=2.0 * height),
+    hfov = s.pop("hfov_deg", None, float, lo=0.1, hi=175.0)
+    focal_mm = s.pop("focal_length_mm", None, float, lo=0.0, lo_open=True, hi=10000.0)
+    fx = s.pop("fx", None, float, lo=0.0, lo_open=True)
+    if focal_mm is not None and not pitch_given:
+        s.problem("pixel_pitch_um", "missing (focal_length_mm needs the pitch)")
+    kw = dict(cx=s.pop("cx", None, float), cy=s.pop("cy", None, float),
               frame_rate_hz=s.pop("frame_rate_hz", None, float, lo=0.0, lo_open=True, hi=10000.0,
                                   required=True),
               tau_s=s.pop("tau_s", None, float, lo=0.0, lo_open=True, hi=1.0, required=True),
               f_number=s.pop("f_number", d.f_number, float, lo=0.1, hi=100.0),
-              wavelength_um=s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0))
-    kw["readout_s"] = s.pop("readout_s", 0.0, float, lo=0.0, hi=1.0 / kw["frame_rate_hz"])
-    s.done()
+              wavelength_um=s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0),
+              readout_s=s.pop("readout_s", 0.0, float, lo=0.0, hi=1.0))
+    s.done()      # every problem so far, at once
+    if kw["readout_s"] > 1.0 / kw["frame_rate_hz"]:
+        raise ConfigError(f"{path}: camera.readout_s: expected at most one frame period "
+                          f"({1.0 / kw['frame_rate_hz']:.4g} s), got {kw['readout_s']!r}")
+    if hfov is not None:
+        fx = 0.5 * width / math.tan(math.radians(hfov) / 2.0)
+    elif focal_mm is not None:
+        fx = focal_mm * 1000.0 / pitch
+    for k, side in (("cx", width), ("cy", height)):
+        if kw[k] is not None and not -side <= kw[k] <= 2 * side:
+            raise ConfigError(f"{path}: camera.{k}: expected a value in [{-side}, {2 * side}] px, "
+                              f"got {kw[k]!r}")
+    kw.update(width=width, height=height, fx=fx, fy=fx, pixel_pitch_um=pitch,
+              cx=(width - 1) / 2.0 if kw["cx"] is None else kw["cx"],
+              cy=(height - 1) / 2.0 if kw["cy"] is None else kw["cy"])
     try:
         return d.replace(**kw)
     except CalibrationError as e:
