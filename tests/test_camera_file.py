@@ -42,7 +42,8 @@ def test_field_of_view_focal_length_or_fx_give_the_same_camera(tmp_path):
 
 def test_every_bad_key_is_named_in_one_error(tmp_path):
     p = tmp_path / "cam.toml"
-    p.write_text("[camera]\nwidth = 0\nheight = 512\nfocal_length_mm = 14.0\nframe_rate_hz = -1\ntau = 0.01\n")
+    p.write_text("[camera]\nwidth = 0\nheight = 512\nfocal_length_mm = 14.0\nframe_rate_hz = -1\n"
+                 "tau = 0.01\n")
     with pytest.raises(ConfigError) as e:
         camera_file.load_camera(p)
     msg = str(e.value)
