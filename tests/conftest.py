@@ -46,3 +46,62 @@ def pytest_collection_modifyitems(config, items):
         m = item.get_closest_marker("heavy")
         return float(m.args[0]) if m is not None and m.args else 0.0
     items.sort(key=lambda item: -minutes(item))      # stable: file and test order kept otherwise
+
+
+# CPU time per test: with THERMOD_CPU_TIMES set (to a number N, or to a path ending in .json), the
+# run ends with the N slowest tests by CPU (default 10) and the total, or writes every test's time to
+# the .json file. CPU, not wall time, because the machine is shared: each phase (setup, call,
+# teardown) counts this process's time.process_time() plus the CPU of child processes it reaped in
+# that phase (resource.getrusage(RUSAGE_CHILDREN): daemons, ffmpeg). A module fixture's cost falls on
+# the test that first needs it. Under xdist the numbers ride on the reports to the controller.
+CPU_TIMES = os.environ.get("THERMOD_CPU_TIMES")
+
+
+def _cpu_now() -> float:
+    import resource
+    import time
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
+if CPU_TIMES:
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_setup(item):
+        t0 = _cpu_now()
+        yield
+        item.__dict__.setdefault("_cpu_s", {})["setup"] = _cpu_now() - t0
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_call(item):
+        t0 = _cpu_now()
+        yield
+        item.__dict__.setdefault("_cpu_s", {})["call"] = _cpu_now() - t0
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_teardown(item):
+        t0 = _cpu_now()
+        yield
+        item.__dict__.setdefault("_cpu_s", {})["teardown"] = _cpu_now() - t0
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_makereport(item, call):
+        outcome = yield
+        outcome.get_result().cpu_s = item.__dict__.get("_cpu_s", {}).get(call.when, 0.0)
+
+    _CPU_BY_TEST: dict[str, float] = {}
+
+    def pytest_runtest_logreport(report):
+        cpu = float(getattr(report, "cpu_s", 0.0))
+        _CPU_BY_TEST[report.nodeid] = _CPU_BY_TEST.get(report.nodeid, 0.0) + cpu
+
+    def pytest_terminal_summary(terminalreporter):
+        import json
+        ranked = sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])
+        if CPU_TIMES.endswith(".json"):
+            Path(CPU_TIMES).write_text(json.dumps(dict(ranked), indent=1), encoding="utf-8")
+        n = int(CPU_TIMES) if CPU_TIMES.isdigit() else 10
+        tr = terminalreporter
+        tr.section(f"CPU time per test (process + reaped children), {n} slowest")
+        for nodeid, s in ranked[:n]:
+            tr.write_line(f"{s:8.1f} s  {nodeid}")
+        tr.write_line(f"{sum(_CPU_BY_TEST.values()) / 60:8.2f} CPU-min in {len(ranked)} tests")
