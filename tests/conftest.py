@@ -48,12 +48,12 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: -minutes(item))      # stable: file and test order kept otherwise
 
 
-# CPU time per test: with THERMOD_CPU_TIMES set (to a number N, or to a path ending in .json), the
-# run ends with the N slowest tests by CPU (default 10) and the total, or writes every test's time to
-# the .json file. CPU, not wall time, because the machine is shared: each phase (setup, call,
-# teardown) counts this process's time.process_time() plus the CPU of child processes it reaped in
-# that phase (resource.getrusage(RUSAGE_CHILDREN): daemons, ffmpeg). A module fixture's cost falls on
-# the test that first needs it. Under xdist the numbers ride on the reports to the controller.
+# CPU time per test: with THERMOD_CPU_TIMES set (to a number N, or to a file path), the run ends with
+# the N slowest tests by CPU (default 10) and the total; a path gets a "seconds<TAB>test" line as each
+# test ends (so a run cut short still has its numbers). CPU, not wall time, because the machine is
+# shared. Each phase (setup, call, teardown) counts this process's time.process_time() plus the CPU of
+# the child processes it reaped (getrusage(RUSAGE_CHILDREN): daemons, ffmpeg). A module fixture's
+# cost falls on the test that first needs it. Under xdist the numbers ride on the reports.
 CPU_TIMES = os.environ.get("THERMOD_CPU_TIMES")
 
 
@@ -89,16 +89,20 @@ if CPU_TIMES:
         outcome.get_result().cpu_s = item.__dict__.get("_cpu_s", {}).get(call.when, 0.0)
 
     _CPU_BY_TEST: dict[str, float] = {}
+    _WORKER = [False]       # an xdist worker: its controller logs the reports it forwards
+
+    def pytest_configure(config):
+        _WORKER[0] = hasattr(config, "workerinput")
 
     def pytest_runtest_logreport(report):
         cpu = float(getattr(report, "cpu_s", 0.0))
         _CPU_BY_TEST[report.nodeid] = _CPU_BY_TEST.get(report.nodeid, 0.0) + cpu
+        if report.when == "teardown" and not CPU_TIMES.isdigit() and not _WORKER[0]:
+            with open(CPU_TIMES, "a", encoding="utf-8") as f:
+                f.write(f"{_CPU_BY_TEST[report.nodeid]:.2f}\t{report.nodeid}\n")
 
     def pytest_terminal_summary(terminalreporter):
-        import json
         ranked = sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])
-        if CPU_TIMES.endswith(".json"):
-            Path(CPU_TIMES).write_text(json.dumps(dict(ranked), indent=1), encoding="utf-8")
         n = int(CPU_TIMES) if CPU_TIMES.isdigit() else 10
         tr = terminalreporter
         tr.section(f"CPU time per test (process + reaped children), {n} slowest")
