@@ -84,10 +84,10 @@ def _angle_deg(R1, R2) -> float:
     return float(np.degrees(np.linalg.norm(so3_log(np.asarray(R1) @ np.asarray(R2).T))))
 
 
-# Each search costs about 2 s of CPU per candidate and step: the time offset is searched for among
-# every candidate (its analysis also serves the deblurring and elimination tests below), the others
-# among the effects that move the image the same way (the search's result among them is the one it
-# finds among all, the others' fits being independent of each other).
+# A search step fits every candidate (about 0.8 s of CPU each here). The time offset is searched for
+# among every candidate (its analysis also serves the deblurring and elimination tests below), the
+# others among the effects that move the image the same way: each candidate's fit is independent of
+# the others, so the search names among them what it names among all.
 CASES = {
     # name: (effects, check(model calib, truth calib, params) -> None, candidates)
     "time_offset": ({"time_offset": 0.006},

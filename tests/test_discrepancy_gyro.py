@@ -294,7 +294,7 @@ def _analysed(key: str, effects: dict, broadband: bool = False, candidates=None)
 
 
 
-# Each effect is searched for among the effects that move the image the same way (about 2 s of CPU per
+# Each effect is searched for among the effects that move the image the same way (about 0.8 s of CPU per
 # candidate and step; tests/test_discrepancy.py searches every candidate, and so does the clean
 # recording here): the search's result among them is the one it finds among all.
 GYRO_CASES = {
