@@ -39,7 +39,7 @@ from thermod.sim.synth import simulate, truth_calibration
 sys.path.insert(0, str(Path(__file__).parent))
 from flight_recordings import excess, flight_recording, high_contrast_scene  # noqa: E402
 
-pytestmark = pytest.mark.heavy(7)      # CPU minutes on one core (measured ≈ 6.5, loaded)
+pytestmark = pytest.mark.heavy(3)      # CPU minutes on one core (measured 2.7 on a bare clone)
 
 DEG = math.pi / 180.0
 _I = Calibration().intrinsics.scaled(0.5)

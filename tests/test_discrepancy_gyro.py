@@ -27,7 +27,7 @@ from thermod.sim.gyro_model import GyroErrorModel
 sys.path.insert(0, str(Path(__file__).parent))
 from flight_recordings import excess  # noqa: E402
 
-pytestmark = pytest.mark.heavy(4)      # CPU minutes on one core (measured 3.3)
+pytestmark = pytest.mark.heavy(2)      # CPU minutes on one core (measured 1.5)
 
 SMALL = Calibration(width=64, height=48, fx=80.0, fy=80.0, cx=31.5, cy=23.5)
 
