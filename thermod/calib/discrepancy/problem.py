@@ -10,7 +10,13 @@ import cv2
 import numpy as np
 
 from thermod.calib.discrepancy import sensor
-from thermod.calib.discrepancy.data import MIN_COVERAGE, Model, RecData, noise_variance_spatial
+from thermod.calib.discrepancy.data import (
+    MIN_COVERAGE,
+    Model,
+    RecData,
+    noise_variance_spatial,
+    quantisation_variance,
+)
 
 
 @dataclass
@@ -147,9 +153,10 @@ class Problem:
             n_m = max(len(d.frame_t), 2)
             if d.reference == "motion":
                 # the scene canvas is fitted to the same frames: it takes one degree of freedom per
-                # known canvas pixel out of the residual (fewer when CG stops early: an upper bound)
+                # known canvas pixel out of the residual (fewer when CG stops early: an upper bound);
+                # every such pixel is seen MIN_COVERAGE times at least, so it takes at most that share
                 n_obs = max(float(d.mask.sum()), 1.0)
-                f = max(0.0, 1.0 - float(np.sum(d.fm.support > 0)) / n_obs)
+                f = max(1.0 - 1.0 / MIN_COVERAGE, 1.0 - float(np.sum(d.fm.support > 0)) / n_obs)
             else:
                 f = 1.0 + 1.0 / d.n_static
             f *= (1.0 - 1.0 / n_m) if d.fpn is not None else 1.0
@@ -209,7 +216,8 @@ def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px
         # (scene texture mostly cancelled by the prediction), an upper bound while model errors remain.
         p, v = sensor.predict(d, model)
         r = np.where(v & live[:, None, None], d.measured - p, 0.0).astype(np.float32)
-        d.noise_var = min(d.noise_var, noise_variance_spatial(r[live]))
+        d.noise_var = max(min(d.noise_var, noise_variance_spatial(r[live])),
+                          quantisation_variance(d.fm.scale))
         d.noise_source = "spatial high-pass of the motion residual (upper bound)"
 
 
