@@ -217,14 +217,16 @@ def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -
     the low-pass at 21.15 Hz for 20: without the refit the offset looked needed). The least needed
     goes first, one at a time."""
     problem = ctx.problem
-    warm = dataclasses.replace(ctx, warm=True)
     while len(ana.steps) > 1:
         ssr = problem.evaluate(model).ssr
         rise = {}
         for name in ana.named:
             reduced = EFFECTS[name].without(model, ana.nominal)
             best = (problem.evaluate(reduced).ssr, reduced)
-            for other in ana.named:     # the others refitted locally: they may take its share back
+            # the others refitted locally: they may take its share back, but not its fields (a readout
+            # fit that keeps the mean row timing would move a time offset put back to nominal)
+            warm = dataclasses.replace(ctx, warm=True, named=tuple(n for n in ana.named if n != name))
+            for other in ana.named:
                 if other != name:
                     f = EFFECTS[other].fit(warm, best[1])
                     best = min(best, (f.ssr, f.model), key=lambda b: b[0])
@@ -287,22 +289,28 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             break
         diag = diagnostics(problem, model, ev)
         gap_before = problem.gap(ev.ssr)
+        implied = _implied(chosen, model, remaining, ana)
         model = chosen.fit.model
         if chosen.state is not None:      # motion only: the scene its projected fit moved with it
             problem.restore(chosen.state)
         problem.refresh(model, fpn=fpn, rebuild_scene=chosen.state is None)
-        ctx = dataclasses.replace(ctx, named=ctx.named + (chosen.effect.name,))
+        new = [chosen.effect] + implied
+        ctx = dataclasses.replace(ctx, named=ctx.named + tuple(e.name for e in new))
         if problem.has_motion_reference:
-            model = _settle(ctx, model, [chosen.effect] + [EFFECTS[n] for n in ana.named], ana.nominal, say)
+            model = _settle(ctx, model, new + [EFFECTS[n] for n in ana.named], ana.nominal, say)
         else:
-            again = ([chosen.effect] if fpn else []) + [EFFECTS[n] for n in ana.named]
+            again = (new if fpn else implied) + [EFFECTS[n] for n in ana.named]
             model = _refit(ctx, model, again, fpn, ana.nominal, say)
         ev = problem.evaluate(model, keep=True)
-        ana.record_step(chosen, gap_before, problem.gap(ev.ssr), diag)
-        ana.snapshot(chosen.effect.name, problem, ev)
-        say(f"→ {chosen.effect.name}: {format_params(chosen.effect.values(model, ana.nominal))}; "
-            f"gap {gap_before:.4f} → {problem.gap(ev.ssr):.4f}")
-        remaining.remove(chosen.effect)
+        for e in new:
+            fit = dataclasses.replace(chosen.fit, effect=e.name, n_params=1, unobservable=[])
+            c = chosen if e is chosen.effect else dataclasses.replace(chosen, effect=e, fit=fit)
+            ana.record_step(c, gap_before, problem.gap(ev.ssr), diag)
+            say(f"→ {e.name}: {format_params(e.values(model, ana.nominal))}; "
+                f"gap {gap_before:.4f} → {problem.gap(ev.ssr):.4f}"
+                + (f" (moved by the {chosen.effect.name} fit)" if e is not chosen.effect else ""))
+            remaining.remove(e)
+        ana.snapshot("+".join(e.name for e in new), problem, ev)
     if polish and len(ana.steps) > 1:
         model = _refit(ctx, model, [EFFECTS[n] for n in ana.named], fpn, ana.nominal, say)
         model = _prune(ctx, model, crit, ana, say)
@@ -312,6 +320,19 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         + ("remaining residual is structured but no candidate explains it: UNEXPLAINED" if ana.unexplained
            else "residual at the noise level"))
     return ana
+
+
+def _implied(chosen: Candidate, model: Model, remaining: list[Effect], ana: Analysis) -> list[Effect]:
+    """The effects the chosen fit moved besides its own (`Effect.implies`: a readout fitted with the mean
+    row timing kept moves the time offset, and does so only where the data demand it): named with it."""
+    out = []
+    for name in chosen.effect.implies:
+        e = EFFECTS.get(name)
+        if e is None or e not in remaining or name in ana.named:
+            continue
+        if e.values(chosen.fit.model, ana.nominal) != e.values(model, ana.nominal):
+            out.append(e)
+    return out
 
 
 def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list[Effect], crit: Criteria,
