@@ -11,6 +11,9 @@ issue 6's tolerances (tests/test_discrepancy.py CASES: offset ±1 ms, readout ±
 axis, τ ±10 %, misalignment ≤ 1° about the excited directions) and `unexplained` is false; for the
 non-linearity (nearly unobservable without a static reference: the canvas takes the response in) being
 named or reported `unexplained` passes; a clean flight must name nothing and not be `unexplained`.
+"response z" is the final residual's regression on the blur's mixing variance (`diagnostics.
+response_signature`); "RuntimeWarnings" counts numpy's warnings during the analysis (none should reach
+a terminal).
 
     .venv/bin/python benchmarks/bench_discrepancy_heldout.py [--cases a,b] [--size 640x480]
         [--seconds 1.0] [--work-width 160] [--out benchmarks/results/discrepancy_heldout.md]
@@ -26,6 +29,7 @@ import os
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -137,25 +141,29 @@ def main() -> None:
     cache = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "thermod_heldout"
     lines = [f"{size[0]}×{size[1]}, {args.seconds:g} s, real log stretches below, no static lead-in, "
              f"NETD 50 mK; motion-only, every candidate, work width {args.work_width}", "",
-             "| hidden (log start) | true | named | recovered | gap → final (floor) | unexplained | verdict "
-             "| CPU s |", "|---|---|---|---|---|---|---|---:|"]
+             "| hidden (log start) | true | named | recovered | gap → final (floor) | response z "
+             "| unexplained | verdict | RuntimeWarnings | CPU s |",
+             "|---|---|---|---|---|---:|---|---|---:|---:|"]
     print("\n".join(lines), flush=True)
     passed = 0
     for name in names:
         effects, start, _ = CASES[name]
         rec, nominal, truth = recording(name, size, args.seconds, cache)
         c0 = time.process_time()
-        d = D.prepare(rec, nominal, name=name, work_width=args.work_width)
-        ana = D.analyse([d], D.Model(nominal), progress=print if args.verbose else None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            d = D.prepare(rec, nominal, name=name, work_width=args.work_width)
+            ana = D.analyse([d], D.Model(nominal), progress=print if args.verbose else None)
         cpu = time.process_time() - c0
+        n_warn = sum(issubclass(w.category, RuntimeWarning) for w in caught)
         hidden = [] if name == "clean" else name.split("+")
         ok, recovered = verdict(hidden, ana, ana.model.calib, truth)
         passed += ok
         named = ", ".join(ana.named) or "nothing"
         true_s = ", ".join(f"{k} {v}" for k, v in effects.items()) or "—"
         row = (f"| {name} ({start:g} s) | {true_s} | {named} | {recovered or '—'} | {ana.gap_initial:.4f} → "
-               f"{ana.gap_final:.4f} ({ana.noise_floor:.4f}) | {'yes' if ana.unexplained else 'no'} | "
-               f"{'pass' if ok else 'FAIL'} | {cpu:.0f} |")
+               f"{ana.gap_final:.4f} ({ana.noise_floor:.4f}) | {ana.response_signature_z:.1f} | "
+               f"{'yes' if ana.unexplained else 'no'} | {'pass' if ok else 'FAIL'} | {n_warn} | {cpu:.0f} |")
         lines.append(row)
         print(row, flush=True)
     lines += ["", f"{passed}/{len(names)} pass"]

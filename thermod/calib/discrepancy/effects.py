@@ -222,7 +222,7 @@ def timing_separation(ctx: StepContext, model: Model, h_s: float = 0.002) -> str
                                                - 0.5 * sign * h_s)) - base) / (sign * h_s)
     j_ro = j_row + 0.5 * j_off            # readout with the offset held: the row part plus half a delay
     a, b, d = float(j_off @ j_off), float(j_off @ j_ro), float(j_ro @ j_ro)
-    if a <= 0 or d <= 0:
+    if min(a, d) * 1e-6 < ctx.chi2_scale:     # 1 ms of either changes the SSR by less than one χ² unit
         return "rolling_readout vs time_offset: the frames do not move with either (no image motion)"
     rho = b / math.sqrt(a * d)
     if abs(rho) <= MAX_TIMING_CORRELATION:
