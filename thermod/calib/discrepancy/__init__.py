@@ -23,7 +23,18 @@ by motion (or is motion only: see below). The workflow
    before it are refitted with it in place (they may have absorbed part of it), and the loop repeats;
    the gyro bias also uses the static segment's mean raw rate as a prior (a direct measurement);
 5. says ``unexplained: true`` when the remaining residual is still well above the noise floor but no
-   candidate explains it, rather than naming a wrong effect.
+   candidate explains it, rather than naming a wrong effect (``unexplained_reason`` says why).
+
+The noise variance never falls below the counts' quantisation at the working resolution (scale²/12
+counts²): identical static frames (a noiseless render) would otherwise give a floor of 0.
+
+**Readout and offset.** Row r is read T_ro·(1 − (r+1)/H) before the frame time: a readout delays the
+rows by T_ro/2 on average, as an offset does, plus a part that grows down the frame, which only a
+readout makes. An offset of −T_ro/2 cancels the mean delay and leaves only the row-dependent part, so
+the readout is fitted both with the offset held and with the mean row timing kept (the offset moved by
+−ΔT_ro/2); the second, when decisively better, moves the offset, and `time_offset` is named with it
+(`Effect.implies`). The step's readout fit also says when the motion cannot separate the two (their
+Jacobian columns correlate above 0.98, or neither moves the frames): only offset − T_ro/2 is known then.
 
 **Motion only.** A recording without a static lead-in (fewer than 3 frames before the gyro sees motion)
 gets a motion-only reference instead (report: ``"reference": "motion"``): a scene canvas S, somewhat
@@ -83,6 +94,12 @@ After the last step, a **backward elimination** drops an effect the later ones m
 to nominal, the SSR rises by less than a candidate must remove (or not decisively by BIC). A time
 offset named before the DLPF whose group delay it stood for ends at ≈ 0 and is dropped (the report
 lists it under "dropped").
+
+A curved detector response is nearly taken in by a motion-only canvas (solved in linear counts under
+a response model: A X ≈ L(M − F), S = L⁻¹(X)); the gap barely moves, but the residual keeps a one-sign
+trace where the blur mixes levels (`diagnostics.response_signature`: its regression on P(r²) − P(r)²).
+When that trace is significant (|z| > 6) and large (an apparent gain change > 4 % over ±3 RMS contrast;
+the forward model's own trace on a clean high-contrast flight is 3.3 %), the result is `unexplained`.
 
 Without a static reference a blur every frame shares is part of the estimated scene (a Gaussian PSF
 commutes with the frames' shifts, rotations and the thermal IIR), so `optical_psf` is reported
