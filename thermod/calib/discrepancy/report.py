@@ -139,7 +139,7 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     ax[0].plot(dg["row_gap"], lw=1)
     ax[0].set(xlabel="image row (working res.)", ylabel="gap", title="gap per image row (rolling readout)")
     panels["row"] = ax[0]
-    ax[1].plot(dg["t"], dg["frame_gap"], "o-", ms=3)
+    ax[1].plot(dg["t"], dg["frame_gap"], "o", ms=3)      # points: several recordings share the axis
     ax[1].set(xlabel="time since motion onset (s)", ylabel="gap", title="gap per frame vs time (bias drift)")
     panels["time"] = ax[1]
     ax[2].plot(dg["speed_deg_s"], dg["frame_gap"], "o", ms=3)
@@ -211,6 +211,8 @@ def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
 
 def _gyro_panels(ax, dg: dict) -> dict:
     """The gyro-side panels (see `diagnostics.gyro_panels`): clock drift, low-pass, saturation."""
+    import matplotlib
+    import matplotlib.ticker
     t, lag = np.asarray(dg["t"]), np.asarray(dg["lag_s"]) * 1e3
     ax[0].plot(t, lag, "o", ms=3)
     ok = np.isfinite(lag)
@@ -222,6 +224,7 @@ def _gyro_panels(ax, dg: dict) -> dict:
                                     else "n/a (too few moving frames)") + " (clock drift)")
     ax[1].semilogx(np.maximum(dg["motion_freq_hz"], 0.1), lag, "o", ms=3)
     ax[1].axhline(0, color="k", lw=0.8)
+    ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # the minor labels overlap
     ax[1].set(xlabel="motion frequency |dω/dt|/(2π|ω|) (Hz)", ylabel="lag (ms)",
               title="lag vs motion frequency (gyro low-pass)")
     top = np.degrees(np.asarray(dg["gyro_abs_max"]))
