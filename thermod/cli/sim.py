@@ -18,6 +18,11 @@ from pathlib import Path
 from thermod.errors import ThermodError
 from thermod.physics.calibration import Calibration
 
+# Temporal noise unless --effect netd=… says otherwise (K RMS): the "< 50 mK" NETD (f/1.0, 300 K scene)
+# that the datasheets of common uncooled VOx cores give (FLIR Boson and Lepton 3.5, Teledyne FLIR, 2023).
+# Noiseless frames (netd=0) make every static frame identical, which no camera does.
+DEFAULT_NETD_K = 0.05
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, help="recording to write (.h5)")
@@ -29,7 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=1.0, help="duration (s, default 1)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME=VALUE",
                    help="hidden truth effect (repeatable), e.g. time_offset=0.004, rolling_readout=0.012, "
-                        "gyro_bias=0.001,0,0, misalignment=0,0,0.01, time_constant=0.010, netd=0.05; "
+                        "gyro_bias=0.001,0,0, misalignment=0,0,0.01, time_constant=0.010, netd=0.03 "
+                        f"(temporal noise, K RMS; default {DEFAULT_NETD_K:g}, a typical uncooled core's "
+                        "NETD; netd=0: noiseless); "
                         "gyro side: clock_drift=PPM (clocks agree at the first frame), gyro_lowpass=HZ "
                         "(2nd-order Butterworth DLPF cutoff), gyro_saturation=RAD_S (full-scale range); "
                         "detector side: detector_nonlinearity=0.3 (quadratic response, 1/1000 counts), "
@@ -112,7 +119,8 @@ def run(args) -> int:
     calib = build_calibration(args)
     gyro = GyroErrorModel.paper() if args.gyro == "paper" else GyroErrorModel()
     t0 = time.perf_counter()
-    rec = simulate(args.scene, args.motion, args.seconds, calib, effects=parse_effects(args.effect),
+    effects = {"netd": DEFAULT_NETD_K, **parse_effects(args.effect)}
+    rec = simulate(args.scene, args.motion, args.seconds, calib, effects=effects,
                    seed=args.seed, frame_rate=args.fps, gyro=gyro, progress=not args.no_progress,
                    kind=args.detector, exposure_s=args.exposure, step_px=args.step_px,
                    truth=not args.no_truth,

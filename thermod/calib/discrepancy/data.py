@@ -177,7 +177,8 @@ def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<re
                              "--work-width, or check fx and tau_s") from None
     st_w = downsample(st, scale, smooth_px)
     static_mean = st_w.mean(axis=0)
-    noise_var = float(np.mean((st_w - static_mean) ** 2) * n_static / max(n_static - 1, 1))
+    noise_var = max(float(np.mean((st_w - static_mean) ** 2) * n_static / max(n_static - 1, 1)),
+                    quantisation_variance(scale))
     fm.set_reference(static_mean, None, prescaled=True)
     measured = downsample(rec.frames[moving], scale, smooth_px)
     gm = rec.gyro_t + calib.time_offset_s > t_onset
@@ -215,6 +216,14 @@ def _segments(rec, calib: Calibration, name: str, offset_margin_s: float) -> _Se
         raise RecordingError(name, "camera/t", "fewer than 2 frames during the motion are covered by gyro "
                              "samples")
     return _Segments(static, moving, t_onset, t_on_g, t_ref, static_rate)
+
+
+def quantisation_variance(scale: float) -> float:
+    """Least noise variance (counts², working resolution) a frame of integer counts can have: each
+    full-resolution pixel's rounding error (uniform, variance 1/12) averaged over the 1/scale² pixels
+    `downsample` puts into one working pixel. Noiseless renders (identical static frames, NETD 0) and
+    flat scenes otherwise give a noise floor of 0, which no comparison of frames can reach."""
+    return float(scale) ** 2 / 12.0
 
 
 # ----------------------------------------------------------------------------------------- motion only
@@ -282,7 +291,7 @@ def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_mar
     ix, iy = int(round(origin[0])), int(round(origin[1]))
     scene[iy:iy + fm.h, ix:ix + fm.w] = measured[k_ref]
     fm.set_reference(scene, None, prescaled=True, origin=origin)
-    noise_var = noise_variance_spatial(measured)
+    noise_var = max(noise_variance_spatial(measured), quantisation_variance(scale))
     motion_rms = np.sqrt(np.mean((rec.gyro_rate - rec.gyro_rate.mean(axis=0)) ** 2, axis=0))
     d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(),
                 rec.frames[idx[k_ref]].astype(np.float32), noise_var, int(moving.sum()), t_ref, t_start,

@@ -10,7 +10,7 @@ import numpy as np
 
 from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model, RecData
-from thermod.calib.discrepancy.problem import Evaluation, Problem
+from thermod.calib.discrepancy.problem import Evaluation, Problem, effective_area
 from thermod.physics.calibration import Calibration
 
 N_SPECTRUM_BINS = 10
@@ -171,3 +171,26 @@ def detector_diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict
             "ffc_t": np.concatenate(times), "frame_energy": np.concatenate(energy),
             "change_measured": np.concatenate(dm_all), "change_predicted": np.concatenate(dp_all),
             "frozen": np.concatenate(frozen_all), "ffc_events": events}
+
+
+def response_signature(problem: Problem, model: Model, ev: Evaluation) -> tuple[float, float]:
+    """The residual's regression on the variance the blur mixes into each pixel, P(r²) − P(r)², through
+    0 over the masked pixels: (slope per count, its z score). A curved detector response leaves
+    γ·that (Jensen's gap: one sign wherever the blur mixes levels); timing, τ or PSF errors leave
+    residuals of either sign at every mixing level. The standard error counts one independent sample
+    per `effective_area` pixels, so correlated residuals do not inflate z."""
+    num = den = rss = 0.0
+    n = 0
+    for d, r in zip(problem.recs, ev.residuals, strict=True):
+        x = sensor.mixing_variance(d, model)[d.mask].astype(np.float64)
+        y = r[d.mask].astype(np.float64)
+        num += float(x @ y)
+        den += float(x @ x)
+        rss += float(y @ y)
+        n += len(y)
+    if den <= 0 or n < 2:
+        return 0.0, 0.0
+    slope = num / den
+    var = max(rss - slope * num, 0.0) / n
+    se = math.sqrt(var * effective_area(ev.residuals) / den)
+    return slope, (slope / se if se > 0 else 0.0)

@@ -44,6 +44,8 @@ class Effect:
     simpler: the effect it generalises ("" if none): it is named only when it beats that one
     decisively (`analysis._beats_simpler`), so a clock line or a DLPF that acts as a plain delay is
     reported as the time offset it amounts to.
+    implies: effects whose fields its fit may move, and only where the data demand it (the readout's
+    centred fit moves the time offset): when the fit that is named moved them, they are named with it.
     """
 
     name: str
@@ -52,6 +54,7 @@ class Effect:
     fields: tuple[str, ...]
     values: Callable[[Model, Model], dict]
     simpler: str = ""
+    implies: tuple[str, ...] = ()
 
     def without(self, model: Model, nominal: Model) -> Model:
         """`model` with every field this effect owns put back to `nominal`'s value."""
@@ -152,9 +155,16 @@ def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) 
 
 
 def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
-    """Readout time T_ro ∈ [0, frame period]. Rows are read T_ro/2 early on average, so a time offset
-    fitted before the readout has absorbed that shift: once `time_offset` is in the model the readout is
-    also tried with the offset moved by −ΔT_ro/2 (mid-frame timing kept), and the better one is kept."""
+    """Readout time T_ro ∈ [0, frame period]. Row r is read T_ro·(1 − (r+1)/H) before the frame time, so
+    a readout delays the rows by T_ro/2 on average (what a time offset does too) plus a part that grows
+    down the frame (what only a readout does). Two one-parameter families are fitted: T_ro with the
+    offset held (the mean delay comes with it), and T_ro with the offset moved by −ΔT_ro/2 (the mean
+    timing kept, only the row-dependent part changes: `make_centred`). The centred one is kept when it
+    fits better, and before a time offset is named only when decisively so (`_fit_keeping_timing`): an
+    offset of −T_ro/2 cancels the readout's mean delay (a −5 ms offset beside a 10 ms readout leaves only
+    the row-dependent part, which the held-offset family fits at 2 ms), and the offset it moves is then
+    a second effect the data show (`Effect.implies`). On the step's own fit (neither warm nor projected)
+    the result says whether the motion separates readout and offset at all (`timing_separation`)."""
     c0 = model.calib
     hi = 1.0 / c0.frame_rate_hz
     grid = np.linspace(0.0, hi, 11)
@@ -166,20 +176,60 @@ def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
         offset = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
         return _with(model, readout_s=float(x), time_offset_s=offset)
 
-    return _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi, x0=c0.readout_s)
+    f = _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi, x0=c0.readout_s,
+                            before_offset=True)
+    if not ctx.warm and not ctx.project:
+        note = timing_separation(ctx, f.model)
+        if note:
+            f.unobservable.append(note)
+    return f
 
 
 def _fit_keeping_timing(ctx: StepContext, name: str, make, make_centred, grid, lo: float, hi: float,
-                        x0=None):
-    """`make(x)` fitted; once `time_offset` is in the model (it may have absorbed this effect's mean
-    timing shift), also `make_centred(x)`, which moves that shift out of the offset: the better fit."""
+                        x0=None, before_offset: bool = False):
+    """`make(x)` fitted, and `make_centred(x)`, which moves this effect's mean timing shift out of the
+    time offset: the better fit. Once `time_offset` is in the model the offset is a parameter already
+    (it may have absorbed that shift); before (only with `before_offset`), moving it is one parameter
+    more, so the centred fit must win decisively (ΔBIC > 10 for it and at least `min_gain` of SSR)."""
     x, ssr = _scalar_fit(ctx, make, grid, lo, hi, None, x0=x0)
     best = FitResult(name, make(x), ssr)
-    if "time_offset" in ctx.named:
+    named = "time_offset" in ctx.named
+    if named or (before_offset and not ctx.warm):     # a refit does not move an offset nobody named
         xc, ssrc = _scalar_fit(ctx, make_centred, grid, lo, hi, None, x0=x0)
-        if ssrc < ssr:
+        if ssrc < ssr and (named or (ctx.delta_bic(ssr, ssrc, 1) > 10.0 and ssr - ssrc >= ctx.min_gain)):
             best = FitResult(name, make_centred(xc), ssrc)
     return best
+
+
+# Readout and offset count as not separated when their estimates correlate more than this.
+MAX_TIMING_CORRELATION = 0.98
+
+
+def timing_separation(ctx: StepContext, model: Model, h_s: float = 0.002) -> str:
+    """Whether the motion separates a rolling readout from a time offset about `model`: their Jacobian
+    columns (the frames' change per second of offset, and per second of readout with the mean row
+    timing held: the row-dependent part) on the masked pixels give the 2×2 information matrix; its
+    correlation says how far the two estimates trade off. An empty string when they are separated,
+    else a note that only the mean row delay (offset − T_ro/2) is determined. Image motion along the
+    rows' read order is what separates them; motion that is too slow, or too uniform in time to tell a
+    row's delay from the frame's, does not."""
+    c = model.calib
+    base = ctx.problem.residual_vector(model)
+    j_off = (ctx.problem.residual_vector(_with(model, time_offset_s=c.time_offset_s + h_s)) - base) / h_s
+    sign = -1.0 if c.readout_s + h_s > 1.0 / c.frame_rate_hz else 1.0
+    t_ro = c.readout_s + sign * h_s
+    j_row = (ctx.problem.residual_vector(_with(model, readout_s=t_ro, time_offset_s=c.time_offset_s
+                                               - 0.5 * sign * h_s)) - base) / (sign * h_s)
+    j_ro = j_row + 0.5 * j_off            # readout with the offset held: the row part plus half a delay
+    a, b, d = float(j_off @ j_off), float(j_off @ j_ro), float(j_ro @ j_ro)
+    if min(a, d) * 1e-6 < ctx.chi2_scale:     # 1 ms of either changes the SSR by less than one χ² unit
+        return "rolling_readout vs time_offset: the frames do not move with either (no image motion)"
+    rho = b / math.sqrt(a * d)
+    if abs(rho) <= MAX_TIMING_CORRELATION:
+        return ""
+    return (f"rolling_readout vs time_offset: the motion cannot separate them (their estimates correlate "
+            f"{rho:.3f}): only the mean row delay, offset − readout/2 = "
+            f"{1e3 * (c.time_offset_s - 0.5 * c.readout_s):.2f} ms, is determined")
 
 
 def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
@@ -330,7 +380,7 @@ def _psf_values(model: Model, nominal: Model) -> dict:
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("time_offset", fit_time_offset, "lag", ("time_offset_s",), _calib_values("time_offset_s")),
     Effect("rolling_readout", fit_rolling_readout, "row", ("readout_s", "time_offset_s"),
-           _calib_values("readout_s", "time_offset_s")),
+           _calib_values("readout_s", "time_offset_s"), implies=("time_offset",)),
     Effect("gyro_bias", fit_gyro_bias, "time", ("bias_rad_s",), _calib_values("bias_rad_s")),
     Effect("gyro_scale", fit_gyro_scale, "rate", ("scale",), _calib_values("scale")),
     Effect("misalignment", fit_misalignment, "rate", ("R_cam_gyro",), _misalignment_values),
@@ -614,11 +664,9 @@ CANDIDATES = tuple(EFFECTS)
 
 
 def format_params(p: dict) -> str:
-    """An effect's parameters on one line, four significant digits each."""
-    out = []
-    for k, v in p.items():
-        if isinstance(v, (list, tuple)):
-            out.append(f"{k}=[{', '.join(f'{x:.4g}' for x in v)}]")
-        else:
-            out.append(f"{k}={v:.4g}")
-    return " ".join(out)
+    """An effect's parameters on one line, four significant digits each ("n/a" for a missing value)."""
+    def num(x) -> str:
+        return "n/a" if x is None else f"{x:.4g}"
+
+    return " ".join(f"{k}=[{', '.join(num(x) for x in v)}]" if isinstance(v, (list, tuple))
+                    else f"{k}={num(v)}" for k, v in p.items())

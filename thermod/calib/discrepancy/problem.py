@@ -10,7 +10,13 @@ import cv2
 import numpy as np
 
 from thermod.calib.discrepancy import sensor
-from thermod.calib.discrepancy.data import MIN_COVERAGE, Model, RecData, noise_variance_spatial
+from thermod.calib.discrepancy.data import (
+    MIN_COVERAGE,
+    Model,
+    RecData,
+    noise_variance_spatial,
+    quantisation_variance,
+)
 
 
 @dataclass
@@ -147,9 +153,10 @@ class Problem:
             n_m = max(len(d.frame_t), 2)
             if d.reference == "motion":
                 # the scene canvas is fitted to the same frames: it takes one degree of freedom per
-                # known canvas pixel out of the residual (fewer when CG stops early: an upper bound)
+                # known canvas pixel out of the residual (fewer when CG stops early: an upper bound);
+                # every such pixel is seen MIN_COVERAGE times at least, so it takes at most that share
                 n_obs = max(float(d.mask.sum()), 1.0)
-                f = max(0.0, 1.0 - float(np.sum(d.fm.support > 0)) / n_obs)
+                f = max(1.0 - 1.0 / MIN_COVERAGE, 1.0 - float(np.sum(d.fm.support > 0)) / n_obs)
             else:
                 f = 1.0 + 1.0 / d.n_static
             f *= (1.0 - 1.0 / n_m) if d.fpn is not None else 1.0
@@ -193,6 +200,7 @@ def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px
                    extra=offsets(), live=live)
     if fpn:
         p, v = d.fm.predict(model.calib, model.extra_psf_px)
+        p = sensor.respond(d, model, p)
         extra = offsets()
         r = np.where(v, d.measured - p - (extra if extra is not None else 0.0), 0.0)
         F = sensor.add_segment_fpn(r, v, seg, len(events) + 1, highpass_px, F, steps)
@@ -209,7 +217,8 @@ def _refresh_motion(d: RecData, model: Model, fpn: bool, iters: int, highpass_px
         # (scene texture mostly cancelled by the prediction), an upper bound while model errors remain.
         p, v = sensor.predict(d, model)
         r = np.where(v & live[:, None, None], d.measured - p, 0.0).astype(np.float32)
-        d.noise_var = min(d.noise_var, noise_variance_spatial(r[live]))
+        d.noise_var = max(min(d.noise_var, noise_variance_spatial(r[live])),
+                          quantisation_variance(d.fm.scale))
         d.noise_source = "spatial high-pass of the motion residual (upper bound)"
 
 
@@ -219,6 +228,10 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=N
     CGLS from the current canvas (the first time: the frames back-projected and averaged, a blurred
     mosaic, with the sharpest frame at t_ref on top). Canvas pixels seen by fewer than MIN_COVERAGE
     frames are left out (support 0), so the frames never predict what only they themselves saw.
+
+    Under a non-linear response (`sensor.Response` L) the frames are L⁻¹(A L(S)) + F, so the canvas is
+    solved for in linear counts, A X ≈ L(M − F), and S = L⁻¹(X): estimated as if linear, it would hold
+    the best linear compromise, and the true response would predict worse than none.
 
     S is shared by every frame: it cannot follow an error that changes from frame to frame (a time
     offset, bias, scale, misalignment, τ or readout error moves or blurs each frame differently with
@@ -230,6 +243,9 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=N
     """
     fm, calib = d.fm, model.calib
     target = d.measured - (fpn if fpn is not None else 0.0) - (extra if extra is not None else 0.0)
+    resp = model.response if model.response is not None and model.response.gamma != 0.0 else None
+    if resp is not None:
+        target = resp.linearise(target)
     first = d.coverage is None
     # coverage: how many frames (IIR weight) see each canvas pixel
     w_live = _live_weight(d, live)
@@ -238,16 +254,18 @@ def estimate_scene(d: RecData, model: Model, fpn, iters: int, extra=None, live=N
     inside = (m_full >= 0.99).astype(np.float32) * w_live
     C = fm.adjoint(calib, inside, weight=m_full)
     support = (C >= MIN_COVERAGE).astype(np.float32)
-    S = d.scene.astype(np.float64) * support
+    S = (d.scene if resp is None else resp.linearise(d.scene)).astype(np.float64) * support
     if first:
         mosaic = fm.adjoint(calib, target * inside, weight=m_full) / np.maximum(C, 1e-6)
         ix, iy = int(round(d.origin[0])), int(round(d.origin[1]))
         S = mosaic * support
         own = S[iy:iy + fm.h, ix:ix + fm.w]
         keep = support[iy:iy + fm.h, ix:ix + fm.w] > 0
-        own[keep] = d.scene[iy:iy + fm.h, ix:ix + fm.w][keep]
+        own[keep] = (d.scene if resp is None else resp.linearise(d.scene))[iy:iy + fm.h, ix:ix + fm.w][keep]
     d.coverage = C
     S = SceneOperator(d, model, support, live).solve(target, S, iters)
+    if resp is not None:
+        S = resp.counts(S)
     d.scene = (S * support).astype(np.float32)
     fpn_arr = None if fpn is None else np.asarray(fpn, np.float32)
     fm.set_reference(d.scene, fpn_arr, prescaled=True, origin=d.origin, support=support, subtract_fpn=False)

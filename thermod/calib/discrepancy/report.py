@@ -71,6 +71,8 @@ def _residual_maps_figure(ana: Analysis, path: Path) -> str:
         ax.set_title(f"{'after ' + label if label != 'nominal' else 'nominal'}\ngap {gap:.4f}", fontsize=9)
         ax.axis("off")
     fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="residual RMS (counts)")
+    fig.suptitle("RMS residual (measured − predicted) per pixel over the motion frames of the first "
+                 "recording, working resolution", fontsize=9)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path.name
@@ -85,6 +87,8 @@ def _gap_figure(ana: Analysis, path: Path) -> str:
     ax.plot(range(len(labels)), [g[2] for g in ana.gaps], "k--", label="noise floor")
     ax.set_xticks(range(len(labels)), labels, rotation=20, fontsize=8)
     ax.set_ylabel("gap (residual / motion signal)")
+    ax.set_xlabel("model after each step")
+    ax.set_title("gap per step and the noise floor (what a perfect model leaves)", fontsize=9)
     ax.set_ylim(bottom=0)
     ax.legend()
     fig.tight_layout()
@@ -100,30 +104,33 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     ax = axes.ravel()
     panels = {}
     ax[0].plot(dg["row_gap"], lw=1)
-    ax[0].set(xlabel="image row (working res.)", ylabel="gap", title="gap vs row (rolling readout)")
+    ax[0].set(xlabel="image row (working res.)", ylabel="gap", title="gap per image row (rolling readout)")
     panels["row"] = ax[0]
-    ax[1].plot(dg["t"], dg["frame_gap"], "o-", ms=3)
-    ax[1].set(xlabel="time since motion onset (s)", ylabel="gap", title="gap vs time (bias drift)")
+    ax[1].plot(dg["t"], dg["frame_gap"], "o", ms=3)      # points: several recordings share the axis
+    ax[1].set(xlabel="time since motion onset (s)", ylabel="gap", title="gap per frame vs time (bias drift)")
     panels["time"] = ax[1]
     ax[2].plot(dg["speed_deg_s"], dg["frame_gap"], "o", ms=3)
-    ax[2].set(xlabel="|ω| (°/s)", ylabel="gap", title="vs angular rate (scale, misalignment)")
+    ax[2].set(xlabel="|ω| (°/s)", ylabel="gap", title="gap per frame vs angular rate (scale, misalignment)")
     panels["rate"] = ax[2]
     ax[3].plot(dg["accel_deg_s2"], dg["frame_gap"], "o", ms=3)
-    ax[3].set(xlabel="|dω/dt| (°/s²)", ylabel="gap", title="vs angular acceleration (τ)")
+    ax[3].set(xlabel="|dω/dt| (°/s²)", ylabel="gap", title="gap per frame vs angular acceleration (τ)")
     panels["accel"] = ax[3]
     ax[4].semilogy(dg["spectrum_freq"], dg["spectrum"], "o-", label="residual")
     ax[4].axhline(max(dg["spectrum_noise"], 1e-12), color="k", ls="--", lw=0.8, label="white noise")
-    ax[4].set(xlabel="spatial frequency (cycles/px)", ylabel="power", title="residual spectrum (PSF)")
+    ax[4].set(xlabel="spatial frequency (cycles/px)", ylabel="power",
+              title="radial power spectrum of the residual (PSF)")
     ax[4].legend(fontsize=8)
     panels["spectrum"] = ax[4]
     ax[5].plot(dg["t"], np.asarray(dg["lag_s"]) * 1e3, "o", ms=3)
     ax[5].axhline(0, color="k", lw=0.8)
     ax[5].set(xlabel="time since motion onset (s)", ylabel="lag (ms)",
-              title=f"kernel-centroid lag (median {dg['lag_median_s'] * 1e3:.2f} ms)")
+              title=f"kernel-centroid lag per frame (median {_ms(dg['lag_median_s'])})")
     panels["lag"] = ax[5]
     panels.update(_gyro_panels(ax[6:9], dg))
     _detector_panels(dg, ax[9], ax[10], panels)
     ax[11].axis("off")
+    ax[11].text(0, 0.5, "Each panel: the residual of the model before this step,\nagainst what one "
+                "candidate effect would change\n(the effect is named in brackets).", fontsize=9)
     for k, a in panels.items():
         if k == highlight:
             for s in a.spines.values():
@@ -133,6 +140,10 @@ def _diag_figure(dg: dict, highlight: str, title: str, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _ms(seconds: float) -> str:
+    return f"{seconds * 1e3:.2f} ms" if np.isfinite(seconds) else "n/a"
 
 
 def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
@@ -145,7 +156,7 @@ def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
         ax_resp.axhline(0, color="k", lw=0.5)
         ax_resp.legend(fontsize=8)
     ax_resp.set(xlabel="variance the blur mixes, P(r²) − P(r)² (counts²)", ylabel="mean residual (counts)",
-                title="vs blur mixing (detector response)")
+                title="mean residual vs blur mixing (detector response)")
     panels["response"] = ax_resp
     if "frame_energy" in dg:
         t = dg["ffc_t"]
@@ -167,6 +178,8 @@ def _detector_panels(dg: dict, ax_resp, ax_ffc, panels: dict) -> None:
 
 def _gyro_panels(ax, dg: dict) -> dict:
     """The gyro-side panels (see `diagnostics.gyro_panels`): clock drift, low-pass, saturation."""
+    import matplotlib
+    import matplotlib.ticker
     t, lag = np.asarray(dg["t"]), np.asarray(dg["lag_s"]) * 1e3
     ax[0].plot(t, lag, "o", ms=3)
     ok = np.isfinite(lag)
@@ -174,9 +187,11 @@ def _gyro_panels(ax, dg: dict) -> dict:
         p = np.polyfit(t[ok], lag[ok], 1)
         ax[0].plot(t, np.polyval(p, t), "r-", lw=1)
     ax[0].set(xlabel="time since motion onset (s)", ylabel="lag (ms)",
-              title=f"lag trend {dg['lag_slope_ppm']:.0f} ppm (clock drift)")
+              title="lag trend " + (f"{dg['lag_slope_ppm']:.0f} ppm" if np.isfinite(dg["lag_slope_ppm"])
+                                    else "n/a (too few moving frames)") + " (clock drift)")
     ax[1].semilogx(np.maximum(dg["motion_freq_hz"], 0.1), lag, "o", ms=3)
     ax[1].axhline(0, color="k", lw=0.8)
+    ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())     # the minor labels overlap
     ax[1].set(xlabel="motion frequency |dω/dt|/(2π|ω|) (Hz)", ylabel="lag (ms)",
               title="lag vs motion frequency (gyro low-pass)")
     top = np.degrees(np.asarray(dg["gyro_abs_max"]))

@@ -75,9 +75,14 @@ def _squared_reference_model(d, level: float):
     aux = d.aux.get("response_fm")
     if aux is None or aux[0] != key or aux[2] is not d.fm.reference:
         fm2 = copy.copy(d.fm)
-        # same canvas placement and support (a motion-only recording's scene canvas), no FPN
-        fm2.set_reference((d.fm.reference - np.float32(level)) ** 2, None, prescaled=True,
-                          origin=getattr(d.fm, "origin", (0.0, 0.0)), support=getattr(d.fm, "support", None))
+        # same canvas placement and support (a motion-only recording's scene canvas), no FPN; 0 outside
+        # the support (the canvas is 0 there, c0² would leak into every view that touches its edge)
+        support = getattr(d.fm, "support", None)
+        sq = (d.fm.reference - np.float32(level)) ** 2
+        if support is not None:
+            sq = sq * (support > 0)
+        fm2.set_reference(sq, None, prescaled=True, origin=getattr(d.fm, "origin", (0.0, 0.0)),
+                          support=support)
         aux = (key, fm2, d.fm.reference)
         d.aux["response_fm"] = aux
     return aux[1]
@@ -94,14 +99,20 @@ def mixing_variance(d, model, pred_linear: np.ndarray | None = None) -> np.ndarr
     return np.maximum(p2 - (pred_linear - np.float32(c)) ** 2, 0.0)
 
 
+def respond(d, model, p: np.ndarray) -> np.ndarray:
+    """A linear prediction `p` of `d.fm` (FPN included) through the model's response, if it has one."""
+    resp = getattr(model, "response", None)
+    if resp is None or resp.gamma == 0.0:
+        return p
+    fpn = d.fm.fpn if d.fm.fpn is not None else np.float32(0.0)
+    p2, _ = _squared_reference_model(d, resp.level).predict(model.calib, model.extra_psf_px)
+    return resp.counts(p - fpn + np.float32(resp.gamma) * p2) + fpn
+
+
 def predict(d, model):
     """Predicted motion frames (counts, FPN included) and their valid mask, with the detector effects."""
     p, v = d.fm.predict(model.calib, model.extra_psf_px)
-    resp = getattr(model, "response", None)
-    if resp is not None and resp.gamma != 0.0:
-        fpn = d.fm.fpn if d.fm.fpn is not None else np.float32(0.0)
-        p2, _ = _squared_reference_model(d, resp.level).predict(model.calib, model.extra_psf_px)
-        p = resp.counts(p - fpn + np.float32(resp.gamma) * p2) + fpn
+    p = respond(d, model, p)
     events = events_of(d, model)
     if events:
         steps = d.aux.get("ffc_fpn")
