@@ -9,7 +9,8 @@ command-line settings get the same checks as the file.
 Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
 ``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
 ``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default),
-``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`).
+``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`), ``[monitor]`` (the live calibration monitor,
+`thermod.runtime.monitor`).
 """
 
 from __future__ import annotations
@@ -103,6 +104,19 @@ class RtspConfig:
 
 
 @dataclass(frozen=True)
+class MonitorConfig:
+    """``[monitor]``: the live calibration monitor (`thermod.runtime.monitor`)."""
+
+    enabled: bool = True
+    apply: bool = False              # apply a significant, stable estimate that lowers the residual
+    cpu_share: float = 0.10          # of one core, at most
+    window_s: float = 4.0            # rolling window of frame pairs one estimate is fitted on
+    width: int = 160                 # frames are registered at this width (px)
+    k_sigma: float = 4.0             # an estimate this many σ from the applied value is significant
+    stable_windows: int = 3          # ... in this many consecutive estimates before it is applied
+
+
+@dataclass(frozen=True)
 class LoggingConfig:
     level: str = "info"
 
@@ -121,6 +135,7 @@ class Config:
     # counts → °C after deblurring; None = off; CAMERA_RADIOMETRY = the constants the camera reports
     radiometry: radiometrymod.Radiometry | str | None = None
     rtsp: RtspConfig = field(default_factory=RtspConfig)
+    monitor: MonitorConfig = field(default_factory=MonitorConfig)
 
     @property
     def uses_sim(self) -> bool:
@@ -273,6 +288,19 @@ def _rtsp(path: str, table: Any) -> RtspConfig:
     return RtspConfig(**kw)
 
 
+def _monitor(path: str, table: Any) -> MonitorConfig:
+    s = Section(path, "monitor", table)
+    d = MonitorConfig()
+    kw = dict(enabled=s.pop("enabled", d.enabled, bool), apply=s.pop("apply", d.apply, bool),
+              cpu_share=s.pop("cpu_share", d.cpu_share, float, lo=0.001, hi=1.0),
+              window_s=s.pop("window_s", d.window_s, float, lo=0.5, hi=60.0),
+              width=s.pop("width", d.width, int, lo=32, hi=1024),
+              k_sigma=s.pop("k_sigma", d.k_sigma, float, lo=1.0, hi=100.0),
+              stable_windows=s.pop("stable_windows", d.stable_windows, int, lo=1, hi=100))
+    s.done()
+    return MonitorConfig(**kw)
+
+
 def _logging(path: str, table: Any) -> LoggingConfig:
     s = Section(path, "logging", table)
     lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
@@ -353,6 +381,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> C
         path=path,
         radiometry=_radiometry(path, top.t.pop("radiometry", {})),
         rtsp=_rtsp(path, top.t.pop("rtsp", {})),
+        monitor=_monitor(path, top.t.pop("monitor", {})),
     )
     top.done()
     if cfg.uses_sim:
