@@ -18,6 +18,9 @@ Flat-field corrections: with ``[sim] ffc_interval_s`` > 0 the camera runs one ev
 before it, flagged ``ffc``, then its output steps by ``ffc_step_counts`` (the new NUC).
 `ffc_truth(frame_id)` says which delivered frames were frozen.
 
+Drift: ``payload.drift = GyroDrift(...)`` (`thermod.sim.gyro_model`) makes the gyro bias and time offset
+move during the run; `true_calibration(t)` says what is true at host time t.
+
 Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
 raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
 overflow), reachable as ``payload.chip``.
@@ -58,6 +61,7 @@ class SimPayload:
         self.chip = None
         self._camera: SimCamera | None = None
         self._gyro = None
+        self.drift = None                         # a `thermod.sim.gyro_model.GyroDrift` on top of the truth
 
     # ------------------------------------------------------------------ the loop
     def cached(self) -> bool:
@@ -119,9 +123,24 @@ class SimPayload:
         pass
 
     def _rate_fn(self, t: np.ndarray) -> np.ndarray:
-        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock
+        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock;
+        # with a drift, a sample stamped t shows the motion at t + offset(t), plus bias(t)
         t0 = self.t0 if self.t0 is not None else 0.0
-        return self.loop.rate_gyro(np.asarray(t, np.float64) - t0)
+        tt = np.asarray(t, np.float64) - t0
+        if self.drift is None:
+            return self.loop.rate_gyro(tt)
+        return self.loop.rate_gyro(tt + self.drift.offset(tt)) + self.drift.bias(tt)
+
+    def true_calibration(self, t: float) -> Calibration:
+        """The gyro ↔ camera calibration that is true at host time t: the loop's, plus the drift, plus the
+        camera's transport latency (its clock mapping sees arrivals only, so a constant latency stamps
+        every frame that much late: a time offset of +latency_s)."""
+        c = self.loop.true_calib if self.loop is not None else self.calib
+        latency = self._camera.latency_s if self._camera is not None else 0.0
+        tt = t - (self.t0 or 0.0)
+        b = np.asarray(c.bias_rad_s) + (self.drift.bias(tt) if self.drift is not None else 0.0)
+        o = latency + (float(self.drift.offset(tt)) if self.drift is not None else 0.0)
+        return c.replace(bias_rad_s=tuple(np.asarray(b, float).tolist()), time_offset_s=c.time_offset_s + o)
 
     def gyro_source(self):
         """The real ICM-42688-P driver on its SPI register emulator, fed by the payload's motion."""
