@@ -232,8 +232,8 @@ class Monitor:
                   "time_offset_s": [o_now, float(offset)],
                   "residual_px": [est.residual_applied_px, est.residual_px]}
         log.warning("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
-                    "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(), o_now,
-                    offset, est.residual_applied_px, est.residual_px)
+                    "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
+                    o_now, offset, est.residual_applied_px, est.residual_px)
         self.changes.append(change)
         self._history.clear()
         with self._lock:
