@@ -138,6 +138,7 @@ class WatchStats:
                              f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
             lines.append(f"daemon rates {_compact(h.get('rates'))}  drops {_compact(h.get('drops'))}  "
                          f"devices {_compact(h.get('devices'))}")
+            lines += calibration_lines(h.get("calibration"))
         return "\n".join(lines)
 
     def status_line(self, gaps: dict | None = None) -> str:
@@ -149,6 +150,43 @@ class WatchStats:
         return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % "
                 f"({top}) | "
                 f"latency p50 {lp:.1f}/{lr:.1f} ms | lost {lost} | gyro {s['gyro_hz']:.0f} Hz")
+
+
+def calibration_lines(cal) -> list[str]:
+    """The calibration in force and the live monitor's estimate (± 1 σ) from a health message's
+    ``calibration``; nothing from a daemon that reports neither."""
+    if not isinstance(cal, dict) or not isinstance(cal.get("applied"), dict):
+        return []
+    a = cal["applied"]
+    out = [f"calibration  in force ({cal.get('source', '?')}): gyro bias "
+           f"{_vec(a.get('bias_rad_s'), 1e3)} mrad/s, time offset "
+           f"{1e3 * a.get('time_offset_s', 0.0):.2f} ms, tau {1e3 * a.get('tau_s', 0.0):.2f} ms"]
+    e = cal.get("estimate")
+    mon = cal.get("monitor") or {}
+    if e:
+        tau = ("not estimated" if e.get("tau_s") is None
+               else f"{1e3 * e['tau_s']:.2f} ± {1e3 * e['tau_s_sigma']:.2f} ms")
+        out.append(f"  estimate   gyro bias {_vec(e['gyro_bias_rad_s'], 1e3)} ± "
+                   f"{_vec(e['gyro_bias_rad_s_sigma'], 1e3)} mrad/s, time offset "
+                   f"{1e3 * e['time_offset_s']:.2f} ± {1e3 * e['time_offset_s_sigma']:.2f} ms, tau {tau}")
+        out.append(f"  monitor    {e.get('n_pairs', 0)} frame pairs, residual "
+                   f"{e.get('residual_px', 0):.3f} px "
+                   f"(in force {e.get('residual_applied_px', 0):.3f}), CPU {_pct(mon.get('cpu_share'))} "
+                   f"of a core, {'applies' if mon.get('apply') else 'reports only'}, "
+                   f"{mon.get('changes_applied', 0)} changes applied")
+    elif mon.get("enabled"):
+        out.append("  estimate   none yet (the monitor needs a few seconds of motion)")
+    return out
+
+
+def _vec(v, scale: float) -> str:
+    if not isinstance(v, (list, tuple)):
+        return "?"
+    return "[" + ", ".join(f"{scale * x:.2f}" for x in v) + "]"
+
+
+def _pct(x) -> str:
+    return "?" if x is None else f"{100 * x:.1f} %"
 
 
 def method_label(header: dict) -> str:
