@@ -51,7 +51,7 @@ log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
 # sections a running daemon cannot change: a reload that changes them is applied in part
-_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp")
+_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp", "monitor")
 
 
 # ------------------------------------------------------------------------------------ the daemon
