@@ -108,3 +108,4 @@ def test_unknown_choice_is_a_config_error(tmp_path, rec_path):
     rec, _ = rec_path
     with pytest.raises(ConfigError, match=r"sources\.camera\.calibration"):
         config.load(_config(tmp_path, rec, "camera"))
+

@@ -314,6 +314,16 @@ class LiveEstimator:
                         n_pairs=len(self.pairs), residual_px=_robust_rms(r),
                         residual_applied_px=_robust_rms(r_applied), notes=notes)
 
+    def residual(self, calib: Calibration, integral: GyroIntegral, bias, offset: float) -> float:
+        """Robust RMS (px) of the window's displacement mismatch under (bias, offset): the prediction
+        residual a change must lower before it is applied."""
+        rows = self._rows()
+        if rows is None:
+            return math.nan
+        t_a, t_b, cen, meas, _, _ = rows
+        return _robust_rms((meas - predict(calib, integral, t_a, t_b, cen, np.asarray(bias, float),
+                                           float(offset))).ravel())
+
     def _jackknife(self, J: np.ndarray, r: np.ndarray, w: np.ndarray, blk: np.ndarray) -> np.ndarray:
         """1-σ of each parameter from a delete-one-block jackknife of the linearised step at the solution."""
         g = int(blk.max()) + 1 if len(blk) else 0

@@ -189,7 +189,8 @@ class Monitor:
         w = self.gyro_ring.window(g0, g1, pad=2)
         if len(w) < 4:
             return
-        est = self.estimator.fit(calib, GyroIntegral(calib, w.t, w.rate))
+        integral = GyroIntegral(calib, w.t, w.rate)
+        est = self.estimator.fit(calib, integral)
         if est is None:
             return
         self.counters["fits"] += 1
@@ -197,9 +198,9 @@ class Monitor:
             self._last = est
         self._history.append(est)
         if self.cfg.apply:
-            self._consider(calib, est)
+            self._consider(calib, est, integral)
 
-    def _consider(self, calib: Calibration, est) -> None:
+    def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
         """Propose the estimate when it is significant, stable and lowers the residual."""
         k = self.cfg.k_sigma
         if len(self._history) < self.cfg.stable_windows:
@@ -220,20 +221,21 @@ class Monitor:
         # change only what is significant (an axis the motion does not reach keeps its value)
         bias = np.where(np.abs(est.bias_rad_s - b_now) > k * est.bias_sigma, est.bias_rad_s, b_now)
         offset = est.time_offset_s if abs(est.time_offset_s - o_now) > k * est.time_offset_sigma else o_now
-        if not est.residual_px < est.residual_applied_px:
+        # the change as it would be applied, checked on this window against the calibration in force
+        before = self.estimator.residual(calib, integral, b_now, o_now)
+        after = self.estimator.residual(calib, integral, bias, offset)
+        if not after < before:
             self.counters["proposals_refused_residual"] += 1
             log.info("calibration monitor: not applying bias %s rad/s, offset %.5f s: the residual would "
-                     "not fall (%.3f → %.3f px)", np.round(bias, 5).tolist(), offset,
-                     est.residual_applied_px, est.residual_px)
+                     "not fall (%.3f → %.3f px)", np.round(bias, 5).tolist(), offset, before, after)
             self._history.clear()
             return
         new = calib.replace(bias_rad_s=tuple(float(x) for x in bias), time_offset_s=float(offset))
         change = {"at": time.monotonic(), "bias_rad_s": [list(calib.bias_rad_s), bias.tolist()],
-                  "time_offset_s": [o_now, float(offset)],
-                  "residual_px": [est.residual_applied_px, est.residual_px]}
+                  "time_offset_s": [o_now, float(offset)], "residual_px": [before, after]}
         log.warning("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
                     "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
-                    o_now, offset, est.residual_applied_px, est.residual_px)
+                    o_now, offset, before, after)
         self.changes.append(change)
         self._history.clear()
         with self._lock:
