@@ -26,8 +26,8 @@ def free_port() -> int:
 def rec_path(tmp_path):
     # a calibration unlike the config defaults in every field the deblurring depends on
     calib = Calibration(width=32, height=24, fx=400.0, fy=400.0, cx=15.5, cy=11.5, tau_s=0.011,
-                        frame_rate_hz=FPS, rate_hz=RATE, time_offset_s=0.0037, bias_rad_s=(0.01, -0.02, 0.003),
-                        readout_s=0.004)
+                        frame_rate_hz=FPS, rate_hz=RATE, time_offset_s=0.0037,
+                        bias_rad_s=(0.01, -0.02, 0.003), readout_s=0.004)
     frames = np.stack([np.full((24, 32), 1000 + 17 * i, np.uint16) for i in range(N)])
     t = 10.0 + np.arange(N) / FPS
     gyro_t = 10.0 - 0.06 + np.arange(int(0.3 * RATE)) / RATE
@@ -65,8 +65,7 @@ enabled = false
 
 
 def _daemon(cfg):
-    d = Daemon(cfg)
-    return d
+    return Daemon(cfg)
 
 
 @pytest.mark.parametrize("choice", [None, "recording"])
