@@ -58,12 +58,15 @@ def psnr(img: np.ndarray, truth: np.ndarray) -> float:
     return 10 * np.log10((hi - lo) ** 2 / mse)
 
 
-def run(size: tuple[int, int], drift: GyroDrift | None, apply: bool, seconds: float) -> dict:
+def run(size: tuple[int, int], drift: GyroDrift | None, apply: bool, seconds: float,
+        monitor_width: int | None = None) -> dict:
     w, h = size
     f = 1465.0 * w / 640.0                    # the default camera's field of view at any size
     opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "deblur.method": "wiener",
             "calibration.width": w, "calibration.height": h, "calibration.fx": f, "calibration.fy": f,
             "monitor.apply": apply}
+    if monitor_width:
+        opts["monitor.width"] = monitor_width
     d = Daemon(config.load(None, opts))
     d.payload.drift = drift
     frames = []
@@ -118,15 +121,18 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=40.0)
     ap.add_argument("--quick", action="store_true", help="160×120 frames, 25 s runs")
+    ap.add_argument("--monitor-width", type=int, default=None,
+                    help="the monitor's registration width (default: [monitor] width)")
     args = ap.parse_args(argv)
     os.environ.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
     logging.basicConfig(level=logging.ERROR)
     size = (160, 120) if args.quick else (640, 480)
     seconds = 25.0 if args.quick else args.seconds
+    width = args.monitor_width or config.MonitorConfig().width
     results = []
     for name, drift in (("stock", None), ("drift", DRIFT)):
         for apply in (False, True):
-            r = run(size, drift, apply, seconds)
+            r = run(size, drift, apply, seconds, args.monitor_width)
             results.append((name, apply, r))
             print(f"{name:6s} apply={apply!s:5s} {r}", flush=True)
 
@@ -148,10 +154,12 @@ def main(argv=None) -> int:
     table = "\n".join(lines)
     print("\n" + table)
     out = REPO / "benchmarks" / "results" / "monitor.md"
+    cmd = " ".join(["", *(sys.argv[1:] if argv is None else argv)])
     out.write_text(
         "# Live calibration monitor\n\n"
-        f"`.venv/bin/python benchmarks/bench_monitor.py{' --quick' if args.quick else ''}` — simulated "
-        f"payload {size[0]}×{size[1]} at 50 fps, {seconds:.0f} s per run, daemon in-process (Wiener), "
+        f"`.venv/bin/python benchmarks/bench_monitor.py{cmd}` — simulated payload "
+        f"{size[0]}×{size[1]} at 50 fps, {seconds:.0f} s per run, daemon in-process (Wiener), monitor "
+        f"registering at {width} px, "
         f"{os.cpu_count()} cores shared with other work (load average "
         f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}).\n\n"
         "Errors are against the simulator's truth at each estimate's window centre, median over the "

@@ -34,6 +34,10 @@ def test_watch_text_shows_applied_and_estimate():
     s = WatchStats()
     s.add("health", {"calibration": CAL, "rates": {}, "drops": {}, "devices": {}}, None)
     assert "6.54 ± 0.41 ms" in s.format()
+    # what the daemon could not give (null in JSON) reads "?", never a crash
+    unbounded = {**ESTIMATE, "gyro_bias_rad_s_sigma": [None, 0.001, None], "time_offset_s_sigma": None}
+    text = "\n".join(calibration_lines({**CAL, "estimate": unbounded, "monitor": {"enabled": True}}))
+    assert "± [?, 1.00, ?] mrad/s" in text and "6.54 ± ? ms" in text and "CPU ? %" in text
     # a daemon without a monitor (or an older one) shows what it has, nothing made up
     assert calibration_lines({**APPLIED}) == []
     off = calibration_lines({**CAL, "estimate": None, "monitor": {"enabled": False}})
