@@ -111,7 +111,7 @@ class MonitorConfig:
     apply: bool = False              # apply a significant, stable estimate that lowers the residual
     cpu_share: float = 0.10          # of one core, at most
     window_s: float = 4.0            # rolling window of frame pairs one estimate is fitted on
-    width: int = 160                 # frames are registered at this width (px)
+    width: int = 320                 # frames are registered at this width (px)
     k_sigma: float = 4.0             # an estimate this many σ from the applied value is significant
     stable_windows: int = 3          # ... in this many consecutive estimates before it is applied
 
