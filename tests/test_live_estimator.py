@@ -99,3 +99,12 @@ def test_too_few_pairs_give_no_estimate(recording):
     est = LiveEstimator(4.0)
     integ = GyroIntegral(rec.calibration, rec.gyro_t, rec.gyro_rate)
     assert est.fit(rec.calibration, integ) is None
+
+
+def test_an_offset_far_from_the_one_in_force_is_found():
+    """30 ms off (an unstamped USB camera): beyond Gauss–Newton's reach from the offset in force, found
+    by the coarse lag search first."""
+    rec = simulate("real:1", "multirotor:60", 2.5, CAL, effects={"time_offset": -0.03}, seed=4)
+    est, integ = _window(rec, rec.calibration)
+    e = est.fit(rec.calibration, integ)
+    assert abs(e.time_offset_s + 0.03) < 0.002, e.as_dict()

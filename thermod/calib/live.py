@@ -10,8 +10,9 @@ instants s_a < s_b the camera turns by θ = ∫ ω_cam dt, with
     ω_cam(t) = M (ω_gyro(g(t)) − b),   g(t) = camera_time_to_gyro(t) (time offset o, clock drift)
 
 so the content at pixel p of a appears at π(K Q K⁻¹ p) in b, Q = exp(−θ) (Eq. 16). The measured
-displacements over a rolling window of pairs are fitted for (b, o) by Gauss–Newton (the rotation of
-every patch re-integrated from the cumulative gyro integral at each step), with robust reweighting;
+displacements over a rolling window of pairs are fitted for (b, o): the lag that best explains them on
+a coarse grid (±60 ms around the offset in force), then Gauss–Newton (the rotation of every patch
+re-integrated from the cumulative gyro integral at each step), with robust reweighting;
 σ comes from a delete-one-block jackknife over the window's pairs (neighbouring pairs share frames, so
 their errors are not independent).
 
@@ -34,6 +35,7 @@ from thermod.physics.geometry import so3_exp_many
 N_PARAMS = 4            # bias x, y, z (gyro frame, rad/s), time offset (s)
 MIN_PAIRS = 20
 MODEL_DELAY_ERROR = 0.05  # of τ: the floor of the offset's σ (see `LiveEstimator.fit`)
+LAG_SCAN_S, LAG_STEP_S = 0.06, 0.004   # the coarse offset search around the offset in force
 MIN_RESPONSE = 0.05     # phase-correlation peaks weaker than this are no match (blank sky, a cut)
 
 
@@ -283,10 +285,15 @@ class LiveEstimator:
         def residual(p):
             return (meas - predict(calib, integral, t_a, t_b, cen, p[:3], p[3])).ravel()
 
+        r_applied = residual(x)
+        # the lag that best explains the image motion, on a coarse grid: Gauss–Newton then starts
+        # within its reach however far the offset in force is off (the cost is smooth over a few ms)
+        lags = x[3] + np.arange(-LAG_SCAN_S, LAG_SCAN_S + 1e-9, LAG_STEP_S)
+        costs = [_robust_rms(residual(np.r_[x[:3], lag])) for lag in lags]
+        if np.min(costs) < _robust_rms(r_applied):
+            x[3] = float(lags[int(np.argmin(costs))])
         steps = np.array([1e-3, 1e-3, 1e-3, 1e-4])
-        w = np.repeat(w0, 2)
         r = residual(x)
-        r_applied = r.copy()
         J = None
         for _ in range(iterations):
             J = np.stack([(residual(x + np.eye(N_PARAMS)[k] * steps[k]) - r) / steps[k]

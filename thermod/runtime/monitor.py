@@ -14,7 +14,8 @@ Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ 
 force (the bias on any axis, or the offset) in ``stable_windows`` consecutive fits that agree with each
 other within k σ; it is applied only if it lowers the window's registration residual (the prediction
 of the frame-to-frame motion) against the calibration in force. Each change is logged and counted;
-the daemon applies it through `Pipeline.update` (`take_proposal`).
+the daemon applies it through `Pipeline.update` (`take_proposal`). A SIGHUP reload puts the
+configuration's (or a replayed recording's) calibration back in force; the monitor goes on from there.
 """
 
 from __future__ import annotations
