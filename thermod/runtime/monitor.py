@@ -234,9 +234,9 @@ class Monitor:
         new = calib.replace(bias_rad_s=tuple(float(x) for x in bias), time_offset_s=float(offset))
         change = {"at": time.monotonic(), "bias_rad_s": [list(calib.bias_rad_s), bias.tolist()],
                   "time_offset_s": [o_now, float(offset)], "residual_px": [before, after]}
-        log.warning("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
-                    "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
-                    o_now, offset, before, after)
+        log.info("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
+                 "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
+                 o_now, offset, before, after)
         self.changes.append(change)
         self._history.clear()
         with self._lock:
