@@ -1,10 +1,10 @@
 """The live calibration monitor (``[monitor]``): a low-priority thread that estimates the gyro bias and
 time offset from the stream (`thermod.calib.live`) and, with ``apply = true``, applies a change.
 
-It reads the rings the driver threads write (never the pipeline's queue): the newest pair of
-consecutive frames, once the gyro covers it, is registered against the gyro; every second the
-rolling window is fitted. Frames flagged ffc, or after a camera gap, and gyro windows with a gap are
-skipped.
+It reads the rings the driver threads write (never the pipeline's queue): each pair of consecutive
+frames, once the gyro covers it, is registered against the gyro (in order, skipping ahead when it
+falls behind); every second the rolling window is fitted. Frames flagged ffc, or after a camera
+gap, and gyro windows with a gap are skipped.
 
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
@@ -37,6 +37,7 @@ from thermod.runtime.rings import FrameRing, GyroRing
 log = logging.getLogger(__name__)
 
 FIT_PERIOD_S = 1.0
+BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
 
 
@@ -125,12 +126,16 @@ class Monitor:
         return self._registrar
 
     def _step(self) -> bool:
-        """Register the newest pair if it is new and covered, fit once a second. Returns whether it worked."""
+        """Register the next pair once the gyro covers it, fit once a second. Returns whether it worked.
+
+        Pairs are taken in order from the frame ring while the thread keeps up; one that fell more than
+        `BACKLOG` frames behind the newest jumps ahead (the frames in between are not registered)."""
         now = time.monotonic()
         worked = False
         head = self.frame_ring.head
-        if head >= 2 and head - 1 != self._last_b:
-            worked = self._register(head - 2, head - 1)
+        ib = max(self._last_b + 1, head - min(BACKLOG, self.frame_ring.capacity // 2), 1)
+        if ib <= head - 1:
+            worked = self._register(ib - 1, ib)
         if now - self._last_fit >= FIT_PERIOD_S and len(self.estimator.pairs) > 0:
             self._last_fit = now
             self._fit()
