@@ -1,4 +1,9 @@
-"""Regenerate the figures of docs/design.md from the real renderer: `python docs/figures.py`.
+"""Regenerate the figures of the docs from the real renderer and commands: `python docs/figures.py`.
+
+before_after.png — the README's picture: `thermod sim` renders a 75 °/s pan over a real DJI thermal
+frame (the simulator's fine-time microbolometer, NETD 30 mK), `thermod deblur` restores it with the
+defaults; blurry | deblurred | truth of the middle frame, each titled with its PSNR against the truth
+(8-bit scale of the truth's range). Without the real frames the simulator's procedural scene is used.
 
 kernels.png — the thermal (Eq. 18) and photon (Eq. 17) kernels of the same 50 °/s pan on the
 paper's SBTI camera (τ = 8 ms, IFOV 0.0391°, 1 kHz gyro, no optical PSF), and a roll-heavy motion
@@ -8,6 +13,9 @@ rendered as a 3 × 4 kernel grid (the blur varies across the frame; kernels draw
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -20,6 +28,7 @@ from thermod.physics.calibration import Calibration  # noqa: E402
 from thermod.physics.kernels import render_kernel_grid, render_photon_kernel, render_thermal_kernel  # noqa: E402
 
 OUT = Path(__file__).with_name("kernels.png")
+BEFORE_AFTER = Path(__file__).with_name("before_after.png")
 MAGNIFY = 5          # the grid panel draws each kernel this many times its size in pixels
 
 
@@ -29,7 +38,44 @@ def _gyro(rate_cam_rad_s) -> tuple[np.ndarray, np.ndarray]:
     return t, np.tile(np.float32(rate_cam_rad_s), (len(t), 1))
 
 
-def main() -> None:
+def _psnr(x: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR on the 8-bit scale of benchmarks/bench_quality.py: the truth's 0.5–99.5 % range → 0–255,
+    both images clipped to it."""
+    lo, hi = np.percentile(truth, (0.5, 99.5))
+    to8 = lambda a: np.clip((a - lo) / (hi - lo), 0, 1) * 255.0  # noqa: E731
+    return 10 * math.log10(255.0 ** 2 / float(np.mean((to8(x) - to8(truth)) ** 2)))
+
+
+def before_after() -> None:
+    """blurry | deblurred | truth of one simulated 75 °/s pan, through the real commands."""
+    import h5py
+
+    thermod = [sys.executable, "-m", "thermod.cli"]
+    with tempfile.TemporaryDirectory(prefix="thermod-figure-") as tmp:
+        rec, out = Path(tmp) / "pan.h5", Path(tmp) / "pan_sharp.h5"
+        subprocess.run([*thermod, "sim", "-o", str(rec), "--scene", "real:3", "--motion", "pan:75",
+                        "--seconds", "0.3", "--effect", "netd=0.03", "--seed", "1", "--no-progress"],
+                       check=True)
+        subprocess.run([*thermod, "deblur", str(rec), "-o", str(out)], check=True)
+        with h5py.File(rec) as f, h5py.File(out) as g:
+            k = f["camera/frames"].shape[0] // 2
+            blurry = f["camera/frames"][k].astype(np.float64)
+            truth = f["truth/frames"][k].astype(np.float64)
+            sharp = g["deblurred/frames"][k].astype(np.float64)
+    lo, hi = np.percentile(truth, (0.5, 99.5))
+    fig = plt.figure(figsize=(12, 3.4), layout="constrained")
+    for ax, img, title in zip(fig.subplots(1, 3), (blurry, sharp, truth),
+                              (f"microbolometer frame, {_psnr(blurry, truth):.1f} dB",
+                               f"thermod, {_psnr(sharp, truth):.1f} dB", "truth"), strict=True):
+        ax.imshow(img, cmap="gray", vmin=lo, vmax=hi)
+        ax.set_title(title)
+        ax.set_axis_off()
+    fig.savefig(BEFORE_AFTER, dpi=90)
+    print(f"wrote {BEFORE_AFTER}: blurry {_psnr(blurry, truth):.2f} dB, "
+          f"deblurred {_psnr(sharp, truth):.2f} dB")
+
+
+def kernels() -> None:
     calib = Calibration()
     t, pan = _gyro([0.0, math.radians(50.0), 0.0])           # +y: the camera turns right
     thermal = render_thermal_kernel(t, pan, calib, 0.0, psf=False)
@@ -73,4 +119,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] != ["before_after"]:
+        kernels()
+    before_after()

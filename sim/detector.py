@@ -4,7 +4,7 @@ The world is a scene texture laid on the sphere of view directions (azimuth/elev
 texture's angular pixel size, mirror-tiled), seen by a pinhole camera with orientation R(t)
 (`thermod.sim.motion.Trajectory`). The sharp view at time t is S_t(p) = scene(R(t) K⁻¹ p), so two
 views are related exactly by the rotation homography of Eq. 16: S_i(p) = S_k(π(K Q_i K⁻¹ p)) with
-Q_i = R(t_k)ᵀ R(t_i), i.e. S_i(p) = S_k(p − u_i) as in DESIGN.md §1.
+Q_i = R(t_k)ᵀ R(t_i), i.e. S_i(p) = S_k(p − u_i) as in docs/design.md §1.
 
 Rendering (per frame interval, with sub-segments when the motion is very fast):
 

@@ -1,6 +1,6 @@
 """Gyro error model: raw MEMS gyro samples from the true camera motion.
 
-The static part of the error comes from the TRUE calibration (DESIGN.md §2): the samples are in
+The static part of the error comes from the TRUE calibration (docs/design.md §2): the samples are in
 the gyro frame and on the gyro clock, such that `calib.gyro_to_camera` with the true calibration
 recovers the camera rate:
 

@@ -1,6 +1,6 @@
 """Camera motion: angular velocity ω(t) in the camera frame (rad/s) and its integral R(t).
 
-Conventions (DESIGN.md §2): OpenCV camera frame (x right, y down, z forward), R(t) maps camera
+Conventions (docs/design.md §2): OpenCV camera frame (x right, y down, z forward), R(t) maps camera
 vectors to world, dR/dt = R [ω]×. So ω_y > 0 is a pan to the right (yaw), ω_x > 0 tilts the
 view up (pitch), ω_z > 0 rolls clockwise as seen by the camera.
 

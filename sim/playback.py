@@ -7,8 +7,8 @@ played in a loop; a real-time gyro emulator samples the same motion through `rat
 Approximations against a live fine-time render: the world repeats every loop, and the sensor
 noise of a frame repeats with it (it is rendered once).
 
-Cache: `$THERMOD_CACHE` or `~/.cache/thermod`, one format-v1 recording per parameter set
-(`playback-<hash>.h5`), re-rendered when missing or unreadable.
+Cache: `$THERMOD_CACHE` or `~/.cache/thermod`, one format-v1 recording per parameter set and scene
+source (`playback-<hash>.h5`), re-rendered when missing or unreadable.
 
     pb = playback.load(PlaybackSpec(scene="real:2", seconds=2.0))
     frame = pb.frames[pb.index_at(t)]            # t: seconds since the payload started
@@ -32,6 +32,7 @@ from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
 from thermod.sim import motion as mo
+from thermod.sim.scenes import scene_source
 
 log = logging.getLogger(__name__)
 CACHE_VERSION = 1
@@ -50,8 +51,12 @@ class PlaybackSpec:
     effects: tuple = ()              # ((name, value), …) hidden truth effects, as in synth.simulate
 
     def key(self) -> str:
-        d = {"v": CACHE_VERSION, "scene": self.scene, "motion": self.motion, "seconds": self.seconds,
-             "seed": self.seed, "calib": self.calib.as_dict(), "effects": [list(e) for e in self.effects]}
+        """The cache key: every parameter, and the scene's actual source (`scenes.scene_source`), so a
+        loop rendered from the procedural stand-in is not reused once the real frames appear (nor the
+        reverse, nor after the image changes)."""
+        d = {"v": CACHE_VERSION, "scene": self.scene, "source": scene_source(self.scene),
+             "motion": self.motion, "seconds": self.seconds, "seed": self.seed,
+             "calib": self.calib.as_dict(), "effects": [list(e) for e in self.effects]}
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:20]
 
 

@@ -16,8 +16,8 @@ Counts: background 18000 (like the real DJI frames), responsivity `COUNTS_PER_K`
 
 from __future__ import annotations
 
+import logging
 import os
-import warnings
 from pathlib import Path
 
 import cv2
@@ -25,12 +25,10 @@ import numpy as np
 
 from thermod.errors import ThermodError
 
+log = logging.getLogger(__name__)
+
 BACKGROUND = 18000.0
 COUNTS_PER_K = 40.0          # ~25 mK/count, a typical 16-bit radiometric microbolometer stream
-
-
-class SceneFallbackWarning(UserWarning):
-    """A "real" scene was asked for but shared/data is absent: the procedural texture stands in."""
 
 
 def shared_data_dir() -> Path | None:
@@ -53,12 +51,45 @@ def real_frames() -> list[Path]:
     return sorted(p for p in (d / "thermal").glob("*.png"))
 
 
+def real_frame(spec: str) -> Path | None:
+    """The file a ``real[:N]`` scene reads, or None when there are no real frames (shared/data absent)."""
+    frames = real_frames()
+    if not frames:
+        return None
+    arg = spec.partition(":")[2]
+    try:
+        i = int(arg) if arg else 0
+    except ValueError:
+        raise ThermodError(f"--scene {spec!r}: expected real or real:N with N an integer") from None
+    if not 0 <= i < len(frames):
+        raise ThermodError(f"--scene {spec!r}: index out of range, {len(frames)} real frames "
+                           f"(0–{len(frames) - 1})")
+    return frames[i]
+
+
+def scene_source(spec: str) -> str:
+    """What `load_scene(spec)` draws from, to key caches of rendered scenes: the image file (with its
+    size and modification time) for ``real[:N]`` and paths, ``texture`` where ``real`` falls back to
+    it, and the spec itself for the procedural scenes."""
+    name = spec.partition(":")[0]
+    if name in ("bars", "points", "texture"):
+        return spec
+    path = real_frame(spec) if name == "real" else Path(spec)
+    if path is None:
+        return "texture (no real frames)"
+    try:
+        st = path.stat()
+    except OSError:
+        return f"{path} (missing)"
+    return f"{path.resolve()} ({st.st_size} B, mtime {st.st_mtime_ns})"
+
+
 def load_scene(spec: str | os.PathLike | np.ndarray, shape: tuple[int, int] = (960, 1280),
                seed: int = 0) -> np.ndarray:
     """Scene texture (float32 counts, at least `shape` = (rows, cols)) from a spec (see module doc).
 
     Real or file scenes smaller than `shape` are mirror-padded; procedural ones are drawn at `shape`.
-    "real" falls back to "texture" when shared/data is absent, with a `SceneFallbackWarning`.
+    "real" falls back to "texture" when shared/data is absent, and logs a warning saying so.
     """
     h, w = int(shape[0]), int(shape[1])
     if h < 8 or w < 8:
@@ -75,20 +106,12 @@ def load_scene(spec: str | os.PathLike | np.ndarray, shape: tuple[int, int] = (9
     if name == "texture":
         return texture(h, w, seed)
     if name == "real":
-        frames = real_frames()
-        if not frames:
-            msg = (f"--scene {s!r}: no real frames (shared/data not found; set THERMOD_SHARED_DATA), "
-                   "using the procedural 'texture' scene instead")
-            warnings.warn(msg, SceneFallbackWarning, stacklevel=2)
+        frame = real_frame(s)
+        if frame is None:
+            log.warning("scene %r: no real frames (shared/data not found; set THERMOD_SHARED_DATA), "
+                        "using the procedural 'texture' scene instead", s)
             return texture(h, w, seed)
-        try:
-            i = int(arg) if arg else 0
-        except ValueError:
-            raise ThermodError(f"--scene {s!r}: expected real or real:N with N an integer") from None
-        if not 0 <= i < len(frames):
-            raise ThermodError(f"--scene {s!r}: index out of range, {len(frames)} real frames "
-                               f"(0–{len(frames) - 1})")
-        return _pad_to(read_image(frames[i]), h, w)
+        return _pad_to(read_image(frame), h, w)
     p = Path(s)
     if p.suffix.lower() in (".png", ".tif", ".tiff", ".pgm") or p.exists():
         return _pad_to(read_image(p), h, w)

@@ -80,7 +80,7 @@ def test_frozen_and_values(tmp_path):
     ("[deblur]\nmethod = 'richardson'\n",
      r"deblur\.method: expected one of 'kf', 'wiener', got 'richardson'"),
     ("[deblur]\nalpha = 0.5\n", r"deblur\.alpha: expected 1 or 2/3"),
-    ("[deblur]\ngrid = [3]\n", r"deblur\.grid: expected \[rows, cols\]"),
+    ("[deblur]\ngrid = [3]\n", r"deblur\.grid: expected an array of 2 integers in \[1, 16\]"),
     ("[deblur]\nlamda = 3\n", r"deblur\.lamda: unknown key"),
     ("[publish]\nhwm = 0\n", r"publish\.hwm: expected a value in \[1, 1000000\], got 0"),
     ("[publish]\nraw = 1\n", r"publish\.raw: expected true or false, got 1"),
@@ -158,7 +158,7 @@ def test_file_level_errors(tmp_path):
 def test_overrides_are_validated_like_the_file():
     cfg = config.load(None, {"publish.endpoint": "tcp://127.0.0.1:6001", "deblur.lambda": 2500})
     assert cfg.publish.endpoint == "tcp://127.0.0.1:6001" and cfg.deblur.lam == 2500.0
-    with pytest.raises(ConfigError, match=r"sim\.toml: deblur\.lambda: expected a number, got 'x'"):
+    with pytest.raises(ConfigError, match=r"^--set deblur\.lambda=x: expected a number, got 'x'$"):
         config.load(None, {"deblur.lambda": "x"})
     assert config.parse_override("deblur.method=wiener") == ("deblur.method", "wiener")
     assert config.parse_override("deblur.grid=[2, 4]") == ("deblur.grid", [2, 4])
@@ -315,3 +315,67 @@ def test_register_gyro_device_names_are_checked_with_file_and_key(tmp_path):
     cfg = config.load(p, {"sources.gyro.kind": "icm42688_i2c"}, check_devices=False)
     with pytest.raises(ConfigError, match=r"t\.toml: sources\.gyro\.device: expected /dev/i2c-N"):
         sources.build_gyro(cfg)
+
+
+def test_every_problem_is_listed_with_its_source_and_a_suggestion(tmp_path):
+    """One ConfigError lists every bad key (not only the first), each line naming where the value came
+    from: the file, or the --set that gave it; unknown keys come with the nearest known key."""
+    p = _write(tmp_path, BASE + "[deblur]\nlamda = 3\nmethod = 'richardson'\n[pipeline]\nworkers = -1\n"
+                              "[publsh]\nhwm = 3\n")
+    over = dict([config.parse_override("rtsp.bitrate_kbps=1"), config.parse_override("sim.sed=4")])
+    with pytest.raises(ConfigError) as ei:
+        config.load(p, over)
+    lines = str(ei.value).splitlines()
+    f = str(p)
+    assert sorted(lines) == sorted([
+        f"{f}: deblur.lamda: unknown key (did you mean deblur.lambda?)",
+        f"{f}: deblur.method: expected one of 'kf', 'wiener', got 'richardson'",
+        f"{f}: pipeline.workers: expected a value in [0, 64], got -1",
+        f"{f}: publsh: unknown key (did you mean publish?)",
+        "--set rtsp.bitrate_kbps=1: expected a value in [50, 100000], got 1",
+        "--set sim.sed=4: unknown key (did you mean sim.seed?)",
+    ]), lines
+
+
+def test_a_bad_override_never_blames_the_file(tmp_path):
+    with pytest.raises(ConfigError) as ei:
+        config.load(None, dict([config.parse_override("publish.endpoint=localhost:1")]))
+    assert str(ei.value).startswith("--set publish.endpoint=localhost:1: expected a ZeroMQ endpoint")
+    with pytest.raises(ConfigError, match=r"^--set deblur\.method\.x=1: deblur\.method is not a table"):
+        config.load(None, {"deblur.method.x": 1})
+    # a relative path given on the command line is relative to the working directory, not the file
+    with pytest.raises(ConfigError, match=r"^--set publish\.curve_secret_key=nokey: CURVE key file '"
+                                          + str(Path.cwd() / "nokey")):
+        config.load(None, {"publish.curve_secret_key": "nokey"})
+
+
+def test_dataclass_defaults_are_the_schema_defaults():
+    """Each section's defaults, its TOML schema and an empty table agree: one declaration."""
+    from thermod.io.toml_tables import schema_of
+
+    cfg = config.parse({"sources": {"gyro": {"kind": "sim"}, "camera": {"kind": "sim"}}}, "x.toml")
+    for name, cls in config._config_sections().items():
+        assert getattr(cfg, name) == cls(), name
+        schema = schema_of(cls)
+        assert schema and all(getattr(cls(), k.attr) == k.default for k in schema.values()), name
+    assert cfg.deblur == config.DeblurConfig()
+    assert config.PublishConfig().hwm == config.endpoints.DEFAULT_HWM
+
+
+def test_the_key_reference_is_the_loader_schema():
+    """`thermod run --list-keys` prints the schema the loader checks: as a TOML file (with both sources
+    set to sim) it loads, and gives exactly the defaults of an empty configuration."""
+    import tomllib
+
+    from thermod import cli
+
+    text = config.reference()
+    doc = text.replace("kind = ...  #", 'kind = "sim"  #')
+    parsed = config.parse(tomllib.loads(doc), "reference.toml")
+    assert parsed == config.parse({"sources": {"gyro": {"kind": "sim"}, "camera": {"kind": "sim"}}},
+                                  "reference.toml")
+    for line in ("hwm = 100  # messages queued per subscriber; a value in [1, 1000000]",
+                 "# lambda = ...  # data weight; absent = the solver's; a value in (0.0, 1000000000.0]",
+                 '#   timestamp_clock = "auto"  # one of \'auto\', \'monotonic\', \'device\''):
+        assert line in text.splitlines(), line
+    assert cli.main(["run", "--list-keys"]) == 0

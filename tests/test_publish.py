@@ -272,7 +272,7 @@ def test_bind_errors_and_bad_input_are_clear(tmp_path):
     Path(secret).chmod(0o600)
     with pytest.raises(TransportError, match="no secret key"):
         Publisher(EP, curve_secret_key_file=public)
-    with pytest.raises(TransportError, match="needs curve_secret_key_file"):
+    with pytest.raises(TransportError, match=r"curve_secret_key: missing \(curve_authorized_keys needs"):
         Publisher(EP, authorized_keys_dir=tmp_path)
     with pytest.raises(TransportError, match="not a directory"):
         Publisher(EP, curve_secret_key_file=tmp_path / "srv.key_secret", authorized_keys_dir=tmp_path / "no")
@@ -686,3 +686,35 @@ def test_an_insecure_remote_bind_is_reported_in_the_daemon_health(tmp_path):
         assert h["drops"]["publish_budget_dropped"] == 0 and h["publisher"]["hwm"] >= 2
     finally:
         d.stop()
+
+
+def test_one_loopback_rule_and_one_set_of_transport_defaults():
+    """The publisher, the RTSP server and the web view ask one rule whether a bind is private, and the
+    configuration's defaults are the publisher's."""
+    from thermod.runtime.endpoints import DEFAULT_HWM, is_loopback, is_loopback_host
+
+    for host in ("127.0.0.1", "127.8.0.1", "::1", "[::1]", "localhost", "lo"):
+        assert is_loopback_host(host), host
+    for host in ("0.0.0.0", "::", "*", "192.168.1.2", "eth0", "example.org", ""):
+        assert not is_loopback_host(host), host
+    assert is_loopback("tcp://[::1]:5555") and is_loopback("ipc:///tmp/x") and is_loopback("inproc://a")
+    assert not is_loopback("tcp://0.0.0.0:5555") and not is_loopback("tcp://*:5555")
+    cfg = config.load()
+    assert Publisher().hwm == cfg.publish.hwm == DEFAULT_HWM
+    assert Publisher().max_queue_bytes == int(cfg.publish.max_queue_mb * 2**20)
+    assert Publisher().endpoint == cfg.publish.endpoint
+
+
+def test_an_ipc_publisher_removes_its_socket_file_and_listening_tells(tmp_path):
+    from thermod.runtime.endpoints import listening
+
+    ep = f"ipc://{tmp_path / 'p.sock'}"
+    assert listening(ep) is False                   # no file yet
+    with Publisher(ep):
+        assert (tmp_path / "p.sock").is_socket() and listening(ep) is True
+    assert not (tmp_path / "p.sock").exists() and listening(ep) is False
+    with Publisher("tcp://127.0.0.1:*") as p:
+        port_ep = p.endpoint
+        assert listening(port_ep) is True
+    assert listening(port_ep) is False
+    assert listening("inproc://x") is None

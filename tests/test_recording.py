@@ -39,7 +39,7 @@ def test_roundtrip(rec_path):
     assert b.calibration == a.calibration
     assert np.array_equal(b.extras["camera/frame_id"], np.arange(4))  # optional datasets survive
     assert "truth/frames" in b.extras and b.extra_attrs["truth"]["time_offset_s"] == 0.004
-    with h5py.File(rec_path) as f:  # layout of DESIGN.md §3
+    with h5py.File(rec_path) as f:  # layout of docs/design.md §3
         assert f.attrs["format"] == "thermod-recording" and f.attrs["version"] == 1
         assert f["camera/frames"].chunks == (1, 6, 8)
         assert f["gyro"].attrs["R_cam_gyro"].shape == (3, 3)

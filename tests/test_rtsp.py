@@ -106,10 +106,11 @@ def test_rtsp_config_defaults_and_errors():
                               ("rtsp.view", "both", "rtsp.view"),
                               ("rtsp.colormap", "rainbowish", "rtsp.colormap"),
                               ("rtsp.agc_low_pct", 60.0, "rtsp.agc_low_pct"),
-                              ("rtsp.bitrate", 10, "rtsp.bitrate: unknown key")):
+                              ("rtsp.bitrate", 10,
+                               r"^--set rtsp.bitrate=10: unknown key \(did you mean rtsp.bitrate_kbps\?\)$")):
         with pytest.raises(ConfigError, match=words):
             config.load(None, {key: value})
-    with pytest.raises(ConfigError, match=r"rtsp.agc_high_pct: expected a value above agc_low_pct"):
+    with pytest.raises(ConfigError, match=r"^--set rtsp.agc_high_pct=50.0: expected a value above agc_low"):
         config.load(None, {"rtsp.agc_low_pct": 50.0, "rtsp.agc_high_pct": 50.0})
 
 

@@ -413,7 +413,7 @@ def test_gyro_side_effects_through_simulate():
     assert np.median((lagged - w[ramp]) / slope) == pytest.approx(math.sqrt(2) / (2 * math.pi * 50), rel=0.05)
 
 
-def test_scenes(tmp_path, monkeypatch, shared_data):
+def test_scenes(tmp_path, monkeypatch, shared_data, caplog):
     b = scenes.load_scene("bars", (192, 256))
     assert b.dtype == np.float32 and b.shape == (192, 256)
     assert b.min() == BACKGROUND and b.max() == pytest.approx(BACKGROUND + 5 * scenes.COUNTS_PER_K)  # 5 K
@@ -433,8 +433,9 @@ def test_scenes(tmp_path, monkeypatch, shared_data):
     # without shared/data, "real" falls back to the procedural texture
     monkeypatch.setenv("THERMOD_SHARED_DATA", str(tmp_path / "nothing"))
     assert scenes.shared_data_dir() is None
-    with pytest.warns(scenes.SceneFallbackWarning, match="texture"):
+    with caplog.at_level("WARNING", logger="thermod.sim.scenes"):
         np.testing.assert_array_equal(scenes.load_scene("real", (96, 128), seed=1), t1)
+    assert "using the procedural 'texture' scene" in caplog.text
     with pytest.raises(ThermodError, match="--scene"):
         scenes.load_scene(str(tmp_path / "missing.png"), (96, 128))
 

@@ -1,6 +1,7 @@
 """`thermod watch` and `thermod record` against a real Publisher on loopback, fed with real thermal
 frames and a real gyro log from ../shared/data."""
 
+import io
 import os
 import signal
 import subprocess
@@ -188,6 +189,57 @@ def test_watch_cli(pub, shared_data, tmp_path, capsys):
 def test_watch_cli_nothing_there(capsys):
     rc = cli.main(["watch", "--endpoint", "tcp://127.0.0.1:9", "--seconds", "0.3", "--interval", "5"])
     assert rc == 1 and "no frames from tcp://127.0.0.1:9" in capsys.readouterr().err
+
+
+def test_watch_on_a_dead_endpoint_says_so_within_5_s(capsys):
+    """A user waits on it. Nothing arrives from a dead endpoint, and watch says so and exits
+    1 within 5 s instead of printing empty status lines forever."""
+    t0 = time.monotonic()
+    rc = cli.main(["watch", "--endpoint", "tcp://127.0.0.1:9", "--interval", "1", "--seconds", "10"])
+    took = time.monotonic() - t0
+    out, err = capsys.readouterr()
+    assert rc == 1 and took < 5.0, took
+    assert "nothing arrived from tcp://127.0.0.1:9 for 4.0 s and nothing listens there" in err, err
+    assert "nan" not in out and "nothing received yet" in out, out
+
+
+def test_watch_waits_for_a_bound_publisher_and_stops_when_it_goes(shared_data):
+    """Silence alone is not death: a daemon still warming up has bound its endpoint but publishes
+    nothing yet, and watch waits for it. Once the publisher is gone, watch ends within its timeout."""
+    pub = Publisher("tcp://127.0.0.1:*").start()
+    try:
+        sub = connect(pub, ("frame", "health"))
+        out = io.StringIO()
+        stats = watch(sub, 1.5, interval=0.5, out=out, timeout=0.3)       # bound, silent: waits it out
+        assert stats.silent_s is None and stats.listening is True
+        assert "daemon starting?" in out.getvalue()
+        feeder = Feeder(pub, scene(shared_data), Calibration(width=W, height=H), n=10)
+        feeder.start()
+        feeder.join()
+    finally:
+        pub.stop()
+    t0 = time.monotonic()
+    stats = watch(sub, 30.0, interval=10, out=io.StringIO(), timeout=0.5)
+    sub.close()
+    assert stats.frames == 10 and stats.silent_s is not None and stats.listening is False
+    assert time.monotonic() - t0 < 10.0
+
+
+def test_watch_summary_of_a_daemon_health_is_short_lines():
+    """The final table names each device's state, not the whole health dict."""
+    st = WatchStats()
+    st.add("frame", {"t": 1.0, "published": 1.01, "deblurred": True, "method": "kf"}, None)
+    dev = {"state": "running", "last_error": "", "errors": 0, "restarts": 0, "items": 14395,
+           "stats": {k: 0 for k in ("samples", "batches", "overflows", "gaps", "lost", "crc_errors",
+                                    "io_errors", "resets", "invalid", "recoveries", "bad_counts")}}
+    cam = dict(dev, state="reconnecting", errors=3, restarts=1, last_error="stream timeout")
+    st.add("health", {"rates": {"gyro_hz": 1001.0, "frames_out_hz": 48.05},
+                      "drops": {"jobs_dropped": 73, "gyro_lost": 0, "camera_frames_lost": 0},
+                      "devices": {"gyro": dev, "camera": cam}}, None)
+    lines = st.format().splitlines()
+    assert max(len(ln) for ln in lines) <= 110, lines
+    assert "devices      gyro running, camera reconnecting (3 errors, 1 restart: stream timeout)" in lines
+    assert "daemon drops jobs_dropped=73" in lines
 
 
 # ---------------------------------------------------------------------------------------- record

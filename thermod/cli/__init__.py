@@ -61,8 +61,9 @@ def main(argv: list[str] | None = None) -> int:
                         logging.WARNING, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     try:
         return int(module.run(args) or 0)
-    except ThermodError as e:
-        print(f"thermod {name}: error: {e}", file=sys.stderr)
+    except ThermodError as e:          # several problems (a configuration's): one prefixed line each
+        for line in str(e).splitlines() or [""]:
+            print(f"thermod {name}: error: {line}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -192,9 +192,12 @@ def run(args) -> int:
             print(f"  … and {len(r.passed) - 20} more")
     mode = "uniform" if cfg.mode == "uniform" else f"grid {cfg.grid[0]}×{cfg.grid[1]}"
     where = f" on {args.scheduler}" if args.scheduler else ""
-    print(f"total: {n_all - n_pass} frames deblurred, {n_pass} passed through, {len(reports)} file(s) in "
-          f"{wall:.1f} s{where} ({1e3 * wall / max(n_all, 1):.1f} ms/frame; "
-          f"{cfg.kernel} kernel, {cfg.method}, {mode})")
+    if n_all:      # a per-frame time only over frames that exist (failed files have none)
+        print(f"total: {n_all - n_pass} frames deblurred, {n_pass} passed through, {len(reports)} file(s) "
+              f"in {wall:.1f} s{where} ({1e3 * wall / n_all:.1f} ms/frame; "
+              f"{cfg.kernel} kernel, {cfg.method}, {mode})")
+    elif reports:
+        print(f"total: no frames in {len(reports)} file(s)")
     if failed:
         print(f"thermod deblur: {len(failed)} of {len(outs)} file(s) failed: "
               f"{', '.join(str(src) for src in failed)}", file=sys.stderr)

@@ -7,6 +7,7 @@ SIGTERM/SIGINT stop it cleanly; SIGHUP reloads calibration and deblur settings (
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import os
 import signal
@@ -29,18 +30,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rtsp", metavar="URL", help="serve the live view as H.264 over RTSP, e.g. "
                         "rtsp://127.0.0.1:8554/thermal (rtsp.enabled = true, rtsp.url = URL)")
     parser.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
+    parser.add_argument("--list-keys", action="store_true", help="print every configuration key with its "
+                        "default, meaning and allowed values (a TOML reference), and exit")
 
 
-def _overrides(args) -> dict:
+def _overrides(args) -> tuple[dict, dict]:
+    """({dotted key: value}, {dotted key: the option that set it}) from the command line."""
     ov = dict(config.parse_override(s) for s in args.overrides)
+    origins = {}
     if args.endpoint:
-        ov["publish.endpoint"] = args.endpoint
+        ov["publish.endpoint"], origins["publish.endpoint"] = args.endpoint, f"--endpoint {args.endpoint}"
     if args.raw:
-        ov["publish.raw"] = True
+        ov["publish.raw"], origins["publish.raw"] = True, "--raw"
     if args.rtsp:
-        ov["rtsp.enabled"] = True
-        ov["rtsp.url"] = args.rtsp
-    return ov
+        ov["rtsp.enabled"], origins["rtsp.enabled"] = True, "--rtsp"
+        ov["rtsp.url"], origins["rtsp.url"] = args.rtsp, f"--rtsp {args.rtsp}"
+    return ov, origins
 
 
 def _warn_if_open(path: str) -> None:
@@ -55,8 +60,11 @@ def _warn_if_open(path: str) -> None:
 
 
 def run(args) -> int:
-    ov = _overrides(args)
-    cfg = config.load(args.config, ov)
+    if args.list_keys:
+        print(config.reference(), end="")
+        return 0
+    ov, origins = _overrides(args)
+    cfg = config.load(args.config, ov, origins=origins)
     logging.getLogger("thermod").setLevel(cfg.logging.level.upper())
     if not logging.getLogger().handlers:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
@@ -75,6 +83,10 @@ def run(args) -> int:
     signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
     try:
         d.start()
+        # Start-up (numba, LLVM, the loaded modules) leaves ~10⁵ objects that live as long as the process:
+        # frozen, the collector no longer walks them, neither in full collections while frames flow nor
+        # in the interpreter's teardown, which otherwise spends most of the 2 s a stop is allowed
+        gc.freeze()
         d.serve(stop, reload_req, seconds=args.seconds)
     finally:
         d.stop()

@@ -26,15 +26,21 @@ from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
 from thermod.io.wire import MAX_PAYLOAD_BYTES
-from thermod.runtime.endpoints import DEFAULT_ENDPOINT
+from thermod.runtime.endpoints import DEFAULT_ENDPOINT, listening
 
 log = logging.getLogger(__name__)
+
+SILENCE_S = 4.0          # the daemon publishes health every second: four missed in a row
 
 
 def add_arguments(p) -> None:
     p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between status lines")
+    p.add_argument("--timeout", type=float, default=SILENCE_S,
+                   help="when nothing arrives for this many seconds, check the endpoint and give up (exit 1) "
+                        "if nothing listens there (0: never; default %(default)s: the daemon publishes "
+                        "health every second)")
     p.add_argument("--png", metavar="DIR", default=None, help="write raw|deblurred preview PNGs to DIR")
     p.add_argument("--png-interval", type=float, default=1.0, help="seconds between previews")
     p.add_argument("--http", metavar="HOST:PORT", default=None,
@@ -65,8 +71,12 @@ class WatchStats:
         self.gyro_gap_batches = 0
         self.gyro_lost = 0
         self.health: dict | None = None
+        self.messages = 0
+        self.silent_s: float | None = None     # set when watching stopped: nothing arrived, nobody there
+        self.listening: bool | None = None     # after a silence: whether something listened at the endpoint
 
     def add(self, topic: str, header: dict, array) -> None:
+        self.messages += 1
         if topic == "frame":
             self.frames += 1
             self.frame_t = [min(self.frame_t[0], header["t"]), max(self.frame_t[1], header["t"])]
@@ -136,12 +146,18 @@ class WatchStats:
                 lines.append(f"governor     {g['method']} (ladder {' > '.join(g.get('ladder', []))}), budget "
                              f"{g.get('budget_ms', nan):.1f} ms, load ×{g.get('load', nan):.2f}, "
                              f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
-            lines.append(f"daemon rates {_compact(h.get('rates'))}  drops {_compact(h.get('drops'))}  "
-                         f"devices {_compact(h.get('devices'))}")
+            lines.append(f"daemon rates {_compact(h.get('rates'))}")
+            lines.append(f"daemon drops {_compact({k: v for k, v in (h.get('drops') or {}).items() if v})}")
+            lines.append(f"devices      {_devices(h.get('devices'))}")
             lines += calibration_lines(h.get("calibration"))
         return "\n".join(lines)
 
     def status_line(self, gaps: dict | None = None) -> str:
+        if self.frames == 0:
+            if self.messages:
+                return f"no frames yet ({self.messages} other messages)"
+            return "nothing received yet" + (" (the endpoint is bound: daemon starting?)" if self.listening
+                                              else "")
         s = self.summary(gaps)
         lp = s["latency_publish_ms"]["p50"]
         lr = s["latency_receive_ms"]["p50"]
@@ -212,6 +228,24 @@ def _percentiles(values) -> dict:
     return {"p50": float(p50), "p95": float(p95), "p99": float(p99), "max": float(ms.max())}
 
 
+def _devices(d) -> str:
+    """``gyro running, camera reconnecting (3 errors, 1 restart: timeout)``: each device's state, and
+    its trouble only when it had some."""
+    if not isinstance(d, dict) or not d:
+        return "-"
+    out = []
+    for name, st in d.items():
+        if not isinstance(st, dict):
+            out.append(f"{name} {st}")
+            continue
+        trouble = [f"{n} {k}{'s' if n != 1 else ''}" for k, n in (("error", st.get("errors") or 0),
+                                                                 ("restart", st.get("restarts") or 0)) if n]
+        why = f": {st['last_error']}" if st.get("last_error") else ""
+        detail = f" ({', '.join(trouble)}{why})" if trouble or why else ""
+        out.append(f"{name} {st.get('state', '?')}{detail}")
+    return ", ".join(out)
+
+
 def _compact(d) -> str:
     if not isinstance(d, dict) or not d:
         return "-"
@@ -274,19 +308,33 @@ def _trim(d: collections.OrderedDict, keep: int) -> None:
 
 # ----------------------------------------------------------------------------------------- run
 def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
-          previews: PreviewWriter | None = None, view=None, out=None) -> WatchStats:
+          previews: PreviewWriter | None = None, view=None, out=None,
+          timeout: float = SILENCE_S) -> WatchStats:
     """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`;
-    every message also goes to `view` (a `thermod.client.web.LiveView`), sampled once a second."""
+    every message also goes to `view` (a `thermod.client.web.LiveView`), sampled once a second.
+    After `timeout` s (0: no limit) with nothing received it checks the endpoint: if nothing listens
+    there (`endpoints.listening`) it stops early, with ``stats.silent_s`` set; a bound but silent
+    publisher (a daemon still starting up) is waited for."""
     out = sys.stdout if out is None else out
     stats = WatchStats()
     t_end = None if seconds is None else time.monotonic() + seconds
     next_line = time.monotonic() + interval
     next_sample = time.monotonic() + 1.0 if view is not None else np.inf
+    last_msg = time.monotonic()
+    check_at = last_msg + timeout if timeout > 0 else np.inf     # when silence makes it look
     try:
         while t_end is None or time.monotonic() < t_end:
-            wait = min(next_line, next_sample, t_end or np.inf) - time.monotonic()
+            wait = min(next_line, next_sample, t_end or np.inf, check_at) - time.monotonic()
             msg = sub.recv(max(0.0, wait))
+            if msg is None and time.monotonic() >= check_at:
+                stats.listening = listening(sub.endpoint)
+                if stats.listening is False:
+                    stats.silent_s = time.monotonic() - last_msg
+                    break
+                check_at = time.monotonic() + timeout
             if msg is not None:
+                last_msg = time.monotonic()
+                check_at = last_msg + timeout if timeout > 0 else np.inf
                 stats.add(*msg)
                 if previews is not None and msg[0] in ("frame", "raw"):
                     previews.add(*msg)
@@ -321,8 +369,10 @@ def run(args) -> int:
         with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
                         curve_client_key_file=args.curve_client_key,
                         max_message_bytes=int(args.max_frame_mb * 2**20)) as sub:
-            stats = watch(sub, args.seconds, interval=args.interval, previews=previews, view=view)
-            print(stats.format(sub.gaps), flush=True)
+            stats = watch(sub, args.seconds, interval=args.interval, previews=previews, view=view,
+                          timeout=args.timeout)
+            if stats.messages:
+                print(stats.format(sub.gaps), flush=True)
             if sub.errors:
                 print(f"rejected malformed messages: {dict(sub.errors)}", flush=True)
     finally:
@@ -330,6 +380,11 @@ def run(args) -> int:
             server.stop()
     if previews is not None and previews.written:
         print(f"previews: {len(previews.written)} PNGs in {previews.dir} (latest.png = newest)", flush=True)
+    if stats.silent_s is not None:
+        what = "nothing arrived" if not stats.messages else "the daemon went away"
+        print(f"thermod watch: {what} from {args.endpoint} for {stats.silent_s:.1f} s and nothing listens "
+              "there; is `thermod run` up and publishing there? (--timeout 0 waits forever)", file=sys.stderr)
+        return 1
     if stats.frames == 0:
         print(f"thermod watch: no frames from {args.endpoint}; is `thermod run` up and publishing there?",
               file=sys.stderr)

@@ -21,7 +21,6 @@ The page loads nothing from elsewhere (no CDN): the machine may be offline.
 from __future__ import annotations
 
 import collections
-import ipaddress
 import json
 import logging
 import math
@@ -35,6 +34,7 @@ import numpy as np
 from thermod.errors import ThermodError
 from thermod.io.display import side_by_side, to_u8
 from thermod.io.json_safe import jsonable
+from thermod.runtime.endpoints import is_loopback_host
 
 log = logging.getLogger(__name__)
 
@@ -248,15 +248,6 @@ def parse_bind(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 class WebServer:
     """ThreadingHTTPServer bound exactly where asked, serving `view` from a background thread."""
 
@@ -273,7 +264,7 @@ class WebServer:
             self.httpd = server_cls((host, port), _handler(view))
         except OSError as e:
             raise WebError(f"--http {bind}: cannot listen there ({e.strerror or e})") from None
-        if not _is_loopback(host):
+        if not is_loopback_host(host):
             log.warning("--http %s: reachable from the network, without authentication", bind)
         h, p = self.httpd.server_address[:2]
         self.url = f"http://{f'[{h}]' if ':' in h else h}:{p}/"

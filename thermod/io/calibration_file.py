@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Any
@@ -10,55 +11,75 @@ from typing import Any
 import numpy as np
 
 from thermod.errors import ConfigError
-from thermod.io.toml_tables import Section, read_toml
+from thermod.io.toml_tables import Key, Problems, Section, read_toml
 from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration, CalibrationError
 
+# The keys whose range does not depend on other keys; defaults are the base calibration's. cx, cy
+# (within the image, with margin) and readout_s (at most one frame period) are checked against the
+# width, height and frame rate read first.
+SCHEMA: dict[str, Key] = {
+    "width": Key(int, lo=8, hi=16384, doc="image width (px)"),
+    "height": Key(int, lo=8, hi=16384, doc="image height (px)"),
+    "fx": Key(float, lo=0.0, lo_open=True, doc="focal length (px)"),
+    "fy": Key(float, lo=0.0, lo_open=True, doc="focal length (px)"),
+    "tau_s": Key(float, lo=0.0, lo_open=True, hi=1.0, doc="thermal time constant τ (s)"),
+    "frame_rate_hz": Key(float, lo=0.0, lo_open=True, hi=10000.0),
+    "wavelength_um": Key(float, lo=0.1, hi=100.0, doc="PSF wavelength"),
+    "f_number": Key(float, lo=0.1, hi=100.0),
+    "psf_beta": Key(float, lo=0.0, lo_open=True, hi=1.0),
+    "pixel_pitch_um": Key(float, lo=0.0, lo_open=True, hi=1000.0),
+    "rate_hz": Key(float, lo=0.0, lo_open=True, hi=100000.0, doc="gyro sample rate"),
+    "time_offset_s": Key(float, lo=-1.0, hi=1.0, doc="gyro time - camera time"),
+    "bias_rad_s": Key(tuple, length=(3,), doc="gyro bias (rad/s)"),
+    "scale": Key(tuple, length=(1, 3), positive=True, doc="gyro scale: one for all axes, or per axis"),
+    # ranges checked by Calibration itself (its CalibrationError names the key)
+    **{k: Key(float) for k in GYRO_EFFECT_KEYS},
+}
 
-def calibration_from_table(path: str, table: Any, base: Calibration | None = None) -> Calibration:
-    """Validate a [calibration] table; keys it omits keep `base`'s values (default: the paper camera)."""
+
+def calibration_from_table(path: str | Problems, table: Any, base: Calibration | None = None) -> Calibration:
+    """Validate a [calibration] table; keys it omits keep `base`'s values (default: the paper camera).
+    With a shared `Problems`, problems are recorded there (and `base` returned); otherwise raised."""
     s = Section(path, "calibration", table)
     d = base or Calibration()
-    kw: dict[str, Any] = {}
-    kw["width"] = s.pop("width", d.width, int, lo=8, hi=16384)
-    kw["height"] = s.pop("height", d.height, int, lo=8, hi=16384)
-    for k in ("fx", "fy"):
-        kw[k] = s.pop(k, getattr(d, k), float, lo=0.0, lo_open=True)
-    cx0, cy0 = (d.cx, d.cy) if base is not None else ((kw["width"] - 1) / 2.0, (kw["height"] - 1) / 2.0)
-    kw["cx"] = s.pop("cx", cx0, float, lo=-kw["width"], hi=2.0 * kw["width"])
-    kw["cy"] = s.pop("cy", cy0, float, lo=-kw["height"], hi=2.0 * kw["height"])
-    kw["tau_s"] = s.pop("tau_s", d.tau_s, float, lo=0.0, lo_open=True, hi=1.0)
-    kw["frame_rate_hz"] = s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=0.0, lo_open=True, hi=10000.0)
-    kw["wavelength_um"] = s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0)
-    kw["f_number"] = s.pop("f_number", d.f_number, float, lo=0.1, hi=100.0)
-    kw["psf_beta"] = s.pop("psf_beta", d.psf_beta, float, lo=0.0, lo_open=True, hi=1.0)
-    kw["pixel_pitch_um"] = s.pop("pixel_pitch_um", d.pixel_pitch_um, float, lo=0.0, lo_open=True, hi=1000.0)
+    schema = {k: dataclasses.replace(key, default=getattr(d, k)) for k, key in SCHEMA.items()}
+    kw: dict[str, Any] = s.read(schema)
+    w, h = kw["width"], kw["height"]
+    cx0, cy0 = (d.cx, d.cy) if base is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
+    kw["cx"] = s.pop("cx", cx0, float, lo=-w, hi=2.0 * w)
+    kw["cy"] = s.pop("cy", cy0, float, lo=-h, hi=2.0 * h)
     kw["readout_s"] = s.pop("readout_s", d.readout_s, float, lo=0.0, hi=1.0 / kw["frame_rate_hz"])
-    kw["rate_hz"] = s.pop("rate_hz", d.rate_hz, float, lo=0.0, lo_open=True, hi=100000.0)
-    kw["time_offset_s"] = s.pop("time_offset_s", d.time_offset_s, float, lo=-1.0, hi=1.0)
-    kw["bias_rad_s"] = s.pop_floats("bias_rad_s", d.bias_rad_s, (3,))
-    for k in GYRO_EFFECT_KEYS:      # ranges checked by Calibration (CalibrationError below names the key)
-        kw[k] = s.pop(k, getattr(d, k), float)
-    sc = s.pop_floats("scale", d.scale, (1, 3), positive=True)
-    kw["scale"] = sc * 3 if len(sc) == 1 else sc
-    if s.has("R_cam_gyro"):
-        v = s.t.pop("R_cam_gyro")
-        ok = isinstance(v, list) and len(v) == 3 and all(
-            isinstance(row, list) and len(row) == 3 and all(
-                isinstance(x, (int, float)) and not isinstance(x, bool) for x in row) for row in v)
-        R = np.asarray(v, dtype=np.float64) if ok else None
-        ok = ok and bool(np.all(np.isfinite(R)))
-        if not ok:
-            raise s.fail("R_cam_gyro", "a 3×3 array of numbers", v)
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
-            raise s.fail("R_cam_gyro", "a rotation matrix (orthonormal, det +1)", v)
-        kw["R_cam_gyro"] = tuple(tuple(float(x) for x in row) for row in R)
-    else:
-        kw["R_cam_gyro"] = d.R_cam_gyro
+    if len(kw["scale"]) == 1:
+        kw["scale"] = kw["scale"] * 3
+    kw["R_cam_gyro"] = _rotation(s, d.R_cam_gyro)
     s.done()
+    if not s.ok:
+        return d
     try:
         return Calibration(**kw)
     except CalibrationError as e:  # the checks the keys share (e.g. the field of view): name the file
-        raise ConfigError(f"{path}: calibration.{e.field}: {e.problem}") from None
+        s.problem(e.field, e.problem)
+        if s.owns:
+            s.problems.raise_if_any()
+        return d
+
+
+def _rotation(s: Section, default: tuple) -> tuple:
+    """``R_cam_gyro``: a 3×3 rotation matrix (orthonormal, det +1)."""
+    if not s.has("R_cam_gyro"):
+        return default
+    v = s.take("R_cam_gyro")
+    ok = isinstance(v, list) and len(v) == 3 and all(
+        isinstance(row, list) and len(row) == 3 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) for x in row) for row in v)
+    R = np.asarray(v, dtype=np.float64) if ok else None
+    if not (ok and bool(np.all(np.isfinite(R)))):
+        s.fail("R_cam_gyro", "a 3×3 array of numbers", v)
+        return default
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+        s.fail("R_cam_gyro", "a rotation matrix (orthonormal, det +1)", v)
+        return default
+    return tuple(tuple(float(x) for x in row) for row in R)
 
 
 def load_calibration(path: str | os.PathLike, base: Calibration | None = None) -> Calibration:

@@ -1,4 +1,4 @@
-"""Recording format v1 (DESIGN.md §3): one HDF5 file = one recording.
+"""Recording format v1 (docs/design.md §3): one HDF5 file = one recording.
 
 Every malformed input raises `RecordingError(path, field, problem)`; the message names the
 file and the dataset/attribute (and the frame, where one is at fault) and says what was expected.

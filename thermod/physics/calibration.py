@@ -1,6 +1,6 @@
 """The one parameter set shared by the simulator, the renderer, the daemon and the discrepancy fit.
 
-Keys are the recording attributes of DESIGN.md §3 (format v1): camera intrinsics, detector τ,
+Keys are the recording attributes of docs/design.md §3 (format v1): camera intrinsics, detector τ,
 optics, rolling readout, and the gyro → camera calibration
 `ω_cam = R_cam_gyro · scale · (ω_gyro − bias)`, sampled at `t_gyro + time_offset_s`.
 

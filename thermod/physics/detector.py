@@ -28,7 +28,7 @@ def iir_alpha(h, tau: float, exact: bool = True):
 
 def row_read_time(t_frame, row, readout_s: float, height: int):
     """Rolling readout: row `row` (may be fractional) of the frame read at t_frame is read at
-    t_frame − readout_s·(1 − (row+1)/height); the last row at t_frame (DESIGN.md §1).
+    t_frame − readout_s·(1 − (row+1)/height); the last row at t_frame (docs/design.md §1).
 
     Broadcasts over NumPy arrays `t_frame` and `row`; plain arithmetic, so scalars stay cheap
     (the kernel renderer calls it once per kernel).

@@ -1,6 +1,6 @@
 """Camera intrinsics, SO(3) maps and the rotation-only homography (Eq. 16).
 
-Conventions (DESIGN.md §2): OpenCV camera frame (x right, y down, z forward);
+Conventions (docs/design.md §2): OpenCV camera frame (x right, y down, z forward);
 R(t) maps camera vectors to world and dR/dt = R [ω]×, ω the camera-frame rate.
 """
 
@@ -195,7 +195,7 @@ def integrate_rotations(t: np.ndarray, omega: np.ndarray, t_ref: float) -> np.nd
     ω is taken as the instantaneous rate at t_i, piecewise linear between samples (so each
     interval rotates by exp([½(ω_i+ω_{i+1}) Δt]×), `trapezoid_step_into`); outside the samples it
     is held constant. Integrated outward from t_ref (Q = I there): Q_i = Q_{i+1} · exp([−ω̄ Δt]×)
-    before it (DESIGN.md §1). The one integrator: the renderers and the forward model use it or its
+    before it (docs/design.md §1). The one integrator: the renderers and the forward model use it or its
     step, and are tested against it.
     """
     t = np.ascontiguousarray(t, dtype=np.float64)

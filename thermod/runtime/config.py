@@ -1,22 +1,30 @@
 """Daemon configuration: TOML (tomllib) → validated, frozen dataclasses.
 
-Every problem (unknown key, wrong type, out-of-range value, missing device or key file) raises
-one `ConfigError` whose message names the file, the dotted key (e.g. ``deblur.lambda``) and what
-was expected. `load(None)` reads the packaged default, ``thermod.configs/sim.toml`` (the simulated
-payload). `overrides` ({dotted key: value}) are applied on top of the file before validation, so
-command-line settings get the same checks as the file.
+Each section's keys are declared once, on its dataclass, with `setting` (type, default, range or
+choices, doc); `parse` reads every section through `thermod.io.toml_tables.Section.read`. A new
+section is a dataclass declared that way plus one `section(...)` field of `Config`.
 
-Sections: ``[sources.gyro]``, ``[sources.camera]``, ``[sim]`` (only with a simulated source),
-``[calibration]`` (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``,
-``[pipeline]``, ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default),
-``[rtsp]`` (the H.264 live view, `thermod.runtime.rtsp`), ``[monitor]`` (the live calibration monitor,
+Every problem (unknown key, wrong type, out-of-range value, missing device or key file) is collected,
+and one `ConfigError` lists them all, each naming its source (the file, or the ``--set KEY=VALUE`` that
+gave the value), the dotted key (e.g. ``deblur.lambda``) and what was expected; an unknown key comes
+with the nearest known one. `load(None)` reads the packaged default, ``thermod.configs/sim.toml`` (the
+simulated payload). `overrides` ({dotted key: value}) are applied on top of the file before validation,
+so command-line settings get the same checks as the file.
+
+Sections: ``[sources.gyro]``, ``[sources.camera]`` (options from the driver registry,
+`thermod.runtime.sources`), ``[sim]`` (only with a simulated source), ``[calibration]``
+(→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``, ``[pipeline]``,
+``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default), ``[rtsp]``
+(the H.264 live view, `thermod.runtime.rtsp`), ``[monitor]`` (the live calibration monitor,
 `thermod.runtime.monitor`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tomllib
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -25,11 +33,32 @@ from typing import Any
 
 from thermod.errors import ConfigError
 from thermod.io.calibration_file import calibration_from_table
-from thermod.io.toml_tables import Section, read_toml
+from thermod.io.toml_tables import (
+    REQUIRED,
+    Key,
+    Problems,
+    Section,
+    read_toml,
+    schema_of,
+    setting,
+    with_defaults,
+)
+from thermod.io.toml_tables import reference as toml_reference
 from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration
 from thermod.restore.settings import DeblurConfig
-from thermod.runtime import sources
+from thermod.runtime import endpoints, sources
+
+
+def section(cls) -> Any:
+    """A `Config` field holding the ``[name]`` table read against `cls`'s schema (absent → defaults)."""
+    return field(default_factory=cls, metadata={"section": cls})
+
+
+def _endpoint_rule(v: str) -> str | None:
+    problem = endpoints.endpoint_problem(v)
+    return None if problem is None else \
+        f"a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or 'ipc:///run/thermod.sock' ({problem})"
 
 
 # ------------------------------------------------------------------------------ dataclasses
@@ -41,113 +70,189 @@ class SourceConfig:
     kind: str
     device: str | None = None
     options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
-    poll_timeout_s: float = 0.005
-    realtime_priority: int = 0       # SCHED_FIFO priority of the driver thread (0 = normal)
-    retry_max_s: float = 2.0         # reconnect back-off ceiling
+    poll_timeout_s: float = setting(0.005, lo=0.0005, hi=1.0, doc="longest wait of one driver poll")
+    realtime_priority: int = setting(0, lo=0, hi=99, doc="SCHED_FIFO priority of the driver; 0 = normal")
+    retry_max_s: float = setting(2.0, lo=0.01, hi=60.0, doc="reconnect back-off ceiling")
 
 
 @dataclass(frozen=True)
 class SimConfig:
     """The simulated payload (sim/payload.py): a pre-rendered loop played in real time."""
 
-    scene: str = "real:1"
-    motion: str = "multirotor:60"
-    loop_s: float = 2.0
-    seed: int = 0
-    frame_rate_hz: float = 50.0
-    gyro_rate_hz: float = 1000.0
-    gyro_noise_rad_s: float = 0.002
-    cache_dir: str = ""              # "" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback
-    ffc_interval_s: float = 0.0      # a flat-field correction (shutter/NUC) every this many s; 0 = never
-    ffc_duration_s: float = 0.5      # frames frozen (shutter closed) for this long per FFC
-    ffc_step_counts: float = 20.0    # offset step of the new NUC after each FFC (raw counts)
+    scene: str = setting("real:1", doc="real:N (a thermal PNG of the data set) or a procedural scene")
+    motion: str = setting("multirotor:60", doc="a thermod.sim.motion spec (multirotor: RMS roll rate °/s)")
+    loop_s: float = setting(2.0, lo=0.2, hi=120.0, doc="length of the pre-rendered loop")
+    seed: int = setting(0, lo=0)
+    frame_rate_hz: float = setting(50.0, lo=1.0, hi=500.0)
+    gyro_rate_hz: float = setting(1000.0, choices=(1000.0, 2000.0, 4000.0))
+    gyro_noise_rad_s: float = setting(0.002, lo=0.0, hi=1.0)
+    cache_dir: str = setting("", doc='"" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback')
+    ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
+                                    doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
+    ffc_duration_s: float = setting(0.5, lo=0.0, lo_open=True, hi=10.0,
+                                    doc="frames frozen (shutter closed) for this long per FFC")
+    ffc_step_counts: float = setting(20.0, lo=-1000.0, hi=1000.0,
+                                     doc="offset step of the new NUC after each FFC (raw counts)")
+
+    def problems(self) -> Iterator[tuple[str, str]]:
+        if 0 < self.ffc_interval_s <= self.ffc_duration_s:
+            yield "ffc_interval_s", (f"expected 0 (never) or longer than ffc_duration_s "
+                                     f"({self.ffc_duration_s:g} s), got {self.ffc_interval_s!r}")
 
 
 @dataclass(frozen=True)
 class PublishConfig:
-    endpoint: str = "tcp://127.0.0.1:5555"
-    raw: bool = False
-    gyro: bool = True
-    kernel: bool = True                      # the blur kernel of every deblurred frame (topic "kernel")
-    hwm: int = 100
-    health_period_s: float = 1.0
-    curve_secret_key: str | None = None      # server certificate (*.key_secret) → CURVE encryption
-    curve_authorized_keys: str | None = None  # directory of client public certificates (needs the secret key)
-    max_queue_mb: float = 128.0              # bytes ZeroMQ may hold for all subscribers together
-    allow_insecure_remote: bool = False      # permit a non-loopback bind without CURVE (warned)
+    endpoint: str = setting(endpoints.DEFAULT_ENDPOINT, rule=_endpoint_rule,
+                            accepts="tcp://HOST:PORT, ipc://PATH or inproc://NAME")
+    raw: bool = setting(False, doc="publish the raw frames too (topic raw)")
+    gyro: bool = setting(True)
+    kernel: bool = setting(True, doc="the blur kernel of every deblurred frame (topic kernel)")
+    hwm: int = setting(endpoints.DEFAULT_HWM, lo=1, hi=1_000_000, doc="messages queued per subscriber")
+    health_period_s: float = setting(1.0, lo=0.05, hi=60.0)
+    curve_secret_key: str | None = setting(None, str, file="CURVE key file",
+                                           doc="server certificate (*.key_secret) → CURVE encryption")
+    curve_authorized_keys: str | None = setting(None, str, file="directory",
+                                                doc="directory of client public certificates")
+    max_queue_mb: float = setting(endpoints.DEFAULT_MAX_QUEUE_BYTES / 2**20, lo=1.0, hi=65536.0,
+                                  doc="bytes ZeroMQ may hold for all subscribers together")
+    allow_insecure_remote: bool = setting(False, doc="permit a non-loopback bind without CURVE (warned)")
+
+    def problems(self) -> Iterator[tuple[str, str]]:
+        bad = endpoints.security_problem(self.endpoint, self.curve_secret_key is not None,
+                                         self.curve_authorized_keys is not None, self.allow_insecure_remote)
+        if bad is not None:
+            yield bad
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    workers: int = 0                 # deconvolution threads; 0 = one per core
-    job_queue: int = 2               # deblur jobs waiting for a worker (overload drops the oldest)
-    frame_ring: int = 32             # frames buffered between the camera thread and the scheduler (~0.6 s)
-    gyro_ring_s: float = 10.0        # seconds of gyro history kept
-    wait_timeout_s: float = 0.05     # max wait after a frame's time for the gyro to cover it
-    reorder_timeout_s: float = 0.5   # max wait to publish frames in order
-    watchdog_s: float = 2.0          # a critical thread silent this long stops WATCHDOG=1
+    workers: int = setting(0, lo=0, hi=64, doc="deconvolution threads; 0 = one per core")
+    job_queue: int = setting(2, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")
+    frame_ring: int = setting(32, lo=2, hi=1024, doc="frames buffered between camera thread and scheduler")
+    gyro_ring_s: float = setting(10.0, lo=0.5, hi=600.0, doc="seconds of gyro history kept")
+    wait_timeout_s: float = setting(0.05, lo=0.0, hi=2.0,
+                                    doc="max wait after a frame's time for the gyro to cover it")
+    reorder_timeout_s: float = setting(0.5, lo=0.0, hi=10.0, doc="max wait to publish frames in order")
+    watchdog_s: float = setting(2.0, lo=0.1, hi=600.0, doc="a thread silent this long stops WATCHDOG=1")
+
+
+# the live view's pictures, and the OpenCV colour maps offered by name (cv2.COLORMAP_<NAME>); "" = grey
+VIEWS = ("deblurred", "raw", "side_by_side")
+COLORMAPS = ("", "autumn", "bone", "jet", "winter", "rainbow", "ocean", "summer", "spring", "cool", "hsv",
+             "pink", "hot", "parula", "magma", "inferno", "plasma", "viridis", "cividis", "twilight",
+             "turbo", "deepgreen")
 
 
 @dataclass(frozen=True)
 class RtspConfig:
     """``[rtsp]``: the live view served as H.264 over RTSP (`thermod.runtime.rtsp`)."""
 
-    enabled: bool = False
-    url: str = "rtsp://127.0.0.1:8554/thermal"
-    view: str = "deblurred"          # deblurred | raw | side_by_side (raw left, deblurred right)
-    agc_low_pct: float = 1.0         # percentile of the frame mapped to black
-    agc_high_pct: float = 99.0       # percentile mapped to white
-    agc_smoothing: float = 0.8       # weight of the previous frame's range: no brightness pumping
-    colormap: str = ""               # OpenCV colour map name (e.g. "inferno"), "" = grey
-    bitrate_kbps: int = 2000
-    key_int: int = 10                # frames between key frames: a new client's picture starts within this
+    enabled: bool = setting(False)
+    url: str = setting(endpoints.DEFAULT_RTSP_URL, rule=endpoints.rtsp_url_problem,
+                       accepts="rtsp://HOST:PORT/PATH")
+    view: str = setting("deblurred", choices=VIEWS, doc="side_by_side: raw left, deblurred right")
+    agc_low_pct: float = setting(1.0, lo=0.0, hi=50.0, doc="percentile of the frame mapped to black")
+    agc_high_pct: float = setting(99.0, lo=50.0, hi=100.0, doc="percentile mapped to white")
+    agc_smoothing: float = setting(0.8, lo=0.0, hi=0.99,
+                                   doc="weight of the previous frame's range: no brightness pumping")
+    colormap: str = setting("", choices=COLORMAPS, doc='OpenCV colour map name, "" = grey')
+    bitrate_kbps: int = setting(2000, lo=50, hi=100_000)
+    key_int: int = setting(10, lo=1, hi=1000,
+                           doc="frames between key frames: a new client's picture starts within this")
+
+    def problems(self) -> Iterator[tuple[str, str]]:
+        if self.agc_low_pct >= self.agc_high_pct:
+            yield "agc_high_pct", (f"expected a value above agc_low_pct ({self.agc_low_pct}), "
+                                   f"got {self.agc_high_pct!r}")
 
 
 @dataclass(frozen=True)
 class MonitorConfig:
     """``[monitor]``: the live calibration monitor (`thermod.runtime.monitor`)."""
 
-    enabled: bool = True
-    apply: bool = False              # apply a significant, stable estimate that lowers the residual
-    cpu_share: float = 0.10          # of one core, at most
-    window_s: float = 4.0            # rolling window of frame pairs one estimate is fitted on
-    width: int = 320                 # frames are registered at this width (px)
-    k_sigma: float = 4.0             # an estimate this many σ from the applied value is significant
-    stable_windows: int = 3          # ... in this many consecutive estimates before it is applied
+    enabled: bool = setting(True)
+    apply: bool = setting(False, doc="apply a significant, stable estimate that lowers the residual")
+    cpu_share: float = setting(0.10, lo=0.001, hi=1.0, doc="the share of one core it may use, at most")
+    window_s: float = setting(4.0, lo=0.5, hi=60.0,
+                              doc="rolling window of frame pairs one estimate is fitted on")
+    width: int = setting(320, lo=32, hi=1024,
+                         doc="frames are registered at this width (px; at most the frame's)")
+    k_sigma: float = setting(4.0, lo=1.0, hi=100.0,
+                             doc="an estimate this many sigma from the applied value is significant")
+    stable_windows: int = setting(3, lo=1, hi=100,
+                                  doc="consecutive significant estimates before one is applied")
 
 
 @dataclass(frozen=True)
 class LoggingConfig:
-    level: str = "info"
+    level: str = setting("info", choices=("debug", "info", "warning", "error"))
 
 
 @dataclass(frozen=True)
 class Config:
     gyro: SourceConfig
     camera: SourceConfig
-    sim: SimConfig
     calibration: Calibration
     deblur: DeblurConfig
-    publish: PublishConfig
-    pipeline: PipelineConfig
-    logging: LoggingConfig
     path: str = "<defaults>"
     # counts → °C after deblurring; None = off; CAMERA_RADIOMETRY = the constants the camera reports
     radiometry: radiometrymod.Radiometry | str | None = None
-    rtsp: RtspConfig = field(default_factory=RtspConfig)
-    monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    sim: SimConfig = section(SimConfig)
+    publish: PublishConfig = section(PublishConfig)
+    pipeline: PipelineConfig = section(PipelineConfig)
+    logging: LoggingConfig = section(LoggingConfig)
+    rtsp: RtspConfig = section(RtspConfig)
+    monitor: MonitorConfig = section(MonitorConfig)
 
     @property
     def uses_sim(self) -> bool:
         return "sim" in (self.gyro.kind, self.camera.kind)
 
 
-# ------------------------------------------------------------------------------ sources
-def _source(path: str, role: str, table: Any, check_devices: bool):
+# [deblur] → DeblurConfig, whose defaults (shared with offline deblurring) live in thermod.restore.settings
+DEBLUR = with_defaults(DeblurConfig, {
+    "enabled": Key(bool),
+    "method": Key(str, choices=("kf", "wiener")),
+    "lambda": Key(float, lo=0.0, lo_open=True, hi=1e9, attr="lam", doc="data weight; absent = the solver's"),
+    "alpha": Key(float, rule=lambda a: None if abs(a - 1.0) < 1e-9 or abs(a - 2.0 / 3.0) < 1e-3 else
+                 "1 or 2/3 (0.667) — the exponents with a closed-form w-step", doc="prior exponent",
+                 accepts="1 (TV) or 2/3 (hyper-Laplacian)"),
+    "kernel": Key(str, choices=("thermal", "photon")),
+    "exposure_s": Key(float, lo=0.0, lo_open=True, hi=1.0, doc="photon kernel exposure; absent: 1/fps"),
+    "psf": Key(bool),
+    "mode": Key(str, choices=("adaptive", "uniform", "grid")),
+    "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
+    "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
+    "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
+    "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
+    "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
+    "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
+    "m": Key(float, lo=1.0, hi=20.0, doc="kernel window = m·τ"),
+    "min_coverage": Key(float, lo=0.0, hi=1.0, doc="gyro coverage below this → pass through"),
+    "ffc_settle_s": Key(float, lo=0.0, hi=60.0, doc="pass through this long after an FFC; absent: m·τ"),
+})
+
+
+# ------------------------------------------------------------------------------ sections
+def read_section(problems: Problems, name: str, table: Any, cls):
+    """The ``[name]`` table as a `cls` (declared with `setting`); bad keys are recorded in `problems`
+    and keep their defaults, and the dataclass's own cross-key `problems()` run when its keys are sound."""
+    s = Section(problems, name, table)
+    obj = cls(**s.read(schema_of(cls)))
+    s.done()
+    if s.ok and hasattr(obj, "problems"):
+        for key, text in obj.problems():
+            s.problem(key, text)
+    return obj
+
+
+def _source(problems: Problems, role: str, table: Any, check_devices: bool) -> SourceConfig:
     """One ``[sources.<role>]`` table, checked against the driver registry's schema for its kind."""
     drivers = sources.REGISTRY[role]
-    s = Section(path, f"sources.{role}", table)
-    kind = s.pop("kind", None, str, choices=tuple(drivers), required=True)
+    s = Section(problems, f"sources.{role}", table)
+    kind = s.get("kind", Key(str, REQUIRED, choices=tuple(drivers)))
+    if kind is None:                     # without a kind there is no schema for the rest
+        return SourceConfig(kind="sim")
     dev_kind = drivers[kind].device
     device = None
     if dev_kind == "device file":
@@ -155,177 +260,42 @@ def _source(path: str, role: str, table: Any, check_devices: bool):
     elif dev_kind == "recording":
         device = s.pop_file("path", required=True, must_exist=True, what="recording")
     elif dev_kind == "id":
-        device = s.pop("device", None, str, required=True)
-    opts = {}
-    for name, o in drivers[kind].options.items():
-        opts[name] = s.pop(name, o.default, o.type, lo=o.lo, hi=o.hi, choices=o.choices)
-    common = dict(
-        poll_timeout_s=s.pop("poll_timeout_s", 0.005, float, lo=0.0005, hi=1.0),
-        realtime_priority=s.pop("realtime_priority", 0, int, lo=0, hi=99),
-        retry_max_s=s.pop("retry_max_s", 2.0, float, lo=0.01, hi=60.0),
-    )
+        device = s.get("device", Key(str, REQUIRED))
+    opts = s.read(drivers[kind].options)
+    common = s.read(schema_of(SourceConfig))
     s.done()
     return SourceConfig(kind=kind, device=device, options=MappingProxyType(opts), **common)
 
 
-# ------------------------------------------------------------------------------ sections
-def _deblur(path: str, table: Any) -> DeblurConfig:
-    s = Section(path, "deblur", table)
-    d = DeblurConfig()
-    kw: dict[str, Any] = dict(
-        enabled=s.pop("enabled", d.enabled, bool),
-        method=s.pop("method", d.method, str, choices=("kf", "wiener")),
-        lam=s.pop("lambda", d.lam, float, lo=0.0, lo_open=True, hi=1e9),
-        kernel=s.pop("kernel", d.kernel, str, choices=("thermal", "photon")),
-        exposure_s=s.pop("exposure_s", d.exposure_s, float, lo=0.0, lo_open=True, hi=1.0),
-        psf=s.pop("psf", d.psf, bool),
-        mode=s.pop("mode", d.mode, str, choices=("adaptive", "uniform", "grid")),
-        grid_tol_px=s.pop("grid_tol_px", d.grid_tol_px, float, lo=0.05, hi=100.0),
-        kf_iterations=s.pop("kf_iterations", d.kf_iterations, int, lo=1, hi=12),
-        governor=s.pop("governor", d.governor, bool),
-        max_solve_s=s.pop("max_solve_s", d.max_solve_s, float, lo=0.0, lo_open=True, hi=10.0),
-        headroom=s.pop("headroom", d.headroom, float, lo=0.0, hi=0.9),
-        m=s.pop("m", d.m, float, lo=1.0, hi=20.0),
-        min_coverage=s.pop("min_coverage", d.min_coverage, float, lo=0.0, hi=1.0),
-        ffc_settle_s=s.pop("ffc_settle_s", d.ffc_settle_s, float, lo=0.0, hi=60.0),
-    )
-    alpha = s.pop("alpha", d.alpha, float)
-    if not (abs(alpha - 1.0) < 1e-9 or abs(alpha - 2.0 / 3.0) < 1e-3):
-        raise s.fail("alpha", "1 or 2/3 (0.667) — the exponents with a closed-form w-step", alpha)
-    kw["alpha"] = 1.0 if abs(alpha - 1.0) < 1e-9 else 2.0 / 3.0
-    if s.has("grid"):
-        g = s.t.pop("grid")
-        if not (isinstance(g, list) and len(g) == 2 and all(isinstance(x, int) and not isinstance(x, bool)
-                                                            and 1 <= x <= 16 for x in g)):
-            raise s.fail("grid", "[rows, cols], integers in [1, 16]", g)
-        kw["grid"] = (g[0], g[1])
+def _deblur(problems: Problems, table: Any) -> DeblurConfig:
+    s = Section(problems, "deblur", table)
+    kw = s.read(DEBLUR)
+    kw["alpha"] = 1.0 if abs(kw["alpha"] - 1.0) < 1e-9 else 2.0 / 3.0
     s.done()
     return DeblurConfig(**kw)
-
-
-def _publish(path: str, table: Any) -> PublishConfig:
-    s = Section(path, "publish", table)
-    d = PublishConfig()
-    from thermod.runtime.endpoints import endpoint_problem, is_loopback
-    endpoint = s.pop("endpoint", d.endpoint, str)
-    if (problem := endpoint_problem(endpoint)) is not None:
-        raise s.fail("endpoint", "a ZeroMQ endpoint like 'tcp://127.0.0.1:5555' or "
-                     f"'ipc:///run/thermod.sock' ({problem})", endpoint)
-    kw = dict(endpoint=endpoint, raw=s.pop("raw", d.raw, bool), gyro=s.pop("gyro", d.gyro, bool),
-              kernel=s.pop("kernel", d.kernel, bool),
-              hwm=s.pop("hwm", d.hwm, int, lo=1, hi=1_000_000),
-              health_period_s=s.pop("health_period_s", d.health_period_s, float, lo=0.05, hi=60.0),
-              curve_secret_key=s.pop_file("curve_secret_key", what="CURVE key file"),
-              curve_authorized_keys=s.pop_file("curve_authorized_keys", what="directory"),
-              max_queue_mb=s.pop("max_queue_mb", d.max_queue_mb, float, lo=1.0, hi=65536.0),
-              allow_insecure_remote=s.pop("allow_insecure_remote", d.allow_insecure_remote, bool))
-    if not is_loopback(endpoint) and kw["curve_secret_key"] is None and not kw["allow_insecure_remote"]:
-        raise s.fail("endpoint", "a loopback or ipc:// address, or publish.curve_secret_key for CURVE, or "
-                     "publish.allow_insecure_remote = true (the stream would be readable by anyone on the "
-                     "network)", endpoint)
-    if kw["curve_authorized_keys"] is not None and kw["curve_secret_key"] is None:
-        raise ConfigError(f"{path}: publish.curve_secret_key: missing (curve_authorized_keys needs the "
-                          "server's secret key file)")
-    s.done()
-    return PublishConfig(**kw)
-
-
-def _pipeline(path: str, table: Any) -> PipelineConfig:
-    s = Section(path, "pipeline", table)
-    d = PipelineConfig()
-    kw = dict(workers=s.pop("workers", d.workers, int, lo=0, hi=64),
-              job_queue=s.pop("job_queue", d.job_queue, int, lo=1, hi=64),
-              frame_ring=s.pop("frame_ring", d.frame_ring, int, lo=2, hi=1024),
-              gyro_ring_s=s.pop("gyro_ring_s", d.gyro_ring_s, float, lo=0.5, hi=600.0),
-              wait_timeout_s=s.pop("wait_timeout_s", d.wait_timeout_s, float, lo=0.0, hi=2.0),
-              reorder_timeout_s=s.pop("reorder_timeout_s", d.reorder_timeout_s, float, lo=0.0, hi=10.0),
-              watchdog_s=s.pop("watchdog_s", d.watchdog_s, float, lo=0.1, hi=600.0))
-    s.done()
-    return PipelineConfig(**kw)
-
-
-def _sim(path: str, table: Any) -> SimConfig:
-    s = Section(path, "sim", table)
-    d = SimConfig()
-    kw = dict(scene=s.pop("scene", d.scene, str), motion=s.pop("motion", d.motion, str),
-              loop_s=s.pop("loop_s", d.loop_s, float, lo=0.2, hi=120.0),
-              seed=s.pop("seed", d.seed, int, lo=0),
-              frame_rate_hz=s.pop("frame_rate_hz", d.frame_rate_hz, float, lo=1.0, hi=500.0),
-              gyro_rate_hz=s.pop("gyro_rate_hz", d.gyro_rate_hz, float, choices=(1000.0, 2000.0, 4000.0)),
-              gyro_noise_rad_s=s.pop("gyro_noise_rad_s", d.gyro_noise_rad_s, float, lo=0.0, hi=1.0),
-              cache_dir=s.pop("cache_dir", d.cache_dir, str),
-              ffc_interval_s=s.pop("ffc_interval_s", d.ffc_interval_s, float, lo=0.0, hi=86400.0),
-              ffc_duration_s=s.pop("ffc_duration_s", d.ffc_duration_s, float, lo=0.0, lo_open=True, hi=10.0),
-              ffc_step_counts=s.pop("ffc_step_counts", d.ffc_step_counts, float, lo=-1000.0, hi=1000.0))
-    if 0 < kw["ffc_interval_s"] <= kw["ffc_duration_s"]:
-        dur = kw["ffc_duration_s"]
-        raise s.fail("ffc_interval_s", f"0 (never) or longer than ffc_duration_s ({dur:g} s)",
-                     kw["ffc_interval_s"])
-    s.done()
-    return SimConfig(**kw)
-
-
-def _rtsp(path: str, table: Any) -> RtspConfig:
-    from thermod.runtime.rtsp import COLORMAPS, VIEWS, RtspError, parse_url
-    s = Section(path, "rtsp", table)
-    d = RtspConfig()
-    url = s.pop("url", d.url, str)
-    try:
-        parse_url(url)
-    except RtspError as e:
-        raise ConfigError(f"{path}: rtsp.url: {e}") from None
-    kw = dict(enabled=s.pop("enabled", d.enabled, bool), url=url,
-              view=s.pop("view", d.view, str, choices=VIEWS),
-              agc_low_pct=s.pop("agc_low_pct", d.agc_low_pct, float, lo=0.0, hi=50.0),
-              agc_high_pct=s.pop("agc_high_pct", d.agc_high_pct, float, lo=50.0, hi=100.0),
-              agc_smoothing=s.pop("agc_smoothing", d.agc_smoothing, float, lo=0.0, hi=0.99),
-              colormap=s.pop("colormap", d.colormap, str, choices=COLORMAPS),
-              bitrate_kbps=s.pop("bitrate_kbps", d.bitrate_kbps, int, lo=50, hi=100_000),
-              key_int=s.pop("key_int", d.key_int, int, lo=1, hi=1000))
-    if kw["agc_low_pct"] >= kw["agc_high_pct"]:
-        raise s.fail("agc_high_pct", f"a value above agc_low_pct ({kw['agc_low_pct']})", kw["agc_high_pct"])
-    s.done()
-    return RtspConfig(**kw)
-
-
-def _monitor(path: str, table: Any) -> MonitorConfig:
-    s = Section(path, "monitor", table)
-    d = MonitorConfig()
-    kw = dict(enabled=s.pop("enabled", d.enabled, bool), apply=s.pop("apply", d.apply, bool),
-              cpu_share=s.pop("cpu_share", d.cpu_share, float, lo=0.001, hi=1.0),
-              window_s=s.pop("window_s", d.window_s, float, lo=0.5, hi=60.0),
-              width=s.pop("width", d.width, int, lo=32, hi=1024),
-              k_sigma=s.pop("k_sigma", d.k_sigma, float, lo=1.0, hi=100.0),
-              stable_windows=s.pop("stable_windows", d.stable_windows, int, lo=1, hi=100))
-    s.done()
-    return MonitorConfig(**kw)
-
-
-def _logging(path: str, table: Any) -> LoggingConfig:
-    s = Section(path, "logging", table)
-    lvl = s.pop("level", "info", str, choices=("debug", "info", "warning", "error"))
-    s.done()
-    return LoggingConfig(level=lvl)
 
 
 CAMERA_RADIOMETRY = "camera"     # [radiometry] model = "camera": the Planck constants the camera reports
 
 
-def _radiometry(path: str, table: Any) -> radiometrymod.Radiometry | str | None:
+def _radiometry(problems: Problems, table: Any) -> radiometrymod.Radiometry | str | None:
     """A ``[radiometry]`` table: model = "none" | "planck" (R, B, F, O) | "linear" (gain, offset) |
     "camera" (the constants the camera itself reports, read once it streams: `CAMERA_RADIOMETRY`)."""
-    s = Section(path, "radiometry", table)
-    model = s.pop("model", "none", str, choices=("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY))
-    if model == CAMERA_RADIOMETRY:
+    s = Section(problems, "radiometry", table)
+    model = s.get("model", Key(str, "none", choices=("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY)))
+    if model == CAMERA_RADIOMETRY or not s.ok:
         s.done()
-        return CAMERA_RADIOMETRY
+        return CAMERA_RADIOMETRY if model == CAMERA_RADIOMETRY else None
     kw: dict[str, Any] = {"model": model}
     for k in [k for k in s.t if k in ("R", "B", "F", "O", "gain", "offset")]:
-        kw[k] = s.pop(k, None, float)
+        kw[k] = s.get(k, Key(float))
+    if not s.ok:
+        return None
     try:
         return radiometrymod.from_mapping({**kw, **s.t})  # left-over keys: named as unknown there
     except radiometrymod.RadiometryError as e:
-        raise ConfigError(f"{path}: radiometry.{e.field}: {e.problem}") from None
+        s.problem(e.field, e.problem)
+        return None
 
 
 def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
@@ -334,11 +304,49 @@ def load_radiometry(path: str | os.PathLike) -> radiometrymod.Radiometry | None:
     ask, so model = "camera" is an error here."""
     p = Path(path)
     raw = read_toml(p)
-    model = _radiometry(str(p), raw["radiometry"]) if "radiometry" in raw else None
+    problems = Problems(str(p))
+    model = _radiometry(problems, raw["radiometry"]) if "radiometry" in raw else None
+    problems.raise_if_any()
     if model == CAMERA_RADIOMETRY:
         raise ConfigError(f"{p}: radiometry.model: 'camera' needs a live camera; give 'planck' constants "
                           "(R, B, F, O) or 'linear' (gain, offset) for offline use")
     return model
+
+
+def reference() -> str:
+    """Every key of the configuration with its default, meaning and allowed values, as a TOML document
+    (`thermod run --list-keys`), generated from the schemas the loader checks against."""
+    from thermod.io.calibration_file import SCHEMA as CALIBRATION
+
+    out = []
+    for role, drivers in sources.REGISTRY.items():
+        out += [f"[sources.{role}]", f"kind = ...  # one of {', '.join(repr(k) for k in drivers)}"]
+        out += reference_lines(schema_of(SourceConfig))
+        for kind, d in drivers.items():
+            device = {"device file": "device = PATH", "recording": "path = RECORDING",
+                      "id": "device = ID"}.get(d.device or "", "")
+            if device or d.options:
+                out.append(f"#   kind = {kind!r}: {device or 'no device'}")
+                out += ["#   " + ln for ln in reference_lines(d.options)]
+        out.append("")
+    calibration = {k: dataclasses.replace(key, default=getattr(Calibration(), k))
+                   for k, key in CALIBRATION.items()}
+    tables = {**{name: schema_of(cls) for name, cls in _config_sections().items()}, "deblur": DEBLUR,
+              "calibration": calibration}
+    for name, schema in tables.items():
+        out += toml_reference(name, schema)
+        if name == "calibration":
+            out += ["# cx, cy = the image centre  # principal point (px)",
+                    "# readout_s = 0.0  # rolling-shutter readout, at most one frame period",
+                    "# R_cam_gyro = [[1, 0, 0], [0, 1, 0], [0, 0, 1]]  # gyro → camera rotation"]
+        out.append("")
+    models = ", ".join(repr(m) for m in ("none", *radiometrymod.MODELS, CAMERA_RADIOMETRY))
+    out += ["[radiometry]", f'model = "none"  # one of {models}; planck: R, B, F, O; linear: gain, offset']
+    return "\n".join(out) + "\n"
+
+
+def reference_lines(schema: Mapping[str, Key]) -> list[str]:
+    return toml_reference("", schema)[1:]
 
 
 # ------------------------------------------------------------------------------ entry points
@@ -347,65 +355,90 @@ def default_path() -> Path:
     return Path(str(resources.files("thermod.configs").joinpath("sim.toml")))
 
 
-def _apply_override(path: str, raw: dict, dotted: str, value: Any) -> None:
+def _apply_override(problems: Problems, raw: dict, dotted: str, value: Any) -> None:
     parts = dotted.split(".")
     node = raw
     for i, p in enumerate(parts[:-1]):
         nxt = node.setdefault(p, {})
         if not isinstance(nxt, dict):
-            raise ConfigError(f"{path}: {'.'.join(parts[:i + 1])}: expected a table to override {dotted!r}")
+            problems.add(dotted, f"{'.'.join(parts[:i + 1])} is not a table, so it has no key {parts[-1]!r}")
+            return
         node = nxt
     node[parts[-1]] = value
 
 
-def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True) -> Config:
-    """Validate an already-parsed TOML document."""
-    top = Section(path, "", raw)
-    src = Section(path, "sources", top.t.pop("sources", {}))
-    if not src.has("gyro") or not src.has("camera"):
-        missing = "sources.gyro" if not src.has("gyro") else "sources.camera"
-        raise ConfigError(f"{path}: {missing}: missing (expected a table with `kind = ...`)")
-    gyro = _source(path, "gyro", src.t.pop("gyro"), check_devices)
-    camera = _source(path, "camera", src.t.pop("camera"), check_devices)
+def override_text(key: str, value: Any) -> str:
+    """How the command line gave `key`: ``--set KEY=VALUE`` (the value as a TOML literal)."""
+    if isinstance(value, bool):
+        lit = "true" if value else "false"
+    elif isinstance(value, str):
+        try:
+            lit = value if not isinstance(tomllib.loads(f"v = {value}")["v"], str) else repr(value)
+        except (tomllib.TOMLDecodeError, RecursionError):
+            lit = value                  # a bare string, as typed
+    else:
+        lit = repr(value) if not isinstance(value, list) else str(value)
+    return f"--set {key}={lit}"
+
+
+def _config_sections() -> dict[str, type]:
+    """TOML table → dataclass of every `section(...)` field of `Config`."""
+    return {f.name: f.metadata["section"] for f in dataclasses.fields(Config) if "section" in f.metadata}
+
+
+def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True,
+          origins: Mapping[str, str] | None = None) -> Config:
+    """Validate an already-parsed TOML document; one ConfigError lists every problem. `origins` maps the
+    dotted keys that did not come from `path` to where they came from (``--set KEY=VALUE``)."""
+    problems = Problems(path, origins)
+    top = Section(problems, "", raw)
+    src = Section(problems, "sources", top.take("sources") if top.has("sources") else {})
+    roles = {}
+    for role in ("gyro", "camera"):
+        if src.has(role):
+            roles[role] = _source(problems, role, src.take(role), check_devices)
+        else:
+            if "" not in src.bad:        # ([sources] itself not a table is the one problem to report)
+                src.problem(role, "missing (expected a table with `kind = ...`)")
+            roles[role] = SourceConfig(kind="sim")
     src.done()
-    if top.has("sim") and "sim" not in (gyro.kind, camera.kind):
-        raise ConfigError(f"{path}: sim: only allowed when a source has kind = 'sim'")
-    cfg = Config(
-        gyro=gyro, camera=camera,
-        sim=_sim(path, top.t.pop("sim", {})),
-        calibration=calibration_from_table(path, top.t.pop("calibration", {})),
-        deblur=_deblur(path, top.t.pop("deblur", {})),
-        publish=_publish(path, top.t.pop("publish", {})),
-        pipeline=_pipeline(path, top.t.pop("pipeline", {})),
-        logging=_logging(path, top.t.pop("logging", {})),
-        path=path,
-        radiometry=_radiometry(path, top.t.pop("radiometry", {})),
-        rtsp=_rtsp(path, top.t.pop("rtsp", {})),
-        monitor=_monitor(path, top.t.pop("monitor", {})),
-    )
+    uses_sim = "sim" in (roles["gyro"].kind, roles["camera"].kind)
+    if top.has("sim") and not uses_sim and src.ok:
+        top.problem("sim", "only allowed when a source has kind = 'sim'")
+    tables = {name: read_section(problems, name, top.take(name) if top.has(name) else {}, cls)
+              for name, cls in _config_sections().items()}
+    calibration = calibration_from_table(problems, top.take("calibration") if top.has("calibration") else {})
+    deblur = _deblur(problems, top.take("deblur") if top.has("deblur") else {})
+    radiometry = _radiometry(problems, top.take("radiometry") if top.has("radiometry") else {})
     top.done()
-    if cfg.uses_sim:
-        c, s = cfg.calibration, cfg.sim
+    if uses_sim and not problems.items:
+        c, s = calibration, tables["sim"]
         if abs(c.frame_rate_hz - s.frame_rate_hz) > 1e-9 or abs(c.rate_hz - s.gyro_rate_hz) > 1e-9:
-            raise ConfigError(f"{path}: calibration.frame_rate_hz/rate_hz: expected to match "
-                              f"sim.frame_rate_hz ({s.frame_rate_hz}) and sim.gyro_rate_hz "
-                              f"({s.gyro_rate_hz})")
-    return cfg
+            problems.add("calibration.frame_rate_hz/rate_hz", f"expected to match sim.frame_rate_hz "
+                         f"({s.frame_rate_hz}) and sim.gyro_rate_hz ({s.gyro_rate_hz})")
+    problems.raise_if_any()
+    return Config(gyro=roles["gyro"], camera=roles["camera"], calibration=calibration, deblur=deblur,
+                  path=path, radiometry=radiometry, **tables)
 
 
 def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None = None, *,
-         check_devices: bool = True) -> Config:
+         check_devices: bool = True, origins: Mapping[str, str] | None = None) -> Config:
     """Read and validate a TOML configuration (None = the packaged simulated-payload default).
 
-    `overrides` maps dotted keys to values applied before validation ({"publish.endpoint": ...}).
-    `check_devices=False` skips the existence check of device nodes (for inspecting a hardware
-    configuration on another machine); recordings and key files are always checked.
+    `overrides` maps dotted keys to values applied before validation ({"publish.endpoint": ...}); a
+    problem with one names ``--set KEY=VALUE`` (or what `origins` says gave that key, e.g.
+    ``--endpoint EP``), not the file. `check_devices=False` skips the existence
+    check of device nodes (for inspecting a hardware configuration on another machine); recordings and
+    key files are always checked.
     """
     p = default_path() if path is None else Path(path)
     name, raw = str(p), read_toml(p)
+    origins = {**{k: override_text(k, v) for k, v in (overrides or {}).items()}, **(origins or {})}
+    problems = Problems(name, origins)
     for k, v in (overrides or {}).items():
-        _apply_override(name, raw, k, v)
-    return parse(raw, name, check_devices=check_devices)
+        _apply_override(problems, raw, k, v)
+    problems.raise_if_any()
+    return parse(raw, name, check_devices=check_devices, origins=origins)
 
 
 def parse_override(text: str) -> tuple[str, Any]:

@@ -1,6 +1,7 @@
-"""ZeroMQ endpoints and CURVE key files: the address grammar, the loopback rule, ``ipc://`` socket
-files, and key loading. The publisher (`thermod.runtime.publish`) and subscribers
-(`thermod.client.subscriber`) check addresses and keys here and nowhere else.
+"""The addresses thermod serves on and their security: the ZeroMQ endpoint and RTSP URL grammars, the
+transport defaults, the loopback rule, the CURVE rule, ``ipc://`` socket files, and key loading. The
+configuration (`thermod.runtime.config`), the publisher (`thermod.runtime.publish`), the RTSP server, the
+web view and subscribers (`thermod.client`) check addresses and keys here and nowhere else.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import os
 import re
 import socket
 import stat
+import urllib.parse
 from pathlib import Path
 
 import zmq
@@ -21,6 +23,9 @@ from thermod.errors import ThermodError
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
+DEFAULT_HWM = 100                     # messages ZeroMQ queues per subscriber (SNDHWM)
+DEFAULT_MAX_QUEUE_BYTES = 128 << 20   # bytes ZeroMQ may hold for all subscribers together
+DEFAULT_RTSP_URL = "rtsp://127.0.0.1:8554/thermal"
 
 
 class TransportError(ThermodError):
@@ -65,18 +70,63 @@ def check_endpoint(endpoint: str, what: str = "publish.endpoint") -> str:
     return endpoint
 
 
-def is_loopback(endpoint: str) -> bool:
-    """Only this host can reach it: ``ipc``/``inproc``, or tcp on a loopback address/``localhost``."""
-    if not endpoint.startswith("tcp://"):
-        return True
-    m = _TCP.match(endpoint)
-    host = m["host"].strip("[]") if m else ""
+def is_loopback_host(host: str) -> bool:
+    """Only this host can reach a server bound to `host`: a loopback address (``[::1]`` brackets allowed),
+    ``localhost``, or the loopback interface ``lo``. Anything else (``*``, ``0.0.0.0``, a name, another
+    interface) is taken as reachable from the network."""
+    host = host.strip("[]")
     if host in ("localhost", "lo"):
         return True
     try:
         return ipaddress.ip_address(host).is_loopback
-    except ValueError:  # "*", an interface name or a host name: assume reachable from outside
+    except ValueError:
         return False
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Only this host can reach it: ``ipc``/``inproc``, or tcp on a loopback host (`is_loopback_host`)."""
+    if not endpoint.startswith("tcp://"):
+        return True
+    m = _TCP.match(endpoint)
+    return m is not None and is_loopback_host(m["host"])
+
+
+def security_problem(endpoint: str, secret_key: bool, authorized_keys: bool,
+                     allow_insecure_remote: bool) -> tuple[str, str] | None:
+    """The CURVE rule: (publish setting at fault, what it needs), or None when the settings are safe.
+    Client authentication runs inside the CURVE handshake, so authorized keys need the secret key; a
+    bind beyond loopback without CURVE lets anyone on the network read the stream, so it needs an
+    explicit ``allow_insecure_remote``."""
+    if authorized_keys and not secret_key:
+        return ("curve_secret_key", "missing (curve_authorized_keys needs the server's secret key file: "
+                "client authentication runs inside the CURVE handshake)")
+    if not secret_key and not is_loopback(endpoint) and not allow_insecure_remote:
+        return ("endpoint", "expected a loopback or ipc:// address, or publish.curve_secret_key for CURVE, "
+                "or publish.allow_insecure_remote = true (bound beyond loopback without CURVE, anyone on "
+                f"the network could read the stream), got {endpoint!r}")
+    return None
+
+
+def rtsp_url_problem(url) -> str | None:
+    """What is wrong with `url` as the RTSP address to serve (``rtsp://HOST:PORT/PATH``), or None."""
+    try:
+        split_rtsp_url(url)
+    except ValueError as e:
+        return str(e)
+    return None
+
+
+def split_rtsp_url(url: str) -> tuple[str, int, str]:
+    """``rtsp://HOST:PORT/PATH`` → (host, port, mount path); anything else is a ValueError."""
+    u = urllib.parse.urlsplit(url)
+    try:
+        port = u.port
+    except ValueError:
+        port = -1
+    if u.scheme != "rtsp" or not u.hostname or port is None or not 0 < port < 65536 \
+            or len(u.path) < 2 or u.query or u.fragment:
+        raise ValueError("a URL like rtsp://127.0.0.1:8554/thermal (host, port and path)")
+    return u.hostname, port, u.path
 
 
 def ipc_path(endpoint: str) -> str | None:
@@ -85,6 +135,30 @@ def ipc_path(endpoint: str) -> str | None:
         return None
     path = endpoint[len("ipc://"):]
     return None if path.startswith("@") or path == "*" else path
+
+
+def listening(endpoint: str, timeout: float = 1.0) -> bool | None:
+    """Whether something accepts connections at ``endpoint`` (a bound publisher, even one still
+    starting up and silent): False when the connection is refused or the ``ipc://`` file is missing,
+    None when it cannot tell (``inproc``, an unresolvable name, a timeout)."""
+    if (path := ipc_path(endpoint)) is not None:
+        family, address = socket.AF_UNIX, path
+    elif (m := _TCP.match(endpoint)) is not None and m["port"].isdigit():
+        family, address = socket.AF_INET6 if m["host"].startswith("[") else socket.AF_INET, \
+            (m["host"].strip("[]"), int(m["port"]))
+    else:
+        return None
+    probe = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        probe.settimeout(timeout)
+        probe.connect(address)
+    except (ConnectionRefusedError, FileNotFoundError):
+        return False
+    except OSError:
+        return None
+    finally:
+        probe.close()
+    return True
 
 
 def claim_ipc(path: str, what: str) -> None:

@@ -10,14 +10,9 @@ first (rungs the configuration rules out are left out: ``method = "wiener"`` sta
     wiener    one Tikhonov solve over the grid the frame needs; on this last rung only, the grid
               is coarsened (6×8 → … → 2×3 → 1×1 = uniform) when even that does not fit
 
-The method is given up before the grid: on the simulated payload's roll (`multirotor:60`, 640×480,
-frames whose roll needs a grid; PSNR against the loop's truth, 11 frames) one kernel instead of
-the grid cost K&F 0–6.8 dB (median 1.1 dB), while over the grid the three methods stayed within
-0.9 dB of each other, and Wiener over the grid beat K&F over one kernel on every frame (by 0.4–6.9
-dB; benchmarks/results/daemon.md).
-
-Only when even the last rung does not keep up does a full job queue pass frames through as
-``overload`` (counted, as before).
+The method is given up before the grid: where the roll needs a grid, one kernel instead of it costs
+more than any method over it (benchmarks/results/daemon.md). Only when even the last rung does not
+keep up does a full job queue pass frames through as ``overload`` (counted).
 
 Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
@@ -40,7 +35,7 @@ dearer than K&F: `health.governor` in benchmarks/results/daemon.md.)
 A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
 (caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
 solve that took the deconvolver's uniform shortcut (`Deconvolver.last_cells` = 1) is booked under
-one cell (`pipeline.solved_grid`), so a grid's cost is never learnt from a uniform solve.
+one cell (`restore.plan.solved_grid`), so a grid's cost is never learnt from a uniform solve.
 
 Hysteresis (no flapping): rungs are judged on the finest grid the frames needed over the last
 `NEEDED_S` (the roll comes and goes within a second; a rung chosen for one uniform frame would be

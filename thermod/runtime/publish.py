@@ -45,17 +45,19 @@ from thermod.io.wire import (
 )
 from thermod.runtime.endpoints import (
     DEFAULT_ENDPOINT,
+    DEFAULT_HWM,
+    DEFAULT_MAX_QUEUE_BYTES,
     TransportError,
     check_endpoint,
     claim_ipc,
     ipc_path,
     is_loopback,
     load_keypair,
+    security_problem,
 )
 
 log = logging.getLogger(__name__)
 
-DEFAULT_MAX_QUEUE_BYTES = 128 << 20
 # The SNDHWM leaves room in the byte budget for this many subscribers that stop reading (each pins a
 # full send queue of its own messages until the heartbeat drops it); beyond them, new messages are
 # dropped and counted until then.
@@ -112,7 +114,7 @@ class Publisher:
     ownership over: the caller must never write to that array again.
     """
 
-    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = 64,
+    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, hwm: int = DEFAULT_HWM,
                  max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES, max_message_bytes: int | None = None,
                  curve_secret_key_file=None, authorized_keys_dir=None, allow_insecure_remote: bool = False,
                  stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
@@ -142,19 +144,14 @@ class Publisher:
         self._keys = None
         if curve_secret_key_file is not None:
             self._keys = load_keypair(curve_secret_key_file, "curve_secret_key_file")
-        if authorized_keys_dir is not None:
-            if self._keys is None:
-                raise TransportError("authorized_keys_dir needs curve_secret_key_file (client "
-                                     "authentication runs inside the CURVE handshake)")
-            if not Path(authorized_keys_dir).is_dir():
-                raise TransportError(f"authorized_keys_dir {authorized_keys_dir}: not a directory")
+        bad = security_problem(self.endpoint, self._keys is not None, authorized_keys_dir is not None,
+                               allow_insecure_remote)
+        if bad is not None:
+            raise TransportError(f"publish.{bad[0]}: {bad[1]}")
+        if authorized_keys_dir is not None and not Path(authorized_keys_dir).is_dir():
+            raise TransportError(f"authorized_keys_dir {authorized_keys_dir}: not a directory")
         self.warnings: list[str] = []
         if self._keys is None and not is_loopback(self.endpoint):
-            if not allow_insecure_remote:
-                raise TransportError(
-                    f"publish.endpoint {self.endpoint!r}: binds beyond loopback without CURVE, so anyone on "
-                    "the network could read the stream; set publish.curve_secret_key, bind 127.0.0.1/ipc, "
-                    "or set publish.allow_insecure_remote = true")
             self.warnings.append(f"insecure_remote: {self.endpoint} is reachable from the network "
                                  "without CURVE (publish.allow_insecure_remote = true)")
         self.authorized_keys_dir = authorized_keys_dir
@@ -357,7 +354,7 @@ class Publisher:
     # -------------------------------------------------------------- sender thread
     def _run(self, ready: threading.Event, failure: list) -> None:
         ctx = self._shared_ctx or zmq.Context()
-        auth = sock = None
+        auth = sock = owned = None
         try:
             try:
                 path = ipc_path(self.endpoint)
@@ -379,6 +376,7 @@ class Publisher:
                     sock.curve_publickey, sock.curve_secretkey = self._keys
                 sock.bind(self.endpoint)
                 self.endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+                owned = _socket_file(ipc_path(self.endpoint))
             except zmq.ZMQError as e:
                 hint = " (another process holds the port; is a second thermod running?)" \
                     if e.errno == zmq.EADDRINUSE else ""
@@ -410,6 +408,7 @@ class Publisher:
                 auth.stop()
             if self._shared_ctx is None:
                 ctx.term()
+            _remove_socket_file(owned)
 
     def _release_held(self) -> None:
         """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them)."""
@@ -458,3 +457,28 @@ class Publisher:
                     self._held.append((tracker, size))
                     self._held_bytes += size
                     self._held_peak = max(self._held_peak, self._held_bytes)
+
+
+def _socket_file(path: str | None) -> tuple[str, int, int] | None:
+    """(path, device, inode) of the ``ipc://`` socket file just bound, to remove it on close."""
+    if path is None:
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return path, st.st_dev, st.st_ino
+
+
+def _remove_socket_file(owned: tuple[str, int, int] | None) -> None:
+    """ZeroMQ leaves an ``ipc://`` socket file behind on close; remove it, unless the file at that path
+    is no longer the one this publisher bound (another daemon took over the path)."""
+    if owned is None:
+        return
+    path, dev, ino = owned
+    try:
+        st = os.stat(path)
+        if (st.st_dev, st.st_ino) == (dev, ino):
+            os.unlink(path)
+    except OSError:
+        pass

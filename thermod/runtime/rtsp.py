@@ -19,17 +19,19 @@ absence is a `RtspError` naming the Debian packages to install.
 from __future__ import annotations
 
 import collections
-import ipaddress
 import logging
 import threading
 import time
-import urllib.parse
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side
-from thermod.runtime.config import RtspConfig
+from thermod.runtime.endpoints import is_loopback_host, split_rtsp_url
+
+if TYPE_CHECKING:
+    from thermod.runtime.config import RtspConfig
 
 log = logging.getLogger("thermod.runtime.rtsp")
 
@@ -38,11 +40,6 @@ DEBIAN_PACKAGES = ("gir1.2-gstreamer-1.0", "gir1.2-gst-plugins-base-1.0", "gir1.
 # element → the Debian package that ships it
 _ELEMENTS = {"appsrc": "gstreamer1.0-plugins-base", "videoconvert": "gstreamer1.0-plugins-base",
              "x264enc": "gstreamer1.0-plugins-ugly", "rtph264pay": "gstreamer1.0-plugins-good"}
-VIEWS = ("deblurred", "raw", "side_by_side")
-# OpenCV colour maps offered by name (cv2.COLORMAP_<NAME>); "" = grey
-COLORMAPS = ("", "autumn", "bone", "jet", "winter", "rainbow", "ocean", "summer", "spring", "cool", "hsv",
-             "pink", "hot", "parula", "magma", "inferno", "plasma", "viridis", "cividis", "twilight",
-             "turbo", "deepgreen")
 RAW_KEEP = 64          # raw frames kept for side by side: covers the pipeline's reorder wait at 50+ fps
 
 
@@ -52,16 +49,10 @@ class RtspError(ThermodError):
 
 def parse_url(url: str) -> tuple[str, int, str]:
     """``rtsp://HOST:PORT/PATH`` → (host, port, mount path); anything else is an RtspError."""
-    u = urllib.parse.urlsplit(url)
     try:
-        port = u.port
-    except ValueError:
-        port = -1
-    if u.scheme != "rtsp" or not u.hostname or port is None or not 0 < port < 65536 \
-            or len(u.path) < 2 or u.query or u.fragment:
-        raise RtspError(f"expected a URL like rtsp://127.0.0.1:8554/thermal (host, port and path), "
-                        f"got {url!r}")
-    return u.hostname, port, u.path
+        return split_rtsp_url(url)
+    except ValueError as e:
+        raise RtspError(f"expected {e}, got {url!r}") from None
 
 
 def compose(view: str, agc: Agc, frame: np.ndarray | None, raw: np.ndarray | None,
@@ -95,13 +86,6 @@ def video_bytes(img: np.ndarray) -> bytes:
     rows = img.reshape(img.shape[0], -1)
     pad = -rows.shape[1] % 4
     return (np.pad(rows, ((0, 0), (0, pad))) if pad else rows).tobytes()
-
-
-def _is_loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
 
 
 def colormap_code(name: str) -> int | None:
@@ -327,7 +311,7 @@ class RtspServer:
         for th in self._threads:
             th.start()
         log.info("rtsp: serving %s (%s)", self.url, self.cfg.view)
-        if not _is_loopback(self.host):
+        if not is_loopback_host(self.host):
             log.warning("rtsp: %s is reachable from the network and RTSP has no authentication here: "
                         "anyone who can reach it can watch", self.url)
 

@@ -1,5 +1,5 @@
 """The driver registry: each source ``kind`` of ``[sources.gyro]`` / ``[sources.camera]`` with its
-option schema (validated by `thermod.runtime.config`) and its constructor (called by the daemon).
+option schema (`Key`s, read by `thermod.runtime.config`) and its constructor (called by the daemon).
 
 This is the one place that lists the kinds and the one place the daemon imports drivers — and the
 simulated payload (`thermod.sim`), which is imported lazily by `simulated_payload` and by the ``sim``
@@ -16,6 +16,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from thermod.errors import ConfigError
+from thermod.io.toml_tables import Key
 
 if TYPE_CHECKING:
     from thermod.io.clock import ClockMapper
@@ -46,17 +47,6 @@ class Source(Protocol):
 
 
 @dataclass(frozen=True)
-class Option:
-    """One driver option: its type, default and allowed values (closed range [lo, hi], or choices)."""
-
-    type: type
-    default: Any
-    lo: float | None = None
-    hi: float | None = None
-    choices: tuple | None = None
-
-
-@dataclass(frozen=True)
 class Driver:
     """One source kind. `device` says what the table's device key is: ``"device file"`` (key
     ``device``, must exist), ``"recording"`` (key ``path``), ``"id"`` (key ``device``, any string) or
@@ -64,7 +54,7 @@ class Driver:
 
     kind: str
     device: str | None
-    options: Mapping[str, Option] = field(default_factory=dict)
+    options: Mapping[str, Key] = field(default_factory=dict)
     build: Callable[[Config, Any], Source] | None = None
 
 
@@ -175,10 +165,11 @@ def _sim_camera(cfg, payload):
 # ------------------------------------------------------------------------------------ the registry
 _ODR = (1000, 2000, 4000, 8000)
 _FS = (125, 250, 500, 1000, 2000)
-_REPLAY = {"loop": Option(bool, True), "speed": Option(float, 1.0, 0.01, float("inf"))}  # inf = flat out
-# which calibration a replayed camera runs with: the one its recording carries, or the config's [calibration]
+_REPLAY = {"loop": Key(bool, True), "speed": Key(float, 1.0, 0.01, float("inf"))}  # inf = flat out
 CALIBRATION_FROM = ("recording", "config")
-_REPLAY_CAMERA = {**_REPLAY, "calibration": Option(str, "recording", choices=CALIBRATION_FROM)}
+_REPLAY_CAMERA = {**_REPLAY, "calibration": Key(
+    str, "recording", choices=CALIBRATION_FROM,
+    doc="the calibration a replayed camera runs with: its recording's own, or the config's [calibration]")}
 
 
 def _table(*drivers: Driver) -> Mapping[str, Driver]:
@@ -188,50 +179,50 @@ def _table(*drivers: Driver) -> Mapping[str, Driver]:
 GYROS: Mapping[str, Driver] = _table(
     Driver("sim", None, {}, _sim_gyro),
     Driver("replay", "recording", _REPLAY, _replay_gyro),
-    Driver("icm42688_spi", "device file", {"speed_hz": Option(int, 10_000_000, 100_000, 24_000_000),
-                                           "odr_hz": Option(int, 1000, choices=_ODR),
-                                           "full_scale_dps": Option(int, 2000, choices=_FS)},
+    Driver("icm42688_spi", "device file", {"speed_hz": Key(int, 10_000_000, 100_000, 24_000_000),
+                                           "odr_hz": Key(int, 1000, choices=_ODR),
+                                           "full_scale_dps": Key(int, 2000, choices=_FS)},
            _icm42688(True)),
-    Driver("icm42688_i2c", "device file", {"address": Option(int, 0x68, choices=(0x68, 0x69)),
-                                           "odr_hz": Option(int, 1000, choices=_ODR),
-                                           "full_scale_dps": Option(int, 2000, choices=_FS)},
+    Driver("icm42688_i2c", "device file", {"address": Key(int, 0x68, choices=(0x68, 0x69)),
+                                           "odr_hz": Key(int, 1000, choices=_ODR),
+                                           "full_scale_dps": Key(int, 2000, choices=_FS)},
            _icm42688(False)),
-    Driver("mpu6000", "device file", {"speed_hz": Option(int, 1_000_000, 100_000, 20_000_000),
-                                      "odr_hz": Option(int, 1000, choices=(1000, 8000)),
-                                      "full_scale_dps": Option(int, 2000, choices=(250, 500, 1000, 2000))},
+    Driver("mpu6000", "device file", {"speed_hz": Key(int, 1_000_000, 100_000, 20_000_000),
+                                      "odr_hz": Key(int, 1000, choices=(1000, 8000)),
+                                      "full_scale_dps": Key(int, 2000, choices=(250, 500, 1000, 2000))},
            _mpu6000),
-    Driver("bmi088", "device file", {"bus": Option(str, "spi", choices=("spi", "i2c")),
-                                     "address": Option(int, 0x68, choices=(0x68, 0x69)),
-                                     "speed_hz": Option(int, 10_000_000, 100_000, 10_000_000),
-                                     "odr_hz": Option(int, 1000, choices=(1000, 2000)),
-                                     "full_scale_dps": Option(int, 2000, choices=_FS)}, _bmi088),
-    Driver("iio", "device file", {"buffer_length": Option(int, 256, 2, 65536),
-                                  "rate_hz": Option(float, 1000.0, 1.0, 32000.0)}, _iio),
-    Driver("serial", "device file", {"baud": Option(int, 921600, 1200, 12_000_000),
-                                     "low_latency": Option(bool, True)}, _serial),
+    Driver("bmi088", "device file", {"bus": Key(str, "spi", choices=("spi", "i2c")),
+                                     "address": Key(int, 0x68, choices=(0x68, 0x69)),
+                                     "speed_hz": Key(int, 10_000_000, 100_000, 10_000_000),
+                                     "odr_hz": Key(int, 1000, choices=(1000, 2000)),
+                                     "full_scale_dps": Key(int, 2000, choices=_FS)}, _bmi088),
+    Driver("iio", "device file", {"buffer_length": Key(int, 256, 2, 65536),
+                                  "rate_hz": Key(float, 1000.0, 1.0, 32000.0)}, _iio),
+    Driver("serial", "device file", {"baud": Key(int, 921600, 1200, 12_000_000),
+                                     "low_latency": Key(bool, True)}, _serial),
 )
 
 CAMERAS: Mapping[str, Driver] = _table(
     Driver("sim", None, {}, _sim_camera),
     Driver("replay", "recording", _REPLAY_CAMERA, _replay_camera),
     # Aravis opens by device id or IP address: not a file.
-    Driver("aravis", "id", {"pixel_format": Option(str, "Mono16", choices=("Mono16", "Mono14", "Mono12")),
-                            "packet_size": Option(int, 0, 0, 9000),
-                            "frame_rate_hz": Option(float, 0.0, 0.0, 1000.0),
-                            "stream_timeout_s": Option(float, 1.0, 0.01, 60.0),
+    Driver("aravis", "id", {"pixel_format": Key(str, "Mono16", choices=("Mono16", "Mono14", "Mono12")),
+                            "packet_size": Key(int, 0, 0, 9000),
+                            "frame_rate_hz": Key(float, 0.0, 0.0, 1000.0),
+                            "stream_timeout_s": Key(float, 1.0, 0.01, 60.0),
                             # GenICam feature reporting a flat-field correction; "" = a known name
-                            "ffc_feature": Option(str, "")}, _aravis),
-    Driver("v4l2", "device file", {"width": Option(int, 640, 1, 8192), "height": Option(int, 480, 1, 8192),
-                                   "fourcc": Option(str, "Y16 "),
-                                   "frame_rate_hz": Option(float, 0.0, 0.0, 1000.0),
+                            "ffc_feature": Key(str, "")}, _aravis),
+    Driver("v4l2", "device file", {"width": Key(int, 640, 1, 8192), "height": Key(int, 480, 1, 8192),
+                                   "fourcc": Key(str, "Y16 "),
+                                   "frame_rate_hz": Key(float, 0.0, 0.0, 1000.0),
                                    # rows the camera adds to each image (FLIR Boson telemetry: 2), stripped
-                                   "telemetry_top": Option(int, 0, 0, 64),
-                                   "telemetry_bottom": Option(int, 0, 0, 64),
+                                   "telemetry_top": Key(int, 0, 0, 64),
+                                   "telemetry_bottom": Key(int, 0, 0, 64),
                                    # what the telemetry rows hold: Boson (FFC state read), or none
-                                   "telemetry": Option(str, "boson", choices=("boson", "none")),
-                                   "timestamp_clock": Option(str, "auto",
+                                   "telemetry": Key(str, "boson", choices=("boson", "none")),
+                                   "timestamp_clock": Key(str, "auto",
                                                              choices=("auto", "monotonic", "device")),
-                                   "timestamp_offset_s": Option(float, 0.0, -1.0, 1.0)}, _v4l2),
+                                   "timestamp_offset_s": Key(float, 0.0, -1.0, 1.0)}, _v4l2),
 )
 
 REGISTRY: Mapping[str, Mapping[str, Driver]] = MappingProxyType({"gyro": GYROS, "camera": CAMERAS})

@@ -1,6 +1,6 @@
 """Non-blind deconvolution of thermal frames: Krishnan & Fergus hyper-Laplacian, Wiener, tiles.
 
-Forward model (DESIGN.md §1, Eq. 11/18): ``B(p) = Σ_u k(u) S(p − u)`` with the kernel given as
+Forward model (docs/design.md §1, Eq. 11/18): ``B(p) = Σ_u k(u) S(p − u)`` with the kernel given as
 ``weights[oy + u_y, ox + u_x]`` and ``origin = (oy, ox)`` the index of zero displacement (not the
 array centre: comet-tail kernels are one-sided). Any object with ``weights`` and ``origin``
 works (duck-typed ``thermod.physics.kernels.Kernel``).
@@ -38,21 +38,20 @@ whole stack, `plans.Plan` with a 3-D shape). A grid whose kernels all match
 the central one (`kernel_spread(grid)` ≤ 0.5 px: pure pan/tilt with a narrow field of view) is
 solved once, as a uniform blur.
 
-Knobs for a caller that must fit a time budget (the daemon's governor), cost relative to one
-uniform K&F solve at 640×480 (roll-heavy family, docs/design.md §1.5):
+Knobs for a caller that must fit a time budget (the daemon's governor); their measured costs and
+PSNR are in benchmarks/results/deconv.md:
 
-- the grid (rendered by the caller) and ``run_varying(overlap=…)``: 3×4 with overlap 1 (full
-  blending, the reference) ≈ 4×; **6×8 with overlap 0.25 ≈ 1.75×, +1.2 dB over the reference**;
-  4×6 with overlap 0.25 ≈ 1.75×, equal to the reference; cost grows with overlap (every pixel is
-  solved (1 + overlap)² times) in steps of the tiles' FFT size, and quality with both grid size
-  and overlap. ``last_cells`` after a solve: the cells it solved (1: the uniform shortcut).
-- `kernel_spread(grid)`: 0 for a uniform grid; use the uniform solve (cost 1×) when it is small.
+- the grid (rendered by the caller) and ``run_varying(overlap=…)``: every pixel is solved
+  (1 + overlap)² times, so cost grows with overlap in steps of the tiles' FFT size, and quality with
+  both grid size and overlap. ``last_cells`` after a solve: the cells it solved (1: the uniform
+  shortcut).
+- `kernel_spread(grid)`: 0 for a uniform grid; use the uniform solve when it is small.
 - ``Deconvolver(iterations=n)``: K&F's continuation from β = 1 in n coarser steps instead of six
-  (n = 3: β = 1, 8, 64); cost ≈ n/6 of the solve's FFT work. 3 steps cost 0.03–0.25 dB on comet
-  kernels of 17–65 px (tests/test_deconv.py); keeping only the last n steps lost 1.7–2.1 dB.
+  (n = 3: β = 1, 8, 64); cost ≈ n/6 of the solve's FFT work. Starting from β = 1 matters: keeping
+  only the last n steps of the six loses far more.
 - ``Deconvolver(split=(2, 2))``: large sensors — a uniform-blur frame solved in 2×2 cache-sized
-  tiles; at 1280×1024 0.70× the CPU time for ≤ 0.04 dB.
-- ``method="wiener"``: about 1/5 of a K&F solve (one Tikhonov solve per tile or frame).
+  tiles, which keeps the FFTs in cache.
+- ``method="wiener"``: one Tikhonov solve per tile or frame, a fraction of a K&F solve.
 
 Modules: `wstep` (shrinkage, lookup tables), `xstep` (Fourier-domain solves, boundary extension),
 `plans` (FFT plans, FFTW wisdom), `noise` (robust range, σ̂, λ from noise), `tiles` (partition of

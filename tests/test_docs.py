@@ -1,0 +1,43 @@
+"""The README stays a reference: its results table is the generated one, it is short before
+"Development", and no doc points outside the repository."""
+
+import re
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import summary  # noqa: E402
+
+
+def test_readme_holds_the_generated_results_table():
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert summary.readme_with_table(readme, summary.table()) == readme, \
+        "README.md's results table is stale: run `python -m benchmarks.summary`"
+    assert len(summary.rows()) >= 5
+
+
+def test_readme_is_short_before_development_and_starts_with_the_two_commands():
+    lines = (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+    dev = next(i for i, line in enumerate(lines) if re.match(r"^#+ *Development", line))
+    assert dev <= 150, f"README.md has {dev} lines before Development"
+    block = lines[lines.index("```sh") + 1:]
+    assert block[0].startswith("make run") and block[1].startswith("make test") and block[2] == "```"
+
+
+def test_summary_lines_are_well_formed(tmp_path):
+    (tmp_path / "a.md").write_text("# A\n<!-- summary: x | 1 ms | ≤ 2 ms -->\n", encoding="utf-8")
+    (tmp_path / "b.md").write_text("<!-- summary: only two | parts -->\n", encoding="utf-8")
+    try:
+        summary.rows(tmp_path)
+    except ValueError as e:
+        assert "b.md" in str(e)
+    else:
+        raise AssertionError("a summary line without three parts was accepted")
+
+
+def test_docs_do_not_point_outside_the_repository():
+    for p in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = p.read_text(encoding="utf-8")
+        assert "../shared" not in text and "shared/DESIGN" not in text, p
