@@ -3,8 +3,8 @@
 Runs, each from a fresh daemon (Wiener deblurring, so that the payload and the monitor are what load
 the machine):
 
-- ``stock``: the payload as configured: its camera's 2 ms transport latency is a time offset the
-  configuration does not know (`SimPayload.true_calibration`);
+- ``stock``: the payload as configured (its camera's 2 ms transport latency, a time offset,
+  corrected by ``config/sim.toml``'s time_offset_s: `SimPayload.true_calibration`);
 - ``drift``: plus a gyro bias and a time offset that ramp during the run (`GyroDrift`: bias
   (10, −10, 0) → (25, 5, 0) mrad/s and offset 3 → 6 ms over 15 s, on top of the latency);
 

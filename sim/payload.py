@@ -49,9 +49,12 @@ class SimPayload:
 
     def __init__(self, sim_cfg, calib: Calibration):
         self.cfg, self.calib = sim_cfg, calib
+        # The payload's gyro and camera sample one clock, so its world has no gyro → camera offset: the
+        # offset the daemon sees is the camera's transport latency (`true_calibration`), which the
+        # configured time_offset_s corrects, not something the configuration puts into the world.
+        self.world = calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz, time_offset_s=0.0)
         self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
-                                          seed=sim_cfg.seed,
-                                          calib=calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz))
+                                          seed=sim_cfg.seed, calib=self.world)
         self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None
         self.cache_path = playback.cache_path(self.spec, self._cache_dir)
         self.loop: playback.Playback | None = None
@@ -132,10 +135,12 @@ class SimPayload:
         return self.loop.rate_gyro(tt + self.drift.offset(tt)) + self.drift.bias(tt)
 
     def true_calibration(self, t: float) -> Calibration:
-        """The gyro ↔ camera calibration that is true at host time t: the loop's, plus the drift, plus the
-        camera's transport latency (its clock mapping sees arrivals only, so a constant latency stamps
-        every frame that much late: a time offset of +latency_s)."""
-        c = self.loop.true_calib if self.loop is not None else self.calib
+        """The gyro ↔ camera calibration that is true at host time t: the loop's (no time offset), plus the
+        drift, plus the camera's transport latency. Its frames carry device timestamps of the last row's
+        read, but the clock mapping (`thermod.io.clock.ClockMapper`, as with a real camera) sees only
+        their arrivals, so the least transport delay stamps every frame that much late: a time offset of
+        +latency_s, which ``config/sim.toml`` sets."""
+        c = self.loop.true_calib if self.loop is not None else self.world
         latency = self._camera.latency_s if self._camera is not None else 0.0
         tt = t - (self.t0 or 0.0)
         b = np.asarray(c.bias_rad_s) + (self.drift.bias(tt) if self.drift is not None else 0.0)
