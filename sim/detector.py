@@ -43,6 +43,7 @@ from numba import njit
 from thermod.errors import ThermodError
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s, iir_alpha, row_read_time
+from thermod.sim import movers as mv
 from thermod.sim.motion import Trajectory
 from thermod.sim.scenes import COUNTS_PER_K
 
@@ -126,7 +127,8 @@ def image_speed_bound(calib: Calibration, w_abs: np.ndarray, margin_px: float = 
 
 def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration, *,
            kind: str = "thermal", exposure_s: float | None = None, psf_sigma_px: float | None = None,
-           step_px: float = 0.5, history_tau: float = 8.0, progress=None, parallax=None) -> Rendered:
+           step_px: float = 0.5, history_tau: float = 8.0, progress=None, parallax=None,
+           movers=()) -> Rendered:
     """Render blurry frames at `frame_times` (absolute s, on the trajectory's clock) with the
     detector of `calib` (τ, readout, intrinsics, PSF). See the module docstring.
 
@@ -135,6 +137,8 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     psf_sigma_px: None → calib.psf_sigma_px (Eq. 19).
     progress: optional callable(n_frames_done) for a progress bar.
     parallax: optional `thermod.sim.parallax.NearGround` (module docstring).
+    movers: `thermod.sim.movers.HotObject`s moving in the world, drawn into every fine step (the
+    steps are short enough for them too) and into the sharp truth (not into `sharp_rolling`).
     """
     t_frames = np.asarray(frame_times, dtype=np.float64)
     _check_render_args(t_frames, calib, kind, step_px, history_tau)
@@ -144,12 +148,15 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     sigma = _psf_sigma(calib, psf_sigma_px)
 
     cam = _Camera(calib)
+    movers = [m.at(float(t_frames[0])) if m.t_ref is None else m for m in movers or ()]
+    extra_px_s = mv.max_speed_px_s(movers)
     rows_t = row_read_time(t_frames[:, None], np.arange(cam.H)[None, :], float(calib.readout_s), cam.H)
     if kind == "thermal":
         if parallax is None:
             B0 = scene.view(traj.R(t_begin)[0], cam.K, cam.W, cam.H)
         else:
             B0 = _Segment.plan(scene, traj, cam, np.array([t_begin, t_begin]), parallax).view(cam, 0)
+        B0 = mv.draw_all(movers, B0, traj.R(t_begin)[0], cam.K, t_begin)
         detector = _ThermalDetector(B0, rows_t, float(calib.tau_s))
     else:
         detector = _PhotonDetector(rows_t, exposure_s, cam.W)
@@ -161,13 +168,18 @@ def render(scene: SphereScene, traj: Trajectory, frame_times, calib: Calibration
     edges = np.r_[t_begin, t_frames]
     for k in range(n):
         for a, b in _canvas_segments(cam, calib, traj, edges[k], edges[k + 1]):
-            t_bounds = _fine_steps(calib, traj, a, b, step_px)
+            t_bounds = _fine_steps(calib, traj, a, b, step_px, extra_px_s)
             seg = _Segment.plan(scene, traj, cam, t_bounds, parallax)
             max_step = max(max_step, cam.step_motion_px(seg.Q))
             for j in range(len(t_bounds) - 1):
-                detector.step(seg.view(cam, j), t_bounds[j], t_bounds[j + 1])
+                view = seg.view(cam, j)
+                if movers:
+                    view = mv.draw_all(movers, view, seg.R_ref @ seg.Q[j], cam.K, float(seg.t_mid[j]))
+                detector.step(view, t_bounds[j], t_bounds[j + 1])
             n_steps += len(t_bounds) - 1
         sharp[k] = seg.frame_view(cam)
+        if movers:
+            sharp[k] = mv.draw_all(movers, sharp[k], seg.R_ref, cam.K, seg.t_end)
         if sharp_rolling is not None:
             sharp_rolling[k] = scene.rolling_view(traj.R(rows_t[k]), cam.K, cam.W)
         if progress is not None:
@@ -270,10 +282,11 @@ def _canvas_segments(cam: _Camera, calib: Calibration, traj: Trajectory, a0: flo
     return list(zip(sub[:-1], sub[1:], strict=True))
 
 
-def _fine_steps(calib: Calibration, traj: Trajectory, a: float, b: float, step_px: float) -> np.ndarray:
+def _fine_steps(calib: Calibration, traj: Trajectory, a: float, b: float, step_px: float,
+                extra_px_s: float = 0.0) -> np.ndarray:
     """Step boundaries over (a, b] such that the image moves ≤ `step_px` per step anywhere in the
-    frame (Eq. 12: h ≤ IFOV / ω)."""
-    speed = image_speed_bound(calib, traj.max_rate(a, b))
+    frame (Eq. 12: h ≤ IFOV / ω), a mover's own image speed `extra_px_s` included."""
+    speed = image_speed_bound(calib, traj.max_rate(a, b)) + extra_px_s
     n_steps = max(1, int(math.ceil(speed * (b - a) / step_px)))
     return np.linspace(a, b, n_steps + 1)
 

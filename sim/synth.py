@@ -138,7 +138,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
              gyro: GyroErrorModel | None = None, progress: bool = False, *, kind: str = "thermal",
              exposure_s: float | None = None, step_px: float = 0.5, history_tau: float = 8.0,
              t0: float = 100.0, truth: bool = True, method: str = "fine", compression: float = 20.0,
-             slow_fps: float = 50.0) -> Recording:
+             slow_fps: float = 50.0, movers=()) -> Recording:
     """Simulate a recording (format v1 `Recording`) of `seconds` at `frame_rate` (default the
     calibration's) of `scene` (spec, array or `detector.SphereScene`) under `motion` (spec or
     `motion.Motion`; motion time 0 = the first frame, read at host-like time `t0`).
@@ -151,6 +151,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     method="time_compression": the paper's synthesis instead of the fine-time renderer — sharp views
     of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
     (`detector.render_time_compressed`); thermal detector only, no rolling readout.
+    `movers`: `thermod.sim.movers.HotObject`s, warm bodies moving in the world (fine-time renderer).
     """
     _check_method(method, kind, effects)
     nominal = _nominal_calibration(calib, frame_rate)
@@ -172,8 +173,10 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
                    else None)
             r = det.render(sc, traj, t_frames, truth_cal, kind=kind, exposure_s=exposure_s,
                            psf_sigma_px=psf_sigma, step_px=step_px, history_tau=history_tau, progress=bar,
-                           parallax=par)
+                           parallax=par, movers=movers)
         else:
+            if movers:
+                raise ThermodError("simulate: moving objects need the fine-time renderer (method='fine')")
             r = det.render_time_compressed(sc, traj, t_frames, truth_cal, compression=compression,
                                            slow_fps=slow_fps, psf_sigma_px=psf_sigma, history_tau=history_tau,
                                            progress=bar)

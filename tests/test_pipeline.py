@@ -386,6 +386,11 @@ def test_grid_mode_renders_a_kernel_grid(sharp):
         p.stop()
     assert outs[0].deblurred and outs[0].coverage > 0.99
     assert outs[0].kernel_extent_px == pytest.approx(k.extent_px, rel=0.25)
+    # a pan over a narrow field of view: every cell's kernel matches the central one, so the frame is
+    # solved as one kernel, and its header and kernel message say so (not the 2 × 2 grid rendered)
+    assert outs[0].grid == (1, 1)
+    assert not hasattr(outs[0].kernel, "kernels")
+    assert tuple(outs[0].kernel_size) == outs[0].kernel.weights.shape
 
 
 def test_a_grid_frame_reports_the_kernel_size_its_kernel_message_has():

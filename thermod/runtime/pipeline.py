@@ -478,7 +478,15 @@ class Pipeline:
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
             self._count(f"method_{rung.name}", 1)
-            o = self._out(job.slot, out, True, None, job.info, job.kernel)
+            kernel = job.kernel
+            if varying and grid == (1, 1):
+                # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
+                d2 = ((np.asarray(job.kernel.centers) - np.array([(img.shape[0] - 1) / 2,
+                                                                  (img.shape[1] - 1) / 2])) ** 2).sum(axis=2)
+                r, c = np.unravel_index(int(np.argmin(d2)), d2.shape)
+                kernel = job.kernel.kernels[r][c]
+                job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape)}
+            o = self._out(job.slot, out, True, None, job.info, kernel)
             o.method = rung.name
             o.grid = grid
             self._complete(o)

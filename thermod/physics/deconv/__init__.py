@@ -56,7 +56,8 @@ PSNR are in benchmarks/results/deconv.md:
 Modules: `wstep` (shrinkage, lookup tables), `xstep` (Fourier-domain solves, boundary extension),
 `plans` (FFT plans, FFTW wisdom), `noise` (robust range, σ̂, λ from noise), `tiles` (partition of
 unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, `deconvolve`,
-`deconvolve_varying`).
+`deconvolve_varying`), `temporal` (`TemporalDeconvolver`: frame t from t−N…t, gyro-warped, one
+kernel per view, weights falling where the views disagree; imported on its own, it needs OpenCV).
 """
 
 from .checks import DeconvError
