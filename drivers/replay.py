@@ -18,6 +18,10 @@ Pacing:
 
 ``loop=True`` repeats the recording with times continuing (the loop period is the recording's span plus
 one sample period); frame ids and gyro sequence numbers keep counting.
+
+Calibration: both sources expose the recording's own (``calibration``); `thermod run` deblurs with it
+unless ``[sources.camera] calibration = "config"`` asks for the configuration's ``[calibration]``
+(`thermod.runtime.sources.calibration_in_force`).
 """
 
 from __future__ import annotations
@@ -195,6 +199,11 @@ class _ReplayStream:
 
     role: str                # "camera" or "gyro": names this source's lockstep fields on the session
     session: ReplaySession
+
+    @property
+    def calibration(self):
+        """The calibration the recording carries (the gyro ↔ camera relation its timeline was made with)."""
+        return self.session.calibration
 
     def _attach(self, source, speed: float, loop: bool, session: ReplaySession | None) -> None:
         self.session = _session(source, speed, loop, session)

@@ -203,3 +203,31 @@ def allan_deviation(x: np.ndarray, dt: float, taus: np.ndarray) -> np.ndarray:
         d = theta[2 * m:] - 2 * theta[m:-m] + theta[:-2 * m]
         out[i] = np.sqrt(np.mean(d * d) / (2 * (m * dt) ** 2))
     return out
+
+
+@dataclass(frozen=True)
+class GyroDrift:
+    """A gyro bias and a gyro → camera time offset that move during a run (temperature, a USB camera's
+    unstamped frames): each starts at its ``*_0`` value and changes at a constant rate for
+    ``ramp_s`` seconds of payload time, then holds. Added on top of the true calibration's.
+
+    bias(t) = bias_0 + bias_rate · min(t, ramp_s)   (rad/s, gyro frame)
+    offset(t) = offset_0 + offset_rate · min(t, ramp_s)   (s; camera time of a sample = stamp + offset)
+    """
+
+    bias_0: tuple = (0.0, 0.0, 0.0)
+    bias_rate: tuple = (0.0, 0.0, 0.0)          # rad/s per s
+    offset_0: float = 0.0
+    offset_rate: float = 0.0                    # s per s
+    ramp_s: float = math.inf
+
+    def _elapsed(self, t) -> np.ndarray:
+        return np.minimum(np.maximum(np.asarray(t, np.float64), 0.0), self.ramp_s)
+
+    def bias(self, t) -> np.ndarray:
+        """[..., 3] extra bias at payload time(s) t."""
+        e = self._elapsed(t)[..., None]
+        return np.asarray(self.bias_0, np.float64) + np.asarray(self.bias_rate, np.float64) * e
+
+    def offset(self, t) -> np.ndarray:
+        return self.offset_0 + self.offset_rate * self._elapsed(t)

@@ -18,6 +18,9 @@ Flat-field corrections: with ``[sim] ffc_interval_s`` > 0 the camera runs one ev
 before it, flagged ``ffc``, then its output steps by ``ffc_step_counts`` (the new NUC).
 `ffc_truth(frame_id)` says which delivered frames were frozen.
 
+Drift: ``payload.drift = GyroDrift(...)`` (`thermod.sim.gyro_model`) makes the gyro bias and time offset
+move during the run; `true_calibration(t)` says what is true at host time t.
+
 Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
 raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
 overflow), reachable as ``payload.chip``.
@@ -46,9 +49,12 @@ class SimPayload:
 
     def __init__(self, sim_cfg, calib: Calibration):
         self.cfg, self.calib = sim_cfg, calib
+        # The payload's gyro and camera sample one clock, so its world has no gyro → camera offset: the
+        # offset the daemon sees is the camera's transport latency (`true_calibration`), which the
+        # configured time_offset_s corrects, not something the configuration puts into the world.
+        self.world = calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz, time_offset_s=0.0)
         self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
-                                          seed=sim_cfg.seed,
-                                          calib=calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz))
+                                          seed=sim_cfg.seed, calib=self.world)
         self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None
         self.cache_path = playback.cache_path(self.spec, self._cache_dir)
         self.loop: playback.Playback | None = None
@@ -58,6 +64,7 @@ class SimPayload:
         self.chip = None
         self._camera: SimCamera | None = None
         self._gyro = None
+        self.drift = None                         # a `thermod.sim.gyro_model.GyroDrift` on top of the truth
 
     # ------------------------------------------------------------------ the loop
     def cached(self) -> bool:
@@ -119,9 +126,26 @@ class SimPayload:
         pass
 
     def _rate_fn(self, t: np.ndarray) -> np.ndarray:
-        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock
+        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock;
+        # with a drift, a sample stamped t shows the motion at t + offset(t), plus bias(t)
         t0 = self.t0 if self.t0 is not None else 0.0
-        return self.loop.rate_gyro(np.asarray(t, np.float64) - t0)
+        tt = np.asarray(t, np.float64) - t0
+        if self.drift is None:
+            return self.loop.rate_gyro(tt)
+        return self.loop.rate_gyro(tt + self.drift.offset(tt)) + self.drift.bias(tt)
+
+    def true_calibration(self, t: float) -> Calibration:
+        """The gyro ↔ camera calibration that is true at host time t: the loop's (no time offset), plus the
+        drift, plus the camera's transport latency. Its frames carry device timestamps of the last row's
+        read, but the clock mapping (`thermod.io.clock.ClockMapper`, as with a real camera) sees only
+        their arrivals, so the least transport delay stamps every frame that much late: a time offset of
+        +latency_s, which ``config/sim.toml`` sets."""
+        c = self.loop.true_calib if self.loop is not None else self.world
+        latency = self._camera.latency_s if self._camera is not None else 0.0
+        tt = t - (self.t0 or 0.0)
+        b = np.asarray(c.bias_rad_s) + (self.drift.bias(tt) if self.drift is not None else 0.0)
+        o = latency + (float(self.drift.offset(tt)) if self.drift is not None else 0.0)
+        return c.replace(bias_rad_s=tuple(np.asarray(b, float).tolist()), time_offset_s=c.time_offset_s + o)
 
     def gyro_source(self):
         """The real ICM-42688-P driver on its SPI register emulator, fed by the payload's motion."""

@@ -174,7 +174,10 @@ def test_thermod_run_end_to_end(payload):
     in_flight = tot["frames_in"] - tot["frames_out"] - d.get("frames_overrun", 0) - d["camera_items_rejected"]
     assert 0 <= in_flight <= cfg.pipeline.frame_ring + cfg.pipeline.job_queue + 8, (tot, d)
     assert last["reload"]["ok"] is True
-    assert last["calibration"] == cfg.calibration.as_dict()
+    cal = cfg.calibration.as_dict()
+    assert {k: last["calibration"][k] for k in cal} == cal == last["calibration"]["applied"]
+    assert last["calibration"]["source"] == "config"          # the monitor reports, applies nothing
+    assert "estimate" in last["calibration"] and last["calibration"]["monitor"]["enabled"] is True
     assert Calibration.from_dict(last["calibration"]) == cfg.calibration
     # losses the devices had under load are counted (zero on an idle machine)
     assert last["drops"]["gyro_lost"] >= sum(lost[1:])

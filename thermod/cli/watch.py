@@ -149,6 +149,7 @@ class WatchStats:
             lines.append(f"daemon rates {_compact(h.get('rates'))}")
             lines.append(f"daemon drops {_compact({k: v for k, v in (h.get('drops') or {}).items() if v})}")
             lines.append(f"devices      {_devices(h.get('devices'))}")
+            lines += calibration_lines(h.get("calibration"))
         return "\n".join(lines)
 
     def status_line(self, gaps: dict | None = None) -> str:
@@ -165,6 +166,50 @@ class WatchStats:
         return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % "
                 f"({top}) | "
                 f"latency p50 {lp:.1f}/{lr:.1f} ms | lost {lost} | gyro {s['gyro_hz']:.0f} Hz")
+
+
+def calibration_lines(cal) -> list[str]:
+    """The calibration in force and the live monitor's estimate (± 1 σ) from a health message's
+    ``calibration``; nothing from a daemon that reports neither. A value the daemon could not give
+    (null: not estimated, an unbounded σ) reads "?"."""
+    if not isinstance(cal, dict) or not isinstance(cal.get("applied"), dict):
+        return []
+    a = cal["applied"]
+    out = [f"calibration  in force ({cal.get('source', '?')}): gyro bias "
+           f"{_vec(a.get('bias_rad_s'))} mrad/s, time offset {_ms(a.get('time_offset_s'))} ms, "
+           f"tau {_ms(a.get('tau_s'))} ms"]
+    e = cal.get("estimate")
+    mon = cal.get("monitor") or {}
+    if e:
+        tau = ("not estimated" if e.get("tau_s") is None
+               else f"{_ms(e['tau_s'])} ± {_ms(e.get('tau_s_sigma'))} ms")
+        out.append(f"  estimate   gyro bias {_vec(e.get('gyro_bias_rad_s'))} ± "
+                   f"{_vec(e.get('gyro_bias_rad_s_sigma'))} mrad/s, time offset "
+                   f"{_ms(e.get('time_offset_s'))} ± {_ms(e.get('time_offset_s_sigma'))} ms, tau {tau}")
+        out.append(f"  monitor    {e.get('n_pairs', 0)} frame pairs, residual "
+                   f"{_num(e.get('residual_px'), 1, 3)} px (in force "
+                   f"{_num(e.get('residual_applied_px'), 1, 3)}), CPU "
+                   f"{_num(mon.get('cpu_share'), 100, 1)} % of a core, "
+                   f"{'applies' if mon.get('apply') else 'reports only'}, "
+                   f"{mon.get('changes_applied', 0)} changes applied")
+    elif mon.get("enabled"):
+        out.append("  estimate   none yet (the monitor needs a few seconds of motion)")
+    return out
+
+
+def _num(x, scale: float, digits: int) -> str:
+    return f"{scale * x:.{digits}f}" if isinstance(x, (int, float)) and not isinstance(x, bool) else "?"
+
+
+def _ms(x) -> str:
+    return _num(x, 1e3, 2)
+
+
+def _vec(v) -> str:
+    """A rad/s vector in mrad/s."""
+    if not isinstance(v, (list, tuple)):
+        return "?"
+    return "[" + ", ".join(_num(x, 1e3, 2) for x in v) + "]"
 
 
 def method_label(header: dict) -> str:

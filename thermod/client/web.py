@@ -231,7 +231,8 @@ class LiveView:
             "kernel": None if kernel is None else {k: kernel.get(k) for k in
                                                    ("frame_id", "shape", "origin", "extent_px", "coverage")},
             "health": None if health is None else {k: health.get(k) for k in
-                                                   ("rates", "drops", "ready", "gyro_online", "clocks")},
+                                                   ("rates", "drops", "ready", "gyro_online", "clocks",
+                                                    "calibration")},
             "series": {k: [p.get(k) for p in series] for k in (series[0] if series else {})},
         })
 
@@ -357,6 +358,7 @@ body{margin:0;background:#16181c;color:#d8dde4;font:13px/1.35 system-ui,sans-ser
 #frame{object-fit:contain;background:#000}
 #kernel{image-rendering:pixelated;object-fit:contain;background:#000}
 #kinfo{left:924px;top:256px;width:340px;color:#9aa4b1}
+#cal{left:924px;top:334px;width:350px;color:#9aa4b1;font-size:12px}
 #plots{display:flex;flex-wrap:wrap;gap:12px}
 canvas{background:#0e1013;border:1px solid #2a2f36}
 .warn{color:#f0b44c}
@@ -368,6 +370,7 @@ canvas{background:#0e1013;border:1px solid #2a2f36}
 <img id="frame" class="abs" style="FRAME_BOX" alt="">
 <img id="kernel" class="abs" style="KERNEL_BOX" alt="">
 <div id="kinfo" class="abs"></div>
+<div id="cal" class="abs"></div>
 <div id="plots" class="abs" style="PLOTS_BOX">
 <canvas id="p_fps" width="@PW@" height="@PH@"></canvas>
 <canvas id="p_lat" width="@PW@" height="@PH@"></canvas>
@@ -459,6 +462,25 @@ function plot(id, title, unit, t, lines) {
   }
 }
 
+// The calibration in force and the live monitor's estimate ± 1 σ (health.calibration).
+function calText(cal) {
+  if (!cal || !cal.applied) return "";
+  const a = cal.applied, e = cal.estimate, m = cal.monitor || {};
+  const ms = v => fmt(1e3 * v, 2), vec = v => "[" + v.map(x => fmt(1e3 * x, 2)).join(", ") + "]";
+  let h = "calibration (" + cal.source + "): bias " + vec(a.bias_rad_s) + " mrad/s, offset " +
+    ms(a.time_offset_s) + " ms, τ " + ms(a.tau_s) + " ms";
+  if (e) {
+    h += "<br>estimate: bias " + vec(e.gyro_bias_rad_s) + " ± " + vec(e.gyro_bias_rad_s_sigma) +
+      " mrad/s<br>offset " + ms(e.time_offset_s) + " ± " + ms(e.time_offset_s_sigma) + " ms, τ " +
+      (e.tau_s === null ? "not estimated" : ms(e.tau_s) + " ± " + ms(e.tau_s_sigma) + " ms") +
+      "<br>monitor CPU " + fmt(100 * m.cpu_share, 1) + " %, " + (m.apply ? "applies" : "reports only") +
+      ", " + (m.changes_applied || 0) + " changes";
+  } else if (m.enabled) {
+    h += "<br>estimate: none yet";
+  }
+  return h;
+}
+
 async function pollHealth() {
   try {
     const r = await fresh("/health.json");
@@ -470,6 +492,7 @@ async function pollHealth() {
       fmt(last("lat_p50_ms"), 1) + " ms &nbsp; raw " + (s.raw ? "yes" : "<span class=warn>none</span>") +
       (s.frame && s.frame.reason ? " &nbsp; <span class=warn>passing through: " + s.frame.reason + "</span>"
                                  : "");
+    $("cal").innerHTML = calText(s.health && s.health.calibration);
     plot("p_fps", "frame rate", "fps", t, [{n: "fps", c: "#e6553a", v: S.fps || []}]);
     plot("p_lat", "latency received − t", "ms", t, [{n: "p50", c: "#4cc38a", v: S.lat_p50_ms || []},
       {n: "p95", c: "#f0b44c", v: S.lat_p95_ms || []}, {n: "p99", c: "#e6553a", v: S.lat_p99_ms || []}]);

@@ -15,7 +15,8 @@ Sections: ``[sources.gyro]``, ``[sources.camera]`` (options from the driver regi
 `thermod.runtime.sources`), ``[sim]`` (only with a simulated source), ``[calibration]``
 (→ `thermod.physics.calibration.Calibration`), ``[deblur]``, ``[publish]``, ``[pipeline]``,
 ``[logging]``, ``[radiometry]`` (→ `thermod.physics.radiometry`; model "none" by default), ``[rtsp]``
-(the H.264 live view, `thermod.runtime.rtsp`).
+(the H.264 live view, `thermod.runtime.rtsp`), ``[monitor]`` (the live calibration monitor,
+`thermod.runtime.monitor`).
 """
 
 from __future__ import annotations
@@ -166,6 +167,23 @@ class RtspConfig:
 
 
 @dataclass(frozen=True)
+class MonitorConfig:
+    """``[monitor]``: the live calibration monitor (`thermod.runtime.monitor`)."""
+
+    enabled: bool = setting(True)
+    apply: bool = setting(False, doc="apply a significant, stable estimate that lowers the residual")
+    cpu_share: float = setting(0.10, lo=0.001, hi=1.0, doc="the share of one core it may use, at most")
+    window_s: float = setting(4.0, lo=0.5, hi=60.0,
+                              doc="rolling window of frame pairs one estimate is fitted on")
+    width: int = setting(320, lo=32, hi=1024,
+                         doc="frames are registered at this width (px; at most the frame's)")
+    k_sigma: float = setting(4.0, lo=1.0, hi=100.0,
+                             doc="an estimate this many sigma from the applied value is significant")
+    stable_windows: int = setting(3, lo=1, hi=100,
+                                  doc="consecutive significant estimates before one is applied")
+
+
+@dataclass(frozen=True)
 class LoggingConfig:
     level: str = setting("info", choices=("debug", "info", "warning", "error"))
 
@@ -184,6 +202,7 @@ class Config:
     pipeline: PipelineConfig = section(PipelineConfig)
     logging: LoggingConfig = section(LoggingConfig)
     rtsp: RtspConfig = section(RtspConfig)
+    monitor: MonitorConfig = section(MonitorConfig)
 
     @property
     def uses_sim(self) -> bool:

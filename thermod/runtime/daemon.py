@@ -7,6 +7,8 @@ Threads and what they own:
 - ``thermod-gyro`` / ``thermod-camera``: the only threads with real-time priority (SCHED_FIFO, when
   ``realtime_priority`` > 0 and permitted). They never block on anything but their device.
 - pipeline threads (`thermod.runtime.pipeline`), the publisher's socket thread (`thermod.runtime.publish`).
+- ``thermod-monitor`` (``[monitor]``, nice 19, at most ``cpu_share`` of a core): the live calibration
+  monitor (`thermod.runtime.monitor`); a change it proposes is applied here with `Pipeline.update`.
 - the main thread: signals, health, watchdog, SIGHUP reload.
 
 Faults: a gyro I/O error (NACK, unplug) is retried with exponential back-off; meanwhile the
@@ -49,7 +51,7 @@ log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
 # sections a running daemon cannot change: a reload that changes them is applied in part
-_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp")
+_RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp", "monitor")
 
 
 # ------------------------------------------------------------------------------------ the daemon
@@ -68,6 +70,12 @@ class Daemon:
         self.payload = sources.simulated_payload(cfg) if gyro is None or camera is None else None
         self.gyro: Source = gyro if gyro is not None else sources.build_gyro(cfg, self.payload)
         self.camera: Source = camera if camera is not None else sources.build_camera(cfg, self.payload)
+        # a replayed recording runs with its own calibration unless the config asks for its [calibration]
+        calib, self.calibration_source = sources.calibration_in_force(cfg, self.camera)
+        if calib is not cfg.calibration:
+            log.info("calibration: the replayed recording's own (sources.camera.calibration = 'config' "
+                     "for the configuration's)")
+            cfg = self.cfg = dataclasses.replace(cfg, calibration=calib)
         if publisher is None:
             from thermod.runtime.publish import Publisher
             p = cfg.publish
@@ -94,6 +102,10 @@ class Daemon:
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
                                  deconvolver_factory=deconvolver_factory)
+        self.monitor = None       # the live calibration monitor ([monitor], thermod.runtime.monitor)
+        if cfg.monitor.enabled:
+            from thermod.runtime.monitor import Monitor
+            self.monitor = Monitor(cfg.monitor, self.gyro_ring, self.frame_ring, lambda: self.pipeline.calib)
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
         self.camera_state = DeviceState(self.camera.name)
@@ -198,6 +210,8 @@ class Daemon:
         ]
         for th in self.driver_threads:
             th.start()
+        if self.monitor is not None:
+            self.monitor.start()
 
     def _gyro_down(self) -> None:
         self.pipeline.gyro_online = False
@@ -211,6 +225,8 @@ class Daemon:
         t0 = time.monotonic()
         for th in self.driver_threads:
             th.join(max(0.05, 0.8 - (time.monotonic() - t0)))
+        if self.monitor is not None:
+            self.monitor.stop(timeout=0.3)
         self.pipeline.stop(timeout=0.6)
         if self.payload is not None:
             self.payload.stop()
@@ -234,6 +250,8 @@ class Daemon:
         now = time.monotonic()
         try:
             new = configmod.load(None if self.cfg.path.startswith("<") else self.cfg.path, self.overrides)
+            calib, _ = sources.calibration_in_force(new, self.camera)
+            new = dataclasses.replace(new, calibration=calib)
             self._check_reload(new)
             self.pipeline.update(calib=new.calibration, deblur=new.deblur)
         except Exception as e:  # noqa: BLE001 - a reload must never take the running daemon down
@@ -249,6 +267,7 @@ class Daemon:
                         ", ".join(restart_needed))
         self.cfg = dataclasses.replace(self.cfg, calibration=new.calibration, deblur=new.deblur,
                                        radiometry=new.radiometry)
+        self.calibration_source = sources.calibration_in_force(new, self.camera)[1]
         self._camera_radiometry = _UNREAD
         self.counters["reloads"] += 1
         self.reload_status = {"ok": True, "error": None, "at": now, "restart_needed": restart_needed}
@@ -290,6 +309,10 @@ class Daemon:
     def tick(self) -> None:
         now = time.monotonic()
         self.pipeline.supervise()
+        if self.monitor is not None and (new := self.monitor.take_proposal()) is not None:
+            self.pipeline.update(calib=new)        # the monitor checked it lowers the residual
+            self.calibration_source = "monitor"
+            self.counters["calibration_changes"] += 1
         if not self.ready and self.gyro_state.items > 0 and self.camera_state.items > 0:
             self.ready = True
             log.info("ready: frames and gyro samples flowing")
@@ -320,7 +343,15 @@ class Daemon:
             gyro_ring_time_holes=self.gyro_ring.time_holes, publisher=self.publisher.stats(),
             threads=self.critical_alive(), ready=self.ready, gyro_online=self.pipeline.gyro_online,
             reload=dict(self.reload_status), rtsp=self.rtsp.stats() if self.rtsp is not None else None,
-            radiometry=self._radiometry_report())
+            radiometry=self._radiometry_report(), calibration=self._calibration_report())
+
+    def _calibration_report(self) -> dict:
+        """The calibration in force (flat, as `thermod record` reads it), where it came from, and the
+        monitor's live estimate."""
+        applied = self.pipeline.calib.as_dict()
+        return {**applied, "applied": applied, "source": self.calibration_source,
+                "estimate": self.monitor.estimate() if self.monitor is not None else None,
+                "monitor": self.monitor.state() if self.monitor is not None else {"enabled": False}}
 
     def _radiometry_report(self) -> dict:
         """Which counts → °C model the daemon converts with, and where it came from."""
@@ -336,9 +367,9 @@ class Daemon:
         h = self.health(now, update_rates=True)
         self.last_health = h
         self.publisher.publish_health(rates=h["rates"], drops=h["drops"], devices=h["devices"],
-                                      calibration=self.pipeline.calib.as_dict(), t=now,
+                                      calibration=h["calibration"], t=now,
                                       **{k: v for k, v in h.items() if k not in ("rates", "drops",
-                                                                                  "devices")})
+                                                                                  "devices", "calibration")})
         if self.ready:
             self.notifier.status(self._status_line())
         return h

@@ -1,7 +1,8 @@
 """The 1 Hz health message (wire topic ``health``): rates over the last period, every drop counter
 under its reason, device and clock state, thread liveness, the last reload's outcome, and the
 governor's state (``governor``: the method it runs now, its budget, measured costs, how often it
-stepped down or up, frames per method; `thermod.runtime.governor`).
+stepped down or up, frames per method; `thermod.runtime.governor`), and the calibration in force with
+the live monitor's estimate of it (``calibration``: ``applied``, ``source``, ``estimate``).
 
 The daemon hands `Health.message` a `Snapshot`: plain values and the two sources, nothing that
 reaches back into the daemon. Sources are read through the `thermod.runtime.sources.Source` protocol
@@ -63,6 +64,10 @@ class Snapshot:
     reload: dict
     rtsp: dict | None
     radiometry: dict
+    # the calibration in force (its recording-attribute keys at the top, as `thermod record` reads them)
+    # with ``applied`` (the same), ``source`` (config | recording <path> | monitor) and the live
+    # monitor's ``estimate`` (`thermod.runtime.monitor`; None while it has none or is off)
+    calibration: dict | None = None
 
 
 class Health:
@@ -118,6 +123,7 @@ class Health:
             "reload": dict(snap.reload),
             "rtsp": snap.rtsp,
             "radiometry": snap.radiometry,
+            "calibration": snap.calibration,
         }
 
 

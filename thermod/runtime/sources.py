@@ -20,6 +20,7 @@ from thermod.io.toml_tables import Key
 
 if TYPE_CHECKING:
     from thermod.io.clock import ClockMapper
+    from thermod.physics.calibration import Calibration
     from thermod.runtime.config import Config
 
 
@@ -165,6 +166,10 @@ def _sim_camera(cfg, payload):
 _ODR = (1000, 2000, 4000, 8000)
 _FS = (125, 250, 500, 1000, 2000)
 _REPLAY = {"loop": Key(bool, True), "speed": Key(float, 1.0, 0.01, float("inf"))}  # inf = flat out
+CALIBRATION_FROM = ("recording", "config")
+_REPLAY_CAMERA = {**_REPLAY, "calibration": Key(
+    str, "recording", choices=CALIBRATION_FROM,
+    doc="the calibration a replayed camera runs with: its recording's own, or the config's [calibration]")}
 
 
 def _table(*drivers: Driver) -> Mapping[str, Driver]:
@@ -199,7 +204,7 @@ GYROS: Mapping[str, Driver] = _table(
 
 CAMERAS: Mapping[str, Driver] = _table(
     Driver("sim", None, {}, _sim_camera),
-    Driver("replay", "recording", _REPLAY, _replay_camera),
+    Driver("replay", "recording", _REPLAY_CAMERA, _replay_camera),
     # Aravis opens by device id or IP address: not a file.
     Driver("aravis", "id", {"pixel_format": Key(str, "Mono16", choices=("Mono16", "Mono14", "Mono12")),
                             "packet_size": Key(int, 0, 0, 9000),
@@ -230,6 +235,17 @@ def simulated_payload(cfg: Config):
         return None
     from thermod.sim.payload import SimPayload
     return SimPayload(cfg.sim, cfg.calibration)
+
+
+def calibration_in_force(cfg: Config, camera: Source) -> tuple[Calibration, str]:
+    """The calibration the daemon starts with and where it comes from: a replayed recording's own
+    (``[sources.camera] kind = "replay"``, ``calibration = "recording"``, the default: the recording was
+    made, or fitted, with it), else the configuration's ``[calibration]`` (``"config"``)."""
+    if cfg.camera.kind == "replay" and cfg.camera.options.get("calibration") == "recording":
+        recorded = getattr(camera, "calibration", None)
+        if recorded is not None:
+            return recorded, f"recording {cfg.camera.device}"
+    return cfg.calibration, "config"
 
 
 def build(role: str, cfg: Config, payload=None) -> Source:

@@ -1,0 +1,359 @@
+"""Live calibration estimates from the stream: gyro bias and time offset from frame-to-frame registration.
+
+Consecutive frames a, b (read at t_a < t_b, last row) are registered at low resolution in a few patches
+by phase correlation, with each frame's comet tail taken out of the cross-power phase (the exponential
+kernel of Eq. 10 for the content's image velocity v over the frame's thermal window has the phase of
+1/(1 − i2πf·vτ)), so the measured shift is that of the instants the patch rows were read:
+``t − readout_s·(H−1−y)/(H−1)`` for row y of a frame whose last row is read at t. Between two such
+instants s_a < s_b the camera turns by θ = ∫ ω_cam dt, with
+
+    ω_cam(t) = M (ω_gyro(g(t)) − b),   g(t) = camera_time_to_gyro(t) (time offset o, clock drift)
+
+so the content at pixel p of a appears at π(K Q K⁻¹ p) in b, Q = exp(−θ) (Eq. 16). The measured
+displacements over a rolling window of pairs are fitted for (b, o): the lag that best explains them on
+a coarse grid (±60 ms around the offset in force), then Gauss–Newton (the rotation of every patch
+re-integrated from the cumulative gyro integral at each step), with robust reweighting;
+σ comes from a delete-one-block jackknife over the window's pairs (neighbouring pairs share frames, so
+their errors are not independent).
+
+τ enters only through the tail's phase, at the τ in force; `tau_s` is not estimated here (None, said in
+``notes``): the offset is estimated at the τ in force.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from thermod.physics.calibration import Calibration
+from thermod.physics.geometry import so3_exp_many
+
+N_PARAMS = 4            # bias x, y, z (gyro frame, rad/s), time offset (s)
+MIN_PAIRS = 20
+MODEL_DELAY_ERROR = 0.05  # of τ: the floor of the offset's σ (see `LiveEstimator.fit`)
+LAG_SCAN_S, LAG_STEP_S = 0.06, 0.004   # the coarse offset search around the offset in force
+MIN_RESPONSE = 0.05     # phase-correlation peaks weaker than this are no match (blank sky, a cut)
+
+
+@dataclass
+class Pair:
+    """The displacements measured between two consecutive frames, at the patch centres (full-res px)."""
+
+    t_a: float
+    t_b: float
+    centres: np.ndarray          # [P, 2] (x, y) full-resolution pixel coordinates in frame a
+    shift: np.ndarray            # [P, 2] content at centre p of a is at p + shift in b
+    weight: np.ndarray           # [P] phase-correlation response (0 = unusable)
+
+
+@dataclass
+class Estimate:
+    """One fit on a window: values, 1-σ uncertainties, and how well the model explains the window."""
+
+    bias_rad_s: np.ndarray
+    bias_sigma: np.ndarray
+    time_offset_s: float
+    time_offset_sigma: float
+    t: float                      # centre of the window (camera time)
+    n_pairs: int
+    residual_px: float            # robust RMS displacement mismatch at the estimate
+    residual_applied_px: float    # the same with the calibration in force
+    notes: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        return {"gyro_bias_rad_s": [float(x) for x in self.bias_rad_s],
+                "gyro_bias_rad_s_sigma": [float(x) for x in self.bias_sigma],
+                "time_offset_s": float(self.time_offset_s),
+                "time_offset_s_sigma": float(self.time_offset_sigma),
+                "tau_s": None, "tau_s_sigma": None, "t": float(self.t), "n_pairs": int(self.n_pairs),
+                "residual_px": float(self.residual_px),
+                "residual_applied_px": float(self.residual_applied_px),
+                "notes": list(self.notes)}
+
+
+# ------------------------------------------------------------------------------- registration
+class Registrar:
+    """Registers two frames in a 2 × 2 grid of patches at a working width of `width` px (area
+    downsampling), each patch of frame b taken where the gyro predicts its content went (so fast motion
+    stays within the patch); phase correlation gives the remainder to sub-pixel precision."""
+
+    def __init__(self, calib: Calibration, width: int = 160, grid: tuple[int, int] = (2, 2)):
+        self.full = (calib.width, calib.height)
+        self.factor = max(1.0, calib.width / float(width))
+        self.w = int(round(calib.width / self.factor))
+        self.h = int(round(calib.height / self.factor))
+        gy, gx = grid
+        # patches of about 60 % of a cell: a shift of up to ~20 % of a cell still overlaps well
+        self.pw = _even(0.6 * self.w / gx)
+        self.ph = _even(0.6 * self.h / gy)
+        cx = (np.arange(gx) + 0.5) * self.w / gx
+        cy = (np.arange(gy) + 0.5) * self.h / gy
+        self.centres_lr = np.array([(x, y) for y in cy for x in cx])
+        self.window = cv2.createHanningWindow((self.pw, self.ph), cv2.CV_32F)
+        self.fy = np.fft.fftfreq(self.ph)[:, None]        # cycles/px of the rfft2 bins
+        self.fx = np.fft.rfftfreq(self.pw)[None, :]
+        sx, sy = calib.width / self.w, calib.height / self.h
+        self.scale = np.array([sx, sy])
+        # full-res coordinates of the low-res pixel centres (area downsampling)
+        self.centres = (self.centres_lr + 0.5) * self.scale - 0.5
+
+    def downsample(self, image: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.asarray(image, np.float32), (self.w, self.h), interpolation=cv2.INTER_AREA)
+
+    def measure(self, a: np.ndarray, b: np.ndarray, predicted: np.ndarray | None = None,
+                vel_a: np.ndarray | None = None, vel_b: np.ndarray | None = None, tau_s: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """(shift [P, 2] full-res px, response [P]) between downsampled frames a and b. `predicted`
+        [P, 2] (full-res px) places b's patches; `vel_a`, `vel_b` [P, 2] (full-res px/s, the content's
+        image velocity over each frame's thermal window) take out each frame's comet-tail phase, so the
+        shift is that of the frames' read instants (`deblurred_phase`)."""
+        n = len(self.centres_lr)
+        pred = np.zeros((n, 2)) if predicted is None else predicted / self.scale
+        va = np.zeros((n, 2)) if vel_a is None else vel_a / self.scale
+        vb = np.zeros((n, 2)) if vel_b is None else vel_b / self.scale
+        shifts = np.zeros((n, 2))
+        resp = np.zeros(n)
+        for i in range(n):
+            c = self.centres_lr[i]
+            pa = self._patch(a, c)
+            if pa is None:
+                continue
+            r = np.round(pred[i])
+            pb = self._patch(b, c + r)
+            if pb is None:                       # the predicted place is off the frame: nothing to compare
+                continue
+            s, q = self._correlate(pa, pb, va[i] * tau_s, vb[i] * tau_s)
+            shifts[i] = r + s
+            resp[i] = q
+        return shifts * self.scale, resp
+
+    def _correlate(self, pa, pb, tail_a, tail_b):
+        """Phase correlation with each frame's exponential comet tail (length v·τ, px) removed from the
+        cross-power phase: K(f) = 1/(1 − i2πf·vτ) (the content trails along −v), so what remains is the
+        shift of the read instants, whatever the blur."""
+        A = np.fft.rfft2(pa * self.window)
+        B = np.fft.rfft2(pb * self.window)
+        X = np.conj(A) * B
+        X /= np.abs(X) + 1e-12 * (np.abs(X).max() + 1e-30)
+        phi_a = np.arctan(2 * np.pi * (self.fx * tail_a[0] + self.fy * tail_a[1]))
+        phi_b = np.arctan(2 * np.pi * (self.fx * tail_b[0] + self.fy * tail_b[1]))
+        X *= np.exp(-1j * (phi_b - phi_a))
+        r = np.fft.irfft2(X, s=pa.shape)
+        iy, ix = np.unravel_index(int(np.argmax(r)), r.shape)
+        peak = float(r[iy, ix])
+        h, w = r.shape
+
+        def sub(m1, m0, p1):
+            den = m1 - 2 * m0 + p1
+            return 0.0 if den >= 0 else 0.5 * (m1 - p1) / den
+
+        dx = ix + sub(r[iy, (ix - 1) % w], peak, r[iy, (ix + 1) % w])
+        dy = iy + sub(r[(iy - 1) % h, ix], peak, r[(iy + 1) % h, ix])
+        dx = dx - w if dx > w / 2 else dx
+        dy = dy - h if dy > h / 2 else dy
+        return np.array([dx, dy]), peak
+
+    def _patch(self, img: np.ndarray, c: np.ndarray) -> np.ndarray | None:
+        x0 = int(round(c[0] - self.pw / 2))
+        y0 = int(round(c[1] - self.ph / 2))
+        if x0 < 0 or y0 < 0 or x0 + self.pw > self.w or y0 + self.ph > self.h:
+            return None
+        p = img[y0:y0 + self.ph, x0:x0 + self.pw]
+        return np.ascontiguousarray(p - p.mean(), np.float32)
+
+
+def _even(x: float) -> int:
+    return max(8, int(x) // 2 * 2)
+
+
+# ------------------------------------------------------------------------------- the model
+class GyroIntegral:
+    """The cumulative integral of the conditioned raw gyro (gyro frame, bias kept) on the gyro clock;
+    the rotation between two camera times for any (bias, offset) is two interpolations of it."""
+
+    def __init__(self, calib: Calibration, t_gyro: np.ndarray, rate_gyro: np.ndarray):
+        t, r = calib.condition_gyro(t_gyro, rate_gyro, whole_series=False)
+        self.t = t
+        steps = 0.5 * (r[1:] + r[:-1]) * np.diff(t)[:, None]
+        self.c = np.vstack([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+        self.M = calib.gyro_to_camera_matrix
+        self.eps = calib.clock_drift_ppm * 1e-6
+        self.epoch = calib.clock_epoch_s
+
+    def covers(self, t0: float, t1: float, offset: float) -> bool:
+        g0, g1 = self.gyro_time(np.array([t0, t1]), offset)
+        return len(self.t) > 1 and self.t[0] <= g0 and g1 <= self.t[-1]
+
+    def gyro_time(self, t_cam: np.ndarray, offset: float) -> np.ndarray:
+        return (t_cam - offset + self.eps * self.epoch) / (1.0 + self.eps)
+
+    def rotation(self, s_a: np.ndarray, s_b: np.ndarray, bias: np.ndarray, offset: float) -> np.ndarray:
+        """θ [n, 3] (camera frame, rad) turned between camera times s_a and s_b."""
+        ga, gb = self.gyro_time(s_a, offset), self.gyro_time(s_b, offset)
+        d = np.stack([np.interp(gb, self.t, self.c[:, k]) - np.interp(ga, self.t, self.c[:, k])
+                      for k in range(3)], axis=-1)
+        d = d - np.asarray(bias)[None, :] * (gb - ga)[:, None]
+        return d @ self.M.T
+
+
+def row_times(calib: Calibration, t: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Camera time at which row `rows` of a frame whose last row is read at t is read."""
+    h = max(calib.height - 1, 1)
+    return t - calib.readout_s * (h - rows) / h
+
+
+def displacements(K: np.ndarray, K_inv: np.ndarray, theta: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """[n, 2] displacement π(K exp(−θ) K⁻¹ p) − p of each centre p [n, 2] under rotation θ [n, 3]."""
+    Q = so3_exp_many(-theta)
+    H = K[None] @ Q @ K_inv[None]
+    ph = np.einsum("nij,nj->ni", H, np.c_[centres, np.ones(len(centres))])
+    return ph[:, :2] / ph[:, 2:3] - centres
+
+
+def tail_velocity(calib: Calibration, integral: GyroIntegral, t: np.ndarray, centres: np.ndarray,
+                  bias: np.ndarray, offset: float) -> np.ndarray:
+    """[n, 2] mean image velocity (full-res px/s) of the content at each centre over the thermal window's
+    centroid span (t − τ, t]: the comet tail's length and direction over τ."""
+    tau = calib.tau_s
+    return predict(calib, integral, t - tau, t, centres, bias, offset) / tau
+
+
+def predict(calib: Calibration, integral: GyroIntegral, t_a: np.ndarray, t_b: np.ndarray,
+            centres: np.ndarray, bias: np.ndarray, offset: float) -> np.ndarray:
+    """Predicted displacement [n, 2] of each (t_a, t_b, centre) row."""
+    s_a = row_times(calib, t_a, centres[:, 1])
+    s_b = row_times(calib, t_b, centres[:, 1])
+    theta = integral.rotation(s_a, s_b, bias, offset)
+    K = calib.K
+    return displacements(K, np.linalg.inv(K), theta, centres)
+
+
+# ------------------------------------------------------------------------------- the fit
+class LiveEstimator:
+    """A rolling window of `Pair` s and the (bias, offset) fit on it."""
+
+    def __init__(self, window_s: float = 4.0, blocks: int = 8):
+        self.window_s = float(window_s)
+        self.blocks = int(blocks)
+        self.pairs: deque[Pair] = deque()
+
+    def add(self, pair: Pair) -> None:
+        self.pairs.append(pair)
+        while self.pairs and pair.t_b - self.pairs[0].t_a > self.window_s:
+            self.pairs.popleft()
+
+    def span(self) -> tuple[float, float] | None:
+        return (self.pairs[0].t_a, self.pairs[-1].t_b) if self.pairs else None
+
+    def _rows(self):
+        t_a, t_b, cen, sh, w, blk = [], [], [], [], [], []
+        n = len(self.pairs)
+        for i, p in enumerate(self.pairs):
+            ok = p.weight >= MIN_RESPONSE
+            k = int(ok.sum())
+            t_a += [p.t_a] * k
+            t_b += [p.t_b] * k
+            cen.append(p.centres[ok])
+            sh.append(p.shift[ok])
+            w.append(p.weight[ok])
+            blk += [i * self.blocks // max(n, 1)] * k
+        if not cen:
+            return None
+        return (np.array(t_a), np.array(t_b), np.vstack(cen), np.vstack(sh), np.concatenate(w),
+                np.array(blk))
+
+    def fit(self, calib: Calibration, integral: GyroIntegral, iterations: int = 6) -> Estimate | None:
+        """Gauss–Newton for (bias, offset) from the calibration in force, robustly reweighted; None when
+        the window has too few usable pairs or the gyro does not cover it."""
+        if len(self.pairs) < MIN_PAIRS:
+            return None
+        rows = self._rows()
+        if rows is None:
+            return None
+        t_a, t_b, cen, meas, w0, blk = rows
+        if len(t_a) < MIN_PAIRS:
+            return None
+        reach = calib.tau_s + calib.readout_s + 0.05
+        x = np.r_[np.asarray(calib.bias_rad_s, float), calib.time_offset_s]
+        if not integral.covers(float(t_a.min()) - reach, float(t_b.max()), x[3]):
+            return None
+
+        def residual(p):
+            return (meas - predict(calib, integral, t_a, t_b, cen, p[:3], p[3])).ravel()
+
+        r_applied = residual(x)
+        # the lag that best explains the image motion, on a coarse grid: Gauss–Newton then starts
+        # within its reach however far the offset in force is off (the cost is smooth over a few ms)
+        lags = x[3] + np.arange(-LAG_SCAN_S, LAG_SCAN_S + 1e-9, LAG_STEP_S)
+        costs = [_robust_rms(residual(np.r_[x[:3], lag])) for lag in lags]
+        if np.min(costs) < _robust_rms(r_applied):
+            x[3] = float(lags[int(np.argmin(costs))])
+        steps = np.array([1e-3, 1e-3, 1e-3, 1e-4])
+        r = residual(x)
+        J = None
+        for _ in range(iterations):
+            J = np.stack([(residual(x + np.eye(N_PARAMS)[k] * steps[k]) - r) / steps[k]
+                          for k in range(N_PARAMS)], axis=1)
+            w = np.repeat(w0, 2) * _huber(r)
+            A = J * w[:, None]
+            # Levenberg damping keeps unobservable directions (no roll, no acceleration) where they are
+            N = J.T @ A
+            dx = -np.linalg.solve(N + 1e-9 * np.trace(N) * np.eye(N_PARAMS), A.T @ r)
+            x_new = x + dx
+            x_new[3] = float(np.clip(x_new[3], -0.5, 0.5))
+            r_new = residual(x_new)
+            if np.sum(w * r_new ** 2) > np.sum(w * r ** 2):
+                break
+            x, r = x_new, r_new
+            if np.all(np.abs(dx) < steps * 1e-2):
+                break
+        sigma = self._jackknife(J, r, w, np.repeat(blk, 2))
+        # the comet tail's phase is taken out at one velocity per frame (first order in the change of
+        # velocity over τ): a model error the jackknife cannot see, bounded here at 5 % of τ
+        sigma[3] = math.hypot(sigma[3], MODEL_DELAY_ERROR * calib.tau_s)
+        notes = ["tau_s: not estimated (frame registration takes the comet tail out at the tau_s in force)"]
+        return Estimate(bias_rad_s=x[:3], bias_sigma=sigma[:3], time_offset_s=float(x[3]),
+                        time_offset_sigma=float(sigma[3]), t=0.5 * (float(t_a.min()) + float(t_b.max())),
+                        n_pairs=len(self.pairs), residual_px=_robust_rms(r),
+                        residual_applied_px=_robust_rms(r_applied), notes=notes)
+
+    def residual(self, calib: Calibration, integral: GyroIntegral, bias, offset: float) -> float:
+        """Robust RMS (px) of the window's displacement mismatch under (bias, offset): the prediction
+        residual a change must lower before it is applied."""
+        rows = self._rows()
+        if rows is None:
+            return math.nan
+        t_a, t_b, cen, meas, _, _ = rows
+        return _robust_rms((meas - predict(calib, integral, t_a, t_b, cen, np.asarray(bias, float),
+                                           float(offset))).ravel())
+
+    def _jackknife(self, J: np.ndarray, r: np.ndarray, w: np.ndarray, blk: np.ndarray) -> np.ndarray:
+        """1-σ of each parameter from a delete-one-block jackknife of the linearised step at the solution."""
+        g = int(blk.max()) + 1 if len(blk) else 0
+        if g < 3:
+            return np.full(N_PARAMS, np.inf)
+        est = []
+        for k in range(g):
+            m = blk != k
+            A = J[m] * w[m, None]
+            N = J[m].T @ A
+            try:
+                est.append(-np.linalg.solve(N + 1e-9 * np.trace(N) * np.eye(N_PARAMS), A.T @ r[m]))
+            except np.linalg.LinAlgError:
+                return np.full(N_PARAMS, np.inf)
+        est = np.array(est)
+        return np.sqrt((g - 1) / g * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
+
+
+def _huber(r: np.ndarray) -> np.ndarray:
+    s = 1.4826 * np.median(np.abs(r)) + 1e-9
+    a = np.abs(r) / (2.0 * s)
+    return np.where(a <= 1.0, 1.0, 1.0 / np.maximum(a, 1e-12))
+
+
+def _robust_rms(r: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(r))) if len(r) else math.nan

@@ -1,0 +1,248 @@
+"""The live calibration monitor (``[monitor]``): a low-priority thread that estimates the gyro bias and
+time offset from the stream (`thermod.calib.live`) and, with ``apply = true``, applies a change.
+
+It reads the rings the driver threads write (never the pipeline's queue): each pair of consecutive
+frames, once the gyro covers it, is registered against the gyro (in order, skipping ahead when it
+falls behind); every second the rolling window is fitted. Frames flagged ffc, or after a camera
+gap, and gyro windows with a gap are skipped.
+
+CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
+CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
+pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
+
+Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
+force (the bias on any axis, or the offset) in ``stable_windows`` consecutive fits that agree with each
+other within k σ; it is applied only if it lowers the window's registration residual (the prediction
+of the frame-to-frame motion) against the calibration in force. Each change is logged and counted;
+the daemon applies it through `Pipeline.update` (`take_proposal`). A SIGHUP reload puts the
+configuration's (or a replayed recording's) calibration back in force; the monitor goes on from there.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import threading
+import time
+
+import numpy as np
+
+from thermod.calib.live import GyroIntegral, LiveEstimator, Pair, Registrar, predict, tail_velocity
+from thermod.physics.calibration import Calibration
+from thermod.runtime.config import MonitorConfig
+from thermod.runtime.rings import FrameRing, GyroRing
+
+log = logging.getLogger(__name__)
+
+FIT_PERIOD_S = 1.0
+BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
+CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
+
+
+class Monitor:
+    """One monitor thread over the daemon's rings. ``calib()`` returns the calibration in force."""
+
+    def __init__(self, cfg: MonitorConfig, gyro_ring: GyroRing, frame_ring: FrameRing, calib):
+        self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
+        self.estimator = LiveEstimator(cfg.window_s)
+        self._registrar: Registrar | None = None
+        self._reg_key = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._last = None                      # the last Estimate
+        self._history: collections.deque = collections.deque(maxlen=max(1, cfg.stable_windows))
+        self._proposal: Calibration | None = None
+        self._last_b = -1
+        self._last_fit = 0.0
+        self._cpu = collections.deque()        # (wall, thread cpu) samples
+        self.counters = collections.Counter()
+        self.changes: list[dict] = []          # every change applied: at, before, after, residuals
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> Monitor:
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._loop, name="thermod-monitor", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ reports
+    def estimate(self) -> dict | None:
+        with self._lock:
+            return None if self._last is None else self._last.as_dict()
+
+    def state(self) -> dict:
+        return {"enabled": True, "apply": self.cfg.apply, "cpu_share": self.cpu_share(),
+                "cpu_share_max": self.cfg.cpu_share, "pairs_in_window": len(self.estimator.pairs),
+                "changes_applied": len(self.changes), **dict(self.counters)}
+
+    def cpu_share(self) -> float | None:
+        """The thread's CPU time over the wall time of the last ~10 s (share of one core)."""
+        c = list(self._cpu)
+        if len(c) < 2 or c[-1][0] - c[0][0] <= 0:
+            return None
+        return round((c[-1][1] - c[0][1]) / (c[-1][0] - c[0][0]), 4)
+
+    def take_proposal(self) -> Calibration | None:
+        """The calibration to apply now (once), or None."""
+        with self._lock:
+            p, self._proposal = self._proposal, None
+            return p
+
+    # ------------------------------------------------------------------ the thread
+    def _loop(self) -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)   # Linux: per thread
+        except (AttributeError, OSError):
+            pass
+        self._cpu.append((time.monotonic(), time.thread_time()))
+        while not self._stop.is_set():
+            c0 = time.thread_time()
+            try:
+                worked = self._step()
+            except Exception:                # the monitor must never take anything else down
+                log.exception("calibration monitor: step failed")
+                self.counters["errors"] += 1
+                worked = True
+            c1 = time.thread_time()
+            now = time.monotonic()
+            self._cpu.append((now, c1))
+            while len(self._cpu) > 2 and now - self._cpu[1][0] > CPU_PERIOD_S:
+                self._cpu.popleft()
+            # the budget: idle long enough that work / (work + idle) ≤ cpu_share
+            self._stop.wait((c1 - c0) * (1.0 / self.cfg.cpu_share - 1.0) if worked else 0.01)
+
+    def _registrar_for(self, calib: Calibration) -> Registrar:
+        key = (calib.width, calib.height, self.cfg.width)
+        if self._reg_key != key:
+            self._registrar, self._reg_key = Registrar(calib, self.cfg.width), key
+        return self._registrar
+
+    def _step(self) -> bool:
+        """Register the next pair once the gyro covers it, fit once a second. Returns whether it worked.
+
+        Pairs are taken in order from the frame ring while the thread keeps up; one that fell more than
+        `BACKLOG` frames behind the newest jumps ahead (the frames in between are not registered)."""
+        now = time.monotonic()
+        worked = False
+        head = self.frame_ring.head
+        ib = max(self._last_b + 1, head - min(BACKLOG, self.frame_ring.capacity // 2), 1)
+        if ib <= head - 1:
+            worked = self._register(ib - 1, ib)
+        if now - self._last_fit >= FIT_PERIOD_S and len(self.estimator.pairs) > 0:
+            self._last_fit = now
+            self._fit()
+            worked = True
+        return worked
+
+    def _current(self, calib: Calibration) -> tuple[np.ndarray, float]:
+        """(bias, offset) to place patches with: the last estimate if there is one, else the calibration's."""
+        with self._lock:
+            e = self._last
+        if e is not None:
+            return np.asarray(e.bias_rad_s), e.time_offset_s
+        return np.asarray(calib.bias_rad_s, float), calib.time_offset_s
+
+    def _register(self, ia: int, ib: int) -> bool:
+        calib = self._calib()
+        a = self.frame_ring.get(ia, 0.0)
+        b = self.frame_ring.get(ib, 0.0)
+        if not hasattr(a, "image") or not hasattr(b, "image"):
+            self._last_b = ib
+            return False
+        bias, offset = self._current(calib)
+        g0 = float(calib.camera_time_to_gyro(a.t - 2 * calib.tau_s - calib.readout_s)) - 0.01
+        g1 = float(calib.camera_time_to_gyro(b.t)) + 0.01
+        if not self.gyro_ring.newest_t >= g1 + abs(offset - calib.time_offset_s):
+            if time.monotonic() - b.arrival > 0.5:          # the gyro will not come (offline)
+                self._last_b = ib
+                self.counters["pairs_no_gyro"] += 1
+            return False
+        self._last_b = ib
+        if a.ffc or b.ffc or b.gap_before:
+            self.counters["pairs_skipped"] += 1
+            return False
+        w = self.gyro_ring.window(g0 - 0.05, g1 + 0.05, pad=2)
+        if w.gap or len(w) < 4:
+            self.counters["pairs_skipped"] += 1
+            return True
+        reg = self._registrar_for(calib)
+        integ = GyroIntegral(calib, w.t, w.rate)
+        cen = reg.centres
+        ta, tb = np.full(len(cen), a.t), np.full(len(cen), b.t)
+        pred = predict(calib, integ, ta, tb, cen, bias, offset)
+        va = tail_velocity(calib, integ, ta, cen, bias, offset)
+        vb = tail_velocity(calib, integ, tb, cen, bias, offset)
+        shift, resp = reg.measure(reg.downsample(a.image), reg.downsample(b.image), pred, va, vb, calib.tau_s)
+        self.estimator.add(Pair(a.t, b.t, cen.copy(), shift, resp))
+        self.counters["pairs_registered"] += 1
+        return True
+
+    def _fit(self) -> None:
+        span = self.estimator.span()
+        if span is None:
+            return
+        calib = self._calib()
+        g0 = float(calib.camera_time_to_gyro(span[0] - 2 * calib.tau_s - calib.readout_s)) - 0.1
+        g1 = float(calib.camera_time_to_gyro(span[1])) + 0.1
+        w = self.gyro_ring.window(g0, g1, pad=2)
+        if len(w) < 4:
+            return
+        integral = GyroIntegral(calib, w.t, w.rate)
+        est = self.estimator.fit(calib, integral)
+        if est is None:
+            return
+        self.counters["fits"] += 1
+        with self._lock:
+            self._last = est
+        self._history.append(est)
+        if self.cfg.apply:
+            self._consider(calib, est, integral)
+
+    def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
+        """Propose the estimate when it is significant, stable and lowers the residual."""
+        k = self.cfg.k_sigma
+        if len(self._history) < self.cfg.stable_windows:
+            return
+        b_now, o_now = np.asarray(calib.bias_rad_s, float), calib.time_offset_s
+        for e in self._history:
+            sig_b = np.abs(e.bias_rad_s - b_now) > k * e.bias_sigma
+            sig_o = abs(e.time_offset_s - o_now) > k * e.time_offset_sigma
+            if not (np.any(sig_b) or sig_o):
+                return
+        # stable: the fits agree with the newest within their uncertainties
+        for e in self._history:
+            s_b = np.hypot(e.bias_sigma, est.bias_sigma)
+            s_o = math.hypot(e.time_offset_sigma, est.time_offset_sigma)
+            if np.any(np.abs(e.bias_rad_s - est.bias_rad_s) > k * s_b) or \
+                    abs(e.time_offset_s - est.time_offset_s) > k * s_o:
+                return
+        # change only what is significant (an axis the motion does not reach keeps its value)
+        bias = np.where(np.abs(est.bias_rad_s - b_now) > k * est.bias_sigma, est.bias_rad_s, b_now)
+        offset = est.time_offset_s if abs(est.time_offset_s - o_now) > k * est.time_offset_sigma else o_now
+        # the change as it would be applied, checked on this window against the calibration in force
+        before = self.estimator.residual(calib, integral, b_now, o_now)
+        after = self.estimator.residual(calib, integral, bias, offset)
+        if not after < before:
+            self.counters["proposals_refused_residual"] += 1
+            log.info("calibration monitor: not applying bias %s rad/s, offset %.5f s: the residual would "
+                     "not fall (%.3f → %.3f px)", np.round(bias, 5).tolist(), offset, before, after)
+            self._history.clear()
+            return
+        new = calib.replace(bias_rad_s=tuple(float(x) for x in bias), time_offset_s=float(offset))
+        change = {"at": time.monotonic(), "bias_rad_s": [list(calib.bias_rad_s), bias.tolist()],
+                  "time_offset_s": [o_now, float(offset)], "residual_px": [before, after]}
+        log.info("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
+                 "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
+                 o_now, offset, before, after)
+        self.changes.append(change)
+        self._history.clear()
+        with self._lock:
+            self._proposal = new
