@@ -17,7 +17,8 @@ cannot be observed, and how an effect that generalises another must beat it.
 
 Layout: `data` (model, recording preparation, size guards), `sensor` (detector-side effects and the
 one prediction every cost goes through), `problem` (cost, noise, step context), `projection`
-(variable-projection steps), `effects` (one `Effect` record per candidate), `diagnostics`, `analysis`
+(variable-projection steps), `fitting` (the scalar and vector searches every fit uses), `effects` (one
+`Effect` record per candidate, the vocabulary `EFFECTS` assembled once), `diagnostics`, `analysis`
 (the search), `report` (report.json, report.md, model.toml and the figures).
 """
 

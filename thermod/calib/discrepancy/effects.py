@@ -13,12 +13,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize
 
 from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
+from thermod.calib.discrepancy.fitting import current_ssr, scalar_fit, vector_fit, with_calib
 from thermod.calib.discrepancy.problem import StepContext
-from thermod.calib.discrepancy.projection import lm_step, projected_lm
 from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import continuations, detect_clip_level, group_delay_s
 
@@ -64,84 +63,6 @@ class Effect:
         return dataclasses.replace(m, calib=dataclasses.replace(m.calib, **cal)) if cal else m
 
 
-# ----------------------------------------------------------------------------------------- search
-def _scalar_fit(ctx: StepContext, make, grid, lo, hi, refine_width, x0=None):
-    """Coarse grid then bounded Brent refinement of a one-parameter family `make(x) -> Model`.
-    A warm context (`StepContext.warm`) with the current value `x0` refines within ±2 grid steps of it
-    instead."""
-    def cost(x):
-        return ctx.problem.evaluate(make(x)).ssr
-
-    if ctx.project and x0 is not None and len(grid) > 1 and ctx.problem.has_motion_reference:
-        step = float(grid[1] - grid[0])        # one unit: a grid step
-
-        def make_u(u):
-            return make(float(x0 + step * u[0]))
-        u, ssr = projected_lm(ctx, make_u, np.zeros(1), (lo - x0) / step, (hi - x0) / step,
-                              iters=ctx.project_iters)
-        return float(x0 + step * u[0]), ssr
-    if ctx.warm and x0 is not None and len(grid) > 1:
-        step = float(grid[1] - grid[0])
-        a, b = max(lo, x0 - 2 * step), min(hi, x0 + 2 * step)
-        c0 = cost(x0)
-        res = optimize.minimize_scalar(cost, bounds=(a, b), method="bounded",
-                                       options={"xatol": (b - a) * 5e-3, "maxiter": 10})
-        return (float(res.x), float(res.fun)) if res.fun < c0 else (float(x0), c0)
-    costs = [cost(x) for x in grid]
-    i = int(np.argmin(costs))
-    a = max(lo, grid[max(i - 1, 0)] if refine_width is None else grid[i] - refine_width)
-    b = min(hi, grid[min(i + 1, len(grid) - 1)] if refine_width is None else grid[i] + refine_width)
-    if b <= a:
-        return grid[i], costs[i]
-    res = optimize.minimize_scalar(cost, bounds=(a, b), method="bounded",
-                                   options={"xatol": (b - a) * 2e-3, "maxiter": 15})
-    if res.fun < costs[i]:
-        return float(res.x), float(res.fun)
-    return float(grid[i]), float(costs[i])
-
-
-def _vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: float = 0.25, prior=None):
-    """Levenberg–Marquardt on the residual vector from the best of several starts (x in `unit`s).
-
-    The Jacobian is a forward difference with a step of `h` units: the forward model is only
-    smooth down to its resampling precision, so steps must move the image by a good fraction of
-    a pixel, not by float rounding. `prior` = (x_p, w): an independent measurement x_p of x with
-    weight w (SSR units per unit²) appended as extra residuals √w (x − x_p). Returns the fitted
-    parameters and the image SSR alone (what the selection compares).
-    """
-    problem = ctx.problem
-
-    def residuals(x):
-        p = np.zeros(0) if prior is None else np.sqrt(prior[1]) * (x - prior[0])
-        return np.concatenate([problem.residual_vector(make(x * unit)), p])
-
-    def cost(x):
-        r = residuals(x)
-        return float(r @ r)
-
-    if ctx.project and problem.has_motion_reference:
-        x, ssr = projected_lm(ctx, lambda u: make(u * unit), np.asarray(x0s[0], float), -bound, bound,
-                              h=h, prior=prior, iters=ctx.project_iters)
-        return x * unit, ssr
-    x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
-    lam = 1e-3
-    for _ in range((min(iters, 2) if ctx.warm else iters) if len(x) else 0):
-        r0 = residuals(x)
-        J = np.empty((len(r0), len(x)))
-        for i in range(len(x)):
-            e = np.zeros(len(x))
-            e[i] = h if x[i] + h <= bound else -h
-            J[:, i] = (residuals(x + e) - r0) / e[i]
-        x, step, lam = lm_step(J, r0, x, cost, -bound, bound, lam)
-        if step is None or np.max(np.abs(step)) < 0.02:
-            break
-    return x * unit, problem.evaluate(make(x * unit)).ssr
-
-
-def _with(model: Model, **changes) -> Model:
-    return dataclasses.replace(model, calib=model.calib.replace(**changes))
-
-
 # ----------------------------------------------------------------------------------------- fits
 def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) -> FitResult:
     """Constant gyro → camera clock offset."""
@@ -149,8 +70,8 @@ def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) 
     grid = t0 + np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
 
     def make(x):
-        return _with(model, time_offset_s=float(x))
-    x, ssr = _scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005, x0=t0)
+        return with_calib(model, time_offset_s=float(x))
+    x, ssr = scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005, x0=t0)
     return FitResult("time_offset", make(x), ssr)
 
 
@@ -170,11 +91,11 @@ def fit_rolling_readout(ctx: StepContext, model: Model) -> FitResult:
     grid = np.linspace(0.0, hi, 11)
 
     def make(x):
-        return _with(model, readout_s=float(x))
+        return with_calib(model, readout_s=float(x))
 
     def make_centred(x):
         offset = c0.time_offset_s - 0.5 * (float(x) - c0.readout_s)
-        return _with(model, readout_s=float(x), time_offset_s=offset)
+        return with_calib(model, readout_s=float(x), time_offset_s=offset)
 
     f = _fit_keeping_timing(ctx, "rolling_readout", make, make_centred, grid, 0.0, hi, x0=c0.readout_s,
                             before_offset=True)
@@ -191,11 +112,11 @@ def _fit_keeping_timing(ctx: StepContext, name: str, make, make_centred, grid, l
     time offset: the better fit. Once `time_offset` is in the model the offset is a parameter already
     (it may have absorbed that shift); before (only with `before_offset`), moving it is one parameter
     more, so the centred fit must win decisively (ΔBIC > 10 for it and at least `min_gain` of SSR)."""
-    x, ssr = _scalar_fit(ctx, make, grid, lo, hi, None, x0=x0)
+    x, ssr = scalar_fit(ctx, make, grid, lo, hi, None, x0=x0)
     best = FitResult(name, make(x), ssr)
     named = "time_offset" in ctx.named
     if named or (before_offset and not ctx.warm):     # a refit does not move an offset nobody named
-        xc, ssrc = _scalar_fit(ctx, make_centred, grid, lo, hi, None, x0=x0)
+        xc, ssrc = scalar_fit(ctx, make_centred, grid, lo, hi, None, x0=x0)
         if ssrc < ssr and (named or (ctx.delta_bic(ssr, ssrc, 1) > 10.0 and ssr - ssrc >= ctx.min_gain)):
             best = FitResult(name, make_centred(xc), ssrc)
     return best
@@ -215,10 +136,10 @@ def timing_separation(ctx: StepContext, model: Model, h_s: float = 0.002) -> str
     row's delay from the frame's, does not."""
     c = model.calib
     base = ctx.problem.residual_vector(model)
-    j_off = (ctx.problem.residual_vector(_with(model, time_offset_s=c.time_offset_s + h_s)) - base) / h_s
+    j_off = (ctx.problem.residual_vector(with_calib(model, time_offset_s=c.time_offset_s + h_s)) - base) / h_s
     sign = -1.0 if c.readout_s + h_s > 1.0 / c.frame_rate_hz else 1.0
     t_ro = c.readout_s + sign * h_s
-    j_row = (ctx.problem.residual_vector(_with(model, readout_s=t_ro, time_offset_s=c.time_offset_s
+    j_row = (ctx.problem.residual_vector(with_calib(model, readout_s=t_ro, time_offset_s=c.time_offset_s
                                                - 0.5 * sign * h_s)) - base) / (sign * h_s)
     j_ro = j_row + 0.5 * j_off            # readout with the offset held: the row part plus half a delay
     a, b, d = float(j_off @ j_off), float(j_off @ j_ro), float(j_ro @ j_ro)
@@ -237,8 +158,8 @@ def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
     lo, hi = math.log(tau / 3.0), math.log(tau * 3.0)
 
     def make(x):
-        return _with(model, tau_s=float(math.exp(x)))
-    x, ssr = _scalar_fit(ctx, make, np.linspace(lo, hi, 13), lo, hi, None, x0=math.log(tau))
+        return with_calib(model, tau_s=float(math.exp(x)))
+    x, ssr = scalar_fit(ctx, make, np.linspace(lo, hi, 13), lo, hi, None, x0=math.log(tau))
     return FitResult("time_constant", make(x), ssr)
 
 
@@ -254,7 +175,7 @@ def fit_optical_psf(ctx: StepContext, model: Model, max_sigma_px: float = 3.0) -
 
     def make(x):
         return dataclasses.replace(model, extra_psf_px=float(math.hypot(model.extra_psf_px, x)))
-    x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_sigma_px, 13), 0.0, max_sigma_px, None)
+    x, ssr = scalar_fit(ctx, make, np.linspace(0.0, max_sigma_px, 13), 0.0, max_sigma_px, None)
     return FitResult("optical_psf", make(x), ssr)
 
 
@@ -299,8 +220,8 @@ def fit_gyro_bias(ctx: StepContext, model: Model, bias_stability_rad_s: float = 
     starts = [np.zeros(3)] + ([prior[0]] if prior is not None else [])
 
     def make(x):
-        return _with(model, bias_rad_s=tuple(float(v) for v in b0 + x))
-    x, ssr = _vector_fit(ctx, make, starts, unit, bound=100.0, prior=prior)   # ±20 °/s
+        return with_calib(model, bias_rad_s=tuple(float(v) for v in b0 + x))
+    x, ssr = vector_fit(ctx, make, starts, unit, bound=100.0, prior=prior)   # ±20 °/s
     return FitResult("gyro_bias", make(x), ssr, n_params=3)
 
 
@@ -317,19 +238,19 @@ def fit_gyro_scale(ctx: StepContext, model: Model, bic_min: float = 10.0) -> Fit
     def make(x):     # one common factor when x has one element, else one per observable axis
         s = s0.copy()
         s[idx] = s0[idx] * (1.0 + np.asarray(x, float))
-        return _with(model, scale=tuple(float(v) for v in s))
+        return with_calib(model, scale=tuple(float(v) for v in s))
 
     if len(idx) == 0:
         return FitResult("gyro_scale", model, ctx.problem.evaluate(model).ssr, unobservable=un, n_params=0)
     if ctx.warm and len(idx) > 1 and np.ptp(s0[idx]) > 0:
         # a refit of per-axis factors the search chose: refined per axis (a common factor's fit first
         # would keep their ratios, and per-axis steps would have to beat it by a whole min_gain again)
-        x3, ssr3 = _vector_fit(ctx, make, [np.zeros(len(idx))], unit, bound=20.0)
+        x3, ssr3 = vector_fit(ctx, make, [np.zeros(len(idx))], unit, bound=20.0)
         return FitResult("gyro_scale", make(x3), ssr3, unobservable=un, n_params=len(idx))
-    x1, ssr1 = _vector_fit(ctx, make, [np.zeros(1)], unit, bound=20.0)
+    x1, ssr1 = vector_fit(ctx, make, [np.zeros(1)], unit, bound=20.0)
     best = FitResult("gyro_scale", make(x1), ssr1, unobservable=un, n_params=1)
     if len(idx) > 1:
-        x3, ssr3 = _vector_fit(ctx, make, [np.full(len(idx), x1[0] / unit)], unit, bound=20.0)
+        x3, ssr3 = vector_fit(ctx, make, [np.full(len(idx), x1[0] / unit)], unit, bound=20.0)
         if ctx.delta_bic(ssr1, ssr3, len(idx) - 1) > bic_min and ssr1 - ssr3 >= ctx.min_gain:
             best = FitResult("gyro_scale", make(x3), ssr3, unobservable=un, n_params=len(idx))
     return best
@@ -356,7 +277,7 @@ def fit_misalignment(ctx: StepContext, model: Model, min_rms: float = MIN_EXCITA
 
     def make(x):
         return dataclasses.replace(model, calib=c0.with_misalignment(basis @ np.asarray(x)))
-    x, ssr = _vector_fit(ctx, make, [np.zeros(basis.shape[1])], math.radians(0.5), bound=20.0)   # ±10°
+    x, ssr = vector_fit(ctx, make, [np.zeros(basis.shape[1])], math.radians(0.5), bound=20.0)   # ±10°
     un = [f"rotation about {np.round(evec[:, i], 2).tolist()}" for i in np.flatnonzero(~keep)]
     return FitResult("misalignment", make(x), ssr, unobservable=un, n_params=int(keep.sum()))
 
@@ -377,7 +298,7 @@ def _psf_values(model: Model, nominal: Model) -> dict:
     return {"psf_sigma_px": model.final_calibration().psf_sigma_px, "extra_sigma_px": model.extra_psf_px}
 
 
-EFFECTS: dict[str, Effect] = {e.name: e for e in (
+CAMERA_EFFECTS = (
     Effect("time_offset", fit_time_offset, "lag", ("time_offset_s",), _calib_values("time_offset_s")),
     Effect("rolling_readout", fit_rolling_readout, "row", ("readout_s", "time_offset_s"),
            _calib_values("readout_s", "time_offset_s"), implies=("time_offset",)),
@@ -386,16 +307,13 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Effect("misalignment", fit_misalignment, "rate", ("R_cam_gyro",), _misalignment_values),
     Effect("time_constant", fit_time_constant, "accel", ("tau_s",), _calib_values("tau_s")),
     Effect("optical_psf", fit_optical_psf, "spectrum", ("extra_psf_px",), _psf_values),
-)}
-
-CANDIDATES = tuple(EFFECTS)
+)
 
 
 # ----------------------------------------------------------------------------------------- gyro-side effects
 # clock_drift, gyro_lowpass, gyro_saturation (issue 12): fields of `Calibration.condition_gyro`, so the
 # forward model, `thermod deblur` and the daemon all apply what is fitted here.
-def _current_ssr(ctx: StepContext, model: Model) -> float:
-    return ctx.problem.evaluate(model).ssr
+
 
 
 def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) -> FitResult:
@@ -414,9 +332,9 @@ def fit_clock_drift(ctx: StepContext, model: Model, max_ppm: float = 20000.0) ->
     def make(x):
         x = np.asarray(x, float)
         ppm = float(np.clip(p0 + x[1], -max_ppm, max_ppm))
-        return _with(model, time_offset_s=float(off0 + x[0]), clock_drift_ppm=ppm, clock_epoch_s=epoch)
+        return with_calib(model, time_offset_s=float(off0 + x[0]), clock_drift_ppm=ppm, clock_epoch_s=epoch)
     starts = [np.zeros(2)] + [np.array([0.0, s]) for s in (-4.0, 4.0)]
-    x, ssr = _vector_fit(ctx, make, starts, unit, bound=max_ppm / 1000.0)
+    x, ssr = vector_fit(ctx, make, starts, unit, bound=max_ppm / 1000.0)
     return FitResult("clock_drift", make(x), ssr, n_params=2)
 
 
@@ -428,7 +346,7 @@ def _lowpass_model(model: Model, delay_s: float, offset_s: float | None = None) 
     changes = {"gyro_lowpass_hz": float(fc) if fc >= 1.0 else 0.0}
     if offset_s is not None:
         changes["time_offset_s"] = float(offset_s)
-    return _with(model, **changes)
+    return with_calib(model, **changes)
 
 
 def fit_gyro_lowpass(ctx: StepContext, model: Model, max_delay_s: float = 0.03) -> FitResult:
@@ -488,13 +406,13 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
     fit."""
     level = max(detect_clip_level(d.gyro_rate) for d in ctx.recs)
     if level <= 0:
-        return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0,
+        return FitResult("gyro_saturation", model, current_ssr(ctx, model), n_params=0,
                          unobservable=["gyro_saturation: no raw samples pile up at a constant |rate|"])
     runs = [continuations(d.gyro_t, d.gyro_rate, level) for d in ctx.recs]
     reach = [_run_reach_px(d, model.calib, r) for d, r in zip(ctx.recs, runs, strict=True)]
     top = max((float(r.max(initial=0.0)) for r in reach), default=0.0) * max_gain
     if top < MIN_CONTINUATION_PX:
-        return FitResult("gyro_saturation", model, _current_ssr(ctx, model), n_params=0, unobservable=[
+        return FitResult("gyro_saturation", model, current_ssr(ctx, model), n_params=0, unobservable=[
             f"gyro_saturation: the samples at {math.degrees(level):.1f} °/s, continued at gain {max_gain:g}, "
             f"would move the frames by {top:.2g} px at most (a peak of a quantised log, or too short a "
             "clip to see)"])
@@ -504,8 +422,9 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
         return _fit_run_gains(ctx, model, level, reach[0], np.array(c0.gyro_clip_run_gains), max_gain)
 
     def make(g):
-        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g), gyro_clip_run_gains=())
-    x, ssr = _scalar_fit(ctx, make, np.linspace(0.0, max_gain, 13), 0.0, max_gain, None)
+        return with_calib(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g),
+                          gyro_clip_run_gains=())
+    x, ssr = scalar_fit(ctx, make, np.linspace(0.0, max_gain, 13), 0.0, max_gain, None)
     best = FitResult("gyro_saturation", make(x), ssr)
     if per_run:
         two_sided = [c.two_sided for c in runs[0]]
@@ -526,9 +445,9 @@ def _fit_run_gains(ctx: StepContext, model: Model, level: float, reach: np.ndarr
     def make(x):        # the common gain shown (and kept by `Model.final_calibration`): their median
         g = np.asarray(g0, float).copy()
         g[seen] = np.clip(g[seen] + np.asarray(x, float) * unit, 0.0, max_gain)
-        return _with(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(np.median(g[seen])),
+        return with_calib(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(np.median(g[seen])),
                      gyro_clip_run_gains=tuple(float(v) for v in g))
-    x, ssr = _vector_fit(ctx, make, [np.zeros(len(seen))], 1.0, bound=float(np.max(max_gain / unit)))
+    x, ssr = vector_fit(ctx, make, [np.zeros(len(seen))], 1.0, bound=float(np.max(max_gain / unit)))
     return FitResult("gyro_saturation", make(x), ssr, n_params=len(seen))
 
 
@@ -555,7 +474,6 @@ GYRO_EFFECTS = (
     Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
            _saturation_values),
 )
-EFFECTS.update({e.name: e for e in GYRO_EFFECTS})
 
 
 # ----------------------------------------------------------------------------------------- detector side
@@ -580,7 +498,7 @@ def fit_detector_nonlinearity(ctx: StepContext, model: Model, max_curvature: flo
     def make(u):
         return dataclasses.replace(model, response=sensor.Response(level, float(u) * unit))
     grid = u0 + np.linspace(-max_curvature, max_curvature, 21)
-    x, ssr = _scalar_fit(ctx, make, grid, u0 - max_curvature, u0 + max_curvature, None)
+    x, ssr = scalar_fit(ctx, make, grid, u0 - max_curvature, u0 + max_curvature, None)
     return FitResult("detector_nonlinearity", make(x), ssr)
 
 
@@ -642,7 +560,7 @@ def _project_ffc_steps(ctx: StepContext, model: Model, here: set) -> Model:
 
     unit = 4.0      # counts: the Jacobian's step h = 1 count
     x0 = np.array([model.ffc[i].step_counts for i in idx]) / unit
-    x, _ = _vector_fit(ctx, make, [x0], unit, bound=float(np.max(np.abs(x0), initial=0.0)) + 1000.0)
+    x, _ = vector_fit(ctx, make, [x0], unit, bound=float(np.max(np.abs(x0), initial=0.0)) + 1000.0)
     return make(x)
 
 
@@ -656,10 +574,13 @@ def _ffc_values(model: Model, nominal: Model) -> dict:
             "step_counts": [e.step_counts for e in model.ffc]}
 
 
-EFFECTS.update({e.name: e for e in (
+DETECTOR_EFFECTS = (
     Effect("detector_nonlinearity", fit_detector_nonlinearity, "response", ("response",), _response_values),
     Effect("ffc_event", fit_ffc_event, "ffc", ("ffc",), _ffc_values),
-)})
+)
+
+# the vocabulary, in the order the search tries it
+EFFECTS: dict[str, Effect] = {e.name: e for e in (*CAMERA_EFFECTS, *GYRO_EFFECTS, *DETECTOR_EFFECTS)}
 CANDIDATES = tuple(EFFECTS)
 
 
