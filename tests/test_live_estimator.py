@@ -90,8 +90,11 @@ def test_without_the_tail_phase_the_offset_is_biased(recording):
     comes out milliseconds off."""
     rec, truth = recording
     est, integ = _window(rec, rec.calibration, tau_phase=False)
-    e = est.fit(rec.calibration, integ)
-    assert abs(e.time_offset_s - truth["time_offset"]) > 0.0015, e.as_dict()
+    biased = abs(est.fit(rec.calibration, integ).time_offset_s - truth["time_offset"])
+    est, integ = _window(rec, rec.calibration)
+    right = abs(est.fit(rec.calibration, integ).time_offset_s - truth["time_offset"])
+    # how far off depends on the scene's contrast (real or procedural), the ratio does not
+    assert biased > 0.001 and biased > 2 * right, (biased, right)
 
 
 def test_too_few_pairs_give_no_estimate(recording):
