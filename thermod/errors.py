@@ -19,3 +19,11 @@ class ConfigError(ThermodError):
 
 class DeviceError(ThermodError):
     """A device could not be opened, identified or read. The message says what to check."""
+
+
+class FileError(ThermodError):
+    """A file cannot be read or written as asked: names the file and the problem."""
+
+    def __init__(self, path, problem: str):
+        self.path, self.problem = str(path), problem
+        super().__init__(f"{path}: {problem}")

@@ -25,7 +25,6 @@ stage undoes the AGC (`thermod.calib.agc`) because its forward model needs one c
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Callable
@@ -216,4 +215,4 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration, at
 
 def frame_window_s(calib: Calibration) -> float:
     """The kernel window before a frame: 5τ plus the readout (Eq. 18)."""
-    return 5.0 * calib.tau_s + calib.readout_s if math.isfinite(calib.tau_s) else 0.0
+    return 5.0 * calib.tau_s + calib.readout_s

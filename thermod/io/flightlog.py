@@ -60,7 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.errors import ThermodError
+from thermod.errors import FileError
 
 MAX_FILE_BYTES = 4 * 2**30
 MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
@@ -94,12 +94,8 @@ def axis_aligned_rotations() -> np.ndarray:
     return np.array(sorted(out, key=lambda m: tuple(m.ravel())))
 
 
-class FlightLogError(ThermodError):
+class FlightLogError(FileError):
     """A flight log cannot be read as asked: names the file and what was expected."""
-
-    def __init__(self, path, problem: str):
-        self.path, self.problem = str(path), problem
-        super().__init__(f"{path}: {problem}")
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from thermod.errors import ThermodError
+from thermod.errors import FileError, ThermodError
 
 MAX_SIDE = 16384                  # px, as the recording format's calibration bounds
 MAX_FRAMES = 10_000_000
@@ -58,12 +58,8 @@ _DECODE_ERRORS = (av.error.FFmpegError, ValueError, UnicodeError, OSError, EOFEr
 _GREY16 = {"gray16le", "gray16be", "gray10le", "gray10be", "gray12le", "gray12be", "gray14le", "gray14be"}
 
 
-class VideoError(ThermodError):
+class VideoError(FileError):
     """A video or image sequence cannot be read or written as asked: names the file and the problem."""
-
-    def __init__(self, path, problem: str):
-        self.path, self.problem = str(path), problem
-        super().__init__(f"{path}: {problem}")
 
 
 @dataclass(frozen=True)

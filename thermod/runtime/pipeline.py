@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from thermod.physics.calibration import Calibration
+from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.restore.plan import (
     coarser_grids,
@@ -481,9 +482,7 @@ class Pipeline:
             kernel = job.kernel
             if varying and grid == (1, 1):
                 # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
-                d2 = ((np.asarray(job.kernel.centers) - np.array([(img.shape[0] - 1) / 2,
-                                                                  (img.shape[1] - 1) / 2])) ** 2).sum(axis=2)
-                r, c = np.unravel_index(int(np.argmin(d2)), d2.shape)
+                r, c = central_cell(job.kernel.centers, img.shape)
                 kernel = job.kernel.kernels[r][c]
                 job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape)}
             o = self._out(job.slot, out, True, None, job.info, kernel)

@@ -12,7 +12,7 @@ import numpy as np
 from .checks import DeconvError, check_image, check_kernel
 from .noise import NOISE_LAMBDA, NoiseLambda, noise_sigma, value_range_of
 from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, Plan, fast_len, pyfftw
-from .tiles import TILE_MARGIN_PX, moments, stack_kernels, tile_weights
+from .tiles import TILE_MARGIN_PX, central_cell, moments, stack_kernels, tile_weights
 from .wstep import (
     BETA_MAX,
     BETA_RATE,
@@ -262,8 +262,8 @@ class Deconvolver:
         checked = [check_kernel(kernels[r][c], f"grid.kernels[{r}][{c}]")
                    for r in range(nr) for c in range(nc)]
         weights, origins = stack_kernels(checked)
-        d2 = ((centers - np.array([(h - 1) / 2, (wd - 1) / 2])) ** 2).sum(axis=2)
-        mid = int(np.argmin(d2))
+        r, c = central_cell(centers, (h, wd))
+        mid = r * nc + c
         if uniform_tol_px > 0:
             mom = moments(weights, origins)
             if float(np.abs(mom - mom[mid]).max()) <= uniform_tol_px:

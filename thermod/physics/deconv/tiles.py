@@ -94,3 +94,11 @@ def kernel_spread(grid) -> float:
     ncols = len(checked[0])
     return max_moment_deviation(checked, checked[i // ncols][i % ncols])
 
+
+def central_cell(centers: np.ndarray, shape: tuple[int, int]) -> tuple[int, int]:
+    """(row, col) of the grid cell whose centre is nearest the image centre: the kernel a grid whose
+    cells all match is solved with (the uniform shortcut)."""
+    mid = np.array([(shape[0] - 1) / 2, (shape[1] - 1) / 2])
+    d2 = ((np.asarray(centers, np.float64) - mid) ** 2).sum(axis=2)
+    r, c = np.unravel_index(int(np.argmin(d2)), d2.shape)
+    return int(r), int(c)
