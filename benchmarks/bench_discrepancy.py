@@ -81,7 +81,7 @@ def main() -> None:
         _print(_motion_only_rows(1 if args.quick else max(1, args.repeat)))
         return
     nominal = Calibration()          # 640×480, the paper's camera
-    motion = mo.sequence([(mo.static(), 0.3), (mo.Ramped(mo.shake(2.0, 3), 0.04), None)])
+    motion = mo.sequence([(mo.static(), 0.3), (mo.shake(2.0, 3), None)])
     t0 = time.perf_counter()
     rec = simulate("real:1", motion, 0.8, nominal, {"netd": 0.05, "time_offset": 0.006}, seed=1)
     t_sim = time.perf_counter() - t0
@@ -127,7 +127,7 @@ def deblur_detector_effects() -> None:
 
     intr = Calibration().intrinsics.scaled(0.25)
     nominal = Calibration(width=160, height=120, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy)
-    motion = mo.sequence([(mo.static(), 0.15), (mo.Ramped(mo.shake(2.0, 3), 0.04), None)])
+    motion = mo.sequence([(mo.static(), 0.15), (mo.shake(2.0, 3), None)])
     effects = {"netd": 0.05, "fpn": 0.05, "ffc_event": (0.3, 0.08, 20.0)}
     rec = simulate("texture", motion, 0.5, nominal, effects, seed=1)
     t0 = time.perf_counter()

@@ -35,7 +35,7 @@ from thermod.sim import motion as mo
 from thermod.sim.scenes import scene_source
 
 log = logging.getLogger(__name__)
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)

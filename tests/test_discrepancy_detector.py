@@ -34,7 +34,7 @@ WORK_WIDTH = 80
 
 
 def motion(seed: int = 3):
-    return mo.sequence([(mo.static(), 0.15), (mo.Ramped(mo.shake(2.0, seed), 0.04), None)])
+    return mo.sequence([(mo.static(), 0.15), (mo.shake(2.0, seed), None)])
 
 
 def record(effects: dict, seconds: float = 0.5):

@@ -274,7 +274,7 @@ def _motion(broadband: bool, seed: int = 3):
     inner = mo.shake(2.0, seed)
     if broadband:
         inner = mo.Summed(inner, mo.vibration(15.0, 10.0, seed))
-    return mo.sequence([(mo.static(), 0.2), (mo.Ramped(inner, 0.04), None)])
+    return mo.sequence([(mo.static(), 0.2), (inner, None)])
 
 
 _CACHE: dict = {}

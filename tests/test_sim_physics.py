@@ -6,6 +6,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from scipy.integrate import cumulative_trapezoid
 
 from thermod.errors import ThermodError
 from thermod.io import recording
@@ -307,11 +308,36 @@ def test_bad_effects_and_specs_raise_clear_errors():
 
 # ----------------------------------------------------------------------------- motion
 
+def test_the_recorded_gyro_integrates_to_the_true_attitude_across_a_motion_onset():
+    """The README's calibration motion (a static lead-in, then shake): the recorded 1 kHz gyro,
+    integrated as every consumer integrates it, gives the truth's frame attitudes to 0.02 mrad (a rate
+    step at the onset would leave ½·Δω·Δt, which a fit takes for a gyro bias or a time offset)."""
+    from thermod.calib.forward import orientations
+    from thermod.physics.geometry import so3_log
+
+    rec = synth.simulate("bars", "static:0.3+shake:4", 0.8, SMALL, seed=0)
+    t_cam, w_cam = rec.calibration.gyro_to_camera(rec.gyro_t, rec.gyro_rate.astype(np.float64))
+    Q = orientations(rec.t, t_cam, w_cam, rec.t[0])
+    R = rec.extras["truth/frame_R"]
+    err = [np.linalg.norm(so3_log((R[0].T @ R[k]).T @ Q[k])) for k in range(len(rec.t))]
+    assert max(err) < 2e-5, max(err)
+
+
 def test_motion_specs_and_sequences():
     m = motion.parse("static:0.3+pan:50")
-    w = m.omega(np.array([-0.1, 0.1, 0.29, 0.31, 2.0]))
+    w = m.omega(np.array([-0.1, 0.1, 0.29, 0.31, 0.33, 2.0]))
     np.testing.assert_allclose(w[:3], 0)
-    np.testing.assert_allclose(w[3:, 1], 50 * DEG)
+    np.testing.assert_allclose(w[3:, 1], [0.25 * 50 * DEG, 50 * DEG, 50 * DEG])   # raised cosine over 30 ms
+    # the rate is continuous at every boundary, so a 1 kHz gyro interpolated linearly integrates to the
+    # attitude the fine-time truth has (a step leaves up to ½·Δω·Δt)
+    seq = motion.parse("static:0.3+shake:4:0.5+pan:50")
+    fine = np.arange(0.0, 1.2, 1e-5)
+    t_gyro = np.arange(0.0, 1.2, 1e-3) + 0.37e-3                  # boundaries fall between the samples
+    theta_fine = cumulative_trapezoid(seq.omega(fine), fine, axis=0, initial=0.0)
+    theta_gyro = cumulative_trapezoid(seq.omega(t_gyro), t_gyro, axis=0, initial=0.0)
+    theta_gyro = np.stack([np.interp(fine, t_gyro, theta_gyro[:, a]) for a in range(3)], axis=1)
+    drift = (theta_fine - theta_gyro) - (theta_fine - theta_gyro)[np.searchsorted(fine, 0.1)]
+    assert np.abs(drift[(fine > 0.1) & (fine < 1.1)]).max() < 6e-5, np.abs(drift).max()   # steps: 3.5e-4
     np.testing.assert_allclose(motion.parse("roll:30").omega(0.0), [[0, 0, 30 * DEG]])
     np.testing.assert_allclose(motion.parse("pan:20:pitch").omega(0.0), [[20 * DEG, 0, 0]])
     s = motion.parse("slew:90:yaw:0.2:0.3")
