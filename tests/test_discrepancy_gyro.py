@@ -196,6 +196,23 @@ def test_run_gains_continue_each_clipped_run_on_its_own():
     assert final.gyro_clip_run_gains == () and final.gyro_clip_gain == 1.0
 
 
+def test_every_effect_can_be_taken_out_of_a_model_that_has_all_of_them():
+    """Backward elimination puts each named effect back to nominal; the result must be a valid
+    calibration whatever else the model holds (a saturation with per-run gains included)."""
+    from thermod.calib import discrepancy as D
+
+    nominal = D.Model(Calibration())
+    full = D.Model(Calibration(gyro_range_rad_s=2.0, gyro_clip_gain=1.2, gyro_clip_run_gains=(0.8, 1.1),
+                               time_offset_s=0.004, readout_s=0.01, bias_rad_s=(0.01, 0.0, -0.01)),
+                   extra_psf_px=0.5)
+    for name, effect in D.EFFECTS.items():
+        reduced = effect.without(full, nominal)
+        for f in effect.fields:
+            got = getattr(reduced, f) if hasattr(reduced, f) and f != "calib" else getattr(reduced.calib, f)
+            want = getattr(nominal, f) if hasattr(nominal, f) and f != "calib" else getattr(nominal.calib, f)
+            assert got == want, (name, f)
+
+
 def test_a_quantised_log_is_not_taken_for_a_clipped_one():
     # A log quantised to whole °/s piles samples up at an axis's own peak. The real log's
     # roll-dominated stretch sat at exactly 15 °/s for a while on its quiet axis while another axis

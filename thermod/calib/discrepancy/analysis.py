@@ -177,11 +177,38 @@ def _try(effect: Effect, ctx: StepContext, model: Model, ev: Evaluation) -> Cand
 
 
 def _refit(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nominal: Model, say) -> Model:
-    """Refit each effect once in turn with everything else in place, keeping what lowers the SSR.
+    """Refit each effect once in turn with everything else in place, keeping what lowers the SSR;
+    then, for an effect with flexible parameters (`Effect.collapse`), the same from the model with
+    them folded, that effect last, kept when the SSR ends lower.
 
     Effects named early absorb part of the ones found later, and an FPN estimate made under an
-    older model absorbs part of the newest effect: this one loop serves both.
+    older model absorbs part of the newest effect: this one loop serves both. Flexible parameters
+    (a gain per clipped run) can hold what a later effect (a bias) should explain, and a refit in
+    turn does not leave that basin: the folded restart does.
     """
+    problem = ctx.problem
+    model = _refit_in_turn(ctx, model, effects, fpn, nominal, say)
+    for effect in effects:
+        start = effect.collapse(model) if effect.collapse is not None and len(effects) > 1 else None
+        if start is None:
+            continue
+        problem.refresh(model, fpn=fpn)
+        ssr = problem.evaluate(model).ssr
+        problem.refresh(start, fpn=fpn)
+        alt = _refit_in_turn(ctx, start, [e for e in effects if e is not effect] + [effect], fpn, nominal,
+                             lambda msg: None)
+        problem.refresh(alt, fpn=fpn)
+        if problem.evaluate(alt).ssr < ssr:
+            model = alt
+            say(f"  refit from one {effect.name} parameter set: "
+                + "; ".join(format_params(e.values(model, nominal)) for e in effects))
+        else:
+            problem.refresh(model, fpn=fpn)
+    return model
+
+
+def _refit_in_turn(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nominal: Model,
+                   say) -> Model:
     problem = ctx.problem
     for effect in effects:
         f = effect.fit(ctx, model)

@@ -45,6 +45,9 @@ class Effect:
     reported as the time offset it amounts to.
     implies: effects whose fields its fit may move, and only where the data demand it (the readout's
     centred fit moves the time offset): when the fit that is named moved them, they are named with it.
+    collapse(model) -> Model | None: `model` with this effect's most flexible parameters folded into
+    fewer (per-run gains into one), None when there is nothing to fold. Flexible parameters absorb
+    an effect that is named after them; the refit restarts from the folded model to get out.
     """
 
     name: str
@@ -54,6 +57,7 @@ class Effect:
     values: Callable[[Model, Model], dict]
     simpler: str = ""
     implies: tuple[str, ...] = ()
+    collapse: Callable[[Model], Model | None] | None = None
 
     def without(self, model: Model, nominal: Model) -> Model:
         """`model` with every field this effect owns put back to `nominal`'s value."""
@@ -418,8 +422,6 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
             "clip to see)"])
     c0 = model.calib
     per_run = len(ctx.recs) == 1 and bool(np.any(reach[0] >= MIN_CONTINUATION_PX))
-    if per_run and ctx.warm and c0.gyro_clip_run_gains and c0.gyro_range_rad_s == level:
-        return _fit_run_gains(ctx, model, level, reach[0], np.array(c0.gyro_clip_run_gains), max_gain)
 
     def make(g):
         return with_calib(model, gyro_range_rad_s=float(level), gyro_clip_gain=float(g),
@@ -429,6 +431,12 @@ def fit_gyro_saturation(ctx: StepContext, model: Model, max_gain: float = 3.0,
     if per_run:
         two_sided = [c.two_sided for c in runs[0]]
         each = _fit_run_gains(ctx, best.model, level, reach[0], np.where(two_sided, x, 0.0), max_gain)
+        if ctx.warm and c0.gyro_clip_run_gains and c0.gyro_range_rad_s == level:
+            # Refitted under a model that has since gained an effect: the gains the runs took while
+            # that effect was missing (absorbing part of it) are a start, not an answer; the fresh
+            # start from the common gain competes, and per-run gains must again beat one gain.
+            warm = _fit_run_gains(ctx, model, level, reach[0], np.array(c0.gyro_clip_run_gains), max_gain)
+            each = min(each, warm, key=lambda f: f.ssr)
         if (ctx.delta_bic(ssr, each.ssr, each.n_params - 1) > bic_min
                 and ssr - each.ssr >= ctx.min_gain):
             best = each
@@ -451,6 +459,11 @@ def _fit_run_gains(ctx: StepContext, model: Model, level: float, reach: np.ndarr
     return FitResult("gyro_saturation", make(x), ssr, n_params=len(seen))
 
 
+def _one_clip_gain(model: Model) -> Model | None:
+    c = model.calib
+    return with_calib(model, gyro_clip_run_gains=()) if c.gyro_clip_run_gains else None
+
+
 def _lowpass_values(model: Model, nominal: Model) -> dict:
     fc = model.calib.gyro_lowpass_hz
     return {"gyro_lowpass_hz": fc, "group_delay_s": group_delay_s(fc) if fc else 0.0}
@@ -471,8 +484,9 @@ GYRO_EFFECTS = (
            _calib_values("clock_drift_ppm", "clock_epoch_s", "time_offset_s"), simpler="time_offset"),
     Effect("gyro_lowpass", fit_gyro_lowpass, "lag_freq", ("gyro_lowpass_hz", "time_offset_s"),
            _lowpass_values, simpler="time_offset"),
-    Effect("gyro_saturation", fit_gyro_saturation, "clip", ("gyro_range_rad_s", "gyro_clip_gain"),
-           _saturation_values),
+    Effect("gyro_saturation", fit_gyro_saturation, "clip",
+           ("gyro_range_rad_s", "gyro_clip_gain", "gyro_clip_run_gains"), _saturation_values,
+           collapse=_one_clip_gain),
 )
 
 
