@@ -84,24 +84,41 @@ class Estimate:
 
 # ---------------------------------------------------------------------------------- numba passes
 @njit(cache=True, nogil=True)
-def _predict_x0(K2, g2, c, P, norm, out):
-    """out = norm · H · P, H = |K|² / (|K|² + c |F∇|²): the single solve's output for data k ⊛ p."""
+def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, H, W, I):
+    """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
+    Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
+    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm Π / (|K|² + (1 − β) R + Π)
+    (the correction's), I = |K|² + A T² (this frame's information). Returns the mean over the full
+    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval)."""
     h, w = K2.shape
+    acc = 0.0
+    n = 0.0
+    full_w = 2 * (w - 1)
     for i in range(h):
         for j in range(w):
+            v = info[rows[i], cols[j]]
+            a = gain * v / (1.0 + q * v) if v > 0 else 0.0
             k2 = K2[i, j]
-            out[i, j] = norm * (k2 / (k2 + c * g2[i, j] + 1e-12)) * P[i, j]
+            r = c * g2[i, j]
+            t2 = T2[i, j]
+            d = k2 + r + 1e-12
+            H[i, j] = norm * k2 / d
+            p = (a + beta * r) * t2
+            W[i, j] = norm * p / (k2 + (1.0 - beta) * r + p + 1e-12)
+            I[i, j] = k2 + a * t2
+            m = 1.0 if (j == 0 or (j == w - 1 and full_w % 2 == 0)) else 2.0
+            acc += m * k2 / (d * d)
+            n += m
+    return acc / n
 
 
 @njit(cache=True, nogil=True)
-def _correct(K2, A, T2, g2, c, beta, D, norm, out):
-    """out = norm · w · D, w = Π / (|K|² + (1 − β) R + Π), Π = (A + β R) T², R = c |F∇|²."""
-    h, w = K2.shape
+def _weigh(wgt, X, out):
+    """out = wgt · X (a real weight per frequency)."""
+    h, w = X.shape
     for i in range(h):
         for j in range(w):
-            r = c * g2[i, j]
-            p = (A[i, j] + beta * r) * T2[i, j]
-            out[i, j] = norm * (p / (K2[i, j] + (1 - beta) * r + p + 1e-12)) * D[i, j]
+            out[i, j] = X[i, j] * wgt[i, j]
 
 
 _INTERP_REACH = {cv2.INTER_LINEAR: 1, cv2.INTER_CUBIC: 2, cv2.INTER_LANCZOS4: 4}
@@ -131,23 +148,6 @@ def interpolation_gain(interpolation: int, f: np.ndarray) -> np.ndarray:
         w /= w.sum()
         acc += np.real(np.exp(2j * np.pi * np.outer(f, k - s)) @ w)
     return np.clip(acc / len(shifts), 0.0, 1.0)
-
-
-@njit(cache=True, nogil=True)
-def _noise_gain(K2, g2, c):
-    """mean over the full spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain)."""
-    h, w = K2.shape
-    acc = 0.0
-    n = 0.0
-    full_w = 2 * (w - 1)
-    for i in range(h):
-        for j in range(w):
-            k2 = K2[i, j]
-            d = k2 + c * g2[i, j] + 1e-12
-            m = 1.0 if (j == 0 or (j == w - 1 and full_w % 2 == 0)) else 2.0
-            acc += m * k2 / (d * d)
-            n += m
-    return acc / n
 
 
 @njit(cache=True, nogil=True)
@@ -190,15 +190,6 @@ def _fill_difference(p, x0, m, lo, scale, out):
                 out[i, j] = m[i, j] * (p[i, j] - x0[i, j]) * scale
             else:
                 out[i, j] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def _carry(info, rows, cols, gain, q, out):
-    """out = gain / (1/I + q) on the new half spectrum, I sampled at the nearest old frequency."""
-    for i in range(rows.shape[0]):
-        for j in range(cols.shape[0]):
-            v = info[rows[i], cols[j]]
-            out[i, j] = gain * v / (1.0 + q * v) if v > 0 else 0.0
 
 
 def _frequency_index(n_new: int, n_old: int, half: bool) -> np.ndarray:
@@ -302,14 +293,15 @@ class RecursiveDeconvolver:
         if grid and cells > 1:
             self.last_fft_pairs += 0.5             # the central kernel's frame-sized OTF
         c = np.float32(1.0 / lam)
-        out, A = x0, None
+        out, info = x0, None
         self.last_prior_frames, self.last_weight = 0, 0.0
         past = prior() if callable(prior) else prior
         if past is not None and getattr(kernel, "coverage", 1.0) >= self.min_coverage:
             got = self._correct(img, x0, past, t_frame, gyro_t, gyro_rate, lo, hi, plan, K2, c)
             if got is not None:
-                out, A = got
-        info = K2.copy() if A is None else K2 + A
+                out, info = got
+        if info is None:
+            info = K2.copy()
         self.last_seconds = (t1 - t0, time.perf_counter() - t1)
         self.last_cpu_seconds = (c1 - c0, time.thread_time() - c1)
         return out, Estimate(out, t_frame, info, shape)
@@ -323,7 +315,7 @@ class RecursiveDeconvolver:
         self.last_fft_pairs_single = self.last_fft_pairs = pairs
 
     def _correct(self, img, x0, past: Estimate, t_frame, gyro_t, gyro_rate, lo, hi, plan, K2, c):
-        """(x, A) with the prior `past` entered, or None when it cannot be (too old, no gyro, no overlap)."""
+        """(x, I) with the prior `past` entered, or None when it cannot be (too old, no gyro, no overlap)."""
         age = t_frame - float(past.t_frame)
         if not 0 < age <= self.max_age_s or past.image.shape != img.shape:
             return None
@@ -343,19 +335,20 @@ class RecursiveDeconvolver:
         gy, gx = np.diff(p[::2, ::2], axis=0), np.diff(p[::2, ::2], axis=1)
         grad2 = 0.5 * (float(np.mean(gy * gy)) + float(np.mean(gx * gx))) * float(scale) ** 2 / 4.0
         q = self.registration_px ** 2 * grad2 / sigma ** 2
-        A = np.empty_like(K2)
         rows = _frequency_index(plan.shape[0], past.shape[0], half=False)
         cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
-        _carry(past.info, rows, cols, np.float32(self.memory ** n), np.float32(n * q), A)
-        T2 = self._gain(plan.shape)
+        Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
+        noise_gain = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
+                                       self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
+                                       float(plan.norm), Hw, Ww, info)
         # the disagreement test: x₀ against the single solve's output for data k ⊛ p
         H, W = img.shape
         prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
-        _predict_x0(K2, plan.g2, c, plan.fwd(), plan.norm, plan.cin)
+        _weigh(Hw, plan.fwd(), plan.cin)
         r2 = np.empty_like(x0)
         _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
         e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
-        expected = sigma * sigma * _noise_gain(K2, plan.g2, c)
+        expected = sigma * sigma * noise_gain
         inside = e[::4, ::4][ok]
         ref = max(expected, float(np.median(inside)) if inside.size else expected)
         dlo, dhi = DISAGREE
@@ -365,11 +358,11 @@ class RecursiveDeconvolver:
         self.last_prior_frames = n
         # the correction x₀ + F⁻¹[w F(m (p − x₀))]
         _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
-        _correct(K2, A, T2, plan.g2, c, np.float32(PRIOR_REG), plan.fwd(), plan.norm, plan.cin)
+        _weigh(Ww, plan.fwd(), plan.cin)
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
         self.last_fft_pairs += 2.0
-        return out, A * T2
+        return out, info
 
     def _gain(self, shape) -> np.ndarray:
         """|T(f)|² of the warp's interpolation on the half spectrum of `shape` (cached per shape)."""
