@@ -8,7 +8,7 @@ latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro sampl
     .venv/bin/python benchmarks/bench_daemon.py --squeeze [--seconds 30]     # the governor table
     .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
     .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
-    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30]    # temporal vs single-frame
+    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240]  # vs single
 
 `--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
 alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
@@ -26,7 +26,7 @@ overload passes frames through raw). Prints fps, frames published, deblurred %, 
 and the methods the frames name in their headers. The machine's load average is printed with it.
 
 `--temporal`: the default daemon (temporal rungs) against the single-frame default before them
-(``deblur.temporal_views=1``), 640×480 at 50 fps, runs interleaved (temporal, single, temporal,
+(``deblur.temporal_views=1``), 640×480 (or `--size`) at 50 fps, runs interleaved (temporal, single, temporal,
 single) so that the shared machine's load hits both alike: share deblurred and deblurred by a
 temporal rung, latency, and the PSNR of every `KEEP_EVERY`-th published frame against the simulated
 payload's truth (`SimPayload.truth_for`; the central 80 % of the frame, the truth's 0.1–99.9 %
@@ -193,12 +193,14 @@ def truth_psnr(img: np.ndarray, truth: np.ndarray) -> float:
     return 10 * np.log10((hi - lo) ** 2 / mse)
 
 
-def temporal(seconds: float, fps: float = 50.0, repeats: int = 2) -> list[dict]:
+def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
+             size: tuple[int, int] = (640, 480)) -> list[dict]:
     """The default daemon (temporal) and the single-frame default, interleaved; PSNR against the truth."""
     from thermod.runtime import config
     from thermod.sim.payload import SimPayload
 
-    cfg = config.load(overrides={"sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
+    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
+    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
     payload = SimPayload(cfg.sim, cfg.calibration)
     payload.prepare()
     rows = []
@@ -206,7 +208,7 @@ def temporal(seconds: float, fps: float = 50.0, repeats: int = 2) -> list[dict]:
         for name, extra in (("temporal (default)", ()), ("single-frame (temporal_views = 1)",
                                                           ("deblur.temporal_views=1",))):
             print(f"temporal: {name}, run {rep + 1} …", file=sys.stderr, flush=True)
-            r = run_daemon(fps, seconds, "kf", extra=extra, keep_every=KEEP_EVERY)
+            r = run_daemon(fps, seconds, "kf", extra=extra, keep_every=KEEP_EVERY, size=size)
             r.update(setup=name, loadavg=os.getloadavg()[0],
                      psnr=[truth_psnr(img, payload.truth_for(fid)) for fid, img in r.pop("kept")])
             rows.append(r)
@@ -214,7 +216,8 @@ def temporal(seconds: float, fps: float = 50.0, repeats: int = 2) -> list[dict]:
 
 
 def print_temporal(rows: list[dict]) -> None:
-    print(f"default daemon (K&F configured, adaptive grid, multirotor roll), 640×480 at {rows[0]['fps']:g} "
+    w, h = rows[0]["size"]
+    print(f"default daemon (K&F configured, adaptive grid, multirotor roll), {w}×{h} at {rows[0]['fps']:g} "
           "fps; targets: all published, ≥ 99 % deblurred temporally, p99 ≤ 60 ms")
     print("| daemon | s | frames | all published | deblurred % | temporal % | p50 ms | p99 ms "
           "| PSNR median dB (frames) | deblurred by | not deblurred | load avg (1 min) |")
@@ -416,7 +419,7 @@ def main(argv=None) -> int:
         print_squeeze(squeeze(seconds))
         return 0
     if args.temporal:
-        print_temporal(temporal(seconds))
+        print_temporal(temporal(seconds, size=size))
         return 0
 
     pc = payload_cpu(10.0 if args.quick else 20.0, size)

@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     ap.add_argument("--score", type=int, default=5, help="scored frames at the end of each stream")
     ap.add_argument("--memory", type=float, default=MEMORY)
     ap.add_argument("--registration-px", type=float, default=REGISTRATION_PX)
-    ap.add_argument("--interpolation", choices=tuple(INTERPOLATIONS), default="lanczos4",
+    ap.add_argument("--interpolation", choices=tuple(INTERPOLATIONS), default="cubic",
                     help="the warp's cv2 interpolation")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     args = ap.parse_args(argv)

@@ -9,10 +9,10 @@ deblurring (``temporal_views`` > 1, the default) the ladder is, best first:
               the frame needs, coarsened (6×8 → … → 2×3 → 1×1 = uniform) when that does not fit
     wiener    one Tikhonov solve of the frame alone, its grid coarsened likewise
 
-K&F has no rung there, whatever ``method`` says: alone it restores less than ``temporal`` at about
-its cost, and under the recursion it restores less than Wiener does (its solution is not the
-linear one the update assumes; benchmarks/results/temporal_daemon.md). With ``temporal_views = 1``
-it is the single-frame ladder:
+K&F has no rung there, whatever ``method`` says: alone it restores less than ``temporal`` (0.7–0.8
+dB at NETD 10–60 mK), and as the recursion's own solve it restores about as much (−0.3 to +0.2 dB)
+for 1.6× the CPU (benchmarks/results/temporal_daemon.md). With ``temporal_views = 1`` it is the
+single-frame ladder:
 
     kf        K&F (hyper-Laplacian, six β steps) over the kernel grid the frame needs
     kf_fast   K&F with three β steps (β = 1, 8, 64: the same continuation, coarser), same grid
