@@ -256,7 +256,12 @@ class Pipeline:
         tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
         # a roll: a grid of distinct kernels, so that the tiles' plans are built too
         rate = np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
-        img = np.zeros(self.frame_ring.shape, np.float32)
+        # a frame like a camera's (structure and noise): the solvers' costs depend on the content (a flat
+        # frame's robust range and spectra come cheap), and the governor lives on their ratios
+        h, w_px = self.frame_ring.shape
+        yy, xx = np.mgrid[:h, :w_px]
+        img = (8000.0 + 200.0 * np.sin(xx / 7.0) * np.cos(yy / 11.0)
+               + np.random.default_rng(0).normal(0.0, 10.0, (h, w_px))).astype(np.float32)
         uniform, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="uniform"))
         grids = []
         if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
