@@ -8,6 +8,7 @@ latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro sampl
     .venv/bin/python benchmarks/bench_daemon.py --squeeze [--seconds 30]     # the governor table
     .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
     .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
+    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240]  # vs single
 
 `--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
 alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
@@ -23,6 +24,13 @@ cores, `taskset -c 0` (one core), and one core shared with a busy-loop process p
 CPU load generator) — with the governor on and off (``deblur.governor=false``: the fixed method,
 overload passes frames through raw). Prints fps, frames published, deblurred %, latency p50/p99
 and the methods the frames name in their headers. The machine's load average is printed with it.
+
+`--temporal`: the default daemon (temporal rungs) against the single-frame default before them
+(``deblur.temporal_views=1``), 640×480 (or `--size`) at 50 fps, runs interleaved (temporal, single, temporal,
+single) so that the shared machine's load hits both alike: share deblurred and deblurred by a
+temporal rung, latency, and the PSNR of every `KEEP_EVERY`-th published frame against the simulated
+payload's truth (`SimPayload.truth_for`; the central 80 % of the frame, the truth's 0.1–99.9 %
+range), with the machine's load average.
 
 Latency is the publisher's ``published`` stamp minus the frame's ``t`` (both host CLOCK_MONOTONIC,
 the same clock for daemon and subscriber on one machine). The first 3 s after READY are not
@@ -49,6 +57,7 @@ from thermod.cli.watch import method_label
 REPO = Path(__file__).resolve().parents[1]
 THERMOD = Path(sys.executable).with_name("thermod")
 WARM_S = 3.0
+KEEP_EVERY = 5          # --temporal: every 5th frame is kept for its PSNR against the truth
 
 
 def free_port() -> int:
@@ -77,7 +86,7 @@ def size_settings(size: tuple[int, int]) -> tuple[str, ...]:
 
 
 def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, cpus: str | None = None,
-               extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480)) -> dict:
+               extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480), keep_every: int = 0) -> dict:
     from thermod.client.subscriber import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
@@ -93,7 +102,7 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
     err_lines: list[str] = []
     threading.Thread(target=lambda: err_lines.extend(proc.stderr), daemon=True).start()
-    frames, gyro, health, rss = [], [], [], []
+    frames, gyro, health, rss, kept = [], [], [], [], []
     t_ready = None
     try:
         with Subscriber(ep, topics=("frame", "gyro", "health"), rcvhwm=100000) as sub:
@@ -117,6 +126,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
                 if topic == "frame":
                     frames.append((h["frame_id"], h["deblurred"], h["published"] - h["t"], h["reason"],
                                    method_label(h) if h["deblurred"] else None))
+                    if keep_every and h["frame_id"] % keep_every == 0:
+                        kept.append((h["frame_id"], np.array(a, np.float32)))
                 elif topic == "gyro":
                     gyro.append((h["sample_seq"], h["n"], h["gap_before"]))
                 else:
@@ -169,7 +180,55 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
         "lost_where": {k: v for k, v in lost_where.items() if v}, "methods": methods,
         "governor": last.get("governor", {}),
         "governor_trace": [(h.get("governor") or h.get("pipeline", {}).get("governor", {})) for h in health],
+        "kept": kept,
     }
+
+
+def truth_psnr(img: np.ndarray, truth: np.ndarray) -> float:
+    """PSNR (dB) over the central 80 % of the frame, peak = the truth's 0.1–99.9 % range there."""
+    h, w = truth.shape
+    m = (slice(h // 10, h - h // 10), slice(w // 10, w - w // 10))
+    lo, hi = np.percentile(truth[m], [0.1, 99.9])
+    mse = float(np.mean((img[m].astype(np.float64) - truth[m]) ** 2))
+    return 10 * np.log10((hi - lo) ** 2 / mse)
+
+
+def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
+             size: tuple[int, int] = (640, 480)) -> list[dict]:
+    """The default daemon (temporal) and the single-frame default, interleaved; PSNR against the truth."""
+    from thermod.runtime import config
+    from thermod.sim.payload import SimPayload
+
+    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
+    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
+    payload = SimPayload(cfg.sim, cfg.calibration)
+    payload.prepare()
+    rows = []
+    for rep in range(repeats):
+        for name, extra in (("temporal (default)", ()), ("single-frame (temporal_views = 1)",
+                                                          ("deblur.temporal_views=1",))):
+            print(f"temporal: {name}, run {rep + 1} …", file=sys.stderr, flush=True)
+            r = run_daemon(fps, seconds, "kf", extra=extra, keep_every=KEEP_EVERY, size=size)
+            r.update(setup=name, loadavg=os.getloadavg()[0],
+                     psnr=[truth_psnr(img, payload.truth_for(fid)) for fid, img in r.pop("kept")])
+            rows.append(r)
+    return rows
+
+
+def print_temporal(rows: list[dict]) -> None:
+    w, h = rows[0]["size"]
+    print(f"default daemon (K&F configured, adaptive grid, multirotor roll), {w}×{h} at {rows[0]['fps']:g} "
+          "fps; targets: all published, ≥ 99 % deblurred temporally, p99 ≤ 60 ms")
+    print("| daemon | s | frames | all published | deblurred % | temporal % | p50 ms | p99 ms "
+          "| PSNR median dB (frames) | deblurred by | not deblurred | load avg (1 min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        temporal_n = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
+        print(f"| {r['setup']} | {r['seconds']:g} | {r['frames']}/{r['expected']} | "
+              f"{'yes' if r['published_all'] else 'NO'} | {r['deblurred_pct']:.1f} | "
+              f"{100 * temporal_n / r['frames']:.1f} | {r['p50_ms']:.1f} | {r['p99_ms']:.1f} | "
+              f"{np.median(r['psnr']):.2f} ({len(r['psnr'])}) | {methods_text(r)} | {r['reasons'] or '-'} "
+              f"| {r['loadavg']:.1f} |")
 
 
 def payload_cpu(seconds: float, size: tuple[int, int] = (640, 480), fps: float = 50.0) -> dict:
@@ -341,6 +400,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fps", default="50,60")
     ap.add_argument("--squeeze", action="store_true", help="only the governor table (fewer/slower cores)")
     ap.add_argument("--size", default="640x480", help="the simulated camera's W×H (e.g. 1280x1024)")
+    ap.add_argument("--temporal", action="store_true",
+                    help="only the temporal table: the default daemon vs the single-frame default, PSNR")
     ap.add_argument("--large", action="store_true",
                     help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
@@ -356,6 +417,9 @@ def main(argv=None) -> int:
         return 0
     if args.squeeze:
         print_squeeze(squeeze(seconds))
+        return 0
+    if args.temporal:
+        print_temporal(temporal(seconds, size=size))
         return 0
 
     pc = payload_cpu(10.0 if args.quick else 20.0, size)

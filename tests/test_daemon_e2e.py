@@ -21,6 +21,7 @@ import pytest
 from thermod.client.subscriber import Subscriber
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config
+from thermod.runtime.pipeline import START_COVERAGE
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,7 +161,10 @@ def test_thermod_run_end_to_end(payload):
         e_deb = np.sqrt(np.mean((frames[i][1][m] - truth) ** 2))
         ratios.append(e_deb / e_raw)
         h = frames[i][0]
-        assert h["coverage"] > 0.99 and h["kernel_size"][0] >= 1 and h["n_samples"] >= 30
+        # the first frames' kernel windows may reach back before the gyro stream's first sample: they
+        # are deblurred when the kernel keeps ≥ 90 % of its weight (pipeline.START_COVERAGE)
+        assert h["coverage"] > (0.99 if i > 3 else START_COVERAGE) and h["kernel_size"][0] >= 1 \
+            and h["n_samples"] >= 30
     print(f"deblurred {len(deb)}/{len(ids)} frames; RMSE to truth deblurred/raw median "
           f"{np.median(ratios):.3f}, max {np.max(ratios):.3f}")
     assert np.median(ratios) < E2E_RATIO_LIMIT, np.median(ratios)

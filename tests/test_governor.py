@@ -30,12 +30,13 @@ sys.path.insert(0, os.path.dirname(__file__))
 from collecting import Collector  # noqa: E402
 
 FPS = 50.0
+SINGLE = DeblurConfig(temporal_views=1)      # the single-frame ladder: K&F → K&F 3 steps → Wiener
 
 
 def seeded(deblur=None, workers=2, **kw):
     """A governor with the costs of a machine where everything fits (ms): K&F 10 (3×4 grid: 20),
     K&F 3 steps 6 (12), Wiener 3 (6). Budget at 50 fps, 2 workers: min(40, 30) × 0.85 = 25.5 ms."""
-    g = Governor(deblur or DeblurConfig(), FPS, workers, **kw)
+    g = Governor(deblur or SINGLE, FPS, workers, **kw)
     costs_ms = (("kf", 1, 10), ("kf", 12, 20), ("kf_fast", 1, 6), ("kf_fast", 12, 12), ("wiener", 1, 3),
                 ("wiener", 12, 6))
     for fam, cells, ms in costs_ms:
@@ -60,10 +61,16 @@ def test_budget_and_ladder_follow_the_configuration():
     g = Governor(DeblurConfig(), FPS, 2)
     assert g.budget_s == pytest.approx(0.030 * 0.85)               # max_solve_s binds at 2 workers
     assert Governor(DeblurConfig(), FPS, 1).budget_s == pytest.approx(0.020 * 0.85)   # one frame period
-    assert [r.name for r in ladder(DeblurConfig())] == ["kf", "kf_fast", "wiener"]
-    assert [r.varying for r in ladder(DeblurConfig())] == [True, True, True]
-    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == ["wiener"]
+    assert [r.name for r in ladder(SINGLE)] == ["kf", "kf_fast", "wiener"]
+    assert [r.varying for r in ladder(SINGLE)] == [True, True, True]
+    assert [r.name for r in ladder(DeblurConfig(method="wiener", temporal_views=1))] == ["wiener"]
     assert not any(r.varying for r in ladder(DeblurConfig(mode="uniform")))
+    # temporal (the default): the recursive rungs first; the Wiener-based one coarsens before giving up
+    default = ladder(DeblurConfig())
+    assert [r.name for r in default] == ["temporal", "wiener"]
+    assert [(r.temporal, r.coarsens, r.method) for r in default] == [(True, True, "wiener"),
+                                                                      (False, True, "wiener")]
+    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == ["temporal", "wiener"]
     assert coarser_grids((3, 4), 4 / 3) == [(3, 4), (2, 3), (1, 1)]
 
 
@@ -194,31 +201,58 @@ def test_a_job_that_waited_longer_than_a_solve_may_take_is_caught_up_by_the_chea
     assert caught_up and rung.name == "wiener"
     g.overloaded(1.0)                                                   # stepped down since it was queued
     assert rung_for(g, c, 0.010) == (g.rungs[1], False)
-    off = seeded(DeblurConfig(governor=False))
+    off = seeded(DeblurConfig(governor=False, temporal_views=1))
     c = off.choose((3, 4), 0.0)
     assert rung_for(off, c, 1.0) == (c.rung, False)                     # governor off: the method stays
+    t = Governor(DeblurConfig(), FPS, 2)
+    t.seed("temporal", 1, 8e-3)
+    c = t.choose((1, 1), 0.0)
+    assert rung_for(t, c, 0.030) == (c.rung, True)                      # temporal drains at its own pace
 
 
-def test_overload_steps_down_and_the_last_rung_stays():
+def test_overload_steps_down_unless_it_was_a_stall_and_the_last_rung_stays():
     g = seeded()
+    g.choose((3, 4), 0.0)                 # K&F over 3×4: 20 ms, above the climb threshold (19.1 ms)
     g.overloaded(0.0)
     assert g.rungs[g.index].name == "kf_fast" and g.counts["overload_steps"] == 1
-    g.overloaded(0.1)
-    g.overloaded(0.2)
+    g.overloaded(0.1)                     # K&F 3 steps over 3×4: 12 ms; the cores were taken away
+    assert g.rungs[g.index].name == "kf_fast" and g.counts["stalls"] == 1
+    for i in range(6):                    # the machine is 2× slower: K&F 3 steps now costs 24 ms
+        g.observe("kf_fast", 12, 0.024, 0.2 + 0.02 * i)
+    g.overloaded(0.4)
+    g.overloaded(0.5)
     assert g.rungs[g.index].name == "wiener" and g.counts["overload_steps"] == 2
 
 
 def test_disabled_governor_keeps_the_configured_method():
-    g = seeded(DeblurConfig(governor=False))
+    g = seeded(DeblurConfig(governor=False, temporal_views=1))
     g.observe("kf", 12, 1.0, 0.0)
     assert g.choose((3, 4), 0.0).label == "kf 3×4"
 
 
 def test_reload_keeps_the_measured_costs():
     old = seeded()
-    new = Governor(DeblurConfig(method="wiener"), FPS, 2)
+    new = Governor(DeblurConfig(method="wiener", temporal_views=1), FPS, 2)
     new.inherit(old)
     assert new.predict("wiener", 1) == pytest.approx(3e-3)
+
+
+def test_the_temporal_rung_gives_up_its_grid_before_its_method():
+    """Temporal over Wiener costs (ms) 8 uniform, 16 over 3×4; the budget is 25.5 ms. On a machine
+    2.5× slower the grid the frames need no longer fits (40 ms) but one kernel does (20 ms): the
+    frames stay temporal, on one kernel; only at 4× (32 ms uniform) does Wiener alone take over (over
+    the grid: 24 ms)."""
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam, cells, ms in (("temporal", 1, 8), ("temporal", 12, 16), ("wiener", 1, 3), ("wiener", 12, 6)):
+        g.seed(fam, cells, ms / 1e3)
+    base = {("temporal", 1): 8e-3, ("temporal", 6): 12e-3, ("temporal", 12): 16e-3, ("wiener", 1): 3e-3,
+            ("wiener", 6): 4.5e-3, ("wiener", 12): 6e-3}
+    labels, t = feed(g, 0.0, 2.0, lambda f, c: base[f, c])
+    assert labels[-1] == "temporal 3×4"
+    labels, t = feed(g, t, 10.0, lambda f, c: 2.5 * base[f, c])
+    assert labels[-1] == "temporal" and labels[-200:].count("temporal") == 200
+    labels, t = feed(g, t, 10.0, lambda f, c: 4.0 * base[f, c])
+    assert labels[-1] == "wiener 3×4"
 
 
 def test_fewer_kf_iterations_run_three_beta_steps():
@@ -312,9 +346,11 @@ def test_slow_machine_degrades_the_method_not_the_share_of_frames():
     deblurred = [o for o in outs if o.deblurred]
     assert c["deblurred"] == len(deblurred) >= n - n // 100          # ≥ 99 %, a count
     assert c["deblurred"] + c.get("passthrough_overload", 0) == n     # the rest counted
-    assert {o.method for o in deblurred} == {"wiener"}               # the rung that keeps up
-    assert all(o.grid is not None for o in deblurred)
-    assert st["governor"]["method"] == "wiener" and c["method_wiener"] == len(deblurred)
+    # the rung that keeps up: temporal over Wiener; a frame without a prior (the first) says "wiener"
+    temporal = [o for o in deblurred if o.method == "temporal"]
+    assert len(temporal) >= n - n // 100 and {o.method for o in deblurred} <= {"temporal", "wiener"}
+    assert all(o.grid is not None for o in deblurred) and all(o.prior_frames >= 1 for o in temporal)
+    assert st["governor"]["method"] == "temporal" and c["method_temporal"] == len(temporal)
 
 
 def test_watch_counts_frames_by_the_method_in_their_header():

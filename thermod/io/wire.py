@@ -108,7 +108,8 @@ def pack_kernel(kernel) -> tuple[dict, np.ndarray]:
     return fields, w
 
 
-METHODS = ("kf", "kf_fast", "wiener")   # a `frame` header's ``method``: the governor's rung (docs/wire.md)
+# a `frame` header's ``method``: how the governor's rung deblurred it (docs/wire.md)
+METHODS = ("temporal", "kf", "kf_fast", "wiener")
 
 
 def frame_method_fields(method: str | None, grid) -> dict:

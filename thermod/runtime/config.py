@@ -127,7 +127,7 @@ class PublishConfig:
 @dataclass(frozen=True)
 class PipelineConfig:
     workers: int = setting(0, lo=0, hi=64, doc="deconvolution threads; 0 = one per core")
-    job_queue: int = setting(2, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")
+    job_queue: int = setting(4, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")
     frame_ring: int = setting(32, lo=2, hi=1024, doc="frames buffered between camera thread and scheduler")
     gyro_ring_s: float = setting(10.0, lo=0.5, hi=600.0, doc="seconds of gyro history kept")
     wait_timeout_s: float = setting(0.05, lo=0.0, hi=2.0,
@@ -224,8 +224,9 @@ DEBLUR = with_defaults(DeblurConfig, {
     "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
     "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
     "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
-    "temporal_views": Key(int, lo=1, hi=16, doc="frames per temporal solve, the frame itself included "
-                          "(1: single-frame); offline only for now, the daemon solves single frames"),
+    "temporal_views": Key(int, lo=1, hi=16, doc="offline: frames per temporal solve, the frame itself "
+                          "included; daemon: > 1 puts the recursive temporal rungs on the governor's "
+                          "ladder (1: single-frame solves everywhere)"),
     "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
     "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
     "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),

@@ -1,18 +1,28 @@
 """The governor: degrade the deblurring method, never the share of frames deblurred.
 
 A frame whose solve does not fit the time the machine has for it is not dropped: the governor picks
-the best rung of a ladder of methods that the measured per-frame cost allows. The ladder, best
-first (rungs the configuration rules out are left out: ``method = "wiener"`` starts at Wiener,
-``mode = "uniform"`` has no grid):
+the best rung of a ladder of methods that the measured per-frame cost allows. With temporal
+deblurring (``temporal_views`` > 1, the default) the ladder is, best first:
+
+    temporal  the recursive temporal solve (`thermod.physics.deconv.recursive`: the previous
+              frame's result, gyro-warped, as the prior of frame t's Wiener solve) over the grid
+              the frame needs, coarsened (6×8 → … → 2×3 → 1×1 = uniform) when that does not fit
+    wiener    one Tikhonov solve of the frame alone, its grid coarsened likewise
+
+K&F has no rung there, whatever ``method`` says: alone it restores less than ``temporal`` (0.7–0.8
+dB at NETD 10–60 mK), and as the recursion's own solve it restores about as much (−0.3 to +0.2 dB)
+for 1.6× the CPU (benchmarks/results/temporal_daemon.md). With ``temporal_views = 1`` it is the
+single-frame ladder:
 
     kf        K&F (hyper-Laplacian, six β steps) over the kernel grid the frame needs
     kf_fast   K&F with three β steps (β = 1, 8, 64: the same continuation, coarser), same grid
-    wiener    one Tikhonov solve over the grid the frame needs; on this last rung only, the grid
-              is coarsened (6×8 → … → 2×3 → 1×1 = uniform) when even that does not fit
+    wiener    one Tikhonov solve over the grid the frame needs, its grid coarsened
 
-The method is given up before the grid: where the roll needs a grid, one kernel instead of it costs
-more than any method over it (benchmarks/results/daemon.md). Only when even the last rung does not
-keep up does a full job queue pass frames through as ``overload`` (counted).
+Rungs the configuration rules out are left out (``method = "wiener"`` has no K&F rung, ``mode =
+"uniform"`` no grid). Only the coarsening rungs give up the grid, and only after the method above
+them: where the roll needs a grid, one kernel instead of it costs more than any method over it
+(benchmarks/results/daemon.md). Only when even the last rung does not keep up does a full job
+queue pass frames through as ``overload`` (counted).
 
 Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
@@ -40,7 +50,8 @@ one cell (`restore.plan.solved_grid`), so a grid's cost is never learnt from a u
 Hysteresis (no flapping): rungs are judged on the finest grid the frames needed over the last
 `NEEDED_S` (the roll comes and goes within a second; a rung chosen for one uniform frame would be
 left at the next rolled one). The governor steps down as soon as its current rung's predicted cost
-exceeds the budget, or when a job had to be dropped for overload; it steps up only to a rung
+exceeds the budget, or when a job had to be dropped for overload while that cost was above the
+climb threshold (below it the drop was a stall, `overloaded`); it steps up only to a rung
 whose predicted cost is within ``(1 − margin)`` of the budget, and only ``hold_s`` after its last
 change. A climb undone within two holds doubles the hold (up to ``max_hold_s``), so a rung that
 keeps failing is tried ever less often.
@@ -72,10 +83,12 @@ NEEDED_S = 1.0                    # rungs are judged on the finest grid needed o
 class Rung:
     """One step of the ladder: a solver (`family`) and whether it may use a kernel grid."""
 
-    name: str                     # what frames carry in their header: kf | kf_fast | wiener
-    method: str                   # kf | wiener
+    name: str                     # what frames carry in their header (`thermod.io.wire.METHODS`)
+    method: str                   # kf | wiener: frame t's own solve
     kf_iterations: int | None     # None: the configuration's (K&F's six)
     varying: bool                 # may use the grid the frame needs (else uniform)
+    temporal: bool = False        # the recursive temporal solve over that own solve
+    coarsens: bool = False        # may coarsen the grid the frame needs when it does not fit
 
     def deblur(self, base: DeblurConfig) -> DeblurConfig:
         """The DeblurConfig a worker builds this rung's deconvolver from."""
@@ -85,13 +98,15 @@ class Rung:
 def ladder(deblur: DeblurConfig) -> list[Rung]:
     """The rungs the configuration allows, best first."""
     varying = deblur.mode != "uniform"
+    last = Rung("wiener", "wiener", None, varying, coarsens=True)
+    if deblur.temporal_views > 1:
+        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last]
     if deblur.method == "wiener":
-        return [Rung("wiener", "wiener", None, varying)]
+        return [last]
     rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]
     if deblur.kf_iterations is None or deblur.kf_iterations > FAST_KF_ITERATIONS:
         rungs.append(Rung("kf_fast", "kf", FAST_KF_ITERATIONS, varying))
-    rungs.append(Rung("wiener", "wiener", None, varying))
-    return rungs
+    return [*rungs, last]
 
 
 @dataclass
@@ -137,7 +152,7 @@ class Governor:
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
         self._needed: collections.deque = collections.deque()   # (time, grid) of the recent frames
-        self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0}
+        self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
 
     # ------------------------------------------------------------------ costs
@@ -145,7 +160,7 @@ class Governor:
     def family(rung: Rung) -> str:
         """The solver a rung runs (costs are kept per family and cell count)."""
         if rung.name == "kf" and rung.kf_iterations is not None:
-            return f"kf{rung.kf_iterations}"
+            return f"{rung.name}{rung.kf_iterations}"
         return rung.name
 
     def seed(self, family: str, cells: int, seconds: float) -> None:
@@ -218,7 +233,7 @@ class Governor:
         r = self.rungs[i]
         if not r.varying:
             grids = [(1, 1)]
-        elif i == len(self.rungs) - 1:
+        elif r.coarsens:
             grids = coarser_grids(needed, self.aspect)
         else:
             grids = [needed]
@@ -259,11 +274,21 @@ class Governor:
             return c
 
     def overloaded(self, now: float) -> None:
-        """A job was dropped for overload: the predictions were too low; step down one rung now."""
+        """A job was dropped for overload. When the current rung's predicted cost (over the finest
+        grid needed lately) is above the climb threshold, ``(1 − margin)`` of the budget, the
+        predictions were too low: step down one rung now. Below it the rung left the workers most of
+        their time, so the queue overflowed because the cores were taken away for a while (a stall:
+        counted in ``stalls``) and a cheaper method would not have kept the frame: the rung stays
+        (the measured solve times move the load factor if the machine stays slower)."""
         with self._lock:
-            if self.enabled and self.index < len(self.rungs) - 1:
-                self.counts["overload_steps"] += 1
-                self._move(self.index + 1, now)
+            if not self.enabled or self.index >= len(self.rungs) - 1:
+                return
+            worst = max((g for _, g in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
+            if self._fits(self.index, worst, self.budget_s * (1 - self.margin)) is not None:
+                self.counts["stalls"] += 1
+                return
+            self.counts["overload_steps"] += 1
+            self._move(self.index + 1, now)
 
     def _move(self, i: int, now: float) -> None:
         if i == self.index:

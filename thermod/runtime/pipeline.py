@@ -7,16 +7,27 @@ For every frame k read at t_k (camera clock) the scheduler
 2. copies the samples covering (t_k − m·τ − readout, t_k] (Eq. 18's window, m = 5) and renders the
    blur kernel (Eq. 16–19: thermal exponential weights, or the photon box of Eq. 17 as baseline;
    one kernel, or a grid for spatially varying blur);
-3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener; the FFTs
-   and numba passes release the GIL, so N workers use N cores).
+3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener, alone or
+   temporal; the FFTs and numba passes release the GIL, so N workers use N cores).
 
 Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
 the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no
 extra cost; a rendered grid whose kernels all lie within 0.5 px of the central one is solved as
 that one kernel by the deconvolver: `solved_grid`). The governor (`thermod.runtime.governor`) then
-picks the best method over that grid — K&F, K&F with fewer steps, Wiener (only Wiener coarsens
-the grid) — that the measured solve cost allows within the frame budget; each frame says which
-in `FrameOut.method` / ``grid``.
+picks the best method over that grid — temporal (over Wiener), Wiener alone; or without temporal
+rungs K&F, K&F in fewer steps, Wiener (the Wiener-based rungs coarsen the grid when it does not
+fit) — that the measured solve cost allows within the
+frame budget; each frame says which in `FrameOut.method` / ``grid``.
+
+Temporal rungs (`thermod.physics.deconv.recursive`): frame k's solve takes the newest restored frame
+before it as its prior, gyro-warped into frame k's geometry. Workers keep the restored frames of the
+last `PRIOR_FRAMES` indices (their `Estimate`s); a worker whose predecessor k − 1 is still being
+solved on another worker waits for it, after frame k's own solve and at most half the governor's
+budget (that wait is not booked as solve cost), else takes k − 2 (the warp then spans two frames).
+A temporal job carries a second gyro window reaching `MAX_AGE_S` + readout before frame k (the
+kernel window is m·τ long), so the warp has the rotation since its prior; a gap there leaves the
+frame to be solved alone. A frame solved without a prior (the first after start, after an FFC or
+a gap) is published as ``wiener`` (its own solve), not as temporal.
 
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
 ``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
@@ -24,10 +35,13 @@ A frame that cannot be deblurred is *passed through*: published as float32 count
 - the camera runs a flat-field correction (shutter closed, NUC update: `FrameSlot.ffc`), or the frame's
   kernel window reaches back into one, or the detector is still settling after it (``ffc_settle_s``)
   → ``ffc`` (see `Pipeline._ffc_hold`);
-- gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``;
+- gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``; except at
+  the start of the gyro stream, where a kernel keeping `START_COVERAGE` of its weight (only its
+  oldest tail precedes the first sample) deblurs the frame (``start_partial_kernels``, counted);
 - a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
 - a job that waited in the queue longer than the governor's budget is solved by its cheapest rung
-  (``catch_up``, counted: a burst drains instead of overflowing); a job queue full even so → the
+  (``catch_up``, counted: a burst drains instead of overflowing; a temporal job stays temporal and
+  only stops waiting for its predecessor); a job queue full even so → the
   OLDEST job is dropped (``overload``, counted) and its frame passed through; the governor steps
   down a rung at once;
 - a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
@@ -51,9 +65,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from thermod.physics.calibration import Calibration
+from thermod.physics.deconv.recursive import MAX_AGE_S, RecursiveDeconvolver
 from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.restore.plan import (
@@ -70,6 +86,12 @@ from thermod.runtime.governor import Choice, Governor
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 
 log = logging.getLogger(__name__)
+
+# The first frames after the gyro stream starts (start-up): a kernel whose window reaches back before
+# the stream's first sample is rendered from the samples there are when it keeps at least this share
+# of its weight (the thermal comet's oldest tail is what is missing), rather than passed through raw
+START_COVERAGE = 0.9
+PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
 
 REASONS = ("disabled", "ffc", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
            "worker_error")
@@ -94,7 +116,8 @@ class FrameOut:
     overrun_before: int = 0         # frames the frame ring overwrote unread just before this one
     t_done: float = 0.0             # host monotonic when released
     kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
-    method: str | None = None       # the governor's rung that deblurred it: kf | kf_fast | wiener
+    method: str | None = None       # how it was deblurred (`thermod.io.wire.METHODS`)
+    prior_frames: int = 0           # temporal: frames between its prior and it (0: solved alone)
     grid: tuple[int, int] | None = None   # the kernel grid it was solved with ((1, 1): one kernel)
 
     @property
@@ -109,6 +132,7 @@ class _Job:
     info: dict
     generation: int
     choice: Choice | None = None
+    warp_gyro: tuple | None = None  # (t, rate) raw gyro from before the prior to the frame: the warp's
     t_queued: float = field(default_factory=time.monotonic)
 
 
@@ -131,14 +155,16 @@ def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
     """``(rung, caught_up)``: the rung a worker solves a job with, chosen as `choice`, that waited
     `waited_s` in the queue. The governor's current rung when it stepped down since (the cheaper way
     now); its cheapest rung when the job waited longer than a solve may take (``caught_up``): the
-    queue backed up (a burst of frames, a stall) and drains that way before it overflows."""
+    queue backed up (a burst of frames, a stall) and drains that way before it overflows. A temporal
+    rung is its own catch-up (its cost is within the budget by choice, so the queue drains at its
+    pace): a caught-up temporal job only stops waiting for its predecessor's result."""
     if choice is None:
         return gov.rungs[0], False
     rung = choice.rung
     if rung in gov.rungs and gov.index > choice.index:
         rung = gov.rungs[gov.index]
     if gov.enabled and rung is not gov.rungs[-1] and waited_s > gov.budget_s:
-        return gov.rungs[-1], True
+        return (rung if rung.temporal else gov.rungs[-1]), True
     return rung, False
 
 
@@ -153,6 +179,11 @@ def _timed(fn, *args) -> float:
     t0 = time.perf_counter()
     fn(*args)
     return time.perf_counter() - t0
+
+
+def single_method(rung) -> str:
+    """The name a rung's frame solved without a prior is published under (its own solve's method)."""
+    return rung.method if rung.temporal else rung.name
 
 
 # ------------------------------------------------------------------------------- pipeline
@@ -196,6 +227,9 @@ class Pipeline:
         self.counters = collections.Counter()
         self._count_lock = threading.Lock()
         self._prebuilt: list = []
+        self._est_cond = threading.Condition()
+        self._estimates: collections.OrderedDict = collections.OrderedDict()   # index → Estimate
+        self._solving: set[int] = set()           # indices a worker is solving now
         self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
         self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
         self.governor = self._new_governor(calib, deblur)
@@ -210,14 +244,24 @@ class Pipeline:
         up to `max_kernel_px` can need (plans are per padded shape; building one mid-stream costs a
         frame or ten), and the governor's reference cost of each rung, uniform and over every grid
         the adaptive mode can render (the finest and its coarser ones: their tiles' plans are built
-        too), timed on the first worker after its plans are built. Returns seconds spent."""
+        too), timed on the first worker after its plans are built. A temporal rung is timed with a
+        prior (the frame before, restored, warped across one frame period of roll): its cost is the
+        one it has in the stream. Returns seconds spent."""
         t0 = time.monotonic()
+        # the workers are the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
+        # filters) would only oversubscribe the cores they share
+        cv2.setNumThreads(1)
         s = self._settings
         gov = self.governor
         tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
         # a roll: a grid of distinct kernels, so that the tiles' plans are built too
         rate = np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
-        img = np.zeros(self.frame_ring.shape, np.float32)
+        # a frame like a camera's (structure and noise): the solvers' costs depend on the content (a flat
+        # frame's robust range and spectra come cheap), and the governor lives on their ratios
+        h, w_px = self.frame_ring.shape
+        yy, xx = np.mgrid[:h, :w_px]
+        img = (8000.0 + 200.0 * np.sin(xx / 7.0) * np.cos(yy / 11.0)
+               + np.random.default_rng(0).normal(0.0, 10.0, (h, w_px))).astype(np.float32)
         uniform, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="uniform"))
         grids = []
         if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
@@ -225,23 +269,35 @@ class Pipeline:
                 at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
                 grids.append(self._render(tg, rate, s.calib, 0.0, at_g)[0])
         self._prebuilt = []
+        period = 1.0 / s.calib.frame_rate_hz
         for w in range(self.n_workers):
             decs = {}
             for rung in gov.rungs:
                 fam = gov.family(rung)
                 if fam in decs:
                     continue
-                d = decs[fam] = self._factory(rung.deblur(s.deblur))
-                live = getattr(d, "realtime", False)
-                d.realtime = False  # measure plans now, while no frame is waiting
+                d = decs[fam] = self._solver(rung, s)
+                base = getattr(d, "single", d)
+                live = getattr(base, "realtime", False)
+                base.realtime = False  # measure plans now, while no frame is waiting
                 for k in [uniform, *(grids if rung.varying else [])]:
-                    solve = d.run_varying if hasattr(k, "kernels") else d.run
-                    solve(img, k)
-                    g = solved_grid(d, k)                 # a coarse grid may be one kernel in disguise
+                    if rung.temporal:
+                        _, first = d.solve(img, k, -period, tg, rate)
+                        solve = (lambda k, d=d, first=first: d.solve(img, k, 0.0, tg, rate, first))  # noqa: E731
+                        solve(k)
+                        g = solved_grid(base, k)
+                        if d.last_prior_frames != 1:
+                            raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
+                    else:
+                        solve = d.run_varying if hasattr(k, "kernels") else d.run
+                        solve(img, k)
+                        g = solved_grid(d, k)             # a coarse grid may be one kernel in disguise
                     cells = g[0] * g[1]
                     if w == 0:
                         # the faster of two: a preempted run would make the rung look dearer than it is
-                        gov.seed(fam, cells, min(_timed(solve, img, k) for _ in range(2)))
+                        gov.seed(fam, cells, min(_timed(solve, k) if rung.temporal else _timed(solve, img, k)
+                                                 for _ in range(2)))
+                d = base
                 if hasattr(d, "padded_shape"):
                     sizes = {}
                     for kh in range(1, max_kernel_px + 1, 2):
@@ -253,8 +309,16 @@ class Pipeline:
                         box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
                         d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
                 d.realtime = live
-            self._prebuilt.append((decs, s.deblur))
+            self._prebuilt.append((decs, (s.deblur, s.calib)))
         return time.monotonic() - t0
+
+    def _solver(self, rung, s: _Settings):
+        """A worker's solver for `rung`: the factory's deconvolver, wrapped in a `RecursiveDeconvolver`
+        for a temporal rung."""
+        d = self._factory(rung.deblur(s.deblur))
+        if rung.temporal:
+            return RecursiveDeconvolver(s.calib, d, min_coverage=s.deblur.min_coverage)
+        return d
 
     def start(self, start_index: int | None = None) -> Pipeline:
         self._stop.clear()
@@ -391,9 +455,23 @@ class Pipeline:
             self._passthrough(slot, "kernel_error", {"n_samples": len(w)})
             return
         if info["coverage"] < s.deblur.min_coverage:
-            self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
-            return
-        self._enqueue(_Job(slot, kernel, info, s.generation, choice))
+            # the gyro stream began inside this frame's window (start-up, a new clock epoch): its
+            # comet's oldest part is missing, not a stretch in the middle
+            started = np.isfinite(w.oldest_t) and w.oldest_t > g0
+            if not (started and info["coverage"] >= START_COVERAGE):
+                self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
+                return
+            self._count("start_partial_kernels", 1)
+        warp_gyro = None
+        if any(r.temporal for r in self.governor.rungs):
+            # the warp from a prior up to MAX_AGE_S old: rows read from t − MAX_AGE_S − readout on
+            gw0 = float(s.calib.camera_time_to_gyro(np.array([slot.t - MAX_AGE_S - s.calib.readout_s]))[0])
+            ww = self.gyro_ring.window(min(gw0, g0) - margin, g1 + margin, pad=2)
+            if not ww.gap and len(ww) >= 2:
+                warp_gyro = (ww.t, ww.rate)
+            else:
+                self._count("temporal_gyro_gap", 1)
+        self._enqueue(_Job(slot, kernel, info, s.generation, choice, warp_gyro))
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
         """Whether a frame must pass through because of a flat-field correction (FFC).
@@ -435,6 +513,32 @@ class Pipeline:
         self._workers[i] = th
         th.start()
 
+    def _prior_for(self, index: int, wait_s: float):
+        """The newest restored frame before `index` (within `PRIOR_FRAMES`), waiting up to `wait_s`
+        for index − 1 while a worker is solving it; None when there is none."""
+        deadline = time.monotonic() + wait_s
+        with self._est_cond:
+            while index - 1 in self._solving and index - 1 not in self._estimates:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self._count("temporal_prior_wait_timeouts", 1)
+                    break
+                self._est_cond.wait(left)
+            for j in range(index - 1, index - 1 - PRIOR_FRAMES, -1):
+                est = self._estimates.get(j)
+                if est is not None:
+                    return est
+        return None
+
+    def _keep_estimate(self, index: int, est) -> None:
+        with self._est_cond:
+            if est is not None:
+                self._estimates[index] = est
+                while len(self._estimates) > PRIOR_FRAMES:
+                    self._estimates.popitem(last=False)
+            self._solving.discard(index)
+            self._est_cond.notify_all()
+
     def _work_loop(self, i: int) -> None:
         name = f"worker{i}"
         decs, gen_deblur = self._prebuilt.pop() if self._prebuilt else ({}, None)
@@ -446,11 +550,15 @@ class Pipeline:
                 if not self._jobs:
                     continue
                 job = self._jobs.popleft()
+            index = job.slot.index
+            with self._est_cond:
+                self._solving.add(index)
             self._worker_busy_since[i] = time.monotonic()
+            est = None
             try:
-                deblur = self._settings.deblur
-                if gen_deblur is not deblur:
-                    decs, gen_deblur = {}, deblur
+                s = self._settings
+                if gen_deblur != (s.deblur, s.calib):
+                    decs, gen_deblur = {}, (s.deblur, s.calib)
                 gov = self.governor
                 rung, caught_up = rung_for(gov, job.choice, time.monotonic() - job.t_queued)
                 if caught_up:
@@ -458,27 +566,52 @@ class Pipeline:
                 fam = gov.family(rung)
                 deconv = decs.get(fam)
                 if deconv is None:
-                    deconv = decs[fam] = self._factory(rung.deblur(deblur))
+                    deconv = decs[fam] = self._solver(rung, s)
                 img = job.slot.image.astype(np.float32)
                 varying = hasattr(job.kernel, "kernels")
+                method, prior_frames = rung.name, 0
                 t0 = time.perf_counter()
-                out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
-                dt = time.perf_counter() - t0
-                grid = solved_grid(deconv, job.kernel)
+                if rung.temporal:
+                    waited = [0.0]
+
+                    def prior(index=index, waited=waited, wait_s=0.0 if caught_up else 0.5 * gov.budget_s):
+                        w0 = time.perf_counter()
+                        got = self._prior_for(index, wait_s)
+                        waited[0] = time.perf_counter() - w0
+                        return got
+
+                    gt, gr = job.warp_gyro if job.warp_gyro is not None else (None, None)
+                    out, est = deconv.solve(img, job.kernel, job.slot.t, gt, gr,
+                                            prior if gt is not None else None)
+                    dt = time.perf_counter() - t0 - waited[0]
+                    prior_frames = deconv.last_prior_frames
+                    if prior_frames == 0:
+                        method = single_method(rung)
+                        self._count("temporal_alone", 1)
+                    else:
+                        self._count(f"temporal_prior_{prior_frames}", 1)
+                    solver = deconv.single
+                else:
+                    out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
+                    dt = time.perf_counter() - t0
+                    solver = deconv
+                grid = solved_grid(solver, job.kernel)
                 gov.observe(fam, grid[0] * grid[1], dt, time.monotonic())
                 out = np.asarray(out, dtype=np.float32)
                 if out.shape != img.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
             except Exception:
+                self._keep_estimate(index, None)
                 self._count("worker_errors", 1)
                 log.exception("deconvolution failed on frame %d; passing it through and replacing the worker",
                               job.slot.frame_id)
                 self._worker_busy_since[i] = None
                 self._passthrough(job.slot, "worker_error", job.info)
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
+            self._keep_estimate(index, est)
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
-            self._count(f"method_{rung.name}", 1)
+            self._count(f"method_{method}", 1)
             kernel = job.kernel
             if varying and grid == (1, 1):
                 # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
@@ -486,7 +619,8 @@ class Pipeline:
                 kernel = job.kernel.kernels[r][c]
                 job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape)}
             o = self._out(job.slot, out, True, None, job.info, kernel)
-            o.method = rung.name
+            o.method = method
+            o.prior_frames = prior_frames
             o.grid = grid
             self._complete(o)
 

@@ -57,7 +57,9 @@ Modules: `wstep` (shrinkage, lookup tables), `xstep` (Fourier-domain solves, bou
 `plans` (FFT plans, FFTW wisdom), `noise` (robust range, σ̂, λ from noise), `tiles` (partition of
 unity, uniform-grid test), `checks` (argument errors), `solver` (`Deconvolver`, `deconvolve`,
 `deconvolve_varying`), `temporal` (`TemporalDeconvolver`: frame t from t−N…t, gyro-warped, one
-kernel per view, weights falling where the views disagree; imported on its own, it needs OpenCV).
+kernel per view, weights falling where the views disagree; imported on its own, it needs OpenCV),
+`recursive` (`RecursiveDeconvolver`: frame t's Wiener solve corrected by the gyro-warped previous
+result, a Kalman update per spatial frequency: the daemon's temporal rung; OpenCV too).
 """
 
 from .checks import DeconvError

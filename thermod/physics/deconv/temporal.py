@@ -141,22 +141,6 @@ def _rolling_maps(xs, ys, P, B, mx, my):
             my[r, c] = py
 
 
-@njit(cache=True, nogil=True)
-def _upsample(coarse, step, out):
-    """Bilinear: out[y, x] = coarse at (y / step, x / step) (the coarse grid samples every step px)."""
-    H, W = out.shape
-    for y in range(H):
-        fy = y / step
-        r = min(int(fy), coarse.shape[0] - 2)
-        ay = fy - r
-        for x in range(W):
-            fx = x / step
-            c = min(int(fx), coarse.shape[1] - 2)
-            ax = fx - c
-            out[y, x] = ((1 - ay) * ((1 - ax) * coarse[r, c] + ax * coarse[r, c + 1])
-                         + ay * ((1 - ax) * coarse[r + 1, c] + ax * coarse[r + 1, c + 1]))
-
-
 def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
     """(map_x, map_y) float32 [H, W] for cv2.remap of frame `t_src` into frame `t_dst`'s pixels
     (Eq. 16 per row pair, rolling readout), or None without gyro coverage of both frames."""
@@ -176,10 +160,11 @@ def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
     cx = np.empty((len(ys), len(xs)))
     cy = np.empty((len(ys), len(xs)))
     _rolling_maps(xs, ys, P, B, cx, cy)
-    mx = np.empty((H, W), np.float32)
-    my = np.empty((H, W), np.float32)
-    _upsample(cx, float(step), mx)
-    _upsample(cy, float(step), my)
+    # bilinear up-sampling: pixel (y, x) reads the coarse grid at (y / step, x / step)
+    up = np.float64([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    mx = cv2.warpAffine(cx.astype(np.float32), up, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    my = cv2.warpAffine(cy.astype(np.float32), up, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
     return mx, my
 
 

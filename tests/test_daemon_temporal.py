@@ -1,0 +1,69 @@
+"""The daemon's temporal rungs end to end (daemon in-process on the simulated payload, 160×120 frames):
+with the default deblur configuration every frame is published and deblurred, none raw (the first
+either), ≥ 99 % by the temporal rung (the first frame has no prior), health and the frames' metadata
+name the method, and the governor's ladder starts with the temporal rung, whose cost warm-up
+measured."""
+
+import socket
+import time
+
+import pytest
+
+from thermod.runtime import config
+from thermod.runtime.daemon import Daemon
+
+pytestmark = pytest.mark.slow
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_default_daemon_deblurs_temporally():
+    opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "calibration.width": 160,
+            "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
+            "pipeline.workers": 2, "monitor.enabled": False,
+            # a deeper job queue than the default: the shared test machine stalls the process for
+            # 0.1–0.2 s at times, and what a stall does to the default queue is not the point here
+            "pipeline.job_queue": 16}
+    d = Daemon(config.load(None, opts))
+    seen = []
+    emit = d.pipeline.emit
+
+    def keep(o):
+        seen.append((o.frame_id, o.deblurred, o.method, o.prior_frames, o.reason))
+        emit(o)
+
+    d.pipeline.emit = keep
+    gov = d.pipeline.governor
+    assert [r.name for r in gov.rungs] == ["temporal", "wiener"]
+    d.start()
+    try:
+        # warm-up measured every rung's cost, the temporal ones with a prior
+        refs = gov.state()["cost_ms"]
+        assert any(k.startswith("temporal×") for k in refs) and any(k.startswith("wiener×") for k in refs)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 5.0:
+            d.tick()
+            time.sleep(0.05)
+        h = d.health()
+        running = list(seen)        # before the stop: its last frames wait for a gyro that has stopped
+    finally:
+        d.stop()
+    c = d.pipeline.stats()["counters"]
+    n = c["frames_in"]
+    assert n >= 150 and len(running) >= n - 10
+    assert c["frames_out"] == n == len(seen)                               # every frame published
+    ids = [f for f, *_ in seen]
+    assert ids == sorted(ids)
+    temporal = [s for s in running if s[2] == "temporal"]
+    deblurred = [s for s in running if s[1]]
+    g = {k: h["governor"][k] for k in ("cost_ms", "load", "frames", "degrades", "overload_steps", "stalls")}
+    assert len(temporal) >= 0.99 * len(deblurred), (g, c)
+    assert all(s[3] >= 1 for s in temporal)
+    assert not [s for s in running if not s[1]], c                         # none went out raw
+    assert c.get("temporal_alone", 0) <= 1 + c.get("catch_up", 0)          # the first frame only
+    by = h["governor"]["deblurred_by"]
+    assert by.get("temporal", 0) >= len(temporal) - 2                      # health counts them too

@@ -1,0 +1,377 @@
+"""Recursive temporal deconvolution: the previous restored frame, warped by the gyro into frame t's
+geometry, is the prior of frame t's solve (a Kalman filter per spatial frequency).
+
+Model. Frame t is ``y = k ⊛ x + n``; the previous estimate, warped (`temporal.warp_maps`, rolling
+readout included), is ``p ≈ x`` with a precision per spatial frequency Π = (A + β R)·T²: A(f) the
+data information it carries (in units of |K|²: one frame seen through a kernel of gain 1), R =
+|F∇|²/λ the Tikhonov prior of the single-frame Wiener solve (λ its noise-adaptive rule; β =
+`PRIOR_REG`: an estimate is already regularised, so it counts its image prior too) and T(f) the
+mean gain of the warp's interpolation (`interpolation_gain`: what a resampled image keeps of its
+content at f — without it, repeated warps of the recursion blur it). The posterior mean is
+
+    X = X₀ + w (P − X₀),   w = Π / (|K|² + (1 − β) R + Π)
+
+with X₀ = K̄ Y / (|K|² + R) the single-frame Wiener solution: the recursive solve is a correction
+of frame t's own solve x₀ by the prior's difference, filtered by w. For T = 1 and β = 1 it is
+``(K̄ Y + (A + R) P) / (|K|² + A + R)``, the Kalman update that over a static scene equals the
+joint Wiener solve of all frames seen (the image prior counted once). The frequencies a kernel
+nulls (|K|² → 0) come from the prior, the rest are averaged by information. For a kernel grid x₀ is
+solved over the grid and w uses the central cell's kernel (the correction blends two estimates of
+the same image, so a cell whose kernel differs only weighs them less than ideally).
+
+Information. After frame t's solve the data information is I = |K|² + A·T². Carried n frames on,
+it loses to registration error and is forgotten geometrically::
+
+    A = γⁿ / (1/I + n q),   q = (δ · rms|∇p| / σ̂)²
+
+q is the error of a misregistration by δ = `REGISTRATION_PX` (an image of gradient g misplaced by δ
+errs by δ·g: for a natural 1/f² spectrum a white error) in units of frame t's noise σ̂²; γ =
+`MEMORY` bounds the memory to about 1/(1 − γ) frames (drift, a scene that changes slowly).
+
+Robustness. Where the prior disagrees with frame t — a moving hot object, parallax, new scene at
+a border, an FFC step, a registration error above the noise — it must not enter. The test compares
+x₀ with what the single-frame solve would give if p were the truth, ``F⁻¹[H P]`` with
+H = |K|² / (|K|² + R) (Wiener is linear): their difference is x₀'s own noise where p is right,
+free of the regularisation's bias at edges. Its local mean square (`WINDOW_PX` box) is compared
+with the larger of its predicted variance (σ̂² mean |K|²/(|K|² + R)², Parseval) and the frame's
+median: weight m = 1 below `DISAGREE` lo times that, 0 above hi, times the warped support (an FFC
+offset is removed first: the median of x₀ − p). The prior is filled where m < 1
+(``p' = m p + (1 − m) x₀``, so there the solve returns x₀ exactly)::
+
+    x = x₀ + F⁻¹[w · F(m · (p − x₀))]
+
+Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, its
+spectrum and the test's inverse (one FFT pair), the correction's pair, a few box filters and one
+frame-sized OTF more under a grid (`last_fft_pairs` counts them).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+
+from .checks import DeconvError, check_image, check_kernel
+from .noise import noise_sigma, value_range_of
+from .solver import TILE_OVERLAP, Deconvolver
+from .temporal import warp, warp_maps, warped_support
+from .tiles import TILE_MARGIN_PX
+from .xstep import prepare
+
+MEMORY = 0.8                 # γ: carried information kept per frame (memory ~ 1 / (1 − γ) = 5 frames)
+REGISTRATION_PX = 0.1        # δ: registration + interpolation error of a warped prior (px RMS)
+WINDOW_PX = 9                # box of the local mean square of the disagreement test
+DISAGREE = (2.0, 4.0)        # test's local mean square / its reference: full weight below, none above
+PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
+MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
+SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One restored frame as the next frame's prior: the output (float32 counts), its read time
+    (camera clock, last row) and its data information I(f) on the half spectrum of `shape`."""
+
+    image: np.ndarray
+    t_frame: float
+    info: np.ndarray
+    shape: tuple[int, int]
+
+
+# ---------------------------------------------------------------------------------- numba passes
+@njit(cache=True, nogil=True)
+def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, H, W, I):
+    """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
+    Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
+    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm Π / (|K|² + (1 − β) R + Π)
+    (the correction's), I = |K|² + A T² (this frame's information). Returns the mean over the full
+    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval)."""
+    h, w = K2.shape
+    acc = 0.0
+    n = 0.0
+    full_w = 2 * (w - 1)
+    for i in range(h):
+        for j in range(w):
+            v = info[rows[i], cols[j]]
+            a = gain * v / (1.0 + q * v) if v > 0 else 0.0
+            k2 = K2[i, j]
+            r = c * g2[i, j]
+            t2 = T2[i, j]
+            d = k2 + r + 1e-12
+            H[i, j] = norm * k2 / d
+            p = (a + beta * r) * t2
+            W[i, j] = norm * p / (k2 + (1.0 - beta) * r + p + 1e-12)
+            I[i, j] = k2 + a * t2
+            m = 1.0 if (j == 0 or (j == w - 1 and full_w % 2 == 0)) else 2.0
+            acc += m * k2 / (d * d)
+            n += m
+    return acc / n
+
+
+@njit(cache=True, nogil=True)
+def _weigh(wgt, X, out):
+    """out = wgt · X (a real weight per frequency)."""
+    h, w = X.shape
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = X[i, j] * wgt[i, j]
+
+
+_INTERP_REACH = {cv2.INTER_LINEAR: 1, cv2.INTER_CUBIC: 2, cv2.INTER_LANCZOS4: 4}
+
+
+def _interp_weights(x: np.ndarray, interpolation: int) -> np.ndarray:
+    """cv2's interpolation kernel at offsets x (linear, cubic with a = −0.75, Lanczos-4)."""
+    a = np.abs(x)
+    if interpolation == cv2.INTER_LINEAR:
+        return np.clip(1 - a, 0, None)
+    if interpolation == cv2.INTER_CUBIC:
+        c = -0.75
+        return np.where(a <= 1, (c + 2) * a ** 3 - (c + 3) * a ** 2 + 1,
+                        np.where(a < 2, c * a ** 3 - 5 * c * a ** 2 + 8 * c * a - 4 * c, 0.0))
+    return np.where(a < 4, np.sinc(x) * np.sinc(x / 4), 0.0)
+
+
+def interpolation_gain(interpolation: int, f: np.ndarray) -> np.ndarray:
+    """The mean gain (over sub-pixel positions) of a cv2 interpolation at frequencies f (cycles/px):
+    what a warped image keeps of its content there (1-D; the 2-D gain is the product)."""
+    reach = _INTERP_REACH[interpolation]
+    k = np.arange(-reach + 1, reach + 1, dtype=np.float64)
+    acc = np.zeros(len(f))
+    shifts = (np.arange(32) + 0.5) / 32
+    for s in shifts:
+        w = _interp_weights(k - s, interpolation)
+        w /= w.sum()
+        acc += np.real(np.exp(2j * np.pi * np.outer(f, k - s)) @ w)
+    return np.clip(acc / len(shifts), 0.0, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def _squared_misfit(x0, pred, lo, scale, out):
+    """out = ((x0 − lo)·scale − pred)² over x0's shape (pred: the padded unit-range prediction)."""
+    h, w = x0.shape
+    for i in range(h):
+        for j in range(w):
+            d = (x0[i, j] - lo) * scale - pred[i, j]
+            out[i, j] = d * d
+
+
+@njit(cache=True, nogil=True)
+def _agreement(e, support, full, none, out):
+    """out = support · clip((none − e) / (none − full), 0, 1): 1 below `full`, 0 above `none`."""
+    h, w = e.shape
+    inv = 1.0 / (none - full)
+    for i in range(h):
+        for j in range(w):
+            v = (none - e[i, j]) * inv
+            out[i, j] = support[i, j] * (0.0 if v < 0 else (1.0 if v > 1 else v))
+
+
+@njit(cache=True, nogil=True)
+def _add_correction(x0, corr, rng, out):
+    h, w = x0.shape
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = x0[i, j] + corr[i, j] * rng
+
+
+@njit(cache=True, nogil=True)
+def _fill_difference(p, x0, m, lo, scale, out):
+    """out[:h, :w] = m · (p − x0) (unit range), zero beyond: outside the frame x₀ is trusted."""
+    hp, wp = out.shape
+    h, w = p.shape
+    for i in range(hp):
+        for j in range(wp):
+            if i < h and j < w:
+                out[i, j] = m[i, j] * (p[i, j] - x0[i, j]) * scale
+            else:
+                out[i, j] = 0.0
+
+
+def _frequency_index(n_new: int, n_old: int, half: bool) -> np.ndarray:
+    """Indices into an `n_old`-point spectrum of the frequencies nearest an `n_new`-point one's."""
+    f = np.fft.rfftfreq(n_new) if half else np.fft.fftfreq(n_new)
+    idx = np.rint(f * n_old).astype(np.int64)
+    if half:
+        return np.clip(idx, 0, n_old // 2)
+    return idx % n_old
+
+
+# ---------------------------------------------------------------------------------- the solver
+class RecursiveDeconvolver:
+    """Frame t restored with the gyro-warped previous estimate as its prior (see the module docstring).
+
+    `solve(frame, kernel, t_frame, gyro_t, gyro_rate, prior)` → (output, Estimate). `prior` is the
+    previous frame's `Estimate`, None, or a zero-argument callable returning one (or None): it is
+    called once frame t's own solve is done, so a caller whose previous frame is still being solved
+    on another thread can wait for it there. Nothing is stored between calls (thread-safe core; one
+    instance per thread, as its `single` Deconvolver).
+
+    Parameters
+    ----------
+    calib : the Calibration (intrinsics, readout, gyro → camera) of the frames and kernels.
+    single : the `Deconvolver` of frame t's own solve x₀ (default: Wiener), whose plans, OTF cache
+        and λ rule the correction shares.
+    memory, registration_px : γ and δ of the information carried (module docstring).
+    max_age_s : a prior read longer than this before frame t is not used.
+    min_coverage : a kernel whose gyro coverage is below this is solved alone.
+    interpolation : cv2 interpolation of the warp.
+    overlap, uniform_tol_px : as `Deconvolver.run_varying` (a kernel grid).
+    """
+
+    def __init__(self, calib, single: Deconvolver | None = None, *, memory: float = MEMORY,
+                 registration_px: float = REGISTRATION_PX, max_age_s: float = MAX_AGE_S,
+                 min_coverage: float = 0.99, interpolation: int = cv2.INTER_CUBIC,
+                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5):
+        if single is not None and not isinstance(single, Deconvolver):
+            raise DeconvError(f"single: expected a Deconvolver, got {type(single).__name__}")
+        memory, registration_px, max_age_s = float(memory), float(registration_px), float(max_age_s)
+        if not 0 < memory <= 1:
+            raise DeconvError(f"memory: expected a share in (0, 1], got {memory}")
+        if not (registration_px >= 0 and math.isfinite(registration_px)):
+            raise DeconvError(f"registration_px: expected a non-negative error (px), got {registration_px}")
+        if not max_age_s > 0:
+            raise DeconvError(f"max_age_s: expected a positive age (s), got {max_age_s}")
+        if interpolation not in _INTERP_REACH:
+            raise DeconvError("interpolation: expected cv2.INTER_LINEAR, INTER_CUBIC or INTER_LANCZOS4, "
+                              f"got {interpolation!r}")
+        self._gains: dict[tuple[int, int], np.ndarray] = {}
+        self.calib = calib
+        self.single = single or Deconvolver(method="wiener")
+        self.memory, self.registration_px, self.max_age_s = memory, registration_px, max_age_s
+        self.min_coverage = float(min_coverage)
+        self.interpolation = interpolation
+        self.overlap, self.uniform_tol_px = float(overlap), float(uniform_tol_px)
+        # what the last `solve` did, for the caller's books
+        self.last_prior_frames = 0      # frame periods between the prior and frame t (0: none used)
+        self.last_weight = 0.0          # mean prior weight m over the frame (0: solved alone)
+        self.last_fft_pairs_single = 0.0
+        self.last_fft_pairs = 0.0
+        self.last_single: np.ndarray | None = None
+        self.last_seconds = (0.0, 0.0)       # (single solve, recursive part) wall time
+        self.last_cpu_seconds = (0.0, 0.0)   # the same in thread CPU time
+
+    def solve(self, frame: np.ndarray, kernel, t_frame: float, gyro_t, gyro_rate, prior=None, *,
+              value_range: tuple[float, float] | None = None) -> tuple[np.ndarray, Estimate]:
+        """Restore `frame` (counts, calibration-sized) read at `t_frame` (camera clock, last row) with
+        its `kernel` (Kernel or KernelGrid) and the `prior` (see the class docstring). Returns the
+        float32 counts and this frame's `Estimate` (the next frame's prior).
+
+        `gyro_t`, `gyro_rate`: raw gyro samples spanning the prior's and this frame's read times
+        (a ring buffer may be passed whole); without them the frame is solved alone."""
+        img = check_image(frame)
+        if img.shape != (int(self.calib.height), int(self.calib.width)):
+            raise DeconvError(f"frame: expected {int(self.calib.height)}×{int(self.calib.width)} "
+                              f"(the calibration's), got {img.shape[0]}×{img.shape[1]}")
+        t_frame = float(t_frame)
+        if not math.isfinite(t_frame):
+            raise DeconvError(f"t_frame: expected a finite time (s), got {t_frame}")
+        img = np.asarray(img, np.float32)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        lo, hi = value_range_of(img, value_range)
+        dec = self.single
+        grid = hasattr(kernel, "kernels")
+        if grid:
+            x0 = dec.run_varying(img, kernel, overlap=self.overlap, uniform_tol_px=self.uniform_tol_px,
+                                 value_range=(lo, hi))
+        else:
+            x0 = dec.run(img, kernel, value_range=(lo, hi))
+        x0 = np.asarray(x0, np.float32)
+        lam, cells = dec.last_lam, dec.last_cells
+        self.last_single = x0
+        t1, c1 = time.perf_counter(), time.thread_time()
+        k0 = kernel.kernel_at((img.shape[0] - 1) / 2, (img.shape[1] - 1) / 2) if grid else kernel
+        w, origin = check_kernel(k0)
+        shape = tuple(dec.padded_shape(img.shape, w.shape))
+        plan = dec._plan(shape)
+        _, K2 = dec._otf(plan, w, origin)          # a hit after a uniform solve of this kernel
+        self._count_single(img.shape, kernel, cells if grid else 1, shape, dec)
+        if grid and cells > 1:
+            self.last_fft_pairs += 0.5             # the central kernel's frame-sized OTF
+        c = np.float32(1.0 / lam)
+        out, info = x0, None
+        self.last_prior_frames, self.last_weight = 0, 0.0
+        past = prior() if callable(prior) else prior
+        if past is not None and getattr(kernel, "coverage", 1.0) >= self.min_coverage:
+            got = self._correct(img, x0, past, t_frame, gyro_t, gyro_rate, lo, hi, plan, K2, c)
+            if got is not None:
+                out, info = got
+        if info is None:
+            info = K2.copy()
+        self.last_seconds = (t1 - t0, time.perf_counter() - t1)
+        self.last_cpu_seconds = (c1 - c0, time.thread_time() - c1)
+        return out, Estimate(out, t_frame, info, shape)
+
+    def _count_single(self, img_shape, kernel, cells, shape, dec) -> None:
+        steps = len(dec._betas) if dec.method == "kf" else 0
+        pairs = float(steps + 1)
+        if cells > 1:
+            lay = dec._layout(img_shape, np.asarray(kernel.centers, np.float64), self.overlap, TILE_MARGIN_PX)
+            pairs *= cells * lay.pshape[0] * lay.pshape[1] / (shape[0] * shape[1])
+        self.last_fft_pairs_single = self.last_fft_pairs = pairs
+
+    def _correct(self, img, x0, past: Estimate, t_frame, gyro_t, gyro_rate, lo, hi, plan, K2, c):
+        """(x, I) with the prior `past` entered, or None when it cannot be (too old, no gyro, no overlap)."""
+        age = t_frame - float(past.t_frame)
+        if not 0 < age <= self.max_age_s or past.image.shape != img.shape:
+            return None
+        maps = warp_maps(self.calib, gyro_t, gyro_rate, t_frame, float(past.t_frame))
+        if maps is None:
+            return None
+        support = warped_support(maps, img.shape, SUPPORT_INSET_PX)
+        if support.mean() < 0.02:
+            return None
+        p = warp(past.image, maps, self.interpolation)
+        n = max(1, int(round(age * float(self.calib.frame_rate_hz))))
+        scale = np.float32(1.0 / (hi - lo))
+        # an FFC step (or drift) offsets the new frame's counts: the prior follows
+        ok = support[::4, ::4] > 0
+        p += np.float32(np.median((x0[::4, ::4] - p[::4, ::4])[ok]))
+        sigma = max(noise_sigma(img, (lo, hi)), 1e-6)
+        gy, gx = np.diff(p[::2, ::2], axis=0), np.diff(p[::2, ::2], axis=1)
+        grad2 = 0.5 * (float(np.mean(gy * gy)) + float(np.mean(gx * gx))) * float(scale) ** 2 / 4.0
+        q = self.registration_px ** 2 * grad2 / sigma ** 2
+        rows = _frequency_index(plan.shape[0], past.shape[0], half=False)
+        cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
+        Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
+        noise_gain = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
+                                       self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
+                                       float(plan.norm), Hw, Ww, info)
+        # the disagreement test: x₀ against the single solve's output for data k ⊛ p
+        H, W = img.shape
+        prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
+        _weigh(Hw, plan.fwd(), plan.cin)
+        r2 = np.empty_like(x0)
+        _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
+        e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
+        expected = sigma * sigma * noise_gain
+        inside = e[::4, ::4][ok]
+        ref = max(expected, float(np.median(inside)) if inside.size else expected)
+        dlo, dhi = DISAGREE
+        _agreement(e, support, np.float32(dlo * ref), np.float32(dhi * ref), r2)
+        m = cv2.blur(r2, (5, 5))             # soft edges: no seam where the prior starts
+        self.last_weight = float(m.mean())
+        self.last_prior_frames = n
+        # the correction x₀ + F⁻¹[w F(m (p − x₀))]
+        _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
+        _weigh(Ww, plan.fwd(), plan.cin)
+        out = np.empty_like(x0)
+        _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
+        self.last_fft_pairs += 2.0
+        return out, info
+
+    def _gain(self, shape) -> np.ndarray:
+        """|T(f)|² of the warp's interpolation on the half spectrum of `shape` (cached per shape)."""
+        g = self._gains.get(shape)
+        if g is None:
+            ty = interpolation_gain(self.interpolation, np.abs(np.fft.fftfreq(shape[0])))
+            tx = interpolation_gain(self.interpolation, np.fft.rfftfreq(shape[1]))
+            g = self._gains[shape] = np.square(np.outer(ty, tx)).astype(np.float32)
+        return g
+
+
+__all__ = ["DISAGREE", "MEMORY", "REGISTRATION_PX", "Estimate", "RecursiveDeconvolver"]
