@@ -212,7 +212,8 @@ class Config:
 # [deblur] → DeblurConfig, whose defaults (shared with offline deblurring) live in thermod.restore.settings
 DEBLUR = with_defaults(DeblurConfig, {
     "enabled": Key(bool),
-    "method": Key(str, choices=("kf", "wiener")),
+    "method": Key(str, choices=("kf", "wiener"), doc="single-frame solver; the daemon's temporal rung "
+                  "(temporal_views > 1) always solves by Wiener, so kf needs temporal_views = 1 there"),
     "lambda": Key(float, lo=0.0, lo_open=True, hi=1e9, attr="lam", doc="data weight; absent = the solver's"),
     "alpha": Key(float, rule=lambda a: None if abs(a - 1.0) < 1e-9 or abs(a - 2.0 / 3.0) < 1e-3 else
                  "1 or 2/3 (0.667) — the exponents with a closed-form w-step", doc="prior exponent",
