@@ -86,6 +86,8 @@ class SimConfig:
     frame_rate_hz: float = setting(50.0, lo=1.0, hi=500.0)
     gyro_rate_hz: float = setting(1000.0, choices=(1000.0, 2000.0, 4000.0))
     gyro_noise_rad_s: float = setting(0.002, lo=0.0, hi=1.0)
+    tau_s: float = setting(0.0, lo=0.0, hi=1.0,
+                           doc="the simulated camera's true thermal time constant (s); 0 = [calibration]'s")
     cache_dir: str = setting("", doc='"" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback')
     ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
                                     doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
