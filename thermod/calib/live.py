@@ -50,7 +50,8 @@ MIN_RESPONSE = 0.05     # phase-correlation peaks weaker than this are no match 
 PATCH_FRACTION = 0.6    # of a grid cell: a shift of up to ~20 % of a cell still overlaps well
 TAU_BAND_MAX = 0.3      # cycles per working px: the τ coherence's band (aliasing above)
 TAU_SCAN = np.exp(np.linspace(math.log(0.5), math.log(2.0), 13))   # τ candidates / τ in force, 12 % steps
-NEWTON, SEG0, SEG_GROWTH = 2, 0.5, 1.25   # Newton steps on the shift; the tail's segments (`tail_spectra`)
+NEWTON = 2              # Newton steps on the shift per τ (`_profiled_coherence`)
+TAIL_SPAN = 8.0         # of τ_max: how far back the tails are followed (e^−8 of the weight left out)
 TAU_MODEL_ERROR = 0.03  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
 TAU_WIDTH = 160         # px: τ is measured at this working width (its cost does not grow with the frame)
 TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
@@ -361,9 +362,8 @@ def tail_spectra(calib: Calibration, integral: GyroIntegral, t: float, centres: 
     """The exponential kernel of Eq. 10 along the path the gyro gives, for each τ of `taus`: the content
     seen s before the read instant t sits D(s) from where it is at t (`predict` from t − s to t), so
     K(f; τ) = ∫ (1/τ) e^{−s/τ} e^{i2πf·D(s)} ds (for a steady velocity v, 1/(1 − i2πf·vτ)). The path is
-    cut into segments (τ_min/2 long up to 2 τ_min, then each 25 % longer than the last, out to 5 τ_max),
-    each a straight smear (sinc) carrying its exact share of the exponential weight; `freqs` [F, 2] in
-    cycles per full-res px."""
+    cut into segments (`_tail_edges`), each a straight smear (sinc) carrying its exact share of the
+    exponential weight at its exponential centroid; `freqs` [F, 2] in cycles per full-res px."""
     taus = np.asarray(taus, float)
     edges = _tail_edges(float(taus.min()), float(taus.max()))
     n = len(edges)
@@ -372,19 +372,26 @@ def tail_spectra(calib: Calibration, integral: GyroIntegral, t: float, centres: 
     tb = np.full(p * n, float(t))
     D = predict(calib, integral, tb - np.tile(edges, p), tb, cen, bias, offset).reshape(p, n, 2)
     mid = 0.5 * (D[:, 1:] + D[:, :-1])                                          # [P, n−1, 2]
-    E = np.exp(2j * np.pi * (mid @ freqs.T)) * np.sinc((D[:, 1:] - D[:, :-1]) @ freqs.T)
+    step = D[:, 1:] - D[:, :-1]
+    fd = step @ freqs.T                                                        # [P, n−1, F]
+    E = np.exp(2j * np.pi * (mid @ freqs.T)) * np.sinc(fd)
     m = np.exp(-edges[None, :-1] / taus[:, None]) - np.exp(-edges[None, 1:] / taus[:, None])
     m /= m.sum(axis=1, keepdims=True)                                          # [T, n−1]
-    K = np.matmul(m[None].astype(complex), E)                                   # [P, T, F]
-    return TailSpectra(taus=taus, phase=np.angle(K), centroid=np.einsum("tn,pnk->ptk", m, mid), ref=ref)
+    # each segment's weight sits at its exponential centroid, a fraction u of the way along it (not at
+    # its middle): to first order in (u − ½)·step
+    h = np.diff(edges)[None, :]
+    u = (taus[:, None] - h / np.expm1(h / taus[:, None])) / h - 0.5           # [T, n−1]
+    K = np.matmul(m[None].astype(complex), E) + 1j * np.matmul((m * u)[None], E * (2 * np.pi * fd))
+    centroid = np.einsum("tn,pnk->ptk", m, mid) + np.einsum("tn,pnk->ptk", m * u, step)
+    return TailSpectra(taus=taus, phase=np.angle(K), centroid=centroid, ref=ref)
 
 
 def _tail_edges(tau_min: float, tau_max: float) -> np.ndarray:
-    h = SEG0 * tau_min
-    edges = list(h * np.arange(int(round(2 / SEG0)) + 1))
-    while edges[-1] < 5.0 * tau_max:
-        h *= SEG_GROWTH
-        edges.append(edges[-1] + h)
+    """Segment edges (s before the read instant): τ_min/2 long near it, then a quarter of the time
+    already covered, at most τ_max/2, out to `TAIL_SPAN` τ_max."""
+    edges = [0.0]
+    while edges[-1] < TAIL_SPAN * tau_max:
+        edges.append(edges[-1] + min(max(0.5 * tau_min, 0.25 * edges[-1]), 0.5 * tau_max))
     return np.array(edges)
 
 

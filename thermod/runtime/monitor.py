@@ -31,6 +31,7 @@ import numpy as np
 
 from thermod.calib.live import (
     MIN_RESPONSE,
+    TAIL_SPAN,
     TAU_REF,
     TAU_SCAN,
     TAU_WIDTH,
@@ -174,8 +175,9 @@ class Monitor:
             self._last_b = ib
             return False
         bias, offset = self._current(calib)
-        # the comet tails of the τ scan reach 5 τ_max behind frame a's first row
-        g0 = float(calib.camera_time_to_gyro(a.t - 5 * TAU_SCAN[-1] * calib.tau_s - calib.readout_s)) - 0.01
+        # the comet tails of the τ scan reach TAIL_SPAN τ_max behind frame a's first row
+        reach = TAIL_SPAN * TAU_SCAN[-1] * calib.tau_s + calib.readout_s
+        g0 = float(calib.camera_time_to_gyro(a.t - reach)) - 0.01
         g1 = float(calib.camera_time_to_gyro(b.t)) + 0.01
         if not self.gyro_ring.newest_t >= g1 + abs(offset - calib.time_offset_s):
             if time.monotonic() - b.arrival > 0.5:          # the gyro will not come (offline)
