@@ -52,7 +52,7 @@ TAU_BAND_MAX = 0.3      # cycles per working px: the τ coherence's band (aliasi
 TAU_SCAN = np.exp(np.linspace(math.log(0.5), math.log(2.0), 13))   # τ candidates / τ in force, 12 % steps
 NEWTON = 2              # Newton steps on the shift per τ (`_profiled_coherence`)
 TAIL_SPAN = 8.0         # of τ_max: how far back the tails are followed (e^−8 of the weight left out)
-TAU_MODEL_ERROR = 0.03  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
+TAU_MODEL_ERROR = 0.05  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
 TAU_WIDTH = 160         # px: τ is measured at this working width (its cost does not grow with the frame)
 TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
 TAU_MIN_LEVER_PX = 0.5  # working px: a patch pair whose tails differ less shows nothing of τ
@@ -536,7 +536,7 @@ class LiveEstimator:
         sigma = float(np.sqrt((g - 1) / g * np.sum((est - est.mean()) ** 2)))
         # one tail per patch (the centre's: under roll the tails vary across a patch) and the window's
         # spread of the cross-power modelled for a scene of independent frequencies: model errors the
-        # jackknife cannot see, bounded here at 3 % of τ
+        # jackknife cannot see, bounded here at 5 % of τ
         sigma = math.hypot(sigma, TAU_MODEL_ERROR * tau)
         if not sigma < TAU_MAX_REL_SIGMA * tau:
             return None, None, n, (f"tau_s: not estimated: too uncertain (sigma {1e3 * sigma:.2f} ms "

@@ -9,11 +9,16 @@ gap, and gyro windows with a gap are skipped.
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
 pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
+τ is measured on the pairs whose comet tails differ only while it has used at most `TAU_CPU_SHARE` of
+the thread's CPU time, so it never starves the registration that bias and offset need (a frame's
+tails serve both pairs it is in).
 
 Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
-force (the bias on any axis, or the offset) in ``stable_windows`` consecutive fits that agree with each
-other within k σ; it is applied only if it lowers the window's registration residual (the prediction
-of the frame-to-frame motion) against the calibration in force. Each change is logged and counted;
+force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
+agree with each other within k σ; the motion part is applied only if it lowers the window's
+registration residual (the prediction of the frame-to-frame motion), τ only if it lowers the window's
+tail-phase misfit (1 − the mean coherence of the comet tails), each against the calibration in force.
+A τ change re-centres the τ scan: the window's τ measurements start afresh. Each change is logged and counted;
 the daemon applies it through `Pipeline.update` (`take_proposal`). A SIGHUP reload puts the
 configuration's (or a replayed recording's) calibration back in force; the monitor goes on from there.
 """
@@ -52,7 +57,7 @@ log = logging.getLogger(__name__)
 FIT_PERIOD_S = 1.0
 BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
-TAU_PAIRS_PER_S = 6.0        # τ is measured on at most this many pairs a second (each costs ~5 pairs)
+TAU_CPU_SHARE = 0.5          # τ is measured with at most this share of the monitor's own CPU time
 
 
 class Monitor:
@@ -70,7 +75,8 @@ class Monitor:
         self._proposal: Calibration | None = None
         self._last_b = -1
         self._tails = None                     # (key, TailSpectra) of the last frame whose tails were made
-        self._last_tau = 0.0                   # when τ was last measured on a pair (monotonic)
+        self._cpu_tau = 0.0                    # thread CPU time spent measuring τ, and in all
+        self._cpu_all = 0.0
         self._last_fit = 0.0
         self._cpu = collections.deque()        # (wall, thread cpu) samples
         self.counters = collections.Counter()
@@ -127,6 +133,7 @@ class Monitor:
                 self.counters["errors"] += 1
                 worked = True
             c1 = time.thread_time()
+            self._cpu_all += c1 - c0
             now = time.monotonic()
             self._cpu.append((now, c1))
             while len(self._cpu) > 2 and now - self._cpu[1][0] > CPU_PERIOD_S:
@@ -203,17 +210,18 @@ class Monitor:
         shift, resp = reg.measure(da, db, pred, va, vb, calib.tau_s)
         taus = calib.tau_s * TAU_SCAN
         coherence = None
-        if time.monotonic() - self._last_tau >= 1.0 / TAU_PAIRS_PER_S:
+        if self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all:
+            c0 = time.thread_time()
             treg = self._registrar_for(calib, min(TAU_WIDTH, self.cfg.width))
             patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
             if patches.any():
-                self._last_tau = time.monotonic()
                 tails_a = self._tails_of(ia, a.t, calib, treg, integ, bias, offset, taus)
                 tails_b = self._tails_of(ib, b.t, calib, treg, integ, bias, offset, taus)
                 if treg is not reg:
                     da, db = treg.downsample(a.image), treg.downsample(b.image)
                 coherence = treg.tau_coherence(da, db, pred, shift, resp, tails_a, tails_b, patches)
                 self.counters["tau_patch_pairs"] += int(np.isfinite(coherence[:, 0]).sum())
+            self._cpu_tau += time.thread_time() - c0
         self.estimator.add(Pair(a.t, b.t, cen.copy(), shift, resp, taus, coherence))
         self.counters["pairs_registered"] += 1
         return True
