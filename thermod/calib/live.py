@@ -373,15 +373,22 @@ def tail_spectra(calib: Calibration, integral: GyroIntegral, t: float, centres: 
     D = predict(calib, integral, tb - np.tile(edges, p), tb, cen, bias, offset).reshape(p, n, 2)
     mid = 0.5 * (D[:, 1:] + D[:, :-1])                                          # [P, n−1, 2]
     step = D[:, 1:] - D[:, :-1]
-    fd = step @ freqs.T                                                        # [P, n−1, F]
-    E = np.exp(2j * np.pi * (mid @ freqs.T)) * np.sinc(fd)
+    fx, fy = freqs[:, 0], freqs[:, 1]
+    # products and sums spelled out: no BLAS call, whose threads only spin at these sizes
+    fd = (step[..., :1] * fx + step[..., 1:] * fy).astype(np.float32)          # [P, n−1, F]
+    E = np.exp(np.float32(2 * np.pi) * 1j * (mid[..., :1] * fx + mid[..., 1:] * fy).astype(np.float32))
+    E *= np.sinc(fd)
     m = np.exp(-edges[None, :-1] / taus[:, None]) - np.exp(-edges[None, 1:] / taus[:, None])
     m /= m.sum(axis=1, keepdims=True)                                          # [T, n−1]
     # each segment's weight sits at its exponential centroid, a fraction u of the way along it (not at
     # its middle): to first order in (u − ½)·step
     h = np.diff(edges)[None, :]
     u = (taus[:, None] - h / np.expm1(h / taus[:, None])) / h - 0.5           # [T, n−1]
-    K = np.matmul(m[None].astype(complex), E) + 1j * np.matmul((m * u)[None], E * (2 * np.pi * fd))
+    G = E * (np.float32(2 * np.pi) * fd)
+    mr, mi = m.astype(np.float32), (m * u).astype(np.float32)
+    K = np.zeros((p, len(taus), E.shape[2]), np.complex64)
+    for j in range(E.shape[1]):
+        K += mr[None, :, j, None] * E[:, None, j] + 1j * mi[None, :, j, None] * G[:, None, j]
     centroid = np.einsum("tn,pnk->ptk", m, mid) + np.einsum("tn,pnk->ptk", m * u, step)
     return TailSpectra(taus=taus, phase=np.angle(K), centroid=centroid, ref=ref)
 
