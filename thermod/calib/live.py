@@ -23,7 +23,8 @@ degenerate with the shift d, hence with the time offset; its curvature is not, a
 the frames only where the tails differ. For each patch pair whose tails (at the τ in force) differ by
 at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is corrected by the tails of every τ
 on a log scan of 0.5–2× the τ in force and its coherence maximised over d (`Registrar.tau_coherence`);
-the window's τ is the scan's maximum of the summed coherence, σ from the same block jackknife. Phase
+the τ window's (`TAU_WINDOW_S`) τ is the scan's maximum of the summed coherence, σ from the same
+block jackknife. Phase
 noise that does not depend on τ (sensor noise, content entering the patch) lowers the coherence at
 every τ alike and moves no maximum. Too few such patch pairs (slow or steady motion), a maximum at
 the scan's edge or σ above a quarter of τ: `tau_s` is None and ``notes`` says why. The offset is
@@ -54,6 +55,7 @@ NEWTON = 2              # Newton steps on the shift per τ (`_profiled_coherence
 TAIL_SPAN = 8.0         # of τ_max: how far back the tails are followed (e^−8 of the weight left out)
 TAU_MODEL_ERROR = 0.05  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
 TAU_WIDTH = 160         # px: τ is measured at this working width (its cost does not grow with the frame)
+TAU_WINDOW_S = 12.0     # s: the window of τ measurements (at least the motion's window)
 TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
 TAU_MIN_LEVER_PX = 0.5  # working px: a patch pair whose tails differ less shows nothing of τ
 MIN_TAU_PATCHES = 24    # patch pairs in a window needed for a τ estimate
@@ -414,17 +416,24 @@ def predict(calib: Calibration, integral: GyroIntegral, t_a: np.ndarray, t_b: np
 
 # ------------------------------------------------------------------------------- the fit
 class LiveEstimator:
-    """A rolling window of `Pair` s and the (bias, offset) fit on it."""
+    """A rolling window of `Pair` s and the (bias, offset) fit on it; the pairs τ was measured on are
+    kept over a longer window (`tau_window_s`: τ drifts slowly, and each measurement is costly)."""
 
-    def __init__(self, window_s: float = 4.0, blocks: int = 8):
+    def __init__(self, window_s: float = 4.0, blocks: int = 8, tau_window_s: float | None = None):
         self.window_s = float(window_s)
+        self.tau_window_s = max(self.window_s, TAU_WINDOW_S if tau_window_s is None else float(tau_window_s))
         self.blocks = int(blocks)
         self.pairs: deque[Pair] = deque()
+        self.tau_pairs: deque[Pair] = deque()
 
     def add(self, pair: Pair) -> None:
         self.pairs.append(pair)
         while self.pairs and pair.t_b - self.pairs[0].t_a > self.window_s:
             self.pairs.popleft()
+        if pair.tau_coherence is not None:
+            self.tau_pairs.append(pair)
+        while self.tau_pairs and pair.t_b - self.tau_pairs[0].t_a > self.tau_window_s:
+            self.tau_pairs.popleft()
 
     def span(self) -> tuple[float, float] | None:
         return (self.pairs[0].t_a, self.pairs[-1].t_b) if self.pairs else None
@@ -503,14 +512,13 @@ class LiveEstimator:
                         n_tau=n_tau, notes=[note] if note else [])
 
     def _tau_rows(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """([n, T] coherence curves, [n] jackknife block) of the window's patch pairs measured on the
+        """([n, T] coherence curves, [n] jackknife block) of the τ window's patch pairs measured on the
         scan `taus` (pairs registered before the τ in force changed are left out)."""
+        pairs = [p for p in self.tau_pairs if p.taus is not None and len(p.taus) == len(taus) and
+                 np.allclose(p.taus, taus, rtol=1e-9, atol=0.0)]
         q, blk = [], []
-        n = len(self.pairs)
-        for i, p in enumerate(self.pairs):
-            if p.tau_coherence is None or p.taus is None or len(p.taus) != len(taus) or \
-                    not np.allclose(p.taus, taus, rtol=1e-9, atol=0.0):
-                continue
+        n = len(pairs)
+        for i, p in enumerate(pairs):
             ok = np.all(np.isfinite(p.tau_coherence), axis=1)
             q.append(p.tau_coherence[ok])
             blk += [i * self.blocks // max(n, 1)] * int(ok.sum())

@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 FIT_PERIOD_S = 1.0
 BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
-TAU_CPU_SHARE = 0.5          # τ is measured with at most this share of the monitor's own CPU time
+TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the monitor's own CPU time
 
 
 class Monitor:
