@@ -21,14 +21,14 @@ the image path the gyro gives, K(f; τ) = ∫ (1/τ) e^{−s/τ} e^{i2πf·D(s)}
 a pair is −2πf·d + arg K_b − arg K_a. The linear part of the tail phase (its centroid lag vτ) is
 degenerate with the shift d, hence with the time offset; its curvature is not, and it differs between
 the frames only where the tails differ. For each patch pair whose tails (at the τ in force) differ by
-at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is corrected by the tails of every τ
-on a log scan of 0.5–2× the τ in force and its coherence maximised over d (`Registrar.tau_coherence`);
-the τ window's (`TAU_WINDOW_S`) τ is the scan's maximum of the summed coherence, σ from the same
-block jackknife. Phase
-noise that does not depend on τ (sensor noise, content entering the patch) lowers the coherence at
-every τ alike and moves no maximum. Too few such patch pairs (slow or steady motion), a maximum at
-the scan's edge or σ above a quarter of τ: `tau_s` is None and ``notes`` says why. The offset is
-estimated at the τ in force.
+at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is compared with the model of every τ
+on a log scan of 0.5–2× the τ in force (the two tails' transfer ratio, spread over neighbouring
+frequencies as the window spreads it) and the coherence maximised over d (`Registrar.tau_coherence`);
+τ is the scan's maximum of the coherence summed over the τ window (`TAU_WINDOW_S`), σ from the same
+block jackknife. Phase noise that does not depend on τ (sensor noise, content entering the patch)
+lowers the coherence at every τ alike and moves no maximum. Too few such patch pairs (slow or steady
+motion), a maximum at the scan's edge or σ above a quarter of τ: `tau_s` is None and ``notes`` says
+why. The offset is estimated at the τ in force.
 """
 
 from __future__ import annotations
@@ -231,11 +231,14 @@ class Registrar:
                       ) -> np.ndarray:
         """[P, T] how well each τ of the scan explains patch p's cross-power phase (NaN: not measured).
 
-        With the shift profiled out (Newton on d from the registration's answer, moved by the change
-        of the two tails' centroids), the coherence Re Σ_f c_f X_f e^{−i(φ_b − φ_a)(f; τ)} e^{i2πf·d}
-        of the whitened cross-power X is largest at the true τ whatever noise leaves the phases
-        alone: the linear part of the tail phase (the centroid lag, degenerate with the shift and
-        so with the time offset) drops out and what remains is its curvature, the tail's shape."""
+        The model cross-power at τ is e^{−i2πf·d} Σ_k c_k e^{i2πk·d} (P·U)(f − k): the tails' unit
+        transfer ratio U = e^{i(arg K_b − arg K_a)} weighted by the measured cross-power magnitude P and
+        spread over the neighbours k the periodic Hann window reaches (c_k = (1, 4, 1)/6 per axis).
+        With the shift profiled out (Newton on d from the registration's answer, moved by the change of
+        the two tails' centroids), the coherence Re Σ_f X_f conj(M_f)/|M_f| of the whitened
+        cross-power X is largest at the true τ whatever noise leaves the phases alone: the linear part
+        of the tail phase (the centroid lag, degenerate with the shift and so with the time offset)
+        drops out and what remains is its curvature, the tail's shape."""
         n_t = tail_a.phase.shape[1]
         out = np.full((len(self.centres_lr), n_t), np.nan)
         pred = predicted / self.scale
@@ -350,8 +353,9 @@ def tail_velocity(calib: Calibration, integral: GyroIntegral, t: np.ndarray, cen
 @dataclass
 class TailSpectra:
     """One frame's comet tails at the patch centres over a τ scan: the phase [P, T, F] of each tail's
-    transfer function at the registrar's band frequencies and its centroid [P, T, 2] (full-res px, the
-    lag of the blurred content behind the read instant); `ref` is the index of the τ in force."""
+    transfer function at the frequencies asked for (`Registrar.ext_f_full`) and its centroid [P, T, 2]
+    (full-res px, the lag of the blurred content behind the read instant); `ref` is the index of the
+    τ in force."""
 
     taus: np.ndarray
     phase: np.ndarray
