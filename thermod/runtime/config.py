@@ -97,6 +97,8 @@ class SimConfig:
                                      doc="offset step of the new NUC after each FFC (raw counts)")
 
     def problems(self) -> Iterator[tuple[str, str]]:
+        if 0 < self.tau_s < 1e-6:
+            yield "tau_s", f"expected 0 (the calibration's) or at least 1e-6 s, got {self.tau_s!r}"
         if 0 < self.ffc_interval_s <= self.ffc_duration_s:
             yield "ffc_interval_s", (f"expected 0 (never) or longer than ffc_duration_s "
                                      f"({self.ffc_duration_s:g} s), got {self.ffc_interval_s!r}")
