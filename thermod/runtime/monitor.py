@@ -9,9 +9,9 @@ gap, and gyro windows with a gap are skipped.
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
 pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
-τ is measured on the pairs whose comet tails differ only while it has used at most `TAU_CPU_SHARE` of
-the thread's CPU time, so it never starves the registration that bias and offset need (a frame's
-tails serve both pairs it is in).
+τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
+twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
+never starves the registration that bias and offset need (a frame's tails serve both its pairs).
 
 Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
 force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
@@ -35,6 +35,7 @@ import time
 import numpy as np
 
 from thermod.calib.live import (
+    MIN_PAIRS,
     MIN_RESPONSE,
     TAIL_SPAN,
     TAU_REF,
@@ -210,7 +211,8 @@ class Monitor:
         shift, resp = reg.measure(da, db, pred, va, vb, calib.tau_s)
         taus = calib.tau_s * TAU_SCAN
         coherence = None
-        if self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all:
+        # τ only when the motion's window is well fed: it never takes pairs bias and offset need
+        if self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all and len(self.estimator.pairs) >= 2 * MIN_PAIRS:
             c0 = time.thread_time()
             treg = self._registrar_for(calib, min(TAU_WIDTH, self.cfg.width))
             patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
