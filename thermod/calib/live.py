@@ -540,9 +540,11 @@ class LiveEstimator:
         q, blk = self._tau_rows(taus)
         n = len(q)
         if n < MIN_TAU_PATCHES:
-            return None, None, n, (f"tau_s: not estimated: {n} patch pairs in the window saw their comet "
-                                   f"tails change by {TAU_MIN_LEVER_PX} px or more (needs "
-                                   f"{MIN_TAU_PATCHES}): the motion is too slow or too steady to show tau")
+            return None, None, n, (f"tau_s: not estimated: {n} patch pairs measured in the last "
+                                   f"{self.tau_window_s:g} s saw their comet tails change by "
+                                   f"{TAU_MIN_LEVER_PX} px or more (needs {MIN_TAU_PATCHES}): the motion "
+                                   f"is too slow or too steady to show tau, or the monitor had no CPU "
+                                   f"to spare for it")
         tau = _scan_peak(q.sum(axis=0), taus)
         if tau is None:
             return None, None, n, (f"tau_s: not estimated: the best fit lies at the edge of the scan "

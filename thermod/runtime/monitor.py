@@ -211,18 +211,21 @@ class Monitor:
         shift, resp = reg.measure(da, db, pred, va, vb, calib.tau_s)
         taus = calib.tau_s * TAU_SCAN
         coherence = None
+        treg = self._registrar_for(calib, min(TAU_WIDTH, self.cfg.width))
+        patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
         # τ only when the motion's window is well fed: it never takes pairs bias and offset need
-        if self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all and len(self.estimator.pairs) >= 2 * MIN_PAIRS:
+        affordable = self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all and \
+            len(self.estimator.pairs) >= 2 * MIN_PAIRS
+        if patches.any() and not affordable:
+            self.counters["tau_pairs_deferred"] += 1
+        elif patches.any():
             c0 = time.thread_time()
-            treg = self._registrar_for(calib, min(TAU_WIDTH, self.cfg.width))
-            patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
-            if patches.any():
-                tails_a = self._tails_of(ia, a.t, calib, treg, integ, bias, offset, taus)
-                tails_b = self._tails_of(ib, b.t, calib, treg, integ, bias, offset, taus)
-                if treg is not reg:
-                    da, db = treg.downsample(a.image), treg.downsample(b.image)
-                coherence = treg.tau_coherence(da, db, pred, shift, resp, tails_a, tails_b, patches)
-                self.counters["tau_patch_pairs"] += int(np.isfinite(coherence[:, 0]).sum())
+            tails_a = self._tails_of(ia, a.t, calib, treg, integ, bias, offset, taus)
+            tails_b = self._tails_of(ib, b.t, calib, treg, integ, bias, offset, taus)
+            if treg is not reg:
+                da, db = treg.downsample(a.image), treg.downsample(b.image)
+            coherence = treg.tau_coherence(da, db, pred, shift, resp, tails_a, tails_b, patches)
+            self.counters["tau_patch_pairs"] += int(np.isfinite(coherence[:, 0]).sum())
             self._cpu_tau += time.thread_time() - c0
         self.estimator.add(Pair(a.t, b.t, cen.copy(), shift, resp, taus, coherence))
         self.counters["pairs_registered"] += 1
