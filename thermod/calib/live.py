@@ -161,6 +161,7 @@ class Registrar:
         self.ext_in_grid = ext_flat
         self.ext_f_full = np.c_[gx.ravel()[ext_flat], gy.ravel()[ext_flat]] / self.scale[None, :]
         self.band_in_grid = np.flatnonzero(band)
+        self.band_iy, self.band_ix = np.nonzero(band)                  # gx ≥ 0: rfft2 rows, columns
         self.band_f = np.c_[gx[band], gy[band]]                        # cycles / working px
         # full-res coordinates of the low-res pixel centres (area downsampling)
         self.centres = (self.centres_lr + 0.5) * self.scale - 0.5
@@ -264,8 +265,18 @@ class Registrar:
                 PU_k = np.where(mirrored, np.conj(PU[:, idx]), PU[:, idx])
                 M = M + (c_k * np.exp(2j * np.pi * (d[:, 0] * fx_k + d[:, 1] * fy_k)))[:, None] * PU_k
             Z = X[None, :] * np.conj(M) / (np.abs(M) + 1e-30)
-            out[i] = _profiled_coherence(Z, self.band_f, d) / len(self.band_f)
+            out[i] = _profiled_coherence(Z, self.band_f, self._peak_shift(Z)) / len(self.band_f)
         return out
+
+    def _peak_shift(self, Z: np.ndarray) -> np.ndarray:
+        """[T, 2] the whole-pixel d maximising Re Σ_f Z[t, f] e^{i2πf·d} (an inverse FFT of the band,
+        which lies in the rfft half plane): where Newton starts, within half a pixel of the peak."""
+        grid = np.zeros((len(Z), self.ph, self.pw // 2 + 1), np.complex128)
+        grid[:, self.band_iy, self.band_ix] = Z
+        r = np.fft.irfft2(grid, s=(self.ph, self.pw)).reshape(len(Z), -1)
+        iy, ix = np.unravel_index(np.argmax(r, axis=1), (self.ph, self.pw))
+        return np.c_[(ix + self.pw // 2) % self.pw - self.pw // 2,
+                     (iy + self.ph // 2) % self.ph - self.ph // 2].astype(float)
 
     def _patch(self, img: np.ndarray, c: np.ndarray) -> np.ndarray | None:
         x0 = int(round(c[0] - self.pw / 2))
