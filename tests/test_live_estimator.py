@@ -174,3 +174,13 @@ def test_a_steady_pan_shows_no_tau_and_says_why():
     tau, sigma, n, note = est.fit_tau(rec.calibration)
     assert tau is None and sigma is None and n < 24
     assert "too slow or too steady" in note
+
+
+def test_long_tails_do_not_pull_tau_towards_the_one_in_force():
+    """A 4° hand-held shake (1–12 Hz): long, curving tails, where the shift at each τ is searched afresh
+    (not carried over from the τ in force's), else τ comes out pulled towards the τ in force."""
+    rec = simulate("real:1", "shake:4", 2.5, CAL, effects={"time_constant": 0.010}, seed=1)
+    est, _ = _window(rec, rec.calibration, tau=True)
+    tau, sigma, n, note = est.fit_tau(rec.calibration)
+    assert tau is not None, note
+    assert abs(tau - 0.010) < 2 * sigma, (tau, sigma, n)
