@@ -235,11 +235,12 @@ class Registrar:
         The model cross-power at τ is e^{−i2πf·d} Σ_k c_k e^{i2πk·d} (P·U)(f − k): the tails' unit
         transfer ratio U = e^{i(arg K_b − arg K_a)} weighted by the measured cross-power magnitude P and
         spread over the neighbours k the periodic Hann window reaches (c_k = (1, 4, 1)/6 per axis).
-        With the shift profiled out (Newton on d from the registration's answer, moved by the change of
-        the two tails' centroids), the coherence Re Σ_f X_f conj(M_f)/|M_f| of the whitened
-        cross-power X is largest at the true τ whatever noise leaves the phases alone: the linear part
-        of the tail phase (the centroid lag, degenerate with the shift and so with the time offset)
-        drops out and what remains is its curvature, the tail's shape."""
+        With the shift profiled out (Newton on d from the whole-pixel peak of each τ's correlation; the
+        window taps' phases at the registration's shift moved by the tails' centroids), the coherence
+        Re Σ_f X_f conj(M_f)/|M_f| of the whitened cross-power X is largest at the true τ whatever
+        noise leaves the phases alone: the linear part of the tail phase (the centroid lag, degenerate
+        with the shift and so with the time offset) drops out and what remains is its curvature, the
+        tail's shape."""
         n_t = tail_a.phase.shape[1]
         out = np.full((len(self.centres_lr), n_t), np.nan)
         pred = predicted / self.scale
