@@ -19,7 +19,8 @@ before it, flagged ``ffc``, then its output steps by ``ffc_step_counts`` (the ne
 `ffc_truth(frame_id)` says which delivered frames were frozen.
 
 Drift: ``payload.drift = GyroDrift(...)`` (`thermod.sim.gyro_model`) makes the gyro bias and time offset
-move during the run; `true_calibration(t)` says what is true at host time t.
+move during the run; ``[sim] tau_s`` renders the loop with a true τ other than the configuration's;
+`true_calibration(t)` says what is true at host time t.
 
 Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
 raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
@@ -53,8 +54,10 @@ class SimPayload:
         # offset the daemon sees is the camera's transport latency (`true_calibration`), which the
         # configured time_offset_s corrects, not something the configuration puts into the world.
         self.world = calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz, time_offset_s=0.0)
+        # a true τ other than the configuration's (``[sim] tau_s``) is a hidden effect of the loop
+        hidden = (("time_constant", float(sim_cfg.tau_s)),) if sim_cfg.tau_s else ()
         self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
-                                          seed=sim_cfg.seed, calib=self.world)
+                                          seed=sim_cfg.seed, calib=self.world, effects=hidden)
         self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None
         self.cache_path = playback.cache_path(self.spec, self._cache_dir)
         self.loop: playback.Playback | None = None

@@ -1,16 +1,20 @@
 """thermod.calib.live on its own: the registration's sign and sub-pixel shift on a known translation,
-the comet tail taken out of the phase, and the bias/offset fit on a simulated recording with known truth
-(160×120, the simulator's fine-time thermal renderer)."""
+the comet tail taken out of the phase, the bias/offset fit on a simulated recording with known truth
+(160×120, the simulator's fine-time thermal renderer), and τ from the tails' shape where the simulated
+camera's τ differs from the one in force."""
 
 import numpy as np
 import pytest
 
 from thermod.calib.live import (
+    TAU_REF,
+    TAU_SCAN,
     GyroIntegral,
     LiveEstimator,
     Pair,
     Registrar,
     predict,
+    tail_spectra,
     tail_velocity,
 )
 from thermod.physics.calibration import Calibration
@@ -51,19 +55,32 @@ def recording():
     return simulate("real:1", "multirotor:60", 2.5, CAL, effects=truth, seed=1), truth
 
 
-def _window(rec, calib, tau_phase=True):
+def _window(rec, calib, tau_phase=True, tau=False):
+    """The recording's consecutive pairs registered as the monitor does (with τ measured on the patch
+    pairs whose tails differ when `tau`)."""
     reg = Registrar(calib, width=160)
     integ = GyroIntegral(calib, rec.gyro_t, rec.gyro_rate)
     est = LiveEstimator(4.0)
     b0 = np.asarray(calib.bias_rad_s, float)
+    o = calib.time_offset_s
+    taus = calib.tau_s * TAU_SCAN
+    tails = [None] * len(rec.t)
     for k in range(1, len(rec.t)):
         ta, tb = np.full(4, rec.t[k - 1]), np.full(4, rec.t[k])
-        pred = predict(calib, integ, ta, tb, reg.centres, b0, calib.time_offset_s)
-        va = tail_velocity(calib, integ, ta, reg.centres, b0, calib.time_offset_s) if tau_phase else None
-        vb = tail_velocity(calib, integ, tb, reg.centres, b0, calib.time_offset_s) if tau_phase else None
-        shift, resp = reg.measure(reg.downsample(rec.frames[k - 1]), reg.downsample(rec.frames[k]), pred,
-                                  va, vb, calib.tau_s)
-        est.add(Pair(rec.t[k - 1], rec.t[k], reg.centres, shift, resp))
+        pred = predict(calib, integ, ta, tb, reg.centres, b0, o)
+        va = tail_velocity(calib, integ, ta, reg.centres, b0, o) if tau_phase else None
+        vb = tail_velocity(calib, integ, tb, reg.centres, b0, o) if tau_phase else None
+        a, b = reg.downsample(rec.frames[k - 1]), reg.downsample(rec.frames[k])
+        shift, resp = reg.measure(a, b, pred, va, vb, calib.tau_s)
+        coherence = None
+        if tau:
+            for j in (k - 1, k):
+                if tails[j] is None:
+                    tails[j] = tail_spectra(calib, integ, rec.t[j], reg.centres, b0, o, taus, reg.ext_f_full,
+                                            TAU_REF)
+            patches = reg.tau_patches(va, vb, calib.tau_s)
+            coherence = reg.tau_coherence(a, b, pred, shift, resp, tails[k - 1], tails[k], patches)
+        est.add(Pair(rec.t[k - 1], rec.t[k], reg.centres, shift, resp, taus, coherence))
     return est, integ
 
 
@@ -81,7 +98,7 @@ def test_fit_recovers_the_hidden_bias_and_offset(recording):
     # the estimate explains the motion better than the nominal calibration, and says so
     assert e.residual_px < e.residual_applied_px
     assert est.residual(calib, integ, e.bias_rad_s, e.time_offset_s) == pytest.approx(e.residual_px)
-    assert e.as_dict()["tau_s"] is None
+    assert e.as_dict()["tau_s"] is None and "not estimated" in e.notes[0]     # no pair measured τ
 
 
 def test_without_the_tail_phase_the_offset_is_biased(recording):
@@ -111,3 +128,59 @@ def test_an_offset_far_from_the_one_in_force_is_found():
     est, integ = _window(rec, rec.calibration)
     e = est.fit(rec.calibration, integ)
     assert abs(e.time_offset_s + 0.03) < 0.002, e.as_dict()
+
+
+def test_tail_spectra_of_a_steady_pan_are_the_exponential_transfer():
+    """A steady pan: every tail is the exponential of Eq. 10 along one velocity v, whose transfer
+    1/(1 − i2πf·vτ) has the phase arctan(2πf·vτ) and whose centroid lags vτ behind the read instant."""
+    t = np.arange(0.0, 0.4, 0.001)
+    integ = GyroIntegral(CAL, t, np.tile([0.3, 0.8, 0.0], (len(t), 1)))
+    reg = Registrar(CAL, width=160)
+    taus = CAL.tau_s * TAU_SCAN
+    sp = tail_spectra(CAL, integ, 0.3, reg.centres, np.zeros(3), 0.0, taus, reg.ext_f_full, TAU_REF)
+    for k in (0, TAU_REF, len(taus) - 1):
+        v = tail_velocity(CAL.replace(tau_s=taus[k]), integ, np.full(4, 0.3), reg.centres, np.zeros(3), 0.0)
+        assert np.all(np.linalg.norm(v * taus[k], axis=1) > 1.0)               # tails of pixels, not less
+        expected = np.arctan(2 * np.pi * (v * taus[k]) @ reg.ext_f_full.T)     # [P, F]
+        np.testing.assert_allclose(sp.phase[:, k], expected, atol=0.02)
+        np.testing.assert_allclose(sp.centroid[:, k], v * taus[k], rtol=0.01)
+
+
+@pytest.fixture(scope="module")
+def tau_recording():
+    """The camera's τ is 10 ms, the calibration in force says 8 ms."""
+    return simulate("real:1", "multirotor:60", 2.5, CAL, effects={"time_constant": 0.010}, seed=2)
+
+
+def test_tau_is_found_where_the_camera_differs_from_the_calibration(tau_recording):
+    rec = tau_recording
+    calib = rec.calibration
+    assert calib.tau_s == pytest.approx(0.008)
+    est, integ = _window(rec, calib, tau=True)
+    e = est.fit(calib, integ)
+    assert e is not None and e.tau_s is not None, e.notes
+    assert 0 < e.tau_sigma < 0.1 * e.tau_s
+    assert abs(e.tau_s - 0.010) < 2.5 * e.tau_sigma, (e.tau_s, e.tau_sigma)
+    assert abs(e.tau_s - 0.008) > 3 * e.tau_sigma                 # significant against the τ in force
+    assert e.n_tau >= 24 and e.as_dict()["tau_s"] == e.tau_s and e.as_dict()["tau_s_sigma"] > 0
+    # the tails' phase fits better at the estimate than at the τ in force
+    assert est.tau_misfit(calib, e.tau_s) < est.tau_misfit(calib, calib.tau_s)
+
+
+def test_a_steady_pan_shows_no_tau_and_says_why():
+    """Tails that do not change from frame to frame cancel in every pair: no τ, never a guess."""
+    rec = simulate("real:1", "pan:40", 1.0, CAL, effects={"time_constant": 0.010}, seed=3)
+    est, integ = _window(rec, rec.calibration, tau=True)
+    tau, sigma, n, note = est.fit_tau(rec.calibration)
+    assert tau is None and sigma is None and n < 24
+    assert "too slow or too steady" in note
+
+
+def test_long_tails_do_not_pull_tau_towards_the_one_in_force():
+    """A 4° hand-held shake (1–12 Hz): long, curving tails, where the shift at each τ is searched afresh
+    (not carried over from the τ in force's), else τ comes out pulled towards the τ in force."""
+    rec = simulate("real:1", "shake:4", 2.5, CAL, effects={"time_constant": 0.010}, seed=1)
+    est, _ = _window(rec, rec.calibration, tau=True)
+    tau, sigma, n, note = est.fit_tau(rec.calibration)
+    assert tau is not None, note
+    assert abs(tau - 0.010) < 2 * sigma, (tau, sigma, n)

@@ -1,6 +1,7 @@
 """The live calibration monitor on the simulated payload (daemon in-process, 160×120 frames) with a gyro
 bias and a time offset that drift during the run: the estimate converges to the truth, health carries
-it, and apply = true moves the calibration in force towards the truth without raising the residual."""
+it, and apply = true moves the calibration in force towards the truth without raising the residual;
+with a camera whose τ is not the configuration's, the τ estimate converges to the camera's."""
 
 import socket
 import time
@@ -27,12 +28,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(apply: bool, seconds: float):
+def run(apply: bool, seconds: float, drift=DRIFT, **extra):
     opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "deblur.method": "wiener",
             "calibration.width": 160, "calibration.height": 120, "calibration.fx": 366.0,
-            "calibration.fy": 366.0, "monitor.apply": apply, "pipeline.workers": 1}
+            "calibration.fy": 366.0, "monitor.apply": apply, "pipeline.workers": 1, **extra}
     d = Daemon(config.load(None, opts))
-    d.payload.drift = DRIFT
+    d.payload.drift = drift
     d.start()
     t0 = time.monotonic()
     try:
@@ -60,7 +61,7 @@ def test_estimate_converges_to_the_drifting_truth():
     assert np.all(np.abs(b - b_true)[:2] < np.maximum(BIAS_TOL, 4.0 * sigma)), (b, b_true, e)
     assert abs(e["time_offset_s"] - truth.time_offset_s) < OFFSET_TOL, (e, truth.time_offset_s)
     assert all(s > 0 for s in e["gyro_bias_rad_s_sigma"]) and e["time_offset_s_sigma"] > 0
-    assert e["tau_s"] is None and e["notes"]
+    assert e["tau_s"] is None or abs(e["tau_s"] - truth.tau_s) < 3 * e["tau_s_sigma"], e
     assert d.pipeline.calib == d.cfg.calibration                 # apply = false: nothing changed
     share = cal["monitor"]["cpu_share"]
     assert share is not None and share <= 0.10 * 1.5               # the budget, with scheduling slack
@@ -70,7 +71,9 @@ def test_apply_moves_the_calibration_towards_the_truth():
     d, h, truth = run(apply=True, seconds=12.0)
     assert d.monitor.changes, h["calibration"]["monitor"]
     for c in d.monitor.changes:                                    # never a change that raised the residual
-        assert c["residual_px"][1] < c["residual_px"][0]
+        assert "residual_px" in c or "tau_misfit" in c, c
+        assert "residual_px" not in c or c["residual_px"][1] < c["residual_px"][0]
+        assert "tau_misfit" not in c or c["tau_misfit"][1] < c["tau_misfit"][0]
     applied = d.pipeline.calib
     assert h["calibration"]["source"] == "monitor"
     before = abs(d.cfg.calibration.time_offset_s - truth.time_offset_s)
@@ -78,3 +81,19 @@ def test_apply_moves_the_calibration_towards_the_truth():
     err_after = np.linalg.norm((np.array(applied.bias_rad_s) - truth.bias_rad_s)[:2])
     err_before = np.linalg.norm((np.array(d.cfg.calibration.bias_rad_s) - truth.bias_rad_s)[:2])
     assert err_after < err_before, (applied.bias_rad_s, truth.bias_rad_s)
+
+
+def test_tau_estimate_converges_to_the_camera_s():
+    """The simulated camera's τ is 10 ms, the configuration says 8 ms (``[sim] tau_s``): the monitor's
+    τ estimate finds the camera's within its σ, and is significant against the configuration's."""
+    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010})
+    assert d.cfg.calibration.tau_s == 0.008 and truth.tau_s == pytest.approx(0.010)
+    e = h["calibration"]["estimate"]
+    assert e is not None, h["calibration"]["monitor"]
+    assert e["tau_s"] is not None, e["notes"]
+    tau, sigma = e["tau_s"], e["tau_s_sigma"]
+    assert 0 < sigma < 0.15 * tau, e
+    assert abs(tau - truth.tau_s) < 2.5 * sigma, e
+    assert tau > d.cfg.calibration.tau_s, e                      # away from the configuration's
+    assert e["n_tau_patches"] >= 24 and h["calibration"]["monitor"]["tau_patch_pairs"] > 0
+    assert d.pipeline.calib == d.cfg.calibration                 # apply = false: nothing changed

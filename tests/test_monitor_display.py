@@ -44,6 +44,12 @@ def test_watch_text_shows_applied_and_estimate():
     assert len(off) == 1 and "in force" in off[0]
 
 
+def test_watch_text_shows_a_tau_estimate():
+    est = {**ESTIMATE, "tau_s": 0.0098, "tau_s_sigma": 0.0005, "n_tau_patches": 40}
+    text = "\n".join(calibration_lines({**CAL, "estimate": est}))
+    assert "tau 9.80 ± 0.50 ms" in text and "not estimated" not in text
+
+
 @pytest.fixture
 def pub():
     p = Publisher("tcp://127.0.0.1:*", queue_size=64, hwm=64).start()

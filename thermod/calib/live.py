@@ -16,8 +16,19 @@ re-integrated from the cumulative gyro integral at each step), with robust rewei
 σ comes from a delete-one-block jackknife over the window's pairs (neighbouring pairs share frames, so
 their errors are not independent).
 
-τ enters only through the tail's phase, at the τ in force; `tau_s` is not estimated here (None, said in
-``notes``): the offset is estimated at the τ in force.
+τ from the comet tails' shape: each frame is the scene through the exponential kernel of Eq. 10 along
+the image path the gyro gives, K(f; τ) = ∫ (1/τ) e^{−s/τ} e^{i2πf·D(s)} ds, so the cross-power phase of
+a pair is −2πf·d + arg K_b − arg K_a. The linear part of the tail phase (its centroid lag vτ) is
+degenerate with the shift d, hence with the time offset; its curvature is not, and it differs between
+the frames only where the tails differ. For each patch pair whose tails (at the τ in force) differ by
+at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is compared with the model of every τ
+on a log scan of 0.5–2× the τ in force (the two tails' transfer ratio, spread over neighbouring
+frequencies as the window spreads it) and the coherence maximised over d (`Registrar.tau_coherence`);
+τ is the scan's maximum of the coherence summed over the τ window (`TAU_WINDOW_S`), σ from the same
+block jackknife. Phase noise that does not depend on τ (sensor noise, content entering the patch)
+lowers the coherence at every τ alike and moves no maximum. Too few such patch pairs (slow or steady
+motion), a maximum at the scan's edge or σ above a quarter of τ: `tau_s` is None and ``notes`` says
+why. The offset is estimated at the τ in force.
 """
 
 from __future__ import annotations
@@ -37,6 +48,18 @@ MIN_PAIRS = 20
 MODEL_DELAY_ERROR = 0.05  # of τ: the floor of the offset's σ (see `LiveEstimator.fit`)
 LAG_SCAN_S, LAG_STEP_S = 0.06, 0.004   # the coarse offset search around the offset in force
 MIN_RESPONSE = 0.05     # phase-correlation peaks weaker than this are no match (blank sky, a cut)
+PATCH_FRACTION = 0.6    # of a grid cell: a shift of up to ~20 % of a cell still overlaps well
+TAU_BAND_MAX = 0.3      # cycles per working px: the τ coherence's band (aliasing above)
+TAU_SCAN = np.exp(np.linspace(math.log(0.5), math.log(2.0), 13))   # τ candidates / τ in force, 12 % steps
+NEWTON = 2              # Newton steps on the shift per τ (`_profiled_coherence`)
+TAIL_SPAN = 8.0         # of τ_max: how far back the tails are followed (e^−8 of the weight left out)
+TAU_MODEL_ERROR = 0.05  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
+TAU_WIDTH = 160         # px: τ is measured at this working width (its cost does not grow with the frame)
+TAU_WINDOW_S = 12.0     # s: the window of τ measurements (at least the motion's window)
+TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
+TAU_MIN_LEVER_PX = 0.5  # working px: a patch pair whose tails differ less shows nothing of τ
+MIN_TAU_PATCHES = 24    # patch pairs in a window needed for a τ estimate
+TAU_MAX_REL_SIGMA = 0.25
 
 
 @dataclass
@@ -48,6 +71,8 @@ class Pair:
     centres: np.ndarray          # [P, 2] (x, y) full-resolution pixel coordinates in frame a
     shift: np.ndarray            # [P, 2] content at centre p of a is at p + shift in b
     weight: np.ndarray           # [P] phase-correlation response (0 = unusable)
+    taus: np.ndarray | None = None      # [T] the τ scan (s) of `tau_coherence`
+    tau_coherence: np.ndarray | None = None   # [P, T] `Registrar.tau_coherence` (NaN: not measured)
 
 
 @dataclass
@@ -62,6 +87,9 @@ class Estimate:
     n_pairs: int
     residual_px: float            # robust RMS displacement mismatch at the estimate
     residual_applied_px: float    # the same with the calibration in force
+    tau_s: float | None = None
+    tau_sigma: float | None = None
+    n_tau: int = 0                # patch pairs whose tails changed enough to show τ
     notes: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -69,10 +97,16 @@ class Estimate:
                 "gyro_bias_rad_s_sigma": [float(x) for x in self.bias_sigma],
                 "time_offset_s": float(self.time_offset_s),
                 "time_offset_s_sigma": float(self.time_offset_sigma),
-                "tau_s": None, "tau_s_sigma": None, "t": float(self.t), "n_pairs": int(self.n_pairs),
+                "tau_s": _opt(self.tau_s), "tau_s_sigma": _opt(self.tau_sigma),
+                "n_tau_patches": int(self.n_tau),
+                "t": float(self.t), "n_pairs": int(self.n_pairs),
                 "residual_px": float(self.residual_px),
                 "residual_applied_px": float(self.residual_applied_px),
                 "notes": list(self.notes)}
+
+
+def _opt(x: float | None) -> float | None:
+    return None if x is None else float(x)
 
 
 # ------------------------------------------------------------------------------- registration
@@ -87,9 +121,8 @@ class Registrar:
         self.w = int(round(calib.width / self.factor))
         self.h = int(round(calib.height / self.factor))
         gy, gx = grid
-        # patches of about 60 % of a cell: a shift of up to ~20 % of a cell still overlaps well
-        self.pw = _even(0.6 * self.w / gx)
-        self.ph = _even(0.6 * self.h / gy)
+        self.pw = _even(PATCH_FRACTION * self.w / gx)
+        self.ph = _even(PATCH_FRACTION * self.h / gy)
         cx = (np.arange(gx) + 0.5) * self.w / gx
         cy = (np.arange(gy) + 0.5) * self.h / gy
         self.centres_lr = np.array([(x, y) for y in cy for x in cx])
@@ -98,6 +131,38 @@ class Registrar:
         self.fx = np.fft.rfftfreq(self.pw)[None, :]
         sx, sy = calib.width / self.w, calib.height / self.h
         self.scale = np.array([sx, sy])
+        # τ: full fft2 grid of a periodic Hann window, whose transform has 3 taps per axis (½, −¼, −¼),
+        # so the window spreads each frequency's cross-power over its neighbours by (1, 4, 1)/6 per axis
+        n_y, n_x = np.arange(self.ph), np.arange(self.pw)
+        self.hann = np.outer(0.5 - 0.5 * np.cos(2 * np.pi * n_y / self.ph),
+                             0.5 - 0.5 * np.cos(2 * np.pi * n_x / self.pw)).astype(np.float32)
+        gy, gx = np.meshgrid(np.fft.fftfreq(self.ph), np.fft.fftfreq(self.pw), indexing="ij")
+        rad = np.hypot(gx, gy)
+        # half of the band: the other half holds the conjugates (real frames, real kernels)
+        upper = (gx > 0) | ((gx == 0) & (gy > 0))
+        band = (rad > 0) & (rad <= TAU_BAND_MAX) & upper
+        # every neighbour a window tap reaches from the band, folded into the upper half plane: the
+        # frequencies the tails are needed at
+        iy, ix = np.nonzero(band)
+        need = {}
+        taps = []
+        for ky in (-1, 0, 1):
+            for kx in (-1, 0, 1):
+                qy, qx = (iy - ky) % self.ph, (ix - kx) % self.pw           # f − k
+                mirror = ~upper[qy, qx]
+                qy, qx = np.where(mirror, -qy % self.ph, qy), np.where(mirror, -qx % self.pw, qx)
+                keys = qy * self.pw + qx
+                idx = np.array([need.setdefault(int(q), len(need)) for q in keys])
+                taps.append(((1 + 3 * (ky == 0)) * (1 + 3 * (kx == 0)) / 36.0, kx / self.pw, ky / self.ph,
+                             idx, mirror))
+        # tap k of band frequency f reads the cross-power at f − k (conjugated where it was mirrored)
+        self.taps = taps
+        ext_flat = np.array(sorted(need, key=need.get))
+        self.ext_in_grid = ext_flat
+        self.ext_f_full = np.c_[gx.ravel()[ext_flat], gy.ravel()[ext_flat]] / self.scale[None, :]
+        self.band_in_grid = np.flatnonzero(band)
+        self.band_iy, self.band_ix = np.nonzero(band)                  # gx ≥ 0: rfft2 rows, columns
+        self.band_f = np.c_[gx[band], gy[band]]                        # cycles / working px
         # full-res coordinates of the low-res pixel centres (area downsampling)
         self.centres = (self.centres_lr + 0.5) * self.scale - 0.5
 
@@ -157,6 +222,63 @@ class Registrar:
         dy = dy - h if dy > h / 2 else dy
         return np.array([dx, dy]), peak
 
+    def tau_patches(self, vel_a: np.ndarray, vel_b: np.ndarray, tau_s: float) -> np.ndarray:
+        """[P] bool: the patches whose two comet tails (velocities [P, 2] full-res px/s over τ) differ by
+        at least `TAU_MIN_LEVER_PX` working px, the pairs worth a τ measurement."""
+        return np.linalg.norm((vel_b - vel_a) * tau_s / self.scale, axis=1) >= TAU_MIN_LEVER_PX
+
+    def tau_coherence(self, a: np.ndarray, b: np.ndarray, predicted: np.ndarray, shift: np.ndarray,
+                      resp: np.ndarray, tail_a: TailSpectra, tail_b: TailSpectra, patches: np.ndarray
+                      ) -> np.ndarray:
+        """[P, T] how well each τ of the scan explains patch p's cross-power phase (NaN: not measured).
+
+        The model cross-power at τ is e^{−i2πf·d} Σ_k c_k e^{i2πk·d} (P·U)(f − k): the tails' unit
+        transfer ratio U = e^{i(arg K_b − arg K_a)} weighted by the measured cross-power magnitude P and
+        spread over the neighbours k the periodic Hann window reaches (c_k = (1, 4, 1)/6 per axis).
+        With the shift profiled out (Newton on d from the whole-pixel peak of each τ's correlation; the
+        window taps' phases at the registration's shift moved by the tails' centroids), the coherence
+        Re Σ_f X_f conj(M_f)/|M_f| of the whitened cross-power X is largest at the true τ whatever
+        noise leaves the phases alone: the linear part of the tail phase (the centroid lag, degenerate
+        with the shift and so with the time offset) drops out and what remains is its curvature, the
+        tail's shape."""
+        n_t = tail_a.phase.shape[1]
+        out = np.full((len(self.centres_lr), n_t), np.nan)
+        pred = predicted / self.scale
+        for i in np.flatnonzero(patches & (resp >= MIN_RESPONSE)):
+            c = self.centres_lr[i]
+            pa = self._patch(a, c)
+            r = np.round(pred[i])
+            pb = self._patch(b, c + r)
+            if pa is None or pb is None:
+                continue
+            A = np.fft.fft2(pa * self.hann).ravel()
+            B = np.fft.fft2(pb * self.hann).ravel()
+            C = np.conj(A) * B
+            power = np.abs(C)
+            X = C[self.band_in_grid] / (power[self.band_in_grid] + 1e-12 * (power.max() + 1e-30))
+            lever = (tail_b.centroid[i] - tail_a.centroid[i]) / self.scale     # [T, 2] working px
+            d = shift[i] / self.scale - r + lever - lever[tail_a.ref]
+            # the model's cross-power e^{−i2πf·d} Σ_k c_k e^{i2πk·d} (P U)(f − k): the scene's power P
+            # (the measured |C|) times the unit ratio U of the two tails' transfers, spread by the window
+            PU = power[self.ext_in_grid] * np.exp(1j * (tail_b.phase[i] - tail_a.phase[i]))   # [T, E]
+            M = 0
+            for c_k, fx_k, fy_k, idx, mirrored in self.taps:
+                PU_k = np.where(mirrored, np.conj(PU[:, idx]), PU[:, idx])
+                M = M + (c_k * np.exp(2j * np.pi * (d[:, 0] * fx_k + d[:, 1] * fy_k)))[:, None] * PU_k
+            Z = X[None, :] * np.conj(M) / (np.abs(M) + 1e-30)
+            out[i] = _profiled_coherence(Z, self.band_f, self._peak_shift(Z)) / len(self.band_f)
+        return out
+
+    def _peak_shift(self, Z: np.ndarray) -> np.ndarray:
+        """[T, 2] the whole-pixel d maximising Re Σ_f Z[t, f] e^{i2πf·d} (an inverse FFT of the band,
+        which lies in the rfft half plane): where Newton starts, within half a pixel of the peak."""
+        grid = np.zeros((len(Z), self.ph, self.pw // 2 + 1), np.complex128)
+        grid[:, self.band_iy, self.band_ix] = Z
+        r = np.fft.irfft2(grid, s=(self.ph, self.pw)).reshape(len(Z), -1)
+        iy, ix = np.unravel_index(np.argmax(r, axis=1), (self.ph, self.pw))
+        return np.c_[(ix + self.pw // 2) % self.pw - self.pw // 2,
+                     (iy + self.ph // 2) % self.ph - self.ph // 2].astype(float)
+
     def _patch(self, img: np.ndarray, c: np.ndarray) -> np.ndarray | None:
         x0 = int(round(c[0] - self.pw / 2))
         y0 = int(round(c[1] - self.ph / 2))
@@ -164,6 +286,24 @@ class Registrar:
             return None
         p = img[y0:y0 + self.ph, x0:x0 + self.pw]
         return np.ascontiguousarray(p - p.mean(), np.float32)
+
+
+def _profiled_coherence(Z: np.ndarray, f: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """max over d of Re Σ_f Z[t, f] e^{i2πf·d}, by Newton from d [T, 2] (working px), per row t."""
+    w = 2 * np.pi * f                                                # [F, 2]
+    ww = np.c_[w[:, 0] ** 2, w[:, 0] * w[:, 1], w[:, 1] ** 2]         # [F, 3]
+    d = np.array(d, float)
+    for _ in range(NEWTON):
+        Y = Z * np.exp(1j * (d @ w.T))                               # [T, F]
+        g = -(Y.imag @ w)                                            # [T, 2]: ∂Q/∂d
+        hxx, hxy, hyy = (-(Y.real @ ww)).T                           # ∂²Q/∂d²
+        det = hxx * hyy - hxy ** 2
+        ok = (hxx < 0) & (det > 0)
+        det = np.where(ok, det, 1.0)
+        step = np.where(ok[:, None], -np.c_[hyy * g[:, 0] - hxy * g[:, 1],
+                                            hxx * g[:, 1] - hxy * g[:, 0]] / det[:, None], 0.0)
+        d += np.clip(step, -0.5, 0.5)
+    return (Z * np.exp(1j * (d @ w.T))).real.sum(axis=1)
 
 
 def _even(x: float) -> int:
@@ -222,6 +362,64 @@ def tail_velocity(calib: Calibration, integral: GyroIntegral, t: np.ndarray, cen
     return predict(calib, integral, t - tau, t, centres, bias, offset) / tau
 
 
+@dataclass
+class TailSpectra:
+    """One frame's comet tails at the patch centres over a τ scan: the phase [P, T, F] of each tail's
+    transfer function at the frequencies asked for (`Registrar.ext_f_full`) and its centroid [P, T, 2]
+    (full-res px, the lag of the blurred content behind the read instant); `ref` is the index of the
+    τ in force."""
+
+    taus: np.ndarray
+    phase: np.ndarray
+    centroid: np.ndarray
+    ref: int
+
+
+def tail_spectra(calib: Calibration, integral: GyroIntegral, t: float, centres: np.ndarray, bias: np.ndarray,
+                 offset: float, taus: np.ndarray, freqs: np.ndarray, ref: int) -> TailSpectra:
+    """The exponential kernel of Eq. 10 along the path the gyro gives, for each τ of `taus`: the content
+    seen s before the read instant t sits D(s) from where it is at t (`predict` from t − s to t), so
+    K(f; τ) = ∫ (1/τ) e^{−s/τ} e^{i2πf·D(s)} ds (for a steady velocity v, 1/(1 − i2πf·vτ)). The path is
+    cut into segments (`_tail_edges`), each a straight smear (sinc) carrying its exact share of the
+    exponential weight at its exponential centroid; `freqs` [F, 2] in cycles per full-res px."""
+    taus = np.asarray(taus, float)
+    edges = _tail_edges(float(taus.min()), float(taus.max()))
+    n = len(edges)
+    p = len(centres)
+    cen = np.repeat(centres, n, axis=0)
+    tb = np.full(p * n, float(t))
+    D = predict(calib, integral, tb - np.tile(edges, p), tb, cen, bias, offset).reshape(p, n, 2)
+    mid = 0.5 * (D[:, 1:] + D[:, :-1])                                          # [P, n−1, 2]
+    step = D[:, 1:] - D[:, :-1]
+    fx, fy = freqs[:, 0], freqs[:, 1]
+    # products and sums spelled out: no BLAS call, whose threads only spin at these sizes
+    fd = (step[..., :1] * fx + step[..., 1:] * fy).astype(np.float32)          # [P, n−1, F]
+    E = np.exp(np.float32(2 * np.pi) * 1j * (mid[..., :1] * fx + mid[..., 1:] * fy).astype(np.float32))
+    E *= np.sinc(fd)
+    m = np.exp(-edges[None, :-1] / taus[:, None]) - np.exp(-edges[None, 1:] / taus[:, None])
+    m /= m.sum(axis=1, keepdims=True)                                          # [T, n−1]
+    # each segment's weight sits at its exponential centroid, a fraction u of the way along it (not at
+    # its middle): to first order in (u − ½)·step
+    h = np.diff(edges)[None, :]
+    u = (taus[:, None] - h / np.expm1(h / taus[:, None])) / h - 0.5           # [T, n−1]
+    G = E * (np.float32(2 * np.pi) * fd)
+    mr, mi = m.astype(np.float32), (m * u).astype(np.float32)
+    K = np.zeros((p, len(taus), E.shape[2]), np.complex64)
+    for j in range(E.shape[1]):
+        K += mr[None, :, j, None] * E[:, None, j] + 1j * mi[None, :, j, None] * G[:, None, j]
+    centroid = np.einsum("tn,pnk->ptk", m, mid) + np.einsum("tn,pnk->ptk", m * u, step)
+    return TailSpectra(taus=taus, phase=np.angle(K), centroid=centroid, ref=ref)
+
+
+def _tail_edges(tau_min: float, tau_max: float) -> np.ndarray:
+    """Segment edges (s before the read instant): τ_min/2 long near it, then a quarter of the time
+    already covered, at most τ_max/2, out to `TAIL_SPAN` τ_max."""
+    edges = [0.0]
+    while edges[-1] < TAIL_SPAN * tau_max:
+        edges.append(edges[-1] + min(max(0.5 * tau_min, 0.25 * edges[-1]), 0.5 * tau_max))
+    return np.array(edges)
+
+
 def predict(calib: Calibration, integral: GyroIntegral, t_a: np.ndarray, t_b: np.ndarray,
             centres: np.ndarray, bias: np.ndarray, offset: float) -> np.ndarray:
     """Predicted displacement [n, 2] of each (t_a, t_b, centre) row."""
@@ -234,17 +432,24 @@ def predict(calib: Calibration, integral: GyroIntegral, t_a: np.ndarray, t_b: np
 
 # ------------------------------------------------------------------------------- the fit
 class LiveEstimator:
-    """A rolling window of `Pair` s and the (bias, offset) fit on it."""
+    """A rolling window of `Pair` s and the (bias, offset) fit on it; the pairs τ was measured on are
+    kept over a longer window (`tau_window_s`: τ drifts slowly, and each measurement is costly)."""
 
-    def __init__(self, window_s: float = 4.0, blocks: int = 8):
+    def __init__(self, window_s: float = 4.0, blocks: int = 8, tau_window_s: float | None = None):
         self.window_s = float(window_s)
+        self.tau_window_s = max(self.window_s, TAU_WINDOW_S if tau_window_s is None else float(tau_window_s))
         self.blocks = int(blocks)
         self.pairs: deque[Pair] = deque()
+        self.tau_pairs: deque[Pair] = deque()
 
     def add(self, pair: Pair) -> None:
         self.pairs.append(pair)
         while self.pairs and pair.t_b - self.pairs[0].t_a > self.window_s:
             self.pairs.popleft()
+        if pair.tau_coherence is not None:
+            self.tau_pairs.append(pair)
+        while self.tau_pairs and pair.t_b - self.tau_pairs[0].t_a > self.tau_window_s:
+            self.tau_pairs.popleft()
 
     def span(self) -> tuple[float, float] | None:
         return (self.pairs[0].t_a, self.pairs[-1].t_b) if self.pairs else None
@@ -315,11 +520,70 @@ class LiveEstimator:
         # the comet tail's phase is taken out at one velocity per frame (first order in the change of
         # velocity over τ): a model error the jackknife cannot see, bounded here at 5 % of τ
         sigma[3] = math.hypot(sigma[3], MODEL_DELAY_ERROR * calib.tau_s)
-        notes = ["tau_s: not estimated (frame registration takes the comet tail out at the tau_s in force)"]
+        tau, tau_sigma, n_tau, note = self.fit_tau(calib)
         return Estimate(bias_rad_s=x[:3], bias_sigma=sigma[:3], time_offset_s=float(x[3]),
                         time_offset_sigma=float(sigma[3]), t=0.5 * (float(t_a.min()) + float(t_b.max())),
                         n_pairs=len(self.pairs), residual_px=_robust_rms(r),
-                        residual_applied_px=_robust_rms(r_applied), notes=notes)
+                        residual_applied_px=_robust_rms(r_applied), tau_s=tau, tau_sigma=tau_sigma,
+                        n_tau=n_tau, notes=[note] if note else [])
+
+    def _tau_rows(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """([n, T] coherence curves, [n] jackknife block) of the τ window's patch pairs measured on the
+        scan `taus` (pairs registered before the τ in force changed are left out)."""
+        pairs = [p for p in self.tau_pairs if p.taus is not None and len(p.taus) == len(taus) and
+                 np.allclose(p.taus, taus, rtol=1e-9, atol=0.0)]
+        q, blk = [], []
+        n = len(pairs)
+        for i, p in enumerate(pairs):
+            ok = np.all(np.isfinite(p.tau_coherence), axis=1)
+            q.append(p.tau_coherence[ok])
+            blk += [i * self.blocks // max(n, 1)] * int(ok.sum())
+        if not q:
+            return np.zeros((0, len(taus))), np.zeros(0, int)
+        return np.vstack(q), np.array(blk, int)
+
+    def fit_tau(self, calib: Calibration) -> tuple[float | None, float | None, int, str | None]:
+        """(τ, σ, patch pairs used, note): the τ of the scan around the τ in force that maximises the
+        window's summed tail-phase coherence (parabolic peak in log τ), σ from a delete-one-block
+        jackknife. None, with the reason in the note, when too few patch pairs saw their comet tail
+        change (slow or steady motion), when the peak lies at the scan's edge, or when σ exceeds
+        `TAU_MAX_REL_SIGMA` of τ."""
+        taus = calib.tau_s * TAU_SCAN
+        q, blk = self._tau_rows(taus)
+        n = len(q)
+        if n < MIN_TAU_PATCHES:
+            return None, None, n, (f"tau_s: not estimated: {n} patch pairs measured in the last "
+                                   f"{self.tau_window_s:g} s saw their comet tails change by "
+                                   f"{TAU_MIN_LEVER_PX} px or more (needs {MIN_TAU_PATCHES}): the motion "
+                                   f"is too slow or too steady to show tau, or the monitor had no CPU "
+                                   f"to spare for it")
+        tau = _scan_peak(q.sum(axis=0), taus)
+        if tau is None:
+            return None, None, n, (f"tau_s: not estimated: the best fit lies at the edge of the scan "
+                                   f"({1e3 * taus[0]:.2f}–{1e3 * taus[-1]:.2f} ms around the tau_s in force)")
+        g = int(blk.max()) + 1
+        est = [_scan_peak(q[blk != k].sum(axis=0), taus) for k in range(g)] if g >= 3 else [None]
+        if any(e is None for e in est):
+            return None, None, n, "tau_s: not estimated: the window's blocks disagree beyond the scan"
+        est = np.array(est)
+        sigma = float(np.sqrt((g - 1) / g * np.sum((est - est.mean()) ** 2)))
+        # one tail per patch (the centre's: under roll the tails vary across a patch) and the window's
+        # spread of the cross-power modelled for a scene of independent frequencies: model errors the
+        # jackknife cannot see, bounded here at 5 % of τ
+        sigma = math.hypot(sigma, TAU_MODEL_ERROR * tau)
+        if not sigma < TAU_MAX_REL_SIGMA * tau:
+            return None, None, n, (f"tau_s: not estimated: too uncertain (sigma {1e3 * sigma:.2f} ms "
+                                   f"of {1e3 * tau:.2f} ms) with this motion")
+        return tau, sigma, n, None
+
+    def tau_misfit(self, calib: Calibration, tau: float) -> float:
+        """1 − the window's mean tail-phase coherence at τ (interpolated in log τ on the scan around the
+        τ in force): the prediction residual of the comet tails a change of τ must lower."""
+        taus = calib.tau_s * TAU_SCAN
+        q, _ = self._tau_rows(taus)
+        if not len(q) or not taus[0] <= tau <= taus[-1]:
+            return math.nan
+        return float(1.0 - np.interp(math.log(tau), np.log(taus), q.mean(axis=0)))
 
     def residual(self, calib: Calibration, integral: GyroIntegral, bias, offset: float) -> float:
         """Robust RMS (px) of the window's displacement mismatch under (bias, offset): the prediction
@@ -347,6 +611,19 @@ class LiveEstimator:
                 return np.full(N_PARAMS, np.inf)
         est = np.array(est)
         return np.sqrt((g - 1) / g * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
+
+
+def _scan_peak(score: np.ndarray, taus: np.ndarray) -> float | None:
+    """The maximum of `score` over the log-spaced scan `taus`, refined by a parabola in log τ; None at
+    the scan's edge (the maximum may lie beyond it)."""
+    i = int(np.argmax(score))
+    if i == 0 or i == len(score) - 1:
+        return None
+    y0, y1, y2 = score[i - 1], score[i], score[i + 1]
+    den = y0 - 2 * y1 + y2
+    off = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+    step = math.log(taus[i + 1] / taus[i])
+    return float(math.exp(math.log(taus[i]) + float(np.clip(off, -0.5, 0.5)) * step))
 
 
 def _huber(r: np.ndarray) -> np.ndarray:

@@ -86,6 +86,8 @@ class SimConfig:
     frame_rate_hz: float = setting(50.0, lo=1.0, hi=500.0)
     gyro_rate_hz: float = setting(1000.0, choices=(1000.0, 2000.0, 4000.0))
     gyro_noise_rad_s: float = setting(0.002, lo=0.0, hi=1.0)
+    tau_s: float = setting(0.0, lo=0.0, hi=1.0,
+                           doc="the simulated camera's true thermal time constant (s); 0 = [calibration]'s")
     cache_dir: str = setting("", doc='"" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback')
     ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
                                     doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
@@ -95,6 +97,8 @@ class SimConfig:
                                      doc="offset step of the new NUC after each FFC (raw counts)")
 
     def problems(self) -> Iterator[tuple[str, str]]:
+        if 0 < self.tau_s < 1e-6:
+            yield "tau_s", f"expected 0 (the calibration's) or at least 1e-6 s, got {self.tau_s!r}"
         if 0 < self.ffc_interval_s <= self.ffc_duration_s:
             yield "ffc_interval_s", (f"expected 0 (never) or longer than ffc_duration_s "
                                      f"({self.ffc_duration_s:g} s), got {self.ffc_interval_s!r}")

@@ -9,11 +9,16 @@ gap, and gyro windows with a gap are skipped.
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
 pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
+τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
+twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
+never starves the registration that bias and offset need (a frame's tails serve both its pairs).
 
 Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
-force (the bias on any axis, or the offset) in ``stable_windows`` consecutive fits that agree with each
-other within k σ; it is applied only if it lowers the window's registration residual (the prediction
-of the frame-to-frame motion) against the calibration in force. Each change is logged and counted;
+force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
+agree with each other within k σ; the motion part is applied only if it lowers the window's
+registration residual (the prediction of the frame-to-frame motion), τ only if it lowers the window's
+tail-phase misfit (1 − the mean coherence of the comet tails), each against the calibration in force.
+A τ change re-centres the τ scan: the window's τ measurements start afresh. Each change is logged and counted;
 the daemon applies it through `Pipeline.update` (`take_proposal`). A SIGHUP reload puts the
 configuration's (or a replayed recording's) calibration back in force; the monitor goes on from there.
 """
@@ -29,7 +34,21 @@ import time
 
 import numpy as np
 
-from thermod.calib.live import GyroIntegral, LiveEstimator, Pair, Registrar, predict, tail_velocity
+from thermod.calib.live import (
+    MIN_PAIRS,
+    MIN_RESPONSE,
+    TAIL_SPAN,
+    TAU_REF,
+    TAU_SCAN,
+    TAU_WIDTH,
+    GyroIntegral,
+    LiveEstimator,
+    Pair,
+    Registrar,
+    predict,
+    tail_spectra,
+    tail_velocity,
+)
 from thermod.physics.calibration import Calibration
 from thermod.runtime.config import MonitorConfig
 from thermod.runtime.rings import FrameRing, GyroRing
@@ -39,6 +58,7 @@ log = logging.getLogger(__name__)
 FIT_PERIOD_S = 1.0
 BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
+TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the monitor's own CPU time
 
 
 class Monitor:
@@ -47,8 +67,7 @@ class Monitor:
     def __init__(self, cfg: MonitorConfig, gyro_ring: GyroRing, frame_ring: FrameRing, calib):
         self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
         self.estimator = LiveEstimator(cfg.window_s)
-        self._registrar: Registrar | None = None
-        self._reg_key = None
+        self._registrars: dict[tuple, Registrar] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -56,6 +75,9 @@ class Monitor:
         self._history: collections.deque = collections.deque(maxlen=max(1, cfg.stable_windows))
         self._proposal: Calibration | None = None
         self._last_b = -1
+        self._tails = None                     # (key, TailSpectra) of the last frame whose tails were made
+        self._cpu_tau = 0.0                    # thread CPU time spent measuring τ, and in all
+        self._cpu_all = 0.0
         self._last_fit = 0.0
         self._cpu = collections.deque()        # (wall, thread cpu) samples
         self.counters = collections.Counter()
@@ -112,6 +134,7 @@ class Monitor:
                 self.counters["errors"] += 1
                 worked = True
             c1 = time.thread_time()
+            self._cpu_all += c1 - c0
             now = time.monotonic()
             self._cpu.append((now, c1))
             while len(self._cpu) > 2 and now - self._cpu[1][0] > CPU_PERIOD_S:
@@ -119,11 +142,13 @@ class Monitor:
             # the budget: idle long enough that work / (work + idle) ≤ cpu_share
             self._stop.wait((c1 - c0) * (1.0 / self.cfg.cpu_share - 1.0) if worked else 0.01)
 
-    def _registrar_for(self, calib: Calibration) -> Registrar:
-        key = (calib.width, calib.height, self.cfg.width)
-        if self._reg_key != key:
-            self._registrar, self._reg_key = Registrar(calib, self.cfg.width), key
-        return self._registrar
+    def _registrar_for(self, calib: Calibration, width: int | None = None) -> Registrar:
+        width = self.cfg.width if width is None else width
+        key = (calib.width, calib.height, width)
+        if key not in self._registrars:
+            self._registrars = {k: r for k, r in self._registrars.items() if k[:2] == key[:2]}
+            self._registrars[key] = Registrar(calib, width)
+        return self._registrars[key]
 
     def _step(self) -> bool:
         """Register the next pair once the gyro covers it, fit once a second. Returns whether it worked.
@@ -158,7 +183,9 @@ class Monitor:
             self._last_b = ib
             return False
         bias, offset = self._current(calib)
-        g0 = float(calib.camera_time_to_gyro(a.t - 2 * calib.tau_s - calib.readout_s)) - 0.01
+        # the comet tails of the τ scan reach TAIL_SPAN τ_max behind frame a's first row
+        reach = TAIL_SPAN * TAU_SCAN[-1] * calib.tau_s + calib.readout_s
+        g0 = float(calib.camera_time_to_gyro(a.t - reach)) - 0.01
         g1 = float(calib.camera_time_to_gyro(b.t)) + 0.01
         if not self.gyro_ring.newest_t >= g1 + abs(offset - calib.time_offset_s):
             if time.monotonic() - b.arrival > 0.5:          # the gyro will not come (offline)
@@ -180,10 +207,39 @@ class Monitor:
         pred = predict(calib, integ, ta, tb, cen, bias, offset)
         va = tail_velocity(calib, integ, ta, cen, bias, offset)
         vb = tail_velocity(calib, integ, tb, cen, bias, offset)
-        shift, resp = reg.measure(reg.downsample(a.image), reg.downsample(b.image), pred, va, vb, calib.tau_s)
-        self.estimator.add(Pair(a.t, b.t, cen.copy(), shift, resp))
+        da, db = reg.downsample(a.image), reg.downsample(b.image)
+        shift, resp = reg.measure(da, db, pred, va, vb, calib.tau_s)
+        taus = calib.tau_s * TAU_SCAN
+        coherence = None
+        treg = self._registrar_for(calib, min(TAU_WIDTH, self.cfg.width))
+        patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
+        # τ only when the motion's window is well fed: it never takes pairs bias and offset need
+        affordable = self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all and \
+            len(self.estimator.pairs) >= 2 * MIN_PAIRS
+        if patches.any() and not affordable:
+            self.counters["tau_pairs_deferred"] += 1
+        elif patches.any():
+            c0 = time.thread_time()
+            tails_a = self._tails_of(ia, a.t, calib, treg, integ, bias, offset, taus)
+            tails_b = self._tails_of(ib, b.t, calib, treg, integ, bias, offset, taus)
+            if treg is not reg:
+                da, db = treg.downsample(a.image), treg.downsample(b.image)
+            coherence = treg.tau_coherence(da, db, pred, shift, resp, tails_a, tails_b, patches)
+            self.counters["tau_patch_pairs"] += int(np.isfinite(coherence[:, 0]).sum())
+            self._cpu_tau += time.thread_time() - c0
+        self.estimator.add(Pair(a.t, b.t, cen.copy(), shift, resp, taus, coherence))
         self.counters["pairs_registered"] += 1
         return True
+
+    def _tails_of(self, i: int, t: float, calib: Calibration, reg: Registrar, integ: GyroIntegral,
+                  bias: np.ndarray, offset: float, taus: np.ndarray):
+        """Frame i's comet tails over the τ scan, reused when frame i was the last pair's frame b."""
+        key = (i, calib.tau_s, tuple(np.round(bias, 9)), round(offset, 9), reg.w)
+        if self._tails is not None and self._tails[0] == key:
+            return self._tails[1]
+        tails = tail_spectra(calib, integ, t, reg.centres, bias, offset, taus, reg.ext_f_full, TAU_REF)
+        self._tails = (key, tails)
+        return tails
 
     def _fit(self) -> None:
         span = self.estimator.span()
@@ -207,42 +263,83 @@ class Monitor:
             self._consider(calib, est, integral)
 
     def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
-        """Propose the estimate when it is significant, stable and lowers the residual."""
-        k = self.cfg.k_sigma
+        """Propose the estimate when it is significant, stable and lowers the residual. The motion
+        parameters (bias, offset) and τ are judged apart: each must be significant in every one of the
+        last `stable_windows` fits and agree across them, and each must lower its own residual (the
+        frame-to-frame displacements for bias and offset, the comet tails' phase for τ)."""
         if len(self._history) < self.cfg.stable_windows:
             return
-        b_now, o_now = np.asarray(calib.bias_rad_s, float), calib.time_offset_s
-        for e in self._history:
+        hist = list(self._history)
+        b_now, o_now, t_now = np.asarray(calib.bias_rad_s, float), calib.time_offset_s, calib.tau_s
+        bias, offset = self._motion_change(hist, est, b_now, o_now)
+        tau = self._tau_change(hist, est, t_now)
+        if bias is None and tau is None:
+            return
+        change = {"at": time.monotonic()}
+        new = {}
+        if bias is not None:
+            # the change as it would be applied, checked on this window against the calibration in force
+            before = self.estimator.residual(calib, integral, b_now, o_now)
+            after = self.estimator.residual(calib, integral, bias, offset)
+            if after < before:
+                new.update(bias_rad_s=tuple(float(x) for x in bias), time_offset_s=float(offset))
+                change.update(bias_rad_s=[list(calib.bias_rad_s), bias.tolist()],
+                              time_offset_s=[o_now, float(offset)], residual_px=[before, after])
+            else:
+                self.counters["proposals_refused_residual"] += 1
+                log.info("calibration monitor: not applying bias %s rad/s, offset %.5f s: the residual "
+                         "would not fall (%.3f → %.3f px)", np.round(bias, 5).tolist(), offset, before, after)
+        if tau is not None:
+            before = self.estimator.tau_misfit(calib, t_now)
+            after = self.estimator.tau_misfit(calib, tau)
+            if after < before:
+                new.update(tau_s=float(tau))
+                change.update(tau_s=[t_now, float(tau)], tau_misfit=[before, after])
+            else:
+                self.counters["proposals_refused_residual"] += 1
+                log.info("calibration monitor: not applying tau %.5f s: the tail-phase misfit would not "
+                         "fall (%.4f → %.4f)", tau, before, after)
+        self._history.clear()
+        if not new:
+            return
+        log.info("calibration monitor: applying %s", "; ".join(
+            f"{k} {_fmt(v[0])} → {_fmt(v[1])}" for k, v in change.items() if k != "at"))
+        self.changes.append(change)
+        with self._lock:
+            self._proposal = calib.replace(**new)
+
+    def _motion_change(self, hist: list, est, b_now: np.ndarray, o_now: float):
+        """(bias, offset) to apply, or (None, None): significant in every fit of `hist`, stable across
+        them; only the axes (and the offset) that are significant in `est` change."""
+        k = self.cfg.k_sigma
+        for e in hist:
             sig_b = np.abs(e.bias_rad_s - b_now) > k * e.bias_sigma
             sig_o = abs(e.time_offset_s - o_now) > k * e.time_offset_sigma
             if not (np.any(sig_b) or sig_o):
-                return
+                return None, None
         # stable: the fits agree with the newest within their uncertainties
-        for e in self._history:
+        for e in hist:
             s_b = np.hypot(e.bias_sigma, est.bias_sigma)
             s_o = math.hypot(e.time_offset_sigma, est.time_offset_sigma)
             if np.any(np.abs(e.bias_rad_s - est.bias_rad_s) > k * s_b) or \
                     abs(e.time_offset_s - est.time_offset_s) > k * s_o:
-                return
+                return None, None
         # change only what is significant (an axis the motion does not reach keeps its value)
         bias = np.where(np.abs(est.bias_rad_s - b_now) > k * est.bias_sigma, est.bias_rad_s, b_now)
         offset = est.time_offset_s if abs(est.time_offset_s - o_now) > k * est.time_offset_sigma else o_now
-        # the change as it would be applied, checked on this window against the calibration in force
-        before = self.estimator.residual(calib, integral, b_now, o_now)
-        after = self.estimator.residual(calib, integral, bias, offset)
-        if not after < before:
-            self.counters["proposals_refused_residual"] += 1
-            log.info("calibration monitor: not applying bias %s rad/s, offset %.5f s: the residual would "
-                     "not fall (%.3f → %.3f px)", np.round(bias, 5).tolist(), offset, before, after)
-            self._history.clear()
-            return
-        new = calib.replace(bias_rad_s=tuple(float(x) for x in bias), time_offset_s=float(offset))
-        change = {"at": time.monotonic(), "bias_rad_s": [list(calib.bias_rad_s), bias.tolist()],
-                  "time_offset_s": [o_now, float(offset)], "residual_px": [before, after]}
-        log.info("calibration monitor: applying gyro bias %s → %s rad/s, time offset %.5f → %.5f s "
-                 "(residual %.3f → %.3f px)", np.round(b_now, 5).tolist(), np.round(bias, 5).tolist(),
-                 o_now, offset, before, after)
-        self.changes.append(change)
-        self._history.clear()
-        with self._lock:
-            self._proposal = new
+        return bias, offset
+
+    def _tau_change(self, hist: list, est, t_now: float) -> float | None:
+        """τ to apply, or None: estimated, significant and stable in every fit of `hist`."""
+        k = self.cfg.k_sigma
+        for e in hist:
+            if e.tau_s is None or not abs(e.tau_s - t_now) > k * e.tau_sigma or \
+                    abs(e.tau_s - est.tau_s) > k * math.hypot(e.tau_sigma, est.tau_sigma):
+                return None
+        return est.tau_s
+
+
+def _fmt(v) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return f"{v:.5g}"
