@@ -12,6 +12,7 @@ import os
 import sys
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -408,3 +409,20 @@ def test_a_grid_frame_reports_the_kernel_size_its_kernel_message_has():
     _, payload = pack_kernel(g)
     assert tuple(payload.shape[-2:]) == info["kernel_size"]
     assert info["kernel_size"][1] > max(k.weights.shape[1] for k in cells)
+
+
+def test_a_running_pipeline_keeps_blas_and_opencv_to_one_thread_each():
+    # the workers are the parallelism; the limits are the process's, so stop() gives them back
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = blas_threads()
+    _, _, p = make(lambda o: None)
+    try:
+        assert blas_threads() <= {1}
+        assert cv2.getNumThreads() == 1
+    finally:
+        p.stop()
+    assert blas_threads() == before

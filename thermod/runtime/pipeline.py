@@ -67,6 +67,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S, RecursiveDeconvolver
@@ -206,6 +207,7 @@ class Pipeline:
                  deconvolver_factory: Callable | None = None, renderer: Callable | None = None):
         self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
         self._settings = _Settings(calib, deblur, 0)
+        self._blas_limits = None
         self._factory = deconvolver_factory or make_deconvolver
         self._render = renderer or render
         self.n_workers = cfg.workers or default_workers()
@@ -249,8 +251,10 @@ class Pipeline:
         one it has in the stream. Returns seconds spent."""
         t0 = time.monotonic()
         # the workers are the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
-        # filters) would only oversubscribe the cores they share
+        # filters) and BLAS's (the monitor's small fits, whose spinning threads cost 6-10x the product
+        # on a loaded 2-core host) would only oversubscribe the cores they share
         cv2.setNumThreads(1)
+        self._blas_limits = threadpool_limits(1)
         s = self._settings
         gov = self.governor
         tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
@@ -348,6 +352,9 @@ class Pipeline:
             self._count("shutdown_passthrough", 1)
             self._passthrough(job.slot, "overload", job.info)
         self._flush_pending(force=True)
+        if self._blas_limits is not None:          # the process may go on (tests, an embedding app)
+            self._blas_limits.restore_original_limits()
+            self._blas_limits = None
 
     def update(self, calib: Calibration | None = None, deblur: DeblurConfig | None = None) -> None:
         """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
