@@ -175,19 +175,15 @@ def detector_diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict
 
 
 def motion_jacobians(d: RecData, model: Model) -> list[np.ndarray]:
-    """The prediction's derivatives (forward differences, canvas and FPN held) with respect to the
-    motion model: time offset, gyro scale and bias about each axis, τ and readout. Per frame they span
-    the first-order traces of that frame's timing, pose and rate errors, float32 [n, h, w] each."""
+    """The prediction's derivatives (forward differences, canvas and FPN held) with respect to the time
+    offset, τ and the readout, float32 [n, h, w] each. Per frame they span the first-order traces of an
+    error of the motion along its own direction: when it happens (offset, and per row: readout) and how
+    far it reaches (a rate error δω/ω stretches the comet tail, of length |ω|τ, like a τ error δτ/τ)."""
     c = model.calib
     period = 1.0 / c.frame_rate_hz
     ro = c.readout_s + 1e-3 if c.readout_s + 1e-3 <= period else c.readout_s - 1e-3
     steps = [c.replace(time_offset_s=c.time_offset_s + 1e-3), c.replace(tau_s=1.05 * c.tau_s),
              c.replace(readout_s=ro)]
-    for a in range(3):
-        s, b = list(c.scale), list(c.bias_rad_s)
-        s[a] *= 1.01
-        b[a] += 0.01
-        steps += [c.replace(scale=tuple(s)), c.replace(bias_rad_s=tuple(b))]
     base, _ = sensor.predict(d, model)
     # only the span matters: each derivative is left in counts per step
     return [sensor.predict(d, dataclasses.replace(model, calib=cs))[0] - base for cs in steps]
@@ -198,9 +194,9 @@ def response_signature(problem: Problem, model: Model, ev: Evaluation) -> tuple[
     pixel, P(r²) − P(r)², through 0: the trace of a curved response x = u + γu² applied after the blur,
     −γ·that with one γ in every frame and pixel whatever the frame's motion (Jensen's gap).
 
-    A wrong motion (saturation, timing, bias, scale, τ, readout) leaves residual where and when the
-    motion is wrong, which can follow the mixing variance there (both grow with the blur). So, frame by
-    frame, the first-order traces of that frame's motion error (`motion_jacobians`) are taken out of
+    A wrong motion (a clipped gyro, timing, τ) leaves residual where and when the motion is wrong,
+    which can follow the mixing variance there (both grow with the blur). So, frame by frame, the
+    first-order traces of an error along that frame's motion (`motion_jacobians`) are taken out of
     residual and regressor alike, and each frame counts with its own residual variance about the fit
     (generalised least squares, iterated once): a frame the motion model gets wrong carries that error
     as noise instead of setting the slope. The standard error counts one independent sample per
