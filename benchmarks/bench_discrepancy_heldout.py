@@ -11,9 +11,10 @@ issue 6's tolerances (tests/test_discrepancy.py CASES: offset ±1 ms, readout ±
 axis, τ ±10 %, misalignment ≤ 1° about the excited directions) and `unexplained` is false; for the
 non-linearity (nearly unobservable without a static reference: the canvas takes the response in) being
 named or reported `unexplained` passes; a clean flight must name nothing and not be `unexplained`.
-"response z" is the final residual's regression on the blur's mixing variance (`diagnostics.
-response_signature`); "RuntimeWarnings" counts numpy's warnings during the analysis (none should reach
-a terminal).
+"response z (gain)" is the final residual's regression on the blur's mixing variance with each frame's
+motion traces taken out (`diagnostics.response_signature`) and its slope as a gain change over the
+scene's contrast (|z| > 6 and > 4 % say `unexplained`); "RuntimeWarnings" counts numpy's warnings during
+the analysis (none should reach a terminal).
 
     .venv/bin/python benchmarks/bench_discrepancy_heldout.py [--cases a,b] [--size 640x480]
         [--seconds 1.0] [--work-width 160] [--out benchmarks/results/discrepancy_heldout.md]
@@ -141,7 +142,7 @@ def main() -> None:
     cache = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "thermod_heldout"
     lines = [f"{size[0]}×{size[1]}, {args.seconds:g} s, real log stretches below, no static lead-in, "
              f"NETD 50 mK; motion-only, every candidate, work width {args.work_width}", "",
-             "| hidden (log start) | true | named | recovered | gap → final (floor) | response z "
+             "| hidden (log start) | true | named | recovered | gap → final (floor) | response z (gain) "
              "| unexplained | verdict | RuntimeWarnings | CPU s |",
              "|---|---|---|---|---|---:|---|---|---:|---:|"]
     print("\n".join(lines), flush=True)
@@ -162,7 +163,8 @@ def main() -> None:
         named = ", ".join(ana.named) or "nothing"
         true_s = ", ".join(f"{k} {v}" for k, v in effects.items()) or "—"
         row = (f"| {name} ({start:g} s) | {true_s} | {named} | {recovered or '—'} | {ana.gap_initial:.4f} → "
-               f"{ana.gap_final:.4f} ({ana.noise_floor:.4f}) | {ana.response_signature_z:.1f} | "
+               f"{ana.gap_final:.4f} ({ana.noise_floor:.4f}) | {ana.response_signature_z:.1f} "
+               f"({100 * ana.response_signature_gain:.1f} %) | "
                f"{'yes' if ana.unexplained else 'no'} | {'pass' if ok else 'FAIL'} | {n_warn} | {cpu:.0f} |")
         lines.append(row)
         print(row, flush=True)

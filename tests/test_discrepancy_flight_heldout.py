@@ -7,7 +7,10 @@ small and with few candidates so they stay cheap:
   nothing was named and the result was `unexplained`. Both are named now, and recovered.
 - a curved detector response is nearly taken up by the estimated scene (the gap moves by 0.1 %), so
   nothing was named and nothing flagged; its one-sign trace where the blur mixes levels is what says
-  `unexplained` now, and a clean flight on the same stretch and scene says nothing.
+  `unexplained` now, and a clean flight on the same stretch and scene says nothing. A wrong motion in
+  some frames (a clipped gyro left under-continued) leaves residual that follows the mixing variance
+  there too; the signature takes each frame's first-order motion traces out and weights each frame by
+  its own residual, so that is not read as a response.
 """
 
 from __future__ import annotations
@@ -15,12 +18,15 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from flight_recordings import REAL_LOG, flight_recording, high_contrast_scene, nominal_calibration  # noqa: E402
 
 from thermod.calib import discrepancy as D  # noqa: E402
+from thermod.calib.discrepancy import sensor  # noqa: E402
+from thermod.calib.discrepancy.diagnostics import response_signature  # noqa: E402
 from thermod.calib.discrepancy.effects import timing_separation  # noqa: E402
 
 pytestmark = pytest.mark.heavy(4)      # CPU minutes on one core
@@ -77,8 +83,42 @@ def test_a_curved_response_the_scene_absorbs_is_reported_unexplained(require):
     assert ana.reference == "motion"
     assert ana.unexplained, (ana.gap_final, ana.noise_floor, ana.response_signature_z)
     assert "blur mixes" in ana.unexplained_reason
-    # measured: z = −17.9 and a 7.5 % gain change; the clean flight's own trace z = 8.2, 3.3 %
+    # measured: z = −27.8 and a 10.4 % gain change; the clean flight's own trace z = 6.8, 2.4 %
     assert ana.response_signature_z < -6
     clean = _response_case({})
     assert not clean.unexplained, (clean.unexplained_reason, clean.response_signature_z)
     assert abs(clean.response_signature_slope) < 0.6 * abs(ana.response_signature_slope)
+
+
+def test_the_response_signature_keeps_a_curved_response_and_drops_a_late_motion_error():
+    # synthetic flight (any clone); each trace is added to the clean flight's own residual
+    fr = flight_recording({}, seconds=0.4, size=(160, 120), seed=2)
+    d = D.prepare(fr.rec, fr.nominal, name="flight", work_width=160)
+    problem, model = D.Problem([d]), D.Model(fr.nominal)
+    problem.refresh(model)
+    ev = problem.evaluate(model, keep=True)
+    linear, _ = sensor.predict(d, model)
+
+    def signature(trace) -> tuple[float, float, float]:
+        """What `trace` adds to the pooled slope through 0 with no motion terms and to the signature's
+        slope, and the signature's z."""
+        r = ev.residuals[0] + trace * d.mask
+        x = sensor.mixing_variance(d, model)[d.mask].astype(np.float64)
+        plain = float(x @ r[d.mask]) / float(x @ x)
+        slope, z = response_signature(problem, model, D.Evaluation(ev.ssr, ev.n, [r], ev.predicted))
+        return plain - base[0], slope - base[1], z
+
+    base = (0.0, 0.0)
+    base = signature(0.0)[:2]
+    resp = sensor.Response(float(np.mean(d.fm.reference)), 3e-4)
+    curved, _ = sensor.predict(d, D.Model(fr.nominal, response=resp))
+    plain, slope, z = signature(curved - linear)
+    assert z > 6 and slope == pytest.approx(plain, rel=0.15), (plain, slope, z)
+    late = (np.arange(len(d.frame_t)) >= 2 * len(d.frame_t) // 3)[:, None, None]
+    for wrong in (fr.nominal.replace(time_offset_s=0.004), fr.nominal.replace(tau_s=0.010)):
+        moved, _ = sensor.predict(d, D.Model(wrong))
+        plain_m, slope_m, z_m = signature((moved - linear) * late)
+        # alone the regression reads it as a response larger than the one above (|z| ≈ 20) ...
+        assert abs(plain_m) > abs(plain), (plain_m, plain)
+        # ... the signature keeps under a tenth of that, and under a tenth of the response's
+        assert abs(slope_m) < 0.1 * abs(plain_m) and abs(slope_m) < 0.1 * abs(slope), (slope_m, z_m)

@@ -81,6 +81,7 @@ class Analysis:
     unexplained_reason: str = ""
     response_signature_z: float = 0.0
     response_signature_slope: float = 0.0
+    response_signature_gain: float = 0.0    # the slope as a gain change over ±3 RMS contrast
 
     @property
     def named(self) -> list[str]:
@@ -97,6 +98,7 @@ class Analysis:
             "reference": self.reference, "noise_source": self.noise_source,
             "dropped": self.pruned, "unexplained_reason": self.unexplained_reason,
             "response_signature_z": self.response_signature_z,
+            "response_signature_gain": self.response_signature_gain,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -134,14 +136,14 @@ class Analysis:
         slope, z = response_signature(problem, model, ev)
         gain = 6.0 * abs(slope) * _contrast(problem)     # slope change of x = u + γu² over ±3 RMS contrast
         self.response_signature_z, self.response_signature_slope = z, slope
+        self.response_signature_gain = gain
         if (problem.has_motion_reference and abs(z) > crit.signature_z and gain > crit.signature_gain
                 and not self.unexplained):
             # Without a static reference the canvas takes a curved response in nearly whole: the gap
-            # barely moves (0.3/1000 counts, real log from 19 s: 0.01763 with none, 0.01761 at the best
-            # curvature, on canvases rebuilt under each), but its one-sign trace where the blur mixes
-            # levels stays, and no gap threshold sees it. The forward model leaves a trace of its own
-            # (clean high-contrast flight from 6 s: an apparent 3.3 % gain change, z = 8): hence the
-            # practical threshold on the gain change besides the z score.
+            # barely moves, but its one-sign trace where the blur mixes levels stays, and no gap
+            # threshold sees it. A wrong motion's residual is taken out of the signature frame by frame
+            # (`response_signature`); the forward model leaves a small trace of its own on a clean
+            # high-contrast flight: hence the practical threshold on the gain change besides the z score.
             self.unexplained = True
             self.unexplained_reason = (
                 f"the residual grows with the variance the blur mixes into each pixel (slope {slope:.3g} "

@@ -3,6 +3,7 @@ spectrum and the kernel-centroid lag. Each effect names the panel that points at
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -173,24 +174,54 @@ def detector_diagnostics(problem: Problem, model: Model, ev: Evaluation) -> dict
             "frozen": np.concatenate(frozen_all), "ffc_events": events}
 
 
+def motion_jacobians(d: RecData, model: Model) -> list[np.ndarray]:
+    """The prediction's derivatives (forward differences, canvas and FPN held) with respect to the time
+    offset, τ and the readout, float32 [n, h, w] each. Per frame they span the first-order traces of an
+    error of the motion along its own direction: when it happens (offset, and per row: readout) and how
+    far it reaches (a rate error δω/ω stretches the comet tail, of length |ω|τ, like a τ error δτ/τ)."""
+    c = model.calib
+    period = 1.0 / c.frame_rate_hz
+    ro = c.readout_s + 1e-3 if c.readout_s + 1e-3 <= period else c.readout_s - 1e-3
+    steps = [c.replace(time_offset_s=c.time_offset_s + 1e-3), c.replace(tau_s=1.05 * c.tau_s),
+             c.replace(readout_s=ro)]
+    base, _ = sensor.predict(d, model)
+    # only the span matters: each derivative is left in counts per step
+    return [sensor.predict(d, dataclasses.replace(model, calib=cs))[0] - base for cs in steps]
+
+
 def response_signature(problem: Problem, model: Model, ev: Evaluation) -> tuple[float, float]:
-    """The residual's regression on the variance the blur mixes into each pixel, P(r²) − P(r)², through
-    0 over the masked pixels: (slope per count, its z score). A curved detector response leaves
-    γ·that (Jensen's gap: one sign wherever the blur mixes levels); timing, τ or PSF errors leave
-    residuals of either sign at every mixing level. The standard error counts one independent sample
-    per `effective_area` pixels, so correlated residuals do not inflate z."""
-    num = den = rss = 0.0
-    n = 0
-    for d, r in zip(problem.recs, ev.residuals, strict=True):
-        x = sensor.mixing_variance(d, model)[d.mask].astype(np.float64)
-        y = r[d.mask].astype(np.float64)
-        num += float(x @ y)
-        den += float(x @ x)
-        rss += float(y @ y)
-        n += len(y)
-    if den <= 0 or n < 2:
-        return 0.0, 0.0
-    slope = num / den
-    var = max(rss - slope * num, 0.0) / n
-    se = math.sqrt(var * effective_area(ev.residuals) / den)
-    return slope, (slope / se if se > 0 else 0.0)
+    """Slope (per count) and z score of the residual against the variance the blur mixes into each
+    pixel, P(r²) − P(r)², through 0: the trace of a curved response x = u + γu² applied after the blur,
+    −γ·that with one γ in every frame and pixel whatever the frame's motion (Jensen's gap).
+
+    A wrong motion (a clipped gyro, timing, τ) leaves residual where and when the motion is wrong,
+    which can follow the mixing variance there (both grow with the blur). So, frame by frame, the
+    first-order traces of an error along that frame's motion (`motion_jacobians`) are taken out of
+    residual and regressor alike, and each frame counts with its own residual variance about the fit
+    (generalised least squares, iterated once): a frame the motion model gets wrong carries that error
+    as noise instead of setting the slope. The standard error counts one independent sample per
+    `effective_area` pixels of the standardised residual, so correlated residuals do not inflate z."""
+    frames = []     # (recording index, frame, regressor, residual, noise variance) after the partialling
+    for i, (d, r) in enumerate(zip(problem.recs, ev.residuals, strict=True)):
+        mv = sensor.mixing_variance(d, model)
+        jac = motion_jacobians(d, model)
+        for k in range(len(r)):
+            m = d.mask[k]
+            if m.sum() <= 2 * len(jac):
+                continue
+            Q = np.stack([j[k][m] for j in jac], axis=1).astype(np.float64)
+            Q /= np.maximum(np.linalg.norm(Q, axis=0), 1e-12)
+            xy = np.stack([mv[k][m], r[k][m]], axis=1).astype(np.float64)
+            xy -= Q @ np.linalg.lstsq(Q, xy, rcond=1e-6)[0]
+            frames.append((i, k, xy[:, 0], xy[:, 1], max(d.noise_var, 1e-12)))
+    slope, den, var = 0.0, 0.0, []
+    for _ in range(2):
+        var = [max(float(np.mean((y - slope * x) ** 2)), nv) for _, _, x, y, nv in frames]
+        den = sum(float(x @ x) / v for (_, _, x, _, _), v in zip(frames, var, strict=True))
+        if den <= 0:
+            return 0.0, 0.0
+        slope = sum(float(x @ y) / v for (_, _, x, y, _), v in zip(frames, var, strict=True)) / den
+    std = [np.zeros(r.shape, np.float32) for r in ev.residuals]
+    for (i, k, x, y, _), v in zip(frames, var, strict=True):
+        std[i][k][problem.recs[i].mask[k]] = (y - slope * x) / math.sqrt(v)
+    return slope, slope * math.sqrt(den / effective_area(std))
