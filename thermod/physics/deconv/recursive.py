@@ -70,6 +70,14 @@ PRIOR_REG = 1.0              # β: the prior's precision counts the image prior 
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
 
+PROFILE: dict[str, float] = {}   # thread CPU seconds per stage of the last correction (for profiling)
+
+
+def _lap(stage: str, t: float) -> float:
+    now = time.thread_time()
+    PROFILE[stage] = PROFILE.get(stage, 0.0) + now - t
+    return now
+
 
 @dataclass(frozen=True)
 class Estimate:
@@ -319,48 +327,65 @@ class RecursiveDeconvolver:
         age = t_frame - float(past.t_frame)
         if not 0 < age <= self.max_age_s or past.image.shape != img.shape:
             return None
+        tp = time.thread_time()
         maps = warp_maps(self.calib, gyro_t, gyro_rate, t_frame, float(past.t_frame))
         if maps is None:
             return None
+        tp = _lap("maps", tp)
         support = warped_support(maps, img.shape, SUPPORT_INSET_PX)
         if support.mean() < 0.02:
             return None
+        tp = _lap("support", tp)
         p = warp(past.image, maps, self.interpolation)
+        tp = _lap("warp", tp)
         n = max(1, int(round(age * float(self.calib.frame_rate_hz))))
         scale = np.float32(1.0 / (hi - lo))
         # an FFC step (or drift) offsets the new frame's counts: the prior follows
         ok = support[::4, ::4] > 0
         p += np.float32(np.median((x0[::4, ::4] - p[::4, ::4])[ok]))
+        tp = _lap("offset", tp)
         sigma = max(noise_sigma(img, (lo, hi)), 1e-6)
+        tp = _lap("noise", tp)
         gy, gx = np.diff(p[::2, ::2], axis=0), np.diff(p[::2, ::2], axis=1)
         grad2 = 0.5 * (float(np.mean(gy * gy)) + float(np.mean(gx * gx))) * float(scale) ** 2 / 4.0
         q = self.registration_px ** 2 * grad2 / sigma ** 2
+        tp = _lap("grad", tp)
         rows = _frequency_index(plan.shape[0], past.shape[0], half=False)
         cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
         Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
         noise_gain = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
                                        self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
                                        float(plan.norm), Hw, Ww, info)
+        tp = _lap("spectral_w", tp)
         # the disagreement test: x₀ against the single solve's output for data k ⊛ p
         H, W = img.shape
         prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
+        tp = _lap("test_prep", tp)
         _weigh(Hw, plan.fwd(), plan.cin)
+        tp = _lap("test_fwd", tp)
         r2 = np.empty_like(x0)
         _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
+        tp = _lap("test_inv", tp)
         e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
+        tp = _lap("test_blur", tp)
         expected = sigma * sigma * noise_gain
         inside = e[::4, ::4][ok]
         ref = max(expected, float(np.median(inside)) if inside.size else expected)
         dlo, dhi = DISAGREE
         _agreement(e, support, np.float32(dlo * ref), np.float32(dhi * ref), r2)
         m = cv2.blur(r2, (5, 5))             # soft edges: no seam where the prior starts
+        tp = _lap("test_m", tp)
         self.last_weight = float(m.mean())
+        tp = _lap("mean", tp)
         self.last_prior_frames = n
         # the correction x₀ + F⁻¹[w F(m (p − x₀))]
         _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
+        tp = _lap("corr_fill", tp)
         _weigh(Ww, plan.fwd(), plan.cin)
+        tp = _lap("corr_fwd", tp)
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
+        tp = _lap("corr_inv", tp)
         self.last_fft_pairs += 2.0
         return out, info
 
