@@ -100,10 +100,11 @@ def _object_track(obj, rec, i, view):
     return obj.at(float(rec.t[0])).centre_px(R, rec.calibration.K, float(rec.t[i]))
 
 
-def test_a_moving_hot_object_leaves_no_ghost():
+@pytest.mark.parametrize("half_test", [False, True])
+def test_a_moving_hot_object_leaves_no_ghost(half_test):
     obj = HotObject((40, 40), (700, 300), 5.0, 8.0)    # ~11 px per frame across the panning view
     rec = record(pan(20), movers=(obj,), seed=5, netd=0.03)
-    res = stream(rec, RecursiveDeconvolver(SMALL))
+    res = stream(rec, RecursiveDeconvolver(SMALL, half_test=half_test))
     s, x, truth = res[-1]
     assert psnr(x, truth) > psnr(s, truth) - 0.1
     H, W = truth.shape
@@ -122,10 +123,12 @@ def test_a_moving_hot_object_leaves_no_ghost():
         assert corr < 0.1, (j, corr)
 
 
-def test_an_ffc_step_costs_nothing():
+@pytest.mark.parametrize("half_test", [False, True])
+def test_an_ffc_step_costs_nothing(half_test):
     rec = record(pan(20), ffc_event=(0.06, 0.001, 40.0), fpn=0.03, seed=8)
     frozen = rec.extras["truth/ffc_frozen"]
-    res = stream(rec, RecursiveDeconvolver(SMALL), offset=True, skip=set(np.flatnonzero(frozen)))
+    res = stream(rec, RecursiveDeconvolver(SMALL, half_test=half_test), offset=True,
+                 skip=set(np.flatnonzero(frozen)))
     after = [i for i in range(N) if rec.t[i] - rec.t[0] > 0.06 and not frozen[i]]
     assert after
     for i in after:
@@ -171,11 +174,13 @@ def test_the_fused_warp_maps_equal_the_temporal_ones_under_roll_and_rolling_read
     assert 0.3 < sup.mean() < 1.0
 
 
-def test_the_half_resolution_test_rejects_a_prior_where_it_disagrees():
+@pytest.mark.parametrize("half_test", [False, True])
+def test_a_prior_is_rejected_where_it_disagrees(half_test):
     """A prior wrong over one quarter of the frame (a patch offset by 5 × the image's spread) gets no
-    weight there, the rest keeps it: the output in that patch is frame t's own solve."""
+    weight there, the rest keeps it: the output in that patch is frame t's own solve (the test at
+    full size and on 2×2 means)."""
     rec = record(pan(10), netd=0.06, n=3)
-    rd = RecursiveDeconvolver(SMALL)
+    rd = RecursiveDeconvolver(SMALL, half_test=half_test)
     k = [kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, SMALL, float(t)) for t in rec.t]
     _, e0 = rd.solve(rec.frames[0], k[0], float(rec.t[0]), rec.gyro_t, rec.gyro_rate, None)
     weights = []

@@ -32,15 +32,19 @@ Robustness. Where the prior disagrees with frame t — a moving hot object, para
 a border, an FFC step, a registration error above the noise — it must not enter. The test compares
 x₀ with what the single-frame solve would give if p were the truth, ``F⁻¹[H P]`` with
 H = |K|² / (|K|² + R) (Wiener is linear): their difference is x₀'s own noise where p is right,
-free of the regularisation's bias at edges. It runs on 2×2 means (a mean commutes with the
-convolutions; x₀'s noise is the only thing it changes, the reference follows): its local mean square
-(`TEST_WINDOW_PX` box) is compared with the larger of its predicted variance (σ̂² mean over the
-spectrum of |K|²/(|K|² + R)² times the mean's power response, Parseval) and the frame's median:
-weight m = 1 below `DISAGREE` lo times that, 0 above hi, times the warped support (an FFC
+free of the regularisation's bias at edges. Its local mean square (`WINDOW_PX` box) is compared
+with the larger of its predicted variance (σ̂² mean |K|²/(|K|² + R)², Parseval) and the frame's
+median: weight m = 1 below `DISAGREE` lo times that, 0 above hi, times the warped support (an FFC
 offset is removed first: the median of x₀ − p). The prior is filled where m < 1
 (``p' = m p + (1 − m) x₀``, so there the solve returns x₀ exactly)::
 
     x = x₀ + F⁻¹[w · F(m · (p − x₀))]
+
+With `half_test` the test runs on 2×2 means (a mean commutes with the convolutions; its FFT pair has
+a quarter of the points): the predicted variance gets the mean's power response
+cos²(πf_y)·cos²(πf_x), the box is `TEST_WINDOW_PX` means, the reference is widened by
+`HALF_TEST_SLACK` and m is up-sampled bilinearly. The warp's maps are solved on a coarse grid
+(`temporal.coarse_warp_maps`) and up-sampled with the support in one pass.
 
 Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, its
 spectrum and the test's inverse (one FFT pair), the correction's pair, a few box filters and one
@@ -67,8 +71,11 @@ from .xstep import prepare
 
 MEMORY = 0.8                 # γ: carried information kept per frame (memory ~ 1 / (1 − γ) = 5 frames)
 REGISTRATION_PX = 0.1        # δ: registration + interpolation error of a warped prior (px RMS)
+WINDOW_PX = 9                # box of the local mean square of the disagreement test
 TEST_WINDOW_PX = 5           # box (on the 2×2 means: ~10 px) of the disagreement test's local mean square
 DISAGREE = (2.0, 4.0)        # test's local mean square / its reference: full weight below, none above
+HALF_TEST_SLACK = 4.0        # the test on 2×2 means: its reference × this (the means cut x₀'s noise by
+                             # up to 4, not a misregistration's residual at the blur's scale)
 PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
@@ -283,12 +290,13 @@ class RecursiveDeconvolver:
     min_coverage : a kernel whose gyro coverage is below this is solved alone.
     interpolation : cv2 interpolation of the warp.
     overlap, uniform_tol_px : as `Deconvolver.run_varying` (a kernel grid).
+    half_test : run the disagreement test on 2×2 means (cheaper, stricter at misregistered edges).
     """
 
     def __init__(self, calib, single: Deconvolver | None = None, *, memory: float = MEMORY,
                  registration_px: float = REGISTRATION_PX, max_age_s: float = MAX_AGE_S,
                  min_coverage: float = 0.99, interpolation: int = cv2.INTER_CUBIC,
-                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5):
+                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5, half_test: bool = False):
         if single is not None and not isinstance(single, Deconvolver):
             raise DeconvError(f"single: expected a Deconvolver, got {type(single).__name__}")
         memory, registration_px, max_age_s = float(memory), float(registration_px), float(max_age_s)
@@ -309,6 +317,7 @@ class RecursiveDeconvolver:
         self.single = single or Deconvolver(method="wiener")
         self.memory, self.registration_px, self.max_age_s = memory, registration_px, max_age_s
         self.min_coverage = float(min_coverage)
+        self.half_test = bool(half_test)
         self.interpolation = interpolation
         self.overlap, self.uniform_tol_px = float(overlap), float(uniform_tol_px)
         # what the last `solve` did, for the caller's books
@@ -414,36 +423,16 @@ class RecursiveDeconvolver:
         cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
         Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
         by, bx = self._box_gain(plan.shape)
-        _, noise_gain = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
-                                          self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
-                                          float(plan.norm), by, bx, Hw, Ww, info)
+        nb_full, nb_half = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
+                                           self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
+                                           float(plan.norm), by, bx, Hw, Ww, info)
         tp = _lap("spectral_w", tp)
-        # the disagreement test on the 2×2 means (a mean commutes with the convolutions; the test's
-        # reference follows the noise the mean leaves): x₀ against the single solve's output for k ⊛ p
-        h2, w2 = H // 2, W // 2
-        x0h, ph, r2h = buf["x0h"], buf["ph"], buf["r2h"]
-        cv2.resize(x0, (w2, h2), dst=x0h, interpolation=cv2.INTER_AREA)
-        cv2.resize(p, (w2, h2), dst=ph, interpolation=cv2.INTER_AREA)
-        hplan = self.single._plan(tuple(fast_len((v + 1) // 2) for v in plan.shape))
-        prepare(ph, 0, 0, h2, w2, np.float32(lo), scale, hplan.rin)
-        tp = _lap("test_prep", tp)
-        hrows = _half_frequency_index(hplan.shape[0], plan.shape[0], half=False)
-        hcols = _half_frequency_index(hplan.shape[1], plan.shape[1], half=True)
-        _weigh_sampled(Hw, hrows, hcols, np.float32(hplan.norm / plan.norm), hplan.fwd(), hplan.cin)
-        tp = _lap("test_fwd", tp)
-        _squared_misfit(x0h, hplan.inv(), np.float32(lo), scale, r2h)
-        tp = _lap("test_inv", tp)
-        e = cv2.blur(r2h, (TEST_WINDOW_PX, TEST_WINDOW_PX))
-        tp = _lap("test_blur", tp)
-        expected = sigma * sigma * noise_gain
-        inside = e[::2, ::2][ok[:(h2 + 1) // 2, :(w2 + 1) // 2]]
-        ref = max(expected, float(np.median(inside)) if inside.size else expected)
-        dlo, dhi = DISAGREE
-        _agreement(e, support[:2 * h2:2, :2 * w2:2], np.float32(dlo * ref), np.float32(dhi * ref), r2h)
-        mh = cv2.blur(r2h, (3, 3))            # soft edges: no seam where the prior starts
-        m = cv2.resize(mh, (W, H), dst=buf["m"], interpolation=cv2.INTER_LINEAR)
-        tp = _lap("test_m", tp)
-        self.last_weight = float(mh.mean())
+        if self.half_test:
+            m = self._test_half(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_half)
+        else:
+            m = self._test_full(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_full)
+        tp = _lap("test", tp)
+        self.last_weight = float(m.mean())
         self.last_prior_frames = n
         tp = _lap("mean", tp)
         # the correction x₀ + F⁻¹[w F(m (p − x₀))]
@@ -454,15 +443,50 @@ class RecursiveDeconvolver:
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
         tp = _lap("corr_inv", tp)
-        self.last_fft_pairs += 2.0 - 0.75      # the test's pair on a quarter of the points
+        self.last_fft_pairs += 2.0 - (0.75 if self.half_test else 0.0)   # a quarter of the points
         return out, info
+
+    def _test_full(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
+        """The prior's weight m: x₀ against the single solve's output for data k ⊛ p."""
+        H, W = img.shape
+        prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
+        _weigh(Hw, plan.fwd(), plan.cin)
+        r2 = buf["r2"]
+        _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
+        e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
+        inside = e[::4, ::4][ok]
+        ref = max(expected, float(np.median(inside)) if inside.size else expected)
+        dlo, dhi = DISAGREE
+        _agreement(e, support, np.float32(dlo * ref), np.float32(dhi * ref), r2)
+        return cv2.blur(r2, (5, 5))             # soft edges: no seam where the prior starts
+
+    def _test_half(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
+        """The same test on 2×2 means (a quarter of the points), its weight up-sampled."""
+        H, W = img.shape
+        h2, w2 = H // 2, W // 2
+        x0h, ph, r2h = buf["x0h"], buf["ph"], buf["r2h"]
+        cv2.resize(x0, (w2, h2), dst=x0h, interpolation=cv2.INTER_AREA)
+        cv2.resize(p, (w2, h2), dst=ph, interpolation=cv2.INTER_AREA)
+        hplan = self.single._plan(tuple(fast_len((v + 1) // 2) for v in plan.shape))
+        prepare(ph, 0, 0, h2, w2, np.float32(lo), scale, hplan.rin)
+        hrows = _half_frequency_index(hplan.shape[0], plan.shape[0], half=False)
+        hcols = _half_frequency_index(hplan.shape[1], plan.shape[1], half=True)
+        _weigh_sampled(Hw, hrows, hcols, np.float32(hplan.norm / plan.norm), hplan.fwd(), hplan.cin)
+        _squared_misfit(x0h, hplan.inv(), np.float32(lo), scale, r2h)
+        e = cv2.blur(r2h, (TEST_WINDOW_PX, TEST_WINDOW_PX))
+        inside = e[::2, ::2][ok[:(h2 + 1) // 2, :(w2 + 1) // 2]]
+        ref = HALF_TEST_SLACK * max(expected, float(np.median(inside)) if inside.size else expected)
+        dlo, dhi = DISAGREE
+        _agreement(e, support[:2 * h2:2, :2 * w2:2], np.float32(dlo * ref), np.float32(dhi * ref), r2h)
+        mh = cv2.blur(r2h, (3, 3))
+        return cv2.resize(mh, (W, H), dst=buf["m"], interpolation=cv2.INTER_LINEAR)
 
     def _buffers(self, shape) -> dict[str, np.ndarray]:
         """Work arrays of a frame shape (reused: one instance per thread)."""
         if self._buf_shape != shape:
             H, W = shape
             f = lambda h, w: np.empty((h, w), np.float32)  # noqa: E731
-            self._buf = dict(mx=f(H, W), my=f(H, W), support=f(H, W), p=f(H, W), m=f(H, W),
+            self._buf = dict(mx=f(H, W), my=f(H, W), support=f(H, W), p=f(H, W), m=f(H, W), r2=f(H, W),
                              x0h=f(H // 2, W // 2), ph=f(H // 2, W // 2), r2h=f(H // 2, W // 2))
             self._buf_shape = shape
         return self._buf
