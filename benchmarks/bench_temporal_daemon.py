@@ -1,6 +1,6 @@
 """The daemon's temporal rungs against its single-frame rungs, on the simulator's fine-time truth.
 
-    .venv/bin/python benchmarks/bench_temporal_daemon.py [--quick] [--frames 10] [--score 5]
+    .venv/bin/python benchmarks/bench_temporal_daemon.py [--quick] [--frames 10] [--score 5] [--full-test]
 
 Simulated as benchmarks/bench_temporal.py does (640×480 at 50 Hz, paper gyro errors, real thermal
 scenes, the SBTI constant rotations and roll-heavy segments of the real Betaflight log, NETD 10, 30
@@ -70,7 +70,7 @@ class Chain:
 
 
 def run_case(scene, motion, seed, netd, frames, score, memory, registration_px, interpolation,
-             half_test=False):
+             half_test=True):
     """{method: [(psnr, cpu s, fft pairs)]} over the scored frames."""
     rec = simulate(scene, motion, frames, seed, netd)
     c = rec.calibration
@@ -113,8 +113,8 @@ def main(argv=None) -> int:
     ap.add_argument("--registration-px", type=float, default=REGISTRATION_PX)
     ap.add_argument("--interpolation", choices=tuple(INTERPOLATIONS), default="cubic",
                     help="the warp's cv2 interpolation")
-    ap.add_argument("--half-test", action="store_true",
-                    help="the recursive solve's disagreement test on 2×2 means")
+    ap.add_argument("--full-test", action="store_true",
+                    help="the recursive solve's disagreement test at full size (default: on 2×2 means)")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     args = ap.parse_args(argv)
     scenes = REPORT_SCENES[:1] if args.quick else REPORT_SCENES
@@ -132,7 +132,8 @@ def main(argv=None) -> int:
                   for j, s in enumerate(starts)]
         for level, scene, motion, seed in cases:
             res = run_case(scene, motion, seed, netd, args.frames, args.score, args.memory,
-                           args.registration_px, INTERPOLATIONS[args.interpolation], args.half_test)
+                           args.registration_px, INTERPOLATIONS[args.interpolation],
+                           not args.full_test)
             acc = results.setdefault(netd, {}).setdefault(level, {m: [] for m in METHODS})
             for m in METHODS:
                 acc[m].extend(res[m])
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
              f"{args.frames} frames restored from the first, the last {args.score} scored; recursive "
              f"memory γ = {args.memory:g}, registration δ = {args.registration_px:g} px, warp "
              f"{args.interpolation}, disagreement test "
-             f"{'on 2×2 means' if args.half_test else 'at full size'}; "
+             f"{'at full size' if args.full_test else 'on 2×2 means'}; "
              "640×480 at 50 Hz, "
              "paper gyro, the kernel grid the roll needs (adaptive). PSNR in dB (8-bit scale of the "
              "truth's 0.5–99.5 % range); `temporal t−2` takes its prior from two frames back (the "

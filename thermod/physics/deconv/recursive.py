@@ -46,9 +46,9 @@ cos²(πf_y)·cos²(πf_x), the box is `TEST_WINDOW_PX` means, the reference is 
 `HALF_TEST_SLACK` and m is up-sampled bilinearly. The warp's maps are solved on a coarse grid
 (`temporal.coarse_warp_maps`) and up-sampled with the support in one pass.
 
-Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, its
-spectrum and the test's inverse (one FFT pair), the correction's pair, a few box filters and one
-frame-sized OTF more under a grid (`last_fft_pairs` counts them).
+Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, the
+test's FFT pair (on a quarter of the points with `half_test`), the correction's pair, a few box
+filters and one frame-sized OTF more under a grid (`last_fft_pairs` counts them).
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ class Estimate:
 
 
 # ---------------------------------------------------------------------------------- numba passes
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=True)
 def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, bx, H, W, I):
     """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
     Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
@@ -110,6 +110,9 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, 
     spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval) and the same
     times by[i]·bx[j] (its gain after a filter of that power response, e.g. a 2×2 mean)."""
     h, w = K2.shape
+    one, zero, eps = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
+    gain, q, c = np.float32(gain), np.float32(q), np.float32(c)
+    beta, norm = np.float32(beta), np.float32(norm)
     acc = 0.0
     acc_b = 0.0
     n = 0.0
@@ -117,14 +120,14 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, 
     for i in range(h):
         for j in range(w):
             v = info[rows[i], cols[j]]
-            a = gain * v / (1.0 + q * v) if v > 0 else 0.0
+            a = gain * v / (one + q * v) if v > 0 else zero
             k2 = K2[i, j]
             r = c * g2[i, j]
             t2 = T2[i, j]
-            d = k2 + r + 1e-12
+            d = k2 + r + eps
             H[i, j] = norm * k2 / d
             p = (a + beta * r) * t2
-            W[i, j] = norm * p / (k2 + (1.0 - beta) * r + p + 1e-12)
+            W[i, j] = norm * p / (k2 + (one - beta) * r + p + eps)
             I[i, j] = k2 + a * t2
             m = 1.0 if (j == 0 or (j == w - 1 and full_w % 2 == 0)) else 2.0
             g = m * k2 / (d * d)
@@ -290,13 +293,14 @@ class RecursiveDeconvolver:
     min_coverage : a kernel whose gyro coverage is below this is solved alone.
     interpolation : cv2 interpolation of the warp.
     overlap, uniform_tol_px : as `Deconvolver.run_varying` (a kernel grid).
-    half_test : run the disagreement test on 2×2 means (cheaper, stricter at misregistered edges).
+    half_test : run the disagreement test on 2×2 means (a quarter of its points; module docstring);
+        False: at full size.
     """
 
     def __init__(self, calib, single: Deconvolver | None = None, *, memory: float = MEMORY,
                  registration_px: float = REGISTRATION_PX, max_age_s: float = MAX_AGE_S,
                  min_coverage: float = 0.99, interpolation: int = cv2.INTER_CUBIC,
-                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5, half_test: bool = False):
+                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5, half_test: bool = True):
         if single is not None and not isinstance(single, Deconvolver):
             raise DeconvError(f"single: expected a Deconvolver, got {type(single).__name__}")
         memory, registration_px, max_age_s = float(memory), float(registration_px), float(max_age_s)
