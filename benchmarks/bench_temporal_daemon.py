@@ -104,6 +104,39 @@ def run_case(scene, motion, seed, netd, frames, score, memory, registration_px, 
     return res
 
 
+def stage_profile(size, half_test, calls=25):
+    """Median thread CPU ms per stage of one temporal solve (uniform 27 °/s pan kernel, rolling
+    readout 15 ms, a smooth random scene) and of the Wiener solve on the same frame; the ratio is
+    the median of the per-call ratios (a loaded host slows both alike)."""
+    from thermod.physics import kernels
+    from thermod.physics.calibration import Calibration
+    from thermod.physics.deconv import recursive
+
+    W, H = size
+    calib = Calibration(width=W, height=H, cx=(W - 1) / 2, cy=(H - 1) / 2, readout_s=0.015)
+    gyro_t = np.arange(0.0, 1.0, 1e-3)
+    gyro_rate = np.tile(np.radians([10.0, 25.0, 0.0]), (len(gyro_t), 1))
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.normal(size=(H, W)).astype(np.float32), (0, 0), 3) * 50 + 3000
+    img += rng.normal(size=(H, W)).astype(np.float32) * 0.5
+    k = kernels.render_thermal_kernel(gyro_t, gyro_rate, calib, 0.5)
+    rd = RecursiveDeconvolver(calib, half_test=half_test)
+    _, prior = rd.solve(img, k, 0.48, gyro_t, gyro_rate, None)
+    rows = []
+    for i in range(calls + 3):
+        t0 = time.thread_time()
+        rd.single.run(img, k)
+        t1 = time.thread_time()
+        recursive.PROFILE.clear()
+        rd.solve(img, k, 0.5, gyro_t, gyro_rate, prior)
+        t2 = time.thread_time()
+        if i >= 3:
+            rows.append({"wiener": t1 - t0, "temporal": t2 - t1, "single solve": rd.last_cpu_seconds[0],
+                         **recursive.PROFILE})
+    med = {key: float(np.median([r[key] for r in rows])) * 1e3 for key in rows[0]}
+    return med, float(np.median([r["temporal"] / r["wiener"] for r in rows]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene, 30 mK only")
@@ -173,6 +206,18 @@ def main(argv=None) -> int:
         rows = [x for res in results.values() for r in res.values() for x in r[m]]
         lines.append(f"| {m} | {np.median([x[1] for x in rows]) * 1e3:.1f} "
                      f"| {np.median([x[2] for x in rows]):.1f} |")
+    sizes = ((640, 480), (1280, 1024))
+    profiles = {(sz, half): stage_profile(sz, half) for sz in sizes for half in (False, True)}
+    cols = [(sz, half) for sz in sizes for half in (False, True)]
+    lines += ["", "## CPU per stage of one temporal solve", "",
+              "`stage_profile`: median thread CPU ms over 25 calls, one core (uniform pan kernel; the "
+              "stages of `RecursiveDeconvolver._correct`, `recursive.PROFILE`); test: the disagreement "
+              "test at full size or on 2×2 means.", "",
+              "| stage | " + " | ".join(f"{w}×{h} test {'2×2' if half else 'full'}" for (w, h), half in cols)
+              + " |", "|---|" + "---|" * len(cols)]
+    for key in profiles[cols[0]][0]:
+        lines.append(f"| {key} | " + " | ".join(f"{profiles[c][0].get(key, 0.0):.2f}" for c in cols) + " |")
+    lines.append("| **temporal / wiener** | " + " | ".join(f"**{profiles[c][1]:.2f}**" for c in cols) + " |")
     netd_text = "/".join(f"{n * 1000:.0f}" for n, _, _ in summary)
     lines.insert(1, f"<!-- summary: daemon temporal rung over single-frame Wiener / K&F, NETD {netd_text} "
                     "mK | "
