@@ -1,6 +1,6 @@
 """The daemon's temporal rungs against its single-frame rungs, on the simulator's fine-time truth.
 
-    .venv/bin/python benchmarks/bench_temporal_daemon.py [--quick] [--frames 10] [--score 5]
+    .venv/bin/python benchmarks/bench_temporal_daemon.py [--quick] [--frames 10] [--score 5] [--full-test]
 
 Simulated as benchmarks/bench_temporal.py does (640×480 at 50 Hz, paper gyro errors, real thermal
 scenes, the SBTI constant rotations and roll-heavy segments of the real Betaflight log, NETD 10, 30
@@ -56,9 +56,10 @@ INTERPOLATIONS = {"linear": cv2.INTER_LINEAR, "cubic": cv2.INTER_CUBIC, "lanczos
 class Chain:
     """A recursive solver fed every `stride`-th prior (stride 2: two interleaved chains)."""
 
-    def __init__(self, calib, method, stride, memory, registration_px, interpolation):
+    def __init__(self, calib, method, stride, memory, registration_px, interpolation, half_test):
         self.rd = RecursiveDeconvolver(calib, Deconvolver(method=method), memory=memory,
-                                       registration_px=registration_px, interpolation=interpolation)
+                                       registration_px=registration_px, interpolation=interpolation,
+                                       half_test=half_test)
         self.stride = stride
         self.estimates: dict[int, object] = {}
 
@@ -68,13 +69,15 @@ class Chain:
         return out, self.rd.last_cpu_seconds[0] + self.rd.last_cpu_seconds[1], self.rd.last_fft_pairs
 
 
-def run_case(scene, motion, seed, netd, frames, score, memory, registration_px, interpolation):
+def run_case(scene, motion, seed, netd, frames, score, memory, registration_px, interpolation,
+             half_test=True):
     """{method: [(psnr, cpu s, fft pairs)]} over the scored frames."""
     rec = simulate(scene, motion, frames, seed, netd)
     c = rec.calibration
     cfg = DeblurConfig()
     singles = {m: Deconvolver(method=m) for m in ("kf", "wiener")}
-    kw = dict(memory=memory, registration_px=registration_px, interpolation=interpolation)
+    kw = dict(memory=memory, registration_px=registration_px, interpolation=interpolation,
+              half_test=half_test)
     chains = {"temporal": Chain(c, "wiener", 1, **kw), "temporal t−2": Chain(c, "wiener", 2, **kw),
               "temporal_kf": Chain(c, "kf", 1, **kw)}
     res: dict[str, list] = {m: [] for m in METHODS}
@@ -101,6 +104,39 @@ def run_case(scene, motion, seed, netd, frames, score, memory, registration_px, 
     return res
 
 
+def stage_profile(size, half_test, calls=25):
+    """Median thread CPU ms per stage of one temporal solve (uniform 27 °/s pan kernel, rolling
+    readout 15 ms, a smooth random scene) and of the Wiener solve on the same frame; the ratio is
+    the median of the per-call ratios (a loaded host slows both alike)."""
+    from thermod.physics import kernels
+    from thermod.physics.calibration import Calibration
+    from thermod.physics.deconv import recursive
+
+    W, H = size
+    calib = Calibration(width=W, height=H, cx=(W - 1) / 2, cy=(H - 1) / 2, readout_s=0.015)
+    gyro_t = np.arange(0.0, 1.0, 1e-3)
+    gyro_rate = np.tile(np.radians([10.0, 25.0, 0.0]), (len(gyro_t), 1))
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.normal(size=(H, W)).astype(np.float32), (0, 0), 3) * 50 + 3000
+    img += rng.normal(size=(H, W)).astype(np.float32) * 0.5
+    k = kernels.render_thermal_kernel(gyro_t, gyro_rate, calib, 0.5)
+    rd = RecursiveDeconvolver(calib, half_test=half_test)
+    _, prior = rd.solve(img, k, 0.48, gyro_t, gyro_rate, None)
+    rows = []
+    for i in range(calls + 3):
+        t0 = time.thread_time()
+        rd.single.run(img, k)
+        t1 = time.thread_time()
+        recursive.PROFILE.clear()
+        rd.solve(img, k, 0.5, gyro_t, gyro_rate, prior)
+        t2 = time.thread_time()
+        if i >= 3:
+            rows.append({"wiener": t1 - t0, "temporal": t2 - t1, "single solve": rd.last_cpu_seconds[0],
+                         **recursive.PROFILE})
+    med = {key: float(np.median([r[key] for r in rows])) * 1e3 for key in rows[0]}
+    return med, float(np.median([r["temporal"] / r["wiener"] for r in rows]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one scene, 30 mK only")
@@ -110,6 +146,8 @@ def main(argv=None) -> int:
     ap.add_argument("--registration-px", type=float, default=REGISTRATION_PX)
     ap.add_argument("--interpolation", choices=tuple(INTERPOLATIONS), default="cubic",
                     help="the warp's cv2 interpolation")
+    ap.add_argument("--full-test", action="store_true",
+                    help="the recursive solve's disagreement test at full size (default: on 2×2 means)")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     args = ap.parse_args(argv)
     scenes = REPORT_SCENES[:1] if args.quick else REPORT_SCENES
@@ -127,7 +165,8 @@ def main(argv=None) -> int:
                   for j, s in enumerate(starts)]
         for level, scene, motion, seed in cases:
             res = run_case(scene, motion, seed, netd, args.frames, args.score, args.memory,
-                           args.registration_px, INTERPOLATIONS[args.interpolation])
+                           args.registration_px, INTERPOLATIONS[args.interpolation],
+                           not args.full_test)
             acc = results.setdefault(netd, {}).setdefault(level, {m: [] for m in METHODS})
             for m in METHODS:
                 acc[m].extend(res[m])
@@ -138,7 +177,9 @@ def main(argv=None) -> int:
              f"Generated by `{cmd}`: {len(scenes)} held-out scenes ({', '.join(scenes)}), streams of "
              f"{args.frames} frames restored from the first, the last {args.score} scored; recursive "
              f"memory γ = {args.memory:g}, registration δ = {args.registration_px:g} px, warp "
-             f"{args.interpolation}; 640×480 at 50 Hz, "
+             f"{args.interpolation}, disagreement test "
+             f"{'at full size' if args.full_test else 'on 2×2 means'}; "
+             "640×480 at 50 Hz, "
              "paper gyro, the kernel grid the roll needs (adaptive). PSNR in dB (8-bit scale of the "
              "truth's 0.5–99.5 % range); `temporal t−2` takes its prior from two frames back (the "
              "2-worker case where t − 1 is still being solved).", ""]
@@ -165,6 +206,18 @@ def main(argv=None) -> int:
         rows = [x for res in results.values() for r in res.values() for x in r[m]]
         lines.append(f"| {m} | {np.median([x[1] for x in rows]) * 1e3:.1f} "
                      f"| {np.median([x[2] for x in rows]):.1f} |")
+    sizes = ((640, 480), (1280, 1024))
+    profiles = {(sz, half): stage_profile(sz, half) for sz in sizes for half in (False, True)}
+    cols = [(sz, half) for sz in sizes for half in (False, True)]
+    lines += ["", "## CPU per stage of one temporal solve", "",
+              "`stage_profile`: median thread CPU ms over 25 calls, one core (uniform pan kernel; the "
+              "stages of `RecursiveDeconvolver._correct`, `recursive.PROFILE`); test: the disagreement "
+              "test at full size or on 2×2 means.", "",
+              "| stage | " + " | ".join(f"{w}×{h} test {'2×2' if half else 'full'}" for (w, h), half in cols)
+              + " |", "|---|" + "---|" * len(cols)]
+    for key in profiles[cols[0]][0]:
+        lines.append(f"| {key} | " + " | ".join(f"{profiles[c][0].get(key, 0.0):.2f}" for c in cols) + " |")
+    lines.append("| **temporal / wiener** | " + " | ".join(f"**{profiles[c][1]:.2f}**" for c in cols) + " |")
     netd_text = "/".join(f"{n * 1000:.0f}" for n, _, _ in summary)
     lines.insert(1, f"<!-- summary: daemon temporal rung over single-frame Wiener / K&F, NETD {netd_text} "
                     "mK | "

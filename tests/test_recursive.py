@@ -100,10 +100,11 @@ def _object_track(obj, rec, i, view):
     return obj.at(float(rec.t[0])).centre_px(R, rec.calibration.K, float(rec.t[i]))
 
 
-def test_a_moving_hot_object_leaves_no_ghost():
+@pytest.mark.parametrize("half_test", [False, True])
+def test_a_moving_hot_object_leaves_no_ghost(half_test):
     obj = HotObject((40, 40), (700, 300), 5.0, 8.0)    # ~11 px per frame across the panning view
     rec = record(pan(20), movers=(obj,), seed=5, netd=0.03)
-    res = stream(rec, RecursiveDeconvolver(SMALL))
+    res = stream(rec, RecursiveDeconvolver(SMALL, half_test=half_test))
     s, x, truth = res[-1]
     assert psnr(x, truth) > psnr(s, truth) - 0.1
     H, W = truth.shape
@@ -122,10 +123,12 @@ def test_a_moving_hot_object_leaves_no_ghost():
         assert corr < 0.1, (j, corr)
 
 
-def test_an_ffc_step_costs_nothing():
+@pytest.mark.parametrize("half_test", [False, True])
+def test_an_ffc_step_costs_nothing(half_test):
     rec = record(pan(20), ffc_event=(0.06, 0.001, 40.0), fpn=0.03, seed=8)
     frozen = rec.extras["truth/ffc_frozen"]
-    res = stream(rec, RecursiveDeconvolver(SMALL), offset=True, skip=set(np.flatnonzero(frozen)))
+    res = stream(rec, RecursiveDeconvolver(SMALL, half_test=half_test), offset=True,
+                 skip=set(np.flatnonzero(frozen)))
     after = [i for i in range(N) if rec.t[i] - rec.t[0] > 0.06 and not frozen[i]]
     assert after
     for i in after:
@@ -148,3 +151,47 @@ def test_bad_arguments_are_named():
     k = kernels.Kernel(np.ones((1, 1), np.float32), (0, 0))
     with pytest.raises(DeconvError, match="frame"):
         rd.solve(np.zeros((50, 60), np.float32), k, 0.0, np.arange(3.0), np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("size", [(160, 120), (161, 117)])
+def test_the_fused_warp_maps_equal_the_temporal_ones_under_roll_and_rolling_readout(size):
+    """The correction up-samples the coarse warp itself (with its support): it must land where
+    `temporal.warp_maps` does, rolling readout and a fast roll included, odd sizes too."""
+    from thermod.physics.deconv import recursive, temporal
+
+    W, H = size
+    calib = Calibration(width=W, height=H, cx=(W - 1) / 2, cy=(H - 1) / 2, readout_s=0.015)
+    gyro_t = np.arange(0.0, 0.5, 1e-3)
+    gyro_rate = np.tile(np.radians([40.0, -25.0, 300.0]), (len(gyro_t), 1))   # 300 °/s roll
+    ref = temporal.warp_maps(calib, gyro_t, gyro_rate, 0.3, 0.26)
+    cx, cy = temporal.coarse_warp_maps(calib, gyro_t, gyro_rate, 0.3, 0.26)
+    mx, my, sup = (np.empty((H, W), np.float32) for _ in range(3))
+    recursive._upsample_maps(cx, cy, float(temporal.MAP_STEP_PX), 4.0, mx, my, sup)
+    assert np.ptp(ref[0] - np.arange(W)) > 5                 # the roll bends the map
+    np.testing.assert_allclose(mx, ref[0], atol=0.02)
+    np.testing.assert_allclose(my, ref[1], atol=0.02)
+    np.testing.assert_array_equal(sup > 0, temporal.warped_support((mx, my), (H, W), 4) > 0)
+    assert 0.3 < sup.mean() < 1.0
+
+
+@pytest.mark.parametrize("half_test", [False, True])
+def test_a_prior_is_rejected_where_it_disagrees(half_test):
+    """A prior wrong over one quarter of the frame (a patch offset by 5 × the image's spread) gets no
+    weight there, the rest keeps it: the output in that patch is frame t's own solve (the test at
+    full size and on 2×2 means)."""
+    rec = record(pan(10), netd=0.06, n=3)
+    rd = RecursiveDeconvolver(SMALL, half_test=half_test)
+    k = [kernels.render_thermal_kernel(rec.gyro_t, rec.gyro_rate, SMALL, float(t)) for t in rec.t]
+    _, e0 = rd.solve(rec.frames[0], k[0], float(rec.t[0]), rec.gyro_t, rec.gyro_rate, None)
+    weights = []
+    for bad in (False, True):
+        img = e0.image.copy()
+        if bad:
+            img[:60, :80] += 5 * float(np.std(img))
+        prior = type(e0)(img, e0.t_frame, e0.info, e0.shape)
+        x, _ = rd.solve(rec.frames[1], k[1], float(rec.t[1]), rec.gyro_t, rec.gyro_rate, prior)
+        weights.append(rd.last_weight)
+    assert weights[0] > 0.8
+    assert 0.12 < weights[0] - weights[1] < 0.3, weights
+    inner = (slice(8, 50), slice(8, 70))
+    assert np.abs(x - rd.last_single)[inner].max() < 0.05 * float(np.std(img))

@@ -40,9 +40,15 @@ offset is removed first: the median of x₀ − p). The prior is filled where m 
 
     x = x₀ + F⁻¹[w · F(m · (p − x₀))]
 
-Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, its
-spectrum and the test's inverse (one FFT pair), the correction's pair, a few box filters and one
-frame-sized OTF more under a grid (`last_fft_pairs` counts them).
+With `half_test` the test runs on 2×2 means (a mean commutes with the convolutions; its FFT pair has
+a quarter of the points): the predicted variance gets the mean's power response
+cos²(πf_y)·cos²(πf_x), the box is `TEST_WINDOW_PX` means, the reference is widened by
+`HALF_TEST_SLACK` and m is up-sampled bilinearly. The warp's maps are solved on a coarse grid
+(`temporal.coarse_warp_maps`) and up-sampled with the support in one pass.
+
+Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, the
+test's FFT pair (on a quarter of the points with `half_test`), the correction's pair, a few box
+filters and one frame-sized OTF more under a grid (`last_fft_pairs` counts them).
 """
 
 from __future__ import annotations
@@ -57,18 +63,30 @@ from numba import njit
 
 from .checks import DeconvError, check_image, check_kernel
 from .noise import noise_sigma, value_range_of
+from .plans import fast_len
 from .solver import TILE_OVERLAP, Deconvolver
-from .temporal import warp, warp_maps, warped_support
+from .temporal import MAP_STEP_PX, coarse_warp_maps
 from .tiles import TILE_MARGIN_PX
 from .xstep import prepare
 
 MEMORY = 0.8                 # γ: carried information kept per frame (memory ~ 1 / (1 − γ) = 5 frames)
 REGISTRATION_PX = 0.1        # δ: registration + interpolation error of a warped prior (px RMS)
 WINDOW_PX = 9                # box of the local mean square of the disagreement test
+TEST_WINDOW_PX = 5           # box (on the 2×2 means: ~10 px) of the disagreement test's local mean square
 DISAGREE = (2.0, 4.0)        # test's local mean square / its reference: full weight below, none above
+HALF_TEST_SLACK = 4.0        # the test on 2×2 means: its reference × this (the means cut x₀'s noise by
+                             # up to 4, not a misregistration's residual at the blur's scale)
 PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
+
+PROFILE: dict[str, float] = {}   # thread CPU seconds per stage of the last correction (for profiling)
+
+
+def _lap(stage: str, t: float) -> float:
+    now = time.thread_time()
+    PROFILE[stage] = PROFILE.get(stage, 0.0) + now - t
+    return now
 
 
 @dataclass(frozen=True)
@@ -83,33 +101,40 @@ class Estimate:
 
 
 # ---------------------------------------------------------------------------------- numba passes
-@njit(cache=True, nogil=True)
-def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, H, W, I):
+@njit(cache=True, nogil=True, fastmath=True)
+def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, bx, H, W, I):
     """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
     Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
     H = norm |K|² / (|K|² + R) (the single solve's response), W = norm Π / (|K|² + (1 − β) R + Π)
     (the correction's), I = |K|² + A T² (this frame's information). Returns the mean over the full
-    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval)."""
+    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval) and the same
+    times by[i]·bx[j] (its gain after a filter of that power response, e.g. a 2×2 mean)."""
     h, w = K2.shape
+    one, zero, eps = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
+    gain, q, c = np.float32(gain), np.float32(q), np.float32(c)
+    beta, norm = np.float32(beta), np.float32(norm)
     acc = 0.0
+    acc_b = 0.0
     n = 0.0
     full_w = 2 * (w - 1)
     for i in range(h):
         for j in range(w):
             v = info[rows[i], cols[j]]
-            a = gain * v / (1.0 + q * v) if v > 0 else 0.0
+            a = gain * v / (one + q * v) if v > 0 else zero
             k2 = K2[i, j]
             r = c * g2[i, j]
             t2 = T2[i, j]
-            d = k2 + r + 1e-12
+            d = k2 + r + eps
             H[i, j] = norm * k2 / d
             p = (a + beta * r) * t2
-            W[i, j] = norm * p / (k2 + (1.0 - beta) * r + p + 1e-12)
+            W[i, j] = norm * p / (k2 + (one - beta) * r + p + eps)
             I[i, j] = k2 + a * t2
             m = 1.0 if (j == 0 or (j == w - 1 and full_w % 2 == 0)) else 2.0
-            acc += m * k2 / (d * d)
+            g = m * k2 / (d * d)
+            acc += g
+            acc_b += g * by[i] * bx[j]
             n += m
-    return acc / n
+    return acc / n, acc_b / n
 
 
 @njit(cache=True, nogil=True)
@@ -192,6 +217,53 @@ def _fill_difference(p, x0, m, lo, scale, out):
                 out[i, j] = 0.0
 
 
+@njit(cache=True, nogil=True)
+def _upsample_maps(cx, cy, step, inset, mx, my, support):
+    """mx, my [H, W]: the coarse maps (node (r, c) at pixel (r·step, c·step)) interpolated bilinearly;
+    support = 1 where the map lands at least `inset` px inside the [H, W] source frame, else 0."""
+    H, W = mx.shape
+    nr, nc = cx.shape
+    rx = np.empty((nr, W), np.float32)       # every coarse row interpolated along x first
+    ry = np.empty((nr, W), np.float32)
+    for j in range(W):
+        fx = j / step
+        c = min(int(fx), nc - 2)
+        ax = fx - c
+        for r in range(nr):
+            rx[r, j] = (1 - ax) * cx[r, c] + ax * cx[r, c + 1]
+            ry[r, j] = (1 - ax) * cy[r, c] + ax * cy[r, c + 1]
+    xlo, xhi, ylo, yhi = inset, W - 1 - inset, inset, H - 1 - inset
+    for i in range(H):
+        fy = i / step
+        r = min(int(fy), nr - 2)
+        ay = np.float32(fy - r)
+        by = np.float32(1.0) - ay
+        for j in range(W):
+            x = by * rx[r, j] + ay * rx[r + 1, j]
+            y = by * ry[r, j] + ay * ry[r + 1, j]
+            mx[i, j] = x
+            my[i, j] = y
+            support[i, j] = np.float32((x >= xlo) & (x <= xhi) & (y >= ylo) & (y <= yhi))
+
+
+@njit(cache=True, nogil=True)
+def _weigh_sampled(wgt, rows, cols, factor, X, out):
+    """out = factor · wgt[rows[i], cols[j]] · X (a weight read off another spectrum's grid)."""
+    h, w = X.shape
+    for i in range(h):
+        ri = rows[i]
+        for j in range(w):
+            out[i, j] = X[i, j] * (factor * wgt[ri, cols[j]])
+
+
+def _half_frequency_index(n_half: int, n_full: int, half: bool) -> np.ndarray:
+    """Indices into an `n_full`-point spectrum (cycles/px) of an `n_half`-point one's frequencies on a
+    grid of twice the pixel pitch (cycles per 2 px)."""
+    f = 0.5 * (np.fft.rfftfreq(n_half) if half else np.fft.fftfreq(n_half))
+    idx = np.rint(f * n_full).astype(np.int64)
+    return np.clip(idx, 0, n_full // 2) if half else idx % n_full
+
+
 def _frequency_index(n_new: int, n_old: int, half: bool) -> np.ndarray:
     """Indices into an `n_old`-point spectrum of the frequencies nearest an `n_new`-point one's."""
     f = np.fft.rfftfreq(n_new) if half else np.fft.fftfreq(n_new)
@@ -221,12 +293,14 @@ class RecursiveDeconvolver:
     min_coverage : a kernel whose gyro coverage is below this is solved alone.
     interpolation : cv2 interpolation of the warp.
     overlap, uniform_tol_px : as `Deconvolver.run_varying` (a kernel grid).
+    half_test : run the disagreement test on 2×2 means (a quarter of its points; module docstring);
+        False: at full size.
     """
 
     def __init__(self, calib, single: Deconvolver | None = None, *, memory: float = MEMORY,
                  registration_px: float = REGISTRATION_PX, max_age_s: float = MAX_AGE_S,
                  min_coverage: float = 0.99, interpolation: int = cv2.INTER_CUBIC,
-                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5):
+                 overlap: float = TILE_OVERLAP, uniform_tol_px: float = 0.5, half_test: bool = True):
         if single is not None and not isinstance(single, Deconvolver):
             raise DeconvError(f"single: expected a Deconvolver, got {type(single).__name__}")
         memory, registration_px, max_age_s = float(memory), float(registration_px), float(max_age_s)
@@ -240,10 +314,14 @@ class RecursiveDeconvolver:
             raise DeconvError("interpolation: expected cv2.INTER_LINEAR, INTER_CUBIC or INTER_LANCZOS4, "
                               f"got {interpolation!r}")
         self._gains: dict[tuple[int, int], np.ndarray] = {}
+        self._boxes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._buf: dict[str, np.ndarray] = {}
+        self._buf_shape: tuple[int, int] | None = None
         self.calib = calib
         self.single = single or Deconvolver(method="wiener")
         self.memory, self.registration_px, self.max_age_s = memory, registration_px, max_age_s
         self.min_coverage = float(min_coverage)
+        self.half_test = bool(half_test)
         self.interpolation = interpolation
         self.overlap, self.uniform_tol_px = float(overlap), float(uniform_tol_px)
         # what the last `solve` did, for the caller's books
@@ -319,50 +397,111 @@ class RecursiveDeconvolver:
         age = t_frame - float(past.t_frame)
         if not 0 < age <= self.max_age_s or past.image.shape != img.shape:
             return None
-        maps = warp_maps(self.calib, gyro_t, gyro_rate, t_frame, float(past.t_frame))
-        if maps is None:
+        tp = time.thread_time()
+        coarse = coarse_warp_maps(self.calib, gyro_t, gyro_rate, t_frame, float(past.t_frame))
+        if coarse is None:
             return None
-        support = warped_support(maps, img.shape, SUPPORT_INSET_PX)
-        if support.mean() < 0.02:
+        tp = _lap("maps", tp)
+        H, W = img.shape
+        buf = self._buffers(img.shape)
+        mx, my, support, p = buf["mx"], buf["my"], buf["support"], buf["p"]
+        _upsample_maps(coarse[0], coarse[1], float(MAP_STEP_PX), float(SUPPORT_INSET_PX), mx, my, support)
+        ok = support[::4, ::4] > 0
+        if ok.mean() < 0.02:
             return None
-        p = warp(past.image, maps, self.interpolation)
+        tp = _lap("support", tp)
+        cv2.remap(past.image, mx, my, self.interpolation, dst=p, borderMode=cv2.BORDER_REPLICATE)
+        tp = _lap("warp", tp)
         n = max(1, int(round(age * float(self.calib.frame_rate_hz))))
         scale = np.float32(1.0 / (hi - lo))
         # an FFC step (or drift) offsets the new frame's counts: the prior follows
-        ok = support[::4, ::4] > 0
         p += np.float32(np.median((x0[::4, ::4] - p[::4, ::4])[ok]))
+        tp = _lap("offset", tp)
         sigma = max(noise_sigma(img, (lo, hi)), 1e-6)
+        tp = _lap("noise", tp)
         gy, gx = np.diff(p[::2, ::2], axis=0), np.diff(p[::2, ::2], axis=1)
         grad2 = 0.5 * (float(np.mean(gy * gy)) + float(np.mean(gx * gx))) * float(scale) ** 2 / 4.0
         q = self.registration_px ** 2 * grad2 / sigma ** 2
+        tp = _lap("grad", tp)
         rows = _frequency_index(plan.shape[0], past.shape[0], half=False)
         cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
         Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
-        noise_gain = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
-                                       self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
-                                       float(plan.norm), Hw, Ww, info)
-        # the disagreement test: x₀ against the single solve's output for data k ⊛ p
+        by, bx = self._box_gain(plan.shape)
+        nb_full, nb_half = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
+                                           self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
+                                           float(plan.norm), by, bx, Hw, Ww, info)
+        tp = _lap("spectral_w", tp)
+        if self.half_test:
+            m = self._test_half(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_half)
+        else:
+            m = self._test_full(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_full)
+        tp = _lap("test", tp)
+        self.last_weight = float(m.mean())
+        self.last_prior_frames = n
+        tp = _lap("mean", tp)
+        # the correction x₀ + F⁻¹[w F(m (p − x₀))]
+        _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
+        tp = _lap("corr_fill", tp)
+        _weigh(Ww, plan.fwd(), plan.cin)
+        tp = _lap("corr_fwd", tp)
+        out = np.empty_like(x0)
+        _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
+        tp = _lap("corr_inv", tp)
+        self.last_fft_pairs += 2.0 - (0.75 if self.half_test else 0.0)   # a quarter of the points
+        return out, info
+
+    def _test_full(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
+        """The prior's weight m: x₀ against the single solve's output for data k ⊛ p."""
         H, W = img.shape
         prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
         _weigh(Hw, plan.fwd(), plan.cin)
-        r2 = np.empty_like(x0)
+        r2 = buf["r2"]
         _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
         e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
-        expected = sigma * sigma * noise_gain
         inside = e[::4, ::4][ok]
         ref = max(expected, float(np.median(inside)) if inside.size else expected)
         dlo, dhi = DISAGREE
         _agreement(e, support, np.float32(dlo * ref), np.float32(dhi * ref), r2)
-        m = cv2.blur(r2, (5, 5))             # soft edges: no seam where the prior starts
-        self.last_weight = float(m.mean())
-        self.last_prior_frames = n
-        # the correction x₀ + F⁻¹[w F(m (p − x₀))]
-        _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
-        _weigh(Ww, plan.fwd(), plan.cin)
-        out = np.empty_like(x0)
-        _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
-        self.last_fft_pairs += 2.0
-        return out, info
+        return cv2.blur(r2, (5, 5))             # soft edges: no seam where the prior starts
+
+    def _test_half(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
+        """The same test on 2×2 means (a quarter of the points), its weight up-sampled."""
+        H, W = img.shape
+        h2, w2 = H // 2, W // 2
+        x0h, ph, r2h = buf["x0h"], buf["ph"], buf["r2h"]
+        cv2.resize(x0, (w2, h2), dst=x0h, interpolation=cv2.INTER_AREA)
+        cv2.resize(p, (w2, h2), dst=ph, interpolation=cv2.INTER_AREA)
+        hplan = self.single._plan(tuple(fast_len((v + 1) // 2) for v in plan.shape))
+        prepare(ph, 0, 0, h2, w2, np.float32(lo), scale, hplan.rin)
+        hrows = _half_frequency_index(hplan.shape[0], plan.shape[0], half=False)
+        hcols = _half_frequency_index(hplan.shape[1], plan.shape[1], half=True)
+        _weigh_sampled(Hw, hrows, hcols, np.float32(hplan.norm / plan.norm), hplan.fwd(), hplan.cin)
+        _squared_misfit(x0h, hplan.inv(), np.float32(lo), scale, r2h)
+        e = cv2.blur(r2h, (TEST_WINDOW_PX, TEST_WINDOW_PX))
+        inside = e[::2, ::2][ok[:(h2 + 1) // 2, :(w2 + 1) // 2]]
+        ref = HALF_TEST_SLACK * max(expected, float(np.median(inside)) if inside.size else expected)
+        dlo, dhi = DISAGREE
+        _agreement(e, support[:2 * h2:2, :2 * w2:2], np.float32(dlo * ref), np.float32(dhi * ref), r2h)
+        mh = cv2.blur(r2h, (3, 3))
+        return cv2.resize(mh, (W, H), dst=buf["m"], interpolation=cv2.INTER_LINEAR)
+
+    def _buffers(self, shape) -> dict[str, np.ndarray]:
+        """Work arrays of a frame shape (reused: one instance per thread)."""
+        if self._buf_shape != shape:
+            H, W = shape
+            f = lambda h, w: np.empty((h, w), np.float32)  # noqa: E731
+            self._buf = dict(mx=f(H, W), my=f(H, W), support=f(H, W), p=f(H, W), m=f(H, W), r2=f(H, W),
+                             x0h=f(H // 2, W // 2), ph=f(H // 2, W // 2), r2h=f(H // 2, W // 2))
+            self._buf_shape = shape
+        return self._buf
+
+    def _box_gain(self, shape) -> tuple[np.ndarray, np.ndarray]:
+        """Power response per axis of a 2×2 mean, cos²(πf), on the half spectrum of `shape`."""
+        g = self._boxes.get(shape)
+        if g is None:
+            g = self._boxes[shape] = (np.cos(np.pi * np.fft.fftfreq(shape[0])) ** 2,
+                                      np.cos(np.pi * np.fft.rfftfreq(shape[1])) ** 2)
+        return g
 
     def _gain(self, shape) -> np.ndarray:
         """|T(f)|² of the warp's interpolation on the half spectrum of `shape` (cached per shape)."""

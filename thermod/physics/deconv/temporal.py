@@ -141,9 +141,10 @@ def _rolling_maps(xs, ys, P, B, mx, my):
             my[r, c] = py
 
 
-def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
-    """(map_x, map_y) float32 [H, W] for cv2.remap of frame `t_src` into frame `t_dst`'s pixels
-    (Eq. 16 per row pair, rolling readout), or None without gyro coverage of both frames."""
+def coarse_warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
+    """(map_x, map_y) float64 on the grid of every `MAP_STEP_PX`-th row and column of frame `t_dst`
+    (Eq. 16 per row pair, rolling readout: where those pixels lie in frame `t_src`), or None
+    without gyro coverage of both frames. Grid node (r, c) is pixel (r·step, c·step)."""
     H, W = int(calib.height), int(calib.width)
     step = MAP_STEP_PX
     ys = np.arange(0, H - 1 + step, step, dtype=np.float64)
@@ -160,11 +161,24 @@ def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
     cx = np.empty((len(ys), len(xs)))
     cy = np.empty((len(ys), len(xs)))
     _rolling_maps(xs, ys, P, B, cx, cy)
+    return cx, cy
+
+
+def warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
+    """(map_x, map_y) float32 [H, W] for cv2.remap of frame `t_src` into frame `t_dst`'s pixels
+    (Eq. 16 per row pair, rolling readout), or None without gyro coverage of both frames."""
+    coarse = coarse_warp_maps(calib, gyro_t, gyro_rate, t_dst, t_src)
+    if coarse is None:
+        return None
+    H, W = int(calib.height), int(calib.width)
+    step = MAP_STEP_PX
     # bilinear up-sampling: pixel (y, x) reads the coarse grid at (y / step, x / step)
     up = np.float64([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    mx = cv2.warpAffine(cx.astype(np.float32), up, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-    my = cv2.warpAffine(cy.astype(np.float32), up, (W, H), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    mx = cv2.warpAffine(coarse[0].astype(np.float32), up, (W, H), flags=flags,
+                        borderMode=cv2.BORDER_REPLICATE)
+    my = cv2.warpAffine(coarse[1].astype(np.float32), up, (W, H), flags=flags,
+                        borderMode=cv2.BORDER_REPLICATE)
     return mx, my
 
 
