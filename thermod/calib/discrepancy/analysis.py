@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from thermod.calib.discrepancy.data import Model, RecData
-from thermod.calib.discrepancy.diagnostics import diagnostics, response_signature
+from thermod.calib.discrepancy.diagnostics import diagnostics, pooled_response_signature, response_signature
 from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult, format_params
 from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
@@ -82,6 +82,7 @@ class Analysis:
     response_signature_z: float = 0.0
     response_signature_slope: float = 0.0
     response_signature_gain: float = 0.0    # the slope as a gain change over ±3 RMS contrast
+    response_signature_pooled_z: float = 0.0
 
     @property
     def named(self) -> list[str]:
@@ -99,6 +100,7 @@ class Analysis:
             "dropped": self.pruned, "unexplained_reason": self.unexplained_reason,
             "response_signature_z": self.response_signature_z,
             "response_signature_gain": self.response_signature_gain,
+            "response_signature_pooled_z": self.response_signature_pooled_z,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -133,17 +135,24 @@ class Analysis:
         if self.unexplained:
             self.unexplained_reason = (f"the residual (gap {self.gap_final:.4f}) is well above the noise "
                                        f"floor ({self.noise_floor:.4f}) and the forward model's precision")
+        contrast = _contrast(problem)
         slope, z = response_signature(problem, model, ev)
-        gain = 6.0 * abs(slope) * _contrast(problem)     # slope change of x = u + γu² over ±3 RMS contrast
+        gain = 6.0 * abs(slope) * contrast     # slope change of x = u + γu² over ±3 RMS contrast
         self.response_signature_z, self.response_signature_slope = z, slope
         self.response_signature_gain = gain
-        if (problem.has_motion_reference and abs(z) > crit.signature_z and gain > crit.signature_gain
-                and not self.unexplained):
+        pooled_slope, pooled_z = pooled_response_signature(problem, model, ev)
+        self.response_signature_pooled_z = pooled_z
+
+        def seen(sl: float, zz: float) -> bool:
+            return abs(zz) > crit.signature_z and 6.0 * abs(sl) * contrast > crit.signature_gain
+        if (problem.has_motion_reference and seen(slope, z) and seen(pooled_slope, pooled_z)
+                and slope * pooled_slope > 0 and not self.unexplained):
             # Without a static reference the canvas takes a curved response in nearly whole: the gap
             # barely moves, but its one-sign trace where the blur mixes levels stays, and no gap
-            # threshold sees it. A wrong motion's residual is taken out of the signature frame by frame
-            # (`response_signature`); the forward model leaves a small trace of its own on a clean
-            # high-contrast flight: hence the practical threshold on the gain change besides the z score.
+            # threshold sees it. A wrong motion's residual can follow the mixing variance too (both grow
+            # with the blur), and the per-frame weighting that takes it out lets the forward model's own
+            # small trace through on some flights: a curved response is the trace both measures see, with
+            # one sign. The gain threshold keeps the forward model's trace on high-contrast scenes out.
             self.unexplained = True
             self.unexplained_reason = (
                 f"the residual grows with the variance the blur mixes into each pixel (slope {slope:.3g} "

@@ -225,3 +225,24 @@ def response_signature(problem: Problem, model: Model, ev: Evaluation) -> tuple[
     for (i, k, x, y, _), v in zip(frames, var, strict=True):
         std[i][k][problem.recs[i].mask[k]] = (y - slope * x) / math.sqrt(v)
     return slope, slope * math.sqrt(den / effective_area(std))
+
+
+def pooled_response_signature(problem: Problem, model: Model, ev: Evaluation) -> tuple[float, float]:
+    """The same regression with nothing taken out and one variance for every pixel: (slope per count,
+    z). It sees a forward model's trace and a wrong motion's as well as a curved response's; a curved
+    response is the one trace that both it and `response_signature` see, with one sign."""
+    num = den = rss = 0.0
+    n = 0
+    for d, r in zip(problem.recs, ev.residuals, strict=True):
+        x = sensor.mixing_variance(d, model)[d.mask].astype(np.float64)
+        y = r[d.mask].astype(np.float64)
+        num += float(x @ y)
+        den += float(x @ x)
+        rss += float(y @ y)
+        n += len(y)
+    if den <= 0 or n < 2:
+        return 0.0, 0.0
+    slope = num / den
+    var = max(rss - slope * num, 0.0) / n
+    se = math.sqrt(var * effective_area(ev.residuals) / den)
+    return slope, (slope / se if se > 0 else 0.0)
