@@ -5,6 +5,8 @@ known truth: the gyro warp, the gain where frames agree, and no loss or ghost wh
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,33 +16,18 @@ from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import DeconvError, Deconvolver
 from thermod.physics.deconv.temporal import PastFrame, TemporalDeconvolver, warp, warp_maps, warped_support
-from thermod.sim import motion as mo
-from thermod.sim import synth
-from thermod.sim.gyro_model import GyroErrorModel
 from thermod.sim.movers import HotObject
+
+sys.path.insert(0, str(Path(__file__).parent))
+from streams import pan, psnr  # noqa: E402
+from streams import stream as stream_of  # noqa: E402
 
 SMALL = Calibration(width=160, height=120, cx=79.5, cy=59.5)
 N = 6
 
 
-def pan(deg_s: float, angle: float = 0.4) -> mo.Pan:
-    w = math.radians(deg_s)
-    return mo.Pan((w * math.sin(angle), w * math.cos(angle), 0.0), spec=f"pan:{deg_s:g}")
-
-
 def record(motion, calib=SMALL, netd=0.03, seed=3, movers=(), **effects):
-    return synth.simulate("texture", motion, seconds=N / calib.frame_rate_hz, calib=calib,
-                          effects={"netd": netd, **effects}, seed=seed, gyro=GyroErrorModel.paper(),
-                          movers=movers)
-
-
-def psnr(est, truth, box=None):
-    lo, hi = np.percentile(truth, (0.5, 99.5))
-    e = np.clip((est - lo) / (hi - lo), 0, 1) * 255
-    t = np.clip((truth - lo) / (hi - lo), 0, 1) * 255
-    if box is not None:
-        e, t = e[box], t[box]
-    return 10 * math.log10(255 ** 2 / float(np.mean((e - t) ** 2)))
+    return stream_of(motion, N, calib, netd, seed, movers, **effects)
 
 
 def run_all(rec, td, gyro=None, offset=False):

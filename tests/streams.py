@@ -1,0 +1,36 @@
+"""Simulated frame streams for the temporal solvers' tests (tests/test_temporal.py, test_recursive.py):
+a textured scene under a pan with the paper's gyro, and PSNR on the truth's 8-bit scale."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from thermod.physics.calibration import Calibration
+from thermod.sim import motion as mo
+from thermod.sim import synth
+from thermod.sim.gyro_model import GyroErrorModel
+
+
+def pan(deg_s: float, angle: float = 0.4) -> mo.Pan:
+    """A pan at `deg_s` whose direction is `angle` (rad) off the yaw axis towards pitch."""
+    w = math.radians(deg_s)
+    return mo.Pan((w * math.sin(angle), w * math.cos(angle), 0.0), spec=f"pan:{deg_s:g}")
+
+
+def stream(motion, n: int, calib: Calibration, netd: float, seed: int = 3, movers=(), **effects):
+    """`n` frames of the seeded texture under `motion`, with truth."""
+    return synth.simulate("texture", motion, seconds=n / calib.frame_rate_hz, calib=calib,
+                          effects={"netd": netd, **effects}, seed=seed, gyro=GyroErrorModel.paper(),
+                          movers=movers)
+
+
+def psnr(est, truth, box=None) -> float:
+    """PSNR (dB) on the 8-bit scale of the truth's 0.5–99.5 % range, over `box` if given."""
+    lo, hi = np.percentile(truth, (0.5, 99.5))
+    e = np.clip((est - lo) / (hi - lo), 0, 1) * 255
+    t = np.clip((truth - lo) / (hi - lo), 0, 1) * 255
+    if box is not None:
+        e, t = e[box], t[box]
+    return 10 * math.log10(255 ** 2 / float(np.mean((e - t) ** 2)))
