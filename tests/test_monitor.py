@@ -28,18 +28,32 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run(apply: bool, seconds: float, drift=DRIFT, **extra):
+def _estimate(d):
+    return d.health()["calibration"]["estimate"]
+
+
+def run(apply: bool, seconds: float, drift=DRIFT, until=None, **extra):
+    """The daemon for `seconds`, then on until `until(daemon)` holds (checked each second), for at most
+    3 × `seconds` in all: a monitor starved by a loaded host (it runs at nice 19, within 10 % of a
+    core) takes longer, and what it finds is what the tests check, not how fast."""
     opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "deblur.method": "wiener",
             "calibration.width": 160, "calibration.height": 120, "calibration.fx": 366.0,
             "calibration.fy": 366.0, "monitor.apply": apply, "pipeline.workers": 1, **extra}
     d = Daemon(config.load(None, opts))
     d.payload.drift = drift
     d.start()
-    t0 = time.monotonic()
+    t0 = last_check = time.monotonic()
     try:
-        while time.monotonic() - t0 < seconds:
+        while True:
             d.tick()
             time.sleep(0.05)
+            now = time.monotonic()
+            if now - t0 >= 3 * seconds:
+                break
+            if now - t0 >= seconds and now - last_check >= 1.0:
+                last_check = now
+                if until is None or until(d):
+                    break
         h = d.health()
         truth = d.payload.true_calibration(time.monotonic() - 2.0)
     finally:
@@ -48,7 +62,7 @@ def run(apply: bool, seconds: float, drift=DRIFT, **extra):
 
 
 def test_estimate_converges_to_the_drifting_truth():
-    d, h, truth = run(apply=False, seconds=12.0)
+    d, h, truth = run(apply=False, seconds=12.0, until=lambda d: _estimate(d) is not None)
     cal = h["calibration"]
     e = cal["estimate"]
     assert e is not None, cal["monitor"]
@@ -68,7 +82,7 @@ def test_estimate_converges_to_the_drifting_truth():
 
 
 def test_apply_moves_the_calibration_towards_the_truth():
-    d, h, truth = run(apply=True, seconds=12.0)
+    d, h, truth = run(apply=True, seconds=12.0, until=lambda d: bool(d.monitor.changes))
     assert d.monitor.changes, h["calibration"]["monitor"]
     for c in d.monitor.changes:                                    # never a change that raised the residual
         assert "residual_px" in c or "tau_misfit" in c, c
@@ -86,7 +100,8 @@ def test_apply_moves_the_calibration_towards_the_truth():
 def test_tau_estimate_converges_to_the_camera_s():
     """The simulated camera's τ is 10 ms, the configuration says 8 ms (``[sim] tau_s``): the monitor's
     τ estimate finds the camera's within its σ, and is significant against the configuration's."""
-    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010})
+    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010},
+                      until=lambda d: (_estimate(d) or {}).get("tau_s") is not None)
     assert d.cfg.calibration.tau_s == 0.008 and truth.tau_s == pytest.approx(0.010)
     e = h["calibration"]["estimate"]
     assert e is not None, h["calibration"]["monitor"]
