@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from thermod.errors import ThermodError
@@ -53,3 +55,15 @@ def check_image(image):
     elif a.dtype not in (np.uint16, np.int32, np.uint8, np.int16):
         a = a.astype(np.float32)
     return a
+
+
+def check_frame(frame, calib, t_frame) -> tuple[np.ndarray, float]:
+    """A stream frame as float32 counts of the calibration's size, and its finite read time (s)."""
+    img = check_image(frame)
+    if img.shape != (int(calib.height), int(calib.width)):
+        raise DeconvError(f"frame: expected {int(calib.height)}×{int(calib.width)} "
+                          f"(the calibration's), got {img.shape[0]}×{img.shape[1]}")
+    t_frame = float(t_frame)
+    if not math.isfinite(t_frame):
+        raise DeconvError(f"t_frame: expected a finite time (s), got {t_frame}")
+    return np.asarray(img, np.float32), t_frame

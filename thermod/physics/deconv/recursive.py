@@ -61,7 +61,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .checks import DeconvError, check_image, check_kernel
+from .checks import DeconvError, check_frame, check_kernel
 from .noise import noise_sigma, value_range_of
 from .plans import fast_len
 from .solver import TILE_OVERLAP, Deconvolver
@@ -341,14 +341,7 @@ class RecursiveDeconvolver:
 
         `gyro_t`, `gyro_rate`: raw gyro samples spanning the prior's and this frame's read times
         (a ring buffer may be passed whole); without them the frame is solved alone."""
-        img = check_image(frame)
-        if img.shape != (int(self.calib.height), int(self.calib.width)):
-            raise DeconvError(f"frame: expected {int(self.calib.height)}×{int(self.calib.width)} "
-                              f"(the calibration's), got {img.shape[0]}×{img.shape[1]}")
-        t_frame = float(t_frame)
-        if not math.isfinite(t_frame):
-            raise DeconvError(f"t_frame: expected a finite time (s), got {t_frame}")
-        img = np.asarray(img, np.float32)
+        img, t_frame = check_frame(frame, self.calib, t_frame)
         t0, c0 = time.perf_counter(), time.thread_time()
         lo, hi = value_range_of(img, value_range)
         dec = self.single

@@ -52,7 +52,7 @@ from numba import njit
 
 from thermod.physics.geometry import integrate_rotations, so3_exp_many
 
-from .checks import DeconvError, check_image, check_kernel
+from .checks import DeconvError, check_frame, check_image, check_kernel
 from .noise import noise_sigma, value_range_of
 from .solver import TILE_OVERLAP, Deconvolver
 from .tiles import TILE_MARGIN_PX
@@ -342,14 +342,7 @@ class TemporalDeconvolver:
         `gyro_t`, `gyro_rate`: raw gyro samples (as for the kernel renderers; a ring buffer may be
         passed whole) spanning the history's frames — a frame they do not reach is left out.
         """
-        img = check_image(frame)
-        if img.shape != (int(self.calib.height), int(self.calib.width)):
-            raise DeconvError(f"frame: expected {int(self.calib.height)}×{int(self.calib.width)} "
-                              f"(the calibration's), got {img.shape[0]}×{img.shape[1]}")
-        t_frame = float(t_frame)
-        if not math.isfinite(t_frame):
-            raise DeconvError(f"t_frame: expected a finite time (s), got {t_frame}")
-        img = np.asarray(img, np.float32)
+        img, t_frame = check_frame(frame, self.calib, t_frame)
         t0, c0 = time.perf_counter(), time.process_time()
         lo, hi = value_range_of(img, value_range)
         grid = hasattr(kernel, "kernels")
