@@ -34,3 +34,24 @@ def psnr(est, truth, box=None) -> float:
     if box is not None:
         e, t = e[box], t[box]
     return 10 * math.log10(255 ** 2 / float(np.mean((e - t) ** 2)))
+
+
+def assert_no_ghost(x, s, truth, radius_px: float, track, now: int, before=(1, 2, 3)) -> None:
+    """No ghost of a moving object in `x` (the temporal result) beside `s` (the single-frame one): where
+    the object was `before` frames ago (`track(j)` → its centre (x, y) in frame `now`'s pixels at frame
+    j), off where it is now, the residual is no larger than the single-frame one and does not correlate
+    with its disc there."""
+    H, W = truth.shape
+    yy, xx = np.mgrid[:H, :W]
+    cx, cy = track(now)
+    here = np.hypot(xx - cx, yy - cy) < radius_px + 2
+    for j in (now - b for b in before):
+        px, py = track(j)
+        disc = np.hypot(xx - px, yy - py) < radius_px + 1.5
+        ring = np.hypot(xx - px, yy - py) < radius_px + 4
+        sel = ring & ~here
+        assert sel.sum() > 30
+        rt, rs = (x - truth)[sel], (s - truth)[sel]
+        assert np.abs(rt).mean() < 1.1 * np.abs(rs).mean() + 1.0
+        corr = np.corrcoef(rt, disc[sel].astype(float))[0, 1]
+        assert corr < 0.1, (j, corr)
