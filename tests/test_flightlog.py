@@ -87,12 +87,11 @@ def test_real_betaflight_log_survives_gcsv_and_csv_round_trips(tmp_path, bbl_log
     np.testing.assert_allclose(c.rate, real.rate, atol=1e-9)           # the real log is whole °/s already
 
 
-def test_shared_betaflight_export_is_a_reduced_csv_no_parser_reads(shared_data):
+def test_shared_betaflight_export_is_a_reduced_csv_no_parser_reads(shared_data, require):
     """shared/data/gyro/betaflight_smooth_2khz.csv is a reduced export (time_us, gyro_*_degps, acc_*_raw),
     not Blackbox Explorer's CSV: refused by name, not misread."""
     path = shared_data / "gyro" / "betaflight_smooth_2khz.csv"
-    if not path.exists():
-        pytest.skip("shared/data gyro log absent")
+    require(path.exists(), "../shared/data/gyro/betaflight_smooth_2khz.csv (the real Betaflight log)")
     assert path.read_text()[:40].startswith("time_us,gyro_roll_degps")
     with pytest.raises(FlightLogError, match=r"betaflight_smooth_2khz\.csv: not a log format"):
         read_flight_log(path)
