@@ -163,8 +163,10 @@ def test_thermod_run_end_to_end(payload):
         h = frames[i][0]
         # the first frames' kernel windows may reach back before the gyro stream's first sample: they
         # are deblurred when the kernel keeps ≥ 90 % of its weight (pipeline.START_COVERAGE)
-        assert h["coverage"] > (0.99 if i > 3 else START_COVERAGE) and h["kernel_size"][0] >= 1 \
-            and h["n_samples"] >= 30
+        # (a start-up kernel's window is cut short at the stream's first sample, so it holds fewer samples)
+        full = i > 3
+        assert h["coverage"] > (0.99 if full else START_COVERAGE) and h["kernel_size"][0] >= 1 \
+            and h["n_samples"] >= (30 if full else 2)
     print(f"deblurred {len(deb)}/{len(ids)} frames; RMSE to truth deblurred/raw median "
           f"{np.median(ratios):.3f}, max {np.max(ratios):.3f}")
     assert np.median(ratios) < E2E_RATIO_LIMIT, np.median(ratios)
