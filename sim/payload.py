@@ -56,6 +56,8 @@ class SimPayload:
         self.world = calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz, time_offset_s=0.0)
         # a true τ other than the configuration's (``[sim] tau_s``) is a hidden effect of the loop
         hidden = (("time_constant", float(sim_cfg.tau_s)),) if sim_cfg.tau_s else ()
+        if sim_cfg.netd_k:
+            hidden += (("netd", float(sim_cfg.netd_k)),)
         self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
                                           seed=sim_cfg.seed, calib=self.world, effects=hidden)
         self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None

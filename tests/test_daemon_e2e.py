@@ -25,14 +25,14 @@ from thermod.runtime.pipeline import START_COVERAGE
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
-# median RMSE(deblurred, truth) / RMSE(raw, truth) on the simulated payload. Which loop frames get
-# deblurred depends on the machine's load (overload passes frames through), and the ratio depends on
-# the frame (≈ 1 where the shake is momentarily still, 0.2 where it blurs most), so the median is taken
-# over every deblurred frame. Measured on a loaded 2-core machine: live 0.31–0.38 (5 runs; 0.26 on
-# the procedural scene without ../shared), `thermod record` + `thermod deblur` 0.29–0.39 (4 runs);
-# the limits keep ~30 % above the worst run.
-E2E_RATIO_LIMIT = 0.5
-RECORD_RATIO_LIMIT = 0.5
+# median RMSE(deblurred, truth) / RMSE(raw, truth) on the simulated payload (NETD 50 mK). Which loop
+# frames get deblurred depends on the machine's load (overload passes frames through), and the ratio
+# depends on the frame (above 1 where the shake is momentarily still and deblurring can only add noise,
+# 0.2 where it blurs most), so the median is taken over every deblurred frame. Measured on a quiet
+# 2-core machine: live 0.537 and 0.556 (real:1; 0.212 on the procedural scene without ../shared),
+# `thermod record` + `thermod deblur` 0.449 and 0.501 (0.213); the limits keep ~30 % above the worst.
+E2E_RATIO_LIMIT = 0.72
+RECORD_RATIO_LIMIT = 0.65
 TIMEOUT_STOP_S = 15.0          # systemd/thermod.service TimeoutStopSec
 THERMOD = Path(sys.executable).with_name("thermod")
 

@@ -17,11 +17,7 @@ from pathlib import Path
 
 from thermod.errors import ThermodError
 from thermod.physics.calibration import Calibration
-
-# Temporal noise unless --effect netd=… says otherwise (K RMS): the "< 50 mK" NETD (f/1.0, 300 K scene)
-# that the datasheets of common uncooled VOx cores give (FLIR Boson and Lepton 3.5, Teledyne FLIR, 2023).
-# Noiseless frames (netd=0) make every static frame identical, which no camera does.
-DEFAULT_NETD_K = 0.05
+from thermod.physics.detector import DEFAULT_NETD_K  # temporal noise unless --effect netd=… says otherwise
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -11,6 +11,11 @@ import numpy as np
 
 from thermod.errors import ThermodError
 
+# A simulated camera's temporal noise unless told otherwise (K RMS): the "< 50 mK" NETD (f/1.0, 300 K
+# scene) that the datasheets of common uncooled VOx cores give (FLIR Boson and Lepton 3.5, Teledyne
+# FLIR, 2023). Noiseless frames make every static frame identical, which no camera does.
+DEFAULT_NETD_K = 0.05
+
 
 def iir_alpha(h, tau: float, exact: bool = True):
     """Blend weight α of B_k = (1 − α) B_{k−1} + α S_k over a step h (s); float, or array for array h.

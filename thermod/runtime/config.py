@@ -46,6 +46,7 @@ from thermod.io.toml_tables import (
 from thermod.io.toml_tables import reference as toml_reference
 from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration
+from thermod.physics.detector import DEFAULT_NETD_K
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime import endpoints, sources
 
@@ -88,6 +89,8 @@ class SimConfig:
     gyro_noise_rad_s: float = setting(0.002, lo=0.0, hi=1.0)
     tau_s: float = setting(0.0, lo=0.0, hi=1.0,
                            doc="the simulated camera's true thermal time constant (s); 0 = [calibration]'s")
+    netd_k: float = setting(DEFAULT_NETD_K, lo=0.0, hi=10.0,
+                            doc="the simulated camera's temporal noise (NETD, K RMS; 0 = noiseless)")
     cache_dir: str = setting("", doc='"" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback')
     ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
                                     doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
