@@ -162,7 +162,7 @@ class SimPayload:
             self.chip = ICM42688Emu(rate_fn=self._rate_fn, noise_rad_s=self.cfg.gyro_noise_rad_s,
                                     seed=self.cfg.seed)
             self._gyro = ICM42688(SPIBus(EmuSPI(self.chip)), full_scale_dps=2000.0,
-                                  rate_hz=self.cfg.gyro_rate_hz, read_interval_s=0.002,
+                                  rate_hz=self.cfg.gyro_rate_hz,
                                   name="ICM-42688-P (sim)")
         return self._gyro
 

@@ -102,7 +102,7 @@ class DriverThread(threading.Thread):
     def run(self) -> None:
         self.st.realtime = set_realtime(self.priority, self.kind)
         backoff = 0.05
-        consecutive = 0
+        consecutive, restarted, starved = 0, -math.inf, -math.inf
         while not self.stop_ev.is_set():
             self.st.heartbeat = time.monotonic()
             try:
@@ -111,6 +111,10 @@ class DriverThread(threading.Thread):
                     self.started_source = True
                 elif consecutive >= 3:
                     self._restart_source()
+                    # the restart worked: a device may need a while after a reset before its first sample
+                    # (an ICM-42688's gyro starts in ~30 ms), so it is not restarted again before `stall_s`
+                    consecutive, restarted = 0, time.monotonic()
+                t_poll = time.monotonic()
                 item = self.source.poll(self.poll_timeout)
             except (DeviceError, OSError) as e:
                 consecutive += 1
@@ -126,10 +130,21 @@ class DriverThread(threading.Thread):
                 backoff = min(self.retry_max_s, backoff * 2)
                 continue
             now = time.monotonic()
+            if self.stall_s and now - t_poll > self.stall_s:
+                # this thread was starved inside the poll (the device had no chance to deliver): the
+                # silence is counted from here, so a starved read of an overflowed FIFO is no stall
+                starved = now
             if item is None:
-                if self.stall_s and self.st.state == "running" and now - self.st.last_data > self.stall_s:
-                    self._down(f"no data for {now - self.st.last_data:.2f} s", "stalled")
+                last = self.st.last_data if math.isfinite(self.st.last_data) else -math.inf
+                quiet_s = now - max(last, starved)
+                if self.stall_s and self.st.state == "running" and quiet_s > self.stall_s:
+                    self._down(f"no data for {quiet_s:.2f} s", "stalled")
                     consecutive = 3          # reconnect on the next turn
+                elif self.stall_s and self.st.state in ("error", "stalled") and \
+                        min(quiet_s, now - restarted) > self.stall_s:
+                    consecutive = 3          # silent since the last restart (or data): restart after the back-off
+                    self._sleep(backoff)
+                    backoff = min(self.retry_max_s, backoff * 2)
                 elif self.stall_s and self.st.state == "stalled":
                     self._sleep(backoff)
                     backoff = min(self.retry_max_s, backoff * 2)

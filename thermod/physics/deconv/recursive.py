@@ -408,9 +408,10 @@ class RecursiveDeconvolver:
         n = max(1, int(round(age * float(self.calib.frame_rate_hz))))
         scale = np.float32(1.0 / (hi - lo))
         # an FFC step (or drift) offsets the new frame's counts: the prior follows
-        p += np.float32(np.median((x0[::4, ::4] - p[::4, ::4])[ok]))
+        p += np.float32(np.median((x0[::8, ::8] - p[::8, ::8])[ok[::2, ::2]]))
         tp = _lap("offset", tp)
-        sigma = max(noise_sigma(img, (lo, hi)), 1e-6)
+        sigma = self.single.last_sigma      # frame t's own solve measured it (NaN: a fixed λ)
+        sigma = max(sigma if math.isfinite(sigma) else noise_sigma(img, (lo, hi)), 1e-6)
         tp = _lap("noise", tp)
         gy, gx = np.diff(p[::2, ::2], axis=0), np.diff(p[::2, ::2], axis=1)
         grad2 = 0.5 * (float(np.mean(gy * gy)) + float(np.mean(gx * gx))) * float(scale) ** 2 / 4.0

@@ -102,6 +102,7 @@ class Deconvolver:
         self.method, self.alpha, self.lam, self.fft = method, alpha, lam, fft
         self.lam_rule = lam_rule or NoiseLambda.default(method, alpha)
         self.last_lam = float("nan")   # λ used for the last frame (adaptive when lam is None)
+        self.last_sigma = float("nan")  # the last frame's noise σ̂ (unit range; NaN when lam is fixed)
         self.last_cells = 0   # kernel cells the last frame was solved with (1: one uniform solve)
         self.workers, self.margin, self.cache_size = int(workers), int(margin), int(cache_size)
         self.realtime = bool(realtime)
@@ -180,8 +181,10 @@ class Deconvolver:
     def lam_for(self, img: np.ndarray, lo: float, hi: float) -> float:
         """λ for this frame: the fixed one, or `lam_rule` of the frame's noise."""
         if self.lam is not None:
+            self.last_sigma = float("nan")
             return self.lam
-        return self.lam_rule(noise_sigma(img, (lo, hi)))
+        self.last_sigma = noise_sigma(img, (lo, hi))
+        return self.lam_rule(self.last_sigma)
 
     def _solve(self, img, box, w, origin, lo, hi, lam, pshape=None) -> np.ndarray:
         """Deconvolve img[y0:y1, x0:x1] (unit-scaled with lo/hi) → float32 counts of that box."""
