@@ -142,7 +142,7 @@ class DriverThread(threading.Thread):
                     consecutive = 3          # reconnect on the next turn
                 elif self.stall_s and self.st.state in ("error", "stalled") and \
                         min(quiet_s, now - restarted) > self.stall_s:
-                    consecutive = 3          # silent since the last restart (or data): restart after the back-off
+                    consecutive = 3          # silent since the last restart or data: restart after back-off
                     self._sleep(backoff)
                     backoff = min(self.retry_max_s, backoff * 2)
                 elif self.stall_s and self.st.state == "stalled":
