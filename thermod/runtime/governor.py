@@ -162,7 +162,7 @@ class Governor:
         self.load = 1.0
         self._family: str | None = None                     # the family whose solves set `load`
         self._family_load: dict[str, tuple[float, float]] = {}   # family → (its L, when) at its last solve
-        self._relative: dict[str, tuple[float, float]] = {}      # family → (ρ, when learnt) against the last rung's
+        self._relative: dict[str, tuple[float, float]] = {}  # family → (ρ vs the last rung's, when)
         self._now = 0.0
         self._needed: collections.deque = collections.deque()   # (time, grid) of the recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
