@@ -636,7 +636,8 @@ class Pipeline:
                 # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
                 r, c = central_cell(job.kernel.centers, img.shape)
                 kernel = job.kernel.kernels[r][c]
-                job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape)}
+                job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape),
+                            "kernel_extent_px": float(kernel.extent_px)}
             o = self._out(job.slot, out, True, None, job.info, kernel)
             o.method = method
             o.prior_frames = prior_frames
