@@ -37,10 +37,14 @@ def make_provider(frames) -> Callable[[int, float], np.ndarray]:
     """Normalise a frame source to ``f(k, t) -> uint16 [H, W]``.
 
     ``frames``: a [N, H, W] array or a sequence of [H, W] arrays (looped by frame index), a single
-    [H, W] array (static scene), or a callable ``t -> image`` taking the frame's true host time ``T_k``
-    (e.g. a simulator's pre-rendered loop indexed by time). Float images are raw counts: rounded and
-    clipped to the 16-bit ADC range, as the detector's digitiser would.
+    [H, W] array (static scene), a callable ``t -> image`` taking the frame's true host time ``T_k``
+    (e.g. a simulator's pre-rendered loop indexed by time), or an object whose ``frame_at(k)`` gives
+    frame index k (the simulated payload: its loop plus fresh temporal noise). Float images are raw
+    counts: rounded and clipped to the 16-bit ADC range, as the detector's digitiser would.
     """
+    frame_at = getattr(frames, "frame_at", None)
+    if callable(frame_at):
+        return lambda k, t: _to_u16(frame_at(k))
     if callable(frames):
         return lambda k, t: _to_u16(frames(t))
     if isinstance(frames, np.ndarray):

@@ -2,8 +2,10 @@
 
 - Camera: a loop of ``loop_s`` seconds pre-rendered once by the simulator and cached on disk
   (`thermod.sim.playback`, the fine-time microbolometer model, Eq. 10/11). `SimCamera` plays it in
-  real time: frame k is "read" at ``T0 + k/fps`` (host monotonic), shows loop frame ``k mod N`` and
-  is delivered when that time has come.
+  real time: frame k is "read" at ``T0 + k/fps`` (host monotonic), shows loop frame ``k mod N`` plus
+  temporal noise (``[sim] netd_k``, from a bank of `NOISE_FRAMES` frames cycled against the loop, so
+  a frame's noise is fresh on every pass) and is delivered when that time has come;
+  `frame_for(frame_id)` returns what was delivered.
 - Gyro: the REAL ICM-42688-P driver (`thermod.drivers.icm42688.ICM42688`) over the SPI bus seam on
   the register-level emulator (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at 1 kHz in
   real time with the loop motion's raw rate at each tick (`Playback.rate_gyro(t − T0)`).
@@ -40,8 +42,12 @@ from thermod.drivers.camera_base import CameraSource, Frame
 from thermod.errors import DeviceError
 from thermod.physics.calibration import Calibration
 from thermod.sim import playback
+from thermod.sim.scenes import COUNTS_PER_K
 
 log = logging.getLogger(__name__)
+# Temporal-noise frames, cycled against the loop: with a loop of N frames a frame meets the same noise
+# again only after lcm(N, 17) frames (1700 for the default 2 s at 50 fps)
+NOISE_FRAMES = 17
 
 
 class SimPayload:
@@ -56,8 +62,6 @@ class SimPayload:
         self.world = calib.replace(frame_rate_hz=sim_cfg.frame_rate_hz, time_offset_s=0.0)
         # a true τ other than the configuration's (``[sim] tau_s``) is a hidden effect of the loop
         hidden = (("time_constant", float(sim_cfg.tau_s)),) if sim_cfg.tau_s else ()
-        if sim_cfg.netd_k:
-            hidden += (("netd", float(sim_cfg.netd_k)),)
         self.spec = playback.PlaybackSpec(scene=sim_cfg.scene, motion=sim_cfg.motion, seconds=sim_cfg.loop_s,
                                           seed=sim_cfg.seed, calib=self.world, effects=hidden)
         self._cache_dir = Path(sim_cfg.cache_dir) if sim_cfg.cache_dir else None
@@ -65,6 +69,7 @@ class SimPayload:
         self.loop: playback.Playback | None = None
         self.frames: np.ndarray | None = None     # uint16 [N, H, W] (the loop)
         self.truth: np.ndarray | None = None      # float32 [N, H, W] sharp views
+        self.noise: np.ndarray | None = None      # int16 [NOISE_FRAMES, H, W] temporal noise (counts)
         self.t0: float | None = None              # host time of loop frame 0's read, first pass
         self.chip = None
         self._camera: SimCamera | None = None
@@ -83,6 +88,7 @@ class SimPayload:
         self.loop = playback.load(self.spec, self._cache_dir)
         self.frames = np.ascontiguousarray(self.loop.frames)
         self.truth = np.asarray(self.loop.truth, np.float32)
+        self.noise = self._noise_bank()
         log.info("simulated payload: %d-frame loop ready in %.1f s (%s)", len(self.frames),
                  time.monotonic() - t0, self.cache_path)
 
@@ -117,8 +123,29 @@ class SimPayload:
         return sched is not None and sched.active(self.read_time(frame_id))
 
     def frame_for(self, frame_id: int) -> np.ndarray:
-        """The blurry raw frame (uint16) delivered as `frame_id`."""
-        return self.frames[(int(frame_id) - 1) % self.n_frames]
+        """The blurry raw frame (uint16) delivered as `frame_id`: its loop frame plus its temporal noise."""
+        k = int(frame_id) - 1
+        img = self.frames[k % self.n_frames]
+        if self.noise is None:
+            return img
+        return np.clip(img.astype(np.int32) + self.noise[k % len(self.noise)], 0, 65535).astype(np.uint16)
+
+    def frame_at(self, k: int) -> np.ndarray:
+        """The emulated camera's frame index k (0-based): `frame_for(k + 1)`."""
+        return self.frame_for(k + 1)
+
+    def _noise_bank(self) -> np.ndarray | None:
+        """[NOISE_FRAMES, H, W] int16 temporal noise (``[sim] netd_k`` in counts), cycled against the loop.
+        Rendered into the loop, the noise of a frame would repeat every loop (2 s): consecutive loop
+        passes would see the same noisy pairs, and a live estimate over many seconds would average
+        nothing (the monitor's τ came out 6.0–7.4 ms for 8–10 ms)."""
+        netd = float(getattr(self.cfg, "netd_k", 0.0))
+        if not netd or self.frames is None:
+            return None
+        rng = np.random.default_rng(self.cfg.seed + 1)
+        shape = (NOISE_FRAMES, *self.frames.shape[1:])
+        noise = rng.standard_normal(shape, np.float32) * np.float32(netd * COUNTS_PER_K)
+        return np.rint(noise).astype(np.int16)
 
     # ------------------------------------------------------------------ live
     def start(self, t0: float | None = None) -> None:
@@ -205,7 +232,7 @@ class SimCamera(CameraSource):
 
             fps = self.p.cfg.frame_rate_hz
             # EmuCamera's frame k completes at origin + (k+1)/fps; ours at T0 + k/fps
-            self.emu = EmuCamera(self.p.frames, fps, origin=self.p.t0 - 1.0 / fps, latency_s=self.latency_s,
+            self.emu = EmuCamera(self.p, fps, origin=self.p.t0 - 1.0 / fps, latency_s=self.latency_s,
                                  drift_ppm=self.drift_ppm, seed=self.p.cfg.seed, name=self.name,
                                  ffc=self.p.ffc_schedule())
         self.emu.start()

@@ -265,7 +265,10 @@ def test_record_output_deblurs_with_thermod_deblur(payload, tmp_path):
     rec = recording.read(rec_path)
     assert rec.calibration == pl.calib                        # taken from the daemon's health messages
     fids = rec.extras["record/frame_id"]
-    assert rec.n_frames >= 30 and np.all(np.diff(fids) == 1)   # every frame of the span recorded
+    # every frame published in the span was recorded: the recorder lost no message (a frame-id jump is
+    # a frame the camera itself lost, which a loaded machine may cause: ids 20 → 23 beside a busy loop)
+    assert rec.n_frames >= 30 and np.all(np.diff(fids) >= 1)
+    assert rec.extra_attrs["record"]["lost_raw_messages"] == 0, rec.extra_attrs["record"]
     for i in (0, rec.n_frames // 2, rec.n_frames - 1):
         np.testing.assert_array_equal(rec.frames[i], pl.frame_for(int(fids[i])))
     assert np.all(np.diff(rec.gyro_t) > 0)

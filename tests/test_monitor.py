@@ -82,7 +82,7 @@ def test_estimate_converges_to_the_drifting_truth():
     assert np.all(np.abs(b - b_true)[:2] < np.maximum(BIAS_TOL, 4.0 * sigma)), (b, b_true, e)
     assert abs(e["time_offset_s"] - truth.time_offset_s) < OFFSET_TOL, (e, truth.time_offset_s)
     assert all(s > 0 for s in e["gyro_bias_rad_s_sigma"]) and e["time_offset_s_sigma"] > 0
-    # τ is checked by test_tau_estimate_converges_to_the_camera_s, on noiseless frames (see there)
+    assert e["tau_s"] is None or abs(e["tau_s"] - truth.tau_s) < 3 * e["tau_s_sigma"], e
     assert d.pipeline.calib == d.cfg.calibration                 # apply = false: nothing changed
     share = cal["monitor"]["cpu_share"]
     assert share is not None and share <= 0.10 * 1.5               # the budget, with scheduling slack
@@ -107,10 +107,7 @@ def test_apply_moves_the_calibration_towards_the_truth():
 def test_tau_estimate_converges_to_the_camera_s():
     """The simulated camera's τ is 10 ms, the configuration says 8 ms (``[sim] tau_s``): the monitor's
     τ estimate finds the camera's within its σ, and is significant against the configuration's."""
-    # Noiseless frames: at the payload's default NETD (50 mK) the daemon's τ came out 6.0–7.4 ms for a
-    # camera's 8–10 ms, while the same estimator on the same loop's frames offline found 9.59 ± 0.67
-    # ms. That bias is an open problem (not yet explained).
-    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010, "sim.netd_k": 0.0},
+    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010},
                       until=lambda d: (_estimate(d) or {}).get("tau_s") is not None)
     assert d.cfg.calibration.tau_s == 0.008 and truth.tau_s == pytest.approx(0.010)
     e = h["calibration"]["estimate"]
