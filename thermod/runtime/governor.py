@@ -42,13 +42,6 @@ anchors did drift: stretches whose first medians were inflated by cold solves or
 down to 0.27–0.38 on a loaded 2-core machine, predicting K&F at a third of its idle cost, so the
 climbs to it failed again and again while `kf_fast` — remembered from one cold stretch — looked
 dearer than K&F: `health.governor` in benchmarks/results/daemon.md.)
-The families differ in how much a loaded machine slows them (inside the daemon a temporal solve
-took 1.5–2.5× its warm-up time while Wiener took 1.2–1.3×: more steps that wait for the GIL and
-for memory), so one L under-predicted the rung above the one in use, and each climb to it failed.
-So each family f also has a relative load ρ_f = L_f / L_w against the last rung's family w,
-learnt when the governor switches between them (their L measured within `PAIR_S`), and a
-prediction is reference × L × ρ_f / ρ_current. ρ fades back to 1 (time constant
-`RELATIVE_MEMORY_S`), so a family given up under a passing load is tried again.
 A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
 (caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
 solve that took the deconvolver's uniform shortcut (`Deconvolver.last_cells` = 1) is booked under
@@ -84,8 +77,6 @@ WINDOW = 15                       # solves per key in the sliding median
 MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) before the key moves L
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 NEEDED_S = 1.0                    # rungs are judged on the finest grid needed over this long
-PAIR_S = 3.0                      # two families' loads this close in time give their relative load
-RELATIVE_MEMORY_S = 60.0          # a relative load fades back to 1 with this time constant
 
 
 @dataclass(frozen=True)
@@ -160,10 +151,6 @@ class Governor:
         self._stretch: dict[tuple[str, int], int] = {}    # solves in this stretch, the cold ones included
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
-        self._family: str | None = None                     # the family whose solves set `load`
-        self._family_load: dict[str, tuple[float, float]] = {}   # family → (its L, when) at its last solve
-        self._relative: dict[str, tuple[float, float]] = {}  # family → (ρ vs the last rung's, when)
-        self._now = 0.0
         self._needed: collections.deque = collections.deque()   # (time, grid) of the recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
@@ -186,7 +173,7 @@ class Governor:
     def predict(self, family: str, cells: int) -> float:
         """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
         with self._lock:
-            return self._predict(family, cells)
+            return self._reference(family, cells) * self.load
 
     def _reference(self, family: str, cells: int) -> float:
         key = (family, cells)
@@ -204,37 +191,13 @@ class Governor:
         return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
 
     def _predict(self, family: str, cells: int) -> float:
-        cur = self._family or family
-        return self._reference(family, cells) * self.load * self._rho(family) / self._rho(cur)
-
-    def _rho(self, family: str) -> float:
-        """The family's relative load ρ (its L over the last rung's, both measured), fading to 1."""
-        got = self._relative.get(family)
-        if got is None:
-            return 1.0
-        rho, when = got
-        return 1.0 + (rho - 1.0) * math.exp(-max(0.0, self._now - when) / RELATIVE_MEMORY_S)
-
-    def _learn_relative(self, family: str, load: float, now: float) -> None:
-        """At a switch between families, their loads measured within `PAIR_S` give their ratio."""
-        prev = self._family
-        if prev is not None and prev != family and prev in self._family_load:
-            prev_load, when = self._family_load[prev]
-            if now - when <= PAIR_S and prev_load > 0:
-                anchor = self.family(self.rungs[-1])
-                if family == anchor:
-                    self._relative[prev] = (prev_load / load, now)
-                elif prev == anchor or prev in self._relative:
-                    self._relative[family] = (self._rho(prev) * load / prev_load, now)
-        self._family_load[family] = (load, now)
-        self._family = family
+        return self._reference(family, cells) * self.load
 
     def observe(self, family: str, cells: int, seconds: float, now: float) -> None:
         """A worker's measured solve time (s) at host time `now`."""
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
-            self._now = now
             key = (family, cells)
             if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
                 self._recent[key] = collections.deque(maxlen=WINDOW)
@@ -255,16 +218,13 @@ class Governor:
                     return
                 self._ref[key] = ref                       # interpolated: fixed from now on
             self.load = med / self._ref[key]
-            self._learn_relative(family, self.load, now)
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            refs, load, rel, fam = dict(old._ref), old.load, dict(old._relative), old._family
-            fam_load, now = dict(old._family_load), old._now
+            refs, load = dict(old._ref), old.load
         with self._lock:
-            self._ref, self.load, self._relative, self._family = refs, load, rel, fam
-            self._family_load, self._now = fam_load, now
+            self._ref, self.load = refs, load
 
     # ------------------------------------------------------------------ decisions
     def _fits(self, i: int, needed: tuple[int, int], limit: float) -> tuple[int, int] | None:
@@ -286,7 +246,6 @@ class Governor:
     def choose(self, needed: tuple[int, int], now: float) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
         with self._lock:
-            self._now = now
             if not self.enabled:
                 r = self.rungs[0]
                 return Choice(r, needed if r.varying else (1, 1), 0)
@@ -358,7 +317,6 @@ class Governor:
                 "ladder": [r.name for r in self.rungs],
                 "budget_ms": round(1e3 * self.budget_s, 2),
                 "load": round(self.load, 3),
-                "relative_load": {f: round(self._rho(f), 3) for f in self._relative},
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
                 "solves_measured": sum(len(d) for d in self._recent.values()),
