@@ -135,12 +135,11 @@ class SimPayload:
         return self.frame_for(k + 1)
 
     def _noise_bank(self) -> np.ndarray | None:
-        """[NOISE_FRAMES, H, W] int16 temporal noise (``[sim] netd_k`` in counts), cycled against the loop.
-        Rendered into the loop, the noise of a frame would repeat every loop (2 s): consecutive loop
-        passes would see the same noisy pairs, and a live estimate over many seconds would average
-        nothing (the monitor's τ came out 6.0–7.4 ms for 8–10 ms)."""
-        netd = float(getattr(self.cfg, "netd_k", 0.0))
-        if not netd or self.frames is None:
+        """[NOISE_FRAMES, H, W] int16 temporal noise (``[sim] netd_k`` in counts), cycled against the loop
+        rather than rendered into it, so that a frame's noise differs from one pass of the loop to the
+        next, as a camera's does."""
+        netd = float(self.cfg.netd_k)
+        if not netd:
             return None
         rng = np.random.default_rng(self.cfg.seed + 1)
         shape = (NOISE_FRAMES, *self.frames.shape[1:])

@@ -565,8 +565,7 @@ class LiveEstimator:
         est = [_scan_peak(q[blk != k].sum(axis=0), taus) for k in range(g)] if g >= 3 else [None]
         if any(e is None for e in est):
             return None, None, n, "tau_s: not estimated: the window's blocks disagree beyond the scan"
-        est = np.array(est)
-        sigma = float(np.sqrt((g - 1) / g * np.sum((est - est.mean()) ** 2)))
+        sigma = float(_jackknife_sigma(np.array(est)))
         # one tail per patch (the centre's: under roll the tails vary across a patch) and the window's
         # spread of the cross-power modelled for a scene of independent frequencies: model errors the
         # jackknife cannot see, bounded here at 5 % of τ
@@ -609,8 +608,13 @@ class LiveEstimator:
                 est.append(-np.linalg.solve(N + 1e-9 * np.trace(N) * np.eye(N_PARAMS), A.T @ r[m]))
             except np.linalg.LinAlgError:
                 return np.full(N_PARAMS, np.inf)
-        est = np.array(est)
-        return np.sqrt((g - 1) / g * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
+        return _jackknife_sigma(np.array(est))
+
+
+def _jackknife_sigma(est: np.ndarray) -> np.ndarray:
+    """1-σ from the g delete-one-block estimates `est` [g, …]: √((g − 1)/g · Σ (est − mean)²)."""
+    g = len(est)
+    return np.sqrt((g - 1) / g * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
 
 
 def _scan_peak(score: np.ndarray, taus: np.ndarray) -> float | None:

@@ -209,8 +209,7 @@ class Pipeline:
                  deconvolver_factory: Callable | None = None, renderer: Callable | None = None):
         self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
         self._settings = _Settings(calib, deblur, 0)
-        self._blas_limits = None
-        self._switch_interval: float | None = None     # CPython's GIL switch interval before warm-up
+        self._process_settings = None   # (BLAS thread limits, GIL switch interval) to restore at stop
         self._factory = deconvolver_factory or make_deconvolver
         self._render = renderer or render
         self.n_workers = cfg.workers or default_workers()
@@ -257,12 +256,10 @@ class Pipeline:
         # filters) and BLAS's (the monitor's small fits, whose spinning threads cost 6-10x the product
         # on a loaded 2-core host) would only oversubscribe the cores they share
         cv2.setNumThreads(1)
-        self._blas_limits = threadpool_limits(1)
         # a worker returning from a GIL-free section (FFTW, numba, OpenCV: most of a solve) waits for
-        # the GIL until the thread holding it reaches the switch interval; at CPython's 5 ms that was
-        # the daemon's p99 (640×480 at 50 fps, temporal: p99 65–68 ms at 5 ms, 54–57 ms at 1 ms)
-        if self._switch_interval is None:
-            self._switch_interval = sys.getswitchinterval()
+        # the GIL until the thread holding it reaches the switch interval (CPython's: 5 ms)
+        if self._process_settings is None:
+            self._process_settings = (threadpool_limits(1), sys.getswitchinterval())
             sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         s = self._settings
         gov = self.governor
@@ -361,12 +358,11 @@ class Pipeline:
             self._count("shutdown_passthrough", 1)
             self._passthrough(job.slot, "overload", job.info)
         self._flush_pending(force=True)
-        if self._blas_limits is not None:          # the process may go on (tests, an embedding app)
-            self._blas_limits.restore_original_limits()
-            self._blas_limits = None
-        if self._switch_interval is not None:
-            sys.setswitchinterval(self._switch_interval)
-            self._switch_interval = None
+        if self._process_settings is not None:     # the process may go on (tests, an embedding app)
+            blas_limits, switch_interval = self._process_settings
+            blas_limits.restore_original_limits()
+            sys.setswitchinterval(switch_interval)
+            self._process_settings = None
 
     def update(self, calib: Calibration | None = None, deblur: DeblurConfig | None = None) -> None:
         """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
