@@ -68,6 +68,13 @@ def _usable(d):
     return e is not None and max(e["gyro_bias_rad_s_sigma"][:2]) < BIAS_SIGMA_MAX
 
 
+def _tau_usable(d):
+    """An estimate with τ whose σ is below 15 % of it (a starved monitor measures fewer patch pairs: at
+    NETD 50 mK 94–112 in 12 s, σ 0.6–1.6 ms for 8–10 ms)."""
+    e = _estimate(d) or {}
+    return e.get("tau_s") is not None and e["tau_s_sigma"] < 0.15 * e["tau_s"]
+
+
 def test_estimate_converges_to_the_drifting_truth():
     d, h, truth = run(apply=False, seconds=12.0, until=_usable)
     cal = h["calibration"]
@@ -107,8 +114,7 @@ def test_apply_moves_the_calibration_towards_the_truth():
 def test_tau_estimate_converges_to_the_camera_s():
     """The simulated camera's τ is 10 ms, the configuration says 8 ms (``[sim] tau_s``): the monitor's
     τ estimate finds the camera's within its σ, and is significant against the configuration's."""
-    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010},
-                      until=lambda d: (_estimate(d) or {}).get("tau_s") is not None)
+    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.010}, until=_tau_usable)
     assert d.cfg.calibration.tau_s == 0.008 and truth.tau_s == pytest.approx(0.010)
     e = h["calibration"]["estimate"]
     assert e is not None, h["calibration"]["monitor"]

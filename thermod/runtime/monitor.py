@@ -12,6 +12,9 @@ pairs arriving meanwhile are not registered (the window thins out, the estimate 
 τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
 twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
 never starves the registration that bias and offset need (a frame's tails serve both its pairs).
+Among the affordable pairs, τ's are drawn at random (`TAU_PICK`): a fixed cadence aliases with a
+periodic motion (a sway, a vibration, the simulator's loop) and keeps measuring the same few phases
+of it, whose τ errs together while their jackknife blocks agree.
 
 Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
 force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
@@ -29,6 +32,7 @@ import collections
 import logging
 import math
 import os
+import random
 import threading
 import time
 
@@ -59,6 +63,7 @@ FIT_PERIOD_S = 1.0
 BACKLOG = 16                 # frames the monitor may lag behind the camera before it skips ahead
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
 TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the monitor's own CPU time
+TAU_PICK = 0.5               # the chance that an affordable pair is measured for τ
 
 
 class Monitor:
@@ -81,6 +86,7 @@ class Monitor:
         self._last_fit = 0.0
         self._cpu = collections.deque()        # (wall, thread cpu) samples
         self.counters = collections.Counter()
+        self._rng = random.Random()
         self.changes: list[dict] = []          # every change applied: at, before, after, residuals
 
     # ------------------------------------------------------------------ lifecycle
@@ -215,7 +221,7 @@ class Monitor:
         patches = treg.tau_patches(va, vb, calib.tau_s) & (resp >= MIN_RESPONSE)
         # τ only when the motion's window is well fed: it never takes pairs bias and offset need
         affordable = self._cpu_tau <= TAU_CPU_SHARE * self._cpu_all and \
-            len(self.estimator.pairs) >= 2 * MIN_PAIRS
+            len(self.estimator.pairs) >= 2 * MIN_PAIRS and self._rng.random() < TAU_PICK
         if patches.any() and not affordable:
             self.counters["tau_pairs_deferred"] += 1
         elif patches.any():
