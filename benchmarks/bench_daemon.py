@@ -402,6 +402,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="640x480", help="the simulated camera's W×H (e.g. 1280x1024)")
     ap.add_argument("--temporal", action="store_true",
                     help="only the temporal table: the default daemon vs the single-frame default, PSNR")
+    ap.add_argument("--rate", type=float, default=50.0, help="--temporal: the camera's frame rate (fps)")
     ap.add_argument("--large", action="store_true",
                     help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
@@ -419,7 +420,7 @@ def main(argv=None) -> int:
         print_squeeze(squeeze(seconds))
         return 0
     if args.temporal:
-        print_temporal(temporal(seconds, size=size))
+        print_temporal(temporal(seconds, fps=args.rate, size=size))
         return 0
 
     pc = payload_cpu(10.0 if args.quick else 20.0, size)
