@@ -194,6 +194,10 @@ def test_refuses_bad_input(flight, tmp_path):
     slow = flightlog.write_gcsv(tmp_path / "slow.gcsv", t, np.zeros((len(t), 3)) + 0.1)
     refused(thermod("import", sim.video_path, "--gyro", slow, "-o", out, "--calibration", cam), "slow.gcsv",
             "100 Hz")
+    t = np.arange(0, 30, 1 / 25.0)          # ArduPilot's IMU message without LOG_BITMASK's IMU_FAST bit
+    slow_ap = flightlog.write_ardupilot_bin(tmp_path / "slow.bin", t, np.zeros((len(t), 3)) + 0.1)
+    refused(thermod("import", sim.video_path, "--gyro", slow_ap, "-o", out, "--calibration", cam), "slow.bin",
+            "25 Hz", "IMU_FAST")
     t = np.arange(0, 30, 1e-3)
     still = 0.01 + 1e-4 * np.random.default_rng(0).standard_normal((len(t), 3))     # a log at rest
     rest = flightlog.write_gcsv(tmp_path / "rest.gcsv", t, still)

@@ -43,6 +43,10 @@ from thermod.physics.calibration import Calibration
 
 GYRO_MARGIN_S = 1.0          # log kept before the first and after the last frame (≫ the 5τ window)
 MIN_LOG_RATE_HZ = 100.0      # below it a log's samples are too sparse for a blur kernel of a few ms
+# how each family's log reaches MIN_LOG_RATE_HZ (ArduPilot's IMU message is 25 Hz unless asked)
+RATE_ADVICE = {"ardupilot": "ArduPilot logs IMU at 25 Hz by default; set LOG_BITMASK's IMU_FAST bit (bit 18) "
+                            "to log it at the loop rate",
+               "betaflight": "raise the blackbox logging rate"}
 FRAME_RATE_TOLERANCE = 0.05  # the video's rate may differ this much from the camera file's before a warning
 
 
@@ -118,8 +122,9 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     say(f"log: {log.source_format}, {len(log)} gyro samples at {log.rate_hz:.0f} Hz over "
         f"{log.duration_s:.1f} s" + (f" (log {log.log_index + 1} of {log.n_logs})" if log.n_logs > 1 else ""))
     if log.rate_hz < MIN_LOG_RATE_HZ:
+        advice = RATE_ADVICE.get(log.source_format, "raise the flight controller's logging rate")
         raise FlightImportError(f"{log_path}: gyro logged at {log.rate_hz:.3g} Hz; a flight import needs "
-                                f"≥ {MIN_LOG_RATE_HZ:g} Hz (raise the flight controller's logging rate)")
+                                f"≥ {MIN_LOG_RATE_HZ:g} Hz ({advice})")
     if log.duration_s < vf.t[-1] - vf.t[0]:
         raise FlightImportError(f"{log_path}: the log covers {log.duration_s:.1f} s, shorter than the video "
                                 f"{video_path} ({vf.t[-1] - vf.t[0]:.1f} s): it cannot contain it")
