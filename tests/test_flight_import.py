@@ -81,6 +81,22 @@ def test_import_finds_offset_and_mount_for_each_log_family(flight, fmt, tmp_path
     assert rec.gyro_t[0] < rec.t[0] - 5 * TAU and rec.gyro_t[-1] > rec.t[-1]
 
 
+def test_a_part_of_the_video_imports_on_the_video_clock(flight, tmp_path):
+    """--start/--duration (a long flight's part): the frames keep the video's own times, so the log is
+    placed as for the whole video."""
+    sim, cam = flight
+    out = tmp_path / "part.h5"
+    r = thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration", cam,
+                "--no-refine", "--start", "1", "--duration", "2.5")
+    assert r.returncode == 0, r.stderr
+    check_import(out, sim.log_offset_s, sim.camera_from_body, 1 / FPS)
+    from thermod.io.recording import read
+    rec = read(out)
+    t = np.asarray(sim.frame_t_video)
+    keep = (t - t[0] >= 1.0 - 1e-6) & (t - t[0] < 3.5 - 1e-6)
+    assert rec.n_frames == keep.sum() and np.allclose(rec.t, t[keep])
+
+
 def test_deblur_video_and_gcsv_export_round_trip(flight, tmp_path):
     import av
 
@@ -234,6 +250,16 @@ def test_refuses_bad_input(flight, tmp_path):
             "boson640_14mm")
     refused(thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration",
                     cam, "--fps", "0"), "--fps")
+    refused(thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration",
+                    cam, "--start", "60"), "video.mp4", "no frame from 60 s")
+    refused(thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration",
+                    cam, "--duration", "-1"), "--duration -1")
+    refused(thermod("import", sim.video_path, "-o", out, "--start", "1"), "--start", "with --gyro")
+    from thermod.calib.flight_import import FlightImportError, import_flight
+    from thermod.io.camera_file import load_camera
+    with pytest.raises(FlightImportError, match=r"video\.mp4: .* GiB limit.* --start S --duration D"):
+        import_flight(sim.video_path, sim.log_paths["gcsv"], out, load_camera(cam),
+                      max_bytes=10 * WIDTH * HEIGHT)
     assert not out.exists()
 
 

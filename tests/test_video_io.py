@@ -16,6 +16,7 @@ from thermod.errors import ThermodError
 from thermod.io.video import (
     PercentileAGC,
     VideoError,
+    VideoTooLarge,
     VideoWriter,
     iter_video,
     probe_video,
@@ -277,9 +278,26 @@ def test_absurd_sizes_and_memory_limits(tmp_path):
         read_video(mp4, max_bytes=5 * one)                         # refused from the declared count
     mkv = _encode(tmp_path / "ten.mkv", "ffv1", "gray", frames, np.arange(10) * 40)
     assert probe_video(mkv).n_frames is None                      # Matroska declares no count
-    with pytest.raises(VideoError, match=r"more than 5 frames .* stream it with iter_video"):
+    with pytest.raises(VideoTooLarge, match=r"more than 5 frames .* read a part of it"):
         read_video(mkv, max_bytes=5 * one)                         # stopped while decoding
     assert len(list(iter_video(mkv))) == 10
+    part = read_video(mp4, max_bytes=5 * one, start_s=0.1, duration_s=0.15)   # a part fits
+    assert np.allclose(part.t, [0.12, 0.16, 0.2, 0.24]) and part.frames.shape == (4, 120, 160)
+
+
+def test_a_time_window_keeps_the_files_times_and_refuses_an_empty_or_bad_one(tmp_path):
+    frames = _texture(10, seed=13)
+    mkv = _encode(tmp_path / "ten.mkv", "ffv1", "gray", frames, np.arange(10) * 40 + 1000)
+    whole = read_video(mkv)
+    part = read_video(mkv, start_s=0.2, duration_s=0.1)
+    assert np.allclose(part.t, whole.t[5:8]) and np.array_equal(part.frames, whole.frames[5:8])
+    assert np.array_equal(read_video(mkv, start_s=0.3).frames, whole.frames[8:])
+    with pytest.raises(VideoError, match=r"ten\.mkv: no frame from 5 s after the first .* lasts 0\.36 s"):
+        read_video(mkv, start_s=5.0)
+    for kw, words in (({"start_s": -1.0}, "start -1.0 s"), ({"duration_s": 0.0}, "duration 0.0 s"),
+                      ({"start_s": float("nan")}, "start nan s")):
+        with pytest.raises(VideoError, match=words):
+            read_video(mkv, **kw)
 
 
 def test_writer_refuses_bad_frames_and_times(tmp_path):

@@ -89,16 +89,24 @@ class ImportedFlight:
 def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, out: str | os.PathLike,
                   camera: Calibration, *, fps: float | None = None, log_index: int | None = None,
                   refine: bool = True, refine_windows: int = 1, report_dir: str | os.PathLike | None = None,
-                  max_bytes: int = video.DEFAULT_MAX_BYTES,
+                  max_bytes: int = video.DEFAULT_MAX_BYTES, start_s: float = 0.0,
+                  duration_s: float | None = None,
                   say: Callable[[str], None] | None = None) -> ImportedFlight:
     """Read, sync, refine and write one flight (module docstring). `camera` gives the intrinsics, τ
     and readout as far as known (`thermod.io.camera_file`); `fps` is needed only for a TIFF sequence.
+    `start_s` and `duration_s` import a part of the video (seconds after its first frame): a long
+    flight whose frames would not fit in `max_bytes`.
     With `report_dir`, writes ``sync.json`` and ``sync.png`` (gyro vs picture rotation before and
     after the sync) there. Raises a ThermodError naming the file and what was wrong; nothing is
     written then."""
     say = say or (lambda _msg: None)
     t_start = time.perf_counter()
-    vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes)
+    try:
+        vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
+                              duration_s=duration_s)
+    except video.VideoTooLarge as e:
+        raise FlightImportError(f"{e}: import a part of the flight with --start S --duration D "
+                                "(seconds of video)") from None
     info = vf.info
     if (info.width, info.height) != (camera.width, camera.height):
         raise FlightImportError(f"{video_path}: {info.width}×{info.height} px, but the camera description "

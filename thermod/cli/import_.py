@@ -136,8 +136,9 @@ def run(args) -> int:
         raise ThermodError("thermod import: expected INPUT and -o OUTPUT")
     if args.gyro is not None:
         return import_flight.run(args)
-    flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report")
-                   if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else [])
+    flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
+                   if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \
+        + (["--start"] if args.start else [])
     if flight_only:
         raise ThermodError(f"{args.input}: {', '.join(flight_only)} apply to a flight import "
                            "(with --gyro LOG)")

@@ -4,12 +4,14 @@ format-v1 recording (`thermod.calib.flight_import`).
 The camera comes from ``--calibration CAMERA.toml`` (a ``[camera]`` or ``[calibration]`` table,
 `thermod.io.camera_file`) or ``--camera PRESET`` (config/cameras/); one of the two is required, since
 the focal length and τ are not in the video. ``--fps`` gives a TIFF sequence's frame rate,
-``--log-index`` picks one log of a multi-log file, ``--no-refine`` skips the discrepancy refinement
-and ``--report DIR`` writes sync.json and sync.png.
+``--log-index`` picks one log of a multi-log file, ``--start``/``--duration`` import a part of the
+video, ``--no-refine`` skips the discrepancy refinement and ``--report DIR`` writes sync.json and
+sync.png.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -29,6 +31,10 @@ def add_arguments(p) -> None:
                    help="frame rate of a TIFF sequence (a video file's own timestamps are used)")
     g.add_argument("--log-index", type=int, default=None, metavar="N",
                    help="which log of a file holding several (0-based; default the longest)")
+    g.add_argument("--start", type=float, default=0.0, metavar="S",
+                   help="import the video from S seconds after its first frame (default 0)")
+    g.add_argument("--duration", type=float, default=None, metavar="D",
+                   help="import D seconds of video (default: to its end)")
     g.add_argument("--no-refine", action="store_true",
                    help="skip the discrepancy refinement of offset, mount, bias, readout and τ")
     g.add_argument("--report", default=None, metavar="DIR", help="write sync.json and sync.png here")
@@ -54,6 +60,10 @@ def run(args) -> int:
 
     if args.fps is not None and not args.fps > 0:
         raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
+    if not (math.isfinite(args.start) and args.start >= 0):
+        raise ThermodError(f"--start {args.start}: expected 0 or more seconds after the video's first frame")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ThermodError(f"--duration {args.duration}: expected more than 0 seconds")
     if args.log_index is not None and args.log_index < 0:
         raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
     out = Path(args.output)
@@ -61,7 +71,8 @@ def run(args) -> int:
         raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
     cam = camera(args)
     r = import_flight(args.input, args.gyro, out, cam, fps=args.fps, log_index=args.log_index,
-                      refine=not args.no_refine, report_dir=args.report,
+                      refine=not args.no_refine, report_dir=args.report, start_s=args.start,
+                      duration_s=args.duration,
                       say=lambda m: print(m, file=sys.stderr))
     for note in r.notes:
         print(f"note: {note}", file=sys.stderr)

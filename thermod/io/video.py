@@ -50,6 +50,7 @@ from thermod.errors import FileError, ThermodError
 MAX_SIDE = 16384                  # px, as the recording format's calibration bounds
 MAX_FRAMES = 10_000_000
 DEFAULT_MAX_BYTES = 4 * 2**30     # read_video's in-memory stack
+WINDOW_TOLERANCE_S = 1e-6         # a frame this close to a time window's edge is on the edge
 WRITE_TIME_BASE = Fraction(1, 90000)
 TIFF_SUFFIXES = (".tif", ".tiff")
 # what FFmpeg and PyAV raise on a damaged file (av.error.FFmpegError is a ValueError, and PyAV decodes
@@ -60,6 +61,10 @@ _GREY16 = {"gray16le", "gray16be", "gray10le", "gray10be", "gray12le", "gray12be
 
 class VideoError(FileError):
     """A video or image sequence cannot be read or written as asked: names the file and the problem."""
+
+
+class VideoTooLarge(VideoError):
+    """A video (or the part of it asked for) holds more frames than `read_video`'s memory limit."""
 
 
 @dataclass(frozen=True)
@@ -138,36 +143,57 @@ def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
 
 
 def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0,
-               max_bytes: int = DEFAULT_MAX_BYTES) -> VideoFrames:
-    """Load a whole video (or TIFF sequence) into memory: `VideoFrames`.
+               max_bytes: int = DEFAULT_MAX_BYTES, *, start_s: float = 0.0,
+               duration_s: float | None = None) -> VideoFrames:
+    """Load a video (or TIFF sequence) into memory: `VideoFrames`, with every frame or those read from
+    `start_s` to `start_s` + `duration_s` after the first frame (times stay the file's own).
 
-    Refuses, before decoding, a video whose declared frame count needs more than `max_bytes`,
-    and stops with a `VideoError` as soon as the decoded frames exceed it (use `iter_video` to
-    stream a longer one)."""
+    Refuses, before decoding, a whole video whose declared frame count needs more than `max_bytes`,
+    and stops with `VideoTooLarge` as soon as the frames kept exceed it (read a part of it, or
+    stream it with `iter_video`)."""
+    start_s = float(start_s)
+    if not (math.isfinite(start_s) and start_s >= 0):
+        raise VideoError(source, f"start {start_s} s: expected 0 or more seconds after the first frame")
+    if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
+        raise VideoError(source, f"duration {duration_s} s: expected more than 0 seconds")
     info = probe_video(source, fps)
-    if info.n_frames is not None and info.n_frames * info.frame_bytes > max_bytes:
-        raise VideoError(source, f"{info.n_frames} frames of {info.width}×{info.height} need "
-                                 f"{info.n_frames * info.frame_bytes / 2**30:.2f} GiB, over the "
-                                 f"{max_bytes / 2**30:.2f} GiB limit; stream it with iter_video")
+    whole = start_s == 0 and duration_s is None
+    if whole and info.n_frames is not None and info.n_frames * info.frame_bytes > max_bytes:
+        raise VideoTooLarge(source, f"{info.n_frames} frames of {info.width}×{info.height} need "
+                                    f"{info.n_frames * info.frame_bytes / 2**30:.2f} GiB, over the "
+                                    f"{max_bytes / 2**30:.2f} GiB limit; read a part of it")
     cap = max(1, max_bytes // info.frame_bytes)
     # one buffer sized from the header, grown by doubling when a header under-counts: the peak is the
     # frames themselves, not a list of them plus the stacked copy
     guess = info.n_frames or (int(info.duration_s * info.frame_rate_hz) + 2
                               if info.duration_s and info.frame_rate_hz else 256)
+    if duration_s is not None and info.frame_rate_hz:
+        guess = min(guess, int(duration_s * info.frame_rate_hz) + 2)
     buf = np.empty((min(max(guess, 1), cap), info.height, info.width), info.dtype)
     times = []
+    first = last = None
     for t, f in iter_video(source, fps, t0):
+        first = t if first is None else first
+        last = t
+        if t - first < start_s - WINDOW_TOLERANCE_S:
+            continue
+        if duration_s is not None and t - first >= start_s + duration_s - WINDOW_TOLERANCE_S:
+            break
         n = len(times)
         if n == buf.shape[0]:
             if n >= cap:
-                raise VideoError(source, f"more than {cap} frames of {info.width}×{info.height} "
-                                         f"({max_bytes / 2**30:.2f} GiB limit); stream it with iter_video")
+                raise VideoTooLarge(source, f"more than {cap} frames of {info.width}×{info.height} "
+                                            f"({max_bytes / 2**30:.2f} GiB limit); read a part of it")
             grown = np.empty((min(2 * n, cap), info.height, info.width), info.dtype)
             grown[:n] = buf
             buf = grown
         buf[n] = f
         times.append(t)
     n = len(times)
+    if n == 0:
+        raise VideoError(source, f"no frame from {start_s:g} s after the first frame"
+                                 + (f" for {duration_s:g} s" if duration_s is not None else "")
+                                 + (f" (the video lasts {last - first:.3g} s)" if first is not None else ""))
     frames = buf[:n] if n > 0.9 * buf.shape[0] else buf[:n].copy()
     files = _tiff_files(source) or []
     return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files])
@@ -204,7 +230,10 @@ def _info_from_container(path: Path, c) -> VideoInfo:
     if s.duration and s.time_base:
         duration = float(s.duration * s.time_base)
     elif c.duration and len(c.streams) == 1:
-        duration = c.duration / 1e6
+        # a container's duration can count from 0 while the stream starts later (Matroska keeps a cut's
+        # original times): the span that holds frames starts at its start time
+        start = c.start_time / 1e6 if c.start_time is not None and c.start_time > 0 else 0.0
+        duration = c.duration / 1e6 - start
     rate = float(s.average_rate) if s.average_rate else None
     return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only)
 
