@@ -47,9 +47,11 @@ run: debian-deps $(STAMP)
 	$(BIN)/thermod run
 
 # Two workers, whole files each (module fixtures such as test_faults' daemon stay in one process),
-# in collection order: the `heavy` analysis files first (tests/conftest.py).
+# in collection order: the `heavy` analysis files first (tests/conftest.py). A worker that crashes
+# ends the run, naming its test: xdist 3.8's loadfile replaces it and then waits forever
+# (pytest-xdist issues 784, 1378).
 test: debian-test-deps $(STAMP)
-	$(BIN)/pytest -n 2 --dist loadfile --no-loadscope-reorder
+	$(BIN)/pytest -n 2 --dist loadfile --no-loadscope-reorder --max-worker-restart=0
 
 # ruff, and the layers contract of pyproject.toml (import-linter; .ci/lint_imports.py says why a wrapper)
 lint: $(STAMP)
