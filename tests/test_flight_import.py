@@ -222,7 +222,12 @@ def test_refuses_bad_input(flight, tmp_path):
     t = np.arange(0, 2, 1e-3)
     short = flightlog.write_gcsv(tmp_path / "short.gcsv", t, np.zeros((len(t), 3)) + 0.1)
     refused(thermod("import", sim.video_path, "--gyro", short, "-o", out, "--calibration", cam), "short.gcsv",
-            "shorter than the video")
+            "shorter than the video", "--start S --duration D")
+    log = flightlog.read_flight_log(sim.log_paths["gcsv"])           # armed 2 s into the video
+    late = log.t >= sim.frame_t_video[0] + sim.log_offset_s + 2.0
+    armed = flightlog.write_gcsv(tmp_path / "armed.gcsv", log.t[late], log.rate[late])
+    refused(thermod("import", sim.video_path, "--gyro", armed, "-o", out, "--calibration", cam,
+                    "--no-refine"), "armed.gcsv", "does not contain this video", "--start S --duration D")
     nogyro = tmp_path / "nogyro.csv"
     nogyro.write_text('"Product","Blackbox flight data recorder by Nicholas Sherlock"\n'
                       '"loopIteration","time","motor[0]"\n0,1000,1000\n1,2000,1000\n')

@@ -33,7 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.calib.sync import SyncError, SyncResult, plot_sync, synchronise
+from thermod.calib.sync import (
+    DurationMismatch,
+    LogMismatch,
+    SyncError,
+    SyncResult,
+    plot_sync,
+    synchronise,
+)
 from thermod.calib.sync import refine as refine_fine
 from thermod.errors import ThermodError
 from thermod.io import flightlog, video
@@ -48,6 +55,9 @@ RATE_ADVICE = {"ardupilot": "ArduPilot logs IMU at 25 Hz by default; set LOG_BIT
                             "to log it at the loop rate",
                "betaflight": "raise the blackbox logging rate"}
 FRAME_RATE_TOLERANCE = 0.05  # the video's rate may differ this much from the camera file's before a warning
+# the sync looks for the whole video in the log: a video that runs before or after it is cut by the user
+PART_HINT = (". If the video runs before or after the log (a flight controller often logs only while "
+             "armed), import the part of it the log covers with --start S --duration D")
 
 
 class FlightImportError(ThermodError):
@@ -135,14 +145,15 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
                                 f"≥ {MIN_LOG_RATE_HZ:g} Hz ({advice})")
     if log.duration_s < vf.t[-1] - vf.t[0]:
         raise FlightImportError(f"{log_path}: the log covers {log.duration_s:.1f} s, shorter than the video "
-                                f"{video_path} ({vf.t[-1] - vf.t[0]:.1f} s): it cannot contain it")
+                                f"{video_path} ({vf.t[-1] - vf.t[0]:.1f} s): it cannot contain it{PART_HINT}")
     t_log = time.perf_counter()
 
     intr = camera.intrinsics
     try:
         result = synchronise(vf.frames, vf.t, log.t, log.rate, intr, tau_s=camera.tau_s, readout_s=readout)
     except SyncError as e:      # the sync works on arrays: say which files
-        raise FlightImportError(f"{video_path} with {log_path}: {e}") from None
+        hint = PART_HINT if isinstance(e, (LogMismatch, DurationMismatch)) else ""
+        raise FlightImportError(f"{video_path} with {log_path}: {e}{hint}") from None
     t_sync = time.perf_counter()
     d = result.to_dict()
     say(f"sync: video at log time {vf.t[0] - result.time_offset_s:.3f} s "
