@@ -97,6 +97,36 @@ def test_a_part_of_the_video_imports_on_the_video_clock(flight, tmp_path):
     assert rec.n_frames == keep.sum() and np.allclose(rec.t, t[keep])
 
 
+@pytest.mark.parametrize("cut", ["armed late", "disarmed early"])
+def test_a_log_covering_part_of_the_video_imports_that_part(tmp_path, cut):
+    """A flight controller that logs only while armed, a video running from before take-off (or on
+    after landing): the part of the video the log covers is found, synced and imported alone."""
+    sim = simulate_flight(tmp_path, seconds=10.0, log_seconds=30.0, width=WIDTH, height=HEIGHT, fps=FPS,
+                          tau_s=TAU, formats=("gcsv",), seed=4, mount=17)
+    cam = camera_toml(tmp_path / "camera.toml", simulator_hfov())
+    log = flightlog.read_flight_log(sim.log_paths["gcsv"])
+    t = np.asarray(sim.frame_t_video)
+    if cut == "armed late":       # the log starts 4 s into the video
+        keep = log.t >= t[0] + sim.log_offset_s + 4.0
+    else:                         # ... or ends 4 s before the video does
+        keep = log.t <= t[-1] + sim.log_offset_s - 4.0
+    part = flightlog.write_gcsv(tmp_path / "part.gcsv", log.t[keep], log.rate[keep])
+    out = tmp_path / "rec.h5"
+    r = thermod("import", sim.video_path, "--gyro", part, "-o", out, "--calibration", cam, "--no-refine")
+    assert r.returncode == 0, r.stderr
+    assert "the log covers frames" in r.stderr and "the others were left out" in r.stderr
+    attrs = check_import(out, sim.log_offset_s, sim.camera_from_body, 1 / FPS)
+    i0, i1 = json.loads(attrs["sync"])["frames_covered"]
+    from thermod.io.recording import read
+    rec = read(out)
+    assert np.allclose(rec.t, t[i0:i1]) and 4.5 < rec.t[-1] - rec.t[0] < 6.0
+    if cut == "armed late":
+        assert i1 == len(t) and 3.9 < t[i0] - t[0] < 4.5
+    else:
+        assert i0 == 0 and 5.5 < t[i1 - 1] - t[0] < 6.1
+    assert rec.gyro_t[0] < rec.t[0] - 5 * TAU and rec.gyro_t[-1] > rec.t[-1]
+
+
 def test_deblur_video_and_gcsv_export_round_trip(flight, tmp_path):
     import av
 
@@ -222,7 +252,7 @@ def test_refuses_bad_input(flight, tmp_path):
     t = np.arange(0, 2, 1e-3)
     short = flightlog.write_gcsv(tmp_path / "short.gcsv", t, np.zeros((len(t), 3)) + 0.1)
     refused(thermod("import", sim.video_path, "--gyro", short, "-o", out, "--calibration", cam), "short.gcsv",
-            "shorter than the video", "--start S --duration D")
+            "but the gyro log only", "--start S --duration D")
     log = flightlog.read_flight_log(sim.log_paths["gcsv"])           # armed 2 s into the video
     late = log.t >= sim.frame_t_video[0] + sim.log_offset_s + 2.0
     armed = flightlog.write_gcsv(tmp_path / "armed.gcsv", log.t[late], log.rate[late])

@@ -24,6 +24,7 @@ stage undoes the AGC (`thermod.calib.agc`) because its forward model needs one c
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -55,7 +56,7 @@ RATE_ADVICE = {"ardupilot": "ArduPilot logs IMU at 25 Hz by default; set LOG_BIT
                             "to log it at the loop rate",
                "betaflight": "raise the blackbox logging rate"}
 FRAME_RATE_TOLERANCE = 0.05  # the video's rate may differ this much from the camera file's before a warning
-# the sync looks for the whole video in the log: a video that runs before or after it is cut by the user
+# when neither the whole video nor a part of it was found in the log, the user may know where it is
 PART_HINT = (". If the video runs before or after the log (a flight controller often logs only while "
              "armed), import the part of it the log covers with --start S --duration D")
 
@@ -143,9 +144,6 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
         advice = RATE_ADVICE.get(log.source_format, "raise the flight controller's logging rate")
         raise FlightImportError(f"{log_path}: gyro logged at {log.rate_hz:.3g} Hz; a flight import needs "
                                 f"≥ {MIN_LOG_RATE_HZ:g} Hz ({advice})")
-    if log.duration_s < vf.t[-1] - vf.t[0]:
-        raise FlightImportError(f"{log_path}: the log covers {log.duration_s:.1f} s, shorter than the video "
-                                f"{video_path} ({vf.t[-1] - vf.t[0]:.1f} s): it cannot contain it{PART_HINT}")
     t_log = time.perf_counter()
 
     intr = camera.intrinsics
@@ -155,6 +153,12 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
         hint = PART_HINT if isinstance(e, (LogMismatch, DurationMismatch)) else ""
         raise FlightImportError(f"{video_path} with {log_path}: {e}{hint}") from None
     t_sync = time.perf_counter()
+    if result.frames is not None:       # the log covers a part of the video: the rest is left out
+        i0, i1 = result.frames
+        notes.append(f"the log covers frames {i0}–{i1 - 1} of {len(vf.t)} ({vf.t[i0] - vf.t[0]:.2f}–"
+                     f"{vf.t[i1 - 1] - vf.t[0]:.2f} s of the video); the others were left out")
+        say(notes[-1])
+        vf = dataclasses.replace(vf, frames=vf.frames[i0:i1], t=vf.t[i0:i1])
     d = result.to_dict()
     say(f"sync: video at log time {vf.t[0] - result.time_offset_s:.3f} s "
         f"(offset {result.time_offset_s:+.4f} ± {d['time_offset_s']['sigma'] * 1e3:.2f} ms), mount "

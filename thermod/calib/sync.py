@@ -80,6 +80,10 @@ MAX_DRIFT = 0.005             # the clocks' rate difference the fine fit allows 
 MIN_DRIFT_VIDEO_S = 5.0       # ... fitted on videos at least this long (else held at 0)
 MAX_GRID_S = 0.005            # coarse correlation grid step
 MAX_GRID_SAMPLES = 1_000_000  # ... and its length over the whole log (a 1.4 h log at 5 ms)
+MIN_PART_S = 3.0              # the shortest part of a video a log may cover alone (see `covered_part`)
+MIN_PART_FRACTION = 0.3       # ... and of the video's length
+PART_SHRINK = 0.8             # the part searched is shortened by this factor until one is found
+PART_MARGIN_S = 0.1           # log kept beyond a covered part's frames (τ tails, the fine search)
 
 
 def _axis_aligned_rotations() -> tuple[np.ndarray, ...]:
@@ -707,6 +711,7 @@ class SyncResult:
     seconds: dict = field(default_factory=dict)
     tau_s: float = 0.0              # as given (the sync does not fit it)
     readout_given_s: float = 0.0    # as given; the fitted value is `fine.readout_s`
+    frames: tuple[int, int] | None = None   # the frames [i0, i1) the log covers, when not all of them
 
     @property
     def time_offset_s(self) -> float:
@@ -755,6 +760,7 @@ class SyncResult:
             "coarse_time_offset_s": c.time_offset_s,
             "mount": self.mount.astype(int).tolist(),
             "mount_index": f.mount_index,
+            "frames_covered": list(self.frames) if self.frames is not None else None,
             "ncc": c.ncc, "ncc_second_mount": c.ncc_second_mount,
             "second_mount": MOUNTS[c.second_mount_index].astype(int).tolist(),
             "mount_margin_ncc": c.mount_margin,
@@ -806,12 +812,59 @@ def synchronise(frames, frame_t, gyro_t, gyro_rate, intrinsics: Intrinsics, *, t
     pm = picture_motion(frames, t, intrinsics, work_width=work_width, smooth_px=smooth_px, progress=progress)
     t1 = clock()
     stats = check_motion(pm)
-    coarse = coarse_sync(pm, gt, gr, tau_s=tau_s, readout_s=readout_s)
+    part = None
+    try:
+        coarse = coarse_sync(pm, gt, gr, tau_s=tau_s, readout_s=readout_s)
+    except (DurationMismatch, LogMismatch):
+        part = covered_part(pm, gt, gr, tau_s=tau_s, readout_s=readout_s)
+        if part is None:
+            raise
+        pm = pm.sliced(*part)
+        coarse = coarse_sync(pm, gt, gr, tau_s=tau_s, readout_s=readout_s)
     t2 = clock()
     fine = refine(pm, gt, gr, coarse, tau_s=tau_s, readout_s=readout_s)
     t3 = clock()
     return SyncResult(coarse, fine, stats, pm, {"picture": t1 - t0, "coarse": t2 - t1, "fine": t3 - t2},
-                      tau_s, readout_s)
+                      tau_s, readout_s, part)
+
+
+def covered_part(pm: PictureMotion, gyro_t, gyro_rate, *, tau_s: float = 0.0,
+                 readout_s: float = 0.0) -> tuple[int, int] | None:
+    """The frames [i0, i1) of a video that a log covers when it does not cover all of them (a flight
+    controller that logs only while armed, a video running from power-up), or None.
+
+    Parts of the video, as long as the log allows and then `PART_SHRINK` times shorter down to
+    `MIN_PART_S` and `MIN_PART_FRACTION` of the video, are placed in the log by `coarse_sync` (each
+    with its own significance tests); the longest length at which one is found wins, the best
+    correlation among its parts. The frames whose comet tails (8 τ) and read times lie in the log
+    with `PART_MARGIN_S` to spare, around the placed part, are the covered ones."""
+    n = len(pm.t0) + 1
+    t = np.r_[pm.t0, pm.t1[-1]]
+    period = float(np.median(pm.t1 - pm.t0))
+    log_s = float(gyro_t[-1] - gyro_t[0])
+    length = min(n, int(log_s / period))
+    shortest = max(int(math.ceil(MIN_PART_S / period)), int(math.ceil(MIN_PART_FRACTION * n)),
+                   MIN_INTERVALS + 1)
+    while length >= shortest:
+        step = max(1, length // 4)
+        found = []
+        for i0 in sorted({*range(0, n - length + 1, step), n - length}):
+            try:
+                cs = coarse_sync(pm.sliced(i0, i0 + length), gyro_t, gyro_rate, tau_s=tau_s,
+                                 readout_s=readout_s)
+            except SyncError:
+                continue
+            found.append((cs.ncc, cs.time_offset_s))
+        if found:
+            offset = max(found)[1]
+            t_log = t - offset                      # t_cam = t_gyro + offset
+            reach = 8.0 * tau_s + readout_s + PART_MARGIN_S
+            inside = np.flatnonzero((t_log - reach >= gyro_t[0]) & (t_log + PART_MARGIN_S <= gyro_t[-1]))
+            if len(inside) < shortest:
+                return None
+            return int(inside[0]), int(inside[-1]) + 1
+        length = int(length * PART_SHRINK)
+    return None
 
 
 # --------------------------------------------------------------------------------------------- figure
