@@ -157,7 +157,6 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
         i0, i1 = result.frames
         notes.append(f"the log covers frames {i0}–{i1 - 1} of {len(vf.t)} ({vf.t[i0] - vf.t[0]:.2f}–"
                      f"{vf.t[i1 - 1] - vf.t[0]:.2f} s of the video); the others were left out")
-        say(notes[-1])
         vf = dataclasses.replace(vf, frames=vf.frames[i0:i1], t=vf.t[i0:i1])
     d = result.to_dict()
     say(f"sync: video at log time {vf.t[0] - result.time_offset_s:.3f} s "
