@@ -6,7 +6,9 @@ Each case is a `thermod.sim.flight_video.simulate_flight`: a 320×256 camera (50
 under multirotor-like motion, its counts through a percentile AGC to 8-bit H.264 (crf 18), hidden
 in a 60 s gyro log (1 kHz, 0.1 °/s noise) at a random place and one of the 24 axis-aligned mounts.
 The camera file gives the true intrinsics and τ, readout 0; the last case's camera has a 20 ms
-rolling readout and its file says τ 12 ms (true 8 ms), which only the refinement can correct.
+rolling readout and its file says τ 12 ms (true 8 ms), which only the refinement can correct. The
+"armed late" case is a 10 s video whose log starts 4 s after it (a flight controller that logs only
+while armed): the import finds and keeps the frames the log covers, and is scored on those.
 `thermod.calib.flight_import.import_flight` reads, syncs and writes the recording, without and with
 the discrepancy refinement (one 1 s stretch); both are timed (seconds per minute of video, this
 machine). Both recordings are deblurred by `thermod deblur --uniform --jobs 1`
@@ -33,6 +35,7 @@ import h5py
 import numpy as np
 
 from thermod.calib.flight_import import import_flight
+from thermod.io.flightlog import read_flight_log, write_gcsv
 from thermod.io.recording import read
 from thermod.physics.calibration import Calibration
 from thermod.sim.flight_video import simulate_flight
@@ -86,7 +89,7 @@ def _calib_dict(f) -> dict:
 
 
 def case(tmp: Path, seed: int, fmt: str, seconds: float, size: tuple[int, int], readout_s: float = 0.0,
-         camera_tau_s: float = TAU) -> dict:
+         camera_tau_s: float = TAU, log_from_s: float = 0.0) -> dict:
     d = tmp / f"seed{seed}"
     d.mkdir()
     t0 = time.perf_counter()
@@ -100,13 +103,18 @@ def case(tmp: Path, seed: int, fmt: str, seconds: float, size: tuple[int, int], 
     cam = Calibration().replace(width=c.width, height=c.height, fx=c.fx, fy=c.fy, cx=c.cx, cy=c.cy,
                                 frame_rate_hz=c.frame_rate_hz, tau_s=camera_tau_s)
     minutes = (sim.frame_t_video[-1] - sim.frame_t_video[0] + 1 / 30.0) / 60.0
-    row = {"seed": seed, "log": fmt, "mount": sim.mount_index, "sim_s": t_sim,
+    log_path = sim.log_paths[fmt]
+    if log_from_s:                # the log starts log_from_s into the video (armed late)
+        log = read_flight_log(log_path)
+        keep = log.t >= sim.frame_t_video[0] + sim.log_offset_s + log_from_s
+        log_path = write_gcsv(d / "armed_late.gcsv", log.t[keep], log.rate[keep])
+    row = {"seed": seed, "log": fmt + (f", from {log_from_s:g} s into the video" if log_from_s else ""),
+           "mount": sim.mount_index, "sim_s": t_sim,
            "camera": f"τ {camera_tau_s * 1e3:g} ms"
                      + (f", readout 0 (true {readout_s * 1e3:g} ms)" if readout_s else "")}
     for refine in (False, True):
         t0 = time.perf_counter()
-        imp = import_flight(sim.video_path, sim.log_paths[fmt], d / f"rec_{int(refine)}.h5", cam,
-                            refine=refine)
+        imp = import_flight(sim.video_path, log_path, d / f"rec_{int(refine)}.h5", cam, refine=refine)
         key = "refined" if refine else "coarse+fine"
         row[f"{key}_s_per_min"] = (time.perf_counter() - t0) / minutes
         row[f"{key}_err_ms"] = (imp.log_offset_s - sim.log_offset_s) * 1e3
@@ -124,13 +132,16 @@ def case(tmp: Path, seed: int, fmt: str, seconds: float, size: tuple[int, int], 
     frames = read(rec).frames.astype(np.float64)
     # with a rolling readout each row is seen at its own time: the truth is that view
     truth = sim.recording.extras.get("truth/frames_rolling", sim.recording.extras["truth/frames"])
+    first = imp.sync.frames[0] if imp.sync.frames is not None else 0      # the video's frame of frames[0]
+    row["frames_kept"] = f"{len(frames)}/{len(sim.frame_t_video)}"
     p_imp, p_coarse, p_true, p_blur = [], [], [], []
-    for k in range(len(frames)):
+    for i in range(len(frames)):
+        k = first + i
         t8 = np.clip((truth[k].astype(np.float64) - sim.agc_offset[k]) * sim.agc_gain[k], 0, 255)
-        p_imp.append(psnr(np.clip(deb[k], 0, 255), t8))
-        p_true.append(psnr(np.clip(deb_true[k], 0, 255), t8))
-        p_coarse.append(psnr(np.clip(deb_coarse[k], 0, 255), t8))
-        p_blur.append(psnr(frames[k], t8))
+        p_imp.append(psnr(np.clip(deb[i], 0, 255), t8))
+        p_true.append(psnr(np.clip(deb_true[i], 0, 255), t8))
+        p_coarse.append(psnr(np.clip(deb_coarse[i], 0, 255), t8))
+        p_blur.append(psnr(frames[i], t8))
     row.update(psnr_imported=float(np.median(p_imp)), psnr_true=float(np.median(p_true)),
                psnr_blurry=float(np.median(p_blur)), frames=len(frames),
                psnr_coarse=float(np.median(p_coarse)))
@@ -141,25 +152,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one 5 s flight at 160×128 (not written to results)")
     args = ap.parse_args()
-    cases = [(1, "gcsv", 0.0, TAU), (2, "betaflight-csv", 0.0, TAU), (3, "ardupilot", 0.0, TAU),
-             (4, "gcsv", 0.02, 0.012)]
-    size, seconds = (320, 256), 6.0
+    # seed, log family, true readout, τ in the camera file, video seconds, log from this far into it
+    cases = [(1, "gcsv", 0.0, TAU, 6.0, 0.0), (2, "betaflight-csv", 0.0, TAU, 6.0, 0.0),
+             (3, "ardupilot", 0.0, TAU, 6.0, 0.0), (5, "gcsv", 0.0, TAU, 10.0, 4.0),
+             (4, "gcsv", 0.02, 0.012, 6.0, 0.0)]
+    size = (320, 256)
     if args.quick:
-        cases, size, seconds = cases[:1], (160, 128), 5.0
+        cases, size = [(1, "gcsv", 0.0, TAU, 5.0, 0.0)], (160, 128)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for seed, fmt, readout, cam_tau in cases:
-            rows.append(case(Path(tmp), seed, fmt, seconds, size, readout, cam_tau))
+        for seed, fmt, readout, cam_tau, seconds, log_from in cases:
+            rows.append(case(Path(tmp), seed, fmt, seconds, size, readout, cam_tau, log_from))
             r = rows[-1]
             print(f"seed {seed} {fmt}: err {r['coarse+fine_err_ms']:+.2f} / {r['refined_err_ms']:+.2f} ms, "
                   f"PSNR {r['psnr_imported']:.2f} vs {r['psnr_true']:.2f} dB", flush=True)
-    head = ("| seed | log | camera file | mount | sync error, no refinement (ms) | with refinement (ms) "
+    head = ("| seed | log | camera file | mount | frames kept | sync error, no refinement (ms) "
+            "| with refinement (ms) "
             "| σ (ms) | mount found | refinement named | τ, readout after (ms) "
             "| PSNR imported, no refinement (dB) | with refinement (dB) | true sync (dB) | blurry (dB) "
             "| import s/min, no refinement | with refinement |")
-    lines = [head, "|" + "---|" * 16]
+    lines = [head, "|" + "---|" * 17]
     for r in rows:
-        lines.append(f"| {r['seed']} | {r['log']} | {r['camera']} | {r['mount']} "
+        lines.append(f"| {r['seed']} | {r['log']} | {r['camera']} | {r['mount']} | {r['frames_kept']} "
                      f"| {r['coarse+fine_err_ms']:+.2f} | {r['refined_err_ms']:+.2f} "
                      f"| {r['coarse+fine_sigma_ms']:.2f} "
                      f"| {'yes' if r['coarse+fine_mount_ok'] and r['refined_mount_ok'] else 'NO'} "
@@ -180,8 +194,9 @@ def main() -> None:
                 max(r["psnr_true"] - r["psnr_imported"] for r in rs))
 
     e, m, g = worst(right)
-    lines = [f"<!-- summary: flight import, {len(right)} simulated AGC flights {size[0]}×{size[1]}, right "
-             f"camera file: sync error, mounts, PSNR gap to the true sync | ≤ {e:.2f} ms, {m}/{len(right)}, "
+    late = " (one logged from 4 s into its video)" if any("from" in r["log"] for r in right) else ""
+    lines = [f"<!-- summary: flight import, {len(right)} simulated AGC flights {size[0]}×{size[1]}{late}, "
+             f"right camera file: sync error, mounts, PSNR gap to the true sync | ≤ {e:.2f} ms, {m}/{len(right)}, "
              f"≤ {g:.2f} dB | < 33 ms (a frame), all, ≤ 0.5 dB -->"]
     if wrong:
         e, m, g = worst(wrong)
