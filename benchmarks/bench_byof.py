@@ -196,7 +196,8 @@ def main() -> None:
     e, m, g = worst(right)
     late = " (one logged from 4 s into its video)" if any("from" in r["log"] for r in right) else ""
     lines = [f"<!-- summary: flight import, {len(right)} simulated AGC flights {size[0]}×{size[1]}{late}, "
-             f"right camera file: sync error, mounts, PSNR gap to the true sync | ≤ {e:.2f} ms, {m}/{len(right)}, "
+             f"right camera file: sync error, mounts, PSNR gap to the true sync | ≤ {e:.2f} ms, "
+             f"{m}/{len(right)}, "
              f"≤ {g:.2f} dB | < 33 ms (a frame), all, ≤ 0.5 dB -->"]
     if wrong:
         e, m, g = worst(wrong)
