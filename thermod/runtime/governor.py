@@ -173,7 +173,7 @@ class Governor:
     def predict(self, family: str, cells: int) -> float:
         """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
         with self._lock:
-            return self._reference(family, cells) * self.load
+            return self._predict(family, cells)
 
     def _reference(self, family: str, cells: int) -> float:
         key = (family, cells)
