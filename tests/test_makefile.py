@@ -10,7 +10,11 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 MAKE = shutil.which("make")
-pytestmark = pytest.mark.skipif(MAKE is None, reason="make is not installed")
+
+
+@pytest.fixture(autouse=True)
+def _make_installed(require):
+    require(MAKE is not None, "GNU make")
 
 
 def make(*args, env=None):
