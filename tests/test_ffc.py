@@ -328,9 +328,10 @@ def test_daemon_on_simulated_payload_with_ffc_schedule(tmp_path):
     assert got == expected & set(ids)
     assert not any(h["deblurred"] for h in headers if h["frame_id"] in expected)
     # the other frames: deblurred, or passed through for reasons of load (busy workers: overload; a
-    # gyro thread starved past wait_timeout_s on this shared machine: gyro_incomplete), never "ffc"
+    # gyro thread starved past wait_timeout_s on this shared machine: gyro_incomplete, or long enough
+    # for the chip's FIFO to overflow: gyro_gap), never "ffc"
     others = collections.Counter(h["reason"] for h in headers if h["frame_id"] not in expected)
-    assert set(others) <= {None, "overload", "gyro_incomplete"}, others
+    assert set(others) <= {None, "overload", "gyro_incomplete", "gyro_gap"}, others
     assert others[None] > 0, others             # how many more depends on the machine's load
     assert health["drops"]["passthrough_ffc"] == len(expected)
     assert health["devices"]["camera"]["ffc_events"] == len(events)

@@ -60,6 +60,7 @@ import collections
 import dataclasses
 import logging
 import os
+import pickle
 import sys
 import threading
 import time
@@ -71,7 +72,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from thermod.physics.calibration import Calibration
-from thermod.physics.deconv.recursive import MAX_AGE_S, RecursiveDeconvolver
+from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.restore.plan import (
@@ -80,12 +81,21 @@ from thermod.restore.plan import (
     kernel_window,
     make_deconvolver,
     render,
-    solved_grid,
 )
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
 from thermod.runtime.governor import Choice, Governor
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
+from thermod.runtime.solvers import (
+    InChild,
+    InThread,
+    Layout,
+    SharedFrames,
+    SolverError,
+    slots_needed,
+    start_children,
+    warm_gyro,
+)
 
 log = logging.getLogger(__name__)
 
@@ -146,14 +156,6 @@ class _Settings:
     generation: int
 
 
-@dataclass
-class _WarmKernel:
-    """A box kernel (duck-typed `thermod.physics.kernels.Kernel`) used only to build FFT plans at start-up."""
-
-    weights: np.ndarray
-    origin: tuple[int, int]
-
-
 def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
     """``(rung, caught_up)``: the rung a worker solves a job with, chosen as `choice`, that waited
     `waited_s` in the queue. The governor's current rung when it stepped down since (the cheaper way
@@ -178,10 +180,12 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _timed(fn, *args) -> float:
-    t0 = time.perf_counter()
-    fn(*args)
-    return time.perf_counter() - t0
+def _picklable(obj) -> bool:
+    try:
+        pickle.dumps(obj)
+    except Exception:
+        return False
+    return True
 
 
 def single_method(rung) -> str:
@@ -230,7 +234,8 @@ class Pipeline:
         self._lat_lock = threading.Lock()
         self.counters = collections.Counter()
         self._count_lock = threading.Lock()
-        self._prebuilt: list = []
+        self._solvers: list = []        # per worker: InThread or InChild (`thermod.runtime.solvers`)
+        self._frames: SharedFrames | None = None   # process mode: the frames shared with the children
         self._est_cond = threading.Condition()
         self._estimates: collections.OrderedDict = collections.OrderedDict()   # index → Estimate
         self._solving: set[int] = set()           # indices a worker is solving now
@@ -243,29 +248,19 @@ class Pipeline:
 
     # ------------------------------------------------------------------ lifecycle
     def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0) -> float:
-        """Compile the numba renderer and build every worker's deconvolvers (one per rung of the
-        governor's ladder) before the first frame: LUTs, the FFT plans of every padded shape a kernel
-        up to `max_kernel_px` can need (plans are per padded shape; building one mid-stream costs a
-        frame or ten), and the governor's reference cost of each rung, uniform and over every grid
-        the adaptive mode can render (the finest and its coarser ones: their tiles' plans are built
-        too), timed on the first worker after its plans are built. A temporal rung is timed with a
-        prior (the frame before, restored, warped across one frame period of roll): its cost is the
-        one it has in the stream. Returns seconds spent."""
+        """Start the workers' solvers (`cfg.processes`: a child process each) and build them, one per
+        rung of the governor's ladder, before the first frame: the numba renderer compiled, LUTs, the
+        FFT plans of every padded shape a kernel up to `max_kernel_px` can need (plans are per padded
+        shape; building one mid-stream costs a frame or ten), and the governor's reference cost of
+        each rung, uniform and over every grid the adaptive mode can render (the finest and its
+        coarser ones: their tiles' plans are built too), timed on the first worker after its plans are
+        built, alone. A temporal rung is timed with a prior (the frame before, restored, warped across
+        one frame period of roll): its cost is the one it has in the stream. Returns seconds spent."""
         t0 = time.monotonic()
-        # the workers are the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
-        # filters) and BLAS's (the monitor's small fits, whose spinning threads cost 6-10x the product
-        # on a loaded 2-core host) would only oversubscribe the cores they share
-        cv2.setNumThreads(1)
-        # a worker returning from a GIL-free section (FFTW, numba, OpenCV: most of a solve) waits for
-        # the GIL until the thread holding it reaches the switch interval (CPython's: 5 ms)
-        if self._process_settings is None:
-            self._process_settings = (threadpool_limits(1), sys.getswitchinterval())
-            sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        self._set_process_limits()
         s = self._settings
         gov = self.governor
-        tg = np.arange(-0.2, 0.05, 1.0 / s.calib.rate_hz)
-        # a roll: a grid of distinct kernels, so that the tiles' plans are built too
-        rate = np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
+        tg, rate = warm_gyro(s.calib)
         # a frame like a camera's (structure and noise): the solvers' costs depend on the content (a flat
         # frame's robust range and spectra come cheap), and the governor lives on their ratios
         h, w_px = self.frame_ring.shape
@@ -278,59 +273,62 @@ class Pipeline:
             for g in coarser_grids(tuple(s.deblur.grid), s.calib.width / s.calib.height)[:-1]:
                 at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
                 grids.append(self._render(tg, rate, s.calib, 0.0, at_g)[0])
-        self._prebuilt = []
-        period = 1.0 / s.calib.frame_rate_hz
-        for w in range(self.n_workers):
-            decs = {}
-            for rung in gov.rungs:
-                fam = gov.family(rung)
-                if fam in decs:
-                    continue
-                d = decs[fam] = self._solver(rung, s)
-                base = getattr(d, "single", d)
-                live = getattr(base, "realtime", False)
-                base.realtime = False  # measure plans now, while no frame is waiting
-                for k in [uniform, *(grids if rung.varying else [])]:
-                    if rung.temporal:
-                        _, first = d.solve(img, k, -period, tg, rate)
-                        solve = (lambda k, d=d, first=first: d.solve(img, k, 0.0, tg, rate, first))  # noqa: E731
-                        solve(k)
-                        g = solved_grid(base, k)
-                        if d.last_prior_frames != 1:
-                            raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
-                    else:
-                        solve = d.run_varying if hasattr(k, "kernels") else d.run
-                        solve(img, k)
-                        g = solved_grid(d, k)             # a coarse grid may be one kernel in disguise
-                    cells = g[0] * g[1]
-                    if w == 0:
-                        # the faster of two: a preempted run would make the rung look dearer than it is
-                        gov.seed(fam, cells, min(_timed(solve, k) if rung.temporal else _timed(solve, img, k)
-                                                 for _ in range(2)))
-                d = base
-                if hasattr(d, "padded_shape"):
-                    sizes = {}
-                    for kh in range(1, max_kernel_px + 1, 2):
-                        for kw in range(1, max_kernel_px + 1, 2):
-                            sizes.setdefault(tuple(d.padded_shape(img.shape, (kh, kw))), (kh, kw))
-                    for kh, kw in sizes.values():
-                        if time.monotonic() - t0 > budget_s:
-                            break
-                        box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
-                        d.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
-                d.realtime = live
-            self._prebuilt.append((decs, (s.deblur, s.calib)))
+        self._start_solvers()
+        for w, solver in enumerate(self._solvers):
+            left = max(0.0, budget_s - (time.monotonic() - t0))
+            seeds = solver.warm(s, gov.rungs, img, uniform, grids, time_costs=w == 0,
+                                max_kernel_px=max_kernel_px, budget_s=left)
+            for fam, cells, seconds in seeds:
+                gov.seed(fam, cells, seconds)
         return time.monotonic() - t0
 
-    def _solver(self, rung, s: _Settings):
-        """A worker's solver for `rung`: the factory's deconvolver, wrapped in a `RecursiveDeconvolver`
-        for a temporal rung."""
-        d = self._factory(rung.deblur(s.deblur))
-        if rung.temporal:
-            return RecursiveDeconvolver(s.calib, d, min_coverage=s.deblur.min_coverage)
-        return d
+    def _set_process_limits(self) -> None:
+        """One thread per solve (the workers are the parallelism), and a short GIL switch interval:
+        a worker returning from a GIL-free section (FFTW, numba, OpenCV: most of a solve) waits for
+        the GIL until the thread holding it reaches the switch interval (CPython's: 5 ms)."""
+        if self._process_settings is None:
+            cv2.setNumThreads(1)
+            self._process_settings = (threadpool_limits(1), sys.getswitchinterval())
+            sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+
+    def _start_solvers(self) -> None:
+        """Each worker's solvers: a child process each when `cfg.processes` (threads when the children
+        cannot start, e.g. no memfd under a seccomp filter: said in the log), else in-thread."""
+        if self._solvers:
+            return
+        n = self.n_workers
+        if self.cfg.processes and not _picklable(self._factory):
+            log.info("the deconvolver factory %r cannot go to a child process; solving in the worker threads",
+                     self._factory)
+        elif self.cfg.processes:
+            try:
+                probe = self._factory(self._settings.deblur)
+                shape = tuple(self.frame_ring.shape)
+                info = probe.padded_shape(shape, shape) if hasattr(probe, "padded_shape") else shape
+                layout = Layout(shape, n, slots_needed(n, PRIOR_FRAMES), info[0] * (info[1] // 2 + 1))
+                self._frames = SharedFrames(layout)
+                self._solvers = start_children(self._factory, self._frames, n)
+                return
+            except (OSError, SolverError) as e:
+                log.warning("solver processes unavailable (%s); solving in the worker threads", e)
+                if self._frames is not None:
+                    self._frames.close()
+                    self._frames = None
+        self._solvers = [InThread(self._factory) for _ in range(n)]
+
+    def _solver_at(self, i: int):
+        """Worker i's solvers; a child that died is replaced (a fresh interpreter: ~1 s)."""
+        solver = self._solvers[i]
+        if isinstance(solver, InChild) and not solver.alive:
+            self._count("solver_children_replaced", 1)
+            log.warning("solver child %d died (exit code %s); starting a new one", i, solver.proc.exitcode)
+            solver.close()
+            solver = self._solvers[i] = InChild(self._factory, self._frames, i)
+        return solver
 
     def start(self, start_index: int | None = None) -> Pipeline:
+        self._set_process_limits()
+        self._start_solvers()
         self._stop.clear()
         self._next_index = self._next_out = self.frame_ring.head if start_index is None else start_index
         self._workers = [None] * self.n_workers
@@ -358,11 +356,24 @@ class Pipeline:
             self._count("shutdown_passthrough", 1)
             self._passthrough(job.slot, "overload", job.info)
         self._flush_pending(force=True)
+        self._close_solvers()
         if self._process_settings is not None:     # the process may go on (tests, an embedding app)
             blas_limits, switch_interval = self._process_settings
             blas_limits.restore_original_limits()
             sys.setswitchinterval(switch_interval)
             self._process_settings = None
+
+    def _close_solvers(self) -> None:
+        if any(th is not None and th.is_alive() for th in self._workers):
+            return        # a worker still solving past stop's timeout: its daemon thread ends with us
+        with self._est_cond:
+            self._estimates.clear()
+        for solver in self._solvers:
+            solver.close()
+        self._solvers = []
+        if self._frames is not None:
+            self._frames.close()
+            self._frames = None
 
     def update(self, calib: Calibration | None = None, deblur: DeblurConfig | None = None) -> None:
         """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
@@ -546,17 +557,29 @@ class Pipeline:
         return None
 
     def _keep_estimate(self, index: int, est) -> None:
+        """Keep a restored frame as a prior (the newest `PRIOR_FRAMES`); one dropped gives its shared
+        slot back (process mode)."""
+        dropped = []
         with self._est_cond:
             if est is not None:
                 self._estimates[index] = est
                 while len(self._estimates) > PRIOR_FRAMES:
-                    self._estimates.popitem(last=False)
+                    dropped.append(self._estimates.popitem(last=False)[1])
             self._solving.discard(index)
             self._est_cond.notify_all()
+        for e in dropped:
+            if hasattr(e, "release"):
+                e.release()
 
     def _work_loop(self, i: int) -> None:
         name = f"worker{i}"
-        decs, gen_deblur = self._prebuilt.pop() if self._prebuilt else ({}, None)
+        try:
+            solver = self._solver_at(i)
+        except (OSError, SolverError):
+            self._count("worker_errors", 1)
+            log.exception("worker %d: its solver process would not start", i)
+            time.sleep(1.0)       # supervise() tries again: not in a tight loop
+            return
         while not self._stop.is_set():
             self.heartbeat[name] = time.monotonic()
             with self._jobs_cond:
@@ -572,54 +595,34 @@ class Pipeline:
             est = None
             try:
                 s = self._settings
-                if gen_deblur != (s.deblur, s.calib):
-                    decs, gen_deblur = {}, (s.deblur, s.calib)
                 gov = self.governor
                 rung, caught_up = rung_for(gov, job.choice, time.monotonic() - job.t_queued)
                 if caught_up:
                     self._count("catch_up", 1)
-                fam = gov.family(rung)
-                deconv = decs.get(fam)
-                if deconv is None:
-                    deconv = decs[fam] = self._solver(rung, s)
-                img = job.slot.image.astype(np.float32)
-                varying = hasattr(job.kernel, "kernels")
-                method, prior_frames = rung.name, 0
-                t0 = time.perf_counter()
+                wait_s = 0.0 if caught_up else 0.5 * gov.budget_s
+                got = solver.solve(s, rung, job.slot.image, job.kernel, job.slot.t, job.warp_gyro,
+                                   lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s))
+                est = got.estimate
+                method, prior_frames, grid = rung.name, got.prior_frames, got.grid
                 if rung.temporal:
-                    waited = [0.0]
-
-                    def prior(index=index, waited=waited, wait_s=0.0 if caught_up else 0.5 * gov.budget_s):
-                        w0 = time.perf_counter()
-                        got = self._prior_for(index, wait_s)
-                        waited[0] = time.perf_counter() - w0
-                        return got
-
-                    gt, gr = job.warp_gyro if job.warp_gyro is not None else (None, None)
-                    out, est = deconv.solve(img, job.kernel, job.slot.t, gt, gr,
-                                            prior if gt is not None else None)
-                    dt = time.perf_counter() - t0 - waited[0]
-                    prior_frames = deconv.last_prior_frames
                     if prior_frames == 0:
                         method = single_method(rung)
                         self._count("temporal_alone", 1)
                     else:
                         self._count(f"temporal_prior_{prior_frames}", 1)
-                    solver = deconv.single
-                else:
-                    out = deconv.run_varying(img, job.kernel) if varying else deconv.run(img, job.kernel)
-                    dt = time.perf_counter() - t0
-                    solver = deconv
-                grid = solved_grid(solver, job.kernel)
-                gov.observe(fam, grid[0] * grid[1], dt, time.monotonic())
-                out = np.asarray(out, dtype=np.float32)
-                if out.shape != img.shape:
-                    raise ValueError(f"deconvolver returned shape {out.shape} for a {img.shape} frame")
+                gov.observe(gov.family(rung), grid[0] * grid[1], got.seconds, time.monotonic())
+                out = got.image
+                if out.shape != job.slot.image.shape:
+                    raise ValueError(f"deconvolver returned shape {out.shape} for a "
+                                     f"{job.slot.image.shape} frame")
             except Exception:
+                if est is not None and hasattr(est, "release"):
+                    est.release()
                 self._keep_estimate(index, None)
                 self._count("worker_errors", 1)
                 log.exception("deconvolution failed on frame %d; passing it through and replacing the worker",
                               job.slot.frame_id)
+                solver.reset()
                 self._worker_busy_since[i] = None
                 self._passthrough(job.slot, "worker_error", job.info)
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
@@ -628,9 +631,9 @@ class Pipeline:
             self._count("deblurred", 1)
             self._count(f"method_{method}", 1)
             kernel = job.kernel
-            if varying and grid == (1, 1):
+            if hasattr(kernel, "kernels") and grid == (1, 1):
                 # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
-                r, c = central_cell(job.kernel.centers, img.shape)
+                r, c = central_cell(job.kernel.centers, out.shape)
                 kernel = job.kernel.kernels[r][c]
                 job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape),
                             "kernel_extent_px": float(kernel.extent_px)}

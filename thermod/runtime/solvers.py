@@ -1,0 +1,535 @@
+"""A deconvolution worker's solvers: in the worker's own thread, or in a child process of its own.
+
+Why a child process. A solve is mostly GIL-free (FFTW, numba, OpenCV), but between those calls it
+takes the GIL back dozens of times. The daemon's other threads (scheduler, gyro driver, monitor,
+publisher, camera) hold the GIL about 30 % of the time on the simulated payload, and a thread that
+wants it back waits until the holder's switch interval runs out. In one process a 6×8 temporal solve
+then takes twice its CPU time in wall time (16 ms alone, 31 ms beside two pure-Python threads busy
+30 % of the time each, on two cores: benchmarks/results/daemon.md), and the governor has to give up
+the temporal rung. In a child process the solve has a GIL of its own.
+
+Data path (process mode). The pipeline owns one `SharedFrames` block (a memfd, mapped by the
+parent and by every child): one input frame per worker and a pool of output slots, each an image
+and the spectrum of a temporal `Estimate` (`Estimate.info`). A job sends only its kernel and gyro
+window through the pipe (a 6×8 grid pickles to 46 kB). The child writes its result into the slot
+the parent gave it. A slot that holds an estimate stays reserved while the pipeline keeps it as a
+prior, or while a job on another worker is using it (`SharedFrames.retain` / `release`). A temporal
+solve asks the parent for its prior once its own solve x₀ is done (the ``prior`` round trip): the
+parent waits there for frame k − 1, exactly as a thread would.
+
+`solve_job` and `warm_solvers` are the one implementation of a job and of the warm-up. `InThread`
+runs them in the worker's thread and `InChild` in the child (`_child_main`). The pipeline sees
+either through the same three calls: ``warm``, ``solve`` and ``close``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import mmap
+import multiprocessing
+import os
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from multiprocessing.reduction import recv_handle, send_handle
+
+import numpy as np
+
+from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
+from thermod.restore.plan import solved_grid
+from thermod.runtime.governor import Governor
+
+log = logging.getLogger(__name__)
+
+CHILD_START_S = 60.0      # a child that has not answered its first message by then is given up
+POLL_S = 0.25             # how often a worker waiting on its child checks that the child lives
+
+
+class SolverError(RuntimeError):
+    """A child process failed a job (its traceback is the message) or went away."""
+
+
+@dataclass
+class Solved:
+    """One job's result."""
+
+    image: np.ndarray          # float32 counts, owned by the caller
+    estimate: object           # the next frame's prior (`Estimate` or `SharedEstimate`), or None
+    prior_frames: int          # frames between the prior used and this frame (0: solved alone)
+    seconds: float             # the solve's wall time, the wait for the prior left out
+    grid: tuple[int, int]      # the kernel grid it was solved with ((1, 1): one kernel)
+
+
+@dataclass
+class _Timed:
+    """The prior callable with its wait measured (the wait is not solve cost)."""
+
+    fetch: object
+    waited: float = 0.0
+
+    def __call__(self):
+        t0 = time.perf_counter()
+        try:
+            return self.fetch()
+        finally:
+            self.waited += time.perf_counter() - t0
+
+
+def make_solver(factory, rung, deblur, calib):
+    """A worker's solver for `rung`: the factory's deconvolver, wrapped in a `RecursiveDeconvolver`
+    for a temporal rung."""
+    d = factory(rung.deblur(deblur))
+    if rung.temporal:
+        return RecursiveDeconvolver(calib, d, min_coverage=deblur.min_coverage)
+    return d
+
+
+def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, warp_gyro, prior) -> Solved:
+    """Solve one frame by `rung` with the solvers in `decs` (one per family, built on first use).
+    `prior` (temporal rungs): a callable returning the newest restored frame before this one, or
+    None; it is called after the frame's own solve and may wait."""
+    fam = Governor.family(rung)
+    deconv = decs.get(fam)
+    if deconv is None:
+        deconv = decs[fam] = make_solver(factory, rung, deblur, calib)
+    timed = _Timed(prior)
+    t0 = time.perf_counter()
+    if rung.temporal:
+        gt, gr = warp_gyro if warp_gyro is not None else (None, None)
+        out, est = deconv.solve(img, kernel, t_frame, gt, gr, timed if gt is not None else None)
+        prior_frames, solver = deconv.last_prior_frames, deconv.single
+    else:
+        out = deconv.run_varying(img, kernel) if hasattr(kernel, "kernels") else deconv.run(img, kernel)
+        est, prior_frames, solver = None, 0, deconv
+    seconds = time.perf_counter() - t0 - timed.waited
+    return Solved(np.asarray(out, np.float32), est, prior_frames, seconds, solved_grid(solver, kernel))
+
+
+@dataclass
+class _WarmKernel:
+    """A box kernel (duck-typed `thermod.physics.kernels.Kernel`) used only to build FFT plans."""
+
+    weights: np.ndarray
+    origin: tuple[int, int]
+
+
+def _timed(fn, *args) -> float:
+    t0 = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t0
+
+
+def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids, *, time_costs: bool,
+                 max_kernel_px: int, budget_s: float) -> list[tuple[str, int, float]]:
+    """Build the solvers of every rung into `decs`, with the FFT plans of every padded shape a kernel
+    up to `max_kernel_px` can need, within `budget_s`. With `time_costs`, time each rung on `uniform`
+    and on each of `grids` (a temporal rung with a prior: the frame before, restored, warped across
+    one frame period) and return ``[(family, cells, seconds)]``, the faster of two runs each."""
+    t_end = time.monotonic() + budget_s
+    period = 1.0 / calib.frame_rate_hz
+    tg, rate = warm_gyro(calib)
+    seeds = []
+    for rung in rungs:
+        fam = Governor.family(rung)
+        if fam in decs:
+            continue
+        d = decs[fam] = make_solver(factory, rung, deblur, calib)
+        base = getattr(d, "single", d)
+        live = getattr(base, "realtime", False)
+        base.realtime = False  # measure plans now, while no frame is waiting
+        for k in [uniform, *(grids if rung.varying else [])]:
+            if rung.temporal:
+                _, first = d.solve(img, k, -period, tg, rate)
+                solve = (lambda k, d=d, first=first: d.solve(img, k, 0.0, tg, rate, first))  # noqa: E731
+                solve(k)
+                g = solved_grid(base, k)
+                if d.last_prior_frames != 1:
+                    raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
+            else:
+                solve = d.run_varying if hasattr(k, "kernels") else d.run
+                solve(img, k)
+                g = solved_grid(d, k)             # a coarse grid may be one kernel in disguise
+            if time_costs:
+                # the faster of two: a preempted run would make the rung look dearer than it is
+                args = (k,) if rung.temporal else (img, k)
+                seeds.append((fam, g[0] * g[1], min(_timed(solve, *args) for _ in range(2))))
+        if hasattr(base, "padded_shape"):
+            sizes = {}
+            for kh in range(1, max_kernel_px + 1, 2):
+                for kw in range(1, max_kernel_px + 1, 2):
+                    sizes.setdefault(tuple(base.padded_shape(img.shape, (kh, kw))), (kh, kw))
+            for kh, kw in sizes.values():
+                if time.monotonic() > t_end:
+                    break
+                box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
+                base.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
+        base.realtime = live
+    return seeds
+
+
+def warm_gyro(calib) -> tuple[np.ndarray, np.ndarray]:
+    """Raw gyro samples of a roll (a grid of distinct kernels) around t = 0, for the warm-up."""
+    tg = np.arange(-0.2, 0.05, 1.0 / calib.rate_hz)
+    return tg, np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
+
+
+def _limit_threads() -> None:
+    """The workers are the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
+    filters) and BLAS's (small fits, whose spinning threads cost 6-10× the product on a loaded
+    2-core host) would only oversubscribe the cores they share."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)
+    return threadpool_limits(1)
+
+
+# ------------------------------------------------------------------------------ in the thread
+class InThread:
+    """A worker's solvers in its own thread (one per worker; the process's GIL is shared)."""
+
+    def __init__(self, factory):
+        self.factory = factory
+        self.decs: dict = {}
+        self._generation = None
+
+    def warm(self, settings, rungs, img, uniform, grids, *, time_costs, max_kernel_px, budget_s):
+        self._generation = (settings.deblur, settings.calib)
+        return warm_solvers(self.decs, self.factory, rungs, settings.deblur, settings.calib, img, uniform,
+                            grids, time_costs=time_costs, max_kernel_px=max_kernel_px, budget_s=budget_s)
+
+    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
+        if self._generation != (settings.deblur, settings.calib):
+            self.decs, self._generation = {}, (settings.deblur, settings.calib)
+        img = np.asarray(image, np.float32)
+        return solve_job(self.decs, self.factory, rung, settings.deblur, settings.calib, img, kernel, t_frame,
+                         warp_gyro, prior)
+
+    def reset(self) -> None:
+        """Forget the solvers (after a failed job: the next one starts from fresh state)."""
+        self.decs, self._generation = {}, None
+
+    def close(self) -> None:
+        self.decs = {}
+
+
+# ------------------------------------------------------------------------------ shared memory
+@dataclass(frozen=True)
+class Layout:
+    """Where things are in the shared block (byte offsets; float32 arrays)."""
+
+    shape: tuple[int, int]           # frame H, W
+    workers: int
+    slots: int
+    info_capacity: int               # float32 values a slot's spectrum may hold
+
+    @property
+    def frame_bytes(self) -> int:
+        return 4 * self.shape[0] * self.shape[1]
+
+    @property
+    def slot_bytes(self) -> int:
+        return self.frame_bytes + 4 * self.info_capacity
+
+    @property
+    def size(self) -> int:
+        return self.workers * self.frame_bytes + self.slots * self.slot_bytes
+
+    def views(self, buf) -> tuple[list, list, list]:
+        """(inputs, slot images, slot spectra (flat)) as float32 views on `buf`."""
+        n = self.shape[0] * self.shape[1]
+        inputs = [np.frombuffer(buf, np.float32, n, i * self.frame_bytes).reshape(self.shape)
+                  for i in range(self.workers)]
+        base = self.workers * self.frame_bytes
+        images = [np.frombuffer(buf, np.float32, n, base + s * self.slot_bytes).reshape(self.shape)
+                  for s in range(self.slots)]
+        infos = [np.frombuffer(buf, np.float32, self.info_capacity,
+                               base + s * self.slot_bytes + self.frame_bytes) for s in range(self.slots)]
+        return inputs, images, infos
+
+
+class SharedFrames:
+    """The frames shared with the children: one input per worker, `slots` output slots with
+    reference counts (a slot is free at zero). Linux memfd: nothing to clean up if the daemon dies."""
+
+    def __init__(self, layout: Layout):
+        self.layout = layout
+        self.fd = os.memfd_create("thermod-frames", os.MFD_CLOEXEC)
+        try:
+            os.ftruncate(self.fd, layout.size)
+            self._map = mmap.mmap(self.fd, layout.size)
+        except OSError:
+            os.close(self.fd)
+            raise
+        self.inputs, self.images, self.infos = layout.views(self._map)
+        self._refs = [0] * layout.slots
+        self._lock = threading.Lock()
+
+    def acquire(self) -> int:
+        """A free slot, reserved (count 1). The pool is sized so that one is always free
+        (`slots_needed`); running out is a bug, said as such."""
+        with self._lock:
+            for s, n in enumerate(self._refs):
+                if n == 0:
+                    self._refs[s] = 1
+                    return s
+        raise SolverError(f"no free output slot among {self.layout.slots}: a slot was not released")
+
+    def retain(self, slot: int) -> None:
+        with self._lock:
+            self._refs[slot] += 1
+
+    def release(self, slot: int) -> None:
+        with self._lock:
+            if self._refs[slot] > 0:
+                self._refs[slot] -= 1
+
+    def in_use(self) -> int:
+        with self._lock:
+            return sum(1 for n in self._refs if n)
+
+    def close(self) -> None:
+        self.inputs = self.images = self.infos = []
+        try:
+            self._map.close()
+        except BufferError:      # a view still exported (a frame in flight): the mapping goes with it
+            pass
+        os.close(self.fd)
+
+
+def slots_needed(workers: int, kept: int) -> int:
+    """Output slots for `workers` and `kept` estimates kept as priors: the kept ones, one being
+    written per worker, and one lent per worker (a prior evicted while a job still reads it)."""
+    return kept + 2 * workers + 1
+
+
+@dataclass(eq=False)
+class SharedEstimate:
+    """A temporal `Estimate` held in a slot of `SharedFrames` (the parent's handle; `release` when it
+    is no longer kept)."""
+
+    frames: SharedFrames
+    slot: int
+    t_frame: float
+    info_shape: tuple[int, int]
+    shape: tuple[int, int]
+
+    def release(self) -> None:
+        self.frames.release(self.slot)
+
+    def ref(self) -> tuple:
+        """What the child needs to read it."""
+        return (self.slot, self.t_frame, self.info_shape, self.shape)
+
+
+# ------------------------------------------------------------------------------ in a child process
+def _child_main(conn, factory) -> None:
+    """A child's loop: map the shared frames, then serve ``warm``, ``solve`` and ``stop``."""
+    fd = recv_handle(conn)
+    layout: Layout = conn.recv()
+    buf = mmap.mmap(fd, layout.size)
+    inputs, images, infos = layout.views(buf)
+    _limit_threads()
+    decs: dict = {}
+    deblur = calib = None
+
+    def prior():
+        conn.send(("prior",))
+        ref = conn.recv()
+        if ref is None:
+            return None
+        slot, t_frame, info_shape, shape = ref
+        info = infos[slot][:info_shape[0] * info_shape[1]].reshape(info_shape)
+        return Estimate(images[slot], t_frame, info, tuple(shape))
+
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return                       # the parent went away
+        kind = msg[0]
+        try:
+            if kind == "stop":
+                return
+            if kind == "settings":
+                _, deblur, calib = msg
+                decs = {}
+            elif kind == "warm":
+                _, rungs, img, uniform, grids, kw = msg
+                seeds = warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, **kw)
+                conn.send(("warmed", seeds))
+            elif kind == "solve":
+                _, rung, worker, slot, kernel, t_frame, warp_gyro = msg
+                got = solve_job(decs, factory, rung, deblur, calib, inputs[worker], kernel, t_frame,
+                                warp_gyro, prior)
+                images[slot][...] = got.image
+                est = None
+                if got.estimate is not None and got.estimate.info.size <= layout.info_capacity:
+                    info = got.estimate.info
+                    infos[slot][:info.size] = info.ravel()
+                    est = (float(got.estimate.t_frame), tuple(info.shape), tuple(got.estimate.shape))
+                conn.send(("done", got.prior_frames, got.seconds, tuple(got.grid), est))
+        except Exception:
+            decs = {}                    # the next job starts from fresh state
+            try:
+                conn.send(("error", traceback.format_exc()))
+            except OSError:
+                return
+
+
+class InChild:
+    """A worker's solvers in a child process (spawned: a fresh interpreter, a GIL of its own)."""
+
+    def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True):
+        self.frames, self.worker = frames, worker
+        self._generation = None
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_child_main, args=(child, factory), name=f"thermod-solve{worker}",
+                                daemon=True)
+        self.proc.start()
+        child.close()
+        try:
+            send_handle(self._conn, frames.fd, self.proc.pid)
+            self._conn.send(frames.layout)
+        except BaseException:
+            self._kill()
+            raise
+        if wait:
+            self.wait_ready()
+
+    def wait_ready(self) -> None:
+        """Wait for the child's first message (its imports done, the frames mapped)."""
+        try:
+            msg = self._recv(CHILD_START_S)
+        except BaseException:
+            self._kill()
+            raise
+        if msg[0] != "ready":
+            self._kill()
+            raise SolverError(f"solver child {self.worker}: expected 'ready', got {msg[0]!r}")
+
+    @property
+    def alive(self) -> bool:
+        return self.proc.is_alive()
+
+    def _recv(self, timeout: float | None):
+        """The child's next message; SolverError if it died, failed, or said nothing within `timeout`."""
+        t_end = math.inf if timeout is None else time.monotonic() + timeout
+        while True:
+            left = t_end - time.monotonic()
+            if left <= 0:
+                raise SolverError(f"solver child {self.worker}: no answer within {timeout:g} s")
+            try:
+                if self._conn.poll(min(POLL_S, left)):
+                    msg = self._conn.recv()
+                    break
+            except (EOFError, OSError) as e:
+                raise SolverError(f"solver child {self.worker} (pid {self.proc.pid}) went away: "
+                                  f"exit code {self.proc.exitcode}") from e
+            if not self.proc.is_alive():
+                raise SolverError(f"solver child {self.worker} (pid {self.proc.pid}) died: exit code "
+                                  f"{self.proc.exitcode}")
+        if msg[0] == "error":
+            raise SolverError(f"solver child {self.worker} failed:\n{msg[1]}")
+        return msg
+
+    def _send(self, msg) -> None:
+        try:
+            self._conn.send(msg)
+        except OSError as e:         # BrokenPipeError: the child is gone
+            raise SolverError(f"solver child {self.worker} (pid {self.proc.pid}) went away: exit code "
+                              f"{self.proc.exitcode}") from e
+
+    def _settings(self, settings) -> None:
+        gen = (settings.deblur, settings.calib)
+        if self._generation != gen:
+            self._send(("settings", settings.deblur, settings.calib))
+            self._generation = gen
+
+    def warm(self, settings, rungs, img, uniform, grids, *, time_costs, max_kernel_px, budget_s):
+        self._settings(settings)
+        kw = dict(time_costs=time_costs, max_kernel_px=max_kernel_px, budget_s=budget_s)
+        self._send(("warm", list(rungs), img, uniform, grids, kw))
+        return self._recv(budget_s + CHILD_START_S)[1]
+
+    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
+        """Solve in the child. `prior` is called here, in the worker's thread, when the child asks."""
+        frames = self.frames
+        t0 = time.perf_counter()
+        np.copyto(frames.inputs[self.worker], image, casting="unsafe")
+        slot = frames.acquire()
+        lent: list[SharedEstimate] = []
+        waited = 0.0
+        try:
+            self._settings(settings)
+            self._send(("solve", rung, self.worker, slot, kernel, float(t_frame), warp_gyro))
+            while True:
+                msg = self._recv(None)
+                if msg[0] != "prior":
+                    break
+                w0 = time.perf_counter()
+                got = prior()
+                if isinstance(got, SharedEstimate):
+                    frames.retain(got.slot)
+                    lent.append(got)
+                    self._send(got.ref())
+                else:
+                    self._send(None)
+                waited += time.perf_counter() - w0
+            _, prior_frames, _, grid, est_meta = msg
+            image_out = frames.images[slot].copy()
+            est = None
+            if est_meta is not None:
+                t_est, info_shape, shape = est_meta
+                est = SharedEstimate(frames, slot, t_est, tuple(info_shape), tuple(shape))
+            seconds = time.perf_counter() - t0 - waited
+            return Solved(image_out, est, prior_frames, seconds, tuple(grid))
+        except BaseException:
+            est = None
+            raise
+        finally:   # the slot is the caller's only when it holds the estimate
+            for e in lent:
+                e.release()
+            if est is None:
+                frames.release(slot)
+
+    def reset(self) -> None:
+        """After a failed job: the child has dropped its solvers already."""
+
+    def _kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(1.0)
+        self._conn.close()
+
+    def close(self, timeout: float = 1.0) -> None:
+        try:
+            self._conn.send(("stop",))
+        except OSError:
+            pass
+        self.proc.join(timeout)
+        self._kill()
+
+
+def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]:
+    """One `InChild` per worker, started together (each child's start-up, about 1 s of imports,
+    overlaps the others')."""
+    out: list[InChild] = []
+    try:
+        for i in range(workers):
+            out.append(InChild(factory, frames, i, wait=False))
+        for c in out:
+            c.wait_ready()
+    except BaseException:
+        for c in out:
+            c.close()
+        raise
+    return out
+
+
+__all__ = ["InChild", "InThread", "Layout", "SharedEstimate", "SharedFrames", "Solved", "SolverError",
+           "slots_needed", "solve_job", "start_children", "warm_solvers"]
