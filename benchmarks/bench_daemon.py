@@ -8,7 +8,7 @@ latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro sampl
     .venv/bin/python benchmarks/bench_daemon.py --squeeze [--seconds 30]     # the governor table
     .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
     .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
-    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240]  # vs single
+    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240] [--set K=V]
 
 `--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
 alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
@@ -135,6 +135,9 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
                 if now - t_ready > WARM_S + seconds:
                     break
             sub_gaps = dict(sub.gaps)
+        if proc.poll() is not None:
+            raise SystemExit(f"the daemon exited early (code {proc.returncode}); it said:\n"
+                             + "".join(err_lines[-30:]))
         cpu = cpu_s(proc.pid)
         wall = time.monotonic() - t_start
     finally:
@@ -194,7 +197,7 @@ def truth_psnr(img: np.ndarray, truth: np.ndarray) -> float:
 
 
 def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
-             size: tuple[int, int] = (640, 480)) -> list[dict]:
+             size: tuple[int, int] = (640, 480), overrides: tuple[str, ...] = ()) -> list[dict]:
     """The default daemon (temporal) and the single-frame default, interleaved; PSNR against the truth."""
     from thermod.runtime import config
     from thermod.sim.payload import SimPayload
@@ -205,8 +208,8 @@ def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
     payload.prepare()
     rows = []
     for rep in range(repeats):
-        for name, extra in (("temporal (default)", ()), ("single-frame (temporal_views = 1)",
-                                                          ("deblur.temporal_views=1",))):
+        for name, extra in (("temporal (default)", overrides), ("single-frame (temporal_views = 1)",
+                                                                 (*overrides, "deblur.temporal_views=1"))):
             print(f"temporal: {name}, run {rep + 1} …", file=sys.stderr, flush=True)
             r = run_daemon(fps, seconds, "kf", extra=extra, keep_every=KEEP_EVERY, size=size)
             r.update(setup=name, loadavg=os.getloadavg()[0],
@@ -403,6 +406,8 @@ def main(argv=None) -> int:
     ap.add_argument("--temporal", action="store_true",
                     help="only the temporal table: the default daemon vs the single-frame default, PSNR")
     ap.add_argument("--rate", type=float, default=50.0, help="--temporal: the camera's frame rate (fps)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="--temporal: a configuration override for both daemons (repeatable)")
     ap.add_argument("--large", action="store_true",
                     help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
@@ -420,7 +425,7 @@ def main(argv=None) -> int:
         print_squeeze(squeeze(seconds))
         return 0
     if args.temporal:
-        print_temporal(temporal(seconds, fps=args.rate, size=size))
+        print_temporal(temporal(seconds, fps=args.rate, size=size, overrides=tuple(args.set)))
         return 0
 
     pc = payload_cpu(10.0 if args.quick else 20.0, size)

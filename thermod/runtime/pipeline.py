@@ -8,7 +8,8 @@ For every frame k read at t_k (camera clock) the scheduler
    blur kernel (Eq. 16–19: thermal exponential weights, or the photon box of Eq. 17 as baseline;
    one kernel, or a grid for spatially varying blur);
 3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener, alone or
-   temporal; the FFTs and numba passes release the GIL, so N workers use N cores).
+   temporal), each solving in a child process of its own (`thermod.runtime.solvers`: the daemon's
+   other threads do not hold its GIL), so N workers use N cores.
 
 Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
 the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no

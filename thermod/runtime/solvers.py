@@ -2,11 +2,11 @@
 
 Why a child process. A solve is mostly GIL-free (FFTW, numba, OpenCV), but between those calls it
 takes the GIL back dozens of times. The daemon's other threads (scheduler, gyro driver, monitor,
-publisher, camera) hold the GIL about 30 % of the time on the simulated payload, and a thread that
-wants it back waits until the holder's switch interval runs out. In one process a 6×8 temporal solve
-then takes twice its CPU time in wall time (16 ms alone, 31 ms beside two pure-Python threads busy
-30 % of the time each, on two cores: benchmarks/results/daemon.md), and the governor has to give up
-the temporal rung. In a child process the solve has a GIL of its own.
+publisher, camera) run Python for a good share of the time, and a thread that wants the GIL back
+waits until the holder's switch interval runs out. In one process a temporal solve then takes about
+twice its CPU time in wall time, and the governor has to give up the temporal rung
+(`benchmarks/bench_gil.py`, benchmarks/results/daemon.md). In a child process the solve has a GIL
+of its own.
 
 Data path (process mode). The pipeline owns one `SharedFrames` block (a memfd, mapped by the
 parent and by every child): one input frame per worker and a pool of output slots, each an image
