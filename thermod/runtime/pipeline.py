@@ -66,6 +66,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -93,6 +94,7 @@ from thermod.runtime.solvers import (
     Layout,
     SharedFrames,
     SolverError,
+    rung_costs,
     slots_needed,
     start_children,
     warm_gyro,
@@ -254,9 +256,11 @@ class Pipeline:
         FFT plans of every padded shape a kernel up to `max_kernel_px` can need (plans are per padded
         shape; building one mid-stream costs a frame or ten), and the governor's reference cost of
         each rung, uniform and over every grid the adaptive mode can render (the finest and its
-        coarser ones: their tiles' plans are built too), timed on the first worker after its plans are
-        built, alone. A temporal rung is timed with a prior (the frame before, restored, warped across
-        one frame period of roll): its cost is the one it has in the stream. Returns seconds spent."""
+        coarser ones: their tiles' plans are built too), timed on the first worker once every worker's
+        plans are built, through the call the stream's jobs use (a child's round trip included: what
+        the governor is given in the stream). A temporal rung is timed with a prior (the frame before,
+        restored, warped across one frame period of roll): its cost is the one it has in the stream.
+        The children warm up together. Returns seconds spent."""
         t0 = time.monotonic()
         self._set_process_limits()
         s = self._settings
@@ -275,12 +279,20 @@ class Pipeline:
                 at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
                 grids.append(self._render(tg, rate, s.calib, 0.0, at_g)[0])
         self._start_solvers()
-        for w, solver in enumerate(self._solvers):
-            left = max(0.0, budget_s - (time.monotonic() - t0))
-            seeds = solver.warm(s, gov.rungs, img, uniform, grids, time_costs=w == 0,
-                                max_kernel_px=max_kernel_px, budget_s=left)
-            for fam, cells, seconds in seeds:
-                gov.seed(fam, cells, seconds)
+        left = max(0.0, budget_s - (time.monotonic() - t0))
+
+        def warm(solver):
+            solver.warm(s, gov.rungs, img, uniform, grids, max_kernel_px=max_kernel_px, budget_s=left)
+
+        if isinstance(self._solvers[0], InChild):     # each child on its own core: together
+            with ThreadPoolExecutor(len(self._solvers), thread_name_prefix="thermod-warm") as pool:
+                list(pool.map(warm, self._solvers))
+        else:
+            for solver in self._solvers:
+                warm(solver)
+        # timed as the stream's jobs are (a child's round trip included), on the first worker, alone
+        for fam, cells, seconds in rung_costs(self._solvers[0], s, gov.rungs, img, uniform, grids):
+            gov.seed(fam, cells, seconds)
         return time.monotonic() - t0
 
     def _set_process_limits(self) -> None:

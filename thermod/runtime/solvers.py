@@ -115,22 +115,15 @@ class _WarmKernel:
     origin: tuple[int, int]
 
 
-def _timed(fn, *args) -> float:
-    t0 = time.perf_counter()
-    fn(*args)
-    return time.perf_counter() - t0
-
-
-def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids, *, time_costs: bool,
-                 max_kernel_px: int, budget_s: float) -> list[tuple[str, int, float]]:
-    """Build the solvers of every rung into `decs`, with the FFT plans of every padded shape a kernel
-    up to `max_kernel_px` can need, within `budget_s`. With `time_costs`, time each rung on `uniform`
-    and on each of `grids` (a temporal rung with a prior: the frame before, restored, warped across
-    one frame period) and return ``[(family, cells, seconds)]``, the faster of two runs each."""
+def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids, *, max_kernel_px: int,
+                 budget_s: float) -> None:
+    """Build the solvers of every rung into `decs` and run each once on `uniform` and on each of
+    `grids` (a temporal rung with a prior: the frame before, restored, warped across one frame
+    period), then build the FFT plans of every padded shape a kernel up to `max_kernel_px` can
+    need, within `budget_s`. Plans are measured here (FFTW), not estimated mid-stream."""
     t_end = time.monotonic() + budget_s
     period = 1.0 / calib.frame_rate_hz
     tg, rate = warm_gyro(calib)
-    seeds = []
     for rung in rungs:
         fam = Governor.family(rung)
         if fam in decs:
@@ -142,19 +135,11 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
         for k in [uniform, *(grids if rung.varying else [])]:
             if rung.temporal:
                 _, first = d.solve(img, k, -period, tg, rate)
-                solve = (lambda k, d=d, first=first: d.solve(img, k, 0.0, tg, rate, first))  # noqa: E731
-                solve(k)
-                g = solved_grid(base, k)
+                d.solve(img, k, 0.0, tg, rate, first)
                 if d.last_prior_frames != 1:
                     raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
             else:
-                solve = d.run_varying if hasattr(k, "kernels") else d.run
-                solve(img, k)
-                g = solved_grid(d, k)             # a coarse grid may be one kernel in disguise
-            if time_costs:
-                # the faster of two: a preempted run would make the rung look dearer than it is
-                args = (k,) if rung.temporal else (img, k)
-                seeds.append((fam, g[0] * g[1], min(_timed(solve, *args) for _ in range(2))))
+                (d.run_varying if hasattr(k, "kernels") else d.run)(img, k)
         if hasattr(base, "padded_shape"):
             sizes = {}
             for kh in range(1, max_kernel_px + 1, 2):
@@ -166,7 +151,36 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
                 box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
                 base.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
         base.realtime = live
-    return seeds
+
+
+def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -> list[tuple]:
+    """``[(family, cells, seconds)]``: each rung's cost on `uniform` and on each of `grids`, timed
+    through `solver.solve` as the stream's jobs are (in a child: the round trip included), the
+    fastest of `repeats` (a preempted run would make a rung look dearer than it is). A temporal rung
+    is timed with a prior: the frame before, restored, warped across one frame period of roll."""
+    period = 1.0 / settings.calib.frame_rate_hz
+    gyro = warm_gyro(settings.calib)
+    out = []
+    for rung in rungs:
+        fam = Governor.family(rung)
+        for k in [uniform, *(grids if rung.varying else [])]:
+            first = None
+            if rung.temporal:
+                first = solver.solve(settings, rung, img, k, -period, gyro, lambda: None).estimate
+            try:
+                runs = [solver.solve(settings, rung, img, k, 0.0, gyro, lambda first=first: first)
+                        for _ in range(repeats)]
+            finally:
+                if first is not None and hasattr(first, "release"):
+                    first.release()
+            for r in runs:
+                if r.estimate is not None and hasattr(r.estimate, "release"):
+                    r.estimate.release()
+            if rung.temporal and runs[0].prior_frames != 1:
+                raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
+            g = runs[0].grid                      # a coarse grid may be one kernel in disguise
+            out.append((fam, g[0] * g[1], min(r.seconds for r in runs)))
+    return out
 
 
 def warm_gyro(calib) -> tuple[np.ndarray, np.ndarray]:
@@ -195,10 +209,10 @@ class InThread:
         self.decs: dict = {}
         self._generation = None
 
-    def warm(self, settings, rungs, img, uniform, grids, *, time_costs, max_kernel_px, budget_s):
+    def warm(self, settings, rungs, img, uniform, grids, *, max_kernel_px, budget_s) -> None:
         self._generation = (settings.deblur, settings.calib)
-        return warm_solvers(self.decs, self.factory, rungs, settings.deblur, settings.calib, img, uniform,
-                            grids, time_costs=time_costs, max_kernel_px=max_kernel_px, budget_s=budget_s)
+        warm_solvers(self.decs, self.factory, rungs, settings.deblur, settings.calib, img, uniform, grids,
+                     max_kernel_px=max_kernel_px, budget_s=budget_s)
 
     def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
         if self._generation != (settings.deblur, settings.calib):
@@ -359,8 +373,8 @@ def _child_main(conn, factory) -> None:
                 decs = {}
             elif kind == "warm":
                 _, rungs, img, uniform, grids, kw = msg
-                seeds = warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, **kw)
-                conn.send(("warmed", seeds))
+                warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, **kw)
+                conn.send(("warmed",))
             elif kind == "solve":
                 _, rung, worker, slot, kernel, t_frame, warp_gyro = msg
                 got = solve_job(decs, factory, rung, deblur, calib, inputs[worker], kernel, t_frame,
@@ -450,11 +464,11 @@ class InChild:
             self._send(("settings", settings.deblur, settings.calib))
             self._generation = gen
 
-    def warm(self, settings, rungs, img, uniform, grids, *, time_costs, max_kernel_px, budget_s):
+    def warm(self, settings, rungs, img, uniform, grids, *, max_kernel_px, budget_s) -> None:
         self._settings(settings)
-        kw = dict(time_costs=time_costs, max_kernel_px=max_kernel_px, budget_s=budget_s)
+        kw = dict(max_kernel_px=max_kernel_px, budget_s=budget_s)
         self._send(("warm", list(rungs), img, uniform, grids, kw))
-        return self._recv(budget_s + CHILD_START_S)[1]
+        self._recv(budget_s + CHILD_START_S)
 
     def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
         """Solve in the child. `prior` is called here, in the worker's thread, when the child asks."""
@@ -532,4 +546,4 @@ def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]
 
 
 __all__ = ["InChild", "InThread", "Layout", "SharedEstimate", "SharedFrames", "Solved", "SolverError",
-           "slots_needed", "solve_job", "start_children", "warm_solvers"]
+           "rung_costs", "slots_needed", "solve_job", "start_children", "warm_solvers"]
