@@ -27,6 +27,12 @@ queue pass frames through as ``overload`` (counted).
 Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
+A coarsening rung above the last (``temporal``) gives up its grid for the budget, but its method
+only when even one kernel is predicted above ``keep_s = workers / frame rate × (1 − headroom)``,
+the longest solve the workers keep up with: between the two it runs on one kernel, over the latency
+budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
+load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
+lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md).
 
 Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
 a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
@@ -140,6 +146,7 @@ class Governor:
         self.enabled = bool(deblur.governor)
         self.aspect = float(aspect)
         self.budget_s = min(workers / frame_rate_hz, deblur.max_solve_s) * (1.0 - deblur.headroom)
+        self.keep_s = workers / frame_rate_hz * (1.0 - deblur.headroom)   # the workers still keep up
         self.hold_s, self.base_hold_s, self.max_hold_s, self.margin = hold_s, hold_s, max_hold_s, margin
         self.index = 0
         self._last_change = -math.inf
@@ -243,6 +250,13 @@ class Governor:
                 return g
         return None
 
+    def _keeps(self, i: int) -> bool:
+        """Whether rung i, a coarsening rung above the last, keeps its method on one kernel: its
+        one-kernel solve is predicted within `keep_s` (the workers keep up with the frame rate)."""
+        r = self.rungs[i]
+        return (r.coarsens and i < len(self.rungs) - 1
+                and self._predict(self.family(r), 1) <= self.keep_s)
+
     def choose(self, needed: tuple[int, int], now: float) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
         with self._lock:
@@ -254,7 +268,8 @@ class Governor:
             while recent and recent[0][0] < now - NEEDED_S:
                 recent.popleft()
             worst = max((g for _, g in recent), key=lambda g: g[0] * g[1])
-            if self._fits(self.index, worst, self.budget_s) is None:      # over budget: step down now
+            over = self._fits(self.index, worst, self.budget_s) is None and not self._keeps(self.index)
+            if over:                                                       # over budget: step down now
                 i = self.index + 1
                 while i < len(self.rungs) - 1 and self._fits(i, worst, self.budget_s) is None:
                     i += 1
@@ -266,6 +281,8 @@ class Governor:
                         self._move(i, now)
                         break
             i, g = self.index, self._fits(self.index, needed, self.budget_s)
+            if g is None and self._keeps(i):
+                g = (1, 1)
             while g is None and i < len(self.rungs) - 1:              # this frame only: a cheaper rung
                 i += 1
                 g = self._fits(i, needed, self.budget_s)
