@@ -256,9 +256,6 @@ def test_the_temporal_rung_gives_up_its_grid_before_its_method():
     assert labels[-200:].count("temporal") == 200
     labels, t = feed(g, t, 10.0, lambda f, c: 4.5 * base[f, c])
     assert labels[-1] == "wiener 2×3"
-    # the load gone: back to temporal, over the grid the frames need
-    labels, t = feed(g, t, 10.0, lambda f, c: base[f, c])
-    assert labels[-1] == "temporal 3×4"
 
 
 def test_fewer_kf_iterations_run_three_beta_steps():

@@ -30,7 +30,7 @@ bounds it further for latency (frame → published ≤ wait for the gyro + solve
 A coarsening rung above the last (``temporal``) gives up its grid for the budget, but its method
 only when even one kernel is predicted above ``keep_s = workers / frame rate × (1 − headroom)``,
 the longest solve the workers keep up with: between the two it runs on one kernel, over the latency
-budget (and it is climbed to when one kernel is within the margin of ``keep_s``). On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
+budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
 load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
 lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md).
 
@@ -250,12 +250,12 @@ class Governor:
                 return g
         return None
 
-    def _keeps(self, i: int, share: float = 1.0) -> bool:
+    def _keeps(self, i: int) -> bool:
         """Whether rung i, a coarsening rung above the last, keeps its method on one kernel: its
-        one-kernel solve is predicted within `share` of `keep_s` (the workers keep up)."""
+        one-kernel solve is predicted within `keep_s` (the workers keep up with the frame rate)."""
         r = self.rungs[i]
         return (r.coarsens and i < len(self.rungs) - 1
-                and self._predict(self.family(r), 1) <= share * self.keep_s)
+                and self._predict(self.family(r), 1) <= self.keep_s)
 
     def choose(self, needed: tuple[int, int], now: float) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
@@ -277,8 +277,7 @@ class Governor:
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 for i in range(self.index):                       # best rung that fits with margin
-                    if (self._fits(i, worst, self.budget_s * (1 - self.margin)) is not None
-                            or self._keeps(i, 1 - self.margin)):
+                    if self._fits(i, worst, self.budget_s * (1 - self.margin)) is not None:
                         self._move(i, now)
                         break
             i, g = self.index, self._fits(self.index, needed, self.budget_s)
