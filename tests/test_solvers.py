@@ -121,6 +121,23 @@ def test_a_failed_job_is_said_with_the_childs_traceback_and_the_child_goes_on(st
     assert frames.in_use() == 0
 
 
+def test_a_child_outlives_sigterm_and_sigint_sent_to_the_process_group(stream, frames):
+    """systemd's stop and Ctrl-C signal every process of the group: the parent stops its children
+    itself, after the frames in flight."""
+    data, _ = stream
+    child = InChild(make_deconvolver, frames, 0)
+    try:
+        os.kill(child.proc.pid, signal.SIGTERM)
+        os.kill(child.proc.pid, signal.SIGINT)
+        rung = ladder(DeblurConfig(method="wiener", mode="uniform"))[-1]
+        got = child.solve(_Settings(DeblurConfig(method="wiener")), rung, data[0][0], data[0][1], 0.0, None,
+                          lambda: None)
+        assert child.alive and np.isfinite(got.image).all()
+    finally:
+        child.close()
+    assert not child.alive
+
+
 def test_a_killed_child_is_said_and_the_pool_runs_out_loudly(stream, frames):
     data, gyro = stream
     child = InChild(make_deconvolver, frames, 0)

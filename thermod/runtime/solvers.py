@@ -29,6 +29,7 @@ import math
 import mmap
 import multiprocessing
 import os
+import signal
 import threading
 import time
 import traceback
@@ -340,7 +341,13 @@ class SharedEstimate:
 
 # ------------------------------------------------------------------------------ in a child process
 def _child_main(conn, factory) -> None:
-    """A child's loop: map the shared frames, then serve ``warm``, ``solve`` and ``stop``."""
+    """A child's loop: map the shared frames, then serve ``warm``, ``solve`` and ``stop``.
+
+    SIGTERM and SIGINT are ignored: systemd's stop and a terminal's Ctrl-C reach the whole process
+    group, and the parent, stopping in order, finishes the frames in flight before it closes its
+    children (``stop``, then a kill). A parent that dies leaves the pipe at EOF: the child ends."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     fd = recv_handle(conn)
     layout: Layout = conn.recv()
     buf = mmap.mmap(fd, layout.size)
