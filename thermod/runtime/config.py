@@ -135,7 +135,7 @@ class PublishConfig:
 class PipelineConfig:
     workers: int = setting(0, lo=0, hi=64, doc="deconvolution threads; 0 = one per core")
     processes: bool = setting(True, doc="each worker solves in a child process of its own (a GIL of its "
-                                        "own); false: in the worker thread")
+                                        "own; about 190 MB more memory each); false: in the worker thread")
     job_queue: int = setting(4, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")
     frame_ring: int = setting(32, lo=2, hi=1024, doc="frames buffered between camera thread and scheduler")
     gyro_ring_s: float = setting(10.0, lo=0.5, hi=600.0, doc="seconds of gyro history kept")
