@@ -15,3 +15,15 @@ class CrashingDeconvolver(Deconvolver):
 
 def crashing_factory(deblur):
     return CrashingDeconvolver(deblur.method, deblur.alpha, deblur.lam)
+
+
+class HangingDeconvolver(Deconvolver):
+    def run(self, image, kernel, **kw):
+        if abs(float(image.mean()) - POISON) < 1e-3:
+            import time
+            time.sleep(60.0)          # a hung solve (a deadlock in a library, a stuck page-in)
+        return super().run(image, kernel, **kw)
+
+
+def hanging_factory(deblur):
+    return HangingDeconvolver(deblur.method, deblur.alpha, deblur.lam)

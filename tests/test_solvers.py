@@ -14,6 +14,7 @@ from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.restore.plan import make_deconvolver, render
 from thermod.restore.settings import DeblurConfig
+from thermod.runtime import solvers
 from thermod.runtime.config import PipelineConfig
 from thermod.runtime.governor import ladder
 from thermod.runtime.pipeline import PRIOR_FRAMES, Pipeline
@@ -31,7 +32,7 @@ from thermod.sim.scenes import load_scene
 
 sys.path.insert(0, os.path.dirname(__file__))   # the shared helpers beside this file
 from collecting import Collector  # noqa: E402
-from solver_faults import POISON, crashing_factory  # noqa: E402
+from solver_faults import POISON, crashing_factory, hanging_factory  # noqa: E402
 
 H, W = 120, 160
 CAL = Calibration(width=W, height=H, fx=366.0, fy=366.0, cx=79.5, cy=59.5, frame_rate_hz=50.0)
@@ -138,6 +139,23 @@ def test_a_child_outlives_sigterm_and_sigint_sent_to_the_process_group(stream, f
     assert not child.alive
 
 
+def test_a_hung_child_is_killed_after_the_solve_timeout(stream, frames, monkeypatch):
+    data, _ = stream
+    monkeypatch.setattr(solvers, "SOLVE_TIMEOUT_S", 1.0)
+    rung = ladder(DeblurConfig(method="wiener", mode="uniform"))[-1]
+    s = _Settings(DeblurConfig(method="wiener", mode="uniform"))
+    child = InChild(hanging_factory, frames, 0)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(SolverError, match="no answer within 1 s; killed"):
+            child.solve(s, rung, np.full((H, W), POISON, np.float32), data[0][1], 0.0, None, lambda: None)
+        assert time.monotonic() - t0 < 10.0
+        assert not child.alive
+    finally:
+        child.close()
+    assert frames.in_use() == 0
+
+
 def test_a_killed_child_is_said_and_the_pool_runs_out_loudly(stream, frames):
     data, gyro = stream
     child = InChild(make_deconvolver, frames, 0)
@@ -199,5 +217,21 @@ def test_a_factory_a_child_cannot_import_keeps_the_solves_in_the_threads():
     try:
         assert p._solvers and all(isinstance(s, InThread) for s in p._solvers)
         assert p._frames is None
+    finally:
+        p.stop()
+
+
+def test_no_shared_memory_keeps_the_solves_in_the_threads_and_says_so(monkeypatch, caplog):
+    """A seccomp filter or a full /dev/shm: memfd_create fails, the daemon runs on in threads."""
+    def refuse(*a, **k):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "memfd_create", refuse)
+    col = Collector()
+    with caplog.at_level("WARNING", logger="thermod.runtime.pipeline"):
+        _, _, p = _pipeline(col)
+    try:
+        assert p._solvers and all(isinstance(s, InThread) for s in p._solvers)
+        assert "solver processes unavailable" in caplog.text and "Operation not permitted" in caplog.text
     finally:
         p.stop()

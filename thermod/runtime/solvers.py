@@ -45,6 +45,7 @@ from thermod.runtime.governor import Governor
 log = logging.getLogger(__name__)
 
 CHILD_START_S = 60.0      # a child that has not answered its first message by then is given up
+SOLVE_TIMEOUT_S = 10.0    # a child silent this long in a job is hung: killed (the worker replaces it)
 POLL_S = 0.25             # how often a worker waiting on its child checks that the child lives
 
 
@@ -443,7 +444,8 @@ class InChild:
         while True:
             left = t_end - time.monotonic()
             if left <= 0:
-                raise SolverError(f"solver child {self.worker}: no answer within {timeout:g} s")
+                self._kill()             # hung: whatever it says later would answer the wrong job
+                raise SolverError(f"solver child {self.worker}: no answer within {timeout:g} s; killed")
             try:
                 if self._conn.poll(min(POLL_S, left)):
                     msg = self._conn.recv()
@@ -489,7 +491,7 @@ class InChild:
             self._settings(settings)
             self._send(("solve", rung, self.worker, slot, kernel, float(t_frame), warp_gyro))
             while True:
-                msg = self._recv(None)
+                msg = self._recv(SOLVE_TIMEOUT_S)
                 if msg[0] != "prior":
                     break
                 w0 = time.perf_counter()
