@@ -280,6 +280,8 @@ class SharedFrames:
             os.close(self.fd)
             raise
         self.inputs, self.images, self.infos = layout.views(self._map)
+        for v in (*self.inputs, *self.images, *self.infos):
+            v.fill(0.0)          # every page touched now, not by a frame in flight (a fault each 4 kB)
         self._refs = [0] * layout.slots
         self._lock = threading.Lock()
 
@@ -351,7 +353,8 @@ def _child_main(conn, factory) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     fd = recv_handle(conn)
     layout: Layout = conn.recv()
-    buf = mmap.mmap(fd, layout.size)
+    # mapped in full now (MAP_POPULATE): no page-table faults on a frame in flight
+    buf = mmap.mmap(fd, layout.size, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
     inputs, images, infos = layout.views(buf)
     _limit_threads()
     decs: dict = {}
