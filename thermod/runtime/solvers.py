@@ -11,20 +11,20 @@ of its own.
 Data path (process mode). The pipeline owns one `SharedFrames` block (a memfd, mapped by the
 parent and by every child): one input frame per worker and a pool of output slots, each an image
 and the spectrum of a temporal `Estimate` (`Estimate.info`). A job sends only its kernel and gyro
-window through the pipe (a 6×8 grid pickles to 46 kB). The child writes its result into the slot
-the parent gave it. A slot that holds an estimate stays reserved while the pipeline keeps it as a
-prior, or while a job on another worker is using it (`SharedFrames.retain` / `release`). A temporal
-solve asks the parent for its prior once its own solve x₀ is done (the ``prior`` round trip): the
-parent waits there for frame k − 1, exactly as a thread would.
+window through the pipe (a 6×8 kernel grid pickles to a few tens of kB). The child writes its
+result into the slot the parent gave it. A slot that holds an estimate stays reserved while the
+pipeline keeps it as a prior, or while a job on another worker is using it (`SharedFrames.retain`
+/ `release`). A temporal solve asks the parent for its prior once its own solve x₀ is done (the
+``prior`` round trip): the parent waits there for frame k − 1, exactly as a thread would.
 
 `solve_job` and `warm_solvers` are the one implementation of a job and of the warm-up. `InThread`
 runs them in the worker's thread and `InChild` in the child (`_child_main`). The pipeline sees
-either through the same three calls: ``warm``, ``solve`` and ``close``.
+either through the same calls: ``warm``, ``solve``, ``reset`` and ``close``; `rung_costs` times
+any of them through ``solve``, as the stream's jobs are timed.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 import mmap
 import multiprocessing
@@ -41,8 +41,6 @@ import numpy as np
 from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
 from thermod.restore.plan import solved_grid
 from thermod.runtime.governor import Governor
-
-log = logging.getLogger(__name__)
 
 CHILD_START_S = 60.0      # a child that has not answered its first message by then is given up
 SOLVE_TIMEOUT_S = 10.0    # a child silent this long in a job is hung: killed (the worker replaces it)
