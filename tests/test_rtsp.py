@@ -154,12 +154,17 @@ def _gstreamer_ok() -> bool:
         return False
 
 
-def _play(url: str, n: int, width: int, height: int, deadline: float, pix_fmt: str = "gray") -> np.ndarray:
+def _play(url: str, n: int, width: int, height: int, deadline: float, pix_fmt: str = "gray",
+          server: subprocess.Popen | None = None) -> np.ndarray:
     """`n` frames of `url` decoded by ffmpeg as [n, height, width] (gray) or [n, height, width, 3]
-    (bgr24); retries while the server starts."""
+    (bgr24); retries while the server starts (a `server` process that exits meanwhile fails at once,
+    with what it said)."""
     channels = 3 if pix_fmt == "bgr24" else 1
     last = ""
     while time.monotonic() < deadline:
+        if server is not None and server.poll() is not None:
+            raise AssertionError(f"the server exited ({server.returncode}) before {url} played: "
+                                 f"{server.stderr.read()[-2000:]}")
         try:
             p = subprocess.run(["ffmpeg", "-nostdin", "-loglevel", "error", "-rtsp_transport", "tcp",
                                 "-i", url, "-frames:v", str(n), "-fps_mode", "passthrough", "-f", "rawvideo",
@@ -246,7 +251,7 @@ def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     try:
         width = 2 * cal.width if view == "side_by_side" else cal.width
         with Subscriber(ep, topics=("health",)) as sub:
-            frames = _play(url, 10, width, cal.height, time.monotonic() + 120)
+            frames = _play(url, 10, width, cal.height, time.monotonic() + 120, server=proc)
             health = None
             for _ in range(40):       # older health messages may still be queued: the one counting ffmpeg's
                 m = sub.recv(timeout=0.5)
