@@ -187,6 +187,9 @@ def test_read_and_iterate_raise_only_recording_errors(workdir, muts):
 @given(muts=mutations)
 # found by this fuzzer: the flipped last byte made tau_s 2.8e-306 s, positive, and the renderer divided by 0
 @example(muts=[("attr", "camera", "tau_s", 0.0078125), ("flip", [(0.9999999999999999, 0)])])
+# found by this fuzzer: a flipped byte gave an extra group's string attribute an unknown character set;
+# the attribute was copied byte for byte and the output could not be read back
+@example(muts=[("flip", [(0.6040170055856631, 2)])])
 def test_deblur_never_fails_unexpectedly(workdir, muts):
     p = _mutated(workdir, muts)
     out = workdir / "out.h5"

@@ -220,6 +220,20 @@ def _times(path, name, ds: h5py.Dataset) -> np.ndarray:
     return t
 
 
+def _readable(obj) -> None:
+    """Read every attribute and dataset type of `obj` and what it holds (h5py decodes them lazily: a
+    damaged string type, e.g. an unknown character set, raises only when read)."""
+    def touch(_name, o) -> None:
+        for k in o.attrs:
+            o.attrs[k]
+        if isinstance(o, h5py.Dataset):
+            o.dtype  # noqa: B018 - decoding the type is the check
+
+    touch("", obj)
+    if isinstance(obj, h5py.Group):
+        obj.visititems(touch)
+
+
 class Reader:
     """An open format-v1 recording: calibration, frame times and gyro samples in memory, frames read
     one at a time (`frame(i)`, iteration), so memory stays bounded however long the recording.
@@ -331,6 +345,7 @@ class Reader:
         in memory."""
         def copy(obj, parent_name: str, name: str):
             with _Guard(self.path, f"{parent_name}/{name}".lstrip("/")):
+                _readable(obj)          # copied byte for byte, it must read back from the output
                 self._f.copy(obj, dst.require_group(parent_name), name=name)
 
         with _Guard(self.path, "/"):
