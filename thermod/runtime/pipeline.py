@@ -69,9 +69,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S
@@ -94,6 +92,7 @@ from thermod.runtime.solvers import (
     Layout,
     SharedFrames,
     SolverError,
+    limit_threads,
     rung_costs,
     slots_needed,
     start_children,
@@ -300,8 +299,7 @@ class Pipeline:
         a worker returning from a GIL-free section (FFTW, numba, OpenCV: most of a solve) waits for
         the GIL until the thread holding it reaches the switch interval (CPython's: 5 ms)."""
         if self._process_settings is None:
-            cv2.setNumThreads(1)
-            self._process_settings = (threadpool_limits(1), sys.getswitchinterval())
+            self._process_settings = (limit_threads(), sys.getswitchinterval())
             sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
     def _start_solvers(self) -> None:

@@ -189,8 +189,9 @@ def warm_gyro(calib) -> tuple[np.ndarray, np.ndarray]:
     return tg, np.tile(np.float32([0.01, 0.2, 1.0]), (len(tg), 1))
 
 
-def _limit_threads() -> None:
-    """The workers are the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
+def limit_threads():
+    """One thread per solve, in this process (its BLAS limits returned, to restore). The workers are
+    the parallelism: OpenCV's own thread pool (the temporal rung's remap and box
     filters) and BLAS's (small fits, whose spinning threads cost 6-10× the product on a loaded
     2-core host) would only oversubscribe the cores they share."""
     import cv2
@@ -354,7 +355,7 @@ def _child_main(conn, factory) -> None:
     # mapped in full now (MAP_POPULATE): no page-table faults on a frame in flight
     buf = mmap.mmap(fd, layout.size, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
     inputs, images, infos = layout.views(buf)
-    _limit_threads()
+    limit_threads()
     decs: dict = {}
     deblur = calib = None
 
@@ -556,4 +557,4 @@ def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]
 
 
 __all__ = ["InChild", "InThread", "Layout", "SharedEstimate", "SharedFrames", "Solved", "SolverError",
-           "rung_costs", "slots_needed", "solve_job", "start_children", "warm_solvers"]
+           "limit_threads", "rung_costs", "slots_needed", "solve_job", "start_children", "warm_solvers"]
