@@ -24,11 +24,11 @@ the frames only where the tails differ. For each patch pair whose tails (at the 
 at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is compared with the model of every τ
 on a log scan of 0.5–2× the τ in force (the two tails' transfer ratio, spread over neighbouring
 frequencies as the window spreads it) and the coherence maximised over d (`Registrar.tau_coherence`);
-τ is the scan's maximum of the coherence summed over the τ window (`TAU_WINDOW_S`), σ from the same
-block jackknife. Phase noise that does not depend on τ (sensor noise, content entering the patch)
-lowers the coherence at every τ alike and moves no maximum. Too few such patch pairs (slow or steady
-motion), a maximum at the scan's edge or σ above a quarter of τ: `tau_s` is None and ``notes`` says
-why. The offset is estimated at the τ in force.
+τ is the scan's maximum of the coherence summed over the τ window (`TAU_WINDOW_S`), σ from a
+block jackknife over `TAU_BLOCKS` blocks. Phase noise that does not depend on τ (sensor noise, content
+entering the patch) lowers the coherence at every τ alike and moves no maximum. Too few such patch
+pairs (slow or steady motion), a maximum at the scan's edge or σ above a quarter of τ: `tau_s` is None
+and ``notes`` says why. The offset is estimated at the τ in force.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ TAU_WIDTH = 160         # px: τ is measured at this working width (its cost doe
 TAU_WINDOW_S = 12.0     # s: the window of τ measurements (at least the motion's window)
 TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
 TAU_MIN_LEVER_PX = 0.5  # working px: a patch pair whose tails differ less shows nothing of τ
+TAU_BLOCKS = 16         # τ's jackknife blocks: σ from g blocks has g − 1 degrees of freedom
 MIN_TAU_PATCHES = 24    # patch pairs in a window needed for a τ estimate
 TAU_MAX_REL_SIGMA = 0.25
 
@@ -537,7 +538,7 @@ class LiveEstimator:
         for i, p in enumerate(pairs):
             ok = np.all(np.isfinite(p.tau_coherence), axis=1)
             q.append(p.tau_coherence[ok])
-            blk += [i * self.blocks // max(n, 1)] * int(ok.sum())
+            blk += [i * TAU_BLOCKS // max(n, 1)] * int(ok.sum())
         if not q:
             return np.zeros((0, len(taus))), np.zeros(0, int)
         return np.vstack(q), np.array(blk, int)
