@@ -367,3 +367,21 @@ def test_watch_counts_frames_by_the_method_in_their_header():
     assert [method_label(h) for h in heads] == ["kf 3×4", "wiener", "wiener", "?"]
     assert st.summary()["methods"] == {"wiener": 2, "kf 3×4": 1, "?": 1}
     assert "deblurred by: wiener ×2, kf 3×4 ×1, ? ×1" in st.format()
+
+
+def test_a_short_burst_of_load_does_not_give_the_temporal_rung_up():
+    """Temporal on one kernel costs 8 ms at idle; the workers keep up with 34 ms. A burst of 0.6 s at
+    5× (40 ms) leaves the median load of the last 2 s below the keep limit: the frames stay temporal.
+    The same load for 3 s gives the method up."""
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam, cells, ms in (("temporal", 1, 8), ("wiener", 1, 3)):
+        g.seed(fam, cells, ms / 1e3)
+    base = {"temporal": 8e-3, "wiener": 3e-3}
+    labels, t = feed(g, 0.0, 3.0, lambda f, c: 2.5 * base[f], needed=(1, 1))
+    assert labels[-1] == "temporal"
+    labels, t = feed(g, t, 0.6, lambda f, c: 5.0 * base[f], needed=(1, 1))
+    assert labels.count("temporal") == len(labels)
+    labels, t = feed(g, t, 3.0, lambda f, c: 2.5 * base[f], needed=(1, 1))
+    assert labels.count("temporal") == len(labels) and g.counts["degrades"] == 0
+    labels, t = feed(g, t, 3.0, lambda f, c: 5.0 * base[f], needed=(1, 1))
+    assert labels[-1] == "wiener" and g.counts["degrades"] == 1

@@ -32,7 +32,9 @@ only when even one kernel is predicted above ``keep_s = workers / frame rate × 
 the longest solve the workers keep up with: between the two it runs on one kernel, over the latency
 budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
 load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
-lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md).
+lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md). The keep rule's
+prediction uses the median load of the last `KEEP_S` of solves (every key's), so a burst of load
+shorter than about a second does not give the method up either.
 
 Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
 a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
@@ -83,6 +85,7 @@ WINDOW = 15                       # solves per key in the sliding median
 MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) before the key moves L
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 NEEDED_S = 1.0                    # rungs are judged on the finest grid needed over this long
+KEEP_S = 2.0                      # the keep rule's load: the median over this long of every key's solves
 
 
 @dataclass(frozen=True)
@@ -158,6 +161,7 @@ class Governor:
         self._stretch: dict[tuple[str, int], int] = {}    # solves in this stretch, the cold ones included
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
+        self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid) of the recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
@@ -225,6 +229,10 @@ class Governor:
                     return
                 self._ref[key] = ref                       # interpolated: fixed from now on
             self.load = med / self._ref[key]
+            ratios = self._ratios
+            ratios.append((now, float(seconds) / self._ref[key]))
+            while ratios and ratios[0][0] < now - KEEP_S:
+                ratios.popleft()
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
@@ -252,10 +260,16 @@ class Governor:
 
     def _keeps(self, i: int) -> bool:
         """Whether rung i, a coarsening rung above the last, keeps its method on one kernel: its
-        one-kernel solve is predicted within `keep_s` (the workers keep up with the frame rate)."""
+        one-kernel solve is predicted within `keep_s` (the workers keep up with the frame rate) at the
+        load of the last `KEEP_S` (a burst shorter than about half of it moves that median little)."""
         r = self.rungs[i]
-        return (r.coarsens and i < len(self.rungs) - 1
-                and self._predict(self.family(r), 1) <= self.keep_s)
+        if not r.coarsens or i >= len(self.rungs) - 1:
+            return False
+        return self._reference(self.family(r), 1) * self._keep_load() <= self.keep_s
+
+    def _keep_load(self) -> float:
+        """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
+        return statistics.median(x for _, x in self._ratios) if len(self._ratios) >= MIN_SOLVES else self.load
 
     def choose(self, needed: tuple[int, int], now: float) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
@@ -334,6 +348,7 @@ class Governor:
                 "ladder": [r.name for r in self.rungs],
                 "budget_ms": round(1e3 * self.budget_s, 2),
                 "load": round(self.load, 3),
+                "keep_load": round(self._keep_load(), 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
                 "solves_measured": sum(len(d) for d in self._recent.values()),
