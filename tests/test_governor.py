@@ -44,12 +44,12 @@ def seeded(deblur=None, workers=2, **kw):
     return g
 
 
-def feed(g, t, seconds, cost_of, needed=(3, 4), jitter=None):
+def feed(g, t, seconds, cost_of, needed=(3, 4), jitter=None, floor=(1, 1)):
     """Run the governor at 50 fps from time t for `seconds`: choose, then report the chosen rung's cost
     (cost_of(family, cells) in s, times a jitter factor). Returns (labels chosen, new t)."""
     labels = []
     for _ in range(int(seconds * FPS)):
-        c = g.choose(needed, t)
+        c = g.choose(needed, t, floor)
         fam, cells = g.family(c.rung), c.grid[0] * c.grid[1]
         g.observe(fam, cells, cost_of(fam, cells) * (jitter() if jitter else 1.0), t)
         labels.append(c.label)
@@ -385,3 +385,31 @@ def test_a_short_burst_of_load_does_not_give_the_temporal_rung_up():
     assert labels.count("temporal") == len(labels) and g.counts["degrades"] == 0
     labels, t = feed(g, t, 3.0, lambda f, c: 5.0 * base[f], needed=(1, 1))
     assert labels[-1] == "wiener" and g.counts["degrades"] == 1
+
+
+def test_the_temporal_rung_coarsens_no_further_than_its_tolerance():
+    """A roll that needs 6×8 at 0.5 px and 3×4 at `temporal_tol_px`: one kernel would misplace the
+    corners' kernels by several px, which costs more than the temporal prior gains (benchmarks/
+    results/temporal_daemon.md). Costs (ms) linear in cells: temporal 8 + 0.47/cell (13 over 3×4, 30
+    over 6×8), Wiener 3 + 0.15/cell; the budget is 25.5 ms, `keep_s` 34 ms. At 3× the load the rung
+    gives its method up for Wiener over the finest grid that fits, although one kernel (24 ms) would
+    have fitted the budget; without the floor it keeps one kernel."""
+    def cost(fam, cells, load=1.0):
+        return load * ((8 + 22 * (cells - 1) / 47) if fam == "temporal" else (3 + 7 * (cells - 1) / 47)) / 1e3
+
+    def governor():
+        g = Governor(DeblurConfig(), FPS, 2)
+        for fam in ("temporal", "wiener"):
+            for cells in (1, 12, 48):
+                g.seed(fam, cells, cost(fam, cells))
+        return g
+
+    g = governor()
+    labels, t = feed(g, 0.0, 3.0, cost, needed=(6, 8), floor=(3, 4))
+    assert labels[-1].startswith("temporal ") and all(not x.startswith("wiener") for x in labels[-100:])
+    labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 3.0), needed=(6, 8), floor=(3, 4))
+    assert labels[-1].startswith("wiener ") and labels[-100:].count(labels[-1]) == 100
+    assert not any(x == "temporal" or x.startswith("temporal 2×3") for x in labels)
+    g = governor()
+    labels, t = feed(g, 0.0, 6.0, lambda f, c: cost(f, c, 3.0), needed=(6, 8))
+    assert labels[-1] == "temporal"

@@ -51,9 +51,9 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
 
 
 def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
-                deblur: DeblurConfig) -> tuple[int, int]:
-    """The coarsest kernel grid (rows, cols) over which one kernel per cell is within
-    ``deblur.grid_tol_px`` of the true kernel everywhere in its cell; (1, 1) = uniform blur.
+                deblur: DeblurConfig, tol_px: float | None = None) -> tuple[int, int]:
+    """The coarsest kernel grid (rows, cols) over which one kernel per cell is within `tol_px`
+    (default ``deblur.grid_tol_px``) of the true kernel everywhere in its cell; (1, 1) = uniform blur.
 
     ``mode = "uniform"`` → (1, 1); ``"grid"`` → ``deblur.grid``; ``"adaptive"`` decides from the
     gyro. Physics: a camera rotating at ω moves the pixel at p (relative to the principal point,
@@ -99,8 +99,9 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
         h = 0.5 * np.hypot(h_img / rows, w_img / cols)
         return t_eff * (roll * h + perp * max(2 * r_max * h - h * h, 0.0) / f)
 
+    tol = deblur.grid_tol_px if tol_px is None else float(tol_px)
     for g in reversed(coarser_grids(tuple(deblur.grid), w_img / h_img)):
-        if deviation_px(*g) <= deblur.grid_tol_px:
+        if deviation_px(*g) <= tol:
             return g
     return tuple(deblur.grid)
 

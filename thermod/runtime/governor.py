@@ -27,10 +27,14 @@ queue pass frames through as ``overload`` (counted).
 Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
-A coarsening rung above the last (``temporal``) gives up its grid for the budget, but its method
-only when even one kernel is predicted above ``keep_s = workers / frame rate × (1 − headroom)``,
-the longest solve the workers keep up with: between the two it runs on one kernel, over the latency
-budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
+A coarsening rung above the last (``temporal``) gives up its grid for the budget, but only down to
+the frame's floor: the coarsest grid whose kernels are within ``temporal_tol_px`` (1 px) of the true
+one in every cell. Below it the kernel error costs more than the temporal prior gains: on the
+simulator's multirotor roll at NETD 50 mK the rung over 3×4 gained 1.2 dB over Wiener over the grid
+the roll needs, over one kernel it lost 4.5 dB (benchmarks/results/temporal_daemon.md). It gives its
+method up only when even its floor is predicted above ``keep_s = workers / frame rate × (1 −
+headroom)``, the longest solve the workers keep up with: between the two it runs on its floor, over
+the latency budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
 load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
 lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md). The keep rule's
 prediction uses the median load of the last `KEEP_S` of solves (every key's), so a burst of load
@@ -162,7 +166,7 @@ class Governor:
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
-        self._needed: collections.deque = collections.deque()   # (time, grid) of the recent frames
+        self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
 
@@ -242,64 +246,79 @@ class Governor:
             self._ref, self.load = refs, load
 
     # ------------------------------------------------------------------ decisions
-    def _fits(self, i: int, needed: tuple[int, int], limit: float) -> tuple[int, int] | None:
-        """The grid rung i solves a frame needing `needed` with, if its predicted cost is within
-        `limit`, else None: `needed` itself (the last rung: the finest grid ≤ needed that fits)."""
+    def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> list[tuple[int, int]]:
+        """The grids rung i may solve a frame needing `needed` with, finest first: `needed` itself, or
+        (a coarsening rung) the coarser ones too, down to `floor` for a rung above the last."""
         r = self.rungs[i]
         if not r.varying:
-            grids = [(1, 1)]
-        elif r.coarsens:
-            grids = coarser_grids(needed, self.aspect)
-        else:
-            grids = [needed]
+            return [(1, 1)]
+        if not r.coarsens:
+            return [needed]
+        grids = coarser_grids(needed, self.aspect)
+        if i < len(self.rungs) - 1:
+            grids = [g for g in grids if g[0] * g[1] >= floor[0] * floor[1]] or [needed]
+        return grids
+
+    def _fits(self, i: int, needed: tuple[int, int], limit: float,
+              floor: tuple[int, int] = (1, 1)) -> tuple[int, int] | None:
+        """The grid rung i solves a frame needing `needed` with, if its predicted cost is within
+        `limit`, else None: `needed` itself (a coarsening rung: the finest grid of `_grids` that fits)."""
+        r = self.rungs[i]
+        grids = self._grids(i, needed, floor)
         fam = self.family(r)
         for g in grids:
             if self._predict(fam, g[0] * g[1]) <= limit:
                 return g
         return None
 
-    def _keeps(self, i: int) -> bool:
-        """Whether rung i, a coarsening rung above the last, keeps its method on one kernel: its
-        one-kernel solve is predicted within `keep_s` (the workers keep up with the frame rate) at the
-        load of the last `KEEP_S` (a burst shorter than about half of it moves that median little)."""
+    def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
+        """The coarsest grid rung i, a coarsening rung above the last, keeps its method on when none
+        fits the budget: its solve there is predicted within `keep_s` (the workers keep up with the
+        frame rate) at the load of the last `KEEP_S` (a burst shorter than about half of it moves that
+        median little). None: it gives its method up."""
         r = self.rungs[i]
         if not r.coarsens or i >= len(self.rungs) - 1:
-            return False
-        return self._reference(self.family(r), 1) * self._keep_load() <= self.keep_s
+            return None
+        g = self._grids(i, needed, floor)[-1]
+        return g if self._reference(self.family(r), g[0] * g[1]) * self._keep_load() <= self.keep_s else None
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
         return statistics.median(x for _, x in self._ratios) if len(self._ratios) >= MIN_SOLVES else self.load
 
-    def choose(self, needed: tuple[int, int], now: float) -> Choice:
-        """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform)."""
+    def choose(self, needed: tuple[int, int], now: float, floor: tuple[int, int] = (1, 1)) -> Choice:
+        """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform); a
+        coarsening rung above the last coarsens it no further than `floor` (the grid within
+        ``temporal_tol_px``: beyond it the kernel error costs more than the temporal prior gains)."""
         with self._lock:
             if not self.enabled:
                 r = self.rungs[0]
                 return Choice(r, needed if r.varying else (1, 1), 0)
             recent = self._needed
-            recent.append((now, tuple(needed)))
+            recent.append((now, tuple(needed), tuple(floor)))
             while recent and recent[0][0] < now - NEEDED_S:
                 recent.popleft()
-            worst = max((g for _, g in recent), key=lambda g: g[0] * g[1])
-            over = self._fits(self.index, worst, self.budget_s) is None and not self._keeps(self.index)
+            worst = max((g for _, g, _ in recent), key=lambda g: g[0] * g[1])
+            worst_floor = max((f for _, _, f in recent), key=lambda g: g[0] * g[1])
+            over = (self._fits(self.index, worst, self.budget_s, worst_floor) is None
+                    and self._keeps(self.index, worst, worst_floor) is None)
             if over:                                                       # over budget: step down now
                 i = self.index + 1
-                while i < len(self.rungs) - 1 and self._fits(i, worst, self.budget_s) is None:
+                while i < len(self.rungs) - 1 and self._fits(i, worst, self.budget_s, worst_floor) is None:
                     i += 1
                 if i < len(self.rungs):
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 for i in range(self.index):                       # best rung that fits with margin
-                    if self._fits(i, worst, self.budget_s * (1 - self.margin)) is not None:
+                    if self._fits(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
                         self._move(i, now)
                         break
-            i, g = self.index, self._fits(self.index, needed, self.budget_s)
-            if g is None and self._keeps(i):
-                g = (1, 1)
+            i, g = self.index, self._fits(self.index, needed, self.budget_s, floor)
+            if g is None:
+                g = self._keeps(i, needed, floor)
             while g is None and i < len(self.rungs) - 1:              # this frame only: a cheaper rung
                 i += 1
-                g = self._fits(i, needed, self.budget_s)
+                g = self._fits(i, needed, self.budget_s, floor)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
@@ -314,8 +333,9 @@ class Governor:
         with self._lock:
             if not self.enabled or self.index >= len(self.rungs) - 1:
                 return
-            worst = max((g for _, g in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
-            if self._fits(self.index, worst, self.budget_s * (1 - self.margin)) is not None:
+            worst = max((g for _, g, _ in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
+            floor = max((f for _, _, f in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
+            if self._fits(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
             self.counts["overload_steps"] += 1

@@ -482,7 +482,8 @@ class Pipeline:
             return
         try:
             needed = grid_needed(w.t, w.rate, s.calib, slot.t, s.deblur)
-            choice = self.governor.choose(needed, time.monotonic())
+            floor = grid_needed(w.t, w.rate, s.calib, slot.t, s.deblur, tol_px=s.deblur.temporal_tol_px)
+            choice = self.governor.choose(needed, time.monotonic(), floor)
             g = choice.grid
             deblur = dataclasses.replace(s.deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
             kernel, info = self._render(w.t, w.rate, s.calib, slot.t, deblur)
