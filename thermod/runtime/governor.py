@@ -28,10 +28,11 @@ Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N worker
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
 A coarsening rung above the last (``temporal``) gives up its grid for the budget, but only down to
-the frame's floor: the coarsest grid whose kernels are within ``temporal_tol_px`` (1 px) of the true
+the frame's floor: the coarsest grid whose kernels are within ``temporal_tol_px`` (2 px) of the true
 one in every cell. Below it the kernel error costs more than the temporal prior gains: on the
-simulator's multirotor roll at NETD 50 mK the rung over 3×4 gained 1.2 dB over Wiener over the grid
-the roll needs, over one kernel it lost 4.5 dB (benchmarks/results/temporal_daemon.md). It gives its
+simulator's truth, the rung on a grid more than 2 px off lost 1.4–14.7 dB against Wiener over the
+grid the roll needs (benchmarks/results/temporal_daemon.md). The rung is judged on the median floor
+of the last second; a frame whose own floor it cannot afford goes to Wiener alone. It gives its
 method up only when even its floor is predicted above ``keep_s = workers / frame rate × (1 −
 headroom)``, the longest solve the workers keep up with: between the two it runs on its floor, over
 the latency budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
@@ -299,7 +300,10 @@ class Governor:
             while recent and recent[0][0] < now - NEEDED_S:
                 recent.popleft()
             worst = max((g for _, g, _ in recent), key=lambda g: g[0] * g[1])
-            worst_floor = max((f for _, _, f in recent), key=lambda g: g[0] * g[1])
+            # the rung is judged on the median floor: frames whose roll asks for a finer one than the
+            # rung affords go to the next rung one by one (below), not the whole stream
+            floors = sorted((f for _, _, f in recent), key=lambda g: g[0] * g[1])
+            worst_floor = floors[len(floors) // 2]
             over = (self._fits(self.index, worst, self.budget_s, worst_floor) is None
                     and self._keeps(self.index, worst, worst_floor) is None)
             if over:                                                       # over budget: step down now
@@ -334,7 +338,8 @@ class Governor:
             if not self.enabled or self.index >= len(self.rungs) - 1:
                 return
             worst = max((g for _, g, _ in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
-            floor = max((f for _, _, f in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
+            floors = sorted((f for _, _, f in self._needed), key=lambda g: g[0] * g[1]) or [(1, 1)]
+            floor = floors[len(floors) // 2]
             if self._fits(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
