@@ -51,9 +51,16 @@ def render(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_fram
 
 
 def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
-                deblur: DeblurConfig, tol_px: float | None = None) -> tuple[int, int]:
-    """The coarsest kernel grid (rows, cols) over which one kernel per cell is within `tol_px`
-    (default ``deblur.grid_tol_px``) of the true kernel everywhere in its cell; (1, 1) = uniform blur.
+                deblur: DeblurConfig) -> tuple[int, int]:
+    """The coarsest kernel grid (rows, cols) over which one kernel per cell is within
+    ``deblur.grid_tol_px`` of the true kernel everywhere in its cell (`grids_within`)."""
+    return grids_within(gyro_t, gyro_rate, calib, t_frame, deblur, (deblur.grid_tol_px,))[0]
+
+
+def grids_within(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t_frame: float,
+                 deblur: DeblurConfig, tols_px: tuple[float, ...]) -> tuple[tuple[int, int], ...]:
+    """For each tolerance in `tols_px`, the coarsest kernel grid (rows, cols) over which one kernel
+    per cell is within it of the true kernel everywhere in its cell; (1, 1) = uniform blur.
 
     ``mode = "uniform"`` → (1, 1); ``"grid"`` → ``deblur.grid``; ``"adaptive"`` decides from the
     gyro. Physics: a camera rotating at ω moves the pixel at p (relative to the principal point,
@@ -68,18 +75,18 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
     centroid and spread move by that rate times the kernel's effective duration t_eff (τ for the
     thermal kernel of Eq. 18, whose weights decay as e^(−s/τ); half the exposure for the photon box
     of Eq. 17). The rates are the kernel-weighted means of |ω_z| and ω_⊥ over the frame's window
-    (calibrated camera frame). A cell's half-diagonal h must keep t_eff·(…) ≤ grid_tol_px; grids
-    are tried coarse to fine (1×1, 2×3, 3×4, … 6×8 on a 4:3 sensor) up to ``deblur.grid``.
+    (calibrated camera frame). A cell's half-diagonal h must keep t_eff·(…) within the tolerance;
+    grids are tried coarse to fine (1×1, 2×3, 3×4, … 6×8 on a 4:3 sensor) up to ``deblur.grid``.
     """
     if deblur.mode == "uniform":
-        return (1, 1)
+        return ((1, 1),) * len(tols_px)
     if deblur.mode == "grid":
-        return tuple(deblur.grid)
+        return (tuple(deblur.grid),) * len(tols_px)
     t_cam, w = calib.gyro_to_camera(gyro_t, gyro_rate)
     t0, t1 = kernel_window(calib, deblur, t_frame)
     sel = (t_cam > t0) & (t_cam <= t1)
     if not np.any(sel):
-        return (1, 1)
+        return ((1, 1),) * len(tols_px)
     age = t_frame - t_cam[sel]
     if deblur.kernel == "photon":
         t_eff = 0.5 * (deblur.exposure_s or default_photon_exposure_s(calib.frame_rate_hz))
@@ -99,11 +106,10 @@ def grid_needed(gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration, t
         h = 0.5 * np.hypot(h_img / rows, w_img / cols)
         return t_eff * (roll * h + perp * max(2 * r_max * h - h * h, 0.0) / f)
 
-    tol = deblur.grid_tol_px if tol_px is None else float(tol_px)
-    for g in reversed(coarser_grids(tuple(deblur.grid), w_img / h_img)):
-        if deviation_px(*g) <= tol:
-            return g
-    return tuple(deblur.grid)
+    grids = coarser_grids(tuple(deblur.grid), w_img / h_img)[::-1]      # coarse to fine
+    deviations = [deviation_px(*g) for g in grids]
+    return tuple(next((g for g, d in zip(grids, deviations, strict=True) if d <= tol), tuple(deblur.grid))
+                 for tol in tols_px)
 
 
 def solved_grid(deconv, kernel) -> tuple[int, int]:

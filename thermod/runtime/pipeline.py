@@ -11,14 +11,14 @@ For every frame k read at t_k (camera clock) the scheduler
    temporal), each solving in a child process of its own (`thermod.runtime.solvers`: the daemon's
    other threads do not hold its GIL), so N workers use N cores.
 
-Spatially varying blur (``mode = "adaptive"``, the default): `grid_needed` chooses, per frame,
-the kernel grid the roll in its window calls for ((1, 1) when the blur is uniform: one kernel, no
-extra cost; a rendered grid whose kernels all lie within 0.5 px of the central one is solved as
-that one kernel by the deconvolver: `solved_grid`). The governor (`thermod.runtime.governor`) then
-picks the best method over that grid — temporal (over Wiener), Wiener alone; or without temporal
-rungs K&F, K&F in fewer steps, Wiener (the Wiener-based rungs coarsen the grid when it does not
-fit) — that the measured solve cost allows within the
-frame budget; each frame says which in `FrameOut.method` / ``grid``.
+Spatially varying blur (``mode = "adaptive"``, the default): `grids_within` chooses, per frame, the
+kernel grid the roll in its window calls for, and the temporal rung's floor ((1, 1) when the blur is
+uniform: one kernel, no extra cost; a rendered grid whose kernels all lie within 0.5 px of the central
+one is solved as that one kernel by the deconvolver: `solved_grid`). The governor
+(`thermod.runtime.governor`) then picks the best method over that grid — temporal (over Wiener), Wiener
+alone; or without temporal rungs K&F, K&F in fewer steps, Wiener (the Wiener-based rungs coarsen the
+grid when it does not fit) — that the measured solve cost allows within the frame budget; each frame
+says which in `FrameOut.method` / ``grid``.
 
 Temporal rungs (`thermod.physics.deconv.recursive`): frame k's solve takes the newest restored frame
 before it as its prior, gyro-warped into frame k's geometry. Workers keep the restored frames of the
@@ -77,7 +77,7 @@ from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.restore.plan import (
     coarser_grids,
-    grid_needed,
+    grids_within,
     kernel_window,
     make_deconvolver,
     render,
@@ -481,8 +481,9 @@ class Pipeline:
                               {"coverage": 0.0, "n_samples": len(w)})
             return
         try:
-            needed = grid_needed(w.t, w.rate, s.calib, slot.t, s.deblur)
-            floor = grid_needed(w.t, w.rate, s.calib, slot.t, s.deblur, tol_px=s.deblur.temporal_tol_px)
+            # the grid the roll needs, and the coarsest the temporal rung may use (its floor)
+            needed, floor = grids_within(w.t, w.rate, s.calib, slot.t, s.deblur,
+                                         (s.deblur.grid_tol_px, s.deblur.temporal_tol_px))
             choice = self.governor.choose(needed, time.monotonic(), floor)
             g = choice.grid
             deblur = dataclasses.replace(s.deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
