@@ -29,13 +29,12 @@ in N frame periods, so a solve may last that long without a queue building up; `
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
 A coarsening rung above the last (``temporal``) gives up its grid for the budget, but only down to
 the frame's floor: the coarsest grid whose kernels are within ``temporal_tol_px`` (2 px) of the true
-one in every cell. Below it the kernel error costs more than the temporal prior gains: on the
-simulator's truth, the rung on a grid more than 2 px off lost 1.4–14.7 dB against Wiener over the
-grid the roll needs (benchmarks/results/temporal_daemon.md). The rung is judged on the median floor
-of the last second; a frame whose own floor it cannot afford goes to Wiener alone. It gives its
-method up only when even its floor is predicted above ``keep_s = workers / frame rate × (1 −
+one in every cell. Below it the kernel error costs more than the temporal prior gains (measured on
+the simulator's truth: benchmarks/results/temporal_daemon.md). The rung is judged on the median
+floor of the last second; a frame whose own floor it cannot afford goes to Wiener alone. It gives
+its method up only when even its floor is predicted above ``keep_s = workers / frame rate × (1 −
 headroom)``, the longest solve the workers keep up with: between the two it runs on its floor, over
-the latency budget. On two cores the temporal rung's one-kernel solve sits near the budget and the machine's
+the latency budget. On two cores the temporal rung's solve sits near the budget and the machine's
 load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
 lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md). The keep rule's
 prediction uses the median load of the last `KEEP_S` of solves (every key's), so a burst of load
@@ -287,6 +286,15 @@ class Governor:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
         return statistics.median(x for _, x in self._ratios) if len(self._ratios) >= MIN_SOLVES else self.load
 
+    def _recent_grids(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """(the finest grid needed, the median floor) over the last `NEEDED_S`: rungs are judged on
+        both. On the median floor, frames whose roll asks for a finer one than the rung affords go to
+        the next rung one by one (`choose`), not the whole stream."""
+        cells = lambda g: g[0] * g[1]  # noqa: E731
+        worst = max((g for _, g, _ in self._needed), key=cells, default=(1, 1))
+        floors = sorted((f for _, _, f in self._needed), key=cells) or [(1, 1)]
+        return worst, floors[len(floors) // 2]
+
     def choose(self, needed: tuple[int, int], now: float, floor: tuple[int, int] = (1, 1)) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform); a
         coarsening rung above the last coarsens it no further than `floor` (the grid within
@@ -299,11 +307,7 @@ class Governor:
             recent.append((now, tuple(needed), tuple(floor)))
             while recent and recent[0][0] < now - NEEDED_S:
                 recent.popleft()
-            worst = max((g for _, g, _ in recent), key=lambda g: g[0] * g[1])
-            # the rung is judged on the median floor: frames whose roll asks for a finer one than the
-            # rung affords go to the next rung one by one (below), not the whole stream
-            floors = sorted((f for _, _, f in recent), key=lambda g: g[0] * g[1])
-            worst_floor = floors[len(floors) // 2]
+            worst, worst_floor = self._recent_grids()
             over = (self._fits(self.index, worst, self.budget_s, worst_floor) is None
                     and self._keeps(self.index, worst, worst_floor) is None)
             if over:                                                       # over budget: step down now
@@ -337,9 +341,7 @@ class Governor:
         with self._lock:
             if not self.enabled or self.index >= len(self.rungs) - 1:
                 return
-            worst = max((g for _, g, _ in self._needed), key=lambda g: g[0] * g[1], default=(1, 1))
-            floors = sorted((f for _, _, f in self._needed), key=lambda g: g[0] * g[1]) or [(1, 1)]
-            floor = floors[len(floors) // 2]
+            worst, floor = self._recent_grids()
             if self._fits(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
