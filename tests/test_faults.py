@@ -260,7 +260,8 @@ def test_camera_stall_reconnects(rig):
     h = wait_health(rig, lambda h: h["devices"]["camera"]["state"] == "running")
     assert d.camera_state.restarts >= r0 + 1
     got = frames_after(rig, t + 1.8, lambda got: len(got) >= 40 and any(x["deblurred"] for x in got))
-    assert deblurring(got)
+    assert deblurring(got), collections.Counter((x["reason"], x["camera_gap_before"]) for x in got
+                                                if not x["deblurred"])
     h = d.health()
     assert h["drops"]["camera_frames_lost"] >= lost0 + 60            # ~1.6 s at 50 fps, as id gaps
     assert any(x["camera_gap_before"] >= 50 for x in frames_after(rig, t, lambda got: True))

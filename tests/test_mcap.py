@@ -500,7 +500,10 @@ def test_record_mcap_from_the_running_simulated_daemon(tmp_path):
     assert got[mcap.DEBLURRED_TOPIC][0][3].encoding == "32FC1"
     gyro_t = np.array([mcap.from_stamp(d.header.stamp) for *_, d in got[mcap.IMU_TOPIC]])
     assert (len(gyro_t) - 1) / (gyro_t[-1] - gyro_t[0]) == pytest.approx(1000.0, abs=5.0)
-    assert gyro_t[0] < t[1] and gyro_t[-1] > t[-2]  # the gyro covers the frames
+    # the gyro covers the frames: from the first on, and to within a quarter second of the last (the
+    # recorder stops at a wall time; a loaded daemon publishes the gyro batches tens of ms after the
+    # frames they cover, and those still queued then are not written)
+    assert gyro_t[0] < t[1] and gyro_t[-1] > t[-1] - 0.25, (gyro_t[0] - t[0], gyro_t[-1] - t[-1])
     assert meta["thermod"]["calibration_source"] == "health"
     assert cli.main(["import", str(out), "-o", str(tmp_path / "live.h5")]) == 0
     rec = recording.read(tmp_path / "live.h5")
