@@ -413,3 +413,22 @@ def test_the_temporal_rung_coarsens_no_further_than_its_tolerance():
     g = governor()
     labels, t = feed(g, 0.0, 6.0, lambda f, c: cost(f, c, 3.0), needed=(6, 8))
     assert labels[-1] == "temporal"
+
+
+def test_the_last_rung_keeps_its_floor_over_the_latency_budget():
+    """Large frames: Wiener over the 3×4 floor costs 30 ms, over the 25.5 ms latency budget but within
+    the 34 ms the workers keep up with; one kernel (20 ms) would fit the budget but misplaces the
+    corners' kernels by more than `temporal_tol_px`. The frames keep the floor. When even the floor
+    is above 34 ms, the finest grid that fits the budget is the last resort."""
+    def cost(fam, cells, load=1.0):
+        return load * (20 + 10 * (cells - 1) / 11) / 1e3          # 20 ms one kernel, 30 ms over 3×4
+
+    g = Governor(DeblurConfig(method="wiener", temporal_views=1), FPS, 2)
+    for cells in (1, 6, 12, 48):
+        g.seed("wiener", cells, cost("wiener", cells))
+    labels, t = feed(g, 0.0, 3.0, cost, needed=(6, 8), floor=(3, 4))
+    assert labels[-100:].count("wiener 3×4") == 100
+    labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 1.2), needed=(6, 8), floor=(3, 4))
+    assert labels[-1] == "wiener" and labels[-100:].count("wiener") == 100     # 36 ms over 3×4: gone
+    labels, t = feed(g, t, 6.0, cost, needed=(6, 8), floor=(1, 1))
+    assert labels[-1] == "wiener 2×3"                  # a floor of one kernel: the finest grid within budget

@@ -246,38 +246,39 @@ class Governor:
             self._ref, self.load = refs, load
 
     # ------------------------------------------------------------------ decisions
-    def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> list[tuple[int, int]]:
+    def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
+               beyond_floor: bool = False) -> list[tuple[int, int]]:
         """The grids rung i may solve a frame needing `needed` with, finest first: `needed` itself, or
-        (a coarsening rung) the coarser ones too, down to `floor` for a rung above the last."""
+        (a coarsening rung) the coarser ones too, down to `floor` (`beyond_floor`: to one kernel)."""
         r = self.rungs[i]
         if not r.varying:
             return [(1, 1)]
         if not r.coarsens:
             return [needed]
         grids = coarser_grids(needed, self.aspect)
-        if i < len(self.rungs) - 1:
-            grids = [g for g in grids if g[0] * g[1] >= floor[0] * floor[1]] or [needed]
-        return grids
+        if beyond_floor:
+            return grids
+        return [g for g in grids if g[0] * g[1] >= floor[0] * floor[1]] or [needed]
 
-    def _fits(self, i: int, needed: tuple[int, int], limit: float,
-              floor: tuple[int, int] = (1, 1)) -> tuple[int, int] | None:
+    def _fits(self, i: int, needed: tuple[int, int], limit: float, floor: tuple[int, int] = (1, 1),
+              beyond_floor: bool = False) -> tuple[int, int] | None:
         """The grid rung i solves a frame needing `needed` with, if its predicted cost is within
         `limit`, else None: `needed` itself (a coarsening rung: the finest grid of `_grids` that fits)."""
         r = self.rungs[i]
-        grids = self._grids(i, needed, floor)
         fam = self.family(r)
-        for g in grids:
+        for g in self._grids(i, needed, floor, beyond_floor):
             if self._predict(fam, g[0] * g[1]) <= limit:
                 return g
         return None
 
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
-        """The coarsest grid rung i, a coarsening rung above the last, keeps its method on when none
-        fits the budget: its solve there is predicted within `keep_s` (the workers keep up with the
-        frame rate) at the load of the last `KEEP_S` (a burst shorter than about half of it moves that
-        median little). None: it gives its method up."""
+        """The coarsest grid rung i, a coarsening rung, keeps when none fits the budget: its floor (the
+        grid within ``temporal_tol_px``), if its solve there is predicted within `keep_s` (the workers
+        keep up with the frame rate) at the load of the last `KEEP_S` (a burst shorter than about half
+        of it moves that median little). None: a rung above the last gives its method up, the last
+        its floor (`choose`)."""
         r = self.rungs[i]
-        if not r.coarsens or i >= len(self.rungs) - 1:
+        if not r.coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
         return g if self._reference(self.family(r), g[0] * g[1]) * self._keep_load() <= self.keep_s else None
@@ -321,12 +322,13 @@ class Governor:
                     if self._fits(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
                         self._move(i, now)
                         break
-            i, g = self.index, self._fits(self.index, needed, self.budget_s, floor)
-            if g is None:
-                g = self._keeps(i, needed, floor)
+            i = self.index
+            g = self._fits(i, needed, self.budget_s, floor) or self._keeps(i, needed, floor)
             while g is None and i < len(self.rungs) - 1:              # this frame only: a cheaper rung
                 i += 1
                 g = self._fits(i, needed, self.budget_s, floor)
+            if g is None:             # the last rung: its floor within keep_s, else whatever grid fits
+                g = self._keeps(i, needed, floor) or self._fits(i, needed, self.budget_s, floor, True)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
