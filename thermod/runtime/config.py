@@ -234,7 +234,7 @@ DEBLUR = with_defaults(DeblurConfig, {
     "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
     "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
     "temporal_tol_px": Key(float, lo=0.05, hi=100.0, doc="governor: kernel shift across a cell (px) up to "
-                           "which the temporal rung coarsens its grid (beyond: Wiener over the grid)"),
+                           "which a rung coarsens its grid while the workers keep up (the floor)"),
     "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
     "temporal_views": Key(int, lo=1, hi=16, doc="offline: frames per temporal solve, the frame itself "
                           "included; daemon: > 1 puts the recursive temporal rungs on the governor's "

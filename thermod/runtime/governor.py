@@ -27,18 +27,19 @@ queue pass frames through as ``overload`` (counted).
 Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
 in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
 bounds it further for latency (frame → published ≤ wait for the gyro + solve).
-A coarsening rung above the last (``temporal``) gives up its grid for the budget, but only down to
-the frame's floor: the coarsest grid whose kernels are within ``temporal_tol_px`` (2 px) of the true
-one in every cell. Below it the kernel error costs more than the temporal prior gains (measured on
-the simulator's truth: benchmarks/results/temporal_daemon.md). The rung is judged on the median
-floor of the last second; a frame whose own floor it cannot afford goes to Wiener alone. It gives
-its method up only when even its floor is predicted above ``keep_s = workers / frame rate × (1 −
-headroom)``, the longest solve the workers keep up with: between the two it runs on its floor, over
-the latency budget. On two cores the temporal rung's solve sits near the budget and the machine's
-load moves it by a fifth within seconds; stepping down at the budget gave it up in each burst and
-lost most of a run to the climbs' growing hold (benchmarks/results/daemon.md). The keep rule's
-prediction uses the median load of the last `KEEP_S` of solves (every key's), so a burst of load
-shorter than about a second does not give the method up either.
+A coarsening rung gives up its grid for the budget, but only down to the frame's floor: the
+coarsest grid whose kernels are within ``temporal_tol_px`` (2 px) of the true one in every cell.
+Below it the kernel error costs more than the temporal prior gains, and more than the budget's
+latency is worth (one kernel instead of the needed grid: 1.4–14.7 dB below Wiener over it, and 5.5
+dB at 1280×1024: benchmarks/results/temporal_daemon.md, daemon.md). When no grid down to the floor
+fits the budget, the rung keeps the floor while it is predicted within ``keep_s = workers / frame
+rate × (1 − headroom)``, the longest solve the workers keep up with: between the two it runs on its
+floor, over the latency budget, because on two cores the temporal solve sits near the budget and the
+load moves it by a fifth within seconds. Beyond ``keep_s`` a rung above the last gives its method
+up; the last rung, with nothing cheaper, takes the finest grid that fits the budget. Rungs are
+judged on the median floor of the last second; a frame whose own floor the rung cannot afford goes
+to the next rung alone. The keep rule predicts with the median load of the last `KEEP_S` of solves
+(every key's), so a burst of load shorter than about a second does not give the method up.
 
 Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
 a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
