@@ -33,6 +33,10 @@ payload's truth (`SimPayload.truth_for`; the central 80 % of the frame, and the 
 truth's 0.1–99.9 % range there), with the machine's load average; beside it the whole-frame PSNR of
 offline K&F on the same frames, over the grid each needs with its true kernels (`OfflineKF`).
 
+`--offline [--size W×H --rate F]`: the payload's loop solved offline on one core with its true
+kernels, no budget: Wiener and K&F over the grid each frame needs and the temporal solve over its
+floor; whole-frame PSNR and CPU per frame (what each method would give if the daemon could afford it).
+
 Latency is the publisher's ``published`` stamp minus the frame's ``t`` (both host CLOCK_MONOTONIC,
 the same clock for daemon and subscriber on one machine). The first 3 s after READY are not
 counted (plan caches, clock fits settling).
@@ -225,6 +229,37 @@ def truth_psnr(img: np.ndarray, truth: np.ndarray, central: bool = True) -> floa
     return 10 * np.log10((hi - lo) ** 2 / mse)
 
 
+def true_motion(loop, frame_id: int) -> tuple[float, np.ndarray, np.ndarray]:
+    """(t, gyro_t, gyro_rate): delivered frame `frame_id`'s read time on the loop's camera clock and
+    the loop's own gyro samples around it (its true motion, on the true calibration's gyro clock)."""
+    c, j = loop.true_calib, int(frame_id) - 1
+    t = float(loop.t[j % len(loop.t)]) + (j // len(loop.t)) * loop.period_s
+    tc = np.arange(t - 0.2, t + 0.01, 1e-3)
+    return t, np.asarray(c.camera_time_to_gyro(tc), np.float64), np.asarray(loop.rate_gyro(tc), np.float32)
+
+
+def true_kernels(loop, deblur, t: float, gyro_t, gyro_rate) -> tuple:
+    """The true kernels of a frame over the grid it needs (``grid_tol_px``) and over its floor
+    (``temporal_tol_px``), as the daemon's governor names them."""
+    from thermod.restore.plan import grids_within, render
+
+    c = loop.true_calib
+    grids = grids_within(gyro_t, gyro_rate, c, t, deblur, (deblur.grid_tol_px, deblur.temporal_tol_px))
+    out = []
+    for g in grids:
+        d = dataclasses.replace(deblur, mode="uniform") if g == (1, 1) else \
+            dataclasses.replace(deblur, mode="grid", grid=g)
+        out.append(render(gyro_t, gyro_rate, c, t, d)[0])
+    return tuple(out)
+
+
+def solve(deconvolver, frame, kernel):
+    """A single-frame solve over one kernel or a grid."""
+    if hasattr(kernel, "kernels"):
+        return deconvolver.run_varying(frame, kernel)
+    return deconvolver.run(frame, kernel)
+
+
 class OfflineKF:
     """K&F alone over the kernel grid each frame needs (0.5 px), offline, on the payload's delivered
     frames with their true kernels (the loop's own motion and calibration): the issue's reference,
@@ -243,24 +278,68 @@ class OfflineKF:
         """(central 80 %, whole frame) PSNR of K&F on delivered frame `frame_id` against its truth."""
         got = self.cache.get(frame_id)
         if got is None:
-            from thermod.restore.plan import grid_needed, render
-
-            loop, c = self.loop, self.loop.true_calib
-            j = int(frame_id) - 1
-            t = float(loop.t[j % len(loop.t)]) + (j // len(loop.t)) * loop.period_s
-            tc = np.arange(t - 0.2, t + 0.01, 1e-3)
-            gyro_t = np.asarray(c.camera_time_to_gyro(tc), np.float64)
-            gyro_rate = np.asarray(loop.rate_gyro(tc), np.float32)
-            grid = grid_needed(gyro_t, gyro_rate, c, t, self.deblur)
-            deb = dataclasses.replace(self.deblur, mode="uniform") if grid == (1, 1) else \
-                dataclasses.replace(self.deblur, mode="grid", grid=grid)
-            kernel, _ = render(gyro_t, gyro_rate, c, t, deb)
-            frame = np.asarray(self.payload.frame_for(frame_id), np.float32)
-            grid_kernels = hasattr(kernel, "kernels")
-            out = self.kf.run_varying(frame, kernel) if grid_kernels else self.kf.run(frame, kernel)
+            t, gyro_t, gyro_rate = true_motion(self.loop, frame_id)
+            needed, _ = true_kernels(self.loop, self.deblur, t, gyro_t, gyro_rate)
+            out = solve(self.kf, np.asarray(self.payload.frame_for(frame_id), np.float32), needed)
             truth = self.payload.truth_for(frame_id)
             got = self.cache[frame_id] = (truth_psnr(out, truth), truth_psnr(out, truth, central=False))
         return got
+
+
+def offline(size: tuple[int, int], fps: float, frames: int = 70, warm: int = 10) -> list[dict]:
+    """The payload's loop solved offline, one core, no budget, with the true kernels: Wiener and K&F
+    over the grid each frame needs, and the temporal solve over its floor (frames in order, the
+    previous result as the prior). Whole-frame PSNR and thread CPU per frame, medians over `frames`
+    frames after `warm` (the temporal chain's start, plan caches)."""
+    import cv2
+
+    from thermod.physics.deconv import Deconvolver
+    from thermod.physics.deconv.recursive import RecursiveDeconvolver
+    from thermod.restore.settings import DeblurConfig
+    from thermod.runtime import config
+    from thermod.sim.payload import SimPayload
+
+    cv2.setNumThreads(1)
+    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
+    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
+    payload = SimPayload(cfg.sim, cfg.calibration)
+    payload.prepare()
+    loop, deblur = payload.loop, DeblurConfig()
+    wiener, kf = Deconvolver(method="wiener"), Deconvolver(method="kf")
+    rec, est = RecursiveDeconvolver(loop.true_calib, Deconvolver(method="wiener")), None
+    names = ("Wiener, needed grid", "temporal, floor grid", "K&F, needed grid")
+    psnr: dict[str, list] = {n: [] for n in names}
+    cpu: dict[str, list] = {n: [] for n in names}
+    for fid in range(1, warm + frames + 1):
+        t, gyro_t, gyro_rate = true_motion(loop, fid)
+        needed, floor = true_kernels(loop, deblur, t, gyro_t, gyro_rate)
+        frame = np.asarray(payload.frame_for(fid), np.float32)
+        c0 = time.thread_time()
+        x, est = rec.solve(frame, floor, t, gyro_t, gyro_rate, est)
+        outs = {names[1]: (x, time.thread_time() - c0)}
+        if fid <= warm:
+            continue
+        for name, dec in ((names[0], wiener), (names[2], kf)):
+            c0 = time.thread_time()
+            out = solve(dec, frame, needed)
+            outs[name] = (out, time.thread_time() - c0)
+        truth = payload.truth_for(fid)
+        for name, (out, sec) in outs.items():
+            psnr[name].append(truth_psnr(np.asarray(out, np.float32), truth, central=False))
+            cpu[name].append(sec)
+    return [{"size": size, "fps": fps, "method": n, "frames": len(psnr[n]),
+             "psnr": float(np.median(psnr[n])), "cpu_ms": 1e3 * float(np.median(cpu[n]))} for n in names]
+
+
+def print_offline(rows: list[dict]) -> None:
+    w, h = rows[0]["size"]
+    print(f"the payload's loop offline, {w}×{h} at {rows[0]['fps']:g} fps, true kernels, one core, no "
+          f"budget; the two cores leave {1e3 * 2 / rows[0]['fps']:.1f} ms of CPU per frame, the daemon's "
+          "parent process included")
+    print("| method | frames | whole-frame PSNR dB (median) | CPU ms per frame (median, one core) |")
+    print("|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['method']} | {r['frames']} | {r['psnr']:.2f} | {r['cpu_ms']:.1f} |")
 
 
 def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
@@ -483,6 +562,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=50.0, help="--temporal: the camera's frame rate (fps)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="--temporal: a configuration override for both daemons (repeatable)")
+    ap.add_argument("--offline", action="store_true",
+                    help="only the offline table at --size and --rate: each method's quality and CPU")
     ap.add_argument("--large", action="store_true",
                     help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
@@ -493,6 +574,9 @@ def main(argv=None) -> int:
             raise ValueError
     except ValueError:
         ap.error(f"--size: expected W×H such as 1280x1024, got {args.size!r}")
+    if args.offline:
+        print_offline(offline(size, args.rate))
+        return 0
     if args.large:
         print_large(*large(seconds))
         return 0
