@@ -117,6 +117,19 @@ def size_settings(size: tuple[int, int]) -> tuple[str, ...]:
     return (f"calibration.width={size[0]}", f"calibration.height={size[1]}")
 
 
+
+def prepared_payload(size: tuple[int, int], fps: float):
+    """The simulated payload the daemon runs at `size` and `fps` (its loop loaded, not started)."""
+    from thermod.runtime import config
+    from thermod.sim.payload import SimPayload
+
+    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
+    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
+    payload = SimPayload(cfg.sim, cfg.calibration)
+    payload.prepare()
+    return payload
+
+
 def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, cpus: str | None = None,
                extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480), keep_every: int = 0) -> dict:
     from thermod.client.subscriber import Subscriber
@@ -296,14 +309,9 @@ def offline(size: tuple[int, int], fps: float, frames: int | None = None, warm: 
     from thermod.physics.deconv import Deconvolver
     from thermod.physics.deconv.recursive import RecursiveDeconvolver
     from thermod.restore.settings import DeblurConfig
-    from thermod.runtime import config
-    from thermod.sim.payload import SimPayload
 
     cv2.setNumThreads(1)
-    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
-    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
-    payload = SimPayload(cfg.sim, cfg.calibration)
-    payload.prepare()
+    payload = prepared_payload(size, fps)
     loop, deblur = payload.loop, DeblurConfig()
     frames = payload.n_frames if frames is None else frames
     wiener, kf = Deconvolver(method="wiener"), Deconvolver(method="kf")
@@ -348,13 +356,7 @@ def temporal(seconds: float, fps: float = 50.0, repeats: int = 2,
              size: tuple[int, int] = (640, 480), overrides: tuple[str, ...] = ()) -> list[dict]:
     """The default daemon (temporal) and the single-frame default, interleaved; PSNR against the truth
     and, on the same frames, offline K&F's (`OfflineKF`)."""
-    from thermod.runtime import config
-    from thermod.sim.payload import SimPayload
-
-    sets = {k: int(v) for k, v in (e.split("=") for e in size_settings(size))}
-    cfg = config.load(overrides={**sets, "sim.frame_rate_hz": fps, "calibration.frame_rate_hz": fps})
-    payload = SimPayload(cfg.sim, cfg.calibration)
-    payload.prepare()
+    payload = prepared_payload(size, fps)
     reference = OfflineKF(payload)
     rows = []
     for rep in range(repeats):
@@ -392,14 +394,7 @@ def print_temporal(rows: list[dict]) -> None:
 
 def payload_cpu(seconds: float, size: tuple[int, int] = (640, 480), fps: float = 50.0) -> dict:
     """The simulated payload alone (camera loop + ICM-42688-P driver on its emulator), no pipeline."""
-    from thermod.runtime import config
-    from thermod.sim.payload import SimPayload
-
-    sets = dict(e.split("=") for e in size_settings(size))
-    cfg = config.load(overrides={**{k: int(v) for k, v in sets.items()}, "sim.frame_rate_hz": fps,
-                                 "calibration.frame_rate_hz": fps})
-    p = SimPayload(cfg.sim, cfg.calibration)
-    p.prepare()
+    p = prepared_payload(size, fps)
     p.start()
     gyro, cam = p.gyro_source(), p.camera_source()
     gyro.start()
