@@ -22,7 +22,7 @@ class DeblurConfig:
     mode: str = "adaptive"           # adaptive (grid from the roll, `plan.grid_needed`) | uniform | grid
     grid: tuple[int, int] = (6, 8)   # rows × cols (adaptive: the finest grid): near-square cells on 4:3
     grid_tol_px: float = 0.5         # adaptive: kernel shift allowed across a cell (px) before it is split
-    temporal_tol_px: float = 2.0     # governor: the temporal rung coarsens its grid to this kernel shift (px)
+    temporal_tol_px: float = 2.0     # governor: a rung coarsens its grid to this kernel shift (px), the floor
     kf_iterations: int | None = None  # K&F β steps (None: K&F's six); the governor's faster rung uses 3
     temporal_views: int = 6          # frames per solve, the frame itself included (1: single-frame solve)
     governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)

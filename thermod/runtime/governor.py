@@ -299,8 +299,8 @@ class Governor:
 
     def choose(self, needed: tuple[int, int], now: float, floor: tuple[int, int] = (1, 1)) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform); a
-        coarsening rung above the last coarsens it no further than `floor` (the grid within
-        ``temporal_tol_px``: beyond it the kernel error costs more than the temporal prior gains)."""
+        coarsening rung coarsens it no further than `floor` (the grid within ``temporal_tol_px``)
+        while the workers keep up there, the last rung beyond it only as a last resort."""
         with self._lock:
             if not self.enabled:
                 r = self.rungs[0]

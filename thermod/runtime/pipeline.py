@@ -12,9 +12,9 @@ For every frame k read at t_k (camera clock) the scheduler
    other threads do not hold its GIL), so N workers use N cores.
 
 Spatially varying blur (``mode = "adaptive"``, the default): `grids_within` chooses, per frame, the
-kernel grid the roll in its window calls for, and the temporal rung's floor ((1, 1) when the blur is
-uniform: one kernel, no extra cost; a rendered grid whose kernels all lie within 0.5 px of the central
-one is solved as that one kernel by the deconvolver: `solved_grid`). The governor
+kernel grid the roll in its window calls for and the floor the governor may coarsen it to ((1, 1)
+when the blur is uniform: one kernel, no extra cost; a rendered grid whose kernels all lie within
+0.5 px of the central one is solved as that one kernel by the deconvolver: `solved_grid`). The governor
 (`thermod.runtime.governor`) then picks the best method over that grid — temporal (over Wiener), Wiener
 alone; or without temporal rungs K&F, K&F in fewer steps, Wiener (the Wiener-based rungs coarsen the
 grid when it does not fit) — that the measured solve cost allows within the frame budget; each frame
@@ -481,7 +481,7 @@ class Pipeline:
                               {"coverage": 0.0, "n_samples": len(w)})
             return
         try:
-            # the grid the roll needs, and the coarsest the temporal rung may use (its floor)
+            # the grid the roll needs, and the coarsest the governor keeps while it keeps up (the floor)
             needed, floor = grids_within(w.t, w.rate, s.calib, slot.t, s.deblur,
                                          (s.deblur.grid_tol_px, s.deblur.temporal_tol_px))
             choice = self.governor.choose(needed, time.monotonic(), floor)
