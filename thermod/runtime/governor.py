@@ -323,13 +323,15 @@ class Governor:
                     if self._fits(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
                         self._move(i, now)
                         break
+            last = len(self.rungs) - 1
             i = self.index
             g = self._fits(i, needed, self.budget_s, floor) or self._keeps(i, needed, floor)
-            while g is None and i < len(self.rungs) - 1:              # this frame only: a cheaper rung
+            while g is None and i < last:                             # this frame only: a cheaper rung
                 i += 1
-                g = self._fits(i, needed, self.budget_s, floor)
-            if g is None:             # the last rung: its floor within keep_s, else whatever grid fits
-                g = self._keeps(i, needed, floor) or self._fits(i, needed, self.budget_s, floor, True)
+                g = self._fits(i, needed, self.budget_s, floor) or (self._keeps(i, needed, floor)
+                                                                     if i == last else None)
+            if g is None:             # the last rung, not even on its floor: whatever grid fits
+                g = self._fits(i, needed, self.budget_s, floor, True)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
