@@ -36,6 +36,9 @@ from thermod.errors import DeviceError
 from thermod.io.clock import ClockMapper
 
 GVCP_PORT = 3956
+# Aravis' heartbeat thread emits control-lost at most once, at the end of a check that retries a dead
+# camera's register for up to 5 s (ARV_GV_DEVICE_HEARTBEAT_RETRY_TIMEOUT_S) of GVCP reads of 2.5 s
+LAST_CONTROL_LOST_S = 8.0
 _GVCP_DISCOVERY_CMD = 0x0002
 _GVCP_DISCOVERY_ACK = 0x0003
 # Pixel formats whose pixels sit in little-endian 16-bit containers (PFNC codes).
@@ -341,7 +344,8 @@ class AravisCamera(CameraSource):
         else:
             # After a loss, releasing the device tries to give up control of a dead camera and blocks
             # for its GVCP retries (~8 s, GIL released): let a reaper thread wait for that, not poll().
-            threading.Thread(target=session.clear, name=f"{self.name} release", daemon=True).start()
+            threading.Thread(target=_release_lost, args=(session, self._lost), name=f"{self.name} release",
+                             daemon=True).start()
 
     def _on_lost(self, why: str) -> None:
         self.counters["disconnects"] += 1
@@ -546,6 +550,21 @@ def _read_number(dev, key: str) -> float | None:
 
 def _msg(e: Exception) -> str:
     return getattr(e, "message", None) or str(e)
+
+
+def _release_lost(session: list, lost: threading.Event) -> None:
+    """Release a lost camera's session ([camera, stream, device]) so that its last reference never
+    falls inside the heartbeat thread's control-lost emission: the emission holds a reference of its
+    own, and the device finalized there would join the heartbeat thread from itself (GLib error,
+    SIGTRAP; the race Aravis issue #50 describes for streams). Leaving control first stops new
+    heartbeat checks from emitting; one already under way emits within `LAST_CONTROL_LOST_S`."""
+    leave = getattr(session[2], "leave_control", None)      # a GigE Vision device's
+    if leave is not None and not lost.is_set():
+        _safe(leave)
+        lost.wait(LAST_CONTROL_LOST_S)
+    if lost.is_set():
+        time.sleep(0.2)       # the emission that set it returns through Aravis after our handler
+    session.clear()
 
 
 def _safe(fn):
