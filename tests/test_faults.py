@@ -117,12 +117,22 @@ def rig(tmp_path_factory):
     frames.join(5)
 
 
-def deblurring(frames):
+def deblurring(frames, before=None, after=None):
     """Every frame deblurred, or passed through only because the deconvolution workers were busy
     (``overload``: how many depends on the machine's speed, so it is not asserted); never for a
-    gyro reason; and some frames deblurred."""
+    gyro reason the load does not explain; and some frames deblurred.
+
+    Given the health reports `before` and `after` the frames, a gyro reason is explained by a
+    counted starvation of the gyro reader in between (it shares this process with the rig's
+    subscriber and the test runner): a FIFO overflow (``gyro_gap``) or an outage (``gyro_offline``)."""
+    allowed = {"overload"}
+    if before is not None and after is not None:
+        if after["drops"]["gyro_gaps"] > before["drops"]["gyro_gaps"]:
+            allowed |= {"gyro_gap", "gyro_incomplete"}      # and the frames whose window meets the gap
+        if after["daemon"].get("gyro_outages", 0) > before["daemon"].get("gyro_outages", 0):
+            allowed |= {"gyro_offline", "gyro_incomplete"}
     reasons = collections.Counter(x["reason"] for x in frames if not x["deblurred"])
-    return set(reasons) <= {"overload"} and any(x["deblurred"] for x in frames)
+    return set(reasons) <= allowed and any(x["deblurred"] for x in frames)
 
 
 # How soon the daemon notices a fault, recovers and publishes depends on the machine's load; the
@@ -174,7 +184,7 @@ def test_healthy_baseline_and_sd_notify(rig):
     got = frames_after(rig, t, lambda got: len(got) >= 20 and any(x["deblurred"] for x in got))
     h = rig.d.health()
     published_or_counted(got, h0, rig.d.health())
-    assert deblurring(got), collections.Counter(x["reason"] for x in got)
+    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"])
     assert h["devices"]["gyro"]["state"] == "running" and h["devices"]["camera"]["state"] == "running"
     assert all(h["threads"].values()), h["threads"]
     msgs = rig.notify.drain()
@@ -299,7 +309,7 @@ def test_slow_subscriber_has_no_effect(rig):
     published_or_counted(got, h0, rig.d.health())          # the normal subscriber misses nothing
     seqs = [x["seq"] for x in got]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
-    assert deblurring(got)
+    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"])
 
 
 def test_reload_applies_deblur_and_calibration_without_losing_frames(rig):

@@ -127,13 +127,16 @@ def test_every_good_frame_received_every_bad_one_counted_none_accepted(int16_sca
     tol = 1e-6 if int16_scale is None else int16_scale / 2 + 1e-6
     assert np.max(np.abs(r - rates(t_true))) <= tol
     # times come from the device clock, not the 5 ms write bursts: the error spreads far less than
-    # read-time stamps would in this run, and sits at the lower envelope of the reads
+    # read-time stamps would in this run, and sits at the lower envelope of the same half's reads
+    # (a load that changes mid-run moves that envelope: over one second the fit cannot tell a
+    # latency step from drift, so it is compared with the reads it saw, not the run's quietest)
     t = np.concatenate([b.t for b in batches])
     assert np.all(np.diff(t) > 0)
     half = len(t) // 2
     err = (t - t_true)[half:]
     by_read = (np.repeat(returned, [len(b) for b in batches]) - t_true)[half:]
-    lateness = returned - np.array([emu.truth_t[b.seq + len(b) - 1] for b in batches])
+    newest = np.cumsum([len(b) for b in batches]) - 1
+    lateness = (returned - np.array([emu.truth_t[b.seq + len(b) - 1] for b in batches]))[newest >= half]
     assert np.std(err) < 0.3 * np.std(by_read)
     assert -0.1e-3 <= np.median(err) <= np.percentile(lateness, 10) + 0.1e-3
 
