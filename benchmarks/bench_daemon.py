@@ -34,8 +34,9 @@ truth's 0.1–99.9 % range there), with the machine's load average; beside it th
 offline K&F on the same frames, over the grid each needs with its true kernels (`OfflineKF`).
 
 `--offline [--size W×H --rate F]`: the payload's loop solved offline on one core with its true
-kernels, no budget: Wiener and K&F over the grid each frame needs and the temporal solve over its
-floor; whole-frame PSNR and CPU per frame (what each method would give if the daemon could afford it).
+kernels, no budget: Wiener, K&F and K&F in fewer β steps (``kf_fast``) over the grid each frame
+needs and the temporal solve over its floor; whole-frame PSNR and CPU per frame (what each method
+would give if the daemon could afford it).
 
 Latency is the publisher's ``published`` stamp minus the frame's ``t`` (both host CLOCK_MONOTONIC,
 the same clock for daemon and subscriber on one machine). The first 3 s after READY are not
@@ -300,23 +301,27 @@ class OfflineKF:
 
 
 def offline(size: tuple[int, int], fps: float, frames: int | None = None, warm: int = 10) -> list[dict]:
-    """The payload's loop solved offline, one core, no budget, with the true kernels: Wiener and K&F
-    over the grid each frame needs, and the temporal solve over its floor (frames in order, the
-    previous result as the prior). Whole-frame PSNR and thread CPU per frame over `frames` frames
-    (default: one period of the loop, whose motion varies) after `warm` (the chain's start, plans)."""
+    """The payload's loop solved offline, one core, no budget, with the true kernels: Wiener, K&F and
+    K&F in fewer β steps over the grid each frame needs, and the temporal solve over its floor
+    (frames in order, the previous result as the prior). Whole-frame PSNR and thread CPU per frame
+    over `frames` frames (default: one period of the loop, whose motion varies) after `warm` (the
+    chain's start, plans)."""
     import cv2
 
     from thermod.physics.deconv import Deconvolver
     from thermod.physics.deconv.recursive import RecursiveDeconvolver
     from thermod.restore.settings import DeblurConfig
+    from thermod.runtime.governor import FAST_KF_ITERATIONS
 
     cv2.setNumThreads(1)
     payload = prepared_payload(size, fps)
     loop, deblur = payload.loop, DeblurConfig()
     frames = payload.n_frames if frames is None else frames
     wiener, kf = Deconvolver(method="wiener"), Deconvolver(method="kf")
+    kf_fast = Deconvolver(method="kf", iterations=FAST_KF_ITERATIONS)
     rec, est = RecursiveDeconvolver(loop.true_calib, Deconvolver(method="wiener")), None
-    names = ("Wiener, needed grid", "temporal, floor grid", "K&F, needed grid")
+    names = ("Wiener, needed grid", "temporal, floor grid", "K&F, needed grid",
+             f"K&F in {FAST_KF_ITERATIONS} β steps, needed grid")
     psnr: dict[str, list] = {n: [] for n in names}
     cpu: dict[str, list] = {n: [] for n in names}
     for fid in range(1, warm + frames + 1):
@@ -328,7 +333,7 @@ def offline(size: tuple[int, int], fps: float, frames: int | None = None, warm: 
         outs = {names[1]: (x, time.thread_time() - c0)}
         if fid <= warm:
             continue
-        for name, dec in ((names[0], wiener), (names[2], kf)):
+        for name, dec in ((names[0], wiener), (names[2], kf), (names[3], kf_fast)):
             c0 = time.thread_time()
             out = solve(dec, frame, needed)
             outs[name] = (out, time.thread_time() - c0)
