@@ -7,7 +7,9 @@ Each results file names its headline numbers in comment lines of its own,
 and `python -m benchmarks.summary` gathers them, in file order, into one table with a link to each file:
 written to benchmarks/results/summary.md and between the ``<!-- results:begin -->`` and
 ``<!-- results:end -->`` markers of README.md. The numbers live in the results files; the table only
-points at them (`tests/test_docs.py` checks that the README holds the current table).
+points at them (`tests/test_docs.py` checks that the README holds the current table). A line that a
+newer measurement of the same thing replaces becomes ``<!-- superseded: … -->``: its section stays
+in the results file as the record, the table shows what holds now.
 """
 
 from __future__ import annotations
