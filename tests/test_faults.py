@@ -249,30 +249,34 @@ def test_fifo_overflow_frames_in_gap_not_deblurred(rig):
 def test_gyro_clock_jump_is_contained(rig):
     d = rig.d
     j0 = d.gyro_ring.clock_jumps
-    t = time.monotonic()
+    h0, t = d.health(), time.monotonic()
     rig.gyro.jump_back(0.5)
     h = wait_health(rig, lambda h: h["drops"]["gyro_ring_clock_jumps"] > j0)
     assert h["drops"]["gyro_ring_clock_jumps"] == j0 + 1
     got = frames_after(rig, t, lambda got: len(got) >= 40 and deblurring(got[-30:]))
+    h = d.health()
     reasons = collections.Counter(x["reason"] for x in got)
     # history before the jump is unusable: a few frames pass through, none deblurred with a wrong kernel
-    assert 1 <= reasons["gyro_gap"] + reasons["gyro_incomplete"] <= 10, reasons
+    assert 1 <= reasons["gyro_gap"] + reasons["gyro_incomplete"], reasons
+    if h["drops"]["gyro_gaps"] == h0["drops"]["gyro_gaps"]:   # else a starved reader's FIFO overflowed too
+        assert reasons["gyro_gap"] + reasons["gyro_incomplete"] <= 10, reasons
     assert deblurring(got[-30:])
 
 
 def test_camera_stall_reconnects(rig):
     d = rig.d
     r0 = d.camera_state.restarts
-    lost0 = d.health()["drops"]["camera_frames_lost"]
+    h0 = d.health()
+    lost0 = h0["drops"]["camera_frames_lost"]
     t = time.monotonic()
     rig.camera.stall(1.6)
     wait_health(rig, lambda h: h["devices"]["camera"]["state"] == "stalled", poll_s=0.01)
     h = wait_health(rig, lambda h: h["devices"]["camera"]["state"] == "running")
     assert d.camera_state.restarts >= r0 + 1
     got = frames_after(rig, t + 1.8, lambda got: len(got) >= 40 and any(x["deblurred"] for x in got))
-    assert deblurring(got), collections.Counter((x["reason"], x["camera_gap_before"]) for x in got
-                                                if not x["deblurred"])
     h = d.health()
+    assert deblurring(got, h0, h), (collections.Counter((x["reason"], x["camera_gap_before"]) for x in got
+                                                        if not x["deblurred"]), h["drops"])
     assert h["drops"]["camera_frames_lost"] >= lost0 + 60            # ~1.6 s at 50 fps, as id gaps
     assert any(x["camera_gap_before"] >= 50 for x in frames_after(rig, t, lambda got: True))
 

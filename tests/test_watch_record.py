@@ -406,10 +406,16 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
     rec = recording.read(out)
     assert rec.calibration == cfg.calibration and rec.frames.shape[1:] == (cfg.calibration.height,
                                                                            cfg.calibration.width)
-    # how many frames 3 s bring depends on the load; what came is consecutive on the camera's clock
+    # how many frames 3 s bring depends on the load; every frame id skipped is a frame the camera
+    # lost (a starved camera thread; the daemon says so in the next frame) or a message lost on the
+    # way, and the recording counts each kind; the times follow the ids on the camera's clock
     assert rec.n_frames >= 2
-    assert np.all(np.diff(rec.extras["record/frame_id"]) == 1)
-    assert np.allclose(np.diff(rec.t), 0.02, atol=2e-3)
+    steps = np.diff(rec.extras["record/frame_id"])
+    attrs = rec.extra_attrs["record"]
+    lost, by_camera = int(attrs["lost_raw_messages"]), int(attrs["camera_frames_lost"])
+    assert steps.min() >= 1 and lost + by_camera <= int(np.sum(steps - 1))
+    assert lost > 0 or np.sum(steps - 1) == by_camera       # a lost message may hide its own gap note
+    assert np.allclose(np.diff(rec.t), 0.02 * steps, atol=2e-3)
     seq = rec.extras["record/gyro_seq"]
     assert np.all(np.diff(seq) == 1)  # no gyro sample lost on the way
     assert (len(rec.gyro_t) - 1) / (rec.gyro_t[-1] - rec.gyro_t[0]) == pytest.approx(1000.0, abs=1.0)

@@ -5,7 +5,9 @@ The daemon must publish raw frames (``[publish] raw = true``). Frames go to disk
 place when it is complete. Frames end up in time order; gyro samples are kept as received, gaps
 included (never interpolated): ``record/gyro_seq`` holds each sample's device index (a jump = lost
 samples) and ``record/gyro_gap_before`` marks samples the driver flagged as following a loss;
-``record/frame_id`` the camera frame numbers. The calibration comes from ``--config``, else from
+``record/frame_id`` the camera frame numbers, whose jumps ``record.attrs`` splits into
+``lost_raw_messages`` (lost on the way) and ``camera_frames_lost`` (never sent: the camera lost
+them, as the daemon said in the next frame). The calibration comes from ``--config``, else from
 the daemon's ``health`` messages, else defaults sized to the frames (``record.attrs`` says which).
 Whatever stops the recording — time up, Ctrl-C, SIGTERM, an error — what was received is written;
 if the recording cannot be completed, the ``.part`` file keeps the data and the error names it.
@@ -173,13 +175,24 @@ class RecordWriter:
         self._w.abort()
 
 
-def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False) -> RecordWriter:
-    """Receive into `writer` until `seconds` pass, `stop()` is true or Ctrl-C."""
+def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False,
+           counts: dict | None = None) -> RecordWriter:
+    """Receive into `writer` until `seconds` pass, `stop()` is true or Ctrl-C. `counts`, if given,
+    gets ``camera_frames_lost``: the frames the camera lost between two raw frames received (each raw
+    header's ``gap_before``, the first one's left out), which skip frame ids without a message lost."""
     t_end = None if seconds is None else time.monotonic() + seconds
+    counts = {} if counts is None else counts
+    counts.setdefault("camera_frames_lost", 0)
+    first_raw = True
     try:
         while not stop() and (t_end is None or time.monotonic() < t_end):
             msg = sub.recv(0.2 if t_end is None else min(0.2, max(0.0, t_end - time.monotonic())))
             if msg is not None:
+                if msg[0] == "raw":
+                    gap = msg[1].get("gap_before", 0)
+                    if not first_raw and isinstance(gap, int) and gap > 0:
+                        counts["camera_frames_lost"] += gap
+                    first_raw = False
                 writer.add(*msg)
     except KeyboardInterrupt:
         log.info("interrupted: writing what was received")
@@ -215,9 +228,11 @@ def run(args) -> int:
         topics = ("raw", "gyro", "health") + (("frame",) if as_mcap else ())
         with Subscriber(args.endpoint, topics, curve_server_key=args.curve_server_key,
                         curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
+            counts: dict = {}
             try:
-                record(sub, args.seconds, writer, stop=lambda: bool(stopping))
+                record(sub, args.seconds, writer, stop=lambda: bool(stopping), counts=counts)
             finally:
+                attrs.update(counts)
                 attrs.update(seconds=time.monotonic() - started, lost_raw_messages=sub.gaps.get("raw", 0),
                              lost_gyro_messages=sub.gaps.get("gyro", 0),
                              rejected_messages=sum(sub.errors.values()))
@@ -244,6 +259,7 @@ def run(args) -> int:
     lost = int(np.sum(np.maximum(np.diff(seq) - 1, 0))) if m > 1 else 0
     print(f"wrote {out}: {n} frames {shape}, {m} gyro samples ({rate:.1f} Hz, {lost} lost in gaps), "
           f"lost messages raw {attrs['lost_raw_messages']} gyro {attrs['lost_gyro_messages']}, "
+          f"camera frames lost by the camera {attrs['camera_frames_lost']}, "
           f"calibration from {source}")
     if n == 0:
         print("note: no raw frames: the daemon publishes them only with [publish] raw = true",
