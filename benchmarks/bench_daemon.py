@@ -229,6 +229,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
         "lost_where": {k: v for k, v in lost_where.items() if v}, "methods": methods,
         "governor": last.get("governor", {}),
         "governor_trace": [(h.get("governor") or h.get("pipeline", {}).get("governor", {})) for h in health],
+        "cpu_trace": [h.get("cpu", {}) for h in health],
+        "stage_ms": last.get("pipeline", {}).get("stage_ms", {}),
         "kept": kept,
     }
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -75,6 +76,8 @@ class SimPayload:
         self._camera: SimCamera | None = None
         self._gyro = None
         self.drift = None                         # a `thermod.sim.gyro_model.GyroDrift` on top of the truth
+        self.cpu_s = 0.0                          # thread CPU spent emulating (frames, gyro FIFO): a real
+        self._cpu_lock = threading.Lock()         # payload does not pay it (`thermod.runtime.cpu`)
 
     # ------------------------------------------------------------------ the loop
     def cached(self) -> bool:
@@ -124,11 +127,17 @@ class SimPayload:
 
     def frame_for(self, frame_id: int) -> np.ndarray:
         """The blurry raw frame (uint16) delivered as `frame_id`: its loop frame plus its temporal noise."""
+        c0 = time.thread_time()
         k = int(frame_id) - 1
         img = self.frames[k % self.n_frames]
-        if self.noise is None:
-            return img
-        return np.clip(img.astype(np.int32) + self.noise[k % len(self.noise)], 0, 65535).astype(np.uint16)
+        if self.noise is not None:
+            img = np.clip(img.astype(np.int32) + self.noise[k % len(self.noise)], 0, 65535).astype(np.uint16)
+        self._book(c0)
+        return img
+
+    def _book(self, c0: float) -> None:
+        with self._cpu_lock:
+            self.cpu_s += time.thread_time() - c0
 
     def frame_at(self, k: int) -> np.ndarray:
         """The emulated camera's frame index k (0-based): `frame_for(k + 1)`."""
@@ -187,7 +196,19 @@ class SimPayload:
 
             self.chip = ICM42688Emu(rate_fn=self._rate_fn, noise_rad_s=self.cfg.gyro_noise_rad_s,
                                     seed=self.cfg.seed)
-            self._gyro = ICM42688(SPIBus(EmuSPI(self.chip)), full_scale_dps=2000.0,
+            payload = self
+
+            class BookedSPI(EmuSPI):
+                """The emulated bus, its transfers booked as the payload's CPU (a real SPI is an ioctl)."""
+
+                def xfer2(self, data):
+                    c0 = time.thread_time()
+                    try:
+                        return super().xfer2(data)
+                    finally:
+                        payload._book(c0)
+
+            self._gyro = ICM42688(SPIBus(BookedSPI(self.chip)), full_scale_dps=2000.0,
                                   rate_hz=self.cfg.gyro_rate_hz,
                                   name="ICM-42688-P (sim)")
         return self._gyro

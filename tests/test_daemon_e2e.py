@@ -188,6 +188,17 @@ def test_thermod_run_end_to_end(payload):
     # losses the devices had under load are counted (zero on an idle machine)
     assert last["drops"]["gyro_lost"] >= sum(lost[1:])
     assert last["drops"]["camera_frames_lost"] >= sum(h["camera_gap_before"] for h in hs[1:])
+    # --- where the time goes: CPU per stage (the solver children and the simulated payload apart)
+    # and each pipeline stage's latency
+    cpu = last["cpu"]
+    assert cpu["interval_s"] == pytest.approx(1.0, abs=0.5)
+    stages = {"solves", "scheduler", "gyro_driver", "camera_driver", "publish", "sim_payload"}
+    assert stages <= set(cpu["stages"])
+    assert cpu["stages"]["solves"] > 0 and cpu["stages"]["sim_payload"] > 0 and cpu["stages"]["scheduler"] > 0
+    assert cpu["parent_without_sim"] == pytest.approx(cpu["parent"] - cpu["stages"]["sim_payload"], abs=0.11)
+    stage_ms = last["pipeline"]["stage_ms"]
+    assert {"gyro_wait", "render", "queue", "solve", "reorder", "publish"} <= set(stage_ms)
+    assert all(0 <= p50 <= p99 for p50, p99 in stage_ms.values()) and stage_ms["solve"][0] > 0
     assert "ready: frames and gyro samples flowing" in err
     assert "reloaded calibration and deblur settings" in err
 

@@ -147,6 +147,7 @@ class WatchStats:
                 lines.append(f"governor     {g['method']} (ladder {' > '.join(g.get('ladder', []))}), budget "
                              f"{g.get('budget_ms', nan):.1f} ms, load ×{g.get('load', nan):.2f}, "
                              f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
+            lines += cpu_lines(h)
             lines.append(f"daemon rates {_compact(h.get('rates'))}")
             lines.append(f"daemon drops {_compact({k: v for k, v in (h.get('drops') or {}).items() if v})}")
             lines.append(f"devices      {_devices(h.get('devices'))}")
@@ -167,6 +168,26 @@ class WatchStats:
         return (f"{s['frames']} frames {s['fps']:.1f} fps | deblurred {100 * s['deblurred_share']:.0f} % "
                 f"({top}) | "
                 f"latency p50 {lp:.1f}/{lr:.1f} ms | lost {lost} | gyro {s['gyro_hz']:.0f} Hz")
+
+
+def cpu_lines(h: dict) -> list[str]:
+    """Where the daemon's time goes, from a health message: CPU per stage (% of one core; the solver
+    children, the rest, and the simulated payload apart) and each pipeline stage's p50 / p99 (ms)."""
+    cpu = h.get("cpu") or {}
+    st = cpu.get("stages") or {}
+    out = []
+    if st:
+        rest = sorted(((k, v) for k, v in st.items() if k not in ("solves", "sim_payload")),
+                      key=lambda kv: -kv[1])
+        out.append(f"cpu % core   solves {st.get('solves', 0.0):.1f}, the rest "
+                   f"{cpu.get('parent_without_sim', 0.0):.1f} ("
+                   + ", ".join(f"{k} {v:.1f}" for k, v in rest) + ")"
+                   + (f", simulated payload {st['sim_payload']:.1f}" if "sim_payload" in st else ""))
+    stages = (h.get("pipeline") or {}).get("stage_ms") or {}
+    if stages:
+        out.append("stage ms     " + ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in stages.items())
+                   + " (p50/p99)")
+    return out
 
 
 def calibration_lines(cal) -> list[str]:

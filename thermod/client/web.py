@@ -230,9 +230,10 @@ class LiveView:
             "frame": None if frame is None else {k: frame.get(k) for k in keep},
             "kernel": None if kernel is None else {k: kernel.get(k) for k in
                                                    ("frame_id", "shape", "origin", "extent_px", "coverage")},
-            "health": None if health is None else {k: health.get(k) for k in
-                                                   ("rates", "drops", "ready", "gyro_online", "clocks",
-                                                    "calibration")},
+            "health": None if health is None else {
+                **{k: health.get(k) for k in ("rates", "drops", "ready", "gyro_online", "clocks",
+                                              "calibration", "cpu")},
+                "stage_ms": (health.get("pipeline") or {}).get("stage_ms")},
             "series": {k: [p.get(k) for p in series] for k in (series[0] if series else {})},
         })
 
@@ -481,6 +482,21 @@ function calText(cal) {
   return h;
 }
 
+// Where the daemon's time goes (health.cpu: % of one core per stage; stage_ms: p50 / p99 per stage).
+function cpuText(h) {
+  if (!h || !h.cpu || !h.cpu.stages) return "";
+  const st = h.cpu.stages, sim = st.sim_payload;
+  const parts = Object.keys(st).filter(k => k !== "solves" && k !== "sim_payload")
+    .sort((a, b) => st[b] - st[a]).map(k => k + " " + fmt(st[k], 1));
+  let out = "<br>CPU (% of one core): solves " + fmt(st.solves, 1) + ", the rest " +
+    fmt(h.cpu.parent_without_sim, 1) + " (" + parts.join(", ") + ")" +
+    (sim === undefined ? "" : ", simulated payload " + fmt(sim, 1));
+  const sm = h.stage_ms || {};
+  const lat = Object.keys(sm).map(k => k + " " + fmt(sm[k][0], 1) + "/" + fmt(sm[k][1], 1));
+  if (lat.length) out += "<br>stage ms p50/p99: " + lat.join(", ");
+  return out;
+}
+
 async function pollHealth() {
   try {
     const r = await fresh("/health.json");
@@ -492,7 +508,7 @@ async function pollHealth() {
       fmt(last("lat_p50_ms"), 1) + " ms &nbsp; raw " + (s.raw ? "yes" : "<span class=warn>none</span>") +
       (s.frame && s.frame.reason ? " &nbsp; <span class=warn>passing through: " + s.frame.reason + "</span>"
                                  : "");
-    $("cal").innerHTML = calText(s.health && s.health.calibration);
+    $("cal").innerHTML = calText(s.health && s.health.calibration) + cpuText(s.health);
     plot("p_fps", "frame rate", "fps", t, [{n: "fps", c: "#e6553a", v: S.fps || []}]);
     plot("p_lat", "latency received − t", "ms", t, [{n: "p50", c: "#4cc38a", v: S.lat_p50_ms || []},
       {n: "p95", c: "#f0b44c", v: S.lat_p95_ms || []}, {n: "p99", c: "#e6553a", v: S.lat_p99_ms || []}]);

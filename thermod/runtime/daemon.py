@@ -39,6 +39,7 @@ from thermod.errors import ConfigError, DeviceError, ThermodError
 from thermod.io.wire import frame_method_fields
 from thermod.runtime import config as configmod
 from thermod.runtime import sources
+from thermod.runtime.cpu import CpuMeter
 from thermod.runtime.driver_thread import DeviceState, DriverThread
 from thermod.runtime.health import Health, Snapshot, status_line
 from thermod.runtime.pipeline import FrameOut, Pipeline
@@ -116,6 +117,8 @@ class Daemon:
         self._last_ping = 0.0
         self._ping_every = min(1.0, self.notifier.watchdog_interval() or 1.0)
         self._health = Health()
+        self._cpu = CpuMeter()             # CPU per stage, read once per health period
+        self._cpu_report: dict = {}
         self.last_health: dict = {}
         # the last SIGHUP's outcome, in every health message: ok, error (why it was refused), at (host time)
         self.reload_status: dict = {"ok": True, "error": None, "at": None, "restart_needed": []}
@@ -328,8 +331,12 @@ class Daemon:
         return status_line(self.last_health, self.gyro_state.state, self.camera_state.state)
 
     def health(self, now: float | None = None, *, update_rates: bool = False) -> dict:
-        """The health message (see `thermod.runtime.health`)."""
+        """The health message (see `thermod.runtime.health`); `update_rates` also closes the CPU
+        meter's period."""
         now = time.monotonic() if now is None else now
+        if update_rates:
+            sim = self.payload.cpu_s if self.payload is not None else None
+            self._cpu_report = self._cpu.sample(self.pipeline.solver_pids(), sim, now)
         return self._health.message(self._snapshot(now), now, update_rates=update_rates)
 
     def _snapshot(self, now: float) -> Snapshot:
@@ -343,7 +350,8 @@ class Daemon:
             gyro_ring_time_holes=self.gyro_ring.time_holes, publisher=self.publisher.stats(),
             threads=self.critical_alive(), ready=self.ready, gyro_online=self.pipeline.gyro_online,
             reload=dict(self.reload_status), rtsp=self.rtsp.stats() if self.rtsp is not None else None,
-            radiometry=self._radiometry_report(), calibration=self._calibration_report())
+            radiometry=self._radiometry_report(), calibration=self._calibration_report(),
+            cpu=self._cpu_report)
 
     def _calibration_report(self) -> dict:
         """The calibration in force (flat, as `thermod record` reads it), where it came from, and the

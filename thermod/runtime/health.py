@@ -68,6 +68,7 @@ class Snapshot:
     # with ``applied`` (the same), ``source`` (config | recording <path> | monitor) and the live
     # monitor's ``estimate`` (`thermod.runtime.monitor`; None while it has none or is off)
     calibration: dict | None = None
+    cpu: dict | None = None        # `thermod.runtime.cpu.CpuMeter.sample`: % of one core per stage
 
 
 class Health:
@@ -124,6 +125,7 @@ class Health:
             "rtsp": snap.rtsp,
             "radiometry": snap.radiometry,
             "calibration": snap.calibration,
+            "cpu": snap.cpu or {},
         }
 
 

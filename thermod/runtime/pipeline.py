@@ -84,6 +84,7 @@ from thermod.restore.plan import (
 )
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
+from thermod.runtime.cpu import StageTimes
 from thermod.runtime.governor import Choice, Governor
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 from thermod.runtime.solvers import (
@@ -149,6 +150,8 @@ class _Job:
     choice: Choice | None = None
     warp_gyro: tuple | None = None  # (t, rate) raw gyro from before the prior to the frame: the warp's
     t_queued: float = field(default_factory=time.monotonic)
+    gyro_wait_s: float = 0.0        # the scheduler's wait for the gyro to cover the frame
+    render_s: float = 0.0           # the scheduler's grid choice and kernel rendering
 
 
 @dataclass(frozen=True)
@@ -236,6 +239,7 @@ class Pipeline:
         self._lat_lock = threading.Lock()
         self.counters = collections.Counter()
         self._count_lock = threading.Lock()
+        self.stage_times = StageTimes()   # wall time per stage, for health (`thermod.runtime.cpu`)
         self._solvers: list = []        # per worker: InThread or InChild (`thermod.runtime.solvers`)
         self._frames: SharedFrames | None = None   # process mode: the frames shared with the children
         self._est_cond = threading.Condition()
@@ -464,9 +468,11 @@ class Pipeline:
             return
         t0_cam, t1_cam = kernel_window(s.calib, s.deblur, slot.t)
         g0, g1 = (float(x) for x in s.calib.camera_time_to_gyro(np.array([t0_cam, t1_cam])))  # clock drift
+        t_wait = time.monotonic()
         if self.gyro_online:
             deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
             self.gyro_ring.wait_until(g1, deadline - time.monotonic())
+        t_render = time.monotonic()
         # the DLPF inverse and the clipped-run continuation read further (not waited for: latency)
         margin = 2.0 / s.calib.rate_hz + s.calib.gyro_condition_margin_s
         w = self.gyro_ring.window(g0 - margin, g1 + margin, pad=2)
@@ -510,7 +516,9 @@ class Pipeline:
                 warp_gyro = (ww.t, ww.rate)
             else:
                 self._count("temporal_gyro_gap", 1)
-        self._enqueue(_Job(slot, kernel, info, s.generation, choice, warp_gyro))
+        now = time.monotonic()
+        self._enqueue(_Job(slot, kernel, info, s.generation, choice, warp_gyro, t_queued=now,
+                           gyro_wait_s=t_render - t_wait, render_s=now - t_render))
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
         """Whether a frame must pass through because of a flat-field correction (FFC).
@@ -601,6 +609,7 @@ class Pipeline:
                 if not self._jobs:
                     continue
                 job = self._jobs.popleft()
+            t_start = time.monotonic()
             index = job.slot.index
             with self._est_cond:
                 self._solving.add(index)
@@ -623,7 +632,11 @@ class Pipeline:
                         self._count("temporal_alone", 1)
                     else:
                         self._count(f"temporal_prior_{prior_frames}", 1)
-                gov.observe(gov.family(rung), grid[0] * grid[1], got.seconds, time.monotonic())
+                t_end = time.monotonic()
+                gov.observe(gov.family(rung), grid[0] * grid[1], got.seconds, t_end)
+                self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s,
+                                     queue=t_start - job.t_queued, solve=got.seconds,
+                                     prior_wait=t_end - t_start - got.seconds)
                 out = got.image
                 if out.shape != job.slot.image.shape:
                     raise ValueError(f"deconvolver returned shape {out.shape} for a "
@@ -681,17 +694,17 @@ class Pipeline:
         self._flush_pending()
 
     def _flush_pending(self, force: bool = False) -> None:
-        ready: list[FrameOut] = []
+        ready: list[tuple[FrameOut, float]] = []    # (frame, when it was complete)
         with self._out_lock:
             now = time.monotonic()
             while self._pending:
                 if self._next_out in self._pending:
-                    ready.append(self._pending.pop(self._next_out)[0])
+                    ready.append(self._pending.pop(self._next_out))
                     self._next_out += 1
                     continue
                 oldest = min(self._pending)
                 if oldest < self._next_out:     # a late frame already skipped: release it now
-                    ready.append(self._pending.pop(oldest)[0])
+                    ready.append(self._pending.pop(oldest))
                     self._count("released_out_of_order", 1)
                     continue
                 waited = now - self._pending[oldest][1]
@@ -700,13 +713,14 @@ class Pipeline:
                     self._next_out = oldest
                     continue
                 break
-            for o in ready:
+            for o, t_complete in ready:
                 o.t_done = time.monotonic()
                 try:
                     self.emit(o)
                 except Exception:
                     self._count("emit_errors", 1)
                     log.exception("output callback failed for frame %d", o.frame_id)
+                self.stage_times.add(reorder=o.t_done - t_complete, publish=time.monotonic() - o.t_done)
                 self._count("frames_out", 1)
                 with self._lat_lock:
                     self._latencies.append(o.latency_s)
@@ -737,4 +751,9 @@ class Pipeline:
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
             "worker_busy_max_s": max(busy) if busy else 0.0,
             "governor": self.governor.state(),
+            "stage_ms": self.stage_times.summary(),
         }
+
+    def solver_pids(self) -> list[int]:
+        """The solver children's process ids (empty when solving in threads)."""
+        return [s.proc.pid for s in self._solvers if isinstance(s, InChild) and s.proc.pid]

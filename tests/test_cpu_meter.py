@@ -1,0 +1,115 @@
+"""Where the daemon's time goes: `thermod.runtime.cpu` books each thread's CPU under its stage, the solver
+children's under ``solves``, moves the simulated payload's work out of the driver threads, and keeps
+each pipeline stage's latency percentiles; `thermod watch` prints both."""
+
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from thermod.cli.watch import cpu_lines
+from thermod.runtime.cpu import CpuMeter, StageTimes, process_cpu_s, stage_of
+
+
+def spin(seconds: float) -> None:
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+def test_threads_are_booked_under_their_stage_by_name():
+    assert stage_of("thermod-scheduler") == "scheduler"
+    assert stage_of("thermod-deconv1") == "worker_threads"
+    assert stage_of("thermod-gyro") == "gyro_driver"
+    assert stage_of("MainThread") == "main"
+    assert stage_of("Thread-7") == "other"
+
+
+def test_a_busy_child_shows_under_solves():
+    meter = CpuMeter()
+    assert meter.sample()["stages"] == {}                     # the first reading opens the period
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time\nsys.stdin.read()\n"
+                              "t = time.process_time() + 0.3\nwhile time.process_time() < t: pass\n"
+                              "time.sleep(30)"], stdin=subprocess.PIPE)
+    try:
+        time.sleep(0.5)                                      # its start-up, before the period
+        meter.sample(child_pids=[child.pid])
+        c0 = process_cpu_s(child.pid)
+        child.stdin.close()
+        deadline = time.monotonic() + 20
+        while process_cpu_s(child.pid) - c0 < 0.29 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.1)
+        out = meter.sample(child_pids=[child.pid])
+        time.sleep(0.2)
+        tail = meter.sample(child_pids=[child.pid])
+    finally:
+        child.kill()
+        child.wait()
+    booked = out["stages"]["solves"] * out["interval_s"] / 100
+    assert booked == pytest.approx(0.3, abs=0.05)
+    assert tail["stages"].get("solves", 0) < 5                # asleep now: nothing more is booked
+
+
+def test_a_thread_is_booked_its_cpu_between_two_readings():
+    meter = CpuMeter()
+    go, spun, stop = threading.Event(), threading.Event(), threading.Event()
+
+    def work():
+        go.wait()
+        spin(0.25)
+        spun.set()
+        stop.wait()
+
+    th = threading.Thread(target=work, name="thermod-publish")
+    th.start()
+    try:
+        meter.sample()
+        go.set()
+        assert spun.wait(20)
+        out = meter.sample()
+    finally:
+        stop.set()
+        th.join()
+    assert out["stages"]["publish"] * out["interval_s"] / 100 == pytest.approx(0.25, abs=0.03)
+
+
+def test_the_simulated_payload_is_moved_out_of_the_driver_threads():
+    meter = CpuMeter()
+    go, spun, stop = threading.Event(), threading.Event(), threading.Event()
+    th = threading.Thread(target=lambda: (go.wait(), spin(0.2), spun.set(), stop.wait()), name="thermod-gyro")
+    th.start()
+    try:
+        meter.sample(sim_cpu_s=1.0)
+        go.set()
+        assert spun.wait(20)
+        out = meter.sample(sim_cpu_s=1.15)        # 0.15 s of the gyro thread's 0.2 s emulated the chip
+    finally:
+        stop.set()
+        th.join()
+    dt = out["interval_s"]
+    assert out["stages"]["sim_payload"] * dt / 100 == pytest.approx(0.15, abs=0.01)
+    assert out["stages"]["gyro_driver"] * dt / 100 == pytest.approx(0.05, abs=0.03)
+    assert out["parent_without_sim"] == pytest.approx(out["parent"] - out["stages"]["sim_payload"], abs=0.11)
+
+
+def test_stage_times_give_p50_and_p99_in_ms_and_ignore_missing_values():
+    st = StageTimes(keep=100)
+    for i in range(100):
+        st.add(solve=(i + 1) / 1e3, queue=None, render=-1.0)
+    s = st.summary()
+    assert set(s) == {"solve"}
+    assert s["solve"][0] == pytest.approx(50.5, abs=0.01) and s["solve"][1] == pytest.approx(99.01, abs=0.01)
+
+
+def test_watch_prints_the_breakdown_from_health():
+    h = {"cpu": {"stages": {"solves": 120.0, "scheduler": 15.0, "gyro_driver": 4.0, "sim_payload": 10.0},
+                 "parent": 29.0, "parent_without_sim": 19.0},
+         "pipeline": {"stage_ms": {"queue": [0.3, 12.5], "solve": [20.1, 41.0]}}}
+    lines = cpu_lines(h)
+    assert lines[0] == ("cpu % core   solves 120.0, the rest 19.0 (scheduler 15.0, gyro_driver 4.0), "
+                        "simulated payload 10.0")
+    assert lines[1] == "stage ms     queue 0.3/12.5, solve 20.1/41.0 (p50/p99)"
+    assert cpu_lines({}) == []

@@ -1,0 +1,127 @@
+"""Where the daemon's time goes: CPU per stage (threads and solver children) and latency per stage.
+
+`CpuMeter` reads every thread's CPU clock (`time.pthread_getcpuclockid`) and each solver child's
+utime + stime (``/proc/PID/stat``), and reports each stage's share of one core over the interval
+since its last reading. A thread belongs to the stage its name starts with (`THREAD_STAGES`); the
+simulated payload's own work (emulating the IMU's FIFO, adding the camera's noise) runs inside the
+driver threads, so the payload counts it (`thermod.sim.payload.SimPayload.cpu_s`) and the meter moves
+it from the drivers to ``sim_payload``: a real payload does not pay it.
+
+`StageTimes` keeps the last frames' wall time per pipeline stage (gyro wait, render, queue, solve,
+prior wait, reorder, publish) and reports p50 / p99 in ms.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import threading
+import time
+
+import numpy as np
+
+# thread-name prefix → stage, first match wins
+THREAD_STAGES = (
+    ("thermod-gyro", "gyro_driver"),
+    ("thermod-camera", "camera_driver"),
+    ("thermod-scheduler", "scheduler"),
+    ("thermod-deconv", "worker_threads"),
+    ("thermod-publish", "publish"),
+    ("thermod-monitor", "monitor"),
+    ("thermod-rtsp", "rtsp"),
+    ("MainThread", "main"),
+)
+PIPELINE_STAGES = ("gyro_wait", "render", "queue", "solve", "prior_wait", "reorder", "publish")
+_TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def stage_of(thread_name: str) -> str:
+    return next((s for prefix, s in THREAD_STAGES if thread_name.startswith(prefix)), "other")
+
+
+def _thread_cpu_s(th: threading.Thread) -> float | None:
+    try:
+        return time.clock_gettime(time.pthread_getcpuclockid(th.ident))
+    except (OSError, TypeError, AttributeError):   # ended, not started, or not POSIX
+        return None
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """utime + stime of process `pid` (s), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _TICK
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+class CpuMeter:
+    """Per-stage CPU shares (% of one core) between two calls of `sample`."""
+
+    def __init__(self) -> None:
+        self._last: dict[object, float] = {}
+        self._t: float | None = None
+        self._sim: float | None = None
+        self._proc: float | None = None
+
+    def sample(self, child_pids=(), sim_cpu_s: float | None = None, now: float | None = None) -> dict:
+        """``{"stages": {stage: %}, "solves": %, "parent": %, "sim_payload": %, "interval_s": s}`` since
+        the last call (empty stages on the first)."""
+        now = time.monotonic() if now is None else now
+        used: dict[str, float] = collections.defaultdict(float)
+        seen: dict[object, float] = {}
+        for th in threading.enumerate():
+            c = _thread_cpu_s(th)
+            if c is None:
+                continue
+            key = ("t", th.native_id)
+            seen[key] = c
+            if key in self._last:
+                used[stage_of(th.name)] += max(0.0, c - self._last[key])
+        for pid in child_pids:
+            c = process_cpu_s(pid)
+            if c is None:
+                continue
+            key = ("p", pid)
+            seen[key] = c
+            if key in self._last:
+                used["solves"] += max(0.0, c - self._last[key])
+        proc = time.process_time()
+        dt = None if self._t is None else now - self._t
+        out: dict = {"interval_s": dt, "stages": {}}
+        if dt and dt > 0:
+            if sim_cpu_s is not None and self._sim is not None:
+                sim = max(0.0, sim_cpu_s - self._sim)
+                # the payload's work ran in the driver threads: moved from them
+                for s in ("gyro_driver", "camera_driver"):
+                    take = min(sim, used.get(s, 0.0))
+                    used[s] = used.get(s, 0.0) - take
+                    sim -= take
+                used["sim_payload"] = max(0.0, sim_cpu_s - self._sim)
+            out["stages"] = {k: round(100.0 * v / dt, 1) for k, v in sorted(used.items())}
+            out["parent"] = round(100.0 * (proc - self._proc) / dt, 1)
+            out["parent_without_sim"] = round(out["parent"] - out["stages"].get("sim_payload", 0.0), 1)
+        self._last, self._t, self._sim, self._proc = seen, now, sim_cpu_s, proc
+        return out
+
+
+class StageTimes:
+    """Wall time per pipeline stage over the last `keep` frames (thread-safe)."""
+
+    def __init__(self, keep: int = 512) -> None:
+        self._d = {s: collections.deque(maxlen=keep) for s in PIPELINE_STAGES}
+        self._lock = threading.Lock()
+
+    def add(self, **seconds: float) -> None:
+        with self._lock:
+            for k, v in seconds.items():
+                if v is not None and v >= 0:
+                    self._d[k].append(v)
+
+    def summary(self) -> dict:
+        """``{stage: [p50 ms, p99 ms]}`` for the stages with samples."""
+        with self._lock:
+            arrays = {k: np.fromiter(d, float) for k, d in self._d.items() if d}
+        return {k: [round(1e3 * float(np.percentile(a, 50)), 2), round(1e3 * float(np.percentile(a, 99)), 2)]
+                for k, a in arrays.items()}
