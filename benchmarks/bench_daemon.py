@@ -9,6 +9,7 @@ latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro sampl
     .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
     .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
     .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240] [--set K=V]
+    .venv/bin/python benchmarks/bench_daemon.py --payload [--seconds 30] [--repeats 2]  # quotas (root)
 
 `--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
 alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
@@ -37,6 +38,11 @@ offline K&F on the same frames, over the grid each needs with its true kernels (
 kernels, no budget: Wiener, K&F and K&F in fewer β steps (``kf_fast``) over the grid each frame
 needs and the temporal solve over its floor; whole-frame PSNR and CPU per frame (what each method
 would give if the daemon could afford it).
+
+`--payload`: the default daemon (what `make run` starts) on every core, then in a cgroup with a CPU
+quota of 1.2 cores (60 % of two) and of 1 core, a slower payload emulated (root: cgroup v2
+``cpu.max`` or v1 CFS quota). Prints the yardstick, deblurred and temporal shares, latency p50 / p95 /
+p99, gyro samples lost, and the CPU per stage (`health.cpu`) with each stage's latency.
 
 Latency is the publisher's ``published`` stamp minus the frame's ``t`` (both host CLOCK_MONOTONIC,
 the same clock for daemon and subscriber on one machine). The first 3 s after READY are not
@@ -131,17 +137,42 @@ def prepared_payload(size: tuple[int, int], fps: float):
     return payload
 
 
-def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, cpus: str | None = None,
-               extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480), keep_every: int = 0) -> dict:
+def cpu_quota_group(cores: float) -> tuple[Path, Path]:
+    """A cgroup whose processes share `cores` of CPU time (v2 ``cpu.max``, else v1 CFS quota):
+    ``(its cgroup.procs, its directory)``. Root only; SystemExit with the reason otherwise."""
+    period = 100_000
+    name = f"thermod-bench-{os.getpid()}"
+    v2 = Path("/sys/fs/cgroup/cgroup.controllers")
+    base = Path("/sys/fs/cgroup") if v2.exists() else Path("/sys/fs/cgroup/cpu")
+    d = base / name
+    try:
+        d.mkdir(exist_ok=True)
+        if v2.exists():
+            (d / "cpu.max").write_text(f"{int(cores * period)} {period}")
+        else:
+            (d / "cpu.cfs_period_us").write_text(str(period))
+            (d / "cpu.cfs_quota_us").write_text(str(int(cores * period)))
+    except OSError as e:
+        raise SystemExit(f"--quota: cannot make a CPU-quota cgroup under {base} ({e}); run as root") from e
+    return d / "cgroup.procs", d
+
+
+def run_daemon(fps: float, seconds: float, method: str | None, soak: bool = False, *, cpus: str | None = None,
+               extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480), keep_every: int = 0,
+               quota: float | None = None) -> dict:
     from thermod.client.subscriber import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
-    cmd = [str(THERMOD), "run", "--endpoint", ep, "--set", f"deblur.method={method}",
+    cmd = [str(THERMOD), "run", "--endpoint", ep, *(["--set", f"deblur.method={method}"] if method else []),
            "--set", f"sim.frame_rate_hz={fps}", "--set", f"calibration.frame_rate_hz={fps}"]
     for e in (*size_settings(size), *extra):
         cmd += ["--set", e]
     if cpus is not None:
         cmd = ["taskset", "-c", cpus, *cmd]
+    group = None
+    if quota is not None:        # the daemon and its solver children in a cgroup of `quota` cores
+        procs, group = cpu_quota_group(quota)
+        cmd = ["sh", "-c", f'echo $$ > {procs} && exec "$@"', "sh", *cmd]
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
     t_start = time.monotonic()
@@ -193,6 +224,13 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
                 proc.wait(5)
             except subprocess.TimeoutExpired:
                 proc.kill()
+        if group is not None:
+            for _ in range(50):          # the children leave with the daemon
+                try:
+                    group.rmdir()
+                    break
+                except OSError:
+                    time.sleep(0.1)
     if not frames:
         raise SystemExit("no frames received; daemon said:\n" + "".join(err_lines[-30:]))
     ids = np.array([f[0] for f in frames])
@@ -222,7 +260,8 @@ def run_daemon(fps: float, seconds: float, method: str, soak: bool = False, *, c
         "expected": int(expected),
         "published_all": len(frames) == expected and not sub_gaps.get("frame"),
         "deblurred_pct": 100.0 * deb.mean(), "p50_ms": float(np.percentile(lat, 50)),
-        "p99_ms": float(np.percentile(lat, 99)), "gyro_gap_events": g_lost, "gyro_lost": int(g_lost_n),
+        "p99_ms": float(np.percentile(lat, 99)), "p95_ms": float(np.percentile(lat, 95)),
+        "gyro_gap_events": g_lost, "gyro_lost": int(g_lost_n),
         "gyro_hz": float(np.median([h["rates"]["gyro_hz"] for h in health])) if health else float("nan"),
         "rss_growth_mb": rss_growth, "threads_alive": all(threads.values()) if threads else False,
         "workers_replaced": pc.get("workers_replaced", 0), "reasons": reasons, "cpu_s": cpu, "wall_s": wall,
@@ -550,6 +589,63 @@ def print_large(floors: list[dict], rows: list[dict]) -> None:
               f"{r['cpu_s'] / r['wall_s']:.2f} | {r['loadavg']:.1f} |")
 
 
+def cpu_medians(r: dict) -> dict:
+    """Each stage's median share of one core (%) over a run's health periods, with the parent's total
+    with and without the simulated payload."""
+    periods = [c for c in r["cpu_trace"] if c.get("stages")]
+    if not periods:
+        return {}
+    keys = sorted({k for c in periods for k in c["stages"]})
+    out = {k: float(np.median([c["stages"].get(k, 0.0) for c in periods])) for k in keys}
+    out["parent"] = float(np.median([c["parent"] for c in periods]))
+    out["parent_without_sim"] = float(np.median([c["parent_without_sim"] for c in periods]))
+    return out
+
+
+def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1) -> list[dict]:
+    """The default daemon (`make run`'s configuration, 640×480 at 50 fps) on this machine's cores and
+    under CPU quotas (cores), interleaved `repeats` times. The machine's yardstick is measured first,
+    on the quiet machine (the first row's ``yardstick``)."""
+    from yardstick import yardstick_line
+
+    rows, line = [], yardstick_line()
+    for _ in range(repeats):
+        for q in quotas:
+            print(f"payload: quota {q or 'none'} for {seconds:g} s …", file=sys.stderr, flush=True)
+            r = run_daemon(50.0, seconds, None, quota=q)
+            r["quota"] = q
+            r["cpu"] = cpu_medians(r)
+            r["yardstick"] = line
+            rows.append(r)
+    return rows
+
+
+def print_payload(rows: list[dict]) -> None:
+    print(rows[0]["yardstick"], "(before the runs)")
+    print(f"\nthe default daemon, 640×480 at 50 fps, {os.cpu_count()} cores, load average "
+          f"{os.getloadavg()[0]:.1f} after the runs")
+    print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
+          "| not deblurred | deblurred by |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
+        q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
+        print(f"| {q} | {r['frames']}/{r['expected']} | {r['deblurred_pct']:.1f} | "
+              f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
+              f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['reasons'] or '-'} | {methods_text(r)} |")
+    print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
+          "stage latency p50 / p99 ms at the run's end (`health.pipeline.stage_ms`)")
+    stages = sorted({k for r in rows for k in r["cpu"]} - {"parent", "parent_without_sim"})
+    print("| CPU quota | " + " | ".join(stages) + " | all but solves and sim | stage ms p50/p99 |")
+    print("|---" * (len(stages) + 3) + "|")
+    for r in rows:
+        c = r["cpu"]
+        q = "none" if r["quota"] is None else f"{r['quota']:g} cores"
+        lat = ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in r["stage_ms"].items())
+        print(f"| {q} | " + " | ".join(f"{c.get(k, 0.0):.1f}" for k in stages)
+              + f" | {c.get('parent_without_sim', float('nan')):.1f} | {lat} |")
+
+
 def methods_text(r: dict) -> str:
     return ", ".join(f"{k} {100 * v / r['frames']:.0f} %" for k, v in
                      sorted(r["methods"].items(), key=lambda kv: -kv[1])) or "-"
@@ -571,6 +667,10 @@ def main(argv=None) -> int:
                     help="--temporal: a configuration override for both daemons (repeatable)")
     ap.add_argument("--offline", action="store_true",
                     help="only the offline table at --size and --rate: each method's quality and CPU")
+    ap.add_argument("--payload", action="store_true",
+                    help="only the default daemon on all cores and under CPU quotas of 1.2 and 1 core, "
+                         "with its CPU and latency per stage")
+    ap.add_argument("--repeats", type=int, default=1, help="--payload: runs per quota, interleaved")
     ap.add_argument("--large", action="store_true",
                     help="only the large-sensor tables: 1280×1024 at 30 fps and 640×512 at 60 fps")
     args = ap.parse_args(argv)
@@ -586,6 +686,9 @@ def main(argv=None) -> int:
         return 0
     if args.large:
         print_large(*large(seconds))
+        return 0
+    if args.payload:
+        print_payload(payload(seconds, repeats=args.repeats))
         return 0
     if args.squeeze:
         print_squeeze(squeeze(seconds))

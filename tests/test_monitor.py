@@ -55,7 +55,7 @@ def run(apply: bool, seconds: float, drift=DRIFT, until=None, **extra):
     opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "deblur.method": "wiener",
             "calibration.width": 160, "calibration.height": 120, "calibration.fx": 366.0,
             "calibration.fy": 366.0, "monitor.apply": apply, "pipeline.workers": 1, "sim.loop_s": LOOP_S,
-            **extra}
+            "monitor.cpu_share": 0.10, **extra}
     d = Daemon(config.load(None, opts))
     d.payload.drift = drift
     d.start()

@@ -181,7 +181,7 @@ class MonitorConfig:
 
     enabled: bool = setting(True)
     apply: bool = setting(False, doc="apply a significant, stable estimate that lowers the residual")
-    cpu_share: float = setting(0.10, lo=0.001, hi=1.0, doc="the share of one core it may use, at most")
+    cpu_share: float = setting(0.05, lo=0.001, hi=1.0, doc="the share of one core it may use, at most")
     window_s: float = setting(4.0, lo=0.5, hi=60.0,
                               doc="rolling window of frame pairs one estimate is fitted on")
     width: int = setting(320, lo=32, hi=1024,
