@@ -9,7 +9,8 @@
 - `flight_video` a flight as other tools hand it over: AGC'd H.264 video + a gyro log in a real format
                (gcsv, Betaflight CSV, ArduPilot .bin) with a hidden time offset and camera mount
 - `playback`   a pre-rendered looping sequence for the real-time simulated payload
-- `cli`        `thermod sim`
+- `payload`    the simulated payload the daemon runs on: the emulated camera and IMU playing a loop
+  (`thermod sim` is `thermod.cli.sim`)
 
 Submodules are imported on demand (numba compiles on first use).
 """

@@ -7,7 +7,7 @@ played in a loop; a real-time gyro emulator samples the same motion through `rat
 Approximations against a live fine-time render: the world repeats every loop, and the sensor
 noise of a frame repeats with it (it is rendered once).
 
-Cache: `$THERMOD_CACHE` or `~/.cache/thermod`, one format-v1 recording per parameter set and scene
+Cache: `thermod.paths.cache_dir()`, one format-v1 recording per parameter set and scene
 source (`playback-<hash>.h5`), re-rendered when missing or unreadable.
 
     pb = playback.load(PlaybackSpec(scene="real:2", seconds=2.0))
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from thermod import paths
 from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
@@ -107,8 +108,7 @@ class Playback:
 
 
 def cache_dir() -> Path:
-    env = os.environ.get("THERMOD_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "thermod"
+    return paths.cache_dir()
 
 
 def cache_path(spec: PlaybackSpec, directory: str | os.PathLike | None = None) -> Path:

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks import chaos
-from thermod.runtime.pipeline import REASONS
+from thermod.io.wire import REASONS
 
 pytestmark = pytest.mark.slow
 

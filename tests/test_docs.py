@@ -41,3 +41,21 @@ def test_docs_do_not_point_outside_the_repository():
     for p in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
         text = p.read_text(encoding="utf-8")
         assert "../shared" not in text and "shared/DESIGN" not in text, p
+
+
+def test_interfaces_lists_every_calibration_field():
+    import dataclasses
+
+    from thermod.physics.calibration import Calibration
+
+    text = (ROOT / "docs" / "interfaces.md").read_text(encoding="utf-8")
+    block = text[text.index("`thermod.physics.calibration.Calibration`"):text.index("Derived:")]
+    listed = set(re.findall(r"[A-Za-z_]+", block.split("):", 1)[1]))
+    missing = [f.name for f in dataclasses.fields(Calibration) if f.name not in listed]
+    assert not missing, f"docs/interfaces.md does not list the Calibration fields {missing}"
+
+
+def test_the_paper_is_cited_where_eq_numbers_are_explained():
+    doi = "doi:10.3390/s22051893"
+    assert doi in (ROOT / "docs" / "design.md").read_text(encoding="utf-8")
+    assert doi in (ROOT / "thermod" / "physics" / "__init__.py").read_text(encoding="utf-8")

@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 
 from thermod.drivers.v4l2_camera import BOSON_FFC_IN_PROGRESS, BOSON_STATUS_WORD, V4L2Camera, boson_ffc_state
+from thermod.io.wire import REASONS
 from thermod.physics.calibration import Calibration
 from thermod.restore.plan import kernel_window
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime import config
 from thermod.runtime.config import PipelineConfig
-from thermod.runtime.pipeline import REASONS, Pipeline
+from thermod.runtime.pipeline import Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.emu_camera import EmuCamera, EmuV4L2Device, FFCSchedule
 from thermod.sim.scenes import load_scene

@@ -18,7 +18,8 @@ import pytest
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver, kernel_spread
-from thermod.restore.plan import coarser_grids, grid_needed, make_deconvolver, render, solved_grid
+from thermod.physics.kernels.grids import coarser_grids
+from thermod.restore.plan import grid_needed, make_deconvolver, render, solved_grid
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
 from thermod.runtime.governor import Governor, ladder

@@ -384,3 +384,13 @@ def test_one_input_and_an_output_ending_in_a_slash_writes_into_that_directory(tm
     rc, _, _ = deblur(capsys, src, "-o", f"{tmp_path / 'new'}/", "--uniform", "--method", "wiener")
     assert rc == 0 and (tmp_path / "new").is_dir()
     assert recording.read(tmp_path / "new" / "one.h5").deblurred.shape == (6, 48, 64)
+
+
+def test_offline_solver_comes_from_the_one_factory_and_honours_kf_iterations():
+    from thermod.batch.job import deconvolver
+    from thermod.restore.settings import DeblurConfig
+
+    assert deconvolver(DeblurConfig(kf_iterations=3)).iterations == 3
+    assert deconvolver(DeblurConfig()).iterations == 6
+    d = deconvolver(DeblurConfig(method="wiener", kf_iterations=3))
+    assert d.method == "wiener" and not d.realtime       # offline plans are measured, not estimated

@@ -12,9 +12,9 @@ import zmq.auth
 from benchmarks.chaos import FROZEN_SUBSCRIBER
 from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
+from thermod.io.endpoints import TransportError, is_loopback
 from thermod.io.wire import MessageError, decode
 from thermod.runtime import config
-from thermod.runtime.endpoints import TransportError, is_loopback
 from thermod.runtime.publish import BUDGETED_STALLED_SUBSCRIBERS, Publisher
 
 EP = "tcp://127.0.0.1:*"
@@ -691,7 +691,7 @@ def test_an_insecure_remote_bind_is_reported_in_the_daemon_health(tmp_path):
 def test_one_loopback_rule_and_one_set_of_transport_defaults():
     """The publisher, the RTSP server and the web view ask one rule whether a bind is private, and the
     configuration's defaults are the publisher's."""
-    from thermod.runtime.endpoints import DEFAULT_HWM, is_loopback, is_loopback_host
+    from thermod.io.endpoints import DEFAULT_HWM, is_loopback, is_loopback_host
 
     for host in ("127.0.0.1", "127.8.0.1", "::1", "[::1]", "localhost", "lo"):
         assert is_loopback_host(host), host
@@ -706,7 +706,7 @@ def test_one_loopback_rule_and_one_set_of_transport_defaults():
 
 
 def test_an_ipc_publisher_removes_its_socket_file_and_listening_tells(tmp_path):
-    from thermod.runtime.endpoints import listening
+    from thermod.io.endpoints import listening
 
     ep = f"ipc://{tmp_path / 'p.sock'}"
     assert listening(ep) is False                   # no file yet

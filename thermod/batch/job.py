@@ -105,16 +105,15 @@ _per_thread = threading.local()
 def deconvolver(cfg: DeblurConfig):
     """This thread's `Deconvolver` for `cfg`'s method, α and λ: FFT plans and LUTs are built once
     per thread and reused by every file it deblurs (one instance is not thread-safe)."""
-    from thermod.physics.deconv import Deconvolver  # numba start-up only when deblurring
+    from thermod.restore.plan import make_deconvolver  # numba start-up only when deblurring
 
-    key = (cfg.method, float(cfg.alpha), cfg.lam)
+    key = (cfg.method, float(cfg.alpha), cfg.lam, cfg.kf_iterations if cfg.method == "kf" else None)
     cache = getattr(_per_thread, "decs", None)
     if cache is None:
         cache = _per_thread.decs = {}
     dec = cache.get(key)
     if dec is None:
-        # per-frame kernels never repeat: a tiny OTF cache (one entry per tile of a frame is plenty)
-        dec = cache[key] = Deconvolver(method=cfg.method, alpha=cfg.alpha, lam=cfg.lam, cache_size=2)
+        dec = cache[key] = make_deconvolver(cfg, live=False)
     return dec
 
 

@@ -48,6 +48,7 @@ from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
 from thermod.physics.calibration import Calibration
+from thermod.physics.kernels.grids import kernel_span_s
 
 GYRO_MARGIN_S = 1.0          # log kept before the first and after the last frame (≫ the 5τ window)
 MIN_LOG_RATE_HZ = 100.0      # below it a log's samples are too sparse for a blur kernel of a few ms
@@ -241,5 +242,5 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration, at
 
 
 def frame_window_s(calib: Calibration) -> float:
-    """The kernel window before a frame: 5τ plus the readout (Eq. 18)."""
-    return 5.0 * calib.tau_s + calib.readout_s
+    """The kernel window before a frame: 5τ plus the readout (Eq. 18; `kernel_span_s`)."""
+    return kernel_span_s(calib)

@@ -10,7 +10,7 @@ elsewhere), in three stages:
    then it is shrunk to a working width (≈ 160 px) and mapped to 8 bits. Shi–Tomasi corners of frame
    k−1 are tracked into frame k by pyramidal Lucas–Kanade, kept when the backward track returns within
    0.5 px, and turned into rays v = K⁻¹p/‖K⁻¹p‖. The camera's rotation between the frames,
-   Q = R(t_{k−1})ᵀ R(t_k) with v_{k−1} = Q v_k (DESIGN.md §2), is the orthogonal Procrustes
+   Q = R(t_{k−1})ᵀ R(t_k) with v_{k−1} = Q v_k (docs/design.md §2), is the orthogonal Procrustes
    (Kabsch) fit on the rays, inside a two-point RANSAC; its rotation vector φ_k ≈ ∫ω dt over the
    interval, in the camera frame, with the information matrix Σ [v]×ᵀ[v]× / σ² from the fit's
    residual σ (rad).
@@ -697,7 +697,7 @@ def _refine(pm, gyro_t, gyro_rate, coarse, tau_s, readout_s, mounts, fit_readout
 # --------------------------------------------------------------------------------------------- result
 @dataclass
 class SyncResult:
-    """What `synchronise` found. Conventions as the calibration's (DESIGN.md §2):
+    """What `synchronise` found. Conventions as the calibration's (docs/design.md §2):
     ω_cam = R_cam_gyro (ω_gyro − bias), t_cam = t_gyro + time_offset_s.
 
     The mount's margin is given twice: the correlation of the best mount over the runner-up's

@@ -54,9 +54,10 @@ from thermod.restore.settings import DeblurConfig
 
 log = logging.getLogger(__name__)
 
-# Offline there is no latency budget, so the kernel grid is the default (benchmarks/bench_quality.py:
-# as good as uniform when the blur is uniform, then solved once, and +9.9 dB under roll); the daemon
-# defaults to uniform. Everything else is the one set of defaults, DeblurConfig's.
+# Offline there is no latency budget, so the finest kernel grid is the default (benchmarks/
+# bench_quality.py: as good as uniform when the blur is uniform, then solved once, and +9.9 dB under
+# roll); the daemon picks the grid each frame's roll needs (mode "adaptive"). Everything else is the
+# one set of defaults, DeblurConfig's.
 OFFLINE = dataclasses.replace(DeblurConfig(), mode="grid")
 
 

@@ -28,8 +28,8 @@ import numpy as np
 from thermod.client.subscriber import Subscriber
 from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
+from thermod.io.endpoints import DEFAULT_ENDPOINT
 from thermod.physics.calibration import Calibration
-from thermod.runtime.endpoints import DEFAULT_ENDPOINT
 
 log = logging.getLogger(__name__)
 

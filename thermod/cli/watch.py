@@ -26,8 +26,8 @@ import numpy as np
 from thermod.client.subscriber import Subscriber
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
+from thermod.io.endpoints import DEFAULT_ENDPOINT, listening
 from thermod.io.wire import MAX_PAYLOAD_BYTES
-from thermod.runtime.endpoints import DEFAULT_ENDPOINT, listening
 
 log = logging.getLogger(__name__)
 

@@ -21,14 +21,14 @@ from collections.abc import Iterable, Iterator
 
 import zmq
 
-from thermod.io.wire import MAX_HEADER_BYTES, MAX_PAYLOAD_BYTES, TOPICS, MessageError, decode
-from thermod.runtime.endpoints import (
+from thermod.io.endpoints import (
     DEFAULT_ENDPOINT,
     TransportError,
     check_endpoint,
     load_keypair,
     load_public_key,
 )
+from thermod.io.wire import MAX_HEADER_BYTES, MAX_PAYLOAD_BYTES, TOPICS, MessageError, decode
 
 log = logging.getLogger(__name__)
 

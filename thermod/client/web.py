@@ -33,8 +33,8 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.io.display import side_by_side, to_u8
+from thermod.io.endpoints import is_loopback_host
 from thermod.io.json_safe import jsonable
-from thermod.runtime.endpoints import is_loopback_host
 
 log = logging.getLogger(__name__)
 

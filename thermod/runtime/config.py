@@ -32,6 +32,7 @@ from types import MappingProxyType
 from typing import Any
 
 from thermod.errors import ConfigError
+from thermod.io import endpoints
 from thermod.io.calibration_file import calibration_from_table
 from thermod.io.toml_tables import (
     REQUIRED,
@@ -48,7 +49,7 @@ from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import DEFAULT_NETD_K
 from thermod.restore.settings import DeblurConfig
-from thermod.runtime import endpoints, sources
+from thermod.runtime import sources
 
 
 def section(cls) -> Any:
@@ -91,7 +92,7 @@ class SimConfig:
                            doc="the simulated camera's true thermal time constant (s); 0 = [calibration]'s")
     netd_k: float = setting(DEFAULT_NETD_K, lo=0.0, hi=10.0,
                             doc="the simulated camera's temporal noise (NETD, K RMS; 0 = noiseless)")
-    cache_dir: str = setting("", doc='"" = $THERMOD_CACHE (or ~/.cache/thermod), see sim.playback')
+    cache_dir: str = setting("", doc='"" = thermod.paths.cache_dir() ($XDG_CACHE_HOME/thermod)')
     ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
                                     doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
     ffc_duration_s: float = setting(0.5, lo=0.0, lo_open=True, hi=10.0,

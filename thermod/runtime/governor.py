@@ -82,7 +82,7 @@ import statistics
 import threading
 from dataclasses import dataclass
 
-from thermod.restore.plan import coarser_grids
+from thermod.physics.kernels.grids import coarser_grids
 from thermod.restore.settings import DeblurConfig
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2

@@ -31,7 +31,7 @@ frame to be solved alone. A frame solved without a prior (the first after start,
 a gap) is published as ``wiener`` (its own solve), not as temporal.
 
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
-``deblurred = False`` and a reason (`REASONS`). Nothing received is lost silently:
+``deblurred = False`` and a reason (`thermod.io.wire.REASONS`). Nothing received is lost silently:
 
 - the camera runs a flat-field correction (shutter closed, NUC update: `FrameSlot.ffc`), or the frame's
   kernel window reaches back into one, or the detector is still settling after it (``ffc_settle_s``)
@@ -75,8 +75,8 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
+from thermod.physics.kernels.grids import coarser_grids
 from thermod.restore.plan import (
-    coarser_grids,
     grids_within,
     kernel_window,
     make_deconvolver,
@@ -109,8 +109,6 @@ START_COVERAGE = 0.9
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
 PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
 
-REASONS = ("disabled", "ffc", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
-           "worker_error")
 
 
 @dataclass

@@ -1,5 +1,5 @@
 """The daemon's ZeroMQ publisher for wire format v1 (docs/wire.md); the codec is `thermod.io.wire`, the
-endpoint and key rules `thermod.runtime.endpoints`, the subscriber `thermod.client.subscriber`.
+endpoint and key rules `thermod.io.endpoints`, the subscriber `thermod.client.subscriber`.
 
 The daemon binds one PUB socket; every message is three frames ``[topic, header, payload]``.
 `Publisher` owns that socket in one thread and never blocks its callers.
@@ -32,18 +32,7 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
-from thermod.io.wire import (
-    TOPICS,
-    WIRE_VERSION,
-    array_header,
-    encode_header,
-    jsonable,
-    nbytes,
-    pack_gyro,
-    pack_kernel,
-    wire_array,
-)
-from thermod.runtime.endpoints import (
+from thermod.io.endpoints import (
     DEFAULT_ENDPOINT,
     DEFAULT_HWM,
     DEFAULT_MAX_QUEUE_BYTES,
@@ -54,6 +43,17 @@ from thermod.runtime.endpoints import (
     is_loopback,
     load_keypair,
     security_problem,
+)
+from thermod.io.wire import (
+    TOPICS,
+    WIRE_VERSION,
+    array_header,
+    encode_header,
+    jsonable,
+    nbytes,
+    pack_gyro,
+    pack_kernel,
+    wire_array,
 )
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,7 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side
-from thermod.runtime.endpoints import is_loopback_host, split_rtsp_url
+from thermod.io.endpoints import is_loopback_host, split_rtsp_url
 
 if TYPE_CHECKING:
     from thermod.runtime.config import RtspConfig

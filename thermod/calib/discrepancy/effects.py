@@ -20,6 +20,7 @@ from thermod.calib.discrepancy.fitting import current_ssr, scalar_fit, vector_fi
 from thermod.calib.discrepancy.problem import StepContext
 from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import continuations, detect_clip_level, group_delay_s
+from thermod.physics.kernels.grids import kernel_span_s
 
 
 @dataclass
@@ -388,7 +389,7 @@ def _run_reach_px(d, calib, runs) -> np.ndarray:
     readout before the first frame to the last), times the larger of the focal length and the half
     diagonal (a rotation moves no pixel of the working frame by more)."""
     t_cam = np.asarray(d.gyro_t, np.float64) + calib.time_offset_s
-    lo = d.frame_t[0] - 5.0 * calib.tau_s - calib.readout_s
+    lo = d.frame_t[0] - kernel_span_s(calib)
     seen = (t_cam >= lo) & (t_cam <= d.frame_t[-1])
     dt = np.gradient(np.asarray(d.gyro_t, np.float64)) if len(d.gyro_t) > 1 else np.ones(len(d.gyro_t))
     intr = d.fm.intr

@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 import scipy.fft
 
+from thermod.paths import cache_dir
+
 try:  # optional (the "test" extra): faster float32 plans
     import pyfftw
 except ImportError:  # pragma: no cover - depends on the installation
@@ -30,7 +32,7 @@ except ImportError:  # pragma: no cover - depends on the installation
 log = logging.getLogger(__name__)
 
 # FFTW_MEASURE takes ~0.7 s per plan at 640×480; cut short, its plans ran 45 % slower (measured),
-# so plan fully once and keep the wisdom on disk ($THERMOD_CACHE_DIR, else ~/.cache/thermod).
+# so plan fully once and keep the wisdom on disk (`thermod.paths.cache_dir`).
 # Only the daemon's warm-up is capped (a slow payload must still start); offline runs plan without a
 # limit: a plan cut short on a loaded machine is not the full MEASURE wisdom another process finds,
 # so that process measures its own, and a fleet's outputs would differ in the last bits.
@@ -42,9 +44,7 @@ _wisdom_loaded = False
 
 
 def wisdom_path() -> Path:
-    d = os.environ.get("THERMOD_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "thermod")
-    return Path(d) / "fftw_wisdom_float32"
+    return cache_dir() / "fftw_wisdom_float32"
 
 
 def _load_wisdom() -> None:

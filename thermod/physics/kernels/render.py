@@ -174,6 +174,13 @@ def render_photon_kernel(gyro_t, gyro_rate, calib: Calibration, t_frame: float,
 
 
 def _grid_layout(h: int, w: int, rows: int, cols: int):
+    """(centers, bounds) of a rows × cols grid, fresh copies of the cached layout."""
+    centers, bounds = _grid_layout_cached(h, w, rows, cols)
+    return centers.copy(), bounds.copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_layout_cached(h: int, w: int, rows: int, cols: int):
     ye = np.round(np.linspace(0, h, rows + 1)).astype(int)
     xe = np.round(np.linspace(0, w, cols + 1)).astype(int)
     centers = np.empty((rows, cols, 2))

@@ -6,10 +6,25 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from thermod.errors import ThermodError
 
 __all__ = ["Kernel", "KernelError", "KernelGrid", "KernelPath"]
+
+
+@njit(cache=True, nogil=True)
+def _max_radius(w, oy, ox):
+    """max √((i − oy)² + (j − ox)²) over the non-zero w[i, j] (0 when all are zero): one pass, no
+    index arrays (the daemon asks it of every cell of a grid, every frame)."""
+    best = 0
+    for i in range(w.shape[0]):
+        for j in range(w.shape[1]):
+            if w[i, j] != 0:
+                d = (i - oy) * (i - oy) + (j - ox) * (j - ox)
+                if d > best:
+                    best = d
+    return np.sqrt(best)
 
 
 class KernelError(ThermodError, ValueError):
@@ -52,10 +67,7 @@ class Kernel:
     @functools.cached_property
     def extent_px(self) -> float:
         """max |u| over the non-zero weights (px)."""
-        iy, ix = np.nonzero(self.weights)
-        if iy.size == 0:
-            return 0.0
-        return float(np.sqrt(((iy - self.origin[0]) ** 2 + (ix - self.origin[1]) ** 2).max()))
+        return float(_max_radius(self.weights, self.origin[0], self.origin[1]))
 
     @functools.cached_property
     def centroid(self) -> tuple[float, float]:
