@@ -38,12 +38,13 @@ def test_the_default_daemon_deblurs_temporally():
 
     d.pipeline.emit = keep
     gov = d.pipeline.governor
-    assert [r.name for r in gov.rungs] == ["temporal", "wiener"]
+    assert [r.name for r in gov.rungs] == ["temporal", "wiener", "wiener_half"]
     d.start()
     try:
         # warm-up measured every rung's cost, the temporal ones with a prior
         refs = gov.state()["cost_ms"]
         assert any(k.startswith("temporal×") for k in refs) and any(k.startswith("wiener×") for k in refs)
+        assert "wiener_half×1" in refs                 # the last resort, timed too
         t0 = time.monotonic()
         while time.monotonic() - t0 < 5.0:
             d.tick()

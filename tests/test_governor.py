@@ -67,11 +67,13 @@ def test_budget_and_ladder_follow_the_configuration():
     assert [r.name for r in ladder(DeblurConfig(method="wiener", temporal_views=1))] == ["wiener"]
     assert not any(r.varying for r in ladder(DeblurConfig(mode="uniform")))
     # temporal (the default): the recursive rungs first; the Wiener-based one coarsens before giving up
+    # and below them Wiener at half resolution on one kernel, the last resort before raw frames
     default = ladder(DeblurConfig())
-    assert [r.name for r in default] == ["temporal", "wiener"]
-    assert [(r.temporal, r.coarsens, r.method) for r in default] == [(True, True, "wiener"),
-                                                                      (False, True, "wiener")]
-    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == ["temporal", "wiener"]
+    assert [r.name for r in default] == ["temporal", "wiener", "wiener_half"]
+    assert [(r.temporal, r.coarsens, r.method, r.half, r.varying) for r in default] == [
+        (True, True, "wiener", False, True), (False, True, "wiener", False, True),
+        (False, False, "wiener", True, False)]
+    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == ["temporal", "wiener", "wiener_half"]
     assert coarser_grids((3, 4), 4 / 3) == [(3, 4), (2, 3), (1, 1)]
 
 
@@ -433,3 +435,23 @@ def test_the_last_rung_keeps_its_floor_over_the_latency_budget():
     assert labels[-1] == "wiener" and labels[-100:].count("wiener") == 100     # 36 ms over 3×4: gone
     labels, t = feed(g, t, 6.0, cost, needed=(6, 8), floor=(1, 1))
     assert labels[-1] == "wiener 2×3"                  # a floor of one kernel: the finest grid within budget
+
+
+def test_a_payload_short_of_cpu_gets_half_resolution_frames_not_raw_ones():
+    """Costs (ms): temporal 12 + 0.2/cell, Wiener 9 + 0.17/cell, Wiener at half resolution 3.5. At 4×
+    that load (a CPU quota) Wiener even on one kernel (36.7 ms) is beyond what two workers keep up
+    with at 50 fps (34 ms): the frames go to `wiener_half` (14 ms), and back up the ladder when the
+    load is gone."""
+    def cost(fam, cells, load=1.0):
+        base = {"temporal": 12 + 0.2 * cells, "wiener": 9 + 0.17 * cells, "wiener_half": 3.5}[fam]
+        return load * base / 1e3
+
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam, cells in (("temporal", 1), ("temporal", 12), ("wiener", 1), ("wiener", 12), ("wiener_half", 1)):
+        g.seed(fam, cells, cost(fam, cells))
+    labels, t = feed(g, 0.0, 3.0, cost, needed=(3, 4), floor=(2, 3))
+    assert labels[-1].startswith("temporal")
+    labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 4.0), needed=(3, 4), floor=(2, 3))
+    assert labels[-100:].count("wiener_half") == 100
+    labels, t = feed(g, t, 40.0, cost, needed=(3, 4), floor=(2, 3))
+    assert labels[-1].startswith("temporal")

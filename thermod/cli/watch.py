@@ -4,12 +4,12 @@ Prints, every ``--interval`` seconds and at the end: frame rate (from the frames
 latency percentiles ``published − t`` (daemon-side: waiting for gyro coverage + deblurring) and
 ``received − t`` (end to end; meaningful on the daemon's host only, because ``t`` is that host's
 CLOCK_MONOTONIC), messages lost (seq gaps), the deblurred share, which method deblurred them (the
-governor's choice in each frame's header: ``temporal``, ``kf``, ``kf_fast``, ``wiener``, with the
-kernel grid) and why the other frames were not deblurred. With ``--png DIR`` it writes
-raw|deblurred side-by-side previews (one percentile stretch for both halves, so brightness
-compares) at most every ``--png-interval`` seconds. With ``--http HOST:PORT`` it also serves a
-live page there
-(`thermod.client.web`): raw | deblurred, the current blur kernel and health plots.
+governor's choice in each frame's header: ``temporal``, ``kf``, ``kf_fast``, ``wiener``,
+``wiener_half``, with the kernel grid) and why the other frames were not deblurred. With
+``--png DIR`` it writes raw|deblurred side-by-side previews (one percentile stretch for both
+halves, so brightness compares) at most every ``--png-interval`` seconds. With
+``--http HOST:PORT`` it also serves a live page there (`thermod.client.web`): raw | deblurred,
+the current blur kernel and health plots.
 """
 
 from __future__ import annotations

@@ -109,7 +109,7 @@ def pack_kernel(kernel) -> tuple[dict, np.ndarray]:
 
 
 # a `frame` header's ``method``: how the governor's rung deblurred it (docs/wire.md)
-METHODS = ("temporal", "kf", "kf_fast", "wiener")
+METHODS = ("temporal", "kf", "kf_fast", "wiener", "wiener_half")
 # a passed-through `frame` header's ``reason``: why it was not deblurred (docs/wire.md)
 REASONS = ("disabled", "ffc", "gyro_offline", "gyro_incomplete", "gyro_gap", "kernel_error", "overload",
            "worker_error")

@@ -106,7 +106,8 @@ class Daemon:
         self.monitor = None       # the live calibration monitor ([monitor], thermod.runtime.monitor)
         if cfg.monitor.enabled:
             from thermod.runtime.monitor import Monitor
-            self.monitor = Monitor(cfg.monitor, self.gyro_ring, self.frame_ring, lambda: self.pipeline.calib)
+            self.monitor = Monitor(cfg.monitor, self.gyro_ring, self.frame_ring, lambda: self.pipeline.calib,
+                                   short_of_cpu=lambda: self.pipeline.short_of_cpu())
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
         self.camera_state = DeviceState(self.camera.name)

@@ -8,6 +8,9 @@ deblurring (``temporal_views`` > 1, the default) the ladder is, best first:
               frame's result, gyro-warped, as the prior of frame t's Wiener solve) over the grid
               the frame needs, coarsened (6×8 → … → 2×3 → 1×1 = uniform) when that does not fit
     wiener    one Tikhonov solve of the frame alone, its grid coarsened likewise
+    wiener_half  Wiener on one kernel at half resolution (`thermod.physics.deconv.half`): about a
+              third of Wiener's cost, 5–7 dB above the blurry frame and 4–8 dB below Wiener on a
+              detailed scene (benchmarks/results/payload.md): the rung of a payload short of CPU
 
 K&F has no rung there, whatever ``method`` says: alone it restores less than ``temporal`` (0.7–0.8
 dB at NETD 10–60 mK), and as the recursion's own solve it restores about as much (−0.3 to +0.2 dB)
@@ -103,6 +106,7 @@ class Rung:
     varying: bool                 # may use the grid the frame needs (else uniform)
     temporal: bool = False        # the recursive temporal solve over that own solve
     coarsens: bool = False        # may coarsen the grid the frame needs when it does not fit
+    half: bool = False            # solved at half resolution (`thermod.physics.deconv.half`)
 
     def deblur(self, base: DeblurConfig) -> DeblurConfig:
         """The DeblurConfig a worker builds this rung's deconvolver from."""
@@ -114,7 +118,8 @@ def ladder(deblur: DeblurConfig) -> list[Rung]:
     varying = deblur.mode != "uniform"
     last = Rung("wiener", "wiener", None, varying, coarsens=True)
     if deblur.temporal_views > 1:
-        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last]
+        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last,
+                Rung("wiener_half", "wiener", None, False, half=True)]
     if deblur.method == "wiener":
         return [last]
     rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]

@@ -9,6 +9,8 @@ gap, and gyro windows with a gap are skipped.
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
 pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
+While the pipeline is short of CPU (it passed a frame through for overload lately: `short_of_cpu`)
+the monitor does no work at all (``yielded_s`` in its state): frames come first.
 τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
 twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
 never starves the registration that bias and offset need (a frame's tails serve both its pairs).
@@ -64,13 +66,16 @@ BACKLOG = 16                 # frames the monitor may lag behind the camera befo
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
 TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the monitor's own CPU time
 TAU_PICK = 0.5               # the chance that an affordable pair is measured for τ
+YIELD_S = 0.25               # while the pipeline is short of CPU the monitor checks again this often
 
 
 class Monitor:
     """One monitor thread over the daemon's rings. ``calib()`` returns the calibration in force."""
 
-    def __init__(self, cfg: MonitorConfig, gyro_ring: GyroRing, frame_ring: FrameRing, calib):
+    def __init__(self, cfg: MonitorConfig, gyro_ring: GyroRing, frame_ring: FrameRing, calib,
+                 short_of_cpu=None):
         self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
+        self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
         self._registrars: dict[tuple, Registrar] = {}
         self._stop = threading.Event()
@@ -132,6 +137,10 @@ class Monitor:
             pass
         self._cpu.append((time.monotonic(), time.thread_time()))
         while not self._stop.is_set():
+            if self._short_of_cpu():         # frames are being passed through: give the CPU to them
+                self.counters["yielded_s"] = round(self.counters["yielded_s"] + YIELD_S, 2)
+                self._stop.wait(YIELD_S)
+                continue
             c0 = time.thread_time()
             try:
                 worked = self._step()

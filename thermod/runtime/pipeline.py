@@ -60,6 +60,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import os
 import pickle
 import sys
@@ -107,6 +108,7 @@ log = logging.getLogger(__name__)
 # of its weight (the thermal comet's oldest tail is what is missing), rather than passed through raw
 START_COVERAGE = 0.9
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
+SHORT_OF_CPU_S = 10.0   # after a job dropped for overload the pipeline counts as short of CPU this long
 PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
 
 
@@ -243,6 +245,7 @@ class Pipeline:
         self._est_cond = threading.Condition()
         self._estimates: collections.OrderedDict = collections.OrderedDict()   # index → Estimate
         self._solving: set[int] = set()           # indices a worker is solving now
+        self._last_overload = -math.inf   # when a job was last dropped for overload
         self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
         self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
         self.governor = self._new_governor(calib, deblur)
@@ -548,6 +551,7 @@ class Pipeline:
             self._jobs.append(job)
             self._jobs_cond.notify()
         if dropped is not None:
+            self._last_overload = time.monotonic()
             self._count("jobs_dropped", 1)
             self.governor.overloaded(time.monotonic())
             self._passthrough(dropped.slot, "overload", dropped.info)
@@ -751,6 +755,11 @@ class Pipeline:
             "governor": self.governor.state(),
             "stage_ms": self.stage_times.summary(),
         }
+
+    def short_of_cpu(self, hold_s: float = SHORT_OF_CPU_S) -> bool:
+        """Whether a job was dropped for overload within `hold_s`: work that can wait (the calibration
+        monitor) gives way meanwhile."""
+        return time.monotonic() - self._last_overload < hold_s
 
     def solver_pids(self) -> list[int]:
         """The solver children's process ids (empty when solving in threads)."""

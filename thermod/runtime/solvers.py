@@ -38,6 +38,7 @@ from multiprocessing.reduction import recv_handle, send_handle
 
 import numpy as np
 
+from thermod.physics.deconv.half import HalfResolution
 from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
 from thermod.restore.plan import solved_grid
 from thermod.runtime.governor import Governor
@@ -83,6 +84,8 @@ def make_solver(factory, rung, deblur, calib):
     d = factory(rung.deblur(deblur))
     if rung.temporal:
         return RecursiveDeconvolver(calib, d, min_coverage=deblur.min_coverage)
+    if getattr(rung, "half", False):
+        return HalfResolution(d)
     return d
 
 
@@ -130,6 +133,7 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
             continue
         d = decs[fam] = make_solver(factory, rung, deblur, calib)
         base = getattr(d, "single", d)
+        planner = d if isinstance(d, HalfResolution) else base     # the sizes this rung solves at
         live = getattr(base, "realtime", False)
         base.realtime = False  # measure plans now, while no frame is waiting
         for k in [uniform, *(grids if rung.varying else [])]:
@@ -140,16 +144,16 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
                     raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
             else:
                 (d.run_varying if hasattr(k, "kernels") else d.run)(img, k)
-        if hasattr(base, "padded_shape"):
+        if hasattr(planner, "padded_shape"):
             sizes = {}
             for kh in range(1, max_kernel_px + 1, 2):
                 for kw in range(1, max_kernel_px + 1, 2):
-                    sizes.setdefault(tuple(base.padded_shape(img.shape, (kh, kw))), (kh, kw))
+                    sizes.setdefault(tuple(planner.padded_shape(img.shape, (kh, kw))), (kh, kw))
             for kh, kw in sizes.values():
                 if time.monotonic() > t_end:
                     break
                 box = np.full((kh, kw), 1.0 / (kh * kw), np.float32)
-                base.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
+                planner.run(img, _WarmKernel(box, (kh // 2, kw // 2)))
         base.realtime = live
 
 

@@ -74,8 +74,9 @@ def value_range_of(img, value_range) -> tuple[float, float]:
 
 
 def robust_range(image: np.ndarray) -> tuple[float, float]:
-    """(lo, hi) counts mapped to 0 and 1 internally: the 0.5/99.5 percentiles of a subsample."""
-    step = max(1, int(math.sqrt(image.size / 40000)))
+    """(lo, hi) counts mapped to 0 and 1 internally: the 0.5/99.5 percentiles of a subsample of at
+    most 40 000 pixels (a regular grid: at 640×480 every 3rd row and column)."""
+    step = max(1, math.ceil(math.sqrt(image.size / 40000)))
     sub = np.asarray(image[::step, ::step], dtype=np.float32)
     lo, hi = np.percentile(sub, RANGE_PERCENTILES)
     lo, hi = float(lo), float(hi)
