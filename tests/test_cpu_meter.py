@@ -113,3 +113,31 @@ def test_watch_prints_the_breakdown_from_health():
                         "simulated payload 10.0")
     assert lines[1] == "stage ms     queue 0.3/12.5, solve 20.1/41.0 (p50/p99)"
     assert cpu_lines({}) == []
+
+
+def test_a_cgroup_cpu_quota_caps_the_cores_the_workers_use(tmp_path):
+    from thermod.runtime.cpu import cgroup_cpu_quota
+
+    # cgroup v2: the tightest quota among the process's cgroup and its ancestors
+    (tmp_path / "self").write_text("0::/system.slice/thermod.service\n")
+    root = tmp_path / "fs"
+    svc = root / "system.slice" / "thermod.service"
+    svc.mkdir(parents=True)
+    (root / "system.slice" / "cpu.max").write_text("max 100000\n")
+    (svc / "cpu.max").write_text("120000 100000\n")
+    assert cgroup_cpu_quota(str(tmp_path / "self"), str(root)) == pytest.approx(1.2)
+    (root / "system.slice" / "cpu.max").write_text("50000 100000\n")
+    assert cgroup_cpu_quota(str(tmp_path / "self"), str(root)) == pytest.approx(0.5)
+    (svc / "cpu.max").write_text("max 100000\n")
+    (root / "system.slice" / "cpu.max").write_text("max 100000\n")
+    assert cgroup_cpu_quota(str(tmp_path / "self"), str(root)) is None
+    # cgroup v1: the CFS quota of the cpu controller's hierarchy (-1: none)
+    (tmp_path / "self1").write_text("4:memory:/x\n1:cpu,cpuacct:/bench\n")
+    d = tmp_path / "v1" / "cpu,cpuacct" / "bench"
+    d.mkdir(parents=True)
+    (d / "cpu.cfs_quota_us").write_text("100000\n")
+    (d / "cpu.cfs_period_us").write_text("100000\n")
+    assert cgroup_cpu_quota(str(tmp_path / "self1"), str(tmp_path / "v1")) == pytest.approx(1.0)
+    (d / "cpu.cfs_quota_us").write_text("-1\n")
+    assert cgroup_cpu_quota(str(tmp_path / "self1"), str(tmp_path / "v1")) is None
+    assert cgroup_cpu_quota(str(tmp_path / "missing")) is None

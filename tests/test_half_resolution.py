@@ -48,7 +48,7 @@ def test_half_resolution_deblurs_far_above_the_blurry_frame():
     out = d.run(b, k)
     assert out.shape == b.shape and out.dtype == np.float32 and d.last_cells == 1
     assert psnr(out, truth) > psnr(b, truth) + 3.0, (psnr(out, truth), psnr(b, truth))
-    assert np.isfinite(d.last_lam)                               # the wrapped solver's λ, as a caller books it
+    assert np.isfinite(d.last_lam)                # the wrapped solver's λ, as a caller books it
 
 
 def test_a_grid_is_solved_with_its_central_kernel():

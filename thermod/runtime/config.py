@@ -134,7 +134,7 @@ class PublishConfig:
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    workers: int = setting(0, lo=0, hi=64, doc="deconvolution threads; 0 = one per core")
+    workers: int = setting(0, lo=0, hi=64, doc="workers; 0 = one per usable core (quota-capped)")
     processes: bool = setting(True, doc="each worker solves in a child process of its own (a GIL of its "
                                         "own; about 190 MB more memory each); false: in the worker thread")
     job_queue: int = setting(4, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")

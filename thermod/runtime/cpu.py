@@ -14,9 +14,11 @@ prior wait, reorder, publish) and reports p50 / p99 in ms.
 from __future__ import annotations
 
 import collections
+import math
 import os
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -125,3 +127,61 @@ class StageTimes:
             arrays = {k: np.fromiter(d, float) for k, d in self._d.items() if d}
         return {k: [round(1e3 * float(np.percentile(a, 50)), 2), round(1e3 * float(np.percentile(a, 99)), 2)]
                 for k, a in arrays.items()}
+
+
+def cgroup_cpu_quota(proc_cgroup: str = "/proc/self/cgroup", root: str = "/sys/fs/cgroup") -> float | None:
+    """The CPU quota of this process's cgroup in cores (cgroup v2 ``cpu.max``, v1 CFS quota; the
+    tightest of its ancestors), or None when there is none. systemd's ``CPUQuota=`` sets it."""
+    try:
+        lines = Path(proc_cgroup).read_text().splitlines()
+    except OSError:
+        return None
+    found = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, path = parts
+        if controllers == "":
+            base, files = Path(root), ("cpu.max",)
+        elif "cpu" in controllers.split(","):
+            base = Path(root) / controllers if (Path(root) / controllers).is_dir() else Path(root) / "cpu"
+            files = ("cpu.cfs_quota_us",)
+        else:
+            continue
+        d = base / path.lstrip("/")
+        while True:
+            q = _quota_at(d, files[0])
+            if q is not None:
+                found.append(q)
+            if d == base or d.parent == d:
+                break
+            d = d.parent
+    return min(found) if found else None
+
+
+def _quota_at(d: Path, name: str) -> float | None:
+    try:
+        if name == "cpu.max":
+            quota, period = (d / name).read_text().split()[:2]
+            return None if quota == "max" else int(quota) / int(period)
+        quota = int((d / name).read_text())
+        return None if quota < 0 else quota / int((d / "cpu.cfs_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def usable_cpus() -> int:
+    """The cores this process's solves may use: its CPU affinity, capped by its cgroup's CPU quota
+    rounded down (1.2 cores of quota: one, at least one). The daemon's own threads need a share of
+    the quota too, and two solves on a quota short of two cores are stalled together by its
+    throttling (measured at 1.2 cores: p99 124 ms with two workers, 20 ms with one,
+    benchmarks/results/payload.md)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:   # pragma: no cover - non-Linux
+        n = os.cpu_count() or 1
+    q = cgroup_cpu_quota()
+    if q is not None and q > 0:
+        n = min(n, math.floor(q + 1e-6))
+    return max(1, n)

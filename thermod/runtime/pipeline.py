@@ -61,7 +61,6 @@ import collections
 import dataclasses
 import logging
 import math
-import os
 import pickle
 import sys
 import threading
@@ -85,7 +84,7 @@ from thermod.restore.plan import (
 )
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
-from thermod.runtime.cpu import StageTimes
+from thermod.runtime.cpu import StageTimes, usable_cpus
 from thermod.runtime.governor import Choice, Governor
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
 from thermod.runtime.solvers import (
@@ -179,10 +178,9 @@ def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
 
 
 def default_workers() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:   # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
+    """One worker per usable core: the affinity, capped by a CPU quota (a cgroup's, systemd's
+    ``CPUQuota=``; `thermod.runtime.cpu.usable_cpus`)."""
+    return usable_cpus()
 
 
 def _picklable(obj) -> bool:

@@ -152,9 +152,12 @@ def coarse_warp_maps(calib, gyro_t, gyro_rate, t_dst: float, t_src: float):
     ro = float(calib.readout_s)
     s_dst = t_dst - ro * (1.0 - (ys + 1.0) / H)
     s_src = t_src - ro * (1.0 - (np.arange(H) + 1.0) / H)
-    R = camera_orientations(gyro_t, gyro_rate, calib, t_dst, np.r_[s_dst, s_src])
+    # without a rolling readout every row shares its frame's read time: two orientations, not H + rows
+    times, back = np.unique(np.r_[s_dst, s_src], return_inverse=True)
+    R = camera_orientations(gyro_t, gyro_rate, calib, t_dst, times)
     if R is None:
         return None
+    R = R[back]
     K = np.asarray(calib.K, np.float64)
     P = np.ascontiguousarray(R[:len(ys)] @ np.linalg.inv(K))
     B = np.ascontiguousarray(K @ np.transpose(R[len(ys):], (0, 2, 1)))
