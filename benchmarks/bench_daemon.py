@@ -602,37 +602,45 @@ def cpu_medians(r: dict) -> dict:
     return out
 
 
-def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1) -> list[dict]:
-    """The default daemon (`make run`'s configuration, 640×480 at 50 fps) on this machine's cores and
-    under CPU quotas (cores), interleaved `repeats` times. The machine's yardstick is measured first,
-    on the quiet machine (the first row's ``yardstick``)."""
+def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
+            fps: float = 50.0) -> list[dict]:
+    """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
+    otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times.
+    The machine's yardstick is measured first, on the quiet machine (the first row's ``yardstick``)."""
     from yardstick import yardstick_line
 
     rows, line = [], yardstick_line()
+    truth = prepared_payload(size, fps)
     for _ in range(repeats):
         for q in quotas:
             print(f"payload: quota {q or 'none'} for {seconds:g} s …", file=sys.stderr, flush=True)
-            r = run_daemon(50.0, seconds, None, quota=q)
-            r["quota"] = q
-            r["cpu"] = cpu_medians(r)
-            r["yardstick"] = line
+            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY)
+            kept = r.pop("kept")
+            r.update(quota=q, cpu=cpu_medians(r), yardstick=line,
+                     psnr=float(np.median([truth_psnr(img, truth.truth_for(fid), central=False)
+                                           for fid, img in kept])),
+                     psnr_blurry=float(np.median([truth_psnr(np.asarray(truth.frame_for(fid), np.float32),
+                                                             truth.truth_for(fid), central=False)
+                                                  for fid, _ in kept])))
             rows.append(r)
     return rows
 
 
 def print_payload(rows: list[dict]) -> None:
     print(rows[0]["yardstick"], "(before the runs)")
-    print(f"\nthe default daemon, 640×480 at 50 fps, {os.cpu_count()} cores, load average "
+    w, h = rows[0]["size"]
+    print(f"\nthe default daemon, {w}×{h} at {rows[0]['fps']:g} fps, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.1f} after the runs")
     print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
-          "| not deblurred | deblurred by |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| PSNR dB (blurry) | not deblurred | deblurred by |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
         q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
         print(f"| {q} | {r['frames']}/{r['expected']} | {r['deblurred_pct']:.1f} | "
               f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
-              f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['reasons'] or '-'} | {methods_text(r)} |")
+              f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['psnr']:.2f} ({r['psnr_blurry']:.2f}) | "
+              f"{r['reasons'] or '-'} | {methods_text(r)} |")
     print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
           "stage latency p50 / p99 ms at the run's end (`health.pipeline.stage_ms`)")
     stages = sorted({k for r in rows for k in r["cpu"]} - {"parent", "parent_without_sim"})

@@ -1,13 +1,15 @@
 """The default daemon on this machine and on a slower payload emulated by CPU quotas.
 
     .venv/bin/python benchmarks/bench_payload.py [--seconds 30] [--repeats 1] [--quick]
+    .venv/bin/python benchmarks/bench_payload.py --size 1280x1024 --rate 30 --quotas none
 
 `make run`'s configuration (640×480 at 50 fps, the simulated payload), measured from a subscriber in
 another process: on every core, then with the daemon and its solver children in a cgroup of 1.2 cores
 (60 % of two) and of 1 core (root). Prints the machine's yardstick, the shares deblurred and deblurred
-by the temporal rung, latency p50 / p95 / p99, gyro samples lost, what was not deblurred and why, and
-where the CPU went per stage (`health.cpu`) with each pipeline stage's latency
-(`health.pipeline.stage_ms`). Targets (issue 35): ≥ 99.5 % deblurred, p99 ≤ 60 ms, p95 ≤ 45 ms and
+by the temporal rung, latency p50 / p95 / p99, gyro samples lost, the whole-frame PSNR of every 5th
+published frame against the payload's truth (median, the blurry frames' beside it), what was not
+deblurred and why, and where the CPU went per stage (`health.cpu`) with each pipeline stage's
+latency (`health.pipeline.stage_ms`). `--size` and `--rate` run another sensor. Targets (issue 35): ≥ 99.5 % deblurred, p99 ≤ 60 ms, p95 ≤ 45 ms and
 ≥ 80 % temporal on two cores; under a quota ≥ 99 % deblurred with p99 ≤ 80 ms and no gyro sample
 lost; everything but the solves (and the simulated payload) ≤ 20 % of one core.
 """
@@ -24,8 +26,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="15 s runs")
+    ap.add_argument("--size", default="640x480", help="the simulated camera's W×H")
+    ap.add_argument("--rate", type=float, default=50.0, help="its frame rate (fps)")
+    ap.add_argument("--quotas", default="none,1.2,1",
+                    help="comma-separated CPU quotas in cores, 'none' for all cores (quotas need root)")
     args = ap.parse_args(argv)
-    print_payload(payload(15.0 if args.quick else args.seconds, repeats=args.repeats))
+    size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
+    quotas = tuple(None if q == "none" else float(q) for q in args.quotas.split(","))
+    print_payload(payload(15.0 if args.quick else args.seconds, quotas, args.repeats, size, args.rate))
     return 0
 
 

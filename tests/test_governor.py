@@ -455,3 +455,21 @@ def test_a_payload_short_of_cpu_gets_half_resolution_frames_not_raw_ones():
     assert labels[-100:].count("wiener_half") == 100
     labels, t = feed(g, t, 40.0, cost, needed=(3, 4), floor=(2, 3))
     assert labels[-1].startswith("temporal")
+
+
+def test_one_kernel_at_full_resolution_comes_before_half_resolution():
+    """A large sensor: Wiener over its 3×4 floor costs 60 ms, beyond `keep_s` (34 ms), but on one
+    kernel 20 ms, within the budget (25.5 ms): the frames get Wiener on one kernel, which restores
+    more than half resolution; `wiener_half` only when even that does not fit."""
+    def cost(fam, cells, load=1.0):
+        base = {"temporal": 40 + 4 * cells, "wiener": 20 + 40 * (cells - 1) / 11, "wiener_half": 6}[fam]
+        return load * base / 1e3
+
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam, cells in (("temporal", 1), ("temporal", 12), ("wiener", 1), ("wiener", 6), ("wiener", 12),
+                       ("wiener_half", 1)):
+        g.seed(fam, cells, cost(fam, cells))
+    labels, t = feed(g, 0.0, 6.0, cost, needed=(3, 4), floor=(3, 4))
+    assert labels[-100:].count("wiener") == 100, labels[-5:]
+    labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 2.0), needed=(3, 4), floor=(3, 4))
+    assert labels[-100:].count("wiener_half") == 100, labels[-5:]

@@ -156,6 +156,9 @@ class Governor:
                  hold_s: float = 2.0, max_hold_s: float = 32.0, margin: float = 0.25):
         self.deblur = deblur
         self.rungs = ladder(deblur)
+        # the last rung at full resolution: the floor and last-resort rules are its; the half-resolution
+        # rung below it takes only frames it cannot take even on one kernel
+        self.full_last = max(i for i, r in enumerate(self.rungs) if not r.half)
         self.enabled = bool(deblur.governor)
         self.aspect = float(aspect)
         self.budget_s = min(workers / frame_rate_hz, deblur.max_solve_s) * (1.0 - deblur.headroom)
@@ -277,6 +280,26 @@ class Governor:
                 return g
         return None
 
+    def _fits_any(self, i: int, needed: tuple[int, int], limit: float,
+                  floor: tuple[int, int]) -> tuple[int, int] | None:
+        """`_fits` down to the floor; for the last full-resolution rung, beyond it too (one kernel
+        at full resolution restores more than half resolution)."""
+        g = self._fits(i, needed, limit, floor)
+        if g is None and i == self.full_last:
+            g = self._fits(i, needed, limit, floor, True)
+        return g
+
+    def _pick(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
+        """The grid rung i solves this frame with, or None: within the budget down to the floor; on
+        its floor within `keep_s` (the rung in use and the last full-resolution one); the last
+        full-resolution rung then beyond its floor within the budget."""
+        g = self._fits(i, needed, self.budget_s, floor)
+        if g is None and i in (self.index, self.full_last):
+            g = self._keeps(i, needed, floor)
+        if g is None and i == self.full_last:
+            g = self._fits(i, needed, self.budget_s, floor, True)
+        return g
+
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The coarsest grid rung i, a coarsening rung, keeps when none fits the budget: its floor (the
         grid within ``temporal_tol_px``), if its solve there is predicted within `keep_s` (the workers
@@ -315,26 +338,23 @@ class Governor:
             while recent and recent[0][0] < now - NEEDED_S:
                 recent.popleft()
             worst, worst_floor = self._recent_grids()
-            over = (self._fits(self.index, worst, self.budget_s, worst_floor) is None
-                    and self._keeps(self.index, worst, worst_floor) is None)
-            if over:                                                       # over budget: step down now
+            if self._pick(self.index, worst, worst_floor) is None:        # over budget: step down now
                 i = self.index + 1
-                while i < len(self.rungs) - 1 and self._fits(i, worst, self.budget_s, worst_floor) is None:
+                while i < len(self.rungs) - 1 and self._pick(i, worst, worst_floor) is None:
                     i += 1
                 if i < len(self.rungs):
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 for i in range(self.index):                       # best rung that fits with margin
-                    if self._fits(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
+                    if self._fits_any(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
                         self._move(i, now)
                         break
             last = len(self.rungs) - 1
             i = self.index
-            g = self._fits(i, needed, self.budget_s, floor) or self._keeps(i, needed, floor)
+            g = self._pick(i, needed, floor)
             while g is None and i < last:                             # this frame only: a cheaper rung
                 i += 1
-                g = self._fits(i, needed, self.budget_s, floor) or (self._keeps(i, needed, floor)
-                                                                     if i == last else None)
+                g = self._pick(i, needed, floor)
             if g is None:             # the last rung, not even on its floor: whatever grid fits
                 g = self._fits(i, needed, self.budget_s, floor, True)
             c = Choice(self.rungs[i], g or (1, 1), i)
@@ -352,7 +372,7 @@ class Governor:
             if not self.enabled or self.index >= len(self.rungs) - 1:
                 return
             worst, floor = self._recent_grids()
-            if self._fits(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
+            if self._fits_any(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
             self.counts["overload_steps"] += 1
