@@ -39,7 +39,8 @@ fits the budget, the rung keeps the floor while it is predicted within ``keep_s 
 rate × (1 − headroom)``, the longest solve the workers keep up with: between the two it runs on its
 floor, over the latency budget, because on two cores the temporal solve sits near the budget and the
 load moves it by a fifth within seconds. Beyond ``keep_s`` a rung above the last gives its method
-up; the last rung, with nothing cheaper, takes the finest grid that fits the budget. Rungs are
+up; the last rung at full resolution takes the finest grid that fits the budget, and only a frame
+that even one kernel does not fit goes to half resolution (`wiener_half`). Rungs are
 judged on the median floor of the last second; a frame whose own floor the rung cannot afford goes
 to the next rung alone. The keep rule predicts with the median load of the last `KEEP_S` of solves
 (every key's), so a burst of load shorter than about a second does not give the method up.
