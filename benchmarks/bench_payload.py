@@ -9,9 +9,10 @@ another process: on every core, then with the daemon and its solver children in 
 by the temporal rung, latency p50 / p95 / p99, gyro samples lost, the whole-frame PSNR of every 5th
 published frame against the payload's truth (median, the blurry frames' beside it), what was not
 deblurred and why, and where the CPU went per stage (`health.cpu`) with each pipeline stage's
-latency (`health.pipeline.stage_ms`). `--size` and `--rate` run another sensor. Targets (issue 35): ≥ 99.5 % deblurred, p99 ≤ 60 ms, p95 ≤ 45 ms and
-≥ 80 % temporal on two cores; under a quota ≥ 99 % deblurred with p99 ≤ 80 ms and no gyro sample
-lost; everything but the solves (and the simulated payload) ≤ 20 % of one core.
+latency (`health.pipeline.stage_ms`). `--size` and `--rate` run another sensor. Targets (issue
+35): ≥ 99.5 % deblurred, p99 ≤ 60 ms, p95 ≤ 45 ms and ≥ 80 % temporal on two cores; under a quota
+≥ 99 % deblurred with p99 ≤ 80 ms and no gyro sample lost; everything but the solves (and the
+simulated payload) ≤ 20 % of one core.
 """
 
 from __future__ import annotations

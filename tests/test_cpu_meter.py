@@ -141,3 +141,46 @@ def test_a_cgroup_cpu_quota_caps_the_cores_the_workers_use(tmp_path):
     (d / "cpu.cfs_quota_us").write_text("-1\n")
     assert cgroup_cpu_quota(str(tmp_path / "self1"), str(tmp_path / "v1")) is None
     assert cgroup_cpu_quota(str(tmp_path / "missing")) is None
+
+
+def test_the_monitor_gives_way_while_the_pipeline_is_short_of_cpu():
+    """While frames are dropped for overload the calibration monitor does no work: it only counts the
+    time it gave way (`yielded_s`), and starts again when the pipeline is no longer short."""
+    from thermod.physics.calibration import Calibration
+    from thermod.runtime.config import MonitorConfig
+    from thermod.runtime.monitor import Monitor
+    from thermod.runtime.rings import FrameRing, GyroRing
+
+    short = threading.Event()
+    short.set()
+    m = Monitor(MonitorConfig(), GyroRing(1000), FrameRing(4, (120, 160)), lambda: Calibration(),
+                short_of_cpu=short.is_set)
+    steps = []
+    m._step = lambda: steps.append(1) or False
+    m.start()
+    try:
+        time.sleep(0.6)
+        assert steps == [] and m.counters["yielded_s"] >= 0.5
+        short.clear()
+        deadline = time.monotonic() + 10
+        while not steps and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert steps
+    finally:
+        m.stop()
+
+
+def test_one_overload_drop_is_a_stall_three_are_a_shortage():
+    import collections
+
+    from thermod.runtime.pipeline import SHORT_OF_CPU_DROPS, Pipeline
+
+    p = Pipeline.__new__(Pipeline)            # the rule alone, without rings and workers
+    p._overload_drops = collections.deque(maxlen=SHORT_OF_CPU_DROPS)
+    now = time.monotonic()
+    p._overload_drops.append(now)
+    assert not p.short_of_cpu()
+    p._overload_drops.extend([now, now])
+    assert p.short_of_cpu() and not p.short_of_cpu(hold_s=0.0)
+    p._overload_drops.extend([now - 30, now - 20, now - 11])
+    assert not p.short_of_cpu()

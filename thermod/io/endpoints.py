@@ -15,9 +15,6 @@ import stat
 import urllib.parse
 from pathlib import Path
 
-import zmq
-import zmq.auth
-
 from thermod.errors import ThermodError
 
 log = logging.getLogger(__name__)
@@ -198,6 +195,8 @@ def claim_ipc(path: str, what: str) -> None:
 
 def load_keypair(path, what: str) -> tuple[bytes, bytes]:
     """(public, secret) of a CURVE certificate (``*.key_secret``, mode 0600); `what` names the setting."""
+    import zmq.auth  # the transport only where keys are read: the rest of io stays free of it
+
     try:
         public, secret = zmq.auth.load_certificate(os.fspath(path))
         mode = os.stat(path).st_mode
@@ -218,6 +217,8 @@ def load_public_key(key) -> bytes:
         return key
     if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
         return key.encode("ascii")
+    import zmq.auth
+
     try:
         public, _ = zmq.auth.load_certificate(os.fspath(key))
     except (OSError, ValueError) as e:

@@ -9,8 +9,8 @@ gap, and gyro windows with a gap are skipped.
 CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
 CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
 pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
-While the pipeline is short of CPU (it passed a frame through for overload lately: `short_of_cpu`)
-the monitor does no work at all (``yielded_s`` in its state): frames come first.
+While the pipeline is short of CPU (three frames passed through for overload within 10 s:
+`short_of_cpu`) the monitor does no work at all (``yielded_s`` in its state): frames come first.
 τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
 twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
 never starves the registration that bias and offset need (a frame's tails serve both its pairs).

@@ -60,7 +60,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import math
 import pickle
 import sys
 import threading
@@ -107,9 +106,9 @@ log = logging.getLogger(__name__)
 # of its weight (the thermal comet's oldest tail is what is missing), rather than passed through raw
 START_COVERAGE = 0.9
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
-SHORT_OF_CPU_S = 10.0   # after a job dropped for overload the pipeline counts as short of CPU this long
+SHORT_OF_CPU_S = 10.0   # the pipeline is short of CPU while this long holds SHORT_OF_CPU_DROPS overload drops
+SHORT_OF_CPU_DROPS = 3  # (one drop is a stall, not a shortage: the monitor goes on through it)
 PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
-
 
 
 @dataclass
@@ -243,7 +242,7 @@ class Pipeline:
         self._est_cond = threading.Condition()
         self._estimates: collections.OrderedDict = collections.OrderedDict()   # index → Estimate
         self._solving: set[int] = set()           # indices a worker is solving now
-        self._last_overload = -math.inf   # when a job was last dropped for overload
+        self._overload_drops: collections.deque = collections.deque(maxlen=SHORT_OF_CPU_DROPS)  # when
         self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
         self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
         self.governor = self._new_governor(calib, deblur)
@@ -549,7 +548,7 @@ class Pipeline:
             self._jobs.append(job)
             self._jobs_cond.notify()
         if dropped is not None:
-            self._last_overload = time.monotonic()
+            self._overload_drops.append(time.monotonic())
             self._count("jobs_dropped", 1)
             self.governor.overloaded(time.monotonic())
             self._passthrough(dropped.slot, "overload", dropped.info)
@@ -755,9 +754,10 @@ class Pipeline:
         }
 
     def short_of_cpu(self, hold_s: float = SHORT_OF_CPU_S) -> bool:
-        """Whether a job was dropped for overload within `hold_s`: work that can wait (the calibration
-        monitor) gives way meanwhile."""
-        return time.monotonic() - self._last_overload < hold_s
+        """Whether `SHORT_OF_CPU_DROPS` jobs were dropped for overload within `hold_s`: work that can
+        wait (the calibration monitor) gives way meanwhile."""
+        drops = self._overload_drops
+        return len(drops) == drops.maxlen and time.monotonic() - drops[0] < hold_s
 
     def solver_pids(self) -> list[int]:
         """The solver children's process ids (empty when solving in threads)."""
