@@ -45,6 +45,9 @@ def monitor_niceness(monkeypatch):
     asked = []
     monkeypatch.setattr("thermod.runtime.monitor.os.setpriority",
                         lambda which, who, prio: asked.append((which, who, prio)))
+    # likewise its pause while the pipeline drops frames for overload (`Pipeline.short_of_cpu`, tested
+    # in test_cpu_meter): on a loaded test host it would starve the estimator these tests check
+    monkeypatch.setattr("thermod.runtime.pipeline.Pipeline.short_of_cpu", lambda self, hold_s=0.0: False)
     return asked
 
 
@@ -132,7 +135,10 @@ def test_apply_moves_the_calibration_towards_the_truth():
 def test_tau_estimate_converges_to_the_camera_s(monitor_niceness):
     """The simulated camera's τ is 12 ms, the configuration says 8 ms (``[sim] tau_s``): the monitor's
     τ estimate finds the camera's within its σ, on the camera's side of the configuration's."""
-    d, h, truth = run(apply=False, seconds=12.0, drift=None, **{"sim.tau_s": 0.012}, until=_tau_fed)
+    # a quarter of a core: this test checks what the τ estimate finds, and on the 2-core CI host (plain
+    # reference K&F 600–980 ms) the default share measured 0–10 of the 24 patch pairs it needs in 36 s
+    d, h, truth = run(apply=False, seconds=12.0, drift=None, until=_tau_fed,
+                      **{"sim.tau_s": 0.012, "monitor.cpu_share": 0.25})
     assert d.cfg.calibration.tau_s == 0.008 and truth.tau_s == pytest.approx(0.012)
     e = h["calibration"]["estimate"]
     assert e is not None, h["calibration"]["monitor"]
