@@ -1,7 +1,7 @@
 """Where the daemon's time goes: CPU per stage (threads and solver children) and latency per stage.
 
-`CpuMeter` reads every thread's CPU clock (`time.pthread_getcpuclockid`) and each solver child's
-utime + stime (``/proc/PID/stat``), and reports each stage's share of one core over the interval
+`CpuMeter` reads every thread's and each solver child's utime + stime (``/proc/self/task/TID/stat``,
+``/proc/PID/stat``), and reports each stage's share of one core over the interval
 since its last reading. A thread belongs to the stage its name starts with (`THREAD_STAGES`); the
 simulated payload's own work (emulating the IMU's FIFO, adding the camera's noise) runs inside the
 driver threads, so the payload counts it (`thermod.sim.payload.SimPayload.cpu_s`) and the meter moves
@@ -42,16 +42,22 @@ def stage_of(thread_name: str) -> str:
 
 
 def _thread_cpu_s(th: threading.Thread) -> float | None:
-    try:
-        return time.clock_gettime(time.pthread_getcpuclockid(th.ident))
-    except (OSError, TypeError, AttributeError):   # ended, not started, or not POSIX
+    """A thread's CPU time from /proc (never its pthread CPU clock: asking that of a thread that has
+    just ended, still listed by `threading.enumerate`, is undefined behaviour and crashed a process)."""
+    tid = th.native_id
+    if tid is None or not th.is_alive():
         return None
+    return _stat_cpu_s(f"/proc/self/task/{tid}/stat")
 
 
 def process_cpu_s(pid: int) -> float | None:
     """utime + stime of process `pid` (s), None when it is gone."""
+    return _stat_cpu_s(f"/proc/{pid}/stat")
+
+
+def _stat_cpu_s(path: str) -> float | None:
     try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
+        with open(path, "rb") as f:
             fields = f.read().rsplit(b")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / _TICK
     except (OSError, IndexError, ValueError):
