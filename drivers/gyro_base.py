@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -96,7 +97,7 @@ class FifoGyro(GyroSource):
 
     A subclass supplies the register map and ``_identify``, ``_configure``, ``_fifo_status``,
     ``_flush``, ``_read_fifo`` and ``_decode``. This class owns the timing: read the FIFO every
-    ``read_interval_s``, count samples (the unwrapped sequence number is the device clock), map
+    ``read_interval_s`` (and at once when a reader asks, `request_read`), count samples (the unwrapped sequence number is the device clock), map
     ``seq × period`` to host time with :class:`thermod.io.clock.ClockMapper` fed with the time taken
     right after the FIFO count was read (every counted sample existed by then), flush and mark a gap
     on overflow or an impossible FIFO count (``overflows``, ``bad_counts``), and after an I/O error
@@ -109,7 +110,7 @@ class FifoGyro(GyroSource):
     fifo_size = 1024
     full_scales_dps: tuple[float, ...] = ()
 
-    def __init__(self, bus, *, full_scale_dps: float, rate_hz: float = 1000.0, read_interval_s: float = 0.004,
+    def __init__(self, bus, *, full_scale_dps: float, rate_hz: float = 1000.0, read_interval_s: float = 0.010,
                  clock_window_s: float = 20.0, name: str | None = None):
         super().__init__()
         if full_scale_dps not in self.full_scales_dps:
@@ -134,6 +135,7 @@ class FifoGyro(GyroSource):
         self._running = False
         self._started = False
         self._next_read = 0.0
+        self._wanted = threading.Event()
         self._stats.update(invalid=0, recoveries=0, bad_counts=0)
 
     # -- chip hooks ------------------------------------------------------------------------------
@@ -218,6 +220,17 @@ class FifoGyro(GyroSource):
         except OSError:
             pass          # unplugged: nothing left to power down
 
+    def request_read(self) -> None:
+        """Read the FIFO now rather than at the next interval: a frame waits for its newest samples.
+        The interval bounds the driver's CPU (each read is a few hundred µs of Python); a wake bounds
+        the frame's wait, which would otherwise average half the interval."""
+        self._wanted.set()
+
+    def _wait(self, seconds: float) -> None:
+        if self._wanted.wait(max(0.0, seconds)):
+            self._wanted.clear()
+            self._next_read = min(self._next_read, time.monotonic())
+
     def poll(self, timeout: float) -> GyroBatch | None:
         if not self._running:
             raise self.error_type(f"{self.name}: poll() before start()")
@@ -228,9 +241,11 @@ class FifoGyro(GyroSource):
             now = time.monotonic()
             if self._next_read > now:
                 if self._next_read > deadline:
-                    time.sleep(max(0.0, deadline - now))
-                    return None
-                time.sleep(self._next_read - now)
+                    self._wait(deadline - now)
+                    if self._next_read > time.monotonic():
+                        return None
+                else:
+                    self._wait(self._next_read - now)
             self._next_read = time.monotonic() + self.read_interval_s
             batch = self._read_once()
             if batch is not None:

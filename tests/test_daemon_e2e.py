@@ -199,6 +199,9 @@ def test_thermod_run_end_to_end(payload):
     stage_ms = last["pipeline"]["stage_ms"]
     assert {"gyro_wait", "render", "queue", "solve", "reorder", "publish"} <= set(stage_ms)
     assert all(0 <= p50 <= p99 for p50, p99 in stage_ms.values()) and stage_ms["solve"][0] > 0
+    # a few seconds after ready: still warming up (two steady 5 s windows are needed), and said so
+    ready = [h for h in healths if h["ready"]]
+    assert ready[0]["warming_up"] is True and (last["pipeline"]["steady_after_s"] or 10.0) >= 10.0
     assert "ready: frames and gyro samples flowing" in err
     assert "reloaded calibration and deblur settings" in err
 

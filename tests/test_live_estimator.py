@@ -3,6 +3,8 @@ the comet tail taken out of the phase, the bias/offset fit on a simulated record
 (160×120, the simulator's fine-time thermal renderer), and τ from the tails' shape where the simulated
 camera's τ differs from the one in force."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -114,6 +116,23 @@ def test_without_the_tail_phase_the_offset_is_biased(recording):
     assert biased > 0.001 and biased > 2 * right, (biased, right)
 
 
+def test_a_bias_a_smooth_slew_cannot_tell_from_a_delay_is_called_ambiguous(recording):
+    """Over one smooth yaw slew the rate's change is nearly the same in every pair, so a yaw bias and
+    a delay move the image alike: the fit says so (ρ −0.99 measured) and reports a σ that covers both,
+    rather than a confident pair; the multirotor's varied motion separates them."""
+    rec = simulate("real:1", "slew:60:yaw:2.5:0", 2.5, CAL,
+                   effects={"time_offset": 0.004, "gyro_bias": (0.012, -0.008, 0.0)}, seed=1)
+    est, integ = _window(rec, rec.calibration)
+    e = est.fit(rec.calibration, integ)
+    assert e.ambiguous and abs(e.bias_offset_correlation[1]) > 0.95, e.as_dict()
+    assert any(n.startswith("ambiguous: gyro_bias[y] | time_offset") for n in e.notes), e.notes
+    assert e.as_dict()["ambiguous"] is True and e.time_offset_sigma > 0.005
+    rec, _ = recording
+    est, integ = _window(rec, rec.calibration)
+    e = est.fit(rec.calibration, integ)
+    assert not e.ambiguous and np.all(np.abs(e.bias_offset_correlation) < 0.9), e.as_dict()
+
+
 def test_too_few_pairs_give_no_estimate(recording):
     rec, _ = recording
     est = LiveEstimator(4.0)
@@ -184,3 +203,24 @@ def test_long_tails_do_not_pull_tau_towards_the_one_in_force():
     tau, sigma, n, note = est.fit_tau(rec.calibration)
     assert tau is not None, note
     assert abs(tau - 0.010) < 2 * sigma, (tau, sigma, n)
+
+
+def test_the_monitor_never_applies_an_ambiguous_window():
+    """The monitor's rule (issue 34): a significant, stable estimate is proposed, unless a window says
+    its bias and offset are confounded; then nothing is proposed, and the refusal is counted."""
+    from thermod.runtime.config import MonitorConfig
+    from thermod.runtime.monitor import Monitor
+
+    rec = simulate("real:1", "slew:60:yaw:2.5:0", 2.5, CAL,
+                   effects={"time_offset": 0.004, "gyro_bias": (0.012, -0.008, 0.0)}, seed=1)
+    est, integ = _window(rec, rec.calibration)
+    e = est.fit(rec.calibration, integ)
+    mon = Monitor(MonitorConfig(apply=True, stable_windows=3), None, None, lambda: rec.calibration)
+    b_now = np.zeros(3)
+    assert e.ambiguous
+    assert mon._motion_change([e, e, e], e, b_now, 0.0) == (None, None)
+    assert mon.counters["proposals_refused_ambiguous"] == 1
+    clear = dataclasses.replace(e, ambiguous=False, bias_sigma=e.bias_sigma / 100,
+                                time_offset_sigma=e.time_offset_sigma / 100)
+    bias, offset = mon._motion_change([clear] * 3, clear, b_now, 0.0)
+    assert bias is not None and offset == pytest.approx(e.time_offset_s)

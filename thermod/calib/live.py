@@ -46,6 +46,7 @@ from thermod.physics.geometry import so3_exp_many
 N_PARAMS = 4            # bias x, y, z (gyro frame, rad/s), time offset (s)
 MIN_PAIRS = 20
 MODEL_DELAY_ERROR = 0.05  # of τ: the floor of the offset's σ (see `LiveEstimator.fit`)
+AMBIGUOUS_CORRELATION = 0.95   # |ρ(bias axis, offset)| above this: the window cannot tell them apart
 LAG_SCAN_S, LAG_STEP_S = 0.06, 0.004   # the coarse offset search around the offset in force
 MIN_RESPONSE = 0.05     # phase-correlation peaks weaker than this are no match (blank sky, a cut)
 PATCH_FRACTION = 0.6    # of a grid cell: a shift of up to ~20 % of a cell still overlaps well
@@ -91,6 +92,8 @@ class Estimate:
     tau_s: float | None = None
     tau_sigma: float | None = None
     n_tau: int = 0                # patch pairs whose tails changed enough to show τ
+    bias_offset_correlation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # each bias axis with o
+    ambiguous: bool = False       # a bias axis and the offset cannot be told apart in this window
     notes: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -103,6 +106,8 @@ class Estimate:
                 "t": float(self.t), "n_pairs": int(self.n_pairs),
                 "residual_px": float(self.residual_px),
                 "residual_applied_px": float(self.residual_applied_px),
+                "bias_offset_correlation": [round(float(c), 3) for c in self.bias_offset_correlation],
+                "ambiguous": bool(self.ambiguous),
                 "notes": list(self.notes)}
 
 
@@ -517,16 +522,35 @@ class LiveEstimator:
             x, r = x_new, r_new
             if np.all(np.abs(dx) < steps * 1e-2):
                 break
-        sigma = self._jackknife(J, r, w, np.repeat(blk, 2))
+        cov = self._jackknife(J, r, w, np.repeat(blk, 2))
+        sigma = np.sqrt(np.diag(cov))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = np.nan_to_num(cov[:3, 3] / (sigma[:3] * sigma[3]))
         # the comet tail's phase is taken out at one velocity per frame (first order in the change of
-        # velocity over τ): a model error the jackknife cannot see, bounded here at 5 % of τ
-        sigma[3] = math.hypot(sigma[3], MODEL_DELAY_ERROR * calib.tau_s)
+        # velocity over τ): a delay error the jackknife cannot see, bounded at 5 % of τ. The bias
+        # follows the offset along the normal equations' coupling (the bias that best explains the
+        # window with the offset held δ off), so it shares that error.
+        delay = MODEL_DELAY_ERROR * calib.tau_s
+        N = J.T @ (J * w[:, None])
+        try:
+            drag = -np.linalg.solve(N[:3, :3] + 1e-9 * np.trace(N) * np.eye(3), N[:3, 3])
+        except np.linalg.LinAlgError:
+            drag = np.full(3, np.inf)
+        sigma[3] = math.hypot(sigma[3], delay)
+        sigma[:3] = np.hypot(sigma[:3], drag * delay)
         tau, tau_sigma, n_tau, note = self.fit_tau(calib)
+        notes = [note] if note else []
+        confounded = [ax for ax, c in zip("xyz", corr) if abs(c) > AMBIGUOUS_CORRELATION]
+        if confounded:
+            notes.append(f"ambiguous: gyro_bias[{','.join(confounded)}] | time_offset (correlation "
+                         f"{', '.join(f'{c:+.2f}' for c in corr)}): this window's motion does not tell a "
+                         "bias from a delay; a rate that changes within the window separates them")
         return Estimate(bias_rad_s=x[:3], bias_sigma=sigma[:3], time_offset_s=float(x[3]),
                         time_offset_sigma=float(sigma[3]), t=0.5 * (float(t_a.min()) + float(t_b.max())),
                         n_pairs=len(self.pairs), residual_px=_robust_rms(r),
                         residual_applied_px=_robust_rms(r_applied), tau_s=tau, tau_sigma=tau_sigma,
-                        n_tau=n_tau, notes=[note] if note else [])
+                        n_tau=n_tau, bias_offset_correlation=corr, ambiguous=bool(confounded),
+                        notes=notes)
 
     def _tau_rows(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """([n, T] coherence curves, [n] jackknife block) of the τ window's patch pairs measured on the
@@ -596,10 +620,12 @@ class LiveEstimator:
                                            float(offset))).ravel())
 
     def _jackknife(self, J: np.ndarray, r: np.ndarray, w: np.ndarray, blk: np.ndarray) -> np.ndarray:
-        """1-σ of each parameter from a delete-one-block jackknife of the linearised step at the solution."""
+        """The parameters' covariance [4, 4] from a delete-one-block jackknife of the linearised step at
+        the solution (infinite when there are too few blocks)."""
         g = int(blk.max()) + 1 if len(blk) else 0
+        unknown = np.diag(np.full(N_PARAMS, np.inf))
         if g < 3:
-            return np.full(N_PARAMS, np.inf)
+            return unknown
         est = []
         for k in range(g):
             m = blk != k
@@ -608,8 +634,10 @@ class LiveEstimator:
             try:
                 est.append(-np.linalg.solve(N + 1e-9 * np.trace(N) * np.eye(N_PARAMS), A.T @ r[m]))
             except np.linalg.LinAlgError:
-                return np.full(N_PARAMS, np.inf)
-        return _jackknife_sigma(np.array(est))
+                return unknown
+        est = np.array(est)
+        d = est - est.mean(axis=0)
+        return (g - 1) / g * d.T @ d
 
 
 def _jackknife_sigma(est: np.ndarray) -> np.ndarray:

@@ -185,8 +185,9 @@ def cpu_lines(h: dict) -> list[str]:
                    + (f", simulated payload {st['sim_payload']:.1f}" if "sim_payload" in st else ""))
     stages = (h.get("pipeline") or {}).get("stage_ms") or {}
     if stages:
+        warm = " — warming up: cold-start numbers" if h.get("warming_up") else ""
         out.append("stage ms     " + ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in stages.items())
-                   + " (p50/p99)")
+                   + " (p50/p99)" + warm)
     return out
 
 

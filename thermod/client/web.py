@@ -232,7 +232,7 @@ class LiveView:
                                                    ("frame_id", "shape", "origin", "extent_px", "coverage")},
             "health": None if health is None else {
                 **{k: health.get(k) for k in ("rates", "drops", "ready", "gyro_online", "clocks",
-                                              "calibration", "cpu")},
+                                              "calibration", "cpu", "warming_up")},
                 "stage_ms": (health.get("pipeline") or {}).get("stage_ms")},
             "series": {k: [p.get(k) for p in series] for k in (series[0] if series else {})},
         })
@@ -493,7 +493,8 @@ function cpuText(h) {
     (sim === undefined ? "" : ", simulated payload " + fmt(sim, 1));
   const sm = h.stage_ms || {};
   const lat = Object.keys(sm).map(k => k + " " + fmt(sm[k][0], 1) + "/" + fmt(sm[k][1], 1));
-  if (lat.length) out += "<br>stage ms p50/p99: " + lat.join(", ");
+  if (lat.length) out += "<br>stage ms p50/p99: " + lat.join(", ") +
+    (h.warming_up ? " (warming up: cold-start numbers)" : "");
   return out;
 }
 

@@ -203,6 +203,8 @@ class Daemon:
             self.payload.start()
         self.pipeline.start(self.frame_ring.head)
         frame_period = 1.0 / cfg.calibration.frame_rate_hz
+        # a FIFO gyro reads on a slow interval (its CPU) and at once when a frame waits for it
+        self.gyro_ring.request = getattr(self.gyro, "request_read", None)
         self.driver_threads = [
             DriverThread("gyro", self.gyro, self._on_gyro, self.gyro_state, self._stop,
                          poll_timeout=cfg.gyro.poll_timeout_s, priority=cfg.gyro.realtime_priority,

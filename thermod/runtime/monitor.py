@@ -18,7 +18,8 @@ Among the affordable pairs, τ's are drawn at random (`TAU_PICK`): a fixed caden
 periodic motion (a sway, a vibration, the simulator's loop) and keeps measuring the same few phases
 of it, whose τ errs together while their jackknife blocks agree.
 
-Applying (``apply = true``): a proposal is an estimate more than ``k_sigma`` σ from the calibration in
+Applying (``apply = true``): a window whose bias and offset are confounded (`Estimate.ambiguous`) is
+never applied; otherwise a proposal is an estimate more than ``k_sigma`` σ from the calibration in
 force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
 agree with each other within k σ; the motion part is applied only if it lowers the window's
 registration residual (the prediction of the frame-to-frame motion), τ only if it lowers the window's
@@ -327,6 +328,11 @@ class Monitor:
         """(bias, offset) to apply, or (None, None): significant in every fit of `hist`, stable across
         them; only the axes (and the offset) that are significant in `est` change."""
         k = self.cfg.k_sigma
+        if any(e.ambiguous for e in hist):
+            # a bias and a delay this window cannot tell apart (`Estimate.ambiguous`): applying either
+            # would write a confounded pair into the calibration
+            self.counters["proposals_refused_ambiguous"] += 1
+            return None, None
         for e in hist:
             sig_b = np.abs(e.bias_rad_s - b_now) > k * e.bias_sigma
             sig_o = abs(e.time_offset_s - o_now) > k * e.time_offset_sigma

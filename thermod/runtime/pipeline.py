@@ -86,6 +86,7 @@ from thermod.runtime.config import PipelineConfig
 from thermod.runtime.cpu import StageTimes, usable_cpus
 from thermod.runtime.governor import Choice, Governor
 from thermod.runtime.rings import FrameRing, FrameSlot, GyroRing
+from thermod.runtime.settling import Settling
 from thermod.runtime.solvers import (
     InChild,
     InThread,
@@ -237,6 +238,7 @@ class Pipeline:
         self.counters = collections.Counter()
         self._count_lock = threading.Lock()
         self.stage_times = StageTimes()   # wall time per stage, for health (`thermod.runtime.cpu`)
+        self.settling = Settling(time.monotonic())   # replaced at `start`: health's ``warming_up``
         self._solvers: list = []        # per worker: InThread or InChild (`thermod.runtime.solvers`)
         self._frames: SharedFrames | None = None   # process mode: the frames shared with the children
         self._est_cond = threading.Condition()
@@ -348,6 +350,7 @@ class Pipeline:
         self._worker_busy_since = [None] * self.n_workers
         for i in range(self.n_workers):
             self._spawn_worker(i)
+        self.settling = Settling(time.monotonic())
         self._scheduler = threading.Thread(target=self._schedule_loop, name="thermod-scheduler", daemon=True)
         self._scheduler.start()
         return self
@@ -723,6 +726,7 @@ class Pipeline:
                 self._count("frames_out", 1)
                 with self._lat_lock:
                     self._latencies.append(o.latency_s)
+                self.settling.add(o.t_done, o.latency_s)
 
     # ------------------------------------------------------------------ health
     def _count(self, key: str, n: int = 1) -> None:
@@ -751,6 +755,7 @@ class Pipeline:
             "worker_busy_max_s": max(busy) if busy else 0.0,
             "governor": self.governor.state(),
             "stage_ms": self.stage_times.summary(),
+            **self.settling.state(now),
         }
 
     def short_of_cpu(self, hold_s: float = SHORT_OF_CPU_S) -> bool:

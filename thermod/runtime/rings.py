@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 _RETRIES = 8
+REQUEST_EVERY_S = 0.002   # a waiting reader asks the gyro source for a read this often
 
 
 @dataclass
@@ -69,6 +70,7 @@ class GyroRing:
         self.gaps_marked = 0
         self.batches_rejected = 0
         self.time_holes = 0
+        self.request = None            # the writer's source's ``request_read`` (see `wait_until`)
 
     # -------------------------------------------------------------------- writer
     def write(self, t: np.ndarray, rate: np.ndarray, seq0: int, gap_before: bool = False) -> int:
@@ -174,13 +176,18 @@ class GyroRing:
         raise RuntimeError("gyro ring: writer lapped the reader repeatedly (ring far too small)")
 
     def wait_until(self, t: float, timeout: float) -> bool:
-        """Block until a sample at or after `t` is stored, or `timeout` s pass. True if covered."""
+        """Block until a sample at or after `t` is stored, or `timeout` s pass. True if covered.
+        While it waits, `request` (the source's ``request_read``, if set) is called every
+        `REQUEST_EVERY_S`: a FIFO driver then reads at once instead of at its next interval."""
         deadline = time.monotonic() + max(0.0, timeout)
         with self._cond:
             while not (self.newest_t >= t):
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
+                if self.request is not None:
+                    self.request()
+                    left = min(left, REQUEST_EVERY_S)
                 self._cond.wait(left)
         return True
 
