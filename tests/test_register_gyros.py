@@ -444,3 +444,32 @@ def test_short_transfers_are_io_errors():
     gyro = ICM42688(SPIBus(Short(ICM42688Emu())))
     with pytest.raises(ICM42688Error, match="short read at register 0x75: 0 of 1"):
         gyro.start()
+
+
+def test_a_waiting_reader_gets_the_fifo_read_at_once():
+    """`request_read`: a FIFO driver on a slow interval (its CPU) reads at once when a frame waits for
+    its newest samples, and a `GyroRing` waiter asks for it while it waits."""
+    import threading
+
+    from thermod.runtime.rings import GyroRing
+
+    chip = ICM42688Emu(noise_rad_s=0.0)
+    gyro = ICM42688(make_bus("spi", chip), full_scale_dps=2000.0, read_interval_s=0.5)
+    gyro.start()
+    gyro.poll(1.0)                                     # the first read: the interval starts now
+    assert gyro.poll(0.05) is None                     # nothing before the interval, unasked
+    ring = GyroRing(4096)
+    ring.request = gyro.request_read
+
+    def driver():                                      # what the gyro's driver thread does
+        b = gyro.poll(1.0)
+        if b is not None:
+            ring.write(b.t, b.rate, b.seq)
+
+    th = threading.Thread(target=driver)
+    t0 = time.monotonic()
+    th.start()
+    covered = ring.wait_until(t0, 0.4)                 # what the scheduler does for each frame
+    waited = time.monotonic() - t0
+    th.join(1.0)
+    assert covered and waited < 0.25, waited           # not the 0.5 s interval
