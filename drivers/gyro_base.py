@@ -97,12 +97,13 @@ class FifoGyro(GyroSource):
 
     A subclass supplies the register map and ``_identify``, ``_configure``, ``_fifo_status``,
     ``_flush``, ``_read_fifo`` and ``_decode``. This class owns the timing: read the FIFO every
-    ``read_interval_s`` (and at once when a reader asks, `request_read`), count samples (the unwrapped sequence number is the device clock), map
-    ``seq × period`` to host time with :class:`thermod.io.clock.ClockMapper` fed with the time taken
-    right after the FIFO count was read (every counted sample existed by then), flush and mark a gap
-    on overflow or an impossible FIFO count (``overflows``, ``bad_counts``), and after an I/O error
-    (a NACK, a short transfer: ``io_errors``, raised once as the driver's DeviceError) re-identify,
-    re-configure and flush before reading again (a replugged chip has lost its configuration).
+    ``read_interval_s`` (and at once when a reader asks, `request_read`), count samples (the unwrapped
+    sequence number is the device clock), map ``seq × period`` to host time with
+    :class:`thermod.io.clock.ClockMapper` fed with the time taken right after the FIFO count was read
+    (every counted sample existed by then), flush and mark a gap on overflow or an impossible FIFO count
+    (``overflows``, ``bad_counts``), and after an I/O error (a NACK, a short transfer: ``io_errors``,
+    raised once as the driver's DeviceError) re-identify, re-configure and flush before reading again (a
+    replugged chip has lost its configuration).
     """
 
     chip = "gyro"

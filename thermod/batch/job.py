@@ -200,22 +200,25 @@ def temporal_deconvolver(cfg: DeblurConfig, calib, dec):
 
 def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec,
                   tdec=None):
-    """(deblurred frame, "") or (None, why it is passed through). With `tdec` every frame whose kernel
-    renders enters its history, a passed-through one too (its low coverage keeps it out of the joint
-    solves, while the history stays in read order)."""
-    from thermod.restore.plan import render
+    """(deblurred frame, "") or (None, why it is passed through), by the daemon's per-frame policy
+    (`thermod.restore.policy.plan_frame`; a recording's gyro stream is whole, so ``gyro_incomplete``
+    and ``gyro_gap`` are the only gyro reasons). With `tdec` every frame whose kernel renders enters
+    its history, a passed-through one too (its low coverage keeps it out of the joint solves, while the
+    history stays in read order)."""
+    from thermod.restore.policy import PassThrough, plan_frame
 
+    plan = plan_frame(t, reader.gyro_t, reader.gyro_rate, calib, cfg)
+    if isinstance(plan, PassThrough):
+        if tdec is not None and plan.kernel is not None:
+            tdec.push(frame, plan.kernel, t)
+        return None, str(plan)
     try:
-        kernel, info = render(reader.gyro_t, reader.gyro_rate, calib, t, cfg)
-        if info["coverage"] < cfg.min_coverage:
-            if tdec is not None:
-                tdec.push(frame, kernel, t)
-            return None, f"gyro coverage {info['coverage']:.3f} < {cfg.min_coverage}"
         if tdec is not None:
-            return tdec.run(frame, kernel, t, reader.gyro_t, reader.gyro_rate), ""
-        return (dec.run_varying(frame, kernel) if cfg.mode == "grid" else dec.run(frame, kernel)), ""
-    except ThermodError as e:   # a kernel that cannot be rendered or inverted: keep the frame
-        return None, str(e)
+            return tdec.run(frame, plan.kernel, t, reader.gyro_t, reader.gyro_rate), ""
+        grid = hasattr(plan.kernel, "kernels")
+        return (dec.run_varying(frame, plan.kernel) if grid else dec.run(frame, plan.kernel)), ""
+    except ThermodError as e:   # a kernel that cannot be inverted: keep the frame
+        return None, f"kernel_error: {e}"
 
 
 def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, dec, bar, model=None) \

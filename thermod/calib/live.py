@@ -540,7 +540,7 @@ class LiveEstimator:
         sigma[:3] = np.hypot(sigma[:3], drag * delay)
         tau, tau_sigma, n_tau, note = self.fit_tau(calib)
         notes = [note] if note else []
-        confounded = [ax for ax, c in zip("xyz", corr) if abs(c) > AMBIGUOUS_CORRELATION]
+        confounded = [ax for ax, c in zip("xyz", corr, strict=True) if abs(c) > AMBIGUOUS_CORRELATION]
         if confounded:
             notes.append(f"ambiguous: gyro_bias[{','.join(confounded)}] | time_offset (correlation "
                          f"{', '.join(f'{c:+.2f}' for c in corr)}): this window's motion does not tell a "

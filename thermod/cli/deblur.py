@@ -75,6 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"Krishnan–Fergus hyper-Laplacian or Wiener/Tikhonov (fast); default {d.method}")
     parser.add_argument("--uniform", action="store_true",
                         help="one kernel per frame (the paper's method) instead of a kernel grid")
+    parser.add_argument("--adaptive", action="store_true",
+                        help="per frame, the coarsest grid (up to --grid) the roll in its window needs, as "
+                             "the daemon renders it (mode \"adaptive\"); default: always the --grid")
     parser.add_argument("--views", type=int, default=d.temporal_views, metavar="N",
                         help=f"frames per temporal solve, the frame itself included (default "
                              f"{d.temporal_views}; 1 = --single-frame)")
@@ -127,10 +130,13 @@ def deblur_config(args) -> DeblurConfig:
         raise ThermodError(f"--min-coverage {args.min_coverage}: expected a fraction in [0, 1]")
     if not 1 <= args.views <= 16:
         raise ThermodError(f"--views {args.views}: expected 1 (single-frame) to 16 frames per solve")
-    uniform = args.uniform or grid == (1, 1)
+    if args.uniform and args.adaptive:
+        raise ThermodError("--uniform and --adaptive: expected one of them (one kernel, or the grid each "
+                           "frame needs)")
+    mode = "uniform" if args.uniform or grid == (1, 1) else "adaptive" if args.adaptive else "grid"
     return dataclasses.replace(OFFLINE, method=args.method, lam=args.lam, alpha=float(args.alpha),
                                kernel=args.kernel, exposure_s=args.exposure, psf=not args.no_psf,
-                               mode="uniform" if uniform else "grid", grid=grid,
+                               mode=mode, grid=grid,
                                min_coverage=float(args.min_coverage),
                                temporal_views=1 if args.single_frame else int(args.views))
 
@@ -219,7 +225,8 @@ def run(args) -> int:
             print(f"  frame {i} passed through: {why}")
         if len(r.passed) > 20:
             print(f"  … and {len(r.passed) - 20} more")
-    mode = "uniform" if cfg.mode == "uniform" else f"grid {cfg.grid[0]}×{cfg.grid[1]}"
+    grid = f"{cfg.grid[0]}×{cfg.grid[1]}"
+    mode = {"uniform": "uniform", "adaptive": f"adaptive grid up to {grid}"}.get(cfg.mode, f"grid {grid}")
     mode += f", temporal {cfg.temporal_views} views" if cfg.temporal_views > 1 else ", single-frame"
     where = f" on {args.scheduler}" if args.scheduler else ""
     if n_all:      # a per-frame time only over frames that exist (failed files have none)

@@ -82,7 +82,8 @@ class Key:
             v = float(v)
         if isinstance(v, bool) != (self.type is bool) or not isinstance(v, self.type):
             return None, f"expected {describe(self.type)}, got {v!r}"
-        if self.type is float and not math.isfinite(v):
+        # +inf only where the key's range reaches it (a replay's ``speed = inf``: as fast as possible)
+        if self.type is float and not math.isfinite(v) and not (v == math.inf and self.hi == math.inf):
             return None, f"expected a finite number, got {v!r}"
         if self.choices is not None and v not in self.choices:
             return None, f"expected {self.expected()}, got {v!r}"

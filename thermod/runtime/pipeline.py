@@ -31,13 +31,14 @@ frame to be solved alone. A frame solved without a prior (the first after start,
 a gap) is published as ``wiener`` (its own solve), not as temporal.
 
 A frame that cannot be deblurred is *passed through*: published as float32 counts with
-``deblurred = False`` and a reason (`thermod.io.wire.REASONS`). Nothing received is lost silently:
+``deblurred = False`` and a reason (`thermod.io.wire.REASONS`), decided per frame by
+`thermod.restore.policy.plan_frame`, as `thermod deblur` decides. Nothing received is lost silently:
 
 - the camera runs a flat-field correction (shutter closed, NUC update: `FrameSlot.ffc`), or the frame's
   kernel window reaches back into one, or the detector is still settling after it (``ffc_settle_s``)
   → ``ffc`` (see `Pipeline._ffc_hold`);
 - gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``; except at
-  the start of the gyro stream, where a kernel keeping `START_COVERAGE` of its weight (only its
+  the start of the gyro stream, where a kernel keeping ``START_COVERAGE`` of its weight (only its
   oldest tail precedes the first sample) deblurs the frame (``start_partial_kernels``, counted);
 - a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
 - a job that waited in the queue longer than the governor's budget is solved by its cheapest rung
@@ -75,12 +76,8 @@ from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.physics.kernels.grids import coarser_grids
-from thermod.restore.plan import (
-    grids_within,
-    kernel_window,
-    make_deconvolver,
-    render,
-)
+from thermod.restore.plan import kernel_window, make_deconvolver, render
+from thermod.restore.policy import PassThrough, gyro_span, plan_frame, refused_early
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
 from thermod.runtime.cpu import StageTimes, usable_cpus
@@ -105,7 +102,6 @@ log = logging.getLogger(__name__)
 # The first frames after the gyro stream starts (start-up): a kernel whose window reaches back before
 # the stream's first sample is rendered from the samples there are when it keeps at least this share
 # of its weight (the thermal comet's oldest tail is what is missing), rather than passed through raw
-START_COVERAGE = 0.9
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
 SHORT_OF_CPU_S = 10.0   # the pipeline is short of CPU while this long holds SHORT_OF_CPU_DROPS overload drops
 SHORT_OF_CPU_DROPS = 3  # (one drop is a stall, not a shortage: the monitor goes on through it)
@@ -461,53 +457,37 @@ class Pipeline:
         self._count("frames_in", 1)
         if slot.gap_before:
             self._count("camera_frames_lost", slot.gap_before)
-        if not s.deblur.enabled:
-            self._passthrough(slot, "disabled", {})
+        early = refused_early(s.deblur, self._ffc_hold(slot, s))
+        if early is not None:
+            self._passthrough(slot, early.reason, {})
             return
-        if self._ffc_hold(slot, s):
-            self._passthrough(slot, "ffc", {})
-            return
-        t0_cam, t1_cam = kernel_window(s.calib, s.deblur, slot.t)
-        g0, g1 = (float(x) for x in s.calib.camera_time_to_gyro(np.array([t0_cam, t1_cam])))  # clock drift
+        g0, g1, margin = gyro_span(s.calib, s.deblur, slot.t)
         t_wait = time.monotonic()
         if self.gyro_online:
             deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
             self.gyro_ring.wait_until(g1, deadline - time.monotonic())
         t_render = time.monotonic()
-        # the DLPF inverse and the clipped-run continuation read further (not waited for: latency)
-        margin = 2.0 / s.calib.rate_hz + s.calib.gyro_condition_margin_s
         w = self.gyro_ring.window(g0 - margin, g1 + margin, pad=2)
         if s.calib.gyro_range_rad_s > 0 and len(w) and np.any(np.abs(w.rate) >= s.calib.gyro_range_rad_s
                                                               * (1 - CLIP_TOL)):
             self._count("frames_gyro_clipped", 1)   # continued by the calibration: flagged, not dropped
-        if w.gap:
-            self._passthrough(slot, "gyro_gap", {"n_samples": len(w)})
+        chosen = []
+
+        def choose(needed, floor):
+            chosen.append(self.governor.choose(needed, time.monotonic(), floor))
+            return chosen[-1].grid
+
+        plan = plan_frame(slot.t, w.t, w.rate, s.calib, s.deblur, gap=w.gap, online=self.gyro_online,
+                          first_gyro_t=w.oldest_t, choose=choose, renderer=self._render)
+        if isinstance(plan, PassThrough):
+            if plan.reason == "kernel_error":
+                self._count("kernel_errors", 1)
+                log.error("kernel rendering failed for frame %d: %s", slot.frame_id, plan.detail)
+            self._passthrough(slot, plan.reason, plan.info)
             return
-        if len(w) < 2:
-            self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline",
-                              {"coverage": 0.0, "n_samples": len(w)})
-            return
-        try:
-            # the grid the roll needs, and the coarsest the governor keeps while it keeps up (the floor)
-            needed, floor = grids_within(w.t, w.rate, s.calib, slot.t, s.deblur,
-                                         (s.deblur.grid_tol_px, s.deblur.temporal_tol_px))
-            choice = self.governor.choose(needed, time.monotonic(), floor)
-            g = choice.grid
-            deblur = dataclasses.replace(s.deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
-            kernel, info = self._render(w.t, w.rate, s.calib, slot.t, deblur)
-        except Exception as e:
-            self._count("kernel_errors", 1)
-            log.error("kernel rendering failed for frame %d: %s", slot.frame_id, e)
-            self._passthrough(slot, "kernel_error", {"n_samples": len(w)})
-            return
-        if info["coverage"] < s.deblur.min_coverage:
-            # the gyro stream began inside this frame's window (start-up, a new clock epoch): its
-            # comet's oldest part is missing, not a stretch in the middle
-            started = np.isfinite(w.oldest_t) and w.oldest_t > g0
-            if not (started and info["coverage"] >= START_COVERAGE):
-                self._passthrough(slot, "gyro_incomplete" if self.gyro_online else "gyro_offline", info)
-                return
+        if plan.start_partial:
             self._count("start_partial_kernels", 1)
+        kernel, info, choice = plan.kernel, plan.info, chosen[-1]
         warp_gyro = None
         if any(r.temporal for r in self.governor.rungs):
             # the warp from a prior up to MAX_AGE_S old: rows read from t − MAX_AGE_S − readout on
