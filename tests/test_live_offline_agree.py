@@ -1,7 +1,8 @@
-"""Live and offline restore a frame the same way: one recording replayed through the daemon (at a quarter
-of real time, so that a loaded host drops nothing for overload; Wiener over the grid the roll needs, no governor) and deblurred by `thermod deblur --adaptive` with
-the same settings gives the same frames, and passes the same frames through for the same reason
-(`thermod.restore.policy.plan_frame` decides for both)."""
+"""Live and offline restore a frame the same way: one recording replayed through the daemon (at a
+quarter of real time, so that a loaded host drops nothing for overload; Wiener over the grid the roll
+needs, no governor) and deblurred by `thermod deblur --adaptive` with the same settings gives the
+same frames, and passes the same frames through for the same reason (`thermod.restore.policy.plan_frame`
+decides for both)."""
 
 import math
 import socket
