@@ -195,8 +195,10 @@ def test_refuses_to_overwrite_its_input(pan50, tmp_path, capsys):
     assert rc == 2 and "would overwrite the input" in err
 
 
-@pytest.mark.parametrize("opts,match", [(["--grid", "0", "3"], "--grid"),
+@pytest.mark.parametrize("opts,match", [(["--grid", "0", "3"], "--grid"), (["--grid", "20", "3"], "--grid"),
                                         (["--min-coverage", "2"], "--min-coverage"),
+                                        (["--alpha", "0.5"], "--alpha"), (["--views", "40"], "--views"),
+                                        (["--uniform", "--adaptive"], "--adaptive"),
                                         (["--lambda", "-5"], "lam"), (["--alpha", "3"], "alpha")])
 def test_bad_options_exit_2(pan50, tmp_path, capsys, opts, match):
     rc, _, err = deblur(capsys, pan50, "-o", tmp_path / "x.h5", *opts)

@@ -120,25 +120,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def deblur_config(args) -> DeblurConfig:
-    """The command line's settings as the DeblurConfig that `thermod.restore.plan.render` takes."""
-    grid = tuple(int(g) for g in args.grid)
-    if grid[0] < 1 or grid[1] < 1:
-        raise ThermodError(f"--grid {grid[0]} {grid[1]}: expected at least 1 row and 1 column")
-    if args.exposure is not None and not args.exposure > 0:
-        raise ThermodError(f"--exposure {args.exposure}: expected a positive time in seconds")
-    if not 0 <= args.min_coverage <= 1:
-        raise ThermodError(f"--min-coverage {args.min_coverage}: expected a fraction in [0, 1]")
-    if not 1 <= args.views <= 16:
-        raise ThermodError(f"--views {args.views}: expected 1 (single-frame) to 16 frames per solve")
+    """The command line's settings as a DeblurConfig, checked by the daemon's ``[deblur]`` schema
+    (`thermod.runtime.config.deblur_settings`: the same ranges, choices and α rule); a ConfigError
+    names each bad option."""
+    from thermod.runtime.config import deblur_settings
+
     if args.uniform and args.adaptive:
         raise ThermodError("--uniform and --adaptive: expected one of them (one kernel, or the grid each "
                            "frame needs)")
-    mode = "uniform" if args.uniform or grid == (1, 1) else "adaptive" if args.adaptive else "grid"
-    return dataclasses.replace(OFFLINE, method=args.method, lam=args.lam, alpha=float(args.alpha),
-                               kernel=args.kernel, exposure_s=args.exposure, psf=not args.no_psf,
-                               mode=mode, grid=grid,
-                               min_coverage=float(args.min_coverage),
-                               temporal_views=1 if args.single_frame else int(args.views))
+    grid = [int(g) for g in args.grid]
+    mode = "uniform" if args.uniform or grid == [1, 1] else "adaptive" if args.adaptive else OFFLINE.mode
+    values = {"method": args.method, "lambda": args.lam, "alpha": float(args.alpha), "kernel": args.kernel,
+              "exposure_s": args.exposure, "psf": not args.no_psf, "mode": mode, "grid": grid,
+              "min_coverage": float(args.min_coverage),
+              "temporal_views": 1 if args.single_frame else int(args.views)}
+    origins = {"method": "--method", "lambda": "--lambda", "alpha": "--alpha", "kernel": "--kernel",
+               "exposure_s": "--exposure", "psf": "--no-psf", "mode": "--uniform / --adaptive",
+               "grid": "--grid", "min_coverage": "--min-coverage", "temporal_views": "--views"}
+    return deblur_settings(values, origins)
 
 
 def _outputs(inputs: list[Path], output: str | Path) -> list[Path]:

@@ -291,6 +291,16 @@ def _deblur(problems: Problems, table: Any) -> DeblurConfig:
     return DeblurConfig(**kw)
 
 
+def deblur_settings(values: dict, origins: Mapping[str, str]) -> DeblurConfig:
+    """``[deblur]`` keys given elsewhere (a command line's), checked by the same schema as a
+    configuration file's; `origins` maps each key to where it came from (e.g. ``{"grid": "--grid"}``).
+    One ConfigError naming every bad one."""
+    problems = Problems("command line", {f"deblur.{k}": v for k, v in origins.items()})
+    cfg = _deblur(problems, {k: v for k, v in values.items() if v is not None})
+    problems.raise_if_any()
+    return cfg
+
+
 CAMERA_RADIOMETRY = "camera"     # [radiometry] model = "camera": the Planck constants the camera reports
 
 
