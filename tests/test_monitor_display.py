@@ -42,6 +42,10 @@ def test_watch_text_shows_applied_and_estimate():
     assert calibration_lines({**APPLIED}) == []
     off = calibration_lines({**CAL, "estimate": None, "monitor": {"enabled": False}})
     assert len(off) == 1 and "in force" in off[0]
+    assert "AMBIGUOUS" not in text
+    amb = {**ESTIMATE, "ambiguous": True, "bias_offset_correlation": [0.1, -0.99, 0.0]}
+    text = "\n".join(calibration_lines({**CAL, "estimate": amb}))
+    assert "AMBIGUOUS  bias and offset confounded in this window (correlation [0.1, -0.99, 0.0])" in text
 
 
 def test_watch_text_shows_a_tau_estimate():

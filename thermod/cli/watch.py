@@ -209,6 +209,9 @@ def calibration_lines(cal) -> list[str]:
         out.append(f"  estimate   gyro bias {_vec(e.get('gyro_bias_rad_s'))} ± "
                    f"{_vec(e.get('gyro_bias_rad_s_sigma'))} mrad/s, time offset "
                    f"{_ms(e.get('time_offset_s'))} ± {_ms(e.get('time_offset_s_sigma'))} ms, tau {tau}")
+        if e.get("ambiguous"):
+            out.append("  AMBIGUOUS  bias and offset confounded in this window (correlation "
+                       f"{e.get('bias_offset_correlation')}): reported, never applied")
         out.append(f"  monitor    {e.get('n_pairs', 0)} frame pairs, residual "
                    f"{_num(e.get('residual_px'), 1, 3)} px (in force "
                    f"{_num(e.get('residual_applied_px'), 1, 3)}), CPU "
