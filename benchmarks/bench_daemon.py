@@ -270,6 +270,7 @@ def run_daemon(fps: float, seconds: float, method: str | None, soak: bool = Fals
         "governor_trace": [(h.get("governor") or h.get("pipeline", {}).get("governor", {})) for h in health],
         "cpu_trace": [h.get("cpu", {}) for h in health],
         "stage_ms": last.get("pipeline", {}).get("stage_ms", {}),
+        "steady_after_s": last.get("pipeline", {}).get("steady_after_s"),
         "kept": kept,
     }
 
@@ -632,15 +633,15 @@ def print_payload(rows: list[dict]) -> None:
     print(f"\nthe default daemon, {w}×{h} at {rows[0]['fps']:g} fps, {os.cpu_count()} cores, load average "
           f"{os.getloadavg()[0]:.1f} after the runs")
     print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
-          "| PSNR dB (blurry) | not deblurred | deblurred by |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| PSNR dB (blurry) | steady after s | not deblurred | deblurred by |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
         q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
         print(f"| {q} | {r['frames']}/{r['expected']} | {r['deblurred_pct']:.1f} | "
               f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['psnr']:.2f} ({r['psnr_blurry']:.2f}) | "
-              f"{r['reasons'] or '-'} | {methods_text(r)} |")
+              f"{r.get('steady_after_s') or 'not yet'} | {r['reasons'] or '-'} | {methods_text(r)} |")
     print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
           "stage latency p50 / p99 ms at the run's end (`health.pipeline.stage_ms`)")
     stages = sorted({k for r in rows for k in r["cpu"]} - {"parent", "parent_without_sim"})
