@@ -473,3 +473,24 @@ def test_one_kernel_at_full_resolution_comes_before_half_resolution():
     assert labels[-100:].count("wiener") == 100, labels[-5:]
     labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 2.0), needed=(3, 4), floor=(3, 4))
     assert labels[-100:].count("wiener_half") == 100, labels[-5:]
+
+
+def test_a_round_trip_is_added_to_every_prediction_not_scaled():
+    """The round trip around a child's solve (frame copies, pipe, the parent's GIL) costs as much for a
+    small solve as for a large one: it is added to every prediction, and the load factor comes from
+    the solves' own time alone. Folded into one factor, 6 ms of round trip around K&F's 20 ms (twice its
+    reference) made L = 2.6: K&F over 3×4 predicted at 52 ms, Wiener at 7.8; added, 46 and 12 ms."""
+    g = seeded()
+    g.seed("kf", 1, 10e-3, 6e-3)
+    t = 0.0
+    for _ in range(40):                     # K&F over one kernel at twice its reference, 6 ms around it
+        g.observe("kf", 1, 20e-3, t, 6e-3)
+        t += 0.02
+    assert g.load == pytest.approx(2.0)
+    assert g.overhead_s == pytest.approx(6e-3)
+    assert g.predict("wiener", 1) == pytest.approx(2 * 3e-3 + 6e-3)
+    assert g.predict("kf", 12) == pytest.approx(2 * 20e-3 + 6e-3)
+    assert g.state()["overhead_ms"] == pytest.approx(6.0)
+    # in the worker's own thread there is no round trip: nothing is added
+    h = seeded()
+    assert h.overhead_s == 0.0 and h.predict("wiener", 1) == pytest.approx(3e-3)

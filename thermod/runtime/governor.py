@@ -49,7 +49,9 @@ Cost: the workers report every solve's wall time (it includes whatever else the 
 a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
 *reference* cost: its warm-up time (`seed`, measured alone on an idle worker before going live), or,
 for a key never seeded, the family's references interpolated in cells. Predicted cost = reference ×
-L, with ONE load factor L for the machine: L = (sliding median of the last `WINDOW` solves of the
+L + O: O the median round trip around a solve (a child's frame copies and pipe, the parent's GIL:
+the same for a small solve as for a large one, so it is added, not scaled), and ONE load factor L
+for the machine on the solves' own time: L = (sliding median of the last `WINDOW` solves of the
 key in use) / (its reference), updated from each key's stretch of use once it has `MIN_SOLVES`
 solves. The references fix the ratios between keys (K&F 3 steps < K&F, Wiener < K&F, 2×3 < 3×4 for
 a family), so whatever the key in use measures moves every prediction alike: a method given up on a
@@ -175,6 +177,7 @@ class Governor:
         self._stretch: dict[tuple[str, int], int] = {}    # solves in this stretch, the cold ones included
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
+        self._overheads: collections.deque = collections.deque(maxlen=WINDOW)   # round trips (s)
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
@@ -188,12 +191,24 @@ class Governor:
             return f"{rung.name}{rung.kf_iterations}"
         return rung.name
 
-    def seed(self, family: str, cells: int, seconds: float) -> None:
+    def seed(self, family: str, cells: int, seconds: float, overhead_s: float = 0.0) -> None:
         """A key's reference cost, measured before going live (warm-up, an idle worker): the ratios
-        between the keys' references are what the load factor scales."""
+        between the keys' references are what the load factor scales; `overhead_s`, the round trip
+        around that solve, seeds the overhead every prediction adds."""
         if seconds > 0 and math.isfinite(seconds):
             with self._lock:
                 self._ref[family, cells] = float(seconds) / self.load
+                self._add_overhead(overhead_s)
+
+    def _add_overhead(self, overhead_s: float) -> None:
+        if overhead_s >= 0 and math.isfinite(overhead_s):
+            self._overheads.append(float(overhead_s))
+
+    @property
+    def overhead_s(self) -> float:
+        """The median round trip around a solve (s): what a solve costs beyond its own work, whatever
+        the work (the frame's copies, the pipe, the parent's GIL)."""
+        return statistics.median(self._overheads) if self._overheads else 0.0
 
     def predict(self, family: str, cells: int) -> float:
         """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
@@ -216,13 +231,15 @@ class Governor:
         return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
 
     def _predict(self, family: str, cells: int) -> float:
-        return self._reference(family, cells) * self.load
+        return self._reference(family, cells) * self.load + self.overhead_s
 
-    def observe(self, family: str, cells: int, seconds: float, now: float) -> None:
-        """A worker's measured solve time (s) at host time `now`."""
+    def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
+        """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
+        time `now`."""
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
+            self._add_overhead(overhead_s)
             key = (family, cells)
             if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
                 self._recent[key] = collections.deque(maxlen=WINDOW)
@@ -311,7 +328,8 @@ class Governor:
         if not r.coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
-        return g if self._reference(self.family(r), g[0] * g[1]) * self._keep_load() <= self.keep_s else None
+        cost = self._reference(self.family(r), g[0] * g[1]) * self._keep_load() + self.overhead_s
+        return g if cost <= self.keep_s else None
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
@@ -406,6 +424,7 @@ class Governor:
                 "ladder": [r.name for r in self.rungs],
                 "budget_ms": round(1e3 * self.budget_s, 2),
                 "load": round(self.load, 3),
+                "overhead_ms": round(1e3 * self.overhead_s, 2),
                 "keep_load": round(self._keep_load(), 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},

@@ -61,6 +61,13 @@ class Solved:
     prior_frames: int          # frames between the prior used and this frame (0: solved alone)
     seconds: float             # the solve's wall time, the wait for the prior left out
     grid: tuple[int, int]      # the kernel grid it was solved with ((1, 1): one kernel)
+    compute_s: float = math.nan   # of `seconds`, the solve itself (a child's own clock; the rest is the
+                                  # round trip: frame copies, pipe, the parent's GIL)
+
+    @property
+    def overhead_s(self) -> float:
+        """The round trip's share of `seconds` (0 in the worker's own thread)."""
+        return max(0.0, self.seconds - self.compute_s) if math.isfinite(self.compute_s) else 0.0
 
 
 @dataclass
@@ -107,7 +114,8 @@ def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, wa
         out = deconv.run_varying(img, kernel) if hasattr(kernel, "kernels") else deconv.run(img, kernel)
         est, prior_frames, solver = None, 0, deconv
     seconds = time.perf_counter() - t0 - timed.waited
-    return Solved(np.asarray(out, np.float32), est, prior_frames, seconds, solved_grid(solver, kernel))
+    return Solved(np.asarray(out, np.float32), est, prior_frames, seconds, solved_grid(solver, kernel),
+                  compute_s=seconds)
 
 
 @dataclass
@@ -158,9 +166,10 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
 
 
 def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -> list[tuple]:
-    """``[(family, cells, seconds)]``: each rung's cost on `uniform` and on each of `grids`, timed
-    through `solver.solve` as the stream's jobs are (in a child: the round trip included), the
-    fastest of `repeats` (a preempted run would make a rung look dearer than it is). A temporal rung
+    """``[(family, cells, compute_s, overhead_s)]``: each rung's cost on `uniform` and on each of
+    `grids`, timed through `solver.solve` as the stream's jobs are: the solve itself, and the round
+    trip around it (in a child; 0 in a thread), from the fastest of `repeats` (a preempted run would
+    make a rung look dearer than it is). A temporal rung
     is timed with a prior: the frame before, restored, warped across one frame period of roll."""
     period = 1.0 / settings.calib.frame_rate_hz
     gyro = warm_gyro(settings.calib)
@@ -183,7 +192,8 @@ def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -
             if rung.temporal and runs[0].prior_frames != 1:
                 raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
             g = runs[0].grid                      # a coarse grid may be one kernel in disguise
-            out.append((fam, g[0] * g[1], min(r.seconds for r in runs)))
+            best = min(runs, key=lambda r: r.seconds)
+            out.append((fam, g[0] * g[1], best.compute_s, best.overhead_s))
     return out
 
 
@@ -509,14 +519,15 @@ class InChild:
                 else:
                     self._send(None)
                 waited += time.perf_counter() - w0
-            _, prior_frames, _, grid, est_meta = msg
+            _, prior_frames, compute_s, grid, est_meta = msg
             image_out = frames.images[slot].copy()
             est = None
             if est_meta is not None:
                 t_est, info_shape, shape = est_meta
                 est = SharedEstimate(frames, slot, t_est, tuple(info_shape), tuple(shape))
             seconds = time.perf_counter() - t0 - waited
-            return Solved(image_out, est, prior_frames, seconds, tuple(grid))
+            return Solved(image_out, est, prior_frames, seconds, tuple(grid),
+                          compute_s=min(compute_s, seconds))
         except BaseException:
             est = None
             raise
