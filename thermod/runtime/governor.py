@@ -1,82 +1,26 @@
 """The governor: degrade the deblurring method, never the share of frames deblurred.
 
-A frame whose solve does not fit the time the machine has for it is not dropped: the governor picks
-the best rung of a ladder of methods that the measured per-frame cost allows. With temporal
-deblurring (``temporal_views`` > 1, the default) the ladder is, best first:
+A frame whose solve does not fit the time the machine has for it is not dropped: `Governor.choose`
+picks the best rung of a ladder of methods (`ladder`: with temporal deblurring ``temporal`` →
+``wiener`` → ``wiener_half``; single-frame ``kf`` → ``kf_fast`` → ``wiener``) and the finest kernel
+grid, down to the frame's floor, that the predicted cost allows within the latency budget
+``min(workers / fps, max_solve_s) × (1 − headroom)``, or on the floor within ``keep_s = workers /
+fps × (1 − headroom)``, the longest solve the workers keep up with.
 
-    temporal  the recursive temporal solve (`thermod.physics.deconv.recursive`: the previous
-              frame's result, gyro-warped, as the prior of frame t's Wiener solve) over the grid
-              the frame needs, coarsened (6×8 → … → 2×3 → 1×1 = uniform) when that does not fit
-    wiener    one Tikhonov solve of the frame alone, its grid coarsened likewise
-    wiener_half  Wiener on one kernel at half resolution (`thermod.physics.deconv.half`): about a
-              third of Wiener's cost, 5–7 dB above the blurry frame and 4–8 dB below Wiener on a
-              detailed scene (benchmarks/results/payload.md): the rung of a payload short of CPU
+Cost: predicted = reference × L + O. Each (solver family, kernel cells) key has a reference cost
+(`seed`: timed at warm-up on an idle worker; unseeded keys are interpolated in cells); L, one load
+factor for the machine, is the sliding median of the key in use over its reference (`observe`,
+each worker's first solve of a stretch left out); O is the median round trip around a child's solve
+(`overhead_s`), added because it does not scale with the work.
 
-K&F has no rung there, whatever ``method`` says: alone it restores less than ``temporal`` (0.7–0.8
-dB at NETD 10–60 mK), and as the recursion's own solve it restores about as much (−0.3 to +0.2 dB)
-for 1.6× the CPU (benchmarks/results/temporal_daemon.md). With ``temporal_views = 1`` it is the
-single-frame ladder:
+Hysteresis: rungs are judged on the finest grid needed over the last `NEEDED_S`; the governor steps
+down at once when the current rung fits neither limit (or a job was dropped while its cost was above
+the climb threshold), and up only to a rung within ``(1 − margin)`` of the budget, ``hold_s`` after
+its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
 
-    kf        K&F (hyper-Laplacian, six β steps) over the kernel grid the frame needs
-    kf_fast   K&F with three β steps (β = 1, 8, 64: the same continuation, coarser), same grid
-    wiener    one Tikhonov solve over the grid the frame needs, its grid coarsened
-
-Rungs the configuration rules out are left out (``method = "wiener"`` has no K&F rung, ``mode =
-"uniform"`` no grid). Only the coarsening rungs give up the grid, and only after the method above
-them: where the roll needs a grid, one kernel instead of it costs more than any method over it
-(benchmarks/results/daemon.md). Only when even the last rung does not keep up does a full job
-queue pass frames through as ``overload`` (counted).
-
-Budget: ``min(workers / frame rate, max_solve_s) × (1 − headroom)``. N workers each take one frame
-in N frame periods, so a solve may last that long without a queue building up; ``max_solve_s``
-bounds it further for latency (frame → published ≤ wait for the gyro + solve).
-A coarsening rung gives up its grid for the budget, but only down to the frame's floor: the
-coarsest grid whose kernels are within ``temporal_tol_px`` (2 px) of the true one in every cell.
-Below it the kernel error costs more than the temporal prior gains, and more than the budget's
-latency is worth (one kernel instead of the needed grid: 1.4–14.7 dB below Wiener over it, and 5.5
-dB at 1280×1024: benchmarks/results/temporal_daemon.md, daemon.md). When no grid down to the floor
-fits the budget, the rung keeps the floor while it is predicted within ``keep_s = workers / frame
-rate × (1 − headroom)``, the longest solve the workers keep up with: between the two it runs on its
-floor, over the latency budget, because on two cores the temporal solve sits near the budget and the
-load moves it by a fifth within seconds. Beyond ``keep_s`` a rung above the last gives its method
-up; the last rung at full resolution takes the finest grid that fits the budget, and only a frame
-that even one kernel does not fit goes to half resolution (`wiener_half`). Rungs are
-judged on the median floor of the last second; a frame whose own floor the rung cannot afford goes
-to the next rung alone. The keep rule predicts with the median load of the last `KEEP_S` of solves
-(every key's), so a burst of load shorter than about a second does not give the method up.
-
-Cost: the workers report every solve's wall time (it includes whatever else the cores are doing, so
-a loaded or slower machine shows up as it is). Every key (solver family, kernel cells) has a
-*reference* cost: its warm-up time (`seed`, measured alone on an idle worker before going live), or,
-for a key never seeded, the family's references interpolated in cells. Predicted cost = reference ×
-L + O: O the median round trip around a solve (a child's frame copies and pipe, the parent's GIL:
-the same for a small solve as for a large one, so it is added, not scaled), and ONE load factor L
-for the machine on the solves' own time: L = (sliding median of the last `WINDOW` solves of the
-key in use) / (its reference), updated from each key's stretch of use once it has `MIN_SOLVES`
-solves. The references fix the ratios between keys (K&F 3 steps < K&F, Wiener < K&F, 2×3 < 3×4 for
-a family), so whatever the key in use measures moves every prediction alike: a method given up on a
-loaded machine is tried again when the method in use shows that the load is gone, and no
-prediction can drift relative to another. (Costs kept per key and chained through per-stretch
-anchors did drift: stretches whose first medians were inflated by cold solves or a queue walked L
-down to 0.27–0.38 on a loaded 2-core machine, predicting K&F at a third of its idle cost, so the
-climbs to it failed again and again while `kf_fast` — remembered from one cold stretch — looked
-dearer than K&F: `health.governor` in benchmarks/results/daemon.md.)
-A stretch's first `workers` solves are left out: each worker's first solve after a switch is cold
-(caches, plans), and with N workers the first N solves of a stretch are all such firsts. A grid
-solve that took the deconvolver's uniform shortcut (`Deconvolver.last_cells` = 1) is booked under
-one cell (`restore.plan.solved_grid`), so a grid's cost is never learnt from a uniform solve.
-
-Hysteresis (no flapping): rungs are judged on the finest grid the frames needed over the last
-`NEEDED_S` (the roll comes and goes within a second; a rung chosen for one uniform frame would be
-left at the next rolled one). The governor steps down as soon as its current rung's predicted cost
-exceeds the budget, or when a job had to be dropped for overload while that cost was above the
-climb threshold (below it the drop was a stall, `overloaded`); it steps up only to a rung
-whose predicted cost is within ``(1 − margin)`` of the budget, and only ``hold_s`` after its last
-change. A climb undone within two holds doubles the hold (up to ``max_hold_s``), so a rung that
-keeps failing is tried ever less often.
-
-The governor has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe`
-(workers) and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed.
+It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
+and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
+and the measurements behind them: docs/design.md, "The governor".
 """
 
 from __future__ import annotations

@@ -1,59 +1,25 @@
 """Frame scheduler → kernel renderer → deconvolution workers → in-order output.
 
-For every frame k read at t_k (camera clock) the scheduler
+For every frame k read at t_k (camera clock) the scheduler waits, at most until ``max(t_k, arrival)
++ wait_timeout_s``, for the gyro ring to hold a sample at or after t_k (asking a FIFO driver for a
+read meanwhile), copies the samples of its window (t_k − m·τ − readout, t_k] (Eq. 18) and plans the
+frame with `thermod.restore.policy.plan_frame`, the policy `thermod deblur` follows too: a kernel or
+kernel grid (Eq. 16–19) at the grid the governor chooses (`thermod.runtime.governor`), or a
+pass-through with its reason (`thermod.io.wire.REASONS`; the camera's flat-field corrections are
+tracked here, `Pipeline._ffc_hold`). A job goes to a bounded queue served by worker threads, each
+solving in a child process of its own (`thermod.runtime.solvers`), so N workers use N cores.
 
-1. waits, at most until ``max(t_k, arrival) + wait_timeout_s``, for the gyro ring to hold a sample
-   at or after t_k (gyro clock: t_k − time_offset);
-2. copies the samples covering (t_k − m·τ − readout, t_k] (Eq. 18's window, m = 5) and renders the
-   blur kernel (Eq. 16–19: thermal exponential weights, or the photon box of Eq. 17 as baseline;
-   one kernel, or a grid for spatially varying blur);
-3. hands a job to a bounded queue served by deconvolution worker threads (K&F / Wiener, alone or
-   temporal), each solving in a child process of its own (`thermod.runtime.solvers`: the daemon's
-   other threads do not hold its GIL), so N workers use N cores.
+Temporal rungs take the newest restored frame before k as the prior (`PRIOR_FRAMES` are kept); a
+worker whose predecessor is still being solved waits for it after its own solve, at most half the
+budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_AGE_S` + readout back
+for the warp; a frame solved without a prior is published as ``wiener``.
 
-Spatially varying blur (``mode = "adaptive"``, the default): `grids_within` chooses, per frame, the
-kernel grid the roll in its window calls for and the floor the governor may coarsen it to ((1, 1)
-when the blur is uniform: one kernel, no extra cost; a rendered grid whose kernels all lie within
-0.5 px of the central one is solved as that one kernel by the deconvolver: `solved_grid`). The governor
-(`thermod.runtime.governor`) then picks the best method over that grid — temporal (over Wiener), Wiener
-alone; or without temporal rungs K&F, K&F in fewer steps, Wiener (the Wiener-based rungs coarsen the
-grid when it does not fit) — that the measured solve cost allows within the frame budget; each frame
-says which in `FrameOut.method` / ``grid``.
-
-Temporal rungs (`thermod.physics.deconv.recursive`): frame k's solve takes the newest restored frame
-before it as its prior, gyro-warped into frame k's geometry. Workers keep the restored frames of the
-last `PRIOR_FRAMES` indices (their `Estimate`s); a worker whose predecessor k − 1 is still being
-solved on another worker waits for it, after frame k's own solve and at most half the governor's
-budget (that wait is not booked as solve cost), else takes k − 2 (the warp then spans two frames).
-A temporal job carries a second gyro window reaching `MAX_AGE_S` + readout before frame k (the
-kernel window is m·τ long), so the warp has the rotation since its prior; a gap there leaves the
-frame to be solved alone. A frame solved without a prior (the first after start, after an FFC or
-a gap) is published as ``wiener`` (its own solve), not as temporal.
-
-A frame that cannot be deblurred is *passed through*: published as float32 counts with
-``deblurred = False`` and a reason (`thermod.io.wire.REASONS`), decided per frame by
-`thermod.restore.policy.plan_frame`, as `thermod deblur` decides. Nothing received is lost silently:
-
-- the camera runs a flat-field correction (shutter closed, NUC update: `FrameSlot.ffc`), or the frame's
-  kernel window reaches back into one, or the detector is still settling after it (``ffc_settle_s``)
-  → ``ffc`` (see `Pipeline._ffc_hold`);
-- gyro short of the window (late, offline) → ``gyro_incomplete`` / ``gyro_offline``; except at
-  the start of the gyro stream, where a kernel keeping ``START_COVERAGE`` of its weight (only its
-  oldest tail precedes the first sample) deblurs the frame (``start_partial_kernels``, counted);
-- a gap flag (FIFO overflow, clock jump) inside the window → ``gyro_gap``;
-- a job that waited in the queue longer than the governor's budget is solved by its cheapest rung
-  (``catch_up``, counted: a burst drains instead of overflowing; a temporal job stays temporal and
-  only stops waiting for its predecessor); a job queue full even so → the
-  OLDEST job is dropped (``overload``, counted) and its frame passed through; the governor steps
-  down a rung at once;
-- a worker raises → the frame is passed through (``worker_error``), the worker thread is replaced;
-- the scheduler fell more than the frame ring behind → the overwritten frames are counted
-  (``frames_overrun``, and the next frame's ``overrun_before``); they were never read, so there is
-  nothing to publish.
-
-Outputs are released in frame order (a small reorder stage; a frame more than
-``reorder_timeout_s`` late is released out of order rather than holding the stream). Every wait
-has a timeout, every queue a bound, every drop a counter (`Pipeline.stats`).
+Nothing received is lost silently: a job that waited longer than the budget is solved by its
+cheapest rung (``catch_up``); a full queue drops its oldest job (``overload``, passed through); a
+worker that raises passes its frame through (``worker_error``) and is replaced; frames overwritten
+in the ring before the scheduler read them are counted (``frames_overrun``). Outputs leave in frame
+order (a frame more than ``reorder_timeout_s`` late is released out of order). Every wait has a
+timeout, every queue a bound, every drop a counter (`Pipeline.stats`).
 """
 
 from __future__ import annotations
