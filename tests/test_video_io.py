@@ -111,7 +111,8 @@ def test_10_12_16bit_formats_come_out_as_coded_in_uint16(tmp_path):
     y10 = read_video(_encode(tmp_path / "y10.mkv", "libx265", "yuv420p10le", counts << 4, [0, 40, 80],
                              fmt="gray16le", options={"x265-params": "lossless=1:log-level=error"}))
     assert y10.info.luma_only and y10.frames.dtype == np.uint16
-    assert 64 <= y10.frames.min() and y10.frames.max() <= 940          # 10-bit limited-range luma as coded
+    # 10-bit limited-range luma (64–940 as coded) as a player shows it: the full 10-bit range
+    assert not y10.info.full_range and y10.frames.min() < 64 and 940 < y10.frames.max() <= 1023
     assert np.corrcoef(y10.frames.ravel(), counts.ravel())[0, 1] > 0.999
 
 

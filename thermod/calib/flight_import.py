@@ -205,7 +205,8 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     g0, g1 = np.searchsorted(gt, [vf.t[0] - GYRO_MARGIN_S - frame_window_s(camera), vf.t[-1] + GYRO_MARGIN_S])
     path = _write(out, vf, gt[g0:g1], log.rate[g0:g1], calib, {
         "video": str(video_path), "video_codec": info.codec, "video_bit_depth": info.bit_depth,
-        "video_luma_only": info.luma_only, "log": str(log_path), "log_format": log.source_format,
+        "video_luma_only": info.luma_only,
+        "video_full_range": info.full_range, "log": str(log_path), "log_format": log.source_format,
         "log_frame": log.frame, "log_offset_s": -offset, "log_index": log.log_index,
         "agc": "per-frame AGC left in the frames" if info.bit_depth == 8 else "none assumed (16-bit)",
     }, result, refinement)

@@ -257,13 +257,17 @@ def write_playable(src: Path, deblurred: Path, out: Path, side_by_side: bool = F
     from thermod.io.recording import Reader
 
     with Reader(src) as r:
-        eight_bit = int(r.group_attrs().get("import", {}).get("video_bit_depth", 16)) == 8
+        imported = r.group_attrs().get("import", {})
+        eight_bit = int(imported.get("video_bit_depth", 16)) == 8
+        # written with the range the input video had (limited unless it said full), as a player shows it
+        full_range = bool(imported.get("video_full_range", True))
     agc = video.PercentileAGC()
     with Reader(deblurred) as r:
         deb = r.dataset("deblurred/frames")
         width = r.calibration.width * (2 if side_by_side else 1)
         rate = r.calibration.frame_rate_hz
-        with video.VideoWriter(out, width, r.calibration.height, crf=crf, nominal_fps=rate) as w:
+        with video.VideoWriter(out, width, r.calibration.height, crf=crf, nominal_fps=rate,
+                               full_range=full_range) as w:
             for i, (t, frame) in enumerate(zip(r.t, r, strict=True)):
                 d = np.asarray(deb[i], np.float32)
                 if eight_bit:

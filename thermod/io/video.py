@@ -5,10 +5,11 @@ Reading (`iter_video`, `read_video`, `probe_video`):
 - **A video file**: anything FFmpeg decodes (MP4, MKV, AVI, NUT, …; H.264, H.265, MJPEG, FFV1,
   rawvideo, …), decoded by PyAV. Grey formats come out as they are coded: ``gray`` → uint8,
   ``gray10le``/``gray12le``/``gray16le``/``gray16be`` → uint16 (10/12-bit values as coded, not
-  rescaled). A YUV format gives its **luma plane** (Y as coded, limited-range values left as they
-  are; `VideoInfo.luma_only` is True): a thermal camera's colour video is a palette applied to
-  the grey level, and luma is the closest monotonic stand-in for it. Other colour formats (RGB,
-  palettes) are converted to grey by FFmpeg's swscale (also `luma_only`).
+  rescaled). A YUV format gives its **luma plane** as a player shows it (limited-range codes, the
+  default unless the stream says full, mapped to full range: `limited_to_full`,
+  `VideoInfo.full_range`; `VideoInfo.luma_only` is True): a thermal camera's colour video is a
+  palette applied to the grey level, and luma is the closest monotonic stand-in for it. Other colour
+  formats (RGB, palettes) are converted to grey by FFmpeg's swscale (also `luma_only`).
 - **A 16-bit TIFF sequence**: a folder (its ``*.tif``/``*.tiff`` files) or a glob pattern, in
   natural order of the file names (``f2`` before ``f10``), each one's header checked with tifffile
   and its pixels read with OpenCV (IMREAD_UNCHANGED).
@@ -87,6 +88,7 @@ class VideoInfo:
     codec: str
     pix_fmt: str
     luma_only: bool = False
+    full_range: bool = True       # False: limited-range YUV (16–235 luma at 8 bit), mapped to full on read
 
     @property
     def dtype(self) -> np.dtype:
@@ -223,6 +225,8 @@ def _info_from_container(path: Path, c) -> VideoInfo:
     pix = cc.pix_fmt or (s.format.name if s.format else "") or ""
     depth = 16 if pix in _GREY16 or _is_high_depth_yuv(pix) else 8
     luma_only = pix not in ("gray",) and pix not in _GREY16
+    # a player shows YUV as limited range unless the stream says full (yuvj*, or the range flag: 2 = JPEG)
+    full_range = not luma_only or pix.startswith("yuvj") or int(getattr(cc, "color_range", 0) or 0) == 2
     n = int(s.frames) if s.frames else None
     if n is not None and n > MAX_FRAMES:
         raise VideoError(path, f"declares {n} frames, over the {MAX_FRAMES} this reader accepts")
@@ -235,7 +239,30 @@ def _info_from_container(path: Path, c) -> VideoInfo:
         start = c.start_time / 1e6 if c.start_time is not None and c.start_time > 0 else 0.0
         duration = c.duration / 1e6 - start
     rate = float(s.average_rate) if s.average_rate else None
-    return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only)
+    return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only,
+                     full_range)
+
+
+def limited_to_full(y: np.ndarray, bits: int = 8) -> np.ndarray:
+    """Limited-range luma codes (16–235 at 8 bit, ×2^(bits−8) above) as full-range values (0 to
+    2^bits − 1), rounded and clipped: what a player shows (ITU-R BT.601/709 quantisation)."""
+    scale = 1 << (bits - 8)
+    top = (1 << bits) - 1
+    v = (np.asarray(y, np.float64) - 16 * scale) * top / (219 * scale)
+    return np.clip(np.rint(v), 0, top).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def full_to_limited(v: np.ndarray) -> np.ndarray:
+    """8-bit full-range values as limited-range luma codes (16–235), the inverse of `limited_to_full`."""
+    return np.rint(16 + np.asarray(v, np.float64) * 219 / 255).astype(np.uint8)
+
+
+_LIMITED_TO_FULL_8 = limited_to_full(np.arange(256))
+
+
+def _coded_bits(pix: str) -> int:
+    m = re.search(r"(9|10|12|14|16)(le|be)$", pix)
+    return int(m.group(1)) if m else 16
 
 
 def _is_high_depth_yuv(pix: str) -> bool:
@@ -302,13 +329,13 @@ def _grey(path: Path, frame, info: VideoInfo) -> np.ndarray:
     if fmt == "gray" or (fmt.startswith(("yuv", "yuvj", "nv")) and info.bit_depth == 8):
         plane = frame.planes[0]
         a = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
-        return a[:h, :w].copy()
+        return a[:h, :w].copy() if info.full_range else _LIMITED_TO_FULL_8[a[:h, :w]]
     planar16 = info.bit_depth == 16 and fmt.startswith(("yuv", "yuvj")) and fmt.endswith(("le", "be"))
     if fmt in _GREY16 or planar16:
         plane = frame.planes[0]
         dt = np.dtype("<u2" if fmt.endswith("le") else ">u2")
-        a = np.frombuffer(plane, dt).reshape(-1, plane.line_size // 2)
-        return a[:h, :w].astype(np.uint16)
+        a = np.frombuffer(plane, dt).reshape(-1, plane.line_size // 2)[:h, :w].astype(np.uint16)
+        return a if info.full_range else limited_to_full(a, _coded_bits(fmt))
     target = "gray16le" if info.bit_depth == 16 else "gray"
     return np.ascontiguousarray(frame.to_ndarray(format=target))
 
@@ -407,8 +434,9 @@ def _iter_tiffs(info: VideoInfo, files: list[Path], fps: float, t0: float
 class VideoWriter:
     """Write 8-bit grey frames to a playable H.264 video (libx264, yuv420p) with given times.
 
-    The luma plane is the frame itself, flagged full range (0–255), and the chroma is neutral,
-    so `read_video` gives the frames back (exactly at crf=0). `write(frame, t)` takes an [H, W]
+    The luma plane is the frame itself, flagged full range (0–255), or with ``full_range=False`` its
+    limited-range codes (16–235, flagged so: a player shows the frame), and the chroma is neutral,
+    so `read_video` gives the frames back (exactly at crf=0 and full range). `write(frame, t)` takes an [H, W]
     uint8 frame and its time (s); times must increase by at least one tick of the 1/90000 s time
     base, and the file's timestamps start at 0 at the first frame (`t0` keeps its time). Odd sides
     are padded by one edge row/column (yuv420p needs even sides). Use as a context manager; the
@@ -417,8 +445,9 @@ class VideoWriter:
     """
 
     def __init__(self, path: str | os.PathLike, width: int, height: int, *, crf: int = 18,
-                 preset: str = "medium", nominal_fps: float = 30.0):
+                 preset: str = "medium", nominal_fps: float = 30.0, full_range: bool = True):
         self.path = Path(path)
+        self.full_range = bool(full_range)
         _check_size(self.path, width, height)
         if not self.path.parent.is_dir():
             raise VideoError(self.path, f"directory {self.path.parent} does not exist")
@@ -439,7 +468,8 @@ class VideoWriter:
             s.time_base = WRITE_TIME_BASE
             s.codec_context.time_base = WRITE_TIME_BASE
             s.options = {"crf": str(int(crf)), "preset": preset}
-            s.codec_context.color_range = 2          # full range: luma 0–255 is the frame as given
+            # full range: luma 0–255 is the frame as given; limited: 16–235, as the input had it
+            s.codec_context.color_range = 2 if self.full_range else 1
             self._s = s
         except _DECODE_ERRORS as e:
             raise VideoError(self.path, f"cannot open for writing H.264 ({e})") from None
@@ -460,11 +490,13 @@ class VideoWriter:
                                         "frame's (expected times increasing by ≥ 1/90000 s)")
         if any(self._pad):
             f = np.pad(f, ((0, self._pad[0]), (0, self._pad[1])), mode="edge")
-        # the luma plane is the frame itself (full range), chroma neutral: no colour conversion to round
+        # the luma plane is the frame itself (full range) or its limited-range codes, chroma neutral
+        if not self.full_range:
+            f = full_to_limited(f)
         h, w = f.shape
         planar = np.concatenate([f.ravel(), np.full(h * w // 2, 128, np.uint8)]).reshape(h * 3 // 2, w)
         vf = av.VideoFrame.from_ndarray(planar, format="yuv420p")
-        vf.pts, vf.time_base, vf.color_range = pts, WRITE_TIME_BASE, 2
+        vf.pts, vf.time_base, vf.color_range = pts, WRITE_TIME_BASE, 2 if self.full_range else 1
         try:
             for p in self._s.encode(vf):
                 self._c.mux(p)
