@@ -20,8 +20,8 @@ import pytest
 
 from thermod.client.subscriber import Subscriber
 from thermod.physics.calibration import Calibration
+from thermod.restore.policy import START_COVERAGE
 from thermod.runtime import config
-from thermod.runtime.pipeline import START_COVERAGE
 from thermod.sim.payload import SimPayload
 
 REPO = Path(__file__).resolve().parents[1]
@@ -162,7 +162,7 @@ def test_thermod_run_end_to_end(payload):
         ratios.append(e_deb / e_raw)
         h = frames[i][0]
         # the first frames' kernel windows may reach back before the gyro stream's first sample: they
-        # are deblurred when the kernel keeps ≥ 90 % of its weight (pipeline.START_COVERAGE)
+        # are deblurred when the kernel keeps ≥ 90 % of its weight (restore.policy.START_COVERAGE)
         # (a start-up kernel's window is cut short at the stream's first sample, so it holds fewer samples)
         full = i > 3
         assert h["coverage"] > (0.99 if full else START_COVERAGE) and h["kernel_size"][0] >= 1 \

@@ -221,6 +221,7 @@ def test_the_monitor_never_applies_an_ambiguous_window():
     assert mon._motion_change([e, e, e], e, b_now, 0.0) == (None, None)
     assert mon.counters["proposals_refused_ambiguous"] == 1
     clear = dataclasses.replace(e, ambiguous=False, bias_sigma=e.bias_sigma / 100,
+                                bias_sigma_stat=e.bias_sigma_stat / 100,
                                 time_offset_sigma=e.time_offset_sigma / 100)
     bias, offset = mon._motion_change([clear] * 3, clear, b_now, 0.0)
     assert bias is not None and offset == pytest.approx(e.time_offset_s)

@@ -28,8 +28,8 @@ def encode(path, frames, *extra):
 
 def as_player_shows(path) -> np.ndarray:
     """ffmpeg's decode to RGB (range flag honoured, limited assumed when unset): the red channel."""
-    out = subprocess.run(["ffmpeg", "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24", "-"],
-                         capture_output=True, check=True).stdout
+    out = subprocess.run(["ffmpeg", "-v", "error", "-i", str(path), "-f", "rawvideo", "-pix_fmt", "rgb24",
+                          "-"], capture_output=True, check=True).stdout
     return np.frombuffer(out, np.uint8).reshape(-1, H, W, 3)[..., 0]
 
 

@@ -94,6 +94,9 @@ class Estimate:
     n_tau: int = 0                # patch pairs whose tails changed enough to show τ
     bias_offset_correlation: np.ndarray = field(default_factory=lambda: np.zeros(3))  # each bias axis with o
     ambiguous: bool = False       # a bias axis and the offset cannot be told apart in this window
+    # the bias σ of the fit alone (the jackknife), without the offset's model delay error it inherits:
+    # what a change applied with its offset is judged by (`thermod.runtime.monitor`)
+    bias_sigma_stat: np.ndarray | None = None
     notes: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -536,6 +539,7 @@ class LiveEstimator:
             drag = -np.linalg.solve(N[:3, :3] + 1e-9 * np.trace(N) * np.eye(3), N[:3, 3])
         except np.linalg.LinAlgError:
             drag = np.full(3, np.inf)
+        stat = sigma[:3].copy()
         sigma[3] = math.hypot(sigma[3], delay)
         sigma[:3] = np.hypot(sigma[:3], drag * delay)
         tau, tau_sigma, n_tau, note = self.fit_tau(calib)
@@ -550,6 +554,7 @@ class LiveEstimator:
                         n_pairs=len(self.pairs), residual_px=_robust_rms(r),
                         residual_applied_px=_robust_rms(r_applied), tau_s=tau, tau_sigma=tau_sigma,
                         n_tau=n_tau, bias_offset_correlation=corr, ambiguous=bool(confounded),
+                        bias_sigma_stat=stat,
                         notes=notes)
 
     def _tau_rows(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

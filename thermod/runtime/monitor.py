@@ -333,20 +333,22 @@ class Monitor:
             # would write a confounded pair into the calibration
             self.counters["proposals_refused_ambiguous"] += 1
             return None, None
+        # the bias is judged by its fit's own σ: it is applied together with the offset it was fitted with,
+        # so the offset's model delay error (which both share) does not count against it
         for e in hist:
-            sig_b = np.abs(e.bias_rad_s - b_now) > k * e.bias_sigma
+            sig_b = np.abs(e.bias_rad_s - b_now) > k * _stat(e)
             sig_o = abs(e.time_offset_s - o_now) > k * e.time_offset_sigma
             if not (np.any(sig_b) or sig_o):
                 return None, None
         # stable: the fits agree with the newest within their uncertainties
         for e in hist:
-            s_b = np.hypot(e.bias_sigma, est.bias_sigma)
+            s_b = np.hypot(_stat(e), _stat(est))
             s_o = math.hypot(e.time_offset_sigma, est.time_offset_sigma)
             if np.any(np.abs(e.bias_rad_s - est.bias_rad_s) > k * s_b) or \
                     abs(e.time_offset_s - est.time_offset_s) > k * s_o:
                 return None, None
         # change only what is significant (an axis the motion does not reach keeps its value)
-        bias = np.where(np.abs(est.bias_rad_s - b_now) > k * est.bias_sigma, est.bias_rad_s, b_now)
+        bias = np.where(np.abs(est.bias_rad_s - b_now) > k * _stat(est), est.bias_rad_s, b_now)
         offset = est.time_offset_s if abs(est.time_offset_s - o_now) > k * est.time_offset_sigma else o_now
         return bias, offset
 
@@ -358,6 +360,10 @@ class Monitor:
                     abs(e.tau_s - est.tau_s) > k * math.hypot(e.tau_sigma, est.tau_sigma):
                 return None
         return est.tau_s
+
+
+def _stat(e) -> np.ndarray:
+    return e.bias_sigma if e.bias_sigma_stat is None else e.bias_sigma_stat
 
 
 def _fmt(v) -> str:
