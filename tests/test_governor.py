@@ -475,6 +475,42 @@ def test_one_kernel_at_full_resolution_comes_before_half_resolution():
     assert labels[-100:].count("wiener_half") == 100, labels[-5:]
 
 
+
+def test_full_resolution_over_the_latency_budget_comes_before_half_resolution():
+    """1280×1024 at 30 fps: Wiener on one kernel costs 40 ms, over the latency budget (25.5 ms) but
+    within what two workers keep up with (`keep_s`, 56.7 ms), and over its 2×3 floor 65 ms, beyond
+    both: the frames get one kernel at full resolution, over the budget,
+    rather than half resolution (29.3 dB against 33.5 on the simulated payload); `wiener_half` only
+    beyond `keep_s`, and back to full resolution when the load allows it again."""
+    def cost(fam, cells, load=1.0):
+        base = {"temporal": 70 + 4 * cells, "wiener": 40 + 5 * (cells - 1), "wiener_half": 12}[fam]
+        return load * base / 1e3
+
+    fps = 30.0
+    g = Governor(DeblurConfig(), fps, 2)
+    for fam, cells in (("temporal", 1), ("temporal", 12), ("wiener", 1), ("wiener", 12), ("wiener_half", 1)):
+        g.seed(fam, cells, cost(fam, cells))
+    t, labels = 0.0, []
+
+    def run(seconds, load):
+        nonlocal t
+        out = []
+        for _ in range(int(seconds * fps)):
+            c = g.choose((3, 4), t, (2, 3))
+            g.observe(g.family(c.rung), c.grid[0] * c.grid[1], cost(g.family(c.rung), c.grid[0] * c.grid[1],
+                                                                      load), t)
+            out.append((c.rung.name, c.grid))
+            t += 1 / fps
+        return out
+
+    labels = run(6.0, 1.0)
+    assert labels[-60:] == [("wiener", (1, 1))] * 60, labels[-3:]
+    labels = run(6.0, 1.6)                                  # 64 ms: beyond keep_s
+    assert labels[-60:] == [("wiener_half", (1, 1))] * 60, labels[-3:]
+    labels = run(12.0, 1.0)                                 # 40 ms: within 75 % of keep_s again
+    assert labels[-60:] == [("wiener", (1, 1))] * 60, labels[-3:]
+
+
 def test_a_round_trip_is_added_to_every_prediction_not_scaled():
     """The round trip around a child's solve (frame copies, pipe, the parent's GIL) costs as much for a
     small solve as for a large one: it is added to every prediction, and the load factor comes from

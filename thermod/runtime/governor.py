@@ -260,7 +260,24 @@ class Governor:
             g = self._keeps(i, needed, floor)
         if g is None and i == self.full_last:
             g = self._fits(i, needed, self.budget_s, floor, True)
+        if g is None and i == self.full_last:
+            g = self._keeps_beyond_floor(i, needed)
         return g
+
+    def _keeps_beyond_floor(self, i: int, needed: tuple[int, int], limit: float | None = None
+                            ) -> tuple[int, int] | None:
+        """The last full-resolution rung, when nothing fits the budget: the finest grid, down to one
+        kernel, predicted within `keep_s`. Full resolution over the latency budget restores more than
+        half resolution within it (one kernel at 1280×1024: Wiener 33.5 dB, `wiener_half` 29.3),
+        and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
+        unless given (a climb back asks for a margin below it)."""
+        r = self.rungs[i]
+        fam, load = self.family(r), self._keep_load()
+        limit = self.keep_s if limit is None else limit
+        for g in self._grids(i, needed, (1, 1), True):
+            if self._reference(fam, g[0] * g[1]) * load + self.overhead_s <= limit:
+                return g
+        return None
 
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The coarsest grid rung i, a coarsening rung, keeps when none fits the budget: its floor (the
@@ -309,7 +326,9 @@ class Governor:
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 for i in range(self.index):                       # best rung that fits with margin
-                    if self._fits_any(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None:
+                    if self._fits_any(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None \
+                            or (i == self.full_last and self._keeps_beyond_floor(
+                                i, worst, self.keep_s * (1 - self.margin)) is not None):
                         self._move(i, now)
                         break
             last = len(self.rungs) - 1
