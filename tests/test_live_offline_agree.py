@@ -8,6 +8,7 @@ import math
 import socket
 import time
 
+import h5py
 import numpy as np
 import pytest
 
@@ -92,7 +93,7 @@ def test_the_daemon_publishes_what_thermod_deblur_writes(rec_path, tmp_path, cap
     capsys.readouterr()
     assert rc == 0
     off = recording.read(out)
-    with __import__("h5py").File(out) as f:
+    with h5py.File(out) as f:
         ok = f["deblurred/deblurred"][()]
     src = recording.read(rec_path)
     ids = sorted(live)

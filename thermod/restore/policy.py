@@ -97,7 +97,7 @@ def plan_frame(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, calib:
     g0, g1, margin = gyro_span(calib, deblur, t_frame)
     gyro_t = np.asarray(gyro_t, np.float64)
     i0, i1 = np.searchsorted(gyro_t, [g0 - margin, g1 + margin])
-    i0, i1 = max(0, int(i0) - 2), min(len(gyro_t), int(i1) + 2)      # one sample beyond each end
+    i0, i1 = max(0, int(i0) - 2), min(len(gyro_t), int(i1) + 2)   # two beyond each end, as the ring pads
     t, rate = gyro_t[i0:i1], np.asarray(gyro_rate)[i0:i1]
     if gap or has_hole(t, calib.rate_hz):
         return PassThrough("gyro_gap", {"n_samples": len(t)}, "samples lost inside the kernel window")

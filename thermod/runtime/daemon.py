@@ -37,6 +37,7 @@ import time
 
 from thermod.errors import ConfigError, DeviceError, ThermodError
 from thermod.io.wire import frame_method_fields
+from thermod.restore.policy import MAX_STEP_PERIODS
 from thermod.runtime import config as configmod
 from thermod.runtime import sources
 from thermod.runtime.cpu import CpuMeter
@@ -97,9 +98,9 @@ class Daemon:
             notifier = Notifier()
         self.notifier = notifier
         c = cfg.calibration
-        # a step of more than 4 sample periods without a device-counter gap is a hole in time too
+        # a step without a device-counter gap is a hole in time too, by the per-frame policy's rule
         self.gyro_ring = GyroRing(int(cfg.pipeline.gyro_ring_s * c.rate_hz * 1.1) + 64,
-                                  max_step_s=4.0 / c.rate_hz)
+                                  max_step_s=MAX_STEP_PERIODS / c.rate_hz)
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
                                  deconvolver_factory=deconvolver_factory)

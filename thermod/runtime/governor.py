@@ -254,7 +254,7 @@ class Governor:
     def _pick(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The grid rung i solves this frame with, or None: within the budget down to the floor; on
         its floor within `keep_s` (the rung in use and the last full-resolution one); the last
-        full-resolution rung then beyond its floor within the budget."""
+        full-resolution rung then beyond its floor within the budget, then within `keep_s`."""
         g = self._fits(i, needed, self.budget_s, floor)
         if g is None and i in (self.index, self.full_last):
             g = self._keeps(i, needed, floor)
@@ -271,13 +271,8 @@ class Governor:
         half resolution within it (one kernel at 1280×1024: Wiener 33.5 dB, `wiener_half` 29.3),
         and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
         unless given (a climb back asks for a margin below it)."""
-        r = self.rungs[i]
-        fam, load = self.family(r), self._keep_load()
         limit = self.keep_s if limit is None else limit
-        for g in self._grids(i, needed, (1, 1), True):
-            if self._reference(fam, g[0] * g[1]) * load + self.overhead_s <= limit:
-                return g
-        return None
+        return next((g for g in self._grids(i, needed, (1, 1), True) if self._keep_cost(i, g) <= limit), None)
 
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The coarsest grid rung i, a coarsening rung, keeps when none fits the budget: its floor (the
@@ -285,12 +280,15 @@ class Governor:
         keep up with the frame rate) at the load of the last `KEEP_S` (a burst shorter than about half
         of it moves that median little). None: a rung above the last gives its method up, the last
         its floor (`choose`)."""
-        r = self.rungs[i]
-        if not r.coarsens:
+        if not self.rungs[i].coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
-        cost = self._reference(self.family(r), g[0] * g[1]) * self._keep_load() + self.overhead_s
-        return g if cost <= self.keep_s else None
+        return g if self._keep_cost(i, g) <= self.keep_s else None
+
+    def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
+        """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
+        ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
+        return ref * self._keep_load() + self.overhead_s
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""

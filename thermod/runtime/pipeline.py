@@ -65,9 +65,6 @@ from thermod.runtime.solvers import (
 
 log = logging.getLogger(__name__)
 
-# The first frames after the gyro stream starts (start-up): a kernel whose window reaches back before
-# the stream's first sample is rendered from the samples there are when it keeps at least this share
-# of its weight (the thermal comet's oldest tail is what is missing), rather than passed through raw
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
 SHORT_OF_CPU_S = 10.0   # the pipeline is short of CPU while this long holds SHORT_OF_CPU_DROPS overload drops
 SHORT_OF_CPU_DROPS = 3  # (one drop is a stall, not a shortage: the monitor goes on through it)
