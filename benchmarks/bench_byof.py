@@ -9,7 +9,7 @@ The camera file gives the true intrinsics and τ, readout 0; the last case's cam
 rolling readout and its file says τ 12 ms (true 8 ms), which only the refinement can correct. The
 "armed late" case is a 10 s video whose log starts 4 s after it (a flight controller that logs only
 while armed): the import finds and keeps the frames the log covers, and is scored on those.
-`thermod.calib.flight_import.import_flight` reads, syncs and writes the recording, without and with
+`thermod.ingest.flight.import_flight` reads, syncs and writes the recording, without and with
 the discrepancy refinement (one 1 s stretch); both are timed (seconds per minute of video, this
 machine). Both recordings are deblurred by `thermod deblur --uniform --jobs 1`
 (the command, in process), and so is the same recording given the true sync (the log's true offset,
@@ -34,7 +34,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod.calib.flight_import import import_flight
+from thermod.ingest.flight import import_flight
 from thermod.io.flightlog import read_flight_log, write_gcsv
 from thermod.io.recording import read
 from thermod.physics.calibration import Calibration

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from thermod.calib.sync import MOUNTS
 from thermod.physics.calibration import Calibration
 from thermod.physics.geometry import Intrinsics
 from thermod.sim import motion as mo
 from thermod.sim.synth import simulate
+from thermod.sync import MOUNTS
 
 WIDTH, HEIGHT = 160, 120
 #: a 640-px core behind a 50° lens, at a quarter of its size

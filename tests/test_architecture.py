@@ -1,4 +1,4 @@
-"""The core (thermod.physics, thermod.io, thermod.calib) imports no transport, hardware, simulator or
+"""The core (thermod.physics, io, motion, calib, sync) imports no transport, hardware, simulator or
 runtime code: importing every core module in a fresh interpreter must leave those out of sys.modules."""
 
 import pkgutil
@@ -8,9 +8,11 @@ from pathlib import Path
 
 import thermod.calib
 import thermod.io
+import thermod.motion
 import thermod.physics
+import thermod.sync
 
-CORE = (thermod.physics, thermod.io, thermod.calib)
+CORE = (thermod.physics, thermod.io, thermod.motion, thermod.calib, thermod.sync)
 FORBIDDEN = ("zmq", "gi", "thermod.runtime", "thermod.sim", "thermod.drivers", "thermod.cli",
              "thermod.client", "thermod.batch", "thermod.restore")
 

@@ -290,7 +290,7 @@ def test_refuses_bad_input(flight, tmp_path):
     refused(thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration",
                     cam, "--duration", "-1"), "--duration -1")
     refused(thermod("import", sim.video_path, "-o", out, "--start", "1"), "--start", "with --gyro")
-    from thermod.calib.flight_import import FlightImportError, import_flight
+    from thermod.ingest.flight import FlightImportError, import_flight
     from thermod.io.camera_file import load_camera
     with pytest.raises(FlightImportError, match=r"video\.mp4: .* GiB limit.* --start S --duration D"):
         import_flight(sim.video_path, sim.log_paths["gcsv"], out, load_camera(cam),

@@ -3,7 +3,6 @@ and offline deblurring's `kernel_window`, the flight import's gyro cut and calib
 
 import pytest
 
-from thermod.calib.flight_import import frame_window_s
 from thermod.physics.calibration import Calibration
 from thermod.physics.kernels.grids import kernel_span_s
 from thermod.restore.plan import kernel_window
@@ -15,7 +14,6 @@ def test_thermal_window_is_m_tau_plus_readout_everywhere():
     assert kernel_span_s(calib) == pytest.approx(5 * 0.012 + 0.015)
     assert kernel_window(calib, DeblurConfig(), 2.0) == pytest.approx((2.0 - 0.075, 2.0))
     assert kernel_window(calib, DeblurConfig(m=3.0), 2.0)[0] == pytest.approx(2.0 - 0.036 - 0.015)
-    assert frame_window_s(calib) == pytest.approx(0.075)
 
 
 def test_photon_window_is_the_exposure_plus_readout():

@@ -1,5 +1,5 @@
 """`thermod import VIDEO --gyro LOG -o REC.h5`: a thermal video and a flight-controller log → a synced
-format-v1 recording (`thermod.calib.flight_import`).
+format-v1 recording (`thermod.ingest.flight`).
 
 The camera comes from ``--calibration CAMERA.toml`` (a ``[camera]`` or ``[calibration]`` table,
 `thermod.io.camera_file`) or ``--camera PRESET`` (config/cameras/); one of the two is required, since
@@ -56,7 +56,7 @@ def camera(args):
 
 
 def run(args) -> int:
-    from thermod.calib.flight_import import import_flight
+    from thermod.ingest.flight import import_flight
 
     if args.fps is not None and not args.fps > 0:
         raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")

@@ -1,7 +1,7 @@
 """Undo a camera's automatic gain control (AGC) on a video whose camera rotation is known.
 
 An AGC maps the detector's counts s to y_k = g_k s + o_k with a gain and level of its own in every
-frame k. Where only frame-to-frame motion matters (the optical flow of `thermod.calib.sync`) each frame
+frame k. Where only frame-to-frame motion matters (the optical flow of `thermod.motion.picture`) each frame
 is normalised on its own; the forward model of the discrepancy workflow, which predicts one frame from
 others through the detector's thermal response (Eq. 10), needs the counts on one scale. Frame j seen
 from frame k's pose (the rotation-only homography H = K Q_jk K⁻¹, Eq. 16, from the picture rotations)
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from thermod.calib.sync import PictureMotion, SyncError
+from thermod.motion.picture import MotionError, PictureMotion
 from thermod.physics.geometry import Intrinsics, so3_exp
 
 MIN_OVERLAP = 0.3           # share of the frame two views must both see for a pair to count
@@ -81,7 +81,7 @@ def fit_agc(frames, pm: PictureMotion, intrinsics: Intrinsics, *, spacings=(1, 2
     frames = np.asarray(frames)
     n = len(frames)
     if len(pm.t0) != n - 1:
-        raise SyncError(f"AGC fit: {n} frames but picture motion for {len(pm.t0) + 1}")
+        raise MotionError(f"AGC fit: {n} frames but picture motion for {len(pm.t0) + 1}")
     work = pm.work
     size = (work.width, work.height)
     small = []
@@ -123,7 +123,7 @@ def fit_agc(frames, pm: PictureMotion, intrinsics: Intrinsics, *, spacings=(1, 2
             rows_l.append((j, k, math.log(a)))
             rows_o.append((j, k, float(ys.mean()), float(xs.mean())))
     if not rows_l:
-        raise SyncError("AGC fit: no two frames overlap enough (≥ 30 % of the frame) with a known rotation")
+        raise MotionError("AGC fit: no two frames overlap enough (≥ 30 % of the frame) with a known rotation")
     m_rows = len(rows_l)
     r = np.repeat(np.arange(m_rows), 2)
     c = np.array([[k, j] for j, k, _ in rows_l]).ravel()

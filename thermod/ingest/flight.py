@@ -3,9 +3,9 @@ recording that `thermod deblur` and `thermod discrepancy` take.
 
 `import_flight` reads the video (`thermod.io.video`: container timestamps, variable frame rate
 included) and the log (`thermod.io.flightlog`), finds where the video sits in the log and how the
-camera is mounted from the pictures alone (`thermod.calib.sync`), optionally refines offset, mount,
+camera is mounted from the pictures alone (`thermod.sync`), optionally refines offset, mount,
 gyro bias, readout and τ with the motion-only discrepancy workflow on the stretch that turns most
-(`thermod.calib.sync_discrepancy`; when it names the readout or τ but not the offset, the sync's fine
+(`thermod.sync.discrepancy`; when it names the readout or τ but not the offset, the sync's fine
 stage is run again with them, as the offset it found absorbed their lag), and writes the recording:
 
 - ``/camera/frames``: the video's frames as delivered (8-bit AGC'd frames widened to uint16, values
@@ -19,7 +19,7 @@ stage is run again with them, as the offset it found absorbed their lag), and wr
 
 Per-frame AGC is left in the frames: a blur kernel sums to one, so a frame's own gain and offset
 commute with its deblurring; the sync normalises each frame before tracking, and the discrepancy
-stage undoes the AGC (`thermod.calib.agc`) because its forward model needs one count scale.
+stage undoes the AGC (`thermod.motion.agc`) because its forward model needs one count scale.
 """
 
 from __future__ import annotations
@@ -34,21 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.calib.sync import (
-    DurationMismatch,
-    LogMismatch,
-    SyncError,
-    SyncResult,
-    plot_sync,
-    synchronise,
-)
-from thermod.calib.sync import refine as refine_fine
 from thermod.errors import ThermodError
 from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
+from thermod.motion.picture import MotionError
 from thermod.physics.calibration import Calibration
 from thermod.physics.kernels.grids import kernel_span_s
+from thermod.sync.errors import DurationMismatch, LogMismatch, SyncError
+from thermod.sync.fine import refine as refine_fine
+from thermod.sync.plots import plot_sync
+from thermod.sync.result import SyncResult, synchronise
 
 GYRO_MARGIN_S = 1.0          # log kept before the first and after the last frame (≫ the 5τ window)
 MIN_LOG_RATE_HZ = 100.0      # below it a log's samples are too sparse for a blur kernel of a few ms
@@ -150,7 +146,7 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     intr = camera.intrinsics
     try:
         result = synchronise(vf.frames, vf.t, log.t, log.rate, intr, tau_s=camera.tau_s, readout_s=readout)
-    except SyncError as e:      # the sync works on arrays: say which files
+    except (SyncError, MotionError) as e:      # the sync works on arrays: say which files
         hint = PART_HINT if isinstance(e, (LogMismatch, DurationMismatch)) else ""
         raise FlightImportError(f"{video_path} with {log_path}: {e}{hint}") from None
     t_sync = time.perf_counter()
@@ -168,7 +164,7 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     refinement = None
     offset = result.time_offset_s
     if refine:
-        from thermod.calib.sync_discrepancy import refine_with_discrepancy
+        from thermod.sync.discrepancy import refine_with_discrepancy
 
         ref = refine_with_discrepancy(vf.frames, vf.t, log.t, log.rate, result, intr, windows=refine_windows,
                                       agc=info.bit_depth == 8)
@@ -202,7 +198,7 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
 
     calib = camera.replace(rate_hz=log.rate_hz, **changes)
     gt = log.t + offset                          # onto the video clock
-    g0, g1 = np.searchsorted(gt, [vf.t[0] - GYRO_MARGIN_S - frame_window_s(camera), vf.t[-1] + GYRO_MARGIN_S])
+    g0, g1 = np.searchsorted(gt, [vf.t[0] - GYRO_MARGIN_S - kernel_span_s(camera), vf.t[-1] + GYRO_MARGIN_S])
     path = _write(out, vf, gt[g0:g1], log.rate[g0:g1], calib, {
         "video": str(video_path), "video_codec": info.codec, "video_bit_depth": info.bit_depth,
         "video_luma_only": info.luma_only,
@@ -240,8 +236,3 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration, at
     except BaseException:
         w.abort()
         raise
-
-
-def frame_window_s(calib: Calibration) -> float:
-    """The kernel window before a frame: 5τ plus the readout (Eq. 18; `kernel_span_s`)."""
-    return kernel_span_s(calib)

@@ -1,12 +1,12 @@
 """The fine stage of a sync that needs the pictures themselves: the motion-only discrepancy workflow
 (`thermod.calib.discrepancy`) on a stretch of the synced video.
 
-The rotation-level fit of `thermod.calib.sync` cannot tell the offset from the picture's lag (½ the
+The rotation-level fit of `thermod.sync.fine` cannot tell the offset from the picture's lag (½ the
 readout time plus up to τ); the discrepancy workflow's forward model renders each frame through the
 detector's response and the rolling readout, so on a format-v1 recording made from the synced video it
 refines the time offset, the misalignment and the gyro bias, and names the readout time and τ when the
 motion excites them. `discrepancy_recording` makes that recording: the stretch of `window_s` whose
-picture rotates most, the AGC undone (`thermod.calib.agc`: the forward model needs one count scale),
+picture rotates most, the AGC undone (`thermod.motion.agc`: the forward model needs one count scale),
 the log's samples around it and the sync's calibration. `refine_with_discrepancy` runs the workflow on
 it with `DISCREPANCY_CANDIDATES`. The workflow gives no standard errors; running it on several
 disjoint stretches (`windows`) gives their spread.
@@ -19,12 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from thermod.calib.agc import fit_agc
-from thermod.calib.sync import DISCREPANCY_CANDIDATES, SyncError, SyncResult
 from thermod.io.recording import Recording
+from thermod.motion.agc import fit_agc
 from thermod.physics.calibration import Calibration
 from thermod.physics.geometry import Intrinsics
+from thermod.sync.errors import SyncError
+from thermod.sync.result import SyncResult
 
+#: The candidates that refine what the sync found (and what it cannot).
+DISCREPANCY_CANDIDATES = ("time_offset", "misalignment", "gyro_bias", "rolling_readout", "time_constant")
 GYRO_LEAD_S = 0.3           # log before the stretch's first frame (the workflow's 5τ history and margins)
 GYRO_TAIL_S = 0.1
 
