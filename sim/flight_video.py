@@ -40,11 +40,11 @@ from thermod.errors import ThermodError
 from thermod.io import flightlog, video
 from thermod.io.recording import Recording
 from thermod.physics.calibration import Calibration
+from thermod.physics.effects import ALIASES, GYRO_SIDE
 from thermod.sim import motion as mo
 
 LOG_FORMATS = {"gcsv": "log.gcsv", "betaflight-csv": "log.csv", "ardupilot": "log.bin"}
-GYRO_SIDE_EFFECTS = {"time_offset", "gyro_bias", "gyro_scale", "misalignment", "gyro_noise", "clock_drift",
-                     "gyro_lowpass", "gyro_saturation", "clock_drift_ppm", "gyro_lowpass_hz"}
+GYRO_SIDE_EFFECTS = GYRO_SIDE | set(ALIASES)      # an alias names a gyro-side effect too
 
 
 class MountedMotion(mo.Motion):

@@ -55,33 +55,27 @@ from thermod.errors import ThermodError
 from thermod.io.recording import Recording
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s
+from thermod.physics.effects import EFFECTS, canonical
 from thermod.sim import detector as det
 from thermod.sim import motion as mo
 from thermod.sim import scenes
 from thermod.sim.gyro_model import DEG, GyroErrorModel
 from thermod.sim.parallax import NearGround
 
-EFFECTS = ("time_offset", "rolling_readout", "gyro_bias", "gyro_scale", "misalignment", "time_constant",
-           "optical_psf", "netd", "fpn", "gain_nonuniformity", "quantisation_bits", "detector_nonlinearity",
-           "gyro_noise", "clock_drift", "gyro_lowpass", "gyro_saturation",
-           "ffc_event", "parallax")
-EFFECT_ALIASES = {"clock_drift_ppm": "clock_drift", "gyro_lowpass_hz": "gyro_lowpass"}
 MAX_BYTES = 6e9          # the whole recording is built in memory
-_VECTOR = {"gyro_bias": (1, 3), "gyro_scale": (1, 3), "misalignment": (3,), "ffc_event": (2, 3),
-           "parallax": (2,)}
 
 
 def check_effects(effects: Mapping | None) -> dict:
     """Validate effect names and values; returns {name: float or 3-tuple}."""
     out = {}
     for name, v in dict(effects or {}).items():
-        name = EFFECT_ALIASES.get(name, name)
+        name = canonical(name)
         if name not in EFFECTS:
             raise ThermodError(f"--effect {name}: unknown effect; known: {', '.join(EFFECTS)}")
         a = np.asarray(v, dtype=np.float64).ravel() if not isinstance(v, str) else None
         if a is None or not np.all(np.isfinite(a)):
             raise ThermodError(f"--effect {name}={v!r}: expected a finite number")
-        sizes = _VECTOR.get(name, (1,))
+        sizes = EFFECTS[name].sizes
         if a.size not in sizes:
             raise ThermodError(f"--effect {name}: expected {' or '.join(map(str, sizes))} value(s), "
                                f"got {a.size}")

@@ -84,19 +84,20 @@ def test_thermal_weights_and_photon_average():
     ({"width": 64.7}, "width", "integer"),          # never truncated
     ({"height": 0}, "height", "integer in [1,"),
     ({"width": True}, "width", "number"),
-    ({"frame_rate_hz": 0.0}, "frame_rate_hz", "positive"),
+    ({"frame_rate_hz": 0.0}, "frame_rate_hz", "(0, 10000] Hz"),
     ({"rate_hz": float("inf")}, "rate_hz", "finite"),
-    ({"pixel_pitch_um": 0.0}, "pixel_pitch_um", "positive"),
+    ({"pixel_pitch_um": 0.0}, "pixel_pitch_um", "(0, 1000] µm"),
     ({"psf_beta": 0.0}, "psf_beta", "(0, 1]"),
     ({"psf_beta": 1.5}, "psf_beta", "(0, 1]"),
-    ({"tau_s": 0.0}, "tau_s", "positive"),
+    ({"tau_s": 0.0}, "tau_s", "[1e-06, 1] s"),
     ({"tau_s": "8ms"}, "tau_s", "number"),
     # positive but no detector's: a byte flipped in a file's exponent (found by the recording fuzzer)
     ({"tau_s": 2.848e-306}, "tau_s", "[1e-06, 1] s"),
     ({"tau_s": 2.0}, "tau_s", "[1e-06, 1] s"),
     # an optical PSF the kernel allocation cannot hold (Eq. 19's σ in px, from four fields)
-    ({"wavelength_um": 1e9}, "psf", "σ ≤ 64 px"),
-    ({"f_number": 1e30}, "psf", "f_number=1e+30"),
+    ({"wavelength_um": 100.0, "f_number": 100.0}, "psf", "σ ≤ 64 px"),
+    ({"psf_beta": 1e-3}, "psf", "psf_beta=0.001"),
+    ({"wavelength_um": 1e9}, "wavelength_um", "[0.1, 100] µm"),
     ({"time_offset_s": float("nan")}, "time_offset_s", "finite"),
     ({"readout_s": -0.001}, "readout_s", "frame"),
     ({"readout_s": 0.03}, "readout_s", "0.02"),     # longer than the 50 Hz frame period

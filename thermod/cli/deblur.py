@@ -121,9 +121,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def deblur_config(args) -> DeblurConfig:
     """The command line's settings as a DeblurConfig, checked by the daemon's ``[deblur]`` schema
-    (`thermod.runtime.config.deblur_settings`: the same ranges, choices and α rule); a ConfigError
+    (`thermod.restore.settings.deblur_settings`: the same ranges, choices and α rule); a ConfigError
     names each bad option."""
-    from thermod.runtime.config import deblur_settings
+    from thermod.restore.settings import deblur_settings
 
     if args.uniform and args.adaptive:
         raise ThermodError("--uniform and --adaptive: expected one of them (one kernel, or the grid each "

@@ -12,24 +12,30 @@ import numpy as np
 
 from thermod.errors import ConfigError
 from thermod.io.toml_tables import Key, Problems, Section, read_toml
-from thermod.physics.calibration import GYRO_EFFECT_KEYS, Calibration, CalibrationError
+from thermod.physics.calibration import GYRO_EFFECT_KEYS, RANGES, Calibration, CalibrationError
 
-# The keys whose range does not depend on other keys; defaults are the base calibration's. cx, cy
-# (within the image, with margin) and readout_s (at most one frame period) are checked against the
-# width, height and frame rate read first.
+
+def _ranged(key: str, kind: type, doc: str = "") -> Key:
+    lo, hi, lo_open, _ = RANGES[key]
+    return Key(kind, lo=lo, hi=None if hi == float("inf") else hi, lo_open=lo_open, doc=doc)
+
+
+# The keys whose range does not depend on other keys (their ranges: `physics.calibration.RANGES`);
+# defaults are the base calibration's. cx, cy (within the image, with margin) and readout_s (at most
+# one frame period) are checked against the width, height and frame rate read first.
 SCHEMA: dict[str, Key] = {
-    "width": Key(int, lo=8, hi=16384, doc="image width (px)"),
-    "height": Key(int, lo=8, hi=16384, doc="image height (px)"),
-    "fx": Key(float, lo=0.0, lo_open=True, doc="focal length (px)"),
-    "fy": Key(float, lo=0.0, lo_open=True, doc="focal length (px)"),
-    "tau_s": Key(float, lo=0.0, lo_open=True, hi=1.0, doc="thermal time constant τ (s)"),
-    "frame_rate_hz": Key(float, lo=0.0, lo_open=True, hi=10000.0),
-    "wavelength_um": Key(float, lo=0.1, hi=100.0, doc="PSF wavelength"),
-    "f_number": Key(float, lo=0.1, hi=100.0),
-    "psf_beta": Key(float, lo=0.0, lo_open=True, hi=1.0),
-    "pixel_pitch_um": Key(float, lo=0.0, lo_open=True, hi=1000.0),
-    "rate_hz": Key(float, lo=0.0, lo_open=True, hi=100000.0, doc="gyro sample rate"),
-    "time_offset_s": Key(float, lo=-1.0, hi=1.0, doc="gyro time - camera time"),
+    "width": _ranged("width", int, doc="image width (px)"),
+    "height": _ranged("height", int, doc="image height (px)"),
+    "fx": _ranged("fx", float, doc="focal length (px)"),
+    "fy": _ranged("fy", float, doc="focal length (px)"),
+    "tau_s": _ranged("tau_s", float, doc="thermal time constant τ (s)"),
+    "frame_rate_hz": _ranged("frame_rate_hz", float),
+    "wavelength_um": _ranged("wavelength_um", float, doc="PSF wavelength"),
+    "f_number": _ranged("f_number", float),
+    "psf_beta": _ranged("psf_beta", float),
+    "pixel_pitch_um": _ranged("pixel_pitch_um", float),
+    "rate_hz": _ranged("rate_hz", float, doc="gyro sample rate"),
+    "time_offset_s": _ranged("time_offset_s", float, doc="gyro time - camera time"),
     "bias_rad_s": Key(tuple, length=(3,), doc="gyro bias (rad/s)"),
     "scale": Key(tuple, length=(1, 3), positive=True, doc="gyro scale: one for all axes, or per axis"),
     # ranges checked by Calibration itself (its CalibrationError names the key)

@@ -22,6 +22,7 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.physics import gyro_effects
+from thermod.physics.effects import GYRO_CONDITIONING_FIELDS
 from thermod.physics.geometry import Intrinsics, so3_exp
 
 CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "tau_s", "frame_rate_hz", "wavelength_um",
@@ -29,7 +30,8 @@ CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "tau_s", "frame_rate_h
 GYRO_KEYS = ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s", "scale", "clock_drift_ppm",
              "clock_epoch_s", "gyro_lowpass_hz", "gyro_range_rad_s", "gyro_clip_gain")
 # Gyro-side effect fields (scalars; 0 = off, except the clip gain whose neutral value is 1).
-GYRO_EFFECT_KEYS = GYRO_KEYS[5:]
+GYRO_EFFECT_KEYS = GYRO_CONDITIONING_FIELDS
+assert GYRO_KEYS[5:] == GYRO_EFFECT_KEYS, "physics.effects and GYRO_KEYS disagree on the gyro's fields"
 
 # The paper's SBTI setup: FLIR A655sc-like, IFOV 0.0391°, τ = 8 ms, 640×480 at 50 Hz, 17 µm pitch.
 PAPER_IFOV_RAD = math.radians(0.0391)
@@ -44,6 +46,27 @@ MIN_TAU_S, MAX_TAU_S = 1e-6, 1.0
 # 3σ, squared) is allocated from it — from file contents, so it is bounded.
 MAX_PSF_SIGMA_PX = 64.0
 ROTATION_TOL = 1e-4     # |R Rᵀ − I| allowed: six printed decimals, not a shear
+
+#: The range of each scalar field that does not depend on another field: (lo, hi, lo_open, unit). The
+#: one range check, read by `Calibration` and by the TOML reader (`thermod.io.calibration_file`, which
+#: reports every bad key of a file at once).
+RANGES: dict[str, tuple[float, float, bool, str]] = {
+    "width": (1, MAX_SIDE_PX, False, "px"), "height": (1, MAX_SIDE_PX, False, "px"),
+    "fx": (0.0, math.inf, True, "px"), "fy": (0.0, math.inf, True, "px"),
+    "tau_s": (MIN_TAU_S, MAX_TAU_S, False, "s"),
+    "frame_rate_hz": (0.0, 10000.0, True, "Hz"), "rate_hz": (0.0, 100000.0, True, "Hz"),
+    "wavelength_um": (0.1, 100.0, False, "µm"), "f_number": (0.1, 100.0, False, ""),
+    "psf_beta": (0.0, 1.0, True, ""), "pixel_pitch_um": (0.0, 1000.0, True, "µm"),
+    "time_offset_s": (-1.0, 1.0, False, "s"),
+}
+
+
+def range_text(key: str) -> str:
+    """What `RANGES` allows for `key`, as an error message says it."""
+    lo, hi, lo_open, unit = RANGES[key]
+    if lo == 0 and lo_open and hi == math.inf:
+        return "a positive number" + (f" ({unit})" if unit else "")
+    return f"a value in {'(' if lo_open else '['}{lo:g}, {hi:g}]" + (f" {unit}" if unit else "")
 
 
 class CalibrationError(ThermodError, ValueError):
@@ -91,25 +114,19 @@ class Calibration:
         calibration cannot exist, whatever built it (config, --set, recording attributes, reload)."""
         set_ = object.__setattr__
         for k in ("width", "height"):
-            set_(self, k, _integer(k, getattr(self, k), 1, MAX_SIDE_PX))
+            set_(self, k, _integer(k, getattr(self, k), *RANGES[k][:2]))
         for k in _FLOAT_KEYS:
             set_(self, k, _number(k, getattr(self, k)))
-        for k in ("fx", "fy", "tau_s", "frame_rate_hz", "wavelength_um", "f_number", "pixel_pitch_um",
-                  "rate_hz"):
-            if not getattr(self, k) > 0:
-                raise CalibrationError(k, f"expected a positive number, got {getattr(self, k)!r}")
+        for k, (lo, hi, lo_open, _) in RANGES.items():
+            v = getattr(self, k)
+            if not ((lo < v) if lo_open else (lo <= v)) or not v <= hi:
+                raise CalibrationError(k, f"expected {range_text(k)}, got {v!r}")
         for k, side in (("fx", self.width), ("fy", self.height)):
             fov = math.degrees(2.0 * math.atan(0.5 * side / getattr(self, k)))
             if not MIN_FOV_DEG <= fov <= MAX_FOV_DEG:
                 raise CalibrationError(k, f"expected a focal length giving a field of view in "
                                           f"[{MIN_FOV_DEG}°, {MAX_FOV_DEG}°] over {side} px, got "
                                           f"{getattr(self, k)!r} ({fov:.3g}°)")
-        if not 0 < self.psf_beta <= 1:
-            raise CalibrationError("psf_beta", f"expected a value in (0, 1] (1 = diffraction limited), "
-                                               f"got {self.psf_beta!r}")
-        if not MIN_TAU_S <= self.tau_s <= MAX_TAU_S:
-            raise CalibrationError("tau_s", f"expected a detector time constant in [{MIN_TAU_S:g}, "
-                                            f"{MAX_TAU_S:g}] s, got {self.tau_s!r}")
         if not self.psf_sigma_px <= MAX_PSF_SIGMA_PX:
             raise CalibrationError("psf", f"expected an optical PSF σ ≤ {MAX_PSF_SIGMA_PX:g} px (Eq. 19: "
                                           f"0.45·wavelength_um·f_number/psf_beta/pixel_pitch_um), got "
@@ -121,9 +138,6 @@ class Calibration:
         if not 0 <= self.readout_s <= period * (1 + 1e-9):
             raise CalibrationError("readout_s", f"expected a value in [0, {period:.6g}] s (one frame "
                                                 f"period), got {self.readout_s!r}")
-        if not abs(self.time_offset_s) <= 1.0:
-            raise CalibrationError("time_offset_s", f"expected a value in [-1, 1] s, "
-                                                    f"got {self.time_offset_s!r}")
         _check_gyro_effects(self)
         set_(self, "gyro_clip_run_gains", _run_gains(self))
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))

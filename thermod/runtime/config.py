@@ -42,13 +42,12 @@ from thermod.io.toml_tables import (
     read_toml,
     schema_of,
     setting,
-    with_defaults,
 )
 from thermod.io.toml_tables import reference as toml_reference
 from thermod.physics import radiometry as radiometrymod
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import DEFAULT_NETD_K
-from thermod.restore.settings import DeblurConfig
+from thermod.restore.settings import DEBLUR, DeblurConfig, read_deblur
 from thermod.runtime import sources
 
 
@@ -219,36 +218,6 @@ class Config:
         return "sim" in (self.gyro.kind, self.camera.kind)
 
 
-# [deblur] → DeblurConfig, whose defaults (shared with offline deblurring) live in thermod.restore.settings
-DEBLUR = with_defaults(DeblurConfig, {
-    "enabled": Key(bool),
-    "method": Key(str, choices=("kf", "wiener"), doc="single-frame solver; the daemon's temporal rung "
-                  "(temporal_views > 1) always solves by Wiener, so kf needs temporal_views = 1 there"),
-    "lambda": Key(float, lo=0.0, lo_open=True, hi=1e9, attr="lam", doc="data weight; absent = the solver's"),
-    "alpha": Key(float, rule=lambda a: None if abs(a - 1.0) < 1e-9 or abs(a - 2.0 / 3.0) < 1e-3 else
-                 "1 or 2/3 (0.667) — the exponents with a closed-form w-step", doc="prior exponent",
-                 accepts="1 (TV) or 2/3 (hyper-Laplacian)"),
-    "kernel": Key(str, choices=("thermal", "photon")),
-    "exposure_s": Key(float, lo=0.0, lo_open=True, hi=1.0, doc="photon kernel exposure; absent: 1/fps"),
-    "psf": Key(bool),
-    "mode": Key(str, choices=("adaptive", "uniform", "grid")),
-    "grid": Key(tuple, length=(2,), item=int, lo=1, hi=16, doc="[rows, cols]"),
-    "grid_tol_px": Key(float, lo=0.05, hi=100.0, doc="adaptive: kernel shift allowed across a cell (px)"),
-    "temporal_tol_px": Key(float, lo=0.05, hi=100.0, doc="governor: kernel shift across a cell (px) up to "
-                           "which a rung coarsens its grid while the workers keep up (the floor)"),
-    "kf_iterations": Key(int, lo=1, hi=12, doc="K&F β steps; absent: K&F's six"),
-    "temporal_views": Key(int, lo=1, hi=16, doc="offline: frames per temporal solve, the frame itself "
-                          "included; daemon: > 1 puts the recursive temporal rungs on the governor's "
-                          "ladder (1: single-frame solves everywhere)"),
-    "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
-    "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
-    "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
-    "m": Key(float, lo=1.0, hi=20.0, doc="kernel window = m·τ"),
-    "min_coverage": Key(float, lo=0.0, hi=1.0, doc="gyro coverage below this → pass through"),
-    "ffc_settle_s": Key(float, lo=0.0, hi=60.0, doc="pass through this long after an FFC; absent: m·τ"),
-})
-
-
 # ------------------------------------------------------------------------------ sections
 def read_section(problems: Problems, name: str, table: Any, cls):
     """The ``[name]`` table as a `cls` (declared with `setting`); bad keys are recorded in `problems`
@@ -281,24 +250,6 @@ def _source(problems: Problems, role: str, table: Any, check_devices: bool) -> S
     common = s.read(schema_of(SourceConfig))
     s.done()
     return SourceConfig(kind=kind, device=device, options=MappingProxyType(opts), **common)
-
-
-def _deblur(problems: Problems, table: Any) -> DeblurConfig:
-    s = Section(problems, "deblur", table)
-    kw = s.read(DEBLUR)
-    kw["alpha"] = 1.0 if abs(kw["alpha"] - 1.0) < 1e-9 else 2.0 / 3.0
-    s.done()
-    return DeblurConfig(**kw)
-
-
-def deblur_settings(values: dict, origins: Mapping[str, str]) -> DeblurConfig:
-    """``[deblur]`` keys given elsewhere (a command line's), checked by the same schema as a
-    configuration file's; `origins` maps each key to where it came from (e.g. ``{"grid": "--grid"}``).
-    One ConfigError naming every bad one."""
-    problems = Problems("command line", {f"deblur.{k}": v for k, v in origins.items()})
-    cfg = _deblur(problems, {k: v for k, v in values.items() if v is not None})
-    problems.raise_if_any()
-    return cfg
 
 
 CAMERA_RADIOMETRY = "camera"     # [radiometry] model = "camera": the Planck constants the camera reports
@@ -434,7 +385,7 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True,
     tables = {name: read_section(problems, name, top.take(name) if top.has(name) else {}, cls)
               for name, cls in _config_sections().items()}
     calibration = calibration_from_table(problems, top.take("calibration") if top.has("calibration") else {})
-    deblur = _deblur(problems, top.take("deblur") if top.has("deblur") else {})
+    deblur = read_deblur(problems, top.take("deblur") if top.has("deblur") else {})
     radiometry = _radiometry(problems, top.take("radiometry") if top.has("radiometry") else {})
     top.done()
     if uses_sim and not problems.items:

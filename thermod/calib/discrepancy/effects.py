@@ -18,6 +18,7 @@ from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.fitting import current_ssr, scalar_fit, vector_fit, with_calib
 from thermod.calib.discrepancy.problem import StepContext
+from thermod.physics.effects import EFFECTS as VOCABULARY
 from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import continuations, detect_clip_level, group_delay_s
 from thermod.physics.kernels.grids import kernel_span_s
@@ -596,6 +597,8 @@ DETECTOR_EFFECTS = (
 
 # the vocabulary, in the order the search tries it
 EFFECTS: dict[str, Effect] = {e.name: e for e in (*CAMERA_EFFECTS, *GYRO_EFFECTS, *DETECTOR_EFFECTS)}
+if set(EFFECTS) - set(VOCABULARY):        # one vocabulary: every candidate is an effect of physics.effects
+    raise ImportError(f"candidates missing from thermod.physics.effects: {set(EFFECTS) - set(VOCABULARY)}")
 CANDIDATES = tuple(EFFECTS)
 
 
