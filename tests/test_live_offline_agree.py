@@ -100,7 +100,8 @@ def test_the_daemon_publishes_what_thermod_deblur_writes(rec_path, tmp_path, cap
     assert len(ids) == N_FRAMES, ids
     first = ids[0]                         # the replay's frame ids count from the recording's first
     passed = {i - first: live[i][0].get("reason") for i in ids if not live[i][0]["deblurred"]}
-    assert [bool(live[i][0]["deblurred"]) for i in ids] == ok.tolist() == [False] + [True] * (N_FRAMES - 1), passed
+    expected = [False] + [True] * (N_FRAMES - 1)
+    assert [bool(live[i][0]["deblurred"]) for i in ids] == ok.tolist() == expected, passed
     assert live[first][0]["reason"].startswith("gyro_incomplete")
     worst, grids = 0.0, set()
     for k, i in enumerate(ids):

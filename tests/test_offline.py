@@ -344,7 +344,7 @@ def test_failed_single_file_keeps_the_previous_output(tmp_path, capsys):
         f["camera"].attrs["frame_rate_hz"] = 0.0
     (tmp_path / "o.h5").write_bytes(b"previous")
     rc, _, err = deblur(capsys, src, "-o", tmp_path / "o.h5")
-    assert rc == 2 and f"{src}: camera.attrs['frame_rate_hz']: expected a value in (0, 10000] Hz, got 0.0" in err
+    assert rc == 2 and f"{src}: camera.attrs['frame_rate_hz']: expected a value in (0, 10000] Hz" in err
     assert (tmp_path / "o.h5").read_bytes() == b"previous" and not (tmp_path / "o.h5.part").exists()
 
 
