@@ -2,8 +2,8 @@
 
 Reading (`iter_video`, `read_video`, `probe_video`): a video file FFmpeg decodes, grey formats as
 coded (uint8 or uint16, not rescaled), YUV as its luma plane as a player shows it (limited range
-mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a 16-bit TIFF sequence (a folder or a glob, natural
-order of names) whose frame k is at ``t0 + k / fps``.
+mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a 16-bit TIFF sequence (a folder or
+a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
 
 The rules it keeps: a frame's time is float64 s on the container's own clock (its presentation
 timestamp; variable frame rate kept), never mapped to the flight log's (the sync's job); times
