@@ -264,7 +264,7 @@ class Governor:
                             ) -> tuple[int, int] | None:
         """The last full-resolution rung, when nothing fits the budget: the finest grid, down to one
         kernel, predicted within `keep_s`. Full resolution over the latency budget restores more than
-        half resolution within it (one kernel at 1280×1024: Wiener 33.5 dB, `wiener_half` 29.3),
+        half resolution within it (one kernel at 1280×1024: benchmarks/results/payload.md),
         and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
         unless given (a climb back asks for a margin below it)."""
         limit = self.keep_s if limit is None else limit
