@@ -2,7 +2,7 @@
 
 A camera source hands out :class:`Frame` objects from ``poll(timeout)``; the daemon's driver thread calls
 it in a loop (sources own no delivery threads). Each driver maps its device clock to host
-``CLOCK_MONOTONIC`` through `ClockMapper` (DESIGN §2: never stamp a frame with its
+``CLOCK_MONOTONIC`` through `ClockMapper` (docs/design.md §2: never stamp a frame with its
 read time) and counts lost frames from the device's frame ids with :class:`FrameIdTracker`.
 """
 

@@ -24,7 +24,7 @@ class GyroBatch:
         Host CLOCK_MONOTONIC seconds of each sample, mapped from the device counter by
         :class:`thermod.io.clock.ClockMapper` (never the read time).
     rate : float32 [n, 3]
-        Raw angular rate in rad/s, gyro frame (uncalibrated; DESIGN §2).
+        Raw angular rate in rad/s, gyro frame (uncalibrated; docs/design.md §2).
     seq : int
         Device sample index of the first sample (unwrapped, counts lost samples too).
     gap_before : bool

@@ -2,25 +2,17 @@
 
 The kernel driver of the chip (``inv_icm42600``, ``bmi160``, ``adis16xxx``, …) owns the FIFO; we
 find the device by its ``name`` under ``/sys/bus/iio/devices``, enable the angular-velocity scan
-elements (and the timestamp), set ``current_timestamp_clock`` to ``monotonic`` so timestamps share
-the host clock, size ``buffer/length``, enable ``buffer/enable`` last, and read fixed-size records
-from ``/dev/iio:deviceN``.
-
-Record layout (Documentation/ABI/testing/sysfs-bus-iio, "scan_elements"): enabled channels in
-``*_index`` order; each element is aligned to its own storage size; the record is padded to the
-largest element; ``*_type`` is ``[be|le]:[s|u]bits/storagebits[Xrepeat]>>shift`` and a value is
-``(word >> shift)`` masked to ``bits`` and sign-extended. Rates are ``raw × in_anglvel_scale``
-(rad/s; per-channel ``in_anglvel_x_scale`` wins when present).
+elements (and the timestamp) on the ``monotonic`` clock, size and enable the buffer, and read
+fixed-size records from ``/dev/iio:deviceN`` in the layout of the kernel's sysfs-bus-iio ABI.
 
 Timing: samples are counted (sequence = device clock) and mapped to host time by
-:class:`thermod.io.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each read
-(the data-ready interrupt time, never earlier than the sample) or, without a timestamp channel,
-the time the read returned. The kernel drops new samples silently when its buffer is full; the
-timestamps show the hole (``gap_before``, ``n_lost``). A stamp that cannot be a sample time (zero,
-negative, later than the read, backwards) or a hole longer than the host time allows starts a new
-epoch: counted in ``resets``, the clock fit restarts, records with bad stamps are timed by the
-read, and a lost count is never more than host time allows. Both roots are injectable (``sysfs_root``,
-``dev_path``) so the emulator in ``thermod.sim.emu_iio`` runs this exact code on a temp directory and a FIFO.
+:class:`thermod.io.clock.ClockMapper`, fed with the kernel timestamp of the newest sample of each
+read or, without a timestamp channel, the time the read returned. A hole in the timestamps is a
+loss (``gap_before``, ``n_lost``); a stamp that cannot be a sample time or a hole longer than host
+time allows starts a new epoch (``resets``), and a lost count is never more than host time allows.
+Both roots are injectable (``sysfs_root``, ``dev_path``) so the emulator in ``thermod.sim.emu_iio``
+runs this exact code on a temp directory and a FIFO. Record layout and epochs in full:
+docs/design.md §5, "Gyro sources".
 """
 
 from __future__ import annotations

@@ -1,27 +1,18 @@
-"""Replay of a format-v1 recording (DESIGN §3) as a camera source and a gyro source.
+"""Replay of a format-v1 recording (docs/design.md §3) as a camera source and a gyro source.
 
 Both sources of one recording share a :class:`ReplaySession`: one timeline re-based to the host clock
-(the recording's first sample, camera or gyro, maps to ``time.monotonic()`` at the first ``start()``), so
-the relative timing of frames and gyro samples — and with it the gyro ↔ camera calibration
-(``time_offset_s``) — is exactly that of the recording. ``ReplayCamera(path)`` and ``ReplayGyro(path)``
-built separately for the same file join the same session.
+(the recording's first sample maps to ``time.monotonic()`` at the first ``start()``), so the relative
+timing of frames and gyro samples — and with it ``time_offset_s`` — is exactly that of the
+recording. ``ReplayCamera(path)`` and ``ReplayGyro(path)`` built separately join the same session.
 
-Pacing:
-
-- ``speed = 1`` (default): items are delivered when their re-based time comes, as from live devices.
-- ``speed = s``: delivered ``s`` times faster (or slower). Reported times keep the recording's time scale
-  (the gyro rates are physical rad/s: compressing time would change every integrated rotation), so they
-  run ahead of (s > 1) or behind the host clock.
-- ``speed = math.inf``: as fast as the consumers poll, in lockstep: a frame is handed out only once the
-  gyro source has delivered samples up to its time, and the gyro runs at most ``lead_s`` ahead of the last
-  frame (a source that was never started is not waited for).
-
-``loop=True`` repeats the recording with times continuing (the loop period is the recording's span plus
-one sample period); frame ids and gyro sequence numbers keep counting.
+Pacing: ``speed = 1`` delivers items when their re-based time comes; ``speed = s`` delivers ``s``
+times faster (or slower) with the recording's time scale kept in the reported times (rates are
+physical rad/s); ``speed = math.inf`` runs in lockstep as fast as the consumers poll (a frame only
+once the gyro has delivered up to its time, the gyro at most ``lead_s`` ahead). ``loop=True``
+repeats the recording with times, frame ids and sequence numbers continuing.
 
 Calibration: both sources expose the recording's own (``calibration``); `thermod run` deblurs with it
-unless ``[sources.camera] calibration = "config"`` asks for the configuration's ``[calibration]``
-(`thermod.runtime.sources.calibration_in_force`).
+unless ``[sources.camera] calibration = "config"``. In full: docs/design.md §5, "Gyro sources".
 """
 
 from __future__ import annotations

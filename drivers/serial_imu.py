@@ -1,33 +1,20 @@
 """Serial (UART / USB-serial) gyro: a framed binary protocol, resynchronising on garbage.
 
-Wire protocol "thermod serial IMU v1" (all multi-byte fields little-endian)::
+Wire protocol "thermod serial IMU v1" (little-endian; the byte table: docs/design.md §5, "Gyro
+sources"): sync 0xA5 0x5A, payload length, type (1: rates as 3 × float32 rad/s; 2: 3 × int16 times
+a float32 scale), a uint32 sample counter, a uint32 µs device time, the rates in the gyro frame,
+and a CRC-16/CCITT-FALSE over length, type and payload.
 
-    offset size  field
-    0      2     sync 0xA5 0x5A
-    2      1     L = payload length in bytes (20 for type 1, 18 for type 2)
-    3      1     type: 1 = rates as 3 × float32 rad/s, 2 = rates as 3 × int16 × scale
-    4      4     seq: uint32 sample counter, +1 per sample, wraps at 2**32
-    8      4     device time of the sample: uint32 µs, wraps at 2**32 (71.6 min)
-    12     12|10 type 1: wx, wy, wz float32 rad/s (gyro frame)
-                 type 2: wx, wy, wz int16, then scale float32 (rad/s per LSB)
-    4+L    2     CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over bytes 2 … 3+L (length, type,
-                 payload), little-endian
-
-A frame is accepted only when its CRC matches; a bad CRC counts ``crc_errors`` and the search for
-the next sync resumes one byte after the rejected sync (a corrupted length must not swallow good
-frames). Bytes that are not part of a frame count as ``garbage_bytes``. A frame with a good CRC whose
-rates are NaN, infinite or beyond ``max_rate_rad_s`` is dropped and counted as ``invalid``. Gaps in
-``seq`` are lost frames (``gap_before``, ``n_lost``). Device counters that cannot follow each other
-(seq or time going back or standing still, or a time step that does not match the seq step)
-start a new epoch, counted in ``resets``: the clock fit restarts and the samples lost meanwhile
-are estimated from host time. Sample times come from the device timestamps (unwrapped µs)
-mapped to host time by :class:`thermod.io.clock.ClockMapper`, fed with the time each read returned.
-
-The port is a path (``/dev/serial/by-id/usb-FTDI_…-if00-port0`` survives re-enumeration; so does
-``usb:VID:PID[:SERIAL]``, resolved through :mod:`thermod.drivers.usb_lookup` at every (re)open).
-FTDI adapters batch bytes for 16 ms unless low-latency mode is on: it is requested when supported.
-A disconnect raises :class:`SerialIMUError` once; later polls try to reopen the port (every
-``reopen_interval_s``) and resume with a gap when the device is back.
+The rules it keeps: a frame is accepted only when its CRC matches; after a bad CRC
+(``crc_errors``) the search for the next sync resumes one byte after the rejected sync, so a
+corrupted length cannot swallow good frames. Other bytes count as ``garbage_bytes``; rates that are
+NaN, infinite or beyond ``max_rate_rad_s`` are dropped as ``invalid``; gaps in ``seq`` are lost
+frames (``gap_before``, ``n_lost``); device counters that cannot follow each other start a new
+epoch (``resets``). Sample times are the unwrapped device µs mapped to host time by
+:class:`thermod.io.clock.ClockMapper`. The port is a path or ``usb:VID:PID[:SERIAL]`` (resolved by
+:mod:`thermod.drivers.usb_lookup` at every (re)open); FTDI low-latency mode is requested where
+supported. A disconnect raises :class:`SerialIMUError` once; later polls try to reopen the port
+(every ``reopen_interval_s``) and resume with a gap when the device is back.
 """
 
 from __future__ import annotations

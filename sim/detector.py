@@ -1,34 +1,18 @@
 """Fine-time detector renderer: the simulator's truth.
 
-The world is a scene texture laid on the sphere of view directions (azimuth/elevation at the
-texture's angular pixel size, mirror-tiled), seen by a pinhole camera with orientation R(t)
-(`thermod.sim.motion.Trajectory`). The sharp view at time t is S_t(p) = scene(R(t) K⁻¹ p), so two
-views are related exactly by the rotation homography of Eq. 16: S_i(p) = S_k(π(K Q_i K⁻¹ p)) with
-Q_i = R(t_k)ᵀ R(t_i), i.e. S_i(p) = S_k(p − u_i) as in docs/design.md §1.
+The world is a scene texture on the sphere of view directions seen by a pinhole camera with
+orientation R(t) (`thermod.sim.motion.Trajectory`): the sharp view at time t is
+S_t(p) = scene(R(t) K⁻¹ p), so two views are related exactly by the rotation homography of Eq. 16.
 
-Rendering (per frame interval, with sub-segments when the motion is very fast):
-
-1. a *canvas* (pinhole view at the orientation R(t_k) of the segment's end, enlarged to hold every
-   view of the segment) is sampled once from the sphere (cv2.remap);
-2. each fine step j is a cv2.warpPerspective of that canvas with H = K_c Q_j K⁻¹ (Eq. 16), at the
-   step's mid time;
-3. the thermal state is advanced exactly for a piecewise-constant input (Eq. 10, exact form):
-   B ← B + α (S − B), α = 1 − exp(−h/τ), with h chosen so the image moves ≤ `step_px` (0.5 px)
-   per step anywhere in the frame (Eq. 12: h ≤ IFOV / ω);
-4. rolling readout: row r of frame k is captured at t_k − T_ro·(1 − (r+1)/H) as the integration
-   passes that time, with the exact in-step exponential (no rounding to the step grid);
-5. the optical PSF (Eq. 19, Gaussian σ px) is applied to the integrated frame (it commutes with the
-   rotation warps for an isotropic PSF).
-
-With `parallax` (`thermod.sim.parallax.NearGround`: a near scene and a translating camera, outside
-the rotation-only model) each fine step's view is a cv2.remap of the canvas through the rotation
-homography plus the parallax shift of the step's mid time, and the sharp truth views include it
-(`frames_rolling`, the per-row truth under rolling readout, does not).
-
-The integration starts `history_tau` τ (≥ 5, default 8) before the first row of the first frame,
-from the view at that time (a settled detector: the error of that start is exp(−8) = 0.03 % of
-the contrast the motion sweeps past). The photon-detector variant (Eq. 2) box-averages the
-views over each row's exposure window instead.
+Per frame interval a canvas is sampled once from the sphere and each fine step's view warped from
+it (Eq. 16); the thermal state is advanced exactly for a piecewise-constant input (Eq. 10, exact
+form), with steps short enough that the image moves ≤ `step_px` (0.5 px) anywhere in the frame
+(Eq. 12); under rolling readout each row is captured at its own read time with the exact in-step
+exponential; the optical PSF (Eq. 19) is applied to the integrated frame. With `parallax`
+(`thermod.sim.parallax.NearGround`) each step's view adds the parallax shift. The integration
+starts `history_tau` τ (≥ 5, default 8) before the first row, from a settled detector. The
+photon-detector variant (Eq. 2) box-averages the views over each row's exposure window instead.
+The steps in full: docs/design.md §1.2, "The simulator's truth renderer".
 """
 
 from __future__ import annotations

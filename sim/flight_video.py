@@ -1,29 +1,18 @@
 """A simulated flight as another tool would hand it over: an AGC'd 8-bit H.264 thermal video and a
 flight-controller gyro log in a real format, with the truth that links them kept aside.
 
-`simulate_flight(out_dir, ...)` renders a `thermod.sim.synth.simulate` recording (the fine-time
-microbolometer renderer, known truth) and writes:
+`simulate_flight(out_dir, ...)` renders a `thermod.sim.synth.simulate` recording and writes
+``video.mp4`` (the raw counts through `thermod.io.video.PercentileAGC`, timestamps from 0 at the
+first frame), the gyro log of a longer flight in which the video sits at a hidden place
+(``log.gcsv``, ``log.csv`` Betaflight CSV, ``log.bin`` ArduPilot DataFlash, each read by
+`thermod.io.flightlog.read_flight_log`) and ``truth.json``: what the sync must find.
 
-- ``video.mp4``: the raw counts through a camera's automatic gain control
-  (`thermod.io.video.PercentileAGC`: a smoothed percentile stretch, so every frame has its own gain
-  and offset) as 8-bit H.264 (`thermod.io.video.write_video`), timestamps from 0 at the first frame;
-- the gyro log of a longer flight in which the video sits at a hidden place, in each format asked
-  for: ``log.gcsv`` (Gyroflow), ``log.csv`` (Betaflight blackbox CSV, whole °/s as Betaflight 4
-  logs), ``log.bin`` (ArduPilot DataFlash) — all read by `thermod.io.flightlog.read_flight_log`;
-- ``truth.json``: what the sync must find.
-
-**The hidden truth.** The flight controller's body frame is FRD (`thermod.io.flightlog`); the
-camera is mounted by one of the 24 axis-aligned rotations, `camera_from_body` (3×3, ω_camera =
-camera_from_body · ω_body). The motion is a multirotor-like attitude defined in the body frame
-(`thermod.sim.motion.flight`: sums of sines, roll, pitch, yaw RMS rates `body_rms_deg_s`), and
-the camera sees it through the mount. The log's clock runs from `log_start_s` (the FC's time since
-boot at the log's first sample) for `log_seconds`; the first video frame is read at log time
-`log_start_s + video_start_s`. With t_video the times `read_video` gives the video's frames,
+The hidden truth: a multirotor-like motion in the FRD body frame seen through one of the 24
+axis-aligned mounts (``mount_index``, ``camera_from_body``), and the log's clock placed so that
 
     t_log = t_video + log_offset_s            (calibration convention: time_offset_s = −log_offset_s)
 
-so ``log_offset_s`` is the number a sync must recover; the mount's index in
-`thermod.io.flightlog.axis_aligned_rotations()` is ``mount_index``.
+The clocks and the motion in full: docs/design.md §3, "Simulated flights".
 """
 
 from __future__ import annotations

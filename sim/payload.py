@@ -1,32 +1,19 @@
 """The simulated payload behind ``config/sim.toml``: a thermal camera and a gyro that see the SAME motion.
 
-- Camera: a loop of ``loop_s`` seconds pre-rendered once by the simulator and cached on disk
-  (`thermod.sim.playback`, the fine-time microbolometer model, Eq. 10/11). `SimCamera` plays it in
-  real time: frame k is "read" at ``T0 + k/fps`` (host monotonic), shows loop frame ``k mod N`` plus
-  temporal noise (``[sim] netd_k``, from a bank of `NOISE_FRAMES` frames cycled against the loop, so
-  a frame's noise is fresh on every pass) and is delivered when that time has come;
-  `frame_for(frame_id)` returns what was delivered.
+- Camera: `SimCamera` plays a loop of ``loop_s`` seconds pre-rendered once by the simulator
+  (`thermod.sim.playback`, Eq. 10/11) in real time: frame k is read at ``T0 + k/fps`` (host
+  monotonic), shows loop frame ``k mod N`` plus fresh temporal noise (``[sim] netd_k``) and is
+  delivered when that time has come.
 - Gyro: the REAL ICM-42688-P driver (`thermod.drivers.icm42688.ICM42688`) over the SPI bus seam on
-  the register-level emulator (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at 1 kHz in
-  real time with the loop motion's raw rate at each tick (`Playback.rate_gyro(t − T0)`).
+  the register-level emulator (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at 1 kHz
+  in real time with the loop motion's raw rate.
 
-The loop motion returns to its start orientation after ``loop_s`` (sway, or a shake's sine
-frequencies snapped to whole cycles per loop), so the blur of every frame — also across the loop's
-seam — matches the gyro, and the deblurred stream can be checked against the truth:
-`truth_for(frame_id)` returns the sharp view of a delivered frame.
-
-Flat-field corrections: with ``[sim] ffc_interval_s`` > 0 the camera runs one every that many seconds
-(`thermod.sim.emu_camera.FFCSchedule` from T0): for ``ffc_duration_s`` it repeats the last frame read
-before it, flagged ``ffc``, then its output steps by ``ffc_step_counts`` (the new NUC).
-`ffc_truth(frame_id)` says which delivered frames were frozen.
-
-Drift: ``payload.drift = GyroDrift(...)`` (`thermod.sim.gyro_model`) makes the gyro bias and time offset
-move during the run; ``[sim] tau_s`` renders the loop with a true τ other than the configuration's;
-`true_calibration(t)` says what is true at host time t.
-
-Fault injection for tests: `SimCamera.stall(s)` (no frames), `SimCamera.disconnect(s)` (poll
-raises DeviceError), and the emulator's ``chip.unplug(s)`` / ``chip.nack(n)`` / not reading (FIFO
-overflow), reachable as ``payload.chip``.
+The rule it keeps: the loop motion returns to its start orientation after ``loop_s``, so the blur
+of every frame, also across the loop's seam, matches the gyro, and the deblurred stream can be
+checked against the truth (`truth_for`, `frame_for`, `ffc_truth`, `true_calibration`). Flat-field
+corrections (``[sim] ffc_interval_s``), drift (``payload.drift``, ``[sim] tau_s``) and fault
+injection (`SimCamera.stall`, `SimCamera.disconnect`, ``payload.chip``): docs/design.md §5,
+"The simulated payload".
 """
 
 from __future__ import annotations

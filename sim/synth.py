@@ -1,45 +1,18 @@
 """`simulate(...)`: a complete recording (frames + raw gyro) with known, hidden truth.
 
-The file's attributes carry the NOMINAL calibration (what the user believes); the named
-`effects` change the TRUTH the world is rendered with — the vocabulary the discrepancy workflow
-has to explain:
-
-    time_offset            s      true gyro→camera time offset added to the nominal one
-    rolling_readout        s      true readout time T_ro (row r read at t_k − T_ro(1 − (r+1)/H))
-    gyro_bias              rad/s  scalar or 3-vector added to the nominal bias
-    gyro_scale             —      scalar or 3-vector multiplying the nominal scale
-    misalignment           rad    rotation vector composed onto R_cam_gyro (camera side)
-    time_constant          s      true detector τ
-    optical_psf            px     true Gaussian PSF σ (nominal: Eq. 19 from the optics)
-    netd                   K      temporal noise RMS
-    fpn                    K      fixed-pattern offset RMS
-    gain_nonuniformity     —      per-pixel gain RMS
-    quantisation_bits      bits   ADC resolution (16 or 14, …)
-    detector_nonlinearity  —      c: quadratic response y = m + d (1 + c d / 1000 counts) about the scene's
-                                  median level m (`detector.apply_sensor`; must stay monotonic)
-    gyro_noise             rad/s  white gyro noise RMS per sample
-    clock_drift            ppm    the gyro clock runs at 1 + ε against the camera's; the clocks agree
-                                  at the first frame (clock_epoch_s = its time − the time offset)
-    gyro_lowpass           Hz     cutoff of the gyro chip's DLPF (2nd-order Butterworth: group delay
-                                  √2/(2π f_c) plus attenuation 1/√(1 + (f/f_c)⁴))
-    gyro_saturation        rad/s  the gyro's full-scale range: raw samples clip at ±this
-    parallax               m,m/s  HEIGHT,SPEED: flat ground HEIGHT below the camera, which translates in a
-                                  seeded sway of SPEED RMS (`thermod.sim.parallax.NearGround`): a near
-                                  scene under translation, outside the rotation-only model (no
-                                  calibration field, no candidate: the workflow must call it unexplained)
-    ffc_event              s,s[,counts]  T_START,DURATION[,STEP_COUNTS]: a flat-field correction T_START
-                                  after the first frame: frames frozen for DURATION, then a new NUC
-                                  (offset step, default 20 counts, and a new FPN realisation);
-                                  `extras["truth/ffc_frozen"]` flags the frozen frames
-
-(`clock_drift_ppm` and `gyro_lowpass_hz` are accepted as older names of `clock_drift`, `gyro_lowpass`.)
+The rule it keeps: the file's attributes carry the NOMINAL calibration (what the user believes); the
+named `effects` change the TRUTH the world is rendered with — the vocabulary the discrepancy workflow
+has to explain: ``time_offset``, ``rolling_readout``, ``gyro_bias``, ``gyro_scale``, ``misalignment``,
+``time_constant``, ``optical_psf``, ``netd``, ``fpn``, ``gain_nonuniformity``, ``quantisation_bits``,
+``detector_nonlinearity``, ``gyro_noise``, ``clock_drift``, ``gyro_lowpass``, ``gyro_saturation``,
+``parallax`` and ``ffc_event`` (units, meanings and value syntax: docs/design.md §8, "The
+simulator's effects"; `clock_drift_ppm` and `gyro_lowpass_hz` are older names).
 
 The truth goes to `extra_attrs["truth"]` (true calibration attributes, effects, specs) and
-`extras["truth/..."]`: `frames` (float32 sharp view at each frame time, no PSF),
-`blurry_noiseless` (float32 detector output before the sensor noise), under rolling readout
-`frames_rolling` (float32: each row's sharp view at its own read time), `gyro_t_camera` and
-`gyro_omega_camera` (true sampling instants on the camera clock and the true camera rate there),
-`frame_R` (R(t_k), camera→world, world = the camera at the first frame).
+`extras["truth/..."]`: `frames` (the sharp view at each frame time, no PSF), `blurry_noiseless`,
+under rolling readout `frames_rolling` (each row's sharp view at its own read time),
+`gyro_t_camera` and `gyro_omega_camera` (true sampling instants on the camera clock and the true
+camera rate there) and `frame_R` (R(t_k), camera→world, world = the camera at the first frame).
 """
 
 from __future__ import annotations

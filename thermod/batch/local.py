@@ -2,8 +2,8 @@
 ``processes > 1`` in a pool of that many worker processes (one file each at a time).
 
 One process's `Deconvolver` serves every file it deblurs (its FFT plans are built once). A solve
-is single-threaded, so on N cores N processes deblur about N files at once: measured 1.6× the
-files per hour with 2 processes on 2 cores (`benchmarks/results/fleet.md`). Each process pays
+is single-threaded, so on N cores N processes deblur about N files at once (measured with 2
+processes on 2 cores: `benchmarks/results/fleet.md`). Each process pays
 numba's start-up once (about 1–2 s), which is why one file, or ``processes = 1``, stays in this
 process. The bytes written do not depend on which process wrote them (the same FFT plans: one
 wisdom file, `THERMOD_CACHE_DIR`).

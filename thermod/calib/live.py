@@ -1,34 +1,21 @@
-"""Live calibration estimates from the stream: gyro bias and time offset from frame-to-frame registration.
+"""Live calibration estimates from the stream: gyro bias, time offset and τ from frame-to-frame registration.
 
-Consecutive frames a, b (read at t_a < t_b, last row) are registered at low resolution in a few patches
-by phase correlation, with each frame's comet tail taken out of the cross-power phase (the exponential
-kernel of Eq. 10 for the content's image velocity v over the frame's thermal window has the phase of
-1/(1 − i2πf·vτ)), so the measured shift is that of the instants the patch rows were read:
-``t − readout_s·(H−1−y)/(H−1)`` for row y of a frame whose last row is read at t. Between two such
-instants s_a < s_b the camera turns by θ = ∫ ω_cam dt, with
+Consecutive frames are registered at low resolution in a few patches by phase correlation, with each
+frame's comet tail (the exponential kernel of Eq. 10) taken out of the cross-power phase, so the
+measured shift is that of the instants the patch rows were read. Between two such instants the
+camera turns by θ = ∫ ω_cam dt with ω_cam(t) = M (ω_gyro(g(t)) − b), g the gyro clock (time offset
+o, clock drift), and the content moves by the homography of Q = exp(−θ) (Eq. 16). A rolling window
+of pairs is fitted for (b, o): a coarse lag search, then Gauss–Newton with robust reweighting; σ
+from a delete-one-block jackknife.
 
-    ω_cam(t) = M (ω_gyro(g(t)) − b),   g(t) = camera_time_to_gyro(t) (time offset o, clock drift)
-
-so the content at pixel p of a appears at π(K Q K⁻¹ p) in b, Q = exp(−θ) (Eq. 16). The measured
-displacements over a rolling window of pairs are fitted for (b, o): the lag that best explains them on
-a coarse grid (±60 ms around the offset in force), then Gauss–Newton (the rotation of every patch
-re-integrated from the cumulative gyro integral at each step), with robust reweighting;
-σ comes from a delete-one-block jackknife over the window's pairs (neighbouring pairs share frames, so
-their errors are not independent).
-
-τ from the comet tails' shape: each frame is the scene through the exponential kernel of Eq. 10 along
-the image path the gyro gives, K(f; τ) = ∫ (1/τ) e^{−s/τ} e^{i2πf·D(s)} ds, so the cross-power phase of
-a pair is −2πf·d + arg K_b − arg K_a. The linear part of the tail phase (its centroid lag vτ) is
-degenerate with the shift d, hence with the time offset; its curvature is not, and it differs between
-the frames only where the tails differ. For each patch pair whose tails (at the τ in force) differ by
-at least `TAU_MIN_LEVER_PX` working px, the whitened cross-power is compared with the model of every τ
-on a log scan of 0.5–2× the τ in force (the two tails' transfer ratio, spread over neighbouring
-frequencies as the window spreads it) and the coherence maximised over d (`Registrar.tau_coherence`);
-τ is the scan's maximum of the coherence summed over the τ window (`TAU_WINDOW_S`), σ from a
-block jackknife over `TAU_BLOCKS` blocks. Phase noise that does not depend on τ (sensor noise, content
-entering the patch) lowers the coherence at every τ alike and moves no maximum. Too few such patch
-pairs (slow or steady motion), a maximum at the scan's edge or σ above a quarter of τ: `tau_s` is None
-and ``notes`` says why. The offset is estimated at the τ in force.
+τ from the comet tails' shape: the linear part of a tail's phase (its centroid lag vτ) is
+degenerate with the shift, hence with the offset; its curvature is not. On patch pairs whose tails
+differ by at least `TAU_MIN_LEVER_PX`, the whitened cross-power is compared with the model of each τ
+on a log scan of 0.5–2× the τ in force and the coherence maximised over the shift
+(`Registrar.tau_coherence`); τ maximises the coherence summed over `TAU_WINDOW_S`, σ from a
+jackknife over `TAU_BLOCKS` blocks. Too few such pairs, a maximum at the scan's edge or σ above a
+quarter of τ: `tau_s` is None and ``notes`` says why. The offset is estimated at the τ in force.
+The derivation: docs/design.md §6, "The live calibration monitor".
 """
 
 from __future__ import annotations

@@ -1,40 +1,21 @@
 """`thermod deblur IN.h5 -o OUT.h5` / `thermod deblur A.h5 B.h5 … -o DIR/`: offline deblurring.
 
-For every frame the gyro samples of its m·τ history give the blur kernel (Eq. 18, thermal, or
-Eq. 17, photon baseline) through `thermod.restore.plan.render` — the same dispatch as the
-daemon — and `thermod.physics.deconv` removes it: by default spatially varying (a grid of kernels,
-deconvolved in blended tiles — camera roll makes the blur vary across the frame), or one kernel
-per frame with `--uniform` (the paper's method). Each frame is solved jointly with its predecessors
-(`DeblurConfig.temporal_views` frames in all, gyro-warped into its geometry, each with its own kernel:
-`thermod.physics.deconv.temporal`); `--single-frame` solves each frame alone. Every other default is
-`DeblurConfig()`'s.
+Each frame's kernel comes from its gyro history through `thermod.restore.plan.render`, the daemon's
+dispatch, and `thermod.physics.deconv` removes it: spatially varying by default (`--uniform`: one
+kernel), solved jointly with its predecessors (`DeblurConfig.temporal_views`; `--single-frame`:
+alone). Every other default is `DeblurConfig()`'s.
 
-The output holds the input's /camera and /gyro (and any other datasets, e.g. /truth) plus
-/deblurred/frames (float32, the input's counts) and /deblurred/t. A frame whose gyro window is
-incomplete (coverage < `--min-coverage`) or whose kernel cannot be rendered is passed through
-unchanged (as float32) and reported, never dropped; /deblurred/deblurred (bool [N]) says which
-frames were deblurred, /deblurred/lambda (float64 [N]) the data weight each one used and
-/deblurred/views (int8 [N]) how many frames each solve used; /deblurred's `solver` attribute says
-"temporal" or "single-frame".
-With `--celsius`, /deblurred/celsius (float32 [N, H, W], °C; attrs units = "degC" and the model's
-keys) converts each frame of /deblurred/frames — the deblurred counts, or a passed-through frame's
-raw counts, as the daemon does — with a radiometric model (`thermod.physics.radiometry`):
-`--radiometry FILE`'s [radiometry] table, else `--config`'s, else the recording's own /radiometry
-attributes (same keys as the table). A recording with no model fails before any output is written.
+The rules it keeps: no frame is dropped (a frame with an incomplete gyro window or no kernel is
+passed through as float32 and reported); an output is written into ``OUT.h5.part`` and renamed
+only when complete, never left half-written; frames are processed one at a time. ``--celsius``
+takes its model from ``--radiometry``, else ``--config``, else the recording, and fails before any
+output without one. ``--video`` writes a playable 8-bit H.264 (``--side-by-side``).
 
-`--video OUT.mp4` (one input) also writes the result as a video a person can play: 8-bit H.264 with
-the input's AGC (`write_playable`); `--side-by-side` puts the input left of the deblurred frame.
-
-Frames are read, deblurred and written one at a time (memory does not grow with the recording),
-into ``OUT.h5.part``, renamed to ``OUT.h5`` only when complete: an existing output is never left
-half-written. In a batch, a file that fails (input or output side) is reported and the others go
-on; the command then lists the failures and exits 2.
-
-Several files run in local worker processes, one per usable core (`--jobs N`; `thermod.batch.local`;
-one file, or `--jobs 1`, runs in this process), or with `--scheduler
-tcp://HOST:8786` one task per file on a Dask distributed cluster (`thermod.batch.cluster`: the
-workers read and write the same paths, on a shared filesystem, which is checked first). Both run
-the same per-file job (`thermod.batch.job`) and write the same bytes; this module is the command line.
+In a batch, a file that fails is reported and the others go on; the command then lists the
+failures and exits 2. Several files run in local worker processes (`--jobs N`; `thermod.batch.local`)
+or one task per file on a Dask cluster (`--scheduler tcp://HOST:8786`; `thermod.batch.cluster`), both
+through the same per-file job (`thermod.batch.job`) and writing the same bytes; this module is the
+command line. Output datasets and engines: docs/design.md §3 and §7.
 """
 
 from __future__ import annotations

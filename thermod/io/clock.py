@@ -1,4 +1,4 @@
-"""Device-clock → host-clock mapping (DESIGN §2: "counter × period + offset, fitted on the earliest
+"""Device-clock → host-clock mapping (docs/design.md §2: "counter × period + offset, fitted on the earliest
 arrivals, drift-tracked").
 
 A device (gyro FIFO, serial IMU, GigE camera) numbers its samples with a counter that runs on its own

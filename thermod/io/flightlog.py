@@ -1,53 +1,21 @@
 """Gyro from flight-controller logs, through the flight stacks' own well-kept parsers.
 
 `read_flight_log(path)` returns a `FlightLog`: the gyro samples of one log, on the log's own clock,
-as angular rates in one stated body frame. The parsers:
+as angular rates in one stated body frame. Parsers: telemetry-parser (Gyroflow's: Betaflight/INAV
+blackbox ``.bbl``/``.bfl`` and its CSV export, ArduPilot ``.bin``, Gyroflow ``.gcsv``, and the other
+formats it detects) and pyulog (PX4 ``.ulg``: ``sensor_combined``, else ``vehicle_angular_velocity``).
 
-- **telemetry-parser** (Gyroflow's, PyPI ``telemetry-parser``): Betaflight/INAV blackbox
-  (``.bbl``/``.bfl`` binary, and the CSV that Blackbox Explorer exports), ArduPilot DataFlash
-  (``.bin``), Gyroflow ``.gcsv``, and the other formats it detects (camera metadata, phone
-  loggers), which are read in Gyroflow's axes (`frame="gyroflow"`). The gyro comes from
-  ``Parser.normalized_imu()`` (gyro only, in Gyroflow's axes, times from the file's first sample);
-  the raw samples (``Parser.telemetry()``) of the file's first bytes give that first time and the
-  axis mapping, which are undone. Files up to `MAX_TP_FILE_BYTES` (the parser holds every sample
-  as Python objects, ~1.4 kB each).
-- **pyulog**: PX4 ``.ulg`` (topic ``sensor_combined``, else ``vehicle_angular_velocity``).
+The rules it keeps: `t` is float64 s on the log's own clock, never shifted (the offset to the video
+is the sync's to find); `rate` is float64 [N, 3] rad/s in the frame `frame` names — ``"FRD"`` (the
+flight controller's body frame; Betaflight's FLU rates become (roll, −pitch, −yaw)), ``"imu"`` (a
+gcsv logger's own axes, its `orientation` string kept unapplied) or ``"gyroflow"`` (other formats).
+A file with several logs gives the longest (`log_index` picks another); ArduPilot's interleaved
+IMU instances give the first. A camera mount is a proper rotation ``camera_from_body`` (ω_camera =
+camera_from_body · ω_body; `FORWARD_CAMERA_FROM_FRD` for a forward, upright camera).
 
-**Time** `t`: float64 seconds on the log's own clock (the flight controller's time since boot:
-Betaflight's ``time``, ArduPilot's ``TimeUS``/``SampleUS``, PX4's ``timestamp``; a gcsv's
-``t`` × ``tscale``). Nothing shifts it: the offset to the video is the sync's to find.
-
-**Rates** `rate`: float64 [N, 3] rad/s. `frame` names the axes:
-
-- ``"FRD"`` — the flight controller's body frame, aerospace convention: x forward, y right,
-  z down, right-handed; a positive rate turns by the right-hand rule (roll right, pitch nose up,
-  yaw nose right are positive). ArduPilot (``GyrX/Y/Z``) and PX4 (``gyro_rad``) log FRD as is.
-  Betaflight logs ``gyroADC`` roll, pitch, yaw in °/s about x forward, y left, z up (positive
-  roll right, pitch nose down, yaw nose left — the FLU frame, also right-handed), so its rates
-  become FRD as (roll, −pitch, −yaw). The same relation follows from the orientation strings
-  telemetry-parser gives the two families ("ZYx" for Betaflight, "zyx" for ArduPilot, both
-  mapped onto Gyroflow's one frame).
-- ``"imu"`` — a gcsv logger's own IMU axes, as logged; `orientation` carries the file's
-  orientation string (Gyroflow's IMU-to-camera axis mapping, e.g. ``"XYZ"``, a lower-case letter
-  negates; telemetry-parser assumes ``"xzY"`` when there is none) without applying it.
-- ``"gyroflow"`` — the other telemetry-parser formats, in Gyroflow's normalized axes.
-
-**Logs in one file**: the clock is split where it steps back or pauses for more than
-`SEGMENT_GAP_S` (a ``.bbl``'s logs, one per arming; a reboot); the longest part is returned
-unless `log_index` picks another. A lone sample out of order with both neighbours is dropped and
-counted, as are isolated out-of-order samples (≤ 0.1 % in all). ArduPilot's IMU instances,
-interleaved under one message name, give the first instance.
-
-A camera mount is a proper rotation ``camera_from_body`` (3×3): ω_camera = camera_from_body ·
-ω_body, with the camera frame of docs/design.md §2 (OpenCV: x right, y down, z forward). For
-a camera looking forward along the FRD x axis, upright, it is `FORWARD_CAMERA_FROM_FRD`. In a
-recording it is the calibration's ``R_cam_gyro`` when the log's body frame is the gyro frame.
-
-`write_gcsv` and `write_betaflight_csv` write the two text formats telemetry-parser reads back.
-
-Errors are `FlightLogError` naming the file: unsupported formats, logs without gyro samples, a
-sample rate of 0 or times that do not increase, truncated or corrupt files. File size and
-sample counts are bounded (`MAX_FILE_BYTES`, `MAX_SAMPLES`).
+`write_gcsv`, `write_betaflight_csv` and `write_ardupilot_bin` write formats telemetry-parser reads
+back. Errors are `FlightLogError` naming the file; sizes and sample counts are bounded. Clocks,
+axes and orientation strings: docs/design.md §3, "Flights from other tools".
 """
 
 from __future__ import annotations

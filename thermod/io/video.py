@@ -1,35 +1,20 @@
 """Thermal video in and out: grey frames with per-frame times, through FFmpeg (PyAV) or OpenCV.
 
-Reading (`iter_video`, `read_video`, `probe_video`):
+Reading (`iter_video`, `read_video`, `probe_video`): a video file FFmpeg decodes, grey formats as
+coded (uint8 or uint16, not rescaled), YUV as its luma plane as a player shows it (limited range
+mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a 16-bit TIFF sequence (a folder or
+a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
 
-- **A video file**: anything FFmpeg decodes (MP4, MKV, AVI, NUT, …; H.264, H.265, MJPEG, FFV1,
-  rawvideo, …), decoded by PyAV. Grey formats come out as they are coded: ``gray`` → uint8,
-  ``gray10le``/``gray12le``/``gray16le``/``gray16be`` → uint16 (10/12-bit values as coded, not
-  rescaled). A YUV format gives its **luma plane** as a player shows it (limited-range codes, the
-  default unless the stream says full, mapped to full range: `limited_to_full`,
-  `VideoInfo.full_range`; `VideoInfo.luma_only` is True): a thermal camera's colour video is a
-  palette applied to the grey level, and luma is the closest monotonic stand-in for it. Other colour
-  formats (RGB, palettes) are converted to grey by FFmpeg's swscale (also `luma_only`).
-- **A 16-bit TIFF sequence**: a folder (its ``*.tif``/``*.tiff`` files) or a glob pattern, in
-  natural order of the file names (``f2`` before ``f10``), each one's header checked with tifffile
-  and its pixels read with OpenCV (IMREAD_UNCHANGED).
-  A sequence has no timestamps: ``fps`` must be given, and frame k is at ``t0 + k / fps``.
+The rules it keeps: a frame's time is float64 s on the container's own clock (its presentation
+timestamp; variable frame rate kept), never mapped to the flight log's (the sync's job); times
+increase strictly, and a repeated or decreasing timestamp is a `VideoError`, never re-ordered. A
+side over `MAX_SIDE`, more than `MAX_FRAMES` frames or a stack over `max_bytes` is refused before it
+is allocated; `iter_video` streams one frame at a time.
 
-**Time**: float64 seconds on the container's own clock, a frame's presentation timestamp
-(pts × time base) — variable frame rate is kept as it is. Nothing maps this clock to the
-flight log's; that is the sync's job. Times must increase strictly; a repeated or decreasing
-timestamp is a `VideoError`, never re-ordered.
-
-**Bounds**: a side over `MAX_SIDE` px, more than `MAX_FRAMES` frames, or a loaded stack over
-`max_bytes` is refused before it is allocated; `iter_video` streams one frame at a time for
-longer inputs.
-
-Writing (`VideoWriter`, `write_video`): 8-bit grey frames to H.264 (libx264, yuv420p, playable
-everywhere) with the given per-frame times as timestamps (time base 1/90000 s), so a variable
-frame rate survives. `PercentileAGC` is the automatic gain control a thermal camera applies to
-make its 8-bit video: a percentile stretch whose gain and offset follow the scene smoothly.
-
-Errors are `VideoError` naming the file and what was expected.
+Writing (`VideoWriter`, `write_video`): 8-bit grey frames to H.264 (libx264, yuv420p) with the given
+times as timestamps (time base 1/90000 s). `PercentileAGC` is a thermal camera's automatic gain
+control: a percentile stretch whose gain and offset follow the scene smoothly. Errors are
+`VideoError` naming the file. Details: docs/design.md §3, "Flights from other tools".
 """
 
 from __future__ import annotations

@@ -181,8 +181,7 @@ def usable_cpus() -> int:
     """The cores this process's solves may use: its CPU affinity, capped by its cgroup's CPU quota
     rounded down (1.2 cores of quota: one, at least one). The daemon's own threads need a share of
     the quota too, and two solves on a quota short of two cores are stalled together by its
-    throttling (measured at 1.2 cores: p99 124 ms with two workers, 20 ms with one,
-    benchmarks/results/payload.md)."""
+    throttling (measured at 1.2 cores: benchmarks/results/payload.md)."""
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:   # pragma: no cover - non-Linux

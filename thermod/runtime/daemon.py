@@ -2,28 +2,22 @@
 per device (``source.poll(timeout)`` in a loop → ring buffer), the pipeline (scheduler + deconvolution
 workers), the publisher, and a 1 Hz health report; handles signals, sd_notify and device faults.
 
-Threads and what they own:
+Threads: ``thermod-gyro`` / ``thermod-camera``, the only ones with real-time priority (SCHED_FIFO when
+``realtime_priority`` > 0 and permitted), which never block on anything but their device; the
+pipeline's (`thermod.runtime.pipeline`) and the publisher's (`thermod.runtime.publish`);
+``thermod-monitor`` (`thermod.runtime.monitor`), whose proposals are applied here with
+`Pipeline.update`; and the main thread: signals, health, watchdog, SIGHUP reload.
 
-- ``thermod-gyro`` / ``thermod-camera``: the only threads with real-time priority (SCHED_FIFO, when
-  ``realtime_priority`` > 0 and permitted). They never block on anything but their device.
-- pipeline threads (`thermod.runtime.pipeline`), the publisher's socket thread (`thermod.runtime.publish`).
-- ``thermod-monitor`` (``[monitor]``, nice 19, at most ``cpu_share`` of a core): the live calibration
-  monitor (`thermod.runtime.monitor`); a change it proposes is applied here with `Pipeline.update`.
-- the main thread: signals, health, watchdog, SIGHUP reload.
+Faults: a gyro I/O error is retried with back-off while frames pass through flagged ``gyro_offline``;
+a camera error or stall (no frame for ``max(1 s, 10 frame periods)``) restarts the camera source
+with back-off. Every state change is logged once and visible in the health message.
+Signals: SIGTERM/SIGINT → clean shutdown (< 2 s), exit 0. SIGHUP → re-read the configuration and
+apply its calibration, deblur and radiometry settings to the running pipeline (no frame dropped);
+source/publish changes need a restart and are reported as such; a reload that fails keeps the
+running configuration and says why (log, ``health["reload"]``). Data flow: docs/design.md §6.
 
-Faults: a gyro I/O error (NACK, unplug) is retried with exponential back-off; meanwhile the
-pipeline is told the gyro is offline and frames pass through flagged ``gyro_offline``. A camera
-error or stall (no frame for ``max(1 s, 10 frame periods)``) restarts the camera source with
-back-off. Every state change is logged once and visible in the health message.
-
-Signals: SIGTERM/SIGINT → clean shutdown (< 2 s), exit 0. SIGHUP → re-read the configuration file
-and apply its calibration, deblur and radiometry settings to the running pipeline (no frame dropped);
-source/publish changes need a restart and are reported as such. A reload that fails for any reason
-keeps the running configuration and says why (log, ``health["reload"]``).
-
-Parts: `thermod.runtime.sources` (driver registry: kind → option schema and constructor),
-`thermod.runtime.driver_thread` (one thread per device), `thermod.runtime.health` (the health
-message), this module (the supervisor); `thermod.cli.run` is the command.
+Parts: `thermod.runtime.sources` (driver registry), `thermod.runtime.driver_thread` (one thread per
+device), `thermod.runtime.health` (the health message), this module; `thermod.cli.run` is the command.
 """
 
 from __future__ import annotations

@@ -7,20 +7,16 @@ grid, down to the frame's floor, that the predicted cost allows within the laten
 ``min(workers / fps, max_solve_s) × (1 − headroom)``, or on the floor within ``keep_s = workers /
 fps × (1 − headroom)``, the longest solve the workers keep up with.
 
-Cost: predicted = reference × L + O. Each (solver family, kernel cells) key has a reference cost
-(`seed`: timed at warm-up on an idle worker; unseeded keys are interpolated in cells); L, one load
-factor for the machine, is the sliding median of the key in use over its reference (`observe`,
-each worker's first solve of a stretch left out); O is the median round trip around a child's solve
-(`overhead_s`), added because it does not scale with the work.
-
-Hysteresis: rungs are judged on the finest grid needed over the last `NEEDED_S`; the governor steps
-down at once when the current rung fits neither limit (or a job was dropped while its cost was above
-the climb threshold), and up only to a rung within ``(1 − margin)`` of the budget, ``hold_s`` after
-its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
+Cost: predicted = reference × L + O, with a reference per (solver family, kernel cells) timed at
+warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
+over its reference) and O the median round trip around a child's solve (`overhead_s`).
+Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
+within ``(1 − margin)`` of the budget, ``hold_s`` after its last change; a climb undone within two
+holds doubles the hold (up to ``max_hold_s``).
 
 It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
 and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
-and the measurements behind them: docs/design.md, "The governor".
+in full: docs/design.md §6, "The governor"; the measurements: benchmarks/results/daemon.md.
 """
 
 from __future__ import annotations
@@ -268,7 +264,7 @@ class Governor:
                             ) -> tuple[int, int] | None:
         """The last full-resolution rung, when nothing fits the budget: the finest grid, down to one
         kernel, predicted within `keep_s`. Full resolution over the latency budget restores more than
-        half resolution within it (one kernel at 1280×1024: Wiener 33.5 dB, `wiener_half` 29.3),
+        half resolution within it (one kernel at 1280×1024: benchmarks/results/payload.md),
         and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
         unless given (a climb back asks for a margin below it)."""
         limit = self.keep_s if limit is None else limit

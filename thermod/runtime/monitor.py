@@ -1,32 +1,22 @@
-"""The live calibration monitor (``[monitor]``): a low-priority thread that estimates the gyro bias and
-time offset from the stream (`thermod.calib.live`) and, with ``apply = true``, applies a change.
+"""The live calibration monitor (``[monitor]``): a low-priority thread that estimates the gyro bias,
+time offset and τ from the stream (`thermod.calib.live`) and, with ``apply = true``, applies a change.
 
 It reads the rings the driver threads write (never the pipeline's queue): each pair of consecutive
 frames, once the gyro covers it, is registered against the gyro (in order, skipping ahead when it
 falls behind); every second the rolling window is fitted. Frames flagged ffc, or after a camera
 gap, and gyro windows with a gap are skipped.
 
-CPU: the thread runs at the lowest scheduling priority (nice 19) and after each piece of work of
-CPU time c it sleeps c·(1/cpu_share − 1), so its share of one core stays at most ``cpu_share``;
-pairs arriving meanwhile are not registered (the window thins out, the estimate stays unbiased).
-While the pipeline is short of CPU (three frames passed through for overload within 10 s:
-`short_of_cpu`) the monitor does no work at all (``yielded_s`` in its state): frames come first.
-τ is measured on the pairs whose comet tails differ, only while the motion's window holds at least
-twice the pairs a fit needs and τ has used at most `TAU_CPU_SHARE` of the thread's CPU time, so it
-never starves the registration that bias and offset need (a frame's tails serve both its pairs).
-Among the affordable pairs, τ's are drawn at random (`TAU_PICK`): a fixed cadence aliases with a
-periodic motion (a sway, a vibration, the simulator's loop) and keeps measuring the same few phases
-of it, whose τ errs together while their jackknife blocks agree.
-
-Applying (``apply = true``): a window whose bias and offset are confounded (`Estimate.ambiguous`) is
-never applied; otherwise a proposal is an estimate more than ``k_sigma`` σ from the calibration in
-force (the bias on any axis, or the offset; τ on its own) in ``stable_windows`` consecutive fits that
-agree with each other within k σ; the motion part is applied only if it lowers the window's
-registration residual (the prediction of the frame-to-frame motion), τ only if it lowers the window's
-tail-phase misfit (1 − the mean coherence of the comet tails), each against the calibration in force.
-A τ change re-centres the τ scan: the window's τ measurements start afresh. Each change is logged and counted;
-the daemon applies it through `Pipeline.update` (`take_proposal`). A SIGHUP reload puts the
-configuration's (or a replayed recording's) calibration back in force; the monitor goes on from there.
+The rules it keeps: frames come first. The thread runs at nice 19 and after each piece of work of
+CPU time c sleeps c·(1/cpu_share − 1), so it uses at most ``cpu_share`` of one core; while the
+pipeline is short of CPU (`short_of_cpu`) it does no work at all (``yielded_s``). τ uses at most
+`TAU_CPU_SHARE` of the thread's CPU, on pairs drawn at random (`TAU_PICK`: a fixed cadence aliases
+with a periodic motion). A window whose bias and offset are confounded (`Estimate.ambiguous`) is
+never applied; otherwise a change must lie ``k_sigma`` σ from the calibration in force in
+``stable_windows`` consecutive, mutually agreeing fits and lower its own residual on the window
+(the registration residual for bias and offset, the tail-phase misfit for τ). Each change is logged,
+counted and applied by the daemon through `Pipeline.update` (`take_proposal`); a τ change re-centres
+the τ scan. A SIGHUP reload puts the configuration's (or a replayed recording's) calibration back in
+force and the monitor goes on from there. In full: docs/design.md §6, "The live calibration monitor".
 """
 
 from __future__ import annotations

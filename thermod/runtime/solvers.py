@@ -1,21 +1,17 @@
 """A deconvolution worker's solvers: in the worker's own thread, or in a child process of its own.
 
-Why a child process. A solve is mostly GIL-free (FFTW, numba, OpenCV), but between those calls it
-takes the GIL back dozens of times. The daemon's other threads (scheduler, gyro driver, monitor,
-publisher, camera) run Python for a good share of the time, and a thread that wants the GIL back
-waits until the holder's switch interval runs out. In one process a temporal solve then takes about
-twice its CPU time in wall time, and the governor has to give up the temporal rung
-(`benchmarks/bench_gil.py`, benchmarks/results/daemon.md). In a child process the solve has a GIL
-of its own.
+Why a child process: a solve is mostly GIL-free (FFTW, numba, OpenCV) but takes the GIL back dozens
+of times between those calls, and beside the daemon's other threads each return waits for the
+holder's switch interval; in a child the solve has a GIL of its own (docs/design.md §6, "Workers";
+the measurement: `benchmarks/bench_gil.py`, benchmarks/results/daemon.md).
 
-Data path (process mode). The pipeline owns one `SharedFrames` block (a memfd, mapped by the
-parent and by every child): one input frame per worker and a pool of output slots, each an image
-and the spectrum of a temporal `Estimate` (`Estimate.info`). A job sends only its kernel and gyro
-window through the pipe (a 6×8 kernel grid pickles to a few tens of kB). The child writes its
-result into the slot the parent gave it. A slot that holds an estimate stays reserved while the
-pipeline keeps it as a prior, or while a job on another worker is using it (`SharedFrames.retain`
-/ `release`). A temporal solve asks the parent for its prior once its own solve x₀ is done (the
-``prior`` round trip): the parent waits there for frame k − 1, exactly as a thread would.
+Data path (process mode): the pipeline owns one `SharedFrames` block (a memfd mapped by the parent
+and every child): one input frame per worker and a pool of output slots, each an image and the
+spectrum of a temporal `Estimate`. A job sends only its kernel and gyro window through the pipe; the
+child writes its result into the slot the parent gave it. A slot that holds an estimate stays
+reserved while the pipeline keeps it as a prior or a job on another worker uses it
+(`SharedFrames.retain` / `release`). A temporal solve asks the parent for its prior once its own
+x₀ is done (the ``prior`` round trip): the parent waits there for frame k − 1, as a thread would.
 
 `solve_job` and `warm_solvers` are the one implementation of a job and of the warm-up. `InThread`
 runs them in the worker's thread and `InChild` in the child (`_child_main`). The pipeline sees

@@ -279,9 +279,8 @@ def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -
     """Backward elimination after the refits: an effect whose parameters the later ones made redundant
     (put back to nominal and the others refitted locally, the SSR rises by less than a candidate must
     remove, or not decisively) is dropped from the model and the steps: a pure time offset named
-    before the DLPF whose group delay it stood for, say (on the default flight it ended at −0.77 ms,
-    the low-pass at 21.15 Hz for 20: without the refit the offset looked needed). The least needed
-    goes first, one at a time."""
+    before the DLPF whose group delay it stood for, say (the default flight's case:
+    benchmarks/results/discrepancy.md). The least needed goes first, one at a time."""
     problem = ctx.problem
     while len(ana.steps) > 1:
         ssr = problem.evaluate(model).ssr

@@ -1,12 +1,11 @@
 """FFT plans for the deconvolver: pyFFTW float32 r2c/c2r pairs (FFTW_MEASURE, wisdom kept on disk)
 or scipy.fft, one `Plan` per padded shape with the solver's scratch buffers.
 
-Measured (benchmarks/bench_deconv.py, 640×480 with a 65 px kernel, one core) the whole K&F solve
-takes 13 ms with FFTW and 17 ms with scipy.fft — FFTW's float32 r2c/c2r pair is ~25 % faster —
-with identical results, so FFTW is the default. Padded sizes come from a coarse ladder
-(16 × 5-smooth), so plans are reused across frames whose kernels differ by a few pixels; the
-first frame of a new size pays FFTW's planning (~1.5 s at 640×480) once per machine: the wisdom
-is kept in `wisdom_path()`.
+FFTW's float32 r2c/c2r pair makes the whole K&F solve faster than scipy.fft with identical
+results (benchmarks/results/deconv.md, "FFT back end"), so FFTW is the default. Padded sizes come
+from a coarse ladder (16 × 5-smooth), so plans are reused across frames whose kernels differ by a
+few pixels; the first frame of a new size pays FFTW's planning (~1.5 s at 640×480) once per
+machine: the wisdom is kept in `wisdom_path()`.
 """
 
 from __future__ import annotations

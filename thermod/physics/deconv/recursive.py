@@ -1,54 +1,21 @@
 """Recursive temporal deconvolution: the previous restored frame, warped by the gyro into frame t's
 geometry, is the prior of frame t's solve (a Kalman filter per spatial frequency).
 
-Model. Frame t is ``y = k ⊛ x + n``; the previous estimate, warped (`temporal.warp_maps`, rolling
-readout included), is ``p ≈ x`` with a precision per spatial frequency Π = (A + β R)·T²: A(f) the
-data information it carries (in units of |K|²: one frame seen through a kernel of gain 1), R =
-|F∇|²/λ the Tikhonov prior of the single-frame Wiener solve (λ its noise-adaptive rule; β =
-`PRIOR_REG`: an estimate is already regularised, so it counts its image prior too) and T(f) the
-mean gain of the warp's interpolation (`interpolation_gain`: what a resampled image keeps of its
-content at f — without it, repeated warps of the recursion blur it). The posterior mean is
+Frame t is solved alone by Wiener (x₀) and corrected by the prior's difference, per frequency:
 
     X = X₀ + w (P − X₀),   w = Π / (|K|² + (1 − β) R + Π)
 
-with X₀ = K̄ Y / (|K|² + R) the single-frame Wiener solution: the recursive solve is a correction
-of frame t's own solve x₀ by the prior's difference, filtered by w. For T = 1 and β = 1 it is
-``(K̄ Y + (A + R) P) / (|K|² + A + R)``, the Kalman update that over a static scene equals the
-joint Wiener solve of all frames seen (the image prior counted once). The frequencies a kernel
-nulls (|K|² → 0) come from the prior, the rest are averaged by information. For a kernel grid x₀ is
-solved over the grid and w uses the central cell's kernel (the correction blends two estimates of
-the same image, so a cell whose kernel differs only weighs them less than ideally).
+with R = |F∇|²/λ the single-frame solve's Tikhonov prior, β = `PRIOR_REG` and Π = (A + β R)·T² the
+prior's precision: A its data information (forgotten by γ = `MEMORY` per frame and limited by a
+registration error of `REGISTRATION_PX`), T the warp's interpolation gain (`interpolation_gain`).
+The frequencies a kernel nulls come from the prior, the rest are averaged by information.
 
-Information. After frame t's solve the data information is I = |K|² + A·T². Carried n frames on,
-it loses to registration error and is forgotten geometrically::
-
-    A = γⁿ / (1/I + n q),   q = (δ · rms|∇p| / σ̂)²
-
-q is the error of a misregistration by δ = `REGISTRATION_PX` (an image of gradient g misplaced by δ
-errs by δ·g: for a natural 1/f² spectrum a white error) in units of frame t's noise σ̂²; γ =
-`MEMORY` bounds the memory to about 1/(1 − γ) frames (drift, a scene that changes slowly).
-
-Robustness. Where the prior disagrees with frame t — a moving hot object, parallax, new scene at
-a border, an FFC step, a registration error above the noise — it must not enter. The test compares
-x₀ with what the single-frame solve would give if p were the truth, ``F⁻¹[H P]`` with
-H = |K|² / (|K|² + R) (Wiener is linear): their difference is x₀'s own noise where p is right,
-free of the regularisation's bias at edges. Its local mean square (`WINDOW_PX` box) is compared
-with the larger of its predicted variance (σ̂² mean |K|²/(|K|² + R)², Parseval) and the frame's
-median: weight m = 1 below `DISAGREE` lo times that, 0 above hi, times the warped support (an FFC
-offset is removed first: the median of x₀ − p). The prior is filled where m < 1
-(``p' = m p + (1 − m) x₀``, so there the solve returns x₀ exactly)::
-
-    x = x₀ + F⁻¹[w · F(m · (p − x₀))]
-
-With `half_test` the test runs on 2×2 means (a mean commutes with the convolutions; its FFT pair has
-a quarter of the points): the predicted variance gets the mean's power response
-cos²(πf_y)·cos²(πf_x), the box is `TEST_WINDOW_PX` means, the reference is widened by
-`HALF_TEST_SLACK` and m is up-sampled bilinearly. The warp's maps are solved on a coarse grid
-(`temporal.coarse_warp_maps`) and up-sampled with the support in one pass.
-
-Cost per frame, beyond the single-frame solve: one warp (cv2.remap) of the previous estimate, the
-test's FFT pair (on a quarter of the points with `half_test`), the correction's pair, a few box
-filters and one frame-sized OTF more under a grid (`last_fft_pairs` counts them).
+The rule it keeps: where the warped prior disagrees with x₀ beyond x₀'s own predicted noise (a
+moving hot object, parallax, new scene at a border, an FFC step, a registration error) or the gyro
+does not reach it, it is replaced by x₀ (``p' = m p + (1 − m) x₀``), so there the solve returns x₀
+exactly; an FFC offset (the median of x₀ − p) is removed first. `half_test` runs that test on 2×2
+means. The derivation, the information update and the cost per frame (`last_fft_pairs`):
+docs/design.md §1.5, "Temporal deconvolution, the recursive solve".
 """
 
 from __future__ import annotations

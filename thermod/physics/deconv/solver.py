@@ -40,12 +40,11 @@ from .xstep import (
     xstep_stack,
 )
 
-DEFAULT_ALPHA = 1.0   # TV: on real thermal scenes 0.1–0.7 dB above 2/3 at the best λ of each (bench_quality)
-TILE_OVERLAP = 0.25   # kernel-grid blend ramp: 6×8 at 0.25 costs 1.7× uniform, +1.2 dB over 3×4 at 1
+DEFAULT_ALPHA = 1.0   # TV: above 2/3 on real thermal scenes at the best λ of each (docs/design.md §1.5)
+TILE_OVERLAP = 0.25   # kernel-grid blend ramp: 6×8 at 0.25 beats 3×4 at 1 (benchmarks/results/deconv.md)
 # Tiles per stacked FFT call: as many as fit this many FFT points (4 tiles of 128×128 at 640×480 on a
-# 6×8 grid; bigger tiles alone). Stacks of 2–8 such tiles measured alike (1.85× uniform), all 48 at
-# once 2.08×, and 3×4 tiles of 384×384 (overlap 1) in stacks 5 % slower than one at a time: a
-# stack's buffers must stay near the cache.
+# 6×8 grid; bigger tiles alone): a stack's buffers must stay near the cache (stacks of 2–8 such
+# tiles measured alike, all 48 at once slower: benchmarks/results/deconv.md).
 TILE_STACK_POINTS = 4 * 128 * 128
 SPLIT_OVERLAP = 0.1   # blend ramp of `split` tiles (one kernel: the blend only hides the seams)
 
@@ -65,13 +64,12 @@ class Deconvolver:
     margin : extra padding (px) beyond the kernel size on each axis before rounding to a fast length.
     iterations : K&F β steps (None: all six): the same continuation from β = 1 towards β_max in n
         coarser steps (n = 3: β = 1, 8, 64). A knob to degrade by under a short time budget: each
-        step is one FFT pair and one w-step. 3 steps cost 0.03–0.25 dB on 17–65 px comets
-        (tests/test_deconv.py); dropping the first steps instead cost 1.7–2.1 dB (Wiener: 5–7 dB).
+        step is one FFT pair and one w-step. 3 steps cost a fraction of a dB; dropping the first
+        steps instead costs far more (benchmarks/results/deconv.md, tests/test_deconv.py).
     split : (rows, cols) or None. Solve every uniform-blur frame in rows × cols tiles (blend ramp
         `SPLIT_OVERLAP` of the spacing, `TILE_MARGIN_PX` margins) instead of one frame-sized FFT:
-        the faster mode for large sensors, whose frame-sized FFT buffers fall out of cache. At
-        1280×1024, (2, 2) took 0.70× the CPU time of the whole-frame solve for ≤ 0.04 dB
-        (benchmarks/results/deconv.md, loaded machine).
+        the faster mode for large sensors, whose frame-sized FFT buffers fall out of cache
+        (measured at 1280×1024: benchmarks/results/deconv.md).
     realtime : never stop to measure an FFTW plan (~0.7 s) for an FFT size the saved wisdom lacks:
         estimate it instead (planned in ~1 ms, runs somewhat slower; counted in `estimated_plans`).
         For the daemon's workers, which warm up the common sizes before going live.

@@ -1,42 +1,21 @@
 """Temporal deconvolution: frame t restored from frames t−N…t, each warped into t's geometry by the
-gyro rotation (rolling readout included) and each with its own blur kernel.
+gyro rotation (rolling readout included, Eq. 16) and each with its own blur kernel.
 
-Model. Frame j is its sharp view blurred by its own kernel, ``y_j = k_j ⊛ S_j + n_j``, and for a
-distant scene pixel q of frame t sees what pixel π(H q) of frame j sees, H = K R(s_j)ᵀ R(s_t) K⁻¹
-(Eq. 16; s the read time of each pixel's row, so under rolling readout H changes row by row).
-Warped into t's pixels (`warp_maps`, `warp`), ``w_j(q) = y_j(π(H q)) ≈ (k_j ⊛ S_t)(q) + n_j``: the
-views share one unknown and differ in kernel and noise (the warp's local rotation of k_j, a roll of
-a few tenths of a degree between neighbours, is neglected). K&F over all of them (K&F Eq. 1 with
-one data term per view) keeps the closed-form x-step, with sums over the views::
+The warped views share one unknown and differ in kernel and noise, so K&F over all of them (one data
+term per view) keeps the closed-form x-step with sums over the views:
 
     X = (Σ_j K̄_j D_j + (β/λ') F(∇ᵀw)) / (Σ_j |K_j|² + (β/λ')(|F∂x|² + |F∂y|²))
 
-so the frequencies one comet kernel nulls are kept by another's, and the noise of the views
-averages. λ' = `LAM_SCALE` · λ(σ̂ of frame t), the single-frame rule's.
+The frequencies one comet kernel nulls are kept by another's, and the views' noise averages;
+λ' = `LAM_SCALE` · λ(σ̂ of frame t).
 
-Robustness. Frame t is first solved alone (x₀, today's single-frame solve). Each neighbour's data is
-compared with what x₀ predicts for it, k_j ⊛ x₀: the local mean square misfit (`WINDOW_PX` box)
-against frame t's own misfit to x₀ plus twice its noise σ̂² (x₀ absorbed part of frame t's noise; a
-neighbour brings its own). A weight 1 below `DATA_DISAGREE` (lo) times that reference, 0 above (hi),
-times the warped support. A moving hot object, parallax, registration or interpolation error above
-the noise, a new scene at the borders: all show as misfit or missing support, so the neighbour's
-weight falls there. An FFC step is an offset: the median misfit is removed first. A view whose
-weight in a tile falls below `MIN_VIEW_WEIGHT` of its support is dropped in that tile (it is limited
-by registration or the model, not by noise); a frame the gyro does not reach is left out.
-
-Weights enter the Fourier solve by filling (EM-style): view j's data becomes
-``d_j = m_j w_j + (1 − m_j)(k_j ⊛ x₀)`` (the prediction in the solve's own padded domain), so where
-m_j = 0 it repeats what frame t's solve says. The joint solution is blended with x₀ by the local
-mean weight, so where no neighbour agreed the output is x₀ itself, not x₀ under a weaker prior.
-
-A kernel grid (roll) is solved jointly in the grid's cells, laid out and blended as
-`Deconvolver.run_varying` does but with a wider margin (`JOINT_MARGIN_PX`: the views' long comets
-wrap at tile edges), each view with its own grid's kernel at the cell centre's position in that view.
-
-Cost per frame (one frame-sized FFT pair = a forward and an inverse real FFT of the padded frame):
-the single-frame solve, then ½ (x₀'s spectrum) + 1½ per view (its prediction, its data, its OTF)
-+ the K&F steps; tiles count by their share of points (`last_fft_pairs`). Besides the FFTs, a
-neighbour costs one remap of the frame and a few box filters.
+The rule it keeps: a neighbour enters only where it agrees with frame t's own solve x₀. Its misfit
+to k_j ⊛ x₀ (`WINDOW_PX` box, FFC offset removed) against frame t's misfit plus twice its noise
+gives a weight (`DATA_DISAGREE`), times the warped support; weights enter by filling with the
+prediction, and the result is blended with x₀ by the mean weight, so where no neighbour agreed the
+output is x₀ itself. A view below `MIN_VIEW_WEIGHT` in a tile, or one the gyro does not reach, is
+left out. Kernel grids are solved in cells with `JOINT_MARGIN_PX`. The derivation and the cost per
+frame (`last_fft_pairs`): docs/design.md §1.5, "Temporal deconvolution, the joint solve".
 """
 
 from __future__ import annotations
