@@ -3,6 +3,7 @@ video, the discrepancy workflow and `Calibration` all read it."""
 
 import dataclasses
 import re
+from pathlib import Path
 
 import pytest
 
@@ -23,8 +24,10 @@ def test_every_candidate_and_field_is_in_the_vocabulary():
 
 
 def test_the_simulator_takes_every_effect_and_documents_it():
-    documented = set(re.findall(r"^    ([a-z_]+) {2,}", synth.__doc__, flags=re.M))
-    assert documented == set(EFFECTS)
+    assert set(re.findall(r"``([a-z_]+)``", synth.__doc__)) == set(EFFECTS)
+    design = (Path(__file__).resolve().parents[1] / "docs" / "design.md").read_text()
+    table = design.split("### The simulator's effects", 1)[1].split("\n#", 1)[0]
+    assert set(re.findall(r"^    ([a-z_]+) {2,}", table, flags=re.M)) == set(EFFECTS)
     for alias, name in ALIASES.items():
         assert canonical(alias) == name
     with pytest.raises(ThermodError, match="unknown effect; known: time_offset"):
