@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from thermod import cli
-from thermod.cli.record import RecordWriter, record
+from thermod.cli.record import record
 from thermod.cli.watch import Agc, PreviewWriter, WatchStats, side_by_side, to_u8, watch
 from thermod.client.subscriber import Subscriber
 from thermod.errors import RecordingError
 from thermod.io import recording
+from thermod.io.stream_recording import RecordWriter
 from thermod.physics.calibration import Calibration
 from thermod.runtime.publish import Publisher
 
