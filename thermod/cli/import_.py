@@ -1,5 +1,6 @@
 """`thermod import IN -o OUT.h5`: a ROS recording (MCAP, rosbag2 directory, ROS 1 .bag) → format v1;
-with ``--gyro LOG``, IN is a thermal video synced to a flight-controller log (`thermod.cli.import_flight`).
+with ``--gyro LOG``, IN is a thermal video synced to a flight-controller log (`thermod.cli.import_flight`);
+a video without ``--gyro`` gets a gyro estimated from its pictures (`thermod.cli.import_video`).
 
 Frames come from one sensor_msgs/Image topic (raw counts: mono16/16UC1, or 8-bit widened to
 uint16), gyro samples from one sensor_msgs/Imu topic (``angular_velocity``, taken as raw gyro-frame
@@ -136,6 +137,10 @@ def run(args) -> int:
         raise ThermodError("thermod import: expected INPUT and -o OUTPUT")
     if args.gyro is not None:
         return import_flight.run(args)
+    from thermod.cli import import_video
+
+    if not import_video.is_bag(args.input):     # a video with no gyro: the motion from the pictures
+        return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
                    if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \
         + (["--start"] if args.start else [])

@@ -1,0 +1,1 @@
+"""Footage from other tools → format-v1 recordings."""
