@@ -139,7 +139,7 @@ def run(args) -> int:
         return import_flight.run(args)
     from thermod.cli import import_video
 
-    if not import_video.is_bag(args.input):     # a video with no gyro: the motion from the pictures
+    if import_video.is_video(args.input):     # a video with no gyro: the motion from the pictures
         return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
                    if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \

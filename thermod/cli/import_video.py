@@ -12,13 +12,20 @@ from pathlib import Path
 
 from thermod.errors import ThermodError
 
-BAG_SUFFIXES = (".mcap", ".bag", ".db3")
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".m4v", ".ts", ".mts", ".webm", ".mpg", ".mpeg", ".h264",
+                  ".264", ".hevc", ".h265", ".tif", ".tiff")
 
 
-def is_bag(path: str) -> bool:
-    """A ROS recording (MCAP, ROS 1 bag, rosbag2 directory) rather than a video or a TIFF sequence."""
+def is_video(path: str) -> bool:
+    """A video file or a TIFF sequence (a glob, or a folder of TIFFs) rather than a ROS recording."""
+    from thermod.io.video import TIFF_SUFFIXES
+
     p = Path(path)
-    return p.suffix.lower() in BAG_SUFFIXES or (p.is_dir() and (p / "metadata.yaml").exists())
+    if any(ch in str(path) for ch in "*?["):
+        return True
+    if p.is_dir():
+        return any(q.suffix.lower() in TIFF_SUFFIXES for q in p.iterdir())
+    return p.suffix.lower() in VIDEO_SUFFIXES
 
 
 def run(args) -> int:

@@ -46,8 +46,9 @@ MIN_MEASURED_FRACTION = 0.5  # ... and a rotation measured between this share of
 DUPLICATE_RATIO = 0.02       # median |Δ| of a duplicate over the video's median |Δ| (codec noise only)
 DUPLICATE_ABS = 0.004        # ... and at most this on the normalised (1–99 % spread 1) scale
 MIN_REGISTERED_NCC = 0.5     # frames registered by the fitted rotation must correlate this well
-OVERLAY_STILL_RATIO = 0.15   # an overlay pixel changes < this × its gradient per frame ...
-OVERLAY_MOVING_RATIO = 0.5   # ... while the frame's median textured pixel changes ≥ this × its gradient
+OVERLAY_STILL_SHARE = 0.2    # an overlay pixel's change over gradient is < this × the textured median ...
+OVERLAY_MOVING_RATIO = 0.1   # ... which must show motion (≥ this: ~0.1 working px per frame; a still
+                             # camera leaves only the codec's noise, real clip 0.27, logo 0.00–0.03)
 OVERLAY_MAX_FRACTION = 0.25  # a "static" share above this is a still camera, not an overlay
 OVERLAY_DILATE_PX = 2        # working pixels added around an overlay (its anti-aliased edge)
 DEFAULT_RATE_HZ = 1000.0
@@ -181,7 +182,7 @@ def static_overlay(work: list[np.ndarray], still: np.ndarray | None = None) -> n
     For each pixel, G = mean |∇z| and D = mean |z_{k+1} − z_k| over consecutive frames (duplicates,
     `still`, left out). A textured pixel (G above the frame's 75th percentile) moving with the scene
     has D/G of the order of its motion in pixels; a printed one has D/G near zero. The overlay is the
-    textured pixels with D/G < `OVERLAY_STILL_RATIO` when the median textured pixel moves
+    textured pixels with D/G < `OVERLAY_STILL_SHARE` × the median textured pixel's, when that one moves
     (D/G ≥ `OVERLAY_MOVING_RATIO`), dilated; none when it would cover more than
     `OVERLAY_MAX_FRACTION` of the frame (a still camera)."""
     import cv2
@@ -206,10 +207,13 @@ def static_overlay(work: list[np.ndarray], still: np.ndarray | None = None) -> n
     G /= m
     D /= m
     textured = G > np.percentile(G, 75)
-    ratio = D / np.maximum(G, 1e-6)
-    if not float(np.median(ratio[textured])) >= OVERLAY_MOVING_RATIO:
+    if textured.sum() < 16:          # a flat picture: nothing printed on it can be told apart
         return None
-    mask = (textured & (ratio < OVERLAY_STILL_RATIO)).astype(np.uint8)
+    ratio = D / np.maximum(G, 1e-6)
+    moving = float(np.median(ratio[textured]))
+    if not moving >= OVERLAY_MOVING_RATIO:
+        return None
+    mask = (textured & (ratio < OVERLAY_STILL_SHARE * moving)).astype(np.uint8)
     # lone pixels are noise; an overlay is a cluster of printed strokes
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))
     if mask.sum() < 4:
