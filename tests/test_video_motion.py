@@ -85,6 +85,31 @@ def test_estimated_rate_matches_the_truth(clip):
     np.testing.assert_allclose(np.diff(at, axis=0), track.rotvec[k[:-1]], atol=2e-4)
 
 
+def written_interval_rate(gt, gr, t: np.ndarray, lag_s: float) -> np.ndarray:
+    """A written gyro's mean rate over each interval of `t` − lag (rad/s)."""
+    G = cumulative_rotation(gt, gr.astype(np.float64))
+    Gf = np.stack([np.interp(t - lag_s, gt, G[:, a]) for a in range(3)], axis=1)
+    return np.diff(Gf, axis=0) / np.diff(t)[:, None]
+
+
+def test_a_rolling_readout_places_each_band_at_its_own_time(tmp_path):
+    readout = 0.025
+    sim = simulate_flight(tmp_path, seconds=2.0, log_seconds=5.0, width=WIDTH, height=HEIGHT, fps=FPS,
+                          tau_s=TAU, formats=("gcsv",), seed=4, mount=0, video_start_s=1.0,
+                          body_rms_deg_s=(30.0, 25.0, 12.0), effects={"rolling_readout": readout})
+    vf = video.read_video(sim.video_path)
+    c = sim.recording.calibration
+    track = estimate_track(vf.frames, vf.t, c.intrinsics, tau_s=TAU, readout_s=readout)
+    assert track.lag_s == pytest.approx(TAU + 0.5 * readout) and len(track.bands["t0"]) > 2 * len(vf.t)
+    gt, gr, _ = track.gyro(1000.0, lead_s=0.06, tail_s=0.03)
+    t = vf.t[2:-2]          # away from the held ends
+    err = rel_error(written_interval_rate(gt, gr, t, track.lag_s), true_interval_rate(sim, t, track.lag_s))
+    assert err < RATE_TOL, err
+    # measured 0.035; one rotation per frame at one mean lag (the whole frame's corners): 0.13
+    one_lag = rel_error(track.rate_at_frames(), true_interval_rate(sim, vf.t, track.lag_s))
+    assert one_lag > 2 * err, (one_lag, err)
+
+
 def test_a_static_logo_does_not_pull_the_estimate_to_zero(clip):
     sim, vf, cam = clip
     frames = with_logo(vf.frames)
@@ -174,6 +199,9 @@ def test_import_without_gyro_says_the_motion_came_from_the_video(clip, tmp_path)
     with h5py.File(deb) as f:
         assert f["deblurred"].attrs["motion_source"] == "video"
         assert f["deblurred/deblurred"][()].mean() > 0.9
+    r = thermod("export", out, "--gcsv", tmp_path / "motion.gcsv")
+    assert r.returncode == 0 and "motion estimated from the video" in r.stdout, r.stderr
+    assert "motion_source,video" in (tmp_path / "motion.gcsv").read_text()
 
 
 def test_a_video_too_short_or_without_texture_is_refused(clip, tmp_path):

@@ -52,6 +52,7 @@ OVERLAY_MOVING_RATIO = 0.1   # ... which must show motion (≥ this: ~0.1 workin
 OVERLAY_MAX_FRACTION = 0.25  # a "static" share above this is a still camera, not an overlay
 OVERLAY_DILATE_PX = 2        # working pixels added around an overlay (its anti-aliased edge)
 DEFAULT_RATE_HZ = 1000.0
+BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
 WORK_WIDTH = 160             # the picture motion's working width
@@ -83,6 +84,9 @@ class RotationTrack:
     overlay: np.ndarray | None
     work_scale: float
     ncc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # rolling readout: the band rotations (thermod.calib.sync.BANDS) between frames a < b, each placed
+    # at its own lag (τ + the band's mean lead × readout); empty without a readout
+    bands: dict = field(default_factory=dict)
 
     @property
     def known(self) -> np.ndarray:
@@ -132,16 +136,54 @@ class RotationTrack:
         from scipy.interpolate import CubicSpline
 
         knots = self.frame_t[k:j + 1] - self.lag_s
-        theta = np.r_[np.zeros((1, 3)), np.cumsum(self.rotvec[k:j], axis=0)]
-        # ≥ 4 knots: not-a-knot (a cubic through four points is exact); fewer: the natural spline
-        spline = CubicSpline(knots, theta, bc_type="not-a-knot" if len(knots) >= 4 else "natural")
-        rate = spline.derivative()
+        rate, dom = None, (knots[0], knots[-1])
+        if self.bands:
+            rate, dom = self._banded_rate(self.frame_t[k], self.frame_t[j])
+        if rate is None:
+            theta = np.r_[np.zeros((1, 3)), np.cumsum(self.rotvec[k:j], axis=0)]
+            # ≥ 4 knots: not-a-knot (a cubic through four points is exact); fewer: the natural spline
+            spline = CubicSpline(knots, theta, bc_type="not-a-knot" if len(knots) >= 4 else "natural")
+            rate = spline.derivative()
         lo, hi = knots[0] - lead_s, knots[-1] + tail_s
         t = lo + h * np.arange(int(math.floor((hi - lo) / h)) + 1)
-        w = rate(np.clip(t, knots[0], knots[-1]))            # held beyond the ends
+        w = rate(np.clip(t, *dom))            # held beyond the ends
         idx = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, j - k - 1)
         sig = self.sigma_rad[k:j][idx] / np.diff(knots)[idx]
         return t, w, sig
+
+    def _banded_rate(self, ta: float, tb: float):
+        """The rate of a stretch from its band rotations, each at its own time (rolling readout):
+        θ(t) a cubic B-spline with a knot per frame period, fitted by weighted least squares to
+        θ(t_b − λ) − θ(t_a − λ) = φ for every band observation inside [ta, tb], with a small penalty
+        on the coefficients' second differences (`BAND_SMOOTHING`, the gauge and any knot without
+        data). Returns (derivative, its domain) or (None, None) with fewer observations than knots."""
+        import scipy.sparse as sp
+        from scipy.interpolate import BSpline
+        from scipy.sparse.linalg import spsolve
+
+        b = self.bands
+        sel = (b["t0"] >= ta - 1e-9) & (b["t1"] <= tb + 1e-9)
+        if not sel.any():
+            return None, None
+        a0, a1 = b["t0"][sel] - b["lag"][sel], b["t1"][sel] - b["lag"][sel]
+        phi, w = b["phi"][sel], 1.0 / b["sigma"][sel] ** 2
+        lo, hi = float(a0.min()), float(a1.max())
+        period = float(np.median(np.diff(self.frame_t)))
+        n_inner = max(2, int(math.ceil((hi - lo) / period)) + 1)
+        inner = np.linspace(lo, hi, n_inner)
+        knots = np.r_[[lo] * 3, inner, [hi] * 3]
+        n_coef = len(knots) - 4
+        if sel.sum() < n_coef:
+            return None, None
+        A = BSpline.design_matrix(np.clip(a1, lo, hi), knots, 3) - BSpline.design_matrix(np.clip(a0, lo, hi),
+                                                                                          knots, 3)
+        A = sp.csr_matrix(A)
+        W = sp.diags(w)
+        D = sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n_coef - 2, n_coef))
+        mu = BAND_SMOOTHING * float(np.median(w))
+        N = (A.T @ W @ A + mu * (D.T @ D) + 1e-9 * mu * sp.eye(n_coef)).tocsc()
+        c = np.column_stack([spsolve(N, A.T @ (w * phi[:, i])) for i in range(3)])
+        return BSpline(knots, c, 3).derivative(), (lo, hi)
 
     def to_dict(self) -> dict:
         known = self.known
@@ -337,4 +379,31 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     for k in range(int(kept[-1]), n - 1):
         status[k] = "duplicate"
     lag = tau_s + 0.5 * readout_s
-    return RotationTrack(t.copy(), rotvec, sigma, status.astype(str), lag, overlay, scale, ncc_all)
+    bands = _band_observations(pm, t[kept], status_kept == "ok", tau_s, readout_s) if readout_s > 0 else {}
+    return RotationTrack(t.copy(), rotvec, sigma, status.astype(str), lag, overlay, scale, ncc_all, bands)
+
+
+def _band_observations(pm, t_kept: np.ndarray, ok: np.ndarray, tau_s: float, readout_s: float) -> dict:
+    """The band rotations of the intervals measured (`ok`) as observations at their own lags, τ + the
+    band's mean lead × readout (the whole frame's at τ + ½ readout where no band has enough corners)."""
+    t0, t1, lag, phi, sig = [], [], [], [], []
+    for i in np.flatnonzero(ok):
+        got = False
+        for b in range(pm.band_rotvec.shape[1]):
+            if np.all(np.isfinite(pm.band_rotvec[i, b])):
+                t0.append(t_kept[i])
+                t1.append(t_kept[i + 1])
+                lag.append(tau_s + pm.band_lead[i, b] * readout_s)
+                phi.append(pm.band_rotvec[i, b])
+                sig.append(math.sqrt(np.trace(np.linalg.inv(pm.band_info[i, b])) / 3.0))
+                got = True
+        if not got:
+            t0.append(t_kept[i])
+            t1.append(t_kept[i + 1])
+            lag.append(tau_s + 0.5 * readout_s)
+            phi.append(pm.rotvec[i])
+            sig.append(math.sqrt(np.trace(np.linalg.inv(pm.info[i])) / 3.0))
+    if not t0:
+        return {}
+    return {"t0": np.array(t0), "t1": np.array(t1), "lag": np.array(lag), "phi": np.array(phi),
+            "sigma": np.array(sig)}
