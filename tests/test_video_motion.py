@@ -246,3 +246,19 @@ def test_the_real_drone_clip_finds_its_logo_and_its_repeated_frames(shared_data,
     # views differ by ~2 codes (the median)
     assert diff[dup - 1].max() < 0.6 and np.median(diff) > 1.5, (diff[dup - 1], np.median(diff))
     assert track.known.all()
+
+
+def test_a_fit_off_its_neighbours_is_left_out_and_a_fast_smooth_turn_is_not():
+    from thermod.motion.track import _outliers
+
+    t = np.arange(46) / FPS
+    mid = 0.5 * (t[1:] + t[:-1])
+    # the real flight's hardest stretch: ±200 °/s at 1.5 Hz, sampled per frame interval
+    rate = np.zeros((45, 3))
+    rate[:, 0] = math.radians(200.0) * np.sin(2 * np.pi * 1.5 * mid)
+    rate[:, 2] = math.radians(5.0) * np.cos(2 * np.pi * 0.7 * mid)
+    ok = np.ones(45, bool)
+    assert not _outliers(rate / FPS, t, ok).any()
+    bad = rate.copy()
+    bad[20, 2] += math.radians(60.0)          # a roll the pictures' fit made up (seen at 200 °/s)
+    assert np.flatnonzero(_outliers(bad / FPS, t, ok)).tolist() == [20]

@@ -52,6 +52,8 @@ OVERLAY_MOVING_RATIO = 0.1   # ... which must show motion (≥ this: ~0.1 workin
 OVERLAY_MAX_FRACTION = 0.25  # a "static" share above this is a still camera, not an overlay
 OVERLAY_DILATE_PX = 2        # working pixels added around an overlay (its anti-aliased edge)
 DEFAULT_RATE_HZ = 1000.0
+OUTLIER_K = 8.0              # an interval's rate misses its neighbours' prediction by > this × the median
+OUTLIER_MIN_RAD_S = math.radians(OUTLIER_MIN_DEG_S := 45.0)   # ... and by more than this
 BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
@@ -311,6 +313,31 @@ def registered_ncc(a: np.ndarray, b: np.ndarray, rotvec: np.ndarray, work: Intri
     return float(np.sum(x * y) / den) if den > 0 else math.nan
 
 
+def _outliers(rotvec: np.ndarray, t: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """[K] bool: intervals whose mean rate is far from what their neighbours predict.
+
+    Each measured interval's rate is predicted by a quadratic in time through the measured rates of the
+    two intervals either side (at least three of them); it is an outlier when it misses by more than
+    `OUTLIER_K` × the median miss of the video and by more than `OUTLIER_MIN_RAD_S` (a body's rate is
+    smooth on the scale of a frame; a fit locked onto a wrong match is not)."""
+    mid = 0.5 * (t[1:] + t[:-1])
+    rate = rotvec / np.diff(t)[:, None]
+    n = len(rate)
+    miss = np.full(n, np.nan)
+    for i in np.flatnonzero(ok):
+        nb = [j for j in (i - 2, i - 1, i + 1, i + 2) if 0 <= j < n and ok[j]]
+        if len(nb) < 3:
+            continue
+        x = mid[nb] - mid[i]
+        V = np.vander(x, 3)
+        coef, *_ = np.linalg.lstsq(V, rate[nb], rcond=None)
+        miss[i] = float(np.linalg.norm(rate[i] - coef[-1]))
+    if not np.isfinite(miss).any():
+        return np.zeros(n, bool)
+    limit = max(OUTLIER_K * float(np.nanmedian(miss)), OUTLIER_MIN_RAD_S)
+    return np.nan_to_num(miss, nan=0.0) > limit
+
+
 # ----------------------------------------------------------------------------------------------- main
 def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, readout_s: float = 0.0,
                    work_width: int = WORK_WIDTH, name: str = "video", progress=None) -> RotationTrack:
@@ -342,19 +369,21 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     pm = picture_motion(_Inpainted(frames, mask_full, kept), t[kept], intrinsics, work_width=work_width,
                         smooth_px=SMOOTH_PX, progress=progress)
     noise = pm.noise_rad()
-    wk = pm.work
+    rv = pm.rotvec.copy()
     # the picture motion's working frames may differ in size from ours by rounding: compare at ours
     wk_ours = intrinsics.scaled(work[0].shape[1] / intrinsics.width) if scale < 1 else intrinsics
+    tk = t[kept]
     ncc = np.full(len(kept) - 1, np.nan)
     status_kept = np.full(len(kept) - 1, "ok", dtype=object)
     for i in range(len(kept) - 1):
         if not pm.valid[i]:
             status_kept[i] = "untracked"
             continue
-        ncc[i] = registered_ncc(work[kept[i]], work[kept[i + 1]], pm.rotvec[i], wk_ours, overlay)
+        ncc[i] = registered_ncc(work[kept[i]], work[kept[i + 1]], rv[i], wk_ours, overlay)
         if not ncc[i] >= MIN_REGISTERED_NCC:
             status_kept[i] = "cut"
-    del wk
+    status_kept[_outliers(rv, tk, status_kept == "ok")] = "untracked"
+    retried = np.zeros(len(kept) - 1, bool)
     measured = status_kept == "ok"
     if measured.sum() < max(MIN_FRAMES - 1, MIN_MEASURED_FRACTION * len(measured)):
         raise TrackError(f"{name}: the camera rotation could be measured between only {int(measured.sum())} "
@@ -371,7 +400,7 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
         for k in range(a, b):
             share = (t[k + 1] - t[k]) / span
             if status_kept[i] == "ok":
-                rotvec[k] = pm.rotvec[i] * share
+                rotvec[k] = rv[i] * share
                 sigma[k] = noise[i] * share
             status[k] = status_kept[i] if status_kept[i] != "ok" else ("duplicate" if dup[k + 1] else "ok")
             ncc_all[k] = ncc[i]
@@ -379,17 +408,20 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     for k in range(int(kept[-1]), n - 1):
         status[k] = "duplicate"
     lag = tau_s + 0.5 * readout_s
-    bands = _band_observations(pm, t[kept], status_kept == "ok", tau_s, readout_s) if readout_s > 0 else {}
+    bands = _band_observations(pm, rv, noise, t[kept], status_kept == "ok", retried, tau_s,
+                               readout_s) if readout_s > 0 else {}
     return RotationTrack(t.copy(), rotvec, sigma, status.astype(str), lag, overlay, scale, ncc_all, bands)
 
 
-def _band_observations(pm, t_kept: np.ndarray, ok: np.ndarray, tau_s: float, readout_s: float) -> dict:
+def _band_observations(pm, rv, noise, t_kept: np.ndarray, ok: np.ndarray, retried: np.ndarray, tau_s: float,
+                       readout_s: float) -> dict:
     """The band rotations of the intervals measured (`ok`) as observations at their own lags, τ + the
-    band's mean lead × readout (the whole frame's at τ + ½ readout where no band has enough corners)."""
+    band's mean lead × readout (the whole frame's, `rv`, at τ + ½ readout where no band has enough
+    corners or the interval was `retried` smaller)."""
     t0, t1, lag, phi, sig = [], [], [], [], []
     for i in np.flatnonzero(ok):
         got = False
-        for b in range(pm.band_rotvec.shape[1]):
+        for b in range(pm.band_rotvec.shape[1]) if not retried[i] else ():
             if np.all(np.isfinite(pm.band_rotvec[i, b])):
                 t0.append(t_kept[i])
                 t1.append(t_kept[i + 1])
@@ -401,8 +433,8 @@ def _band_observations(pm, t_kept: np.ndarray, ok: np.ndarray, tau_s: float, rea
             t0.append(t_kept[i])
             t1.append(t_kept[i + 1])
             lag.append(tau_s + 0.5 * readout_s)
-            phi.append(pm.rotvec[i])
-            sig.append(math.sqrt(np.trace(np.linalg.inv(pm.info[i])) / 3.0))
+            phi.append(rv[i])
+            sig.append(noise[i])
     if not t0:
         return {}
     return {"t0": np.array(t0), "t1": np.array(t1), "lag": np.array(lag), "phi": np.array(phi),
