@@ -108,6 +108,13 @@ def test_a_rolling_readout_places_each_band_at_its_own_time(tmp_path):
     # measured 0.035; one rotation per frame at one mean lag (the whole frame's corners): 0.13
     one_lag = rel_error(track.rate_at_frames(), true_interval_rate(sim, vf.t, track.lag_s))
     assert one_lag > 2 * err, (one_lag, err)
+    # a cut two frames in leaves a stretch too short for the banded fit: its frame rotations serve
+    frames = vf.frames.copy()
+    frames[2:] = np.roll(frames[2:, ::-1, ::-1], WIDTH // 2, axis=2)
+    cut = estimate_track(frames, vf.t, c.intrinsics, tau_s=TAU, readout_s=readout)
+    assert cut.flagged()["cut"] + cut.flagged()["untracked"] == [2]
+    gt, gr, _ = cut.gyro(1000.0, lead_s=0.06, tail_s=0.03)
+    assert np.all(np.isfinite(gr)) and not ((gt > vf.t[1] + 0.03) & (gt < vf.t[2] - cut.lag_s - 0.005)).any()
 
 
 def test_a_static_logo_does_not_pull_the_estimate_to_zero(clip):

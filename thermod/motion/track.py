@@ -13,13 +13,17 @@ drops moving objects and parallax as outliers) after four things a video brings 
 2. **Duplicated frames** (`duplicates`): a frame identical to its predecessor up to the codec
    (median |Δ| of the normalised frames below `DUPLICATE_RATIO` × the video's median) shows no new
    view; it is left out of the track (the rotation is measured across it), never read as a stop.
-3. **Scene cuts and frames with too little texture**: an interval whose rotation cannot be fitted,
-   or whose registered frames do not agree (normalised correlation after warping below
-   `MIN_REGISTERED_NCC`), is unknown; the track has a hole there (no samples), so `thermod deblur`
-   passes the frames whose kernel window reaches into it through (`thermod.restore.policy.has_hole`).
+3. **Scene cuts, frames with too little texture, wrong fits**: an interval whose rotation cannot be
+   fitted, whose registered frames do not agree (normalised correlation after warping below
+   `MIN_REGISTERED_NCC`: a cut), or whose rate is far from what its neighbours predict (`_outliers`:
+   a fit locked onto a wrong match, seen beyond ~150 °/s) is unknown; the track has a hole there (no
+   samples), so `thermod deblur` passes the frames whose kernel window reaches into it through
+   (`thermod.restore.policy.has_hole`).
 4. **The blur's lag**: a frame read at t_k is the exponential average of the views before it
-   (Eq. 11), whose centroid lies τ earlier; with a rolling readout the tracked rows are read on average
-   ½·readout earlier still. Registered positions are placed at t_k − `lag_s` (τ + ½ readout).
+   (Eq. 11), whose centroid lies τ earlier: registered positions are placed at t_k − τ. With a rolling
+   readout each of the picture motion's horizontal bands is placed at its own time, τ + its corners'
+   mean lead × readout earlier, and the cumulative rotation is fitted to all bands by least squares
+   (`RotationTrack._banded_rate`); `lag_s` (τ + ½ readout) is the frame's mean.
 
 Between frames the rotation is known only as Q_k = R(t_k)ᵀ R(t_{k+1}) (docs/design.md §2); the
 cumulative rotation vector θ_j = Σ_{k<j} φ_k (φ = log Q, camera frame) is interpolated by a cubic
@@ -48,12 +52,12 @@ DUPLICATE_ABS = 0.004        # ... and at most this on the normalised (1–99 % 
 MIN_REGISTERED_NCC = 0.5     # frames registered by the fitted rotation must correlate this well
 OVERLAY_STILL_SHARE = 0.2    # an overlay pixel's change over gradient is < this × the textured median ...
 OVERLAY_MOVING_RATIO = 0.1   # ... which must show motion (≥ this: ~0.1 working px per frame; a still
-                             # camera leaves only the codec's noise, real clip 0.27, logo 0.00–0.03)
+                             # camera leaves only the codec's noise)
 OVERLAY_MAX_FRACTION = 0.25  # a "static" share above this is a still camera, not an overlay
 OVERLAY_DILATE_PX = 2        # working pixels added around an overlay (its anti-aliased edge)
 DEFAULT_RATE_HZ = 1000.0
 OUTLIER_K = 8.0              # an interval's rate misses its neighbours' prediction by > this × the median
-OUTLIER_MIN_RAD_S = math.radians(OUTLIER_MIN_DEG_S := 45.0)   # ... and by more than this
+OUTLIER_MIN_RAD_S = math.radians(45.0)   # ... and by more than this
 BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
@@ -145,7 +149,7 @@ class RotationTrack:
             theta = np.r_[np.zeros((1, 3)), np.cumsum(self.rotvec[k:j], axis=0)]
             # ≥ 4 knots: not-a-knot (a cubic through four points is exact); fewer: the natural spline
             spline = CubicSpline(knots, theta, bc_type="not-a-knot" if len(knots) >= 4 else "natural")
-            rate = spline.derivative()
+            rate, dom = spline.derivative(), (knots[0], knots[-1])
         lo, hi = knots[0] - lead_s, knots[-1] + tail_s
         t = lo + h * np.arange(int(math.floor((hi - lo) / h)) + 1)
         w = rate(np.clip(t, *dom))            # held beyond the ends
