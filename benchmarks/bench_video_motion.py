@@ -215,17 +215,25 @@ def main() -> None:
         return
     ys = yardstick_line()
     gap = max(r["true"] - r["video"] for r in rows)
-    gain = min(r["video"] - r["blurry"] for r in rows)
+    least = min(rows, key=lambda r: r["video"] - r["blurry"])
+    gain, ceiling = least["video"] - least["blurry"], least["true"] - least["blurry"]
     text = [f"<!-- summary: no gyro, motion from the video, {len(rows)} clips {size[0]}×{size[1]} from the "
-            f"real Betaflight flight: worst gap to the true gyro, least gain over blurry | {gap:.2f} dB, "
-            f"{gain:+.2f} dB | ≤ 1.5 dB, ≥ +6 dB -->",
+            f"real Betaflight flight: worst gap to the true gyro, least gain over blurry (the true gyro's "
+            f"there) | {gap:.2f} dB, {gain:+.2f} dB ({ceiling:+.2f} dB) | ≤ 1.5 dB, ≥ +6 dB -->",
             "# Motion from the video: deblurring without a gyro", "",
             f"`python benchmarks/bench_video_motion.py` ({wall:.0f} s on this machine; {ys}). "
             f"{seconds:g} s clips, 640×512, 30 fps, τ 10 ms, "
             "per-frame AGC, 8-bit H.264; the clips, variants and scoring are in the script's docstring.", "",
             table, "",
             f"Targets (issue 32): within 1.5 dB of the true gyro (worst gap here {gap:.2f} dB) and ≥ +6 dB "
-            f"over the blurry video (least gain here {gain:+.2f} dB).", ""]
+            f"over the blurry video (least gain here {gain:+.2f} dB, on {least['clip']}, where the true gyro "
+            f"itself gains {ceiling:+.2f} dB).", "",
+            "Reading the table: the flagged intervals are the fastest ones (beyond the tracker's reach, or a "
+            "fit its neighbours contradict); their frames pass through, which the median PSNR hardly sees. "
+            "A static logo costs every variant alike: deblurring a printed overlay with the scene's kernel "
+            "rings around it. The truth shift says how far the assumed lag (τ, + ½ readout) is from the "
+            "best one; the rolling-readout clip's rate error comes mostly from the banded fit's ends next to "
+            "the flagged intervals (held beyond them).", ""]
     OUT.write_text("\n".join(text))
     print(f"wrote {OUT}")
 
