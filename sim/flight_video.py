@@ -87,13 +87,15 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
                     mount: int | np.ndarray | None = None, video_start_s: float | None = None,
                     log_start_s: float = 37.25, formats: tuple = ("gcsv", "betaflight-csv"),
                     crf: int = 18, seed: int = 0, agc: video.PercentileAGC | None = None,
-                    effects: dict | None = None, gyro_bias_rad_s=(0.0, 0.0, 0.0)) -> SimulatedFlight:
+                    effects: dict | None = None, gyro_bias_rad_s=(0.0, 0.0, 0.0),
+                    body: mo.Motion | None = None) -> SimulatedFlight:
     """Simulate and write a flight (module docstring). `mount` is an index into the 24 axis-aligned
     rotations or a 3×3 rotation (default: drawn from `seed`); `video_start_s` the video's start in
     the log (default: drawn from `seed`, ≥ 1 s from either end); `formats` any of `LOG_FORMATS`.
     `effects` are `thermod.sim.synth` effects of the camera side (rolling_readout, time_constant,
     netd, …; the log is written here, so gyro-side effects are refused); `gyro_bias_rad_s` (FRD,
-    rad/s) is added to every logged sample."""
+    rad/s) is added to every logged sample. `body` replaces the procedural body motion (e.g. a real
+    log's, `thermod.sim.motion.gyro_log`; its time 0 is the first frame)."""
     from thermod.sim.synth import simulate
 
     out = Path(out_dir)
@@ -122,7 +124,7 @@ def simulate_flight(out_dir: str | os.PathLike, *, seconds: float = 3.0, log_sec
         raise ThermodError(f"simulate_flight: video_start_s {video_start_s}: the video must lie inside the "
                            f"{log_seconds} s log")
 
-    body = mo.flight(tuple(body_rms_deg_s), seed=seed)
+    body = body if body is not None else mo.flight(tuple(body_rms_deg_s), seed=seed)
     f = 1.0 / math.radians(hfov_deg / width)
     calib = Calibration().replace(width=int(width), height=int(height), fx=f, fy=f, cx=(width - 1) / 2,
                                   cy=(height - 1) / 2, frame_rate_hz=float(fps), tau_s=float(tau_s),

@@ -289,7 +289,10 @@ def test_refuses_bad_input(flight, tmp_path):
                     cam, "--start", "60"), "video.mp4", "no frame from 60 s")
     refused(thermod("import", sim.video_path, "--gyro", sim.log_paths["gcsv"], "-o", out, "--calibration",
                     cam, "--duration", "-1"), "--duration -1")
-    refused(thermod("import", sim.video_path, "-o", out, "--start", "1"), "--start", "with --gyro")
+    # without --gyro a video's motion comes from its pictures (tests/test_video_motion.py): it still needs
+    # the camera
+    refused(thermod("import", sim.video_path, "-o", out, "--start", "1"), "video.mp4", "without --gyro",
+            "needs the camera")
     from thermod.ingest.flight import FlightImportError, import_flight
     from thermod.io.camera_file import load_camera
     with pytest.raises(FlightImportError, match=r"video\.mp4: .* GiB limit.* --start S --duration D"):

@@ -71,6 +71,7 @@ class FileReport:
     times: list[float]                # seconds per frame (render + deconvolve)
     lams: np.ndarray                  # λ per frame (NaN where passed through)
     seconds: float = 0.0              # the whole file, reading and writing included
+    motion_source: str = "gyro"       # where the recording's gyro came from ("video": estimated, /motion)
 
 
 @dataclass
@@ -269,7 +270,10 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     w.put("deblurred/deblurred", ok)
     w.put("deblurred/lambda", lams)      # per frame (noise-adaptive unless --lambda)
     w.put("deblurred/views", views)
-    w.set_attrs("deblurred", {"kernel": cfg.kernel, "method": dec.method, "mode": cfg.mode,
+    # a gyro estimated from the pictures (thermod.ingest.video_only) is said so in the output too
+    motion = str(r.group_attrs().get("motion", {}).get("source", "gyro"))
+    w.set_attrs("deblurred", {"motion_source": motion, "kernel": cfg.kernel, "method": dec.method,
+                              "mode": cfg.mode,
                               "solver": "temporal" if tdec is not None else "single-frame",
                               "temporal_views": int(cfg.temporal_views),
                               "lambda_mode": "adaptive" if dec.lam is None else "fixed",
@@ -277,4 +281,4 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
                               "grid": np.asarray((1, 1) if cfg.mode == "uniform" else cfg.grid),
                               "psf": cfg.psf, "min_coverage": cfg.min_coverage, "source": str(job.src)})
     w.commit(calib)
-    return FileReport(job.src, job.dst, n, passed, times, lams)
+    return FileReport(job.src, job.dst, n, passed, times, lams, motion_source=motion)

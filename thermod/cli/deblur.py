@@ -201,6 +201,9 @@ def run(args) -> int:
         lam = float(np.nanmedian(r.lams)) if np.isfinite(r.lams).any() else float("nan")
         print(f"{r.src} → {r.dst}: {r.n - len(r.passed)} deblurred, {len(r.passed)} passed "
               f"through, {ms:.1f} ms/frame (median), λ {lam:.0f} (median)")
+        if r.motion_source != "gyro":
+            print(f"  motion from the {r.motion_source}: estimated, not measured by a gyro (see /motion in "
+                  f"{r.src})")
         for i, why in r.passed[:20]:
             print(f"  frame {i} passed through: {why}")
         if len(r.passed) > 20:

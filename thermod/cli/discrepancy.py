@@ -96,6 +96,10 @@ def run(args) -> int:
     calib, config_text = load_model(args.config, recs, args.recordings)
     data = []
     for p, r in zip(args.recordings, recs, strict=True):
+        source = str(r.extra_attrs.get("motion", {}).get("source", "gyro"))
+        if source != "gyro":      # thermod import VIDEO without --gyro: no independent motion
+            say(f"{p}: the motion was estimated from the {source}'s own pictures, not measured by a "
+                "gyro: the gaps below measure the model against that estimate")
         d = prepare(r, calib, name=p, work_width=args.work_width)
         if d.reference == "static":
             say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "

@@ -31,6 +31,7 @@ def gcsv_series(path) -> tuple[np.ndarray, np.ndarray, dict]:
     with Reader(path) as r:
         t_frames, gyro_t, gyro_rate, calib = r.t, r.gyro_t, r.gyro_rate, r.calibration
         imported = "video" in r.group_attrs().get("import", {})
+        source = str(r.group_attrs().get("motion", {}).get("source", "gyro"))
     t, rate = calib.gyro_to_camera(gyro_t, gyro_rate)
     if not imported:
         t = t - t_frames[0]
@@ -39,6 +40,8 @@ def gcsv_series(path) -> tuple[np.ndarray, np.ndarray, dict]:
         raise ThermodError(f"{path}: fewer than 2 gyro samples from the first frame on; nothing to export")
     extra = {"frame_readout_time": f"{calib.readout_s * 1e3:.6g}", "frame_rate": f"{calib.frame_rate_hz:.6g}",
              "frame_width": calib.width, "frame_height": calib.height}
+    if source != "gyro":        # estimated (thermod import VIDEO without --gyro): the file says so
+        extra["motion_source"] = source
     return t[keep], rate[keep], extra
 
 
@@ -53,5 +56,7 @@ def run(args) -> int:
                          note=f"thermod export of {args.input.name}: camera-frame rates, video clock",
                          extra=extra)
     print(f"wrote {out}: {len(t)} gyro samples from {t[0]:.3f} s to {t[-1]:.3f} s (video clock), "
-          f"camera frame, orientation {flightlog.GCSV_ORIENTATION_OPENCV_CAMERA}")
+          f"camera frame, orientation {flightlog.GCSV_ORIENTATION_OPENCV_CAMERA}"
+          + (f"; motion estimated from the {extra['motion_source']}, not measured by a gyro"
+             if "motion_source" in extra else ""))
     return 0

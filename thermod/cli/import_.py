@@ -1,9 +1,10 @@
 """`thermod import IN -o OUT.h5`: a ROS recording (MCAP, rosbag2 directory, ROS 1 .bag) → format v1
 (`thermod.ingest.bag`); with ``--gyro LOG``, IN is a thermal video synced to a flight-controller log
-(`thermod.cli.import_flight`, `thermod.ingest.flight`). The calibration, in order of precedence:
-``--calibration model.toml`` (its [calibration] keys), the ``thermod`` metadata of an MCAP written by
-thermod, a sensor_msgs/CameraInfo topic plus ``--tau`` (the detector time constant, which no ROS
-message carries).
+(`thermod.cli.import_flight`, `thermod.ingest.flight`); a video without ``--gyro`` gets a gyro
+estimated from its pictures (`thermod.cli.import_video`, `thermod.ingest.video_only`). The
+calibration, in order of precedence: ``--calibration model.toml`` (its [calibration] keys), the
+``thermod`` metadata of an MCAP written by thermod, a sensor_msgs/CameraInfo topic plus ``--tau``
+(the detector time constant, which no ROS message carries).
 """
 
 from __future__ import annotations
@@ -64,6 +65,10 @@ def run(args) -> int:
         raise ThermodError("thermod import: expected INPUT and -o OUTPUT")
     if args.gyro is not None:
         return import_flight.run(args)
+    from thermod.cli import import_video
+
+    if import_video.is_video(args.input):     # a video with no gyro: the motion from the pictures
+        return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
                    if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \
         + (["--start"] if args.start else [])

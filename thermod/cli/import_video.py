@@ -1,0 +1,62 @@
+"""`thermod import VIDEO -o REC.h5 --camera PRESET | --calibration CAMERA.toml` with no ``--gyro``: a thermal
+video alone → a format-v1 recording whose gyro is the camera's rotation estimated from the pictures
+(`thermod.ingest.video_only`). The options are the flight import's (``--fps``, ``--start``,
+``--duration``, ``--report DIR`` for track.json and track.png); ``--tau`` overrides the camera file's τ.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+from thermod.errors import ThermodError
+
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".m4v", ".ts", ".mts", ".webm", ".mpg", ".mpeg", ".h264",
+                  ".264", ".hevc", ".h265", ".tif", ".tiff")
+
+
+def is_video(path: str) -> bool:
+    """A video file or a TIFF sequence (a glob, or a folder of TIFFs) rather than a ROS recording."""
+    from thermod.io.video import TIFF_SUFFIXES
+
+    p = Path(path)
+    if any(ch in str(path) for ch in "*?["):
+        return True
+    if p.is_dir():
+        return any(q.suffix.lower() in TIFF_SUFFIXES for q in p.iterdir())
+    return p.suffix.lower() in VIDEO_SUFFIXES
+
+
+def run(args) -> int:
+    from thermod.cli.import_flight import camera
+    from thermod.ingest.video_only import import_video
+
+    if args.fps is not None and not args.fps > 0:
+        raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
+    if not (math.isfinite(args.start) and args.start >= 0):
+        raise ThermodError(f"--start {args.start}: expected 0 or more seconds after the video's first frame")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ThermodError(f"--duration {args.duration}: expected more than 0 seconds")
+    other = [f"--{k.replace('_', '-')}" for k in ("log_index", "image_topic", "imu_topic",
+                                                  "camera_info_topic") if getattr(args, k, None) is not None]
+    other += ["--no-refine"] if args.no_refine else []
+    if other:
+        raise ThermodError(f"{args.input}: {', '.join(other)} do not apply to a video imported without "
+                           "--gyro")
+    if (args.calibration is None) == (args.camera is None):
+        raise ThermodError(f"{args.input}: importing a video without --gyro needs the camera (focal length "
+                           "and τ are not in the video): give exactly one of --calibration CAMERA.toml or "
+                           "--camera PRESET")
+    out = Path(args.output)
+    if not out.parent.is_dir():
+        raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
+    r = import_video(args.input, out, camera(args), fps=args.fps, start_s=args.start,
+                     duration_s=args.duration, report_dir=args.report,
+                     say=lambda m: print(m, file=sys.stderr))
+    for note in r.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(f"wrote {r.path}: {r.n_frames} frames, {r.n_gyro} gyro samples estimated from the video "
+          f"(motion source: video, lag {r.track.lag_s * 1e3:.1f} ms)"
+          + (f"; report in {args.report}" if args.report else ""))
+    return 0

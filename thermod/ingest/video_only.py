@@ -1,0 +1,193 @@
+"""A thermal video with no gyro log → a format-v1 recording whose gyro is the camera's rotation
+estimated from the pictures (`thermod.motion.track`).
+
+`import_video` reads the video (`thermod.io.video`: container timestamps, variable frame rate
+included), estimates the rotation track and writes:
+
+- ``/camera/frames``: the video's frames as delivered (8-bit AGC'd frames widened to uint16, values
+  0–255), ``/camera/t`` the video's times; the calibration is the camera file's, its frame rate the
+  video's;
+- ``/gyro/t``, ``/gyro/rate``: the track's camera-frame rate sampled at 1 kHz on the video clock
+  (R_cam_gyro = I, bias 0, offset 0), with holes (no samples) where the motion is unknown (scene cuts,
+  frames too poor in texture to track), so `thermod deblur` passes the frames that reach into them
+  through (``gyro_gap``) instead of inventing motion;
+- ``/motion``: attributes ``source = "video"``, the blur lag the track was shifted by, the frames
+  flagged (duplicated, cut, untracked) and the overlay found (JSON), and the dataset
+  ``motion/sigma_rad_s`` [M] (each gyro sample's 1σ error, rad/s, from the rotation fit);
+- ``/import``: where it came from (file, codec, bit depth, luma range), ``motion_source = "video"``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from thermod.errors import ThermodError
+from thermod.io import video
+from thermod.io.json_safe import jsonable
+from thermod.io.recording import Writer
+from thermod.motion.track import DEFAULT_RATE_HZ, RotationTrack, TrackError, estimate_track
+from thermod.physics.calibration import Calibration
+from thermod.physics.kernels.grids import kernel_span_s
+
+FRAME_RATE_TOLERANCE = 0.05   # the video's rate may differ this much from the camera file's before a note
+MOTION_GROUP = "motion"
+SOURCE = "video"
+
+
+class VideoImportError(ThermodError):
+    """A video that cannot be made into a recording without a gyro: names the file and what was wrong."""
+
+
+@dataclass
+class ImportedVideo:
+    """What `import_video` wrote and found."""
+
+    path: Path
+    calibration: Calibration
+    track: RotationTrack
+    n_frames: int
+    n_gyro: int
+    video_info: video.VideoInfo
+    notes: list[str] = field(default_factory=list)
+    seconds: dict = field(default_factory=dict)
+
+    def report(self) -> dict:
+        """The import's report (strict JSON once through `jsonable`)."""
+        return jsonable({"recording": str(self.path), "frames": self.n_frames, "gyro_samples": self.n_gyro,
+                         "motion_source": SOURCE, "track": self.track.to_dict(),
+                         "calibration": self.calibration.as_dict(), "notes": self.notes,
+                         "seconds": self.seconds})
+
+
+def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: Calibration, *,
+                 fps: float | None = None, max_bytes: int = video.DEFAULT_MAX_BYTES, start_s: float = 0.0,
+                 duration_s: float | None = None, rate_hz: float = DEFAULT_RATE_HZ,
+                 report_dir: str | os.PathLike | None = None,
+                 say: Callable[[str], None] | None = None) -> ImportedVideo:
+    """Read a video, estimate its rotation track and write the recording (module docstring). `camera`
+    gives the intrinsics, τ and readout (`thermod.io.camera_file`). With `report_dir`, writes
+    ``track.json`` and ``track.png`` (the estimated rate per axis, flagged frames marked). Raises a
+    ThermodError naming the file and what was wrong; nothing is written then."""
+    say = say or (lambda _msg: None)
+    t_start = time.perf_counter()
+    try:
+        vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
+                              duration_s=duration_s)
+    except video.VideoTooLarge as e:
+        raise VideoImportError(f"{e}: import a part of it with --start S --duration D (seconds of video)") \
+            from None
+    info = vf.info
+    if (info.width, info.height) != (camera.width, camera.height):
+        raise VideoImportError(f"{video_path}: {info.width}×{info.height} px, but the camera description is "
+                               f"for {camera.width}×{camera.height} px")
+    if len(vf.t) < 2:
+        raise VideoImportError(f"{video_path}: {len(vf.t)} frame(s); estimating the motion from the pictures "
+                               "needs a video of several frames")
+    period = float(np.median(np.diff(vf.t)))
+    notes = []
+    if abs(1.0 / period - camera.frame_rate_hz) > FRAME_RATE_TOLERANCE * camera.frame_rate_hz:
+        notes.append(f"the video runs at {1.0 / period:.3g} fps, the camera description says "
+                     f"{camera.frame_rate_hz:.3g}: the video's rate is used")
+    calib = camera.replace(frame_rate_hz=1.0 / period, readout_s=min(camera.readout_s, 0.99 * period),
+                           rate_hz=float(rate_hz), time_offset_s=0.0, bias_rad_s=(0.0, 0.0, 0.0),
+                           R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
+    say(f"video: {len(vf.t)} frames of {info.width}×{info.height} ({info.bit_depth}-bit {info.codec}), "
+        f"{vf.t[-1] - vf.t[0]:.1f} s at {1.0 / period:.3g} fps; no gyro: the motion comes from the pictures")
+    t_read = time.perf_counter()
+    try:
+        track = estimate_track(vf.frames, vf.t, calib.intrinsics, tau_s=calib.tau_s,
+                               readout_s=calib.readout_s, name=str(video_path))
+    except TrackError as e:
+        raise VideoImportError(str(e)) from None
+    t_track = time.perf_counter()
+    # the kernel window before the first frame, and past each stretch's last knot the lag plus what a
+    # frame's kernel reads beyond its read time (thermod.restore.policy.gyro_span)
+    margin = calib.gyro_condition_margin_s + 4.0 / rate_hz
+    gt, gr, gs = track.gyro(rate_hz, lead_s=kernel_span_s(calib) + margin, tail_s=track.lag_s + margin)
+    if len(gt) < 2:
+        raise VideoImportError(f"{video_path}: no stretch of frames with a known motion")
+    flagged = track.flagged()
+    for what, frames in flagged.items():
+        if frames:
+            notes.append(f"{len(frames)} frame(s) {what}: {frames[:10]}{' …' if len(frames) > 10 else ''}"
+                         + (" (shows the previous view; the motion is interpolated across it)"
+                            if what == "duplicate" else " (the motion into it is unknown: passed through)"))
+    if track.overlay is not None:
+        notes.append(f"a static overlay covers {track.overlay.mean():.1%} of the frame (found by itself; not "
+                     "tracked)")
+    path = _write(out, vf, gt, gr, gs, calib, track, {
+        "video": str(video_path), "video_codec": info.codec, "video_bit_depth": info.bit_depth,
+        "video_luma_only": info.luma_only, "video_full_range": info.full_range, "motion_source": SOURCE,
+        "agc": "per-frame AGC left in the frames" if info.bit_depth == 8 else "none assumed (16-bit)"})
+    t_write = time.perf_counter()
+    seconds = {"read_video": t_read - t_start, "track": t_track - t_read, "write": t_write - t_track}
+    imported = ImportedVideo(path, calib, track, len(vf.t), len(gt), info, notes, seconds)
+    if report_dir is not None:
+        rd = Path(report_dir)
+        rd.mkdir(parents=True, exist_ok=True)
+        (rd / "track.json").write_text(json.dumps(imported.report(), indent=2, allow_nan=False) + "\n")
+        plot_track(track, gt, gr, rd / "track.png")
+    return imported
+
+
+def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, sigma, calib: Calibration, track: RotationTrack,
+           attrs: dict) -> Path:
+    w = Writer(out)
+    try:
+        w.reserve("camera/frames", len(vf.t), (calib.height, calib.width), np.uint16)
+        for frame, t in zip(vf.frames, vf.t, strict=True):
+            w.append_frame(frame.astype(np.uint16, copy=False), float(t))
+        w.put("gyro/t", np.asarray(gyro_t, np.float64))
+        w.put("gyro/rate", np.asarray(gyro_rate, np.float32))
+        w.put(f"{MOTION_GROUP}/sigma_rad_s", np.asarray(sigma, np.float32))
+        w.set_attrs(MOTION_GROUP, motion_attrs(track))
+        w.set_attrs("import", attrs)
+        return w.commit(calib)
+    except BaseException:
+        w.abort()
+        raise
+
+
+def motion_attrs(track: RotationTrack) -> dict:
+    """The /motion attributes: where the gyro came from and what the track flagged."""
+    return {"source": SOURCE, "lag_s": float(track.lag_s),
+            "note": "gyro estimated from the pictures (thermod.motion.track): camera-frame rate, 1σ per "
+                    "sample in motion/sigma_rad_s; no samples where the motion is unknown",
+            "track": json.dumps(jsonable(track.to_dict()), allow_nan=False)}
+
+
+def plot_track(track: RotationTrack, gyro_t, gyro_rate, path, truth: tuple | None = None) -> None:
+    """PNG: the estimated camera-frame rate per axis (the sampled spline, and each interval's mean
+    rate at its middle), flagged frames marked; with `truth` = (t, rate), the true rate beside."""
+    import math
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    deg = 180.0 / math.pi
+    fig, axes = plt.subplots(3, 1, figsize=(11, 7), sharex=True, constrained_layout=True)
+    tm = 0.5 * (track.frame_t[1:] + track.frame_t[:-1]) - track.lag_s
+    mean = track.rate_at_frames()
+    for a, (ax, name) in enumerate(zip(axes, ("x (right)", "y (down)", "z (forward)"), strict=True)):
+        if truth is not None:
+            ax.plot(truth[0], truth[1][:, a] * deg, lw=1.0, color="k", alpha=0.6, label="true gyro")
+        ax.plot(gyro_t, gyro_rate[:, a] * deg, ".", ms=1, color="C0", label="from the video (1 kHz)")
+        ax.plot(tm, mean[:, a] * deg, "o", ms=3, color="C1", label="interval mean")
+        for what, color in (("duplicate", "C2"), ("cut", "C3"), ("untracked", "C4")):
+            for i, k in enumerate(track.flagged()[what]):
+                ax.axvline(track.frame_t[k], color=color, lw=0.8, ls="--", label=what if i == 0 and a == 0
+                           else None)
+        ax.set_ylabel(f"ω {name} (°/s)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("video time (s)")
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
