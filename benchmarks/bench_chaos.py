@@ -1,6 +1,6 @@
 """A chaos soak: the daemon, in-process on the simulated payload, for N minutes under random faults (a
 gyro unplug/NACK/FIFO overflow, a camera stall/disconnect, a clock jump, a good or bad SIGHUP reload,
-stalled or churning subscribers: one every 1–3 s; see `benchmarks.chaos`). Prints a table: every
+stalled or churning subscribers: one every 1–3 s; see `thermod.chaos`). Prints a table: every
 camera frame published or counted under a reason, passthrough reasons, RSS at start and end, thread
 deaths, the longest gap between watchdog pings, faults by kind and reloads applied/refused.
 

@@ -15,7 +15,7 @@ single-core time; numba kernels are single-threaded.
     .venv/bin/python -m benchmarks.bench_discrepancy --detector-effects   # PSNR fitted vs nominal
 
 Hidden effects on the real log's flight (`--flight-effects`): for each hidden effect of the tests'
-vocabulary (tests/test_discrepancy.py CASES, test_discrepancy_gyro.py GYRO_CASES, the detector tests'
+vocabulary (tests/calib/test_discrepancy.py CASES, test_discrepancy_gyro.py GYRO_CASES, the detector tests'
 flat-field event and nonlinearity, same values) and a clean recording, a recording with no static lead-in
 on the real Betaflight log's attitude from 1.0 s in (what thermod.sim.flight_recordings renders at 160×120,
 0.4 s), NETD 50 mK, the seeded texture, analysed motion-only with every candidate at the full resolution

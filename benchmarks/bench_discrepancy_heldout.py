@@ -7,7 +7,7 @@ lead-in, NETD 50 mK, the seeded texture (the non-linearity on the high-contrast 
 analysed motion-only with every candidate. One hidden effect or a pair each, plus a clean flight.
 
 A case passes when exactly the hidden effects are named (in any order), every named parameter is within
-issue 6's tolerances (tests/test_discrepancy.py CASES: offset ±1 ms, readout ±20 %, bias ±0.3 °/s per
+issue 6's tolerances (tests/calib/test_discrepancy.py CASES: offset ±1 ms, readout ±20 %, bias ±0.3 °/s per
 axis, τ ±10 %, misalignment ≤ 1° about the excited directions) and `unexplained` is false; for the
 non-linearity (nearly unobservable without a static reference: the canvas takes the response in) being
 named or reported `unexplained` passes; a clean flight must name nothing and not be `unexplained`.

@@ -1,6 +1,6 @@
 """Hidden effects named from real-log flights: the costliest cases, checked here rather than in
 `make test` (each is 2.5–5 CPU-min on the 2-core CI host; the suite keeps one case per stretch and
-effect family, tests/test_discrepancy_flight_effects.py and _stretch.py).
+effect family, tests/calib/test_discrepancy_flight_effects.py and _stretch.py).
 
     .venv/bin/python benchmarks/bench_flight_named.py [--cases NAME,...]
 

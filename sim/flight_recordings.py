@@ -1,5 +1,5 @@
-"""Flight-like simulator recordings with no static lead-in, for the discrepancy tests (imported via
-sys.path like `reference_kernels`).
+"""Flight-like simulator recordings with no static lead-in, for the discrepancy tests (tests/calib) and
+benchmarks; no pytest here.
 
 `flight_recording(effects, seconds, size, seed, real_log)` renders with the simulator's independent
 fine-time renderer (`thermod.sim.synth.simulate`, never `thermod.calib.forward`) a camera that is

@@ -4,7 +4,7 @@ Written from the documented maths and the `Calibration` fields only: it imports 
 `thermod.physics.kernels` but the `Kernel` container, so a bug in the renderer's parameters
 (window, row time, image-speed bound, node spacing, PSF taps, calibration mapping) shows up as a
 difference. It shares the geometry's rotation integrator (`integrate_rotations`, `so3_exp`), which
-tests/test_geometry.py pins against the matrix exponential. Slow: for tests and benchmarks.
+tests/physics/test_geometry.py pins against the matrix exponential. Slow: for tests and benchmarks.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A chaos soak: the daemon, in-process on the simulated payload, under a seeded random schedule of
 faults, with every camera frame accounted for. `run` returns a result dict, `table` prints it; both
-`benchmarks/bench_chaos.py` (minutes) and `tests/test_chaos.py` (60 s) use them.
+`benchmarks/bench_chaos.py` (minutes) and `tests/runtime/test_chaos.py` (60 s) use them.
 
 Faults, one every 1–3 s (`schedule`):
 

@@ -1,6 +1,6 @@
 """The discrepancy workflow's motion-only path on flight recordings (no static lead-in).
 
-Recordings come from the simulator's fine-time renderer (`tests/flight_recordings.py`: 160×120
+Recordings come from the simulator's fine-time renderer (`sim/flight_recordings.py`: 160×120
 analysed at full resolution, 0.4 s, the real Betaflight log's attitude when ../shared/data is there,
 else the synthetic `sim.motion.flight`; NETD 50 mK, the seeded texture). What holds on them today:
 a clean flight names nothing (with or without rotor vibration, at high contrast too), effects

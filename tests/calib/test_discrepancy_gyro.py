@@ -275,10 +275,10 @@ def test_kernel_renderer_applies_the_clock_drift():
 
 
 # ------------------------------------------------------------------ the workflow on hidden effects
-# The recordings of tests/test_discrepancy.py (320×240, 0.2 s static then 0.3 s of three-axis shake,
+# The recordings of tests/calib/test_discrepancy.py (320×240, 0.2 s static then 0.3 s of three-axis shake,
 # NETD 50 mK, the seeded texture), with a 10 Hz vibration added for the low-pass: its attenuation
 # needs motion content near the cutoff. (On flight recordings with no static lead-in these effects are
-# not named yet: tests/test_discrepancy_flight.py says what holds there.)
+# not named yet: tests/calib/test_discrepancy_flight.py says what holds there.)
 _I = Calibration().intrinsics.scaled(0.5)
 NOMINAL = Calibration(width=320, height=240, fx=_I.fx, fy=_I.fy, cx=_I.cx, cy=_I.cy)
 
@@ -308,12 +308,12 @@ def _analysed(key: str, effects: dict, broadband: bool = False, candidates=None)
 
 
 # Each effect is searched for among the effects that move the image the same way (about 0.8 s of CPU per
-# candidate and step; tests/test_discrepancy.py searches every candidate, and so does the clean
+# candidate and step; tests/calib/test_discrepancy.py searches every candidate, and so does the clean
 # recording here): the search's result among them is the one it finds among all.
 GYRO_CASES = {
     # clock_drift: 1 % (an RC-clocked output data rate); the clock line is fitted at its epoch, so the
     # check is the map itself: camera times of the analysed gyro samples within 0.5 ms (the offset's
-    # tolerance in tests/test_discrepancy.py is 1 ms).
+    # tolerance in tests/calib/test_discrepancy.py is 1 ms).
     "clock_drift": ({"clock_drift": 10000.0}, False,
                     ("clock_drift", "time_offset", "gyro_scale", "rolling_readout")),
     # gyro_lowpass: 20 Hz (MPU-6050 DLPF_CFG=4), 11 ms of group delay; cutoff within 15 %.

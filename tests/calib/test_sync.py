@@ -1,7 +1,7 @@
 """Sync of a video to a gyro log from the pictures (`thermod.calib.sync`), on simulated flights with a
 hidden truth: an AGC'd 8-bit 160×120 video of 3 s at 50 Hz starting somewhere in a longer log, the
 camera on the flight controller in a random one of the 24 axis-aligned mounts plus a small
-misalignment, and a gyro bias (tests/sync_flights.py)."""
+misalignment, and a gyro bias (sim/sync_flights.py)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """systemd integration: the unit passes `systemd-analyze verify` and the offline security audit,
 sysusers/tmpfiles configs apply to a scratch root, and the udev rules give each sensor the right
-group, mode and stable name. (The notify/watchdog protocol itself: tests/test_sdnotify.py.)"""
+group, mode and stable name. (The notify/watchdog protocol itself: tests/runtime/test_sdnotify.py.)"""
 
 import fnmatch
 import re

@@ -1,4 +1,4 @@
-"""A 60-second chaos soak (`benchmarks.chaos`): the daemon on the simulated payload under a random
+"""A 60-second chaos soak (`thermod.chaos`): the daemon on the simulated payload under a random
 schedule of gyro, camera, clock, reload and subscriber faults. Every camera frame is published or
 counted under a reason, no thread dies, bad reloads are refused and good ones applied, the watchdog
 keeps being fed within the unit's WatchdogSec, and memory does not grow without bound. No rates are

@@ -8,7 +8,7 @@ import numpy as np
 from thermod.runtime import config
 from thermod.sim.payload import SimPayload
 
-# the small payload tests/test_monitor.py runs: its loop is rendered once and cached
+# the small payload tests/runtime/test_monitor.py runs: its loop is rendered once and cached
 SMALL = {"calibration.width": 160, "calibration.height": 120,
          "calibration.fx": 366.0, "calibration.fy": 366.0}
 

@@ -1,4 +1,4 @@
-"""Shared by the camera-source tests (imported from beside them, like reference_kernels)."""
+"""Shared by the camera-source tests (tests/drivers/test_v4l2.py, tests/sim/test_sim_camera.py)."""
 
 
 def poll_frames(cam, n: int, timeout: float = 30.0) -> list:

@@ -1,4 +1,4 @@
-"""Shared by the pipeline tests (imported from beside them, like camera_polling): a sink for the
+"""Shared by the pipeline tests (tests/runtime): a sink for the
 pipeline's `emit` that keeps every output and lets a test wait for the first `n`."""
 
 import threading

@@ -1,5 +1,5 @@
-"""Shared by the tests that need a whole `thermod run` in its own process (imported from beside them,
-like camera_polling)."""
+"""Shared by the tests that need a whole `thermod run` in its own process (tests/io/test_mcap.py,
+tests/cli/test_watch_record.py)."""
 
 import contextlib
 import os

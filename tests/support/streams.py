@@ -1,5 +1,6 @@
-"""Simulated frame streams for the temporal solvers' tests (tests/test_temporal.py, test_recursive.py):
-a textured scene under a pan with the paper's gyro, and PSNR on the truth's 8-bit scale."""
+"""Simulated frame streams for the temporal solvers' tests (tests/physics/test_temporal.py and
+test_recursive.py): a textured scene under a pan with the paper's gyro, and PSNR on the truth's 8-bit
+scale."""
 
 from __future__ import annotations
 

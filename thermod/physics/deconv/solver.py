@@ -66,7 +66,7 @@ class Deconvolver:
     iterations : K&F β steps (None: all six): the same continuation from β = 1 towards β_max in n
         coarser steps (n = 3: β = 1, 8, 64). A knob to degrade by under a short time budget: each
         step is one FFT pair and one w-step. 3 steps cost 0.03–0.25 dB on 17–65 px comets
-        (tests/test_deconv.py); dropping the first steps instead cost 1.7–2.1 dB (Wiener: 5–7 dB).
+        (tests/physics/test_deconv.py); dropping the first steps instead cost 1.7–2.1 dB (Wiener: 5–7 dB).
     split : (rows, cols) or None. Solve every uniform-blur frame in rows × cols tiles (blend ramp
         `SPLIT_OVERLAP` of the spacing, `TILE_MARGIN_PX` margins) instead of one frame-sized FFT:
         the faster mode for large sensors, whose frame-sized FFT buffers fall out of cache. At
