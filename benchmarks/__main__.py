@@ -1,7 +1,8 @@
 """Run the benchmark suites: `python -m benchmarks [NAME ...] [--quick]` from the repository root.
 
-Each suite is a script `benchmarks/bench_NAME.py` that prints its own table; this runs them one
-after another (never in parallel: they measure time on a shared 2-core machine).
+Each suite is a module `benchmarks/bench_NAME.py` that prints its own table; this runs them one
+after another as `python -m benchmarks.bench_NAME` (never in parallel: they measure time on a shared
+2-core machine).
 """
 
 import argparse
@@ -31,7 +32,7 @@ def main(argv=None) -> int:
     for name in args.names or list(available):
         script = available[name]
         quick = args.quick and "--quick" in script.read_text()  # only suites that define the option
-        cmd = [sys.executable, str(script)] + (["--quick"] if quick else [])
+        cmd = [sys.executable, "-m", f"benchmarks.{script.stem}"] + (["--quick"] if quick else [])
         print(f"\n## {name}\n", flush=True)
         t0 = time.monotonic()
         rc = subprocess.call(cmd, cwd=HERE.parent)

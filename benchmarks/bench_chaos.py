@@ -1,10 +1,10 @@
 """A chaos soak: the daemon, in-process on the simulated payload, for N minutes under random faults (a
 gyro unplug/NACK/FIFO overflow, a camera stall/disconnect, a clock jump, a good or bad SIGHUP reload,
-stalled or churning subscribers: one every 1–3 s; see `benchmarks.chaos`). Prints a table: every
+stalled or churning subscribers: one every 1–3 s; see `thermod.chaos`). Prints a table: every
 camera frame published or counted under a reason, passthrough reasons, RSS at start and end, thread
 deaths, the longest gap between watchdog pings, faults by kind and reloads applied/refused.
 
-    .venv/bin/python benchmarks/bench_chaos.py [--minutes 10] [--seed 0] [--method kf] [--set K=V] [--quick]
+    .venv/bin/python -m benchmarks.bench_chaos [--minutes 10] [--seed 0] [--method kf] [--set K=V] [--quick]
 
 Targets: unaccounted 0, nothing lost on the wire to a subscriber that keeps up, thread deaths 0,
 every bad reload refused and every good one applied, longest watchdog gap < WatchdogSec
@@ -19,7 +19,7 @@ import logging
 import sys
 from pathlib import Path
 
-from benchmarks import chaos
+from thermod import chaos
 from thermod.runtime import config
 
 REPO = Path(__file__).resolve().parents[1]

@@ -4,12 +4,12 @@ Targets (2 cores, 640×480, 1 kHz gyro, sustained): every frame published, ≥ 9
 latency (frame time → published) p50 ≤ 30 ms and p99 ≤ 60 ms, 0 gyro samples lost — at 50 and at
 60 fps; the simulated payload alone ≤ 0.5 core; `--soak 600`: RSS growth < 5 MB, no thread deaths.
 
-    .venv/bin/python benchmarks/bench_daemon.py [--seconds 60] [--quick] [--soak 600] [--methods kf,wiener]
-    .venv/bin/python benchmarks/bench_daemon.py --squeeze [--seconds 30]     # the governor table
-    .venv/bin/python benchmarks/bench_daemon.py --large [--seconds 30]       # large sensors (goal 3)
-    .venv/bin/python benchmarks/bench_daemon.py --size 1280x1024 --fps 30    # any run at another size
-    .venv/bin/python benchmarks/bench_daemon.py --temporal [--seconds 30] [--size 320x240] [--set K=V]
-    .venv/bin/python benchmarks/bench_daemon.py --payload [--seconds 30] [--repeats 2]  # quotas (root)
+    .venv/bin/python -m benchmarks.bench_daemon [--seconds 60] [--quick] [--soak 600] [--methods kf,wiener]
+    .venv/bin/python -m benchmarks.bench_daemon --squeeze [--seconds 30]     # the governor table
+    .venv/bin/python -m benchmarks.bench_daemon --large [--seconds 30]       # large sensors (goal 3)
+    .venv/bin/python -m benchmarks.bench_daemon --size 1280x1024 --fps 30    # any run at another size
+    .venv/bin/python -m benchmarks.bench_daemon --temporal [--seconds 30] [--size 320x240] [--set K=V]
+    .venv/bin/python -m benchmarks.bench_daemon --payload [--seconds 30] [--repeats 2]  # quotas (root)
 
 `--large`: 1280×1024 at 30 fps and 640×512 at 60 fps on the cores there are: the simulated payload
 alone (its cores and delivered frame rate at that size), the FFT floor of one frame (one float32
@@ -608,7 +608,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
     otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times.
     The machine's yardstick is measured first, on the quiet machine (the first row's ``yardstick``)."""
-    from yardstick import yardstick_line
+    from benchmarks.yardstick import yardstick_line
 
     rows, line = [], yardstick_line()
     truth = prepared_payload(size, fps)

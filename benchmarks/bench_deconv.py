@@ -1,6 +1,6 @@
 """Deconvolution speed: thermod.physics.deconv beside a plain NumPy/SciPy K&F of the same algorithm.
 
-    .venv/bin/python benchmarks/bench_deconv.py [--quick]
+    .venv/bin/python -m benchmarks.bench_deconv [--quick]
 
 For each frame size (320×256, 640×480, 1280×1024) and comet kernel length (17, 33, 65 px) it
 prints the median time of one frame on one core (K&F α = 2/3 and Wiener), the plain version's
@@ -236,9 +236,9 @@ def varying_table(reps: int) -> None:
 def roll_table(reps: int, n_frames: int = 2) -> None:
     """Quality and CPU time on bench_quality's roll-heavy family (real Betaflight roll segments over
     its held-out scenes, 640×480, NETD 30 mK, paper gyro): per frame, every solve in turn."""
-    import bench_quality as bq
     from skimage.metrics import peak_signal_noise_ratio
 
+    from benchmarks import bench_quality as bq
     from thermod.physics import kernels
     log = bq.mo.load_gyro_log()
     d = deconv.Deconvolver()

@@ -11,17 +11,17 @@ flight, `sim.motion.flight`, hidden 6 ms time offset) analysed in ≤ 3 minutes 
 process pins itself to one core (`os.sched_setaffinity`) and OpenCV to one thread, so the table is
 single-core time; numba kernels are single-threaded.
 
-    .venv/bin/python benchmarks/bench_discrepancy.py [--quick] [--repeat N] [--motion-only]
-    .venv/bin/python benchmarks/bench_discrepancy.py --detector-effects   # PSNR fitted vs nominal
+    .venv/bin/python -m benchmarks.bench_discrepancy [--quick] [--repeat N] [--motion-only]
+    .venv/bin/python -m benchmarks.bench_discrepancy --detector-effects   # PSNR fitted vs nominal
 
 Hidden effects on the real log's flight (`--flight-effects`): for each hidden effect of the tests'
-vocabulary (tests/test_discrepancy.py CASES, test_discrepancy_gyro.py GYRO_CASES, the detector tests'
+vocabulary (tests/calib/test_discrepancy.py CASES, test_discrepancy_gyro.py GYRO_CASES, the detector tests'
 flat-field event and nonlinearity, same values) and a clean recording, a recording with no static lead-in
-on the real Betaflight log's attitude from 1.0 s in (what tests/flight_recordings.py renders at 160×120,
+on the real Betaflight log's attitude from 1.0 s in (what thermod.sim.flight_recordings renders at 160×120,
 0.4 s), NETD 50 mK, the seeded texture, analysed motion-only with every candidate at the full resolution
 of `--size` (or `--work-width`), on one core. Prints a markdown table row per effect as it finishes.
 
-    .venv/bin/python benchmarks/bench_discrepancy.py --flight-effects [--size 320x240] [--seconds 1.0]
+    .venv/bin/python -m benchmarks.bench_discrepancy --flight-effects [--size 320x240] [--seconds 1.0]
         [--effects time_offset,gyro_bias,...] [--work-width W]
 """
 
@@ -201,12 +201,9 @@ def flight_effects(names: list[str], size: tuple[int, int], seconds: float, work
     """The `--flight-effects` table (module docstring): what the motion-only search names for each hidden
     effect, the hidden effect's fitted value (its final value when named, else its best first-step
     candidate's, with the excess it explained and its ΔBIC), the gap, and the analysis's CPU time."""
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    import flight_recordings
-    from flight_recordings import clipping_range, high_contrast_scene, nominal_calibration
+    from thermod.sim import flight_recordings
+    from thermod.sim.flight_recordings import clipping_range, high_contrast_scene, nominal_calibration
 
     unknown = [n for n in names if n not in FLIGHT_EFFECTS]
     if unknown:
@@ -299,7 +296,7 @@ def _motion_only_rows(repeat: int):
     # wall time counts the other processes sharing the core; CPU time is this process's own work
     rows.append(("  its CPU time (process_time)", statistics.median(cpu), f"load average {os.getloadavg()}"))
     # issue 12 goal 5: the fitted model deblurs (nearly) as well as the truth, the nominal one does not
-    from bench_gyro_effects import psnr  # benchmarks/ is the script's directory
+    from benchmarks.bench_gyro_effects import psnr
 
     frames = range(10, len(rec.t), 5)
     cals = {"nominal": nominal, "fitted": ana.model.final_calibration(), "truth": truth_calibration(rec)}

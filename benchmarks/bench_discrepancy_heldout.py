@@ -2,12 +2,12 @@
 
 Each recording is rendered by the simulator's fine-time renderer on a stretch of the real Betaflight log
 (../shared/data/gyro) that no test uses (the tests use the stretches from 1.0–3.8 s, 9, 12, 25 and 30 s;
-tests/flight_recordings.py and tests/test_discrepancy_flight*.py), every one with roll and no static
+thermod.sim.flight_recordings and tests/calib/test_discrepancy_flight*.py), every one with roll and no static
 lead-in, NETD 50 mK, the seeded texture (the non-linearity on the high-contrast scene it needs), and
 analysed motion-only with every candidate. One hidden effect or a pair each, plus a clean flight.
 
 A case passes when exactly the hidden effects are named (in any order), every named parameter is within
-issue 6's tolerances (tests/test_discrepancy.py CASES: offset ±1 ms, readout ±20 %, bias ±0.3 °/s per
+issue 6's tolerances (tests/calib/test_discrepancy.py CASES: offset ±1 ms, readout ±20 %, bias ±0.3 °/s per
 axis, τ ±10 %, misalignment ≤ 1° about the excited directions) and `unexplained` is false; for the
 non-linearity (nearly unobservable without a static reference: the canvas takes the response in) being
 named or reported `unexplained` passes; a clean flight must name nothing and not be `unexplained`.
@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import tempfile
 import time
 import warnings
@@ -39,10 +38,8 @@ from thermod.calib import discrepancy as D
 from thermod.io import recording as recording_io
 from thermod.physics.geometry import so3_log
 from thermod.sim import motion as mo
+from thermod.sim.flight_recordings import high_contrast_scene, nominal_calibration  # noqa: E402
 from thermod.sim.synth import simulate, truth_calibration
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from flight_recordings import high_contrast_scene, nominal_calibration  # noqa: E402
 
 DEG = math.pi / 180
 

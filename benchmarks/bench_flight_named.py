@@ -1,13 +1,14 @@
 """Hidden effects named from real-log flights: the costliest cases, checked here rather than in
 `make test` (each is 2.5–5 CPU-min on the 2-core CI host; the suite keeps one case per stretch and
-effect family, tests/test_discrepancy_flight_effects.py and _stretch.py).
+effect family, tests/calib/test_discrepancy_flight_effects.py and _stretch.py).
 
     .venv/bin/python benchmarks/bench_flight_named.py [--cases NAME,...]
 
-Each case is `flight_recordings.assert_named_from_flight` with the values the tests had (640×480, 1 s,
-analysed at a working width of 160): the effect is named first, its check holds, the gap's excess over
-the floor is at least halved and nothing is left unexplained. Prints a row per case (pass or the
-assertion, CPU s) and exits 1 when any case fails. Needs ../shared/data (the real Betaflight log).
+Each case is `thermod.sim.flight_recordings.assert_named_from_flight` with the values the tests had
+(640×480, 1 s, analysed at a working width of 160): the effect is named first, its check holds, the
+gap's excess over the floor is at least halved and nothing is left unexplained. Prints a row per case
+(pass or the assertion, CPU s) and exits 1 when any case fails. Needs ../shared/data (the real
+Betaflight log).
 """
 
 from __future__ import annotations
@@ -19,17 +20,16 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from flight_recordings import (  # noqa: E402
+
+from thermod.physics.geometry import so3_log  # noqa: E402
+from thermod.sim.flight_recordings import (  # noqa: E402
     REAL_LOG,
     assert_named_from_flight,
     clipping_range,
     flight_motion,
 )
-
-from thermod.physics.geometry import so3_log  # noqa: E402
 
 SIZE, SECONDS, WORK_WIDTH = (640, 480), 1.0, 160
 DEG = np.pi / 180

@@ -1,6 +1,6 @@
 """Speed of the blur-kernel renderer (Eq. 18) against its plain NumPy reference, same run.
 
-The reference is tests/reference_kernels.py (independent of the renderer's code).
+The reference is thermod.sim.reference_kernels (independent of the renderer's code).
 
     .venv/bin/python benchmarks/bench_kernels.py [--repeats N]
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 import time
 
 os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(os.path.dirname(__file__), "..", ".numba_cache"))
@@ -28,9 +27,7 @@ import numpy as np  # noqa: E402
 
 from thermod.physics import kernels as K  # noqa: E402
 from thermod.physics.calibration import Calibration  # noqa: E402
-
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tests"))
-from reference_kernels import render_thermal_kernel_reference  # noqa: E402
+from thermod.sim.reference_kernels import render_thermal_kernel_reference  # noqa: E402
 
 
 def timeit(fn, repeats: int, inner: int = 1) -> np.ndarray:

@@ -1,7 +1,7 @@
 """The default daemon on this machine and on a slower payload emulated by CPU quotas.
 
-    .venv/bin/python benchmarks/bench_payload.py [--seconds 30] [--repeats 1] [--quick]
-    .venv/bin/python benchmarks/bench_payload.py --size 1280x1024 --rate 30 --quotas none
+    .venv/bin/python -m benchmarks.bench_payload [--seconds 30] [--repeats 1] [--quick]
+    .venv/bin/python -m benchmarks.bench_payload --size 1280x1024 --rate 30 --quotas none
 
 `make run`'s configuration (640×480 at 50 fps, the simulated payload), measured from a subscriber in
 another process: on every core, then with the daemon and its solver children in a cgroup of 1.2 cores
@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import argparse
 
-from bench_daemon import payload, print_payload
+from benchmarks.bench_daemon import payload, print_payload
 
 
 def main(argv=None) -> int:

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from benchmarks.chaos import FROZEN_SUBSCRIBER, rss_mb
+from thermod.chaos import FROZEN_SUBSCRIBER, rss_mb
 from thermod.client.subscriber import Subscriber
 from thermod.io.wire import decode, encode_header
 from thermod.runtime.publish import DEFAULT_MAX_QUEUE_BYTES, Publisher

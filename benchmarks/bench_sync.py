@@ -4,7 +4,7 @@ found and time per minute of video, over seeds and motions.
     python benchmarks/bench_sync.py [--quick] [--figure benchmarks/results/sync.png]
     python benchmarks/bench_sync.py --discrepancy
 
-Flights (tests/sync_flights.py): the simulator's fine-time renderer, 50 Hz, τ = 8 ms, NETD 50 mK, a
+Flights (thermod.sim.sync_flights): the simulator's fine-time renderer, 50 Hz, τ = 8 ms, NETD 50 mK, a
 50° field of view, each frame through an 8-bit AGC (jittered gain and level); the video starts at a
 random point of a longer log (the real Betaflight log, 39 s, when ../shared/data is there, and a
 procedural flight of 40 s), the gyro on a random one of the 24 axis-aligned mounts plus a
@@ -20,17 +20,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import sync_flights as sf  # noqa: E402
-
 from thermod import sync as S  # noqa: E402
 from thermod.physics.geometry import so3_log  # noqa: E402
+from thermod.sim import sync_flights as sf  # noqa: E402
 
 
 def cases(quick: bool):

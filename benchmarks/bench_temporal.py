@@ -1,6 +1,6 @@
 """Temporal deconvolution against today's single-frame default, on the simulator's fine-time truth.
 
-    .venv/bin/python benchmarks/bench_temporal.py [--quick] [--views 4] [--frames 2]
+    .venv/bin/python -m benchmarks.bench_temporal [--quick] [--views 4] [--frames 2]
 
 Simulated with `thermod.sim` as benchmarks/bench_quality.py does (640×480 at 50 Hz, IFOV 0.0391°,
 τ = 8 ms, paper gyro errors, real thermal scenes from ../shared/data): the SBTI constant rotations at
@@ -29,12 +29,11 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-from bench_quality import REPORT_SCENES, ROLL_STARTS, SPEEDS, pan_motion, simulate, to8  # noqa: E402
 from skimage.metrics import peak_signal_noise_ratio  # noqa: E402
 
+from benchmarks.bench_quality import REPORT_SCENES, ROLL_STARTS, SPEEDS, pan_motion, simulate, to8  # noqa: E402
 from thermod.physics import kernels  # noqa: E402
 from thermod.physics.deconv.temporal import DEFAULT_VIEWS, LAM_SCALE, TemporalDeconvolver  # noqa: E402
 from thermod.sim import motion as mo  # noqa: E402

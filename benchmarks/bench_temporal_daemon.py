@@ -1,6 +1,6 @@
 """The daemon's temporal rungs against its single-frame rungs, on the simulator's fine-time truth.
 
-    .venv/bin/python benchmarks/bench_temporal_daemon.py [--quick] [--frames 10] [--score 5] [--full-test]
+    .venv/bin/python -m benchmarks.bench_temporal_daemon [--quick] [--frames 10] [--score 5] [--full-test]
 
 Simulated as benchmarks/bench_temporal.py does (640×480 at 50 Hz, paper gyro errors, real thermal
 scenes, the SBTI constant rotations and roll-heavy segments of the real Betaflight log, NETD 10, 30
@@ -32,13 +32,12 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_quality import REPORT_SCENES, pan_motion, simulate, to8  # noqa: E402
 from skimage.metrics import peak_signal_noise_ratio  # noqa: E402
 
+from benchmarks.bench_quality import REPORT_SCENES, pan_motion, simulate, to8  # noqa: E402
 from thermod.physics.deconv import Deconvolver  # noqa: E402
 from thermod.physics.deconv.recursive import MEMORY, REGISTRATION_PX, RecursiveDeconvolver  # noqa: E402
 from thermod.restore.plan import render  # noqa: E402

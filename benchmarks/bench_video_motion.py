@@ -1,7 +1,7 @@
 """No gyro: deblurring with the motion estimated from the pictures, against the true gyro and the
 frame-times oracle.
 
-    python benchmarks/bench_video_motion.py [--quick]
+    python -m benchmarks.bench_video_motion [--quick]
 
 Each clip is a `thermod.sim.flight_video.simulate_flight`: a 640×512 camera (50° HFOV, τ 10 ms, 30
 fps) turned by a stretch of the real Betaflight flight (shared/data/gyro/
@@ -36,7 +36,6 @@ import contextlib
 import io
 import math
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -177,8 +176,7 @@ def case(tmp: Path, name: str, start_s: float, logo: bool, readout_s: float, sec
 
 
 def main() -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from yardstick import yardstick_line
+    from benchmarks.yardstick import yardstick_line
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one 1 s clip at 320×256 (not written to results)")
@@ -221,7 +219,7 @@ def main() -> None:
             f"real Betaflight flight: worst gap to the true gyro, least gain over blurry (the true gyro's "
             f"there) | {gap:.2f} dB, {gain:+.2f} dB ({ceiling:+.2f} dB) | ≤ 1.5 dB, ≥ +6 dB -->",
             "# Motion from the video: deblurring without a gyro", "",
-            f"`python benchmarks/bench_video_motion.py` ({wall:.0f} s on this machine; {ys}). "
+            f"`python -m benchmarks.bench_video_motion` ({wall:.0f} s on this machine; {ys}). "
             f"{seconds:g} s clips, 640×512, 30 fps, τ 10 ms, "
             "per-frame AGC, 8-bit H.264; the clips, variants and scoring are in the script's docstring.", "",
             table, "",

@@ -1,6 +1,6 @@
 """The machine's yardstick: the plain reference K&F's ms per frame on this machine.
 
-    .venv/bin/python benchmarks/yardstick.py [--reps 5]
+    .venv/bin/python -m benchmarks.yardstick [--reps 5]
 
 Every timing in `benchmarks/results/` names it beside itself, so that a number measured on one
 machine can be read on another: a payload whose yardstick is 1.5× this machine's runs a solve about
@@ -25,8 +25,7 @@ KERNEL_PX = 33
 
 def yardstick_ms(reps: int = 5) -> float:
     """Median ms of one plain reference K&F frame (320×256, 33 px comet) on one thread."""
-    from bench_deconv import plain_kf, scene
-
+    from benchmarks.bench_deconv import plain_kf, scene
     from thermod.physics.kernels import blur
     from thermod.sim.kernels import comet
 

@@ -11,6 +11,8 @@
 - `playback`   a pre-rendered looping sequence for the real-time simulated payload
 - `payload`    the simulated payload the daemon runs on: the emulated camera and IMU playing a loop
   (`thermod sim` is `thermod.cli.sim`)
+- `flight_recordings`, `sync_flights`, `reference_kernels`  builders the tests and the benchmarks
+               share: flight-like recordings, sync inputs with a hidden truth, a plain NumPy kernel renderer
 
 Submodules are imported on demand (numba compiles on first use).
 """

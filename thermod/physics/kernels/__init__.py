@@ -18,7 +18,7 @@ optical PSF (Eq. 19). Kernels are as large as the motion needs: never cropped.
 Layout: `types` (Kernel, KernelPath, KernelGrid), `params` (calibration → renderer parameters,
 input checks, window and sampling bounds), `core` (the numba renderer), `render` (the public
 renderers and the optical PSF), `blur` (the forward model). The plain NumPy reference the tests
-hold the fast renderer to lives in tests/reference_kernels.py, independent of all of these.
+hold the fast renderer to lives in sim/reference_kernels.py, independent of all of these.
 """
 
 from thermod.physics.kernels.blur import blur, blur_varying

@@ -181,7 +181,7 @@ def _substeps(bt, bw, sampling):
 def _node_rotations(bt, bw, nsub, total):
     """Node times and Q(s) = R(b)ᵀR(s), every sub-node taken from its stretch's end node s1 by one
     trapezoid step Q(s) = Q(s1) exp(½(ω(s)+ω(s1))(s−s1)), so at the samples Q equals
-    `integrate_rotations` exactly (tests/test_kernels.py checks it).
+    `integrate_rotations` exactly (tests/physics/test_kernels.py checks it).
 
     This is `geometry.trapezoid_step_into` written on scalars: passing array views per node costs
     ~25 % of the renderer's time here. The Rodrigues map is the geometry's `so3_exp_into`.

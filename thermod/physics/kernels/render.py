@@ -68,7 +68,7 @@ def _path_args(p: RendererParams, a: float, b: float, box: bool, ppr: float) -> 
     """`PathWindow` and `PathSampling` as plain tuples for the jitted core (box windows ignore τ).
 
     Built in field order without the NamedTuple classes: this runs once per kernel, where a few
-    µs matter; tests/test_kernels.py checks the order against the classes.
+    µs matter; tests/physics/test_kernels.py checks the order against the classes.
     """
     win = (a, b, 1.0 if box else p.tau, box)          # a, b, ppr: floats; box: bool (one numba signature)
     smp = (ppr, MAX_STEP_PX, MAX_NODES, p.max_size_px)

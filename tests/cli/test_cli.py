@@ -1,0 +1,83 @@
+import subprocess
+import sys
+
+from thermod import cli
+
+
+def test_usage_lists_every_command(capsys):
+    assert cli.main([]) == 2
+    out = capsys.readouterr().out
+    for name in cli.COMMANDS:
+        assert name in out
+
+
+def test_unknown_command(capsys):
+    assert cli.main(["frobnicate"]) == 2
+    assert "unknown command 'frobnicate'" in capsys.readouterr().err
+
+
+def test_every_command_module_has_the_command_interface():
+    import importlib
+    for name, (module, _) in cli.COMMANDS.items():
+        m = importlib.import_module(module)
+        assert callable(m.add_arguments) and callable(m.run), name
+
+
+def test_console_script_help_runs():
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "deblur" in r.stdout
+
+
+def test_unexpected_error_is_one_line_and_v_shows_the_traceback(monkeypatch, capsys):
+    """A bug in a command: exit 1 with one line naming the command; -v adds the traceback."""
+    from thermod.cli import sim
+
+    def broken(args):
+        return {}["missing"]
+    monkeypatch.setattr(sim, "run", broken)
+    assert cli.main(["sim", "-o", "x.h5"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("thermod sim: internal error: KeyError: 'missing'") and "-v" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert cli.main(["sim", "-v", "-o", "x.h5"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" in err and "broken" in err
+
+
+def test_thermod_error_exits_2_without_traceback(monkeypatch, capsys):
+    from thermod.cli import sim
+    from thermod.errors import ThermodError
+
+    def refuses(args):
+        raise ThermodError("x.h5: camera/t: expected floats")
+    monkeypatch.setattr(sim, "run", refuses)
+    assert cli.main(["sim", "-o", "x.h5"]) == 2
+    assert capsys.readouterr().err == "thermod sim: error: x.h5: camera/t: expected floats\n"
+
+
+def test_bench_finds_the_benchmarks_of_the_checkout(tmp_path):
+    """`thermod bench` in a checkout reaches benchmarks/ (which lists its suites for an unknown name),
+    whether started at the checkout's root or in a subdirectory; elsewhere it says where it looked."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    for cwd in (root, root / "docs"):
+        r = subprocess.run([sys.executable, "-m", "thermod.cli", "bench", "no_such_suite"], cwd=cwd,
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and "available:" in r.stderr, r.stderr
+    # outside a checkout the package's own checkout is used (an editable install)
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", "bench", "no_such_suite"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "available:" in r.stderr, r.stderr
+
+
+def test_a_failed_deblur_prints_no_per_frame_time(tmp_path, capsys):
+    """A run whose only input fails has no frames to time: it names the failure, not "0 frames …
+    53.0 ms/frame" (the wall time of the failure divided by one)."""
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not HDF5")
+    rc = cli.main(["deblur", str(bad), "-o", str(tmp_path / "out.h5"), "--jobs", "1"])
+    out, err = capsys.readouterr()
+    assert rc == 2
+    assert "ms/frame" not in out and "0 frames" not in out, out
+    assert f"1 of 1 file(s) failed: {bad}" in err and "not a readable HDF5 file" in err, err

@@ -1,0 +1,309 @@
+"""thermod.io.flightlog on real logs (Betaflight blackbox, PX4 ULog: tests/data/flightlogs) and on files
+written in Gyroflow's gcsv and Betaflight's CSV, read back through telemetry-parser; errors; fuzzing."""
+
+import functools
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import telemetry_parser
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from thermod.io.flightlog import (
+    DEG,
+    FORWARD_CAMERA_FROM_FRD,
+    GCSV_ORIENTATION_OPENCV_CAMERA,
+    FlightLog,
+    FlightLogError,
+    axis_aligned_rotations,
+    read_flight_log,
+    write_ardupilot_bin,
+    write_betaflight_csv,
+    write_gcsv,
+)
+
+DATA = Path(__file__).parents[1] / "data" / "flightlogs"
+BBL = DATA / "betaflight_btfl_001.bbl"
+ULG = DATA / "px4_sample_appended_multiple.ulg"
+
+
+@pytest.fixture(scope="module")
+def bbl_log() -> FlightLog:
+    return read_flight_log(BBL)          # telemetry-parser takes ~1.5 s over this 50 s log: read it once
+
+
+def _check(log: FlightLog):
+    assert log.t.dtype == np.float64 and log.rate.dtype == np.float64
+    assert log.rate.shape == (len(log.t), 3) and np.all(np.diff(log.t) > 0)
+    assert np.all(np.isfinite(log.rate))
+
+
+# ------------------------------------------------------------------------------------------ real logs
+def test_real_betaflight_blackbox_gives_the_longest_log_in_frd_rad_s(bbl_log):
+    log = bbl_log
+    _check(log)
+    assert log.source_format == "betaflight" and log.frame == "FRD"
+    assert log.n_logs == 2 and log.log_index == 1                     # the 50 s flight, not the 0.2 s one
+    assert log.rate_hz == pytest.approx(500, rel=1e-3)
+    assert log.duration_s == pytest.approx(49.98, abs=0.01)
+    assert log.t[0] == pytest.approx(191.882474)                       # the FC's clock, untouched
+    assert "Betaflight 4.2.11" in log.model
+    # gyroADC (°/s, x fwd / y left / z up) → FRD rad/s: (roll, −pitch, −yaw)
+    # the same samples as telemetry-parser's raw view of the second log, axes and clock undone
+    raw = telemetry_parser.Parser(str(BBL)).telemetry()[1]["Gyroscope"]["Data"]
+    np.testing.assert_allclose(log.t, [d["t"] for d in raw], atol=1e-9)
+    gyro_adc = np.array([(d["x"], d["y"], d["z"]) for d in raw]) * DEG
+    np.testing.assert_allclose(log.rate, gyro_adc * [1, -1, -1], atol=1e-12)
+    assert 0.5 < np.abs(log.rate).max() < 40                            # a flight: up to a few 100 °/s
+    short = read_flight_log(BBL, log_index=0)
+    assert len(short) == 98 and short.log_index == 0
+    with pytest.raises(FlightLogError, match=r"log 5: the file holds 2 log\(s\)"):
+        read_flight_log(BBL, log_index=5)
+
+
+def test_real_px4_ulog_sensor_combined():
+    log = read_flight_log(ULG)
+    _check(log)
+    assert log.source_format == "px4-ulog" and log.frame == "FRD" and "sensor_combined" in log.model
+    assert log.rate_hz == pytest.approx(250, rel=1e-3) and len(log) == 2373
+    assert log.duration_s == pytest.approx(9.6176, abs=1e-4)
+    from pyulog import ULog
+    d = ULog(str(ULG), ["sensor_combined"]).get_dataset("sensor_combined")
+    np.testing.assert_allclose(log.rate[:, 2], d.data["gyro_rad[2]"])
+    np.testing.assert_allclose(log.t, d.data["timestamp"] * 1e-6)
+
+
+def test_real_betaflight_log_survives_gcsv_and_csv_round_trips(tmp_path, bbl_log):
+    real = bbl_log
+    g = read_flight_log(write_gcsv(tmp_path / "real.gcsv", real.t, real.rate))
+    assert g.source_format == "gcsv" and g.frame == "imu" and g.orientation == "XYZ"
+    np.testing.assert_allclose(g.t, real.t, atol=1e-6)
+    np.testing.assert_allclose(g.rate, real.rate, atol=1e-6)
+    c = read_flight_log(write_betaflight_csv(tmp_path / "real.csv", real.t, real.rate))
+    assert c.source_format == "betaflight-csv" and c.frame == "FRD"
+    np.testing.assert_allclose(c.t, real.t, atol=1e-6)
+    np.testing.assert_allclose(c.rate, real.rate, atol=1e-9)           # the real log is whole °/s already
+
+
+def test_shared_betaflight_export_is_a_reduced_csv_no_parser_reads(shared_data, require):
+    """shared/data/gyro/betaflight_smooth_2khz.csv is a reduced export (time_us, gyro_*_degps, acc_*_raw),
+    not Blackbox Explorer's CSV: refused by name, not misread."""
+    path = shared_data / "gyro" / "betaflight_smooth_2khz.csv"
+    require(path.exists(), "../shared/data/gyro/betaflight_smooth_2khz.csv (the real Betaflight log)")
+    assert path.read_text()[:40].startswith("time_us,gyro_roll_degps")
+    with pytest.raises(FlightLogError, match=r"betaflight_smooth_2khz\.csv: not a log format"):
+        read_flight_log(path)
+
+
+# ------------------------------------------------------------------------------------------- writers
+def test_gcsv_round_trip_through_telemetry_parser(tmp_path):
+    rng = np.random.default_rng(0)
+    t = 1234.5 + np.cumsum(rng.uniform(0.9e-3, 1.1e-3, 3000))
+    w = rng.normal(0, 2.0, (3000, 3))
+    path = write_gcsv(tmp_path / "flight.gcsv", t, w, orientation="yxz", note="sim, test",
+                      extra={"frame_readout_time": 12.5})
+    text = path.read_text().splitlines()
+    assert text[0] == "GYROFLOW IMU LOG" and "t,gx,gy,gz" in text and "orientation,yxz" in text
+    tp = telemetry_parser.Parser(str(path))                               # Gyroflow's own parser
+    assert tp.camera == "thermod"
+    log = read_flight_log(path)
+    assert log.orientation == "yxz" and log.frame == "imu"
+    np.testing.assert_allclose(log.t, t, atol=0.6e-6)
+    np.testing.assert_allclose(log.rate, w, atol=0.6e-6)
+    assert log.rate_hz == pytest.approx(1000, rel=0.02)
+
+
+def test_betaflight_csv_is_read_as_blackbox_in_frd(tmp_path):
+    t = 10.0 + np.arange(1000) / 2000.0
+    w = np.zeros((1000, 3))
+    w[:, 0], w[:, 1], w[:, 2] = 1.0, -0.5, 0.25                           # roll right, pitch down, yaw right
+    path = write_betaflight_csv(tmp_path / "bf.csv", t, w, integer_deg_s=False)
+    lines = path.read_text().splitlines()
+    assert lines[2].startswith('"loopIteration","time","gyroADC[0]"')
+    first = [float(v) for v in lines[3].split(",")]
+    assert first[1] == 10_000_000                                         # µs since boot
+    np.testing.assert_allclose(first[2:], np.array([1.0, 0.5, -0.25]) / DEG, atol=1e-3)   # FLU in the file
+    log = read_flight_log(path)
+    assert log.source_format == "betaflight-csv" and log.rate_hz == pytest.approx(2000)
+    np.testing.assert_allclose(log.rate, w, atol=1e-5)
+
+
+@pytest.mark.parametrize("n_imus,stagger_s", [(1, 0.0), (2, 0.0), (2, 5e-6), (3, 20e-6)])
+def test_ardupilot_bin_is_read_in_frd_keeping_the_first_imu(tmp_path, n_imus, stagger_s):
+    rng = np.random.default_rng(n_imus)
+    t = 7.0 + np.arange(2000) / 400.0 + rng.normal(0, 20e-6, 2000)        # loop jitter
+    w = rng.normal(0, 1.0, (2000, 3))
+    path = write_ardupilot_bin(tmp_path / "flight.bin", t, w, n_imus=n_imus, stagger_s=stagger_s)
+    assert path.read_bytes()[:4] == bytes([0xA3, 0x95, 0x80, 0x80])      # DataFlash FMT of FMT
+    assert telemetry_parser.Parser(str(path)).camera == "ArduPilot"
+    log = read_flight_log(path)
+    assert log.source_format == "ardupilot" and log.frame == "FRD" and len(log) == 2000
+    np.testing.assert_allclose(log.t, t, atol=0.6e-6)                      # µs in the file
+    np.testing.assert_allclose(log.rate, w, atol=1e-6)                     # instance 0, float32 in the file
+
+
+def test_a_sibling_gcsv_is_not_read_in_place_of_the_named_file(tmp_path):
+    t = np.arange(100) / 1000.0 + 1
+    write_gcsv(tmp_path / "x.gcsv", t, np.ones((100, 3)))
+    log = read_flight_log(write_betaflight_csv(tmp_path / "x.csv", t, np.zeros((100, 3))))
+    assert log.source_format == "betaflight-csv" and np.all(log.rate == 0)
+
+
+def test_the_24_axis_aligned_mounts():
+    r = axis_aligned_rotations()
+    assert r.shape == (24, 3, 3) and len({m.tobytes() for m in r}) == 24
+    assert np.allclose(np.einsum("kij,kil->kjl", r, r), np.eye(3)) and np.allclose(np.linalg.det(r), 1)
+    assert np.array_equal(r[-1], np.eye(3)) and np.array_equal(r, axis_aligned_rotations())
+    assert any(np.array_equal(m, FORWARD_CAMERA_FROM_FRD) for m in r)
+
+
+def test_gcsv_camera_orientation_gives_gyroflow_the_axes_it_gives_an_fc_log(tmp_path):
+    """Camera-frame rates written with GCSV_ORIENTATION_OPENCV_CAMERA reach Gyroflow's axes
+    (telemetry-parser's normalized_imu) as the same motion logged by a flight controller with a
+    forward camera does."""
+    t = 2.0 + np.arange(400) / 400.0
+    w_frd = np.random.default_rng(3).normal(0, 1.0, (400, 3))
+    fc = write_ardupilot_bin(tmp_path / "fc.bin", t, w_frd)
+    cam = write_gcsv(tmp_path / "cam.gcsv", t, w_frd @ FORWARD_CAMERA_FROM_FRD.T,
+                     orientation=GCSV_ORIENTATION_OPENCV_CAMERA)
+    g_fc = np.array([r["gyro"] for r in telemetry_parser.Parser(str(fc)).normalized_imu()])
+    g_cam = np.array([r["gyro"] for r in telemetry_parser.Parser(str(cam)).normalized_imu()])
+    np.testing.assert_allclose(g_cam, g_fc, atol=1e-4)               # °/s; float32 and µrad/s rounding
+
+
+def test_forward_camera_mount_is_a_proper_rotation():
+    m = FORWARD_CAMERA_FROM_FRD
+    assert np.allclose(m @ m.T, np.eye(3)) and np.linalg.det(m) == pytest.approx(1.0)
+    assert np.allclose(m @ [0, 0, 1], [0, 1, 0])       # body yaw (z down) is the camera's y (down): a pan
+
+
+def test_writers_refuse_bad_series(tmp_path):
+    with pytest.raises(FlightLogError, match="increase strictly"):
+        write_gcsv(tmp_path / "a.gcsv", [0, 1, 1], np.zeros((3, 3)))
+    with pytest.raises(FlightLogError, match=r"rates \[N, 3\]"):
+        write_gcsv(tmp_path / "a.gcsv", [0, 1], np.zeros((2, 2)))
+    with pytest.raises(FlightLogError, match="permutation"):
+        write_gcsv(tmp_path / "a.gcsv", [0, 1], np.zeros((2, 3)), orientation="XXZ")
+    with pytest.raises(FlightLogError, match="≥ 0"):
+        write_betaflight_csv(tmp_path / "a.csv", [-1, 0], np.zeros((2, 3)))
+
+
+# -------------------------------------------------------------------------------------------- errors
+def test_unsupported_empty_missing_and_truncated_files(tmp_path):
+    (tmp_path / "notes.txt").write_text("hello, world\n1,2,3\n")
+    with pytest.raises(FlightLogError, match=r"notes\.txt: not a log format"):
+        read_flight_log(tmp_path / "notes.txt")
+    (tmp_path / "empty.bbl").write_bytes(b"")
+    with pytest.raises(FlightLogError, match=r"empty\.bbl: empty file"):
+        read_flight_log(tmp_path / "empty.bbl")
+    with pytest.raises(FlightLogError, match="no such file"):
+        read_flight_log(tmp_path / "absent.ulg")
+    data = ULG.read_bytes()
+    (tmp_path / "cut.ulg").write_bytes(data[:2000])                       # the header and no data
+    with pytest.raises(FlightLogError, match=r"cut\.ulg: (no gyro samples|pyulog cannot read it)"):
+        read_flight_log(tmp_path / "cut.ulg")
+    bbl = BBL.read_bytes()
+    (tmp_path / "cut.bbl").write_bytes(bbl[:3000])                       # headers only, no frames
+    with pytest.raises(FlightLogError, match=r"cut\.bbl: .*(no gyro samples|truncated)"):
+        read_flight_log(tmp_path / "cut.bbl")
+    (tmp_path / "half.bbl").write_bytes(bbl[: len(bbl) // 2])             # power cut mid-flight: usable
+    half = read_flight_log(tmp_path / "half.bbl")
+    assert 5 < half.duration_s < 40 and half.source_format == "betaflight"
+
+
+def test_a_log_without_gyro_is_refused(tmp_path):
+    path = tmp_path / "nogyro.gcsv"
+    path.write_text("GYROFLOW IMU LOG\nversion,1.3\nid,x\ntscale,0.001\ngscale,1\nt\n")
+    with pytest.raises(FlightLogError, match=r"nogyro\.gcsv: no gyro samples"):
+        read_flight_log(path)
+    csv = tmp_path / "nogyro.csv"
+    csv.write_text('"loopIteration","time","motor[0]"\n0,100,1000\n1,200,1001\n')
+    with pytest.raises(FlightLogError, match=r"nogyro\.csv: no gyro samples"):
+        read_flight_log(csv)
+
+
+def test_a_parser_panic_becomes_a_flight_log_error(tmp_path):
+    bad = tmp_path / "panic.csv"          # telemetry-parser unwraps the time column: a Rust panic
+    bad.write_text('"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n0,abc,1,2,3\n')
+    with pytest.raises(FlightLogError, match=r"panic\.csv: the parser failed: truncated or corrupt"):
+        read_flight_log(bad)
+
+
+def test_rate_zero_and_non_increasing_times_are_refused(tmp_path):
+    header = "GYROFLOW IMU LOG\nversion,1.3\nid,x\ntscale,1\ngscale,1\nt,gx,gy,gz\n"
+    same = tmp_path / "frozen.gcsv"
+    same.write_text(header + "".join(f"{k // 500},0,0,0\n" for k in range(1000)))   # 1 Hz clock ticks
+    with pytest.raises(FlightLogError, match=r"frozen\.gcsv: .*(not after|rate)"):
+        read_flight_log(same)
+    back = tmp_path / "back.gcsv"
+    rows = [f"{t},1,2,3\n" for t in list(range(0, 50)) + list(range(10, 60))]
+    back.write_text(header.replace("tscale,1", "tscale,0.001") + "".join(rows))
+    with pytest.raises(FlightLogError, match=r"back\.gcsv: gyro sample 50 at 0\.010000 s is not after"):
+        read_flight_log(back)
+    slow = tmp_path / "slow.gcsv"
+    slow.write_text(header + "".join(f"{k},1,2,3\n" for k in range(20)))             # 1 Hz
+    with pytest.raises(FlightLogError, match=r"slow\.gcsv: gyro sample rate 1 Hz"):
+        read_flight_log(slow)
+
+
+def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
+    t = np.arange(5000) / 1000.0
+    path = write_gcsv(tmp_path / "glitch.gcsv", t, np.zeros((5000, 3)))
+    lines = path.read_text().splitlines()
+    i = lines.index("t,gx,gy,gz") + 2000
+    lines[i] = "1000,0,0,0"                                                # one stale stamp (1 ms)
+    path.write_text("\n".join(lines) + "\n")
+    log = read_flight_log(path)
+    assert log.n_dropped == 1 and len(log) == 4999
+
+
+# ----------------------------------------------------------------------------------------- fuzzing
+@functools.cache
+def _seeds() -> dict[str, bytes]:
+    """A small valid file of each family, to mutate."""
+    t, w = 1.0 + np.arange(200) / 500.0, np.random.default_rng(0).normal(0, 1, (200, 3))
+    with tempfile.TemporaryDirectory() as d:
+        return {".bbl": BBL.read_bytes()[:6000], ".ulg": ULG.read_bytes()[:6000],
+                ".bin": write_ardupilot_bin(Path(d) / "s.bin", t, w, n_imus=2).read_bytes(),
+                ".gcsv": write_gcsv(Path(d) / "s.gcsv", t, w).read_bytes(),
+                ".csv": write_betaflight_csv(Path(d) / "s.csv", t, w).read_bytes()}
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
+    suffix = data.draw(st.sampled_from([".bbl", ".ulg", ".gcsv", ".csv", ".bin"]))
+    kind = data.draw(st.sampled_from(["random", "mutate", "text"]))
+    if kind == "random":
+        blob = data.draw(st.binary(max_size=2048))
+    elif kind == "text":
+        head = data.draw(st.sampled_from([
+            "GYROFLOW IMU LOG\nversion,1.3\ntscale,0.001\ngscale,1\nt,gx,gy,gz\n",
+            '"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n',
+            "H Product:Blackbox flight data recorder by Nicholas Sherlock\n"]))
+        body = data.draw(st.text(alphabet="0123456789,.-e\nabc\"", max_size=400))
+        blob = (head + body).encode()
+    else:
+        b = bytearray(_seeds()[suffix])
+        for _ in range(data.draw(st.integers(1, 12))):
+            b[data.draw(st.integers(0, len(b) - 1))] = data.draw(st.integers(0, 255))
+        blob = bytes(b[: data.draw(st.integers(1, len(b)))])
+    path = tmp_path / f"fuzz{suffix}"
+    path.write_bytes(blob)
+    try:
+        log = read_flight_log(path)
+    except FlightLogError as e:
+        assert "fuzz" in str(e)
+        return
+    _check(log)
+    assert 10 <= log.rate_hz <= 100_000
+
+
+def test_fixture_logs_are_small_and_licensed():
+    for p in (BBL, ULG):
+        assert p.stat().st_size < 1_000_000
+    readme = (DATA / "README.md").read_text()
+    assert BBL.name in readme and ULG.name in readme and "MIT" in readme and "BSD-3-Clause" in readme
+    assert (DATA / "LICENSE-fc-blackbox-MIT").exists() and (DATA / "LICENSE-pyulog-BSD-3-Clause").exists()
