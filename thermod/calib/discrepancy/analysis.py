@@ -444,7 +444,7 @@ def _identify(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say
             f"({format_params(EFFECTS[name].values(final, ana.nominal))})")
     ana.ambiguous = ident.ambiguous
     ana.identifiability = jsonable(ident.report())
-    ana.snapshot("identified", problem, problem.evaluate(final, keep=True))
+    ana.snapshot("joint timing fit", problem, problem.evaluate(final, keep=True))
     return final
 
 

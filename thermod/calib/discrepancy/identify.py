@@ -315,6 +315,22 @@ def effect_correlation(rho: np.ndarray, a: str, b: str) -> float:
     return best
 
 
+def _stand_ins(e: str, tests: dict, x_joint, nom, res_u) -> list[str]:
+    """The effects whose parameters moved by at least half their resolution when `e` was held at nominal
+    (the profile), largest move first; at least the one that moved most."""
+    moved = {}
+    for o in CONFOUNDED:
+        if o == e or e not in tests:
+            continue
+        profile = tests[e]["others_without"]
+        steps = [abs(profile[PARAMS[i][1]] - nom[i] - x_joint[i] * UNITS[i]) / max(res_u[i] * UNITS[i], 1e-30)
+                 for i in _index({o}) if PARAMS[i][1] in profile]
+        if steps:
+            moved[o] = max(steps)
+    ranked = sorted(moved, key=lambda o: -moved[o])
+    return [o for o in ranked if moved[o] >= 0.5] or ranked[:1]
+
+
 def _ambiguous_entries(rest, named, rho, sd_u, res_u, x_joint, nom, tests, gap_without, gap_joint,
                        dbic) -> list:
     """One entry for the effects that failed the test but are needed as a set: those the search named and
@@ -325,9 +341,8 @@ def _ambiguous_entries(rest, named, rho, sd_u, res_u, x_joint, nom, tests, gap_w
     for e in rest:
         if e not in group and any(abs(effect_correlation(rho, e, c)) >= AMBIGUOUS_CORRELATION for c in core):
             group.append(e)
-    if len(group) == 1:       # alone it failed: its confound is the one it correlates with most
-        others = [e for e in CONFOUNDED if e != group[0]]
-        group.append(max(others, key=lambda o: abs(effect_correlation(rho, group[0], o))))
+    if len(group) == 1:       # alone it failed: its confounds are what moved to stand in for it
+        group += _stand_ins(group[0], tests, x_joint, nom, res_u)
     group.sort(key=lambda e: -tests[e]["delta_ssr_share"] if e in tests else 0.0)
     lead = group[:2] if len(group) >= 2 else group
     label = " | ".join(lead) + (f" (+ {', '.join(group[2:])})" if len(group) > 2 else "")

@@ -244,7 +244,8 @@ def _identifiability_md(ana: Analysis) -> list[str]:
     if not idf:
         return []
     md = ["", "## Identifiability of the timing effects", "", f"Rule: {idf['rule']}.", "",
-          "| parameter | joint fit | nominal | σ (noise) | resolution (min_gain) |", "|---|---|---|---|---|"]
+          "| parameter | fitted (kept) | nominal | σ (noise) | resolution (min_gain) |",
+          "|---|---|---|---|---|"]
     for name, v, n, s, r in zip(idf["params"], idf["values"], idf["nominal"], idf["sigma"], idf["resolution"],
                                 strict=True):
         md.append(f"| {name} | {v:.4g} | {n:.4g} | {s:.2g} | {r:.2g} |")
