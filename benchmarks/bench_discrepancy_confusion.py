@@ -124,7 +124,7 @@ def row(r: dict) -> str:
     sig = "—" if r["sigma_readout_ms"] is None else f"{r['sigma_readout_ms']:.2f}"
     g = r["gap"]
     return (f"| {r['case']} | {', '.join(r['named']) or 'nothing'} | "
-            f"{'; '.join(r['ambiguous_labels']) or '—'} | {', '.join(r['wrong']) or '—'} | "
+            f"{'; '.join(r['ambiguous_labels']).replace('|', '∣') or '—'} | {', '.join(r['wrong']) or '—'} | "
             f"{'; '.join(f'{k}: {x}' for k, x in v.items())} | {rec} | {rho} | {sig} | "
             f"{g[0]:.4f} → {g[1]:.4f} ({g[2]:.4f}) | {'yes' if r['unexplained'] else 'no'} | "
             f"{r['cpu_s']:.0f} |")
