@@ -18,8 +18,8 @@ else **missed**; every named effect that is not hidden is a **wrong name**.
 Prints a row per case as it ends, then the confusion table over every case measured so far: results
 are kept one JSON line per case in $TMPDIR/thermod_confusion/results.jsonl (a case already there is not
 run again), so the cases can run as separate processes; `--out` writes the table into the results
-file's confusion section. `--list` prints the case names. Each case costs 2–5 CPU-min (0.8 s) or
-10–20 (3 s).
+file's confusion section (`--cases ""` writes what is cached). `--list` prints the case names. Each
+case costs minutes of CPU, a 3 s flight several times a 0.8 s one (the table's CPU s column).
 """
 
 from __future__ import annotations
@@ -121,7 +121,8 @@ def row(r: dict) -> str:
     rec = (f"offset {vals['time_offset_ms']:.2f} ms, readout {vals['readout_ms']:.2f} ms, "
            f"τ {vals['tau_ms']:.2f} ms, bias (" + ", ".join(f"{b:.2f}" for b in vals["bias_deg_s"]) + ") °/s")
     rho = "—" if r["rho_readout_offset"] is None else f"{r['rho_readout_offset']:+.3f}"
-    sig = "—" if r["sigma_readout_ms"] is None else f"{r['sigma_readout_ms']:.2f}"
+    sig = "—" if r["sigma_readout_ms"] is None else (f"{r['sigma_readout_ms']:.3f} / "
+                                                     f"{r['resolution_readout_ms']:.1f}")
     g = r["gap"]
     return (f"| {r['case']} | {', '.join(r['named']) or 'nothing'} | "
             f"{'; '.join(r['ambiguous_labels']).replace('|', '∣') or '—'} | {', '.join(r['wrong']) or '—'} | "
@@ -131,7 +132,8 @@ def row(r: dict) -> str:
 
 
 CASE_HEADER = ["| case (log:s:hidden) | named | ambiguous | wrong names | verdict | final values | "
-               "ρ(offset, readout) | σ readout (ms) | gap → final (floor) | unexplained | CPU s |",
+               "ρ(offset, readout) | readout σ / resolution (ms) | gap → final (floor) | unexplained "
+               "| CPU s |",
                "|---|---|---|---|---|---|---:|---:|---|---|---:|"]
 COLUMNS = (*TIMING, "other", "ambiguous", "nothing")
 
@@ -184,7 +186,8 @@ def write(out: Path, results: list[dict]) -> None:
              "`nice .venv/bin/python benchmarks/bench_discrepancy_confusion.py --out "
              "benchmarks/results/discrepancy_heldout.md`"]
     if todo:
-        body += ["", f"Not measured yet ({len(todo)} cases, 2–20 CPU-min each on the shared 2-core host): "
+        body += ["", f"Not measured yet ({len(todo)} cases; run them with the command above, `nice`, "
+                 "and `--cases` to split them over processes): "
                  + ", ".join(f"`{n}`" for n in todo) + "."]
     text = out.read_text() if out.exists() else "# Held-out motion-only discrepancy\n"
     head = text.split(SECTION)[0].rstrip("\n")
