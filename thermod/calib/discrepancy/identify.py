@@ -81,7 +81,7 @@ class Identifiability:
     """What the joint fit says (see the module docstring); `report()` is its JSON form."""
 
     params: list                        # labels of the fitted parameters
-    values: list                        # joint fit, physical units
+    values: list                        # the fit kept (identified and ambiguous at the joint fit)
     nominal: list
     sigma: list                         # 1σ from the noise (statistical), physical units
     resolution: list                    # the same with min_gain as the unit: what the model can resolve
