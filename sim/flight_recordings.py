@@ -45,23 +45,41 @@ def nominal_calibration(size=(160, 120)) -> Calibration:
     return Calibration(width=w, height=h, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy)
 
 
+def log_motion(path, start_s: float) -> mo.GyroLog:
+    """The attitude of a flight-controller log (`thermod.io.flightlog`: Betaflight blackbox, PX4 ULog, …)
+    from `start_s` into it, seen by a forward-looking upright camera (`FORWARD_CAMERA_FROM_FRD`)."""
+    from thermod.io.flightlog import FORWARD_CAMERA_FROM_FRD, read_flight_log
+
+    fl = read_flight_log(path)
+    t = fl.t - fl.t[0]
+    if not 0 <= start_s < t[-1]:
+        raise ValueError(f"{path}: start {start_s:g} s is outside the log's 0–{t[-1]:.1f} s")
+    return mo.GyroLog(t, fl.rate @ FORWARD_CAMERA_FROM_FRD.T, float(start_s), spec=f"{path}:{start_s:g}")
+
+
 def flight_motion(seed: int = 0, real_log: bool = False, vibration_deg_s: float = 0.0,
-                  log_start_s: float | None = None) -> mo.Motion:
+                  log_start_s: float | None = None, log=None) -> mo.Motion:
     """The flight attitude (module docstring), plus a 10 Hz rotor vibration of `vibration_deg_s` RMS
     (harmonics to 40 Hz: the broadband content a gyro low-pass needs to be told from a delay).
-    `log_start_s`: where in the real log the flight starts (default 0.7·seed + 1.0 s)."""
+    `log_start_s`: where in the real log the flight starts (default 0.7·seed + 1.0 s); `log`: another
+    flight-controller log to take it from (`log_motion`) instead of the Betaflight CSV."""
     start = 0.7 * seed + 1.0 if log_start_s is None else log_start_s
-    m = mo.gyro_log(None, start_s=start) if real_log else mo.flight(seed=seed)
+    if log is not None:
+        m = log_motion(log, start)
+    else:
+        m = mo.gyro_log(None, start_s=start) if real_log else mo.flight(seed=seed)
     return mo.Summed(m, mo.vibration(vibration_deg_s, 10.0, seed)) if vibration_deg_s else m
 
 
 def flight_recording(effects: dict | None = None, seconds: float = 0.4, size=(160, 120), seed: int = 0,
                      real_log: bool = False, scene="texture",
-                     vibration_deg_s: float = 0.0, log_start_s: float | None = None) -> FlightRecording:
+                     vibration_deg_s: float = 0.0, log_start_s: float | None = None,
+                     log=None) -> FlightRecording:
     """A recording of `seconds` at `size` with hidden `effects` (the simulator's vocabulary) and flight
-    motion (see the module docstring); returns it with its nominal and true calibrations."""
+    motion (see the module docstring; `log`: a flight-controller log's instead, `log_motion`); returns
+    it with its nominal and true calibrations."""
     nominal = nominal_calibration(size)
-    motion = flight_motion(seed, real_log, vibration_deg_s, log_start_s)
+    motion = flight_motion(seed, real_log, vibration_deg_s, log_start_s, log)
     rec = simulate(scene, motion, seconds, nominal, {"netd": 0.05, **(effects or {})}, seed=seed)
     return FlightRecording(rec, nominal, truth_calibration(rec))
 

@@ -114,5 +114,8 @@ def run(args) -> int:
     if config_text is None:       # model.toml: the packaged default configuration, new calibration
         config_text = cfgmod.default_path().read_text()
     write_report(ana, args.out, args.recordings, config_text)
+    for a in ana.ambiguous:
+        say(f"{a['label']}: not named; model.toml keeps their values under test; to separate them record "
+            f"{a['separating_motion']}")
     say(f"report: {Path(args.out) / 'report.md'}; model: {Path(args.out) / 'model.toml'}")
     return 0

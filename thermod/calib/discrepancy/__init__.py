@@ -19,7 +19,9 @@ Layout: `data` (model, recording preparation, size guards), `sensor` (detector-s
 one prediction every cost goes through), `problem` (cost, noise, step context), `projection`
 (variable-projection steps), `fitting` (the scalar and vector searches every fit uses), `effects` (one
 `Effect` record per candidate, the vocabulary `EFFECTS` assembled once), `diagnostics`, `analysis`
-(the search), `report` (report.json, report.md, model.toml and the figures).
+(the search), `identify` (the timing effects' joint fit and significance test before they are named:
+`ambiguous` when the motion cannot tell them apart), `report` (report.json, report.md, model.toml and
+the figures).
 """
 
 from thermod.calib.discrepancy.analysis import Analysis, Candidate, Criteria, analyse

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from thermod.calib.discrepancy import identify
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.diagnostics import diagnostics, pooled_response_signature, response_signature
 from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult, format_params
@@ -83,16 +84,29 @@ class Analysis:
     response_signature_slope: float = 0.0
     response_signature_gain: float = 0.0    # the slope as a gain change over ±3 RMS contrast
     response_signature_pooled_z: float = 0.0
+    identifiability: dict = field(default_factory=dict)   # `identify.Identifiability.report()`, if run
+    ambiguous: list = field(default_factory=list)          # its ambiguous entries (none named)
 
     @property
     def named(self) -> list[str]:
         return [s["effect"] for s in self.steps]
 
+    @property
+    def ambiguous_effects(self) -> list[str]:
+        return [e for a in self.ambiguous for e in a["effects"]]
+
+    def calibration(self):
+        """The calibration to write: the final model's, with every ambiguous effect's parameters left at
+        the values under test (an ambiguous value is one of several the data allow, not a measurement)."""
+        if not self.ambiguous:
+            return self.model.final_calibration()
+        return identify.without(self.model, self.nominal, self.ambiguous_effects).final_calibration()
+
     def report(self) -> dict:
         return {
             "gap_initial": self.gap_initial, "gap_final": self.gap_final, "noise_floor": self.noise_floor,
             "steps": self.steps, "unexplained": self.unexplained,
-            "model": self.model.final_calibration().as_dict(),
+            "model": self.calibration().as_dict(),
             "nominal": self.nominal.final_calibration().as_dict(),
             "unobservable": self.unobservable, "candidates": self.candidates_tried,
             "definition": GAP_DEFINITION, "seconds": self.seconds,
@@ -101,6 +115,7 @@ class Analysis:
             "response_signature_z": self.response_signature_z,
             "response_signature_gain": self.response_signature_gain,
             "response_signature_pooled_z": self.response_signature_pooled_z,
+            "ambiguous": self.ambiguous, "identifiability": self.identifiability,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -316,7 +331,8 @@ def _prune(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -
 def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_steps: int = 4,
             bic_min: float = 10.0, min_explained: float = 0.3, structured_excess: float = 0.3,
             unexplained_excess: float = 1.0, model_tol: float = 0.05, fpn: bool = True,
-            polish: bool = True, min_pixels: int = 2000, progress=None) -> Analysis:
+            polish: bool = True, min_pixels: int = 2000, identifiability: bool = True,
+            progress=None) -> Analysis:
     """Greedy search for the missing effects (see the package docstring for the criteria).
 
     `structured_excess`: candidates are tried while SSR exceeds the noise expectation by this
@@ -329,7 +345,9 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     unexplained when ``SSR > noise·(1 + unexplained_excess) + (model_tol·‖signal‖)²``; a candidate
     must also remove at least (model_tol·‖signal‖)² of SSR (practical significance: less is fitting
     resampling error). `min_explained`: a candidate must remove at least this fraction of the
-    excess SSR. `bic_min`: decisive BIC gain on effective samples.
+    excess SSR. `bic_min`: decisive BIC gain on effective samples. `identifiability`: on motion-only
+    recordings, the timing effects named are checked against their confounds (`identify`) before the
+    verdict; those the motion cannot tell apart are reported `ambiguous`, not named.
     """
     say = progress or (lambda msg: None)
     t_start = time.monotonic()
@@ -380,11 +398,53 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         model = _refit(ctx, model, [EFFECTS[n] for n in ana.named], fpn, ana.nominal, say)
         model = _prune(ctx, model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
+    if identifiability and problem.has_motion_reference and set(ana.named) & set(identify.CONFOUNDED):
+        model = _identify(StepContext.at(problem, ev, ana.named, model_tol, fpn), model, crit, ana, say)
+        ev = problem.evaluate(model, keep=True)
     ana.finish(model, problem, ev, crit, time.monotonic() - t_start)
+    for a in ana.ambiguous:
+        say(f"{a['label']} — " + "; ".join(a["evidence"])
+            + f"; to separate them record {a['separating_motion']}")
     say(f"final gap {ana.gap_final:.4f} (noise floor {ana.noise_floor:.4f}); "
         + ("remaining residual is structured but no candidate explains it: UNEXPLAINED "
            f"({ana.unexplained_reason})" if ana.unexplained else "residual at the noise level"))
     return ana
+
+
+def _identify(ctx: StepContext, model: Model, crit: Criteria, ana: Analysis, say) -> Model:
+    """`identify.check` on the search's model; the steps then hold what it identified: a timing effect
+    the search named that fails is moved to `ambiguous` or dropped, one it identified that the search
+    had not named is added (with the diagnostics of the model without it)."""
+    say("identifiability of the timing effects (joint fit, curvature, each held at nominal):")
+    final, ident = identify.check(ctx, model, ana.nominal, ana.named, crit.bic_min, say)
+    problem = ctx.problem
+    for name in [n for n in ana.named if n in identify.CONFOUNDED and n not in ident.identified]:
+        i = ana.named.index(name)
+        ana.steps.pop(i)
+        ana.diags.pop(i)
+        ana.unobservable.pop(name, None)
+        if name in ident.dropped:
+            t = ident.tests.get(name, {})
+            ana.pruned.append({"effect": name, "params": jsonable(EFFECTS[name].values(model, ana.nominal)),
+                               "gap_without": t.get("gap_without", float("nan")),
+                               "gap_with": t.get("gap_joint", float("nan"))})
+    for name in [n for n in ident.identified if n not in ana.named]:
+        t = ident.tests[name]
+        reduced = identify.without(final, ana.nominal, [name])
+        ev = problem.evaluate(reduced, keep=True)
+        ana.steps.append({
+            "effect": name, "params": {}, "gap_before": t["gap_without"], "gap_after": t["gap_joint"],
+            "delta_bic": t["delta_bic"], "excess_explained": float("nan"),
+            "n_params": identify.n_params(name), "unobservable": [],
+            "diagnostic": EFFECTS[name].diagnostic, "centroid_lag_median_s": float("nan"),
+            "named_by": "joint fit"})
+        ana.diags.append((name, diagnostics(problem, reduced, ev)))
+        say(f"→ {name}: identified by the joint fit "
+            f"({format_params(EFFECTS[name].values(final, ana.nominal))})")
+    ana.ambiguous = ident.ambiguous
+    ana.identifiability = jsonable(ident.report())
+    ana.snapshot("joint timing fit", problem, problem.evaluate(final, keep=True))
+    return final
 
 
 def _contrast(problem: Problem) -> float:

@@ -34,7 +34,7 @@ def projected_lm(ctx: StepContext, make, x0, lo, hi, *, h: float = 0.25, iters: 
     ev = problem.evaluate(model, keep=True)
     cost, lam = ev.ssr + _prior_ss(x, prior), 1e-3
     for _ in range(iters if len(x) else 0):
-        J, r, X = _projected_jacobian(problem, make, x, ev, h, lo, hi, scene_iters)
+        J, r, X = projected_jacobian(problem, make, x, ev, h, lo, hi, scene_iters)
         if prior is not None:
             sw = np.sqrt(prior[1]) * np.ones(len(x))
             J = np.vstack([J, np.diag(sw)])
@@ -83,7 +83,7 @@ def _prior_ss(x, prior) -> float:
     return 0.0 if prior is None else float(prior[1] @ (np.asarray(x) - prior[0]) ** 2)
 
 
-def _projected_jacobian(problem, make, x, ev, h, lo, hi, scene_iters):
+def projected_jacobian(problem, make, x, ev, h, lo, hi, scene_iters):
     """The residual vector r over the masked pixels, its Jacobian −∂r/∂x with the canvas's share
     projected out (J̃, one column per parameter) and per recording the canvas directions X (None for a
     static reference, which does not move)."""

@@ -221,12 +221,52 @@ def write_report(ana: Analysis, out: str | Path, inputs: list[str], config_text:
     rep["inputs"] = [str(p) for p in inputs]
     try:
         (out / "report.json").write_text(json.dumps(rep, indent=2, allow_nan=False) + "\n")
-        (out / "model.toml").write_text(replace_calibration_table(config_text, ana.model.final_calibration()))
+        (out / "model.toml").write_text(_ambiguous_header(ana)
+                                        + replace_calibration_table(config_text, ana.calibration()))
         figs = _figures(ana, out)
         (out / "report.md").write_text(_markdown(ana, rep["inputs"], figs))
     except OSError as e:
         raise ConfigError(f"--out {out}: cannot write the report ({e.filename}: {e.strerror})") from None
     return rep
+
+
+def _ambiguous_header(ana: Analysis) -> str:
+    """Comment lines for model.toml: which fields stay at the values under test because the flight could
+    not tell their effects apart."""
+    return "".join(f"# {a['label']}: their fields keep the values under test; to separate them record "
+                   f"{a['separating_motion']}\n" for a in ana.ambiguous)
+
+
+def _identifiability_md(ana: Analysis) -> list[str]:
+    """The identifiability section: the rule, each timing parameter's σ and resolution, the pairs'
+    correlations, each effect's test, and any ambiguous entry with its evidence."""
+    idf = ana.identifiability
+    if not idf:
+        return []
+    md = ["", "## Identifiability of the timing effects", "", f"Rule: {idf['rule']}.", "",
+          "| parameter | fitted (kept) | nominal | σ (noise) | resolution (min_gain) |",
+          "|---|---|---|---|---|"]
+    for name, v, n, s, r in zip(idf["params"], idf["values"], idf["nominal"], idf["sigma"], idf["resolution"],
+                                strict=True):
+        md.append(f"| {name} | {v:.4g} | {n:.4g} | {s:.2g} | {r:.2g} |")
+    md += ["", "Correlations of the joint fit's estimates:", "",
+           "| | " + " | ".join(idf["params"]) + " |", "|---|" + "---:|" * len(idf["params"])]
+    for name, row in zip(idf["params"], idf["correlation"], strict=True):
+        md.append(f"| {name} | " + " | ".join(f"{v:+.3f}" for v in row) + " |")
+    md += ["", "| effect held at nominal (others refitted) | gap without | gap joint | ΔBIC | "
+           "rise / min_gain | verdict |", "|---|---|---|---|---|---|"]
+    for e, t in idf["tests"].items():
+        md.append(f"| {e} | {t['gap_without']:.4f} | {t['gap_joint']:.4f} | {t['delta_bic']:.1f} | "
+                  f"{t['delta_ssr_share']:.2f} | {'identified' if t['identified'] else 'not identified'} |")
+    for a in ana.ambiguous:
+        md += ["", f"**{a['label']}** — not named, and model.toml keeps their values under test.", ""]
+        md += [f"- {x}" for x in a["evidence"]]
+        md += ["- σ: " + ", ".join(f"{k} {v:.2g}" for k, v in a["sigma"].items())
+               + "; resolution: " + ", ".join(f"{k} {v:.2g}" for k, v in a["resolution"].items()),
+               "- joint fit (one of the solutions the data allow): "
+               + ", ".join(f"{k} {v:.4g}" for k, v in a["joint_values"].items()),
+               f"- motion that would separate them: {a['separating_motion']}"]
+    return md
 
 
 def _detector_notes(ana: Analysis) -> list[str]:
@@ -251,6 +291,8 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
           "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the "
           "motion frames",
           f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**",
+          *[f"- **{a['label']}**: the flight cannot tell these apart (see Identifiability); none is named"
+            for a in ana.ambiguous],
           f"- reference: **{ana.reference}** ("
           + ("mean of the static lead-in" if ana.reference == "static" else
              "no static lead-in: a scene canvas estimated by least squares from the moving frames")
@@ -282,6 +324,7 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
             "still there), refined by the images."] if static else
            ["- No static segment: the gyro bias is fitted from the images alone (no prior)."])
     md += _detector_notes(ana)
+    md += _identifiability_md(ana)
     if ana.unobservable:
         md += ["", "Not observable with this motion (left at their previous values):"]
         md += [f"- {k}: {', '.join(v)}" for k, v in ana.unobservable.items()]

@@ -1,0 +1,113 @@
+"""Identifiability of the timing effects before they are named (issue 34, `discrepancy.identify`).
+
+A rolling readout delays the rows by T_ro/2 on average, what a time offset does; the rest is a part that
+grows down the frame. The search named the offset for it; the check refits the four timing effects
+jointly and holds each at nominal in turn. Small simulator recordings (160×120 analysed at 80 px, 0.4 s,
+no static lead-in), checked from the model the search would have named (the readout's mean delay as an
+offset), so each case costs a CPU-minute or less:
+
+- slow motion (attitude sines of 1.6 s, nothing varying within a frame period): the readout's row part
+  is below what the forward model resolves, so it comes back `ambiguous` with the offset, not named;
+- the same with a roll vibration at 30 Hz (the roll rate varies within a frame period): the readout is
+  named, at its value, and the offset is not.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from thermod.calib import discrepancy as D
+from thermod.calib.discrepancy import identify
+from thermod.sim import motion as mo
+from thermod.sim.synth import simulate
+
+sys.path.insert(0, str(Path(__file__).parent))
+from flight_recordings import nominal_calibration  # noqa: E402
+
+DEG = math.pi / 180
+SIZE, WORK_WIDTH, SECONDS = (160, 120), 80, 0.4
+
+
+def _slow() -> mo.Motion:
+    """Attitude sines about all three axes, period 1.6 s: rates up to 16 °/s, smooth within a frame."""
+    return mo.Sway((2.0 * DEG, 4.0 * DEG, 2.0 * DEG), 1.6, (0.0, 1.0, 2.0), spec="slow")
+
+
+def _case(motion: mo.Motion, readout_s: float):
+    """The recording with a hidden readout, prepared, and the check run from the offset the search names
+    for it (T_ro/2) and its evidence."""
+    nominal = nominal_calibration(SIZE)
+    rec = simulate("texture", motion, SECONDS, nominal, {"netd": 0.05, "rolling_readout": readout_s}, seed=0)
+    d = D.prepare(rec, nominal, name="flight", work_width=WORK_WIDTH)
+    problem = D.Problem([d])
+    model = D.Model(nominal.replace(time_offset_s=0.5 * readout_s))
+    problem.refresh(model)
+    ctx = D.StepContext.at(problem, problem.evaluate(model, keep=True), ("time_offset",), 0.05)
+    final, ident = identify.check(ctx, model, D.Model(nominal), ["time_offset"], 10.0, lambda m: None)
+    return nominal, final, ident
+
+
+@pytest.fixture(scope="module")
+def slow():
+    return _case(_slow(), 0.007)
+
+
+def test_a_readout_the_motion_cannot_separate_is_ambiguous_not_an_offset(slow):
+    nominal, final, ident = slow
+    # measured: without the readout alone 0.52 × min_gain, without the offset alone 0.45 ×; together
+    # they are needed (the gap rises decisively)
+    assert "time_offset" not in ident.identified and "gyro_bias" not in ident.identified, ident.tests
+    assert "rolling_readout" not in ident.identified, ident.tests
+    assert len(ident.ambiguous) == 1, ident.dropped
+    a = ident.ambiguous[0]
+    assert {"rolling_readout", "time_offset"} <= set(a["effects"]), a
+    assert a["label"].startswith("ambiguous: ") and " | " in a["label"]
+    assert "within a frame period" in a["separating_motion"]
+    # the evidence: the pair's correlation and each parameter's σ and resolution, from the curvature
+    pair = {"rolling_readout|time_offset", "time_offset|rolling_readout"} & set(a["correlation"])
+    assert len(pair) == 1 and abs(a["correlation"][pair.pop()]) <= 1.0, a["correlation"]
+    assert a["sigma"]["readout_s"] > 0 and a["resolution"]["readout_s"] > a["sigma"]["readout_s"]
+    for e in ("rolling_readout", "time_offset"):
+        assert ident.tests[e]["delta_ssr_share"] < 1.0, ident.tests[e]
+
+
+def test_a_readout_seen_through_a_roll_rate_varying_within_a_frame_is_named():
+    motion = mo.Summed(_slow(), mo.vibration(40.0, 30.0, 0))     # roll 40 °/s RMS at 30–120 Hz
+    nominal, final, ident = _case(motion, 0.015)
+    assert ident.identified == ["rolling_readout"], ident.tests
+    assert not ident.ambiguous
+    assert abs(final.calib.readout_s - 0.015) < 0.2 * 0.015, final.calib.readout_s
+    assert abs(final.calib.time_offset_s) < 1e-3, final.calib.time_offset_s     # the offset put back
+    assert ident.tests["rolling_readout"]["delta_ssr_share"] >= 1.0
+
+
+def test_the_report_carries_the_correlation_and_sigma_and_writes_no_ambiguous_value(slow, tmp_path):
+    nominal, final, ident = slow
+    ev_model = D.Model(nominal)
+    ana = D.Analysis(0.1, 0.05, 0.04, [], False, final, ev_model)
+    ana.snapshots.append(("nominal", np.zeros((4, 4)), 0.1))
+    ana.gaps.append(("nominal", 0.1, 0.04))
+    ana.ambiguous, ana.identifiability = ident.ambiguous, ident.report()
+    rep = D.write_report(ana, tmp_path, ["flight.h5"], "[calibration]\nwidth = 160\n")
+    back = json.loads((tmp_path / "report.json").read_text())
+    assert back["ambiguous"][0]["label"] == ident.ambiguous[0]["label"] == rep["ambiguous"][0]["label"]
+    idf = back["identifiability"]
+    assert idf["params"][:2] == ["time_offset_s", "readout_s"]
+    assert len(idf["correlation"]) == 6 and all(len(r) == 6 for r in idf["correlation"])
+    assert idf["correlation"][0][1] == idf["correlation"][1][0] and idf["correlation"][0][0] == 1.0
+    assert all(s > 0 for s in idf["sigma"]) and "ΔBIC" in idf["rule"]
+    md = (tmp_path / "report.md").read_text()
+    assert "## Identifiability of the timing effects" in md and ident.ambiguous[0]["label"] in md
+    assert "σ (noise)" in md and "within a frame period" in md
+    # the ambiguous effects' fields stay at the values under test, whatever the joint fit found
+    toml = (tmp_path / "model.toml").read_text()
+    assert toml.startswith("# " + ident.ambiguous[0]["label"])
+    assert f"readout_s = {nominal.readout_s!r}" in toml
+    assert f"time_offset_s = {nominal.time_offset_s!r}" in toml
+    assert back["model"]["readout_s"] == nominal.readout_s
