@@ -12,7 +12,7 @@ A truth effect counts as **named** when the search names it within issue 6's tol
 readout ±20 %, bias ±0.3 °/s per axis, τ ±10 %), **ambiguous** when it is in an `ambiguous` entry,
 else **missed**; every named effect that is not hidden is a **wrong name**.
 
-    .venv/bin/python benchmarks/bench_discrepancy_confusion.py [--cases LOG:SECONDS:EFFECT,...]
+    .venv/bin/python -m benchmarks.bench_discrepancy_confusion [--cases LOG:SECONDS:EFFECT,...]
         [--out benchmarks/results/discrepancy_heldout.md]
 
 Prints a row per case as it ends, then the confusion table over every case measured so far: results
@@ -34,12 +34,11 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".numba_cache"))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np  # noqa: E402
-from flight_recordings import flight_recording  # noqa: E402
 
 from thermod.calib import discrepancy as D  # noqa: E402
+from thermod.sim.flight_recordings import flight_recording  # noqa: E402
 from thermod.sim.scenes import shared_data_dir  # noqa: E402
 
 DEG = math.pi / 180
@@ -183,7 +182,7 @@ def write(out: Path, results: list[dict]) -> None:
     body += CASE_HEADER + [row(r) for r in results]
     body += confusion(results)
     body += ["", "Command (each case also alone: `--cases bf42:0.8:rolling_readout`):",
-             "`nice .venv/bin/python benchmarks/bench_discrepancy_confusion.py --out "
+             "`nice .venv/bin/python -m benchmarks.bench_discrepancy_confusion --out "
              "benchmarks/results/discrepancy_heldout.md`"]
     if todo:
         body += ["", f"Not measured yet ({len(todo)} cases; run them with the command above, `nice`, "

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,10 +23,8 @@ import pytest
 from thermod.calib import discrepancy as D
 from thermod.calib.discrepancy import identify
 from thermod.sim import motion as mo
+from thermod.sim.flight_recordings import nominal_calibration
 from thermod.sim.synth import simulate
-
-sys.path.insert(0, str(Path(__file__).parent))
-from flight_recordings import nominal_calibration  # noqa: E402
 
 DEG = math.pi / 180
 SIZE, WORK_WIDTH, SECONDS = (160, 120), 80, 0.4
