@@ -15,13 +15,10 @@ cost minimised over the canvas too (variable projection, `projection`). docs/des
 every rule: the candidates, the motion-only reference, the noise floor, fixed-pattern noise, what
 cannot be observed, and how an effect that generalises another must beat it.
 
-Layout: `data` (model, recording preparation, size guards), `sensor` (detector-side effects and the
-one prediction every cost goes through), `problem` (cost, noise, step context), `projection`
-(variable-projection steps), `fitting` (the scalar and vector searches every fit uses), `effects` (one
-`Effect` record per candidate, the vocabulary `EFFECTS` assembled once), `diagnostics`, `analysis`
-(the search), `identify` (the timing effects' joint fit and significance test before they are named:
-`ambiguous` when the motion cannot tell them apart), `report` (report.json, report.md, model.toml and
-the figures).
+Layout: `data` (model, preparation, size guards), `sensor` (detector-side effects, the one
+prediction), `problem` (cost, noise, step context), `projection`, `fitting`, `effects` (one `Effect`
+per candidate), `diagnostics`, `analysis` (the search), `identify` (the timing effects' joint test:
+`ambiguous` when the motion cannot tell them apart), `report` (report.json/md, model.toml, figures).
 """
 
 from thermod.calib.discrepancy.analysis import Analysis, Candidate, Criteria, analyse

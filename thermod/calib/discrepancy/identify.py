@@ -1,30 +1,15 @@
 """Identifiability of the timing effects before they are named (motion-only recordings).
 
-A time offset, a rolling readout, a gyro bias and the thermal time constant all move the frames
-through the same rates: a readout delays the rows by T_ro/2 on average (what an offset does) plus a
-row-dependent part, a bias trades off against both over a short stretch, and τ acts as a delay for slow
-motion. The greedy search names them one at a time, so on a motion that does not tell them apart it can
-name a confound with the gap closed. The rule here, applied to the search's result:
-
-1. **Joint fit.** The four effects' parameters (offset, readout, bias x/y/z, τ) are fitted together on
-   the projected cost (`projection.projected_lm`: the scene canvas moves with them), from the
-   search's model.
-2. **Curvature.** At the joint optimum the projected Jacobian J̃ gives the covariance
-   s²·(J̃ᵀJ̃)⁻¹, s² the residual variance per independent sample (the larger of the residual and the
-   noise, times the pixels per independent sample): each parameter's σ and each pair's correlation ρ.
-3. **Significance test.** Each effect is held at its nominal value with the other three refitted (the
-   profile: its confounds get every chance to stand in for it). The effect is *identified* when the SSR
-   then rises decisively, by the search's own standard: ΔBIC > `bic_min` on effective samples for its
-   parameters and a rise of at least `min_gain` (the forward model's precision); and the curvature
-   agrees: the joint value's distance from nominal, x_eᵀ[(J̃ᵀJ̃)⁻¹]_ee⁻¹x_e, is a rise of min_gain too
-   (a profile fit that stops short of its minimum would otherwise name a confound).
-4. **Verdict.** Identified effects are named (with the joint fit's values, also one the search had not
-   named). The rest are held at nominal together; if that costs decisively too (by the same test), the
-   structure is real but the motion cannot say which of them it is: the named ones among them and
-   their correlated confounds (|ρ| ≥ `AMBIGUOUS_CORRELATION`) form an `ambiguous` entry with the
-   evidence and the motion that would separate them, and none of them is named or written as known.
-   Effects whose absence alone costs a quarter of min_gain join it (each carries part of what the set
-   explains). Otherwise none of them is needed and none is named.
+Offset, readout, bias and τ move the frames through the same rates (a readout's mean delay is an
+offset, a bias stands in for both over a short stretch, τ acts as a delay for slow motion), and the
+greedy search names them one at a time. `check` fits the four jointly on the projected cost
+(`projection.projected_lm`), takes each parameter's σ, resolution and the pairs' correlations from
+the projected Jacobian, and holds each effect at nominal with the others refitted: an effect is named
+only when the SSR then rises decisively (ΔBIC > `bic_min`, a rise ≥ `min_gain`) and the curvature
+puts its value that far from nominal too. Effects that fail but are needed as a set form an
+`ambiguous` entry (with their correlated confounds, |ρ| ≥ `AMBIGUOUS_CORRELATION`), with the evidence
+and the motion that would separate them; none of them is named or written as known. The rule in
+full: docs/design.md §8, "Identifiability before naming".
 """
 
 from __future__ import annotations
