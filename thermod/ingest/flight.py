@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.ingest.camera_video import read_camera_video
 from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
@@ -52,7 +53,6 @@ MIN_LOG_RATE_HZ = 100.0      # below it a log's samples are too sparse for a blu
 RATE_ADVICE = {"ardupilot": "ArduPilot logs IMU at 25 Hz by default; set LOG_BITMASK's IMU_FAST bit (bit 18) "
                             "to log it at the loop rate",
                "betaflight": "raise the blackbox logging rate"}
-FRAME_RATE_TOLERANCE = 0.05  # the video's rate may differ this much from the camera file's before a warning
 # when neither the whole video nor a part of it was found in the log, the user may know where it is
 PART_HINT = (". If the video runs before or after the log (a flight controller often logs only while "
              "armed), import the part of it the log covers with --start S --duration D")
@@ -109,27 +109,10 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
     written then."""
     say = say or (lambda _msg: None)
     t_start = time.perf_counter()
-    try:
-        vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
-                              duration_s=duration_s)
-    except video.VideoTooLarge as e:
-        raise FlightImportError(f"{e}: import a part of the flight with --start S --duration D "
-                                "(seconds of video)") from None
-    info = vf.info
-    if (info.width, info.height) != (camera.width, camera.height):
-        raise FlightImportError(f"{video_path}: {info.width}×{info.height} px, but the camera description "
-                                f"is for {camera.width}×{camera.height} px")
-    if len(vf.t) < 2:
-        raise FlightImportError(f"{video_path}: {len(vf.t)} frame(s); a sync needs a video of several "
-                                "seconds")
-    period = float(np.median(np.diff(vf.t)))
-    rate = 1.0 / period
-    notes = []
-    if abs(rate - camera.frame_rate_hz) > FRAME_RATE_TOLERANCE * camera.frame_rate_hz:
-        notes.append(f"the video runs at {rate:.3g} fps, the camera description says "
-                     f"{camera.frame_rate_hz:.3g}: the video's rate is used")
-    readout = min(camera.readout_s, 0.99 * period)
-    camera = camera.replace(frame_rate_hz=rate, readout_s=readout)
+    cv = read_camera_video(video_path, camera, FlightImportError, "a sync needs a video of several seconds",
+                           fps=fps, max_bytes=max_bytes, start_s=start_s, duration_s=duration_s)
+    vf, camera, period, notes = cv.frames, cv.camera, cv.period_s, cv.notes
+    info, rate, readout = vf.info, 1.0 / period, camera.readout_s
     t_read = time.perf_counter()
     say(f"video: {len(vf.t)} frames of {info.width}×{info.height} ({info.bit_depth}-bit {info.codec}), "
         f"{vf.t[-1] - vf.t[0]:.1f} s at {rate:.3g} fps")

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.ingest.camera_video import read_camera_video
 from thermod.io import video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
@@ -36,7 +37,6 @@ from thermod.motion.track import DEFAULT_RATE_HZ, RotationTrack, TrackError, est
 from thermod.physics.calibration import Calibration
 from thermod.physics.kernels.grids import kernel_span_s
 
-FRAME_RATE_TOLERANCE = 0.05   # the video's rate may differ this much from the camera file's before a note
 MOTION_GROUP = "motion"
 SOURCE = "video"
 
@@ -77,27 +77,12 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
     ThermodError naming the file and what was wrong; nothing is written then."""
     say = say or (lambda _msg: None)
     t_start = time.perf_counter()
-    try:
-        vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
-                              duration_s=duration_s)
-    except video.VideoTooLarge as e:
-        raise VideoImportError(f"{e}: import a part of it with --start S --duration D (seconds of video)") \
-            from None
-    info = vf.info
-    if (info.width, info.height) != (camera.width, camera.height):
-        raise VideoImportError(f"{video_path}: {info.width}×{info.height} px, but the camera description is "
-                               f"for {camera.width}×{camera.height} px")
-    if len(vf.t) < 2:
-        raise VideoImportError(f"{video_path}: {len(vf.t)} frame(s); estimating the motion from the pictures "
-                               "needs a video of several frames")
-    period = float(np.median(np.diff(vf.t)))
-    notes = []
-    if abs(1.0 / period - camera.frame_rate_hz) > FRAME_RATE_TOLERANCE * camera.frame_rate_hz:
-        notes.append(f"the video runs at {1.0 / period:.3g} fps, the camera description says "
-                     f"{camera.frame_rate_hz:.3g}: the video's rate is used")
-    calib = camera.replace(frame_rate_hz=1.0 / period, readout_s=min(camera.readout_s, 0.99 * period),
-                           rate_hz=float(rate_hz), time_offset_s=0.0, bias_rad_s=(0.0, 0.0, 0.0),
-                           R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
+    cv = read_camera_video(video_path, camera, VideoImportError,
+                           "estimating the motion from the pictures needs a video of several frames",
+                           fps=fps, max_bytes=max_bytes, start_s=start_s, duration_s=duration_s)
+    vf, period, notes, info = cv.frames, cv.period_s, cv.notes, cv.frames.info
+    calib = cv.camera.replace(rate_hz=float(rate_hz), time_offset_s=0.0, bias_rad_s=(0.0, 0.0, 0.0),
+                              R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
     say(f"video: {len(vf.t)} frames of {info.width}×{info.height} ({info.bit_depth}-bit {info.codec}), "
         f"{vf.t[-1] - vf.t[0]:.1f} s at {1.0 / period:.3g} fps; no gyro: the motion comes from the pictures")
     t_read = time.perf_counter()

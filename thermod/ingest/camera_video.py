@@ -1,0 +1,51 @@
+"""A thermal video read for an ingest, checked against the camera that shot it (`read_camera_video`):
+its size must be the camera's, it needs two frames or more, and its own frame rate (the median frame
+interval of its container timestamps) replaces the camera file's, with a note when they differ by more
+than `FRAME_RATE_TOLERANCE`, and the readout is held within one frame period."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from thermod.io import video
+from thermod.physics.calibration import Calibration
+
+FRAME_RATE_TOLERANCE = 0.05   # the video's rate may differ this much from the camera file's before a note
+
+
+@dataclass
+class CameraVideo:
+    """The frames, the camera at the video's own rate, and what differed from its description."""
+
+    frames: video.VideoFrames
+    camera: Calibration
+    period_s: float
+    notes: list[str]
+
+
+def read_camera_video(video_path, camera: Calibration, error: type[Exception], needs: str, *,
+                      fps: float | None = None, max_bytes: int = video.DEFAULT_MAX_BYTES,
+                      start_s: float = 0.0, duration_s: float | None = None) -> CameraVideo:
+    """Read `video_path` for `camera`; every refusal is an `error` naming the file (`needs` says what the
+    ingest needs the frames for, e.g. "a sync needs a video of several seconds")."""
+    try:
+        vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
+                              duration_s=duration_s)
+    except video.VideoTooLarge as e:
+        raise error(f"{e}: import a part of it with --start S --duration D (seconds of video)") from None
+    info = vf.info
+    if (info.width, info.height) != (camera.width, camera.height):
+        raise error(f"{video_path}: {info.width}×{info.height} px, but the camera description is for "
+                    f"{camera.width}×{camera.height} px")
+    if len(vf.t) < 2:
+        raise error(f"{video_path}: {len(vf.t)} frame(s); {needs}")
+    period = float(np.median(np.diff(vf.t)))
+    rate = 1.0 / period
+    notes = []
+    if abs(rate - camera.frame_rate_hz) > FRAME_RATE_TOLERANCE * camera.frame_rate_hz:
+        notes.append(f"the video runs at {rate:.3g} fps, the camera description says "
+                     f"{camera.frame_rate_hz:.3g}: the video's rate is used")
+    camera = camera.replace(frame_rate_hz=rate, readout_s=min(camera.readout_s, 0.99 * period))
+    return CameraVideo(vf, camera, period, notes)
