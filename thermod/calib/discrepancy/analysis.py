@@ -398,7 +398,7 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         model = _refit(ctx, model, [EFFECTS[n] for n in ana.named], fpn, ana.nominal, say)
         model = _prune(ctx, model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
-    if identifiability and problem.has_motion_reference and set(ana.named) & set(identify.CONFOUNDED):
+    if identifiability and problem.has_motion_reference and set(ana.named) & identify.TRIGGERS:
         model = _identify(StepContext.at(problem, ev, ana.named, model_tol, fpn), model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
     ana.finish(model, problem, ev, crit, time.monotonic() - t_start)

@@ -26,6 +26,9 @@ from thermod.calib.discrepancy.problem import StepContext, effective_area
 from thermod.calib.discrepancy.projection import projected_jacobian, projected_lm
 
 CONFOUNDED = ("time_offset", "rolling_readout", "gyro_bias", "time_constant")
+#: The named effects that start the check: a readout, offset or bias; τ named alone is a delay of its own
+#: shape (an exponential, not a shift), which the search already tells from an offset (`simpler`).
+TRIGGERS = frozenset(("time_offset", "rolling_readout", "gyro_bias"))
 # an effect that failed the test and a confound correlated at least this much are reported together
 AMBIGUOUS_CORRELATION = 0.8
 # an effect that failed the test but whose absence alone costs this share of min_gain carries part of the
