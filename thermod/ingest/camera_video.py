@@ -49,3 +49,12 @@ def read_camera_video(video_path, camera: Calibration, error: type[Exception], n
                      f"{camera.frame_rate_hz:.3g}: the video's rate is used")
     camera = camera.replace(frame_rate_hz=rate, readout_s=min(camera.readout_s, 0.99 * period))
     return CameraVideo(vf, camera, period, notes)
+
+
+def put_frames_and_gyro(w, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration) -> None:
+    """Write the video's frames (widened to uint16) and the gyro into a recording `Writer` `w`."""
+    w.reserve("camera/frames", len(vf.t), (calib.height, calib.width), np.uint16)
+    for frame, t in zip(vf.frames, vf.t, strict=True):
+        w.append_frame(frame.astype(np.uint16, copy=False), float(t))
+    w.put("gyro/t", np.asarray(gyro_t, np.float64))
+    w.put("gyro/rate", np.asarray(gyro_rate, np.float32))

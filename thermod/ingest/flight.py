@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
-from thermod.ingest.camera_video import read_camera_video
+from thermod.ingest.camera_video import put_frames_and_gyro, read_camera_video
 from thermod.io import flightlog, video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
@@ -208,11 +208,7 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration, at
         raise FlightImportError(f"{attrs['log']}: no gyro samples around the video after the sync")
     w = Writer(out)
     try:
-        w.reserve("camera/frames", len(vf.t), (calib.height, calib.width), np.uint16)
-        for frame, t in zip(vf.frames, vf.t, strict=True):
-            w.append_frame(frame.astype(np.uint16, copy=False), float(t))
-        w.put("gyro/t", np.asarray(gyro_t, np.float64))
-        w.put("gyro/rate", np.asarray(gyro_rate, np.float32))
+        put_frames_and_gyro(w, vf, gyro_t, gyro_rate, calib)
         w.set_attrs("import", {**attrs, "sync": json.dumps(jsonable(result.to_dict()), allow_nan=False),
                                "refinement": json.dumps(jsonable(refinement), allow_nan=False)})
         return w.commit(calib)

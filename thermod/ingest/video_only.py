@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
-from thermod.ingest.camera_video import read_camera_video
+from thermod.ingest.camera_video import put_frames_and_gyro, read_camera_video
 from thermod.io import video
 from thermod.io.json_safe import jsonable
 from thermod.io.recording import Writer
@@ -126,11 +126,7 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, sigma, calib: Calibrat
            attrs: dict) -> Path:
     w = Writer(out)
     try:
-        w.reserve("camera/frames", len(vf.t), (calib.height, calib.width), np.uint16)
-        for frame, t in zip(vf.frames, vf.t, strict=True):
-            w.append_frame(frame.astype(np.uint16, copy=False), float(t))
-        w.put("gyro/t", np.asarray(gyro_t, np.float64))
-        w.put("gyro/rate", np.asarray(gyro_rate, np.float32))
+        put_frames_and_gyro(w, vf, gyro_t, gyro_rate, calib)
         w.put(f"{MOTION_GROUP}/sigma_rad_s", np.asarray(sigma, np.float32))
         w.set_attrs(MOTION_GROUP, motion_attrs(track))
         w.set_attrs("import", attrs)
