@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
 import logging
 import math
 import threading
@@ -224,21 +225,32 @@ class Daemon:
     def stop(self) -> None:
         self._stop.set()
         t0 = time.monotonic()
+        marks = [("signal", t0)]
+
+        def mark(stage: str) -> None:
+            marks.append((stage, time.monotonic()))
         for th in self.driver_threads:
             th.join(max(0.05, 0.8 - (time.monotonic() - t0)))
+        mark("drivers")
         if self.monitor is not None:
             self.monitor.stop(timeout=0.3)
+        mark("monitor")
         self.pipeline.stop(timeout=0.6)
+        mark("pipeline")
         if self.payload is not None:
             self.payload.stop()
+        mark("payload")
         self.notifier.stopping("stopping")
         if self.rtsp is not None:
             self.rtsp.stop()
+        mark("rtsp")
         try:
             self.publisher.stop()
         finally:
             self.notifier.close()
-        log.info("stopped after %.2f s", time.monotonic() - t0)
+        mark("publisher")
+        steps = ", ".join(f"{name} {1e3 * (b - a):.0f} ms" for (_, a), (name, b) in itertools.pairwise(marks))
+        log.info("stopped after %.2f s (%s)", time.monotonic() - t0, steps)
 
     def reload(self) -> bool:
         """SIGHUP: re-read the configuration and apply its calibration and deblur settings live.

@@ -56,6 +56,7 @@ from thermod.runtime.solvers import (
     Layout,
     SharedFrames,
     SolverError,
+    close_all,
     limit_threads,
     rung_costs,
     slots_needed,
@@ -344,8 +345,7 @@ class Pipeline:
             return        # a worker still solving past stop's timeout: its daemon thread ends with us
         with self._est_cond:
             self._estimates.clear()
-        for solver in self._solvers:
-            solver.close()
+        close_all(self._solvers, timeout=0.5)
         self._solvers = []
         if self._frames is not None:
             self._frames.close()

@@ -387,7 +387,9 @@ def _child_main(conn, factory) -> None:
         kind = msg[0]
         try:
             if kind == "stop":
-                return
+                # nothing here to flush (the frames are the parent's); the interpreter's own teardown
+                # (numba, FFTW) costs about 0.3 s that systemd's stop would wait for
+                os._exit(0)
             if kind == "settings":
                 _, deblur, calib = msg
                 decs = {}
@@ -542,13 +544,30 @@ class InChild:
         self.proc.join(1.0)
         self._conn.close()
 
-    def close(self, timeout: float = 1.0) -> None:
+    def request_stop(self) -> None:
         try:
             self._conn.send(("stop",))
         except OSError:
             pass
+
+    def close(self, timeout: float = 1.0) -> None:
+        self.request_stop()
         self.proc.join(timeout)
         self._kill()
+
+
+def close_all(solvers: list, timeout: float = 1.0) -> None:
+    """Close every worker's solvers within one `timeout`: all children are told first, so their
+    exits overlap, and what has not exited by then is killed."""
+    deadline = time.monotonic() + timeout
+    for solver in solvers:
+        if isinstance(solver, InChild):
+            solver.request_stop()
+    for solver in solvers:
+        if isinstance(solver, InChild):
+            solver.close(max(0.0, deadline - time.monotonic()))
+        else:
+            solver.close()
 
 
 def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]:
@@ -561,11 +580,11 @@ def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]
         for c in out:
             c.wait_ready()
     except BaseException:
-        for c in out:
-            c.close()
+        close_all(out)
         raise
     return out
 
 
 __all__ = ["InChild", "InThread", "Layout", "SharedEstimate", "SharedFrames", "Solved", "SolverError",
-           "limit_threads", "rung_costs", "slots_needed", "solve_job", "start_children", "warm_solvers"]
+           "close_all", "limit_threads", "rung_costs", "slots_needed", "solve_job", "start_children",
+           "warm_solvers"]
