@@ -26,6 +26,7 @@ OFFSET_TOL = 0.0012       # s
 # The simulated stream repeats every loop_s; within the monitor's windows (4 s motion, 12 s τ) a loop
 # of 2 s shows each pair up to 6 times, so the block jackknife's blocks share pairs and σ comes out low.
 LOOP_S = 12.0
+FULL_WINDOW = 0.9         # of the monitor's motion window (4 s)
 TAU_PATCHES = 48          # the τ test waits for this many patch pairs (quiet host: 70–100 in 12 s)
 
 
@@ -84,10 +85,15 @@ def run(apply: bool, seconds: float, drift=DRIFT, until=None, **extra):
 
 
 def _usable(d):
-    """An estimate whose x, y bias σ is below BIAS_SIGMA_MAX (a starved monitor fits fewer pairs per
-    window: at NETD 50 mK σ was 1.8–2.1 mrad/s on a quiet host, up to 3.4 beside a busy loop)."""
-    e = _estimate(d)
-    return e is not None and max(e["gyro_bias_rad_s_sigma"][:2]) < BIAS_SIGMA_MAX
+    """An estimate from a full motion window (at least `FULL_WINDOW` of the monitor's window spanned)
+    whose x, y bias σ is below BIAS_SIGMA_MAX (a starved monitor fits fewer pairs per window: at NETD
+    50 mK σ was 1.8–2.1 mrad/s on a quiet host, up to 3.4 beside a busy loop). The wait is on the window
+    first: stopping at the first σ that happens to be small, from a part-filled window, picks the fits
+    whose σ came out too small (an 8-block jackknife's σ has 7 degrees of freedom)."""
+    e, est = _estimate(d), d.monitor.estimator
+    span = est.span()
+    return (e is not None and span is not None and span[1] - span[0] >= FULL_WINDOW * est.window_s
+            and max(e["gyro_bias_rad_s_sigma"][:2]) < BIAS_SIGMA_MAX)
 
 
 def _tau_fed(d):
