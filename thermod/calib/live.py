@@ -111,7 +111,8 @@ class Registrar:
     downsampling), each patch of frame b taken where the gyro predicts its content went (so fast motion
     stays within the patch); phase correlation gives the remainder to sub-pixel precision."""
 
-    def __init__(self, calib: Calibration, width: int = 160, grid: tuple[int, int] = (2, 2)):
+    def __init__(self, calib: Calibration, width: int = 160, grid: tuple[int, int] = (2, 2),
+                 tau_band_max: float = TAU_BAND_MAX):
         self.full = (calib.width, calib.height)
         self.factor = max(1.0, calib.width / float(width))
         self.w = int(round(calib.width / self.factor))
@@ -136,7 +137,7 @@ class Registrar:
         rad = np.hypot(gx, gy)
         # half of the band: the other half holds the conjugates (real frames, real kernels)
         upper = (gx > 0) | ((gx == 0) & (gy > 0))
-        band = (rad > 0) & (rad <= TAU_BAND_MAX) & upper
+        band = (rad > 0) & (rad <= tau_band_max) & upper
         # every neighbour a window tap reaches from the band, folded into the upper half plane: the
         # frequencies the tails are needed at
         iy, ix = np.nonzero(band)
@@ -560,37 +561,18 @@ class LiveEstimator:
         return np.vstack(q), np.array(blk, int)
 
     def fit_tau(self, calib: Calibration) -> tuple[float | None, float | None, int, str | None]:
-        """(τ, σ, patch pairs used, note): the τ of the scan around the τ in force that maximises the
-        window's summed tail-phase coherence (parabolic peak in log τ), σ from a delete-one-block
-        jackknife. None, with the reason in the note, when too few patch pairs saw their comet tail
-        change (slow or steady motion), when the peak lies at the scan's edge, or when σ exceeds
-        `TAU_MAX_REL_SIGMA` of τ."""
+        """(τ, σ, patch pairs used, note): `tau_peak` on the τ window's patch pairs, over the scan
+        around the τ in force. None, with the reason in the note, when too few patch pairs saw their
+        comet tail change (slow or steady motion, or no CPU to spare), when the peak lies at the
+        scan's edge, or when σ exceeds `TAU_MAX_REL_SIGMA` of τ."""
         taus = calib.tau_s * TAU_SCAN
         q, blk = self._tau_rows(taus)
-        n = len(q)
-        if n < MIN_TAU_PATCHES:
-            return None, None, n, (f"tau_s: not estimated: {n} patch pairs measured in the last "
-                                   f"{self.tau_window_s:g} s saw their comet tails change by "
-                                   f"{TAU_MIN_LEVER_PX} px or more (needs {MIN_TAU_PATCHES}): the motion "
-                                   f"is too slow or too steady to show tau, or the monitor had no CPU "
-                                   f"to spare for it")
-        tau = _scan_peak(q.sum(axis=0), taus)
-        if tau is None:
-            return None, None, n, (f"tau_s: not estimated: the best fit lies at the edge of the scan "
-                                   f"({1e3 * taus[0]:.2f}–{1e3 * taus[-1]:.2f} ms around the tau_s in force)")
-        g = int(blk.max()) + 1
-        est = [_scan_peak(q[blk != k].sum(axis=0), taus) for k in range(g)] if g >= 3 else [None]
-        if any(e is None for e in est):
-            return None, None, n, "tau_s: not estimated: the window's blocks disagree beyond the scan"
-        sigma = float(_jackknife_sigma(np.array(est)))
-        # one tail per patch (the centre's: under roll the tails vary across a patch) and the window's
-        # spread of the cross-power modelled for a scene of independent frequencies: model errors the
-        # jackknife cannot see, bounded here at 5 % of τ
-        sigma = math.hypot(sigma, TAU_MODEL_ERROR * tau)
-        if not sigma < TAU_MAX_REL_SIGMA * tau:
-            return None, None, n, (f"tau_s: not estimated: too uncertain (sigma {1e3 * sigma:.2f} ms "
-                                   f"of {1e3 * tau:.2f} ms) with this motion")
-        return tau, sigma, n, None
+        tau, sigma, problem = tau_peak(q, blk, taus)
+        if problem is not None:
+            where = (f" in the last {self.tau_window_s:g} s (or the monitor had no CPU to spare for it)"
+                     if len(q) < MIN_TAU_PATCHES else "")
+            return None, None, len(q), f"tau_s: not estimated: {problem}{where}"
+        return tau, sigma, len(q), None
 
     def tau_misfit(self, calib: Calibration, tau: float) -> float:
         """1 − the window's mean tail-phase coherence at τ (interpolated in log τ on the scan around the
@@ -630,6 +612,36 @@ class LiveEstimator:
         est = np.array(est)
         d = est - est.mean(axis=0)
         return (g - 1) / g * d.T @ d
+
+
+def tau_peak(q: np.ndarray, blk: np.ndarray, taus: np.ndarray
+             ) -> tuple[float | None, float | None, str | None]:
+    """(τ, σ, None) from patch-pair coherence curves `q` [n, T] over the scan `taus` [T], or
+    (None, None, the problem): τ maximises the summed coherence (parabolic peak in log τ), σ from a
+    delete-one-block jackknife over the blocks `blk` [n] with a `TAU_MODEL_ERROR` floor. Needs
+    `MIN_TAU_PATCHES` rows, a peak inside the scan and σ below `TAU_MAX_REL_SIGMA` of τ."""
+    n = len(q)
+    if n < MIN_TAU_PATCHES:
+        return None, None, (f"{n} patch pairs saw their comet tails change by {TAU_MIN_LEVER_PX} working "
+                            f"px or more (needs {MIN_TAU_PATCHES}): the motion is too slow or too steady to "
+                            "show tau")
+    tau = _scan_peak(q.sum(axis=0), taus)
+    if tau is None:
+        return None, None, (f"the best fit lies at the edge of the scan ({1e3 * taus[0]:.2f}–"
+                            f"{1e3 * taus[-1]:.2f} ms)")
+    g = int(blk.max()) + 1
+    est = [_scan_peak(q[blk != k].sum(axis=0), taus) for k in range(g)] if g >= 3 else [None]
+    if any(e is None for e in est):
+        return None, None, "the blocks disagree beyond the scan"
+    sigma = float(_jackknife_sigma(np.array(est)))
+    # one tail per patch (the centre's: under roll the tails vary across a patch) and the spread of the
+    # cross-power modelled for a scene of independent frequencies: model errors the jackknife cannot
+    # see, bounded here at 5 % of τ
+    sigma = math.hypot(sigma, TAU_MODEL_ERROR * tau)
+    if not sigma < TAU_MAX_REL_SIGMA * tau:
+        return None, None, (f"too uncertain (sigma {1e3 * sigma:.2f} ms of {1e3 * tau:.2f} ms) with this "
+                            "motion")
+    return tau, sigma, None
 
 
 def _jackknife_sigma(est: np.ndarray) -> np.ndarray:

@@ -71,7 +71,7 @@ def run(args) -> int:
         return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
                    if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \
-        + (["--start"] if args.start else [])
+        + (["--start"] if args.start else []) + (["--fit-tau"] if args.fit_tau else [])
     if flight_only:
         raise ThermodError(f"{args.input}: {', '.join(flight_only)} apply to a flight import "
                            "(with --gyro LOG)")

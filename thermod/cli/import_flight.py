@@ -38,16 +38,21 @@ def add_arguments(p) -> None:
     g.add_argument("--no-refine", action="store_true",
                    help="skip the discrepancy refinement of offset, mount, bias, readout and τ")
     g.add_argument("--report", default=None, metavar="DIR", help="write sync.json and sync.png here")
+    g.add_argument("--fit-tau", action="store_true",
+                   help="without --gyro: fit the detector's τ to the frames' comet tails (also done when the "
+                        "camera file gives no tau_s); a stated τ more than 3σ off is reported")
 
 
-def camera(args):
-    """The camera description from --calibration or --camera (exactly one)."""
+def camera(args, *, tau_required: bool = True):
+    """The camera description from --calibration or --camera (exactly one); `tau_required` False lets
+    a camera file leave τ out (the video-only import fits it)."""
     from thermod.io.camera_file import load_camera, preset_path
 
     if (args.calibration is None) == (args.camera is None):
         raise ThermodError(f"{args.input}: a flight import needs the camera: give exactly one of "
                            "--calibration CAMERA.toml or --camera PRESET")
-    cam = load_camera(args.calibration if args.calibration is not None else preset_path(args.camera))
+    cam = load_camera(args.calibration if args.calibration is not None else preset_path(args.camera),
+                      tau_required=tau_required)
     if args.tau is not None:
         if not 0 < args.tau <= 1:
             raise ThermodError(f"--tau {args.tau}: expected a time constant in (0, 1] s")
@@ -55,20 +60,29 @@ def camera(args):
     return cam
 
 
-def run(args) -> int:
-    from thermod.ingest.flight import import_flight
-
+def checked_video_options(args) -> Path:
+    """--fps, --start, --duration and -o checked (the options both video imports share); the output."""
     if args.fps is not None and not args.fps > 0:
         raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
     if not (math.isfinite(args.start) and args.start >= 0):
         raise ThermodError(f"--start {args.start}: expected 0 or more seconds after the video's first frame")
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ThermodError(f"--duration {args.duration}: expected more than 0 seconds")
-    if args.log_index is not None and args.log_index < 0:
-        raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
     out = Path(args.output)
     if not out.parent.is_dir():
         raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
+    return out
+
+
+def run(args) -> int:
+    from thermod.ingest.flight import import_flight
+
+    out = checked_video_options(args)
+    if args.log_index is not None and args.log_index < 0:
+        raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
+    if args.fit_tau:
+        raise ThermodError(f"{args.input}: --fit-tau applies to a video imported without --gyro (with a "
+                           "log, the sync's refinement fits τ unless --no-refine)")
     cam = camera(args)
     r = import_flight(args.input, args.gyro, out, cam, fps=args.fps, log_index=args.log_index,
                       refine=not args.no_refine, report_dir=args.report, start_s=args.start,

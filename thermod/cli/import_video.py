@@ -1,12 +1,12 @@
 """`thermod import VIDEO -o REC.h5 --camera PRESET | --calibration CAMERA.toml` with no ``--gyro``: a thermal
 video alone → a format-v1 recording whose gyro is the camera's rotation estimated from the pictures
 (`thermod.ingest.video_only`). The options are the flight import's (``--fps``, ``--start``,
-``--duration``, ``--report DIR`` for track.json and track.png); ``--tau`` overrides the camera file's τ.
+``--duration``, ``--report DIR`` for track.json and track.png); ``--tau`` overrides the camera file's τ,
+``--fit-tau`` fits τ to the frames' comet tails (as when the camera file gives none).
 """
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -29,15 +29,10 @@ def is_video(path: str) -> bool:
 
 
 def run(args) -> int:
-    from thermod.cli.import_flight import camera
+    from thermod.cli.import_flight import camera, checked_video_options
     from thermod.ingest.video_only import import_video
+    from thermod.io.camera_file import states_tau
 
-    if args.fps is not None and not args.fps > 0:
-        raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
-    if not (math.isfinite(args.start) and args.start >= 0):
-        raise ThermodError(f"--start {args.start}: expected 0 or more seconds after the video's first frame")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ThermodError(f"--duration {args.duration}: expected more than 0 seconds")
     other = [f"--{k.replace('_', '-')}" for k in ("log_index", "image_topic", "imu_topic",
                                                   "camera_info_topic") if getattr(args, k, None) is not None]
     other += ["--no-refine"] if args.no_refine else []
@@ -48,12 +43,11 @@ def run(args) -> int:
         raise ThermodError(f"{args.input}: importing a video without --gyro needs the camera (focal length "
                            "and τ are not in the video): give exactly one of --calibration CAMERA.toml or "
                            "--camera PRESET")
-    out = Path(args.output)
-    if not out.parent.is_dir():
-        raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
-    r = import_video(args.input, out, camera(args), fps=args.fps, start_s=args.start,
-                     duration_s=args.duration, report_dir=args.report,
-                     say=lambda m: print(m, file=sys.stderr))
+    out = checked_video_options(args)
+    tau_stated = args.tau is not None or args.calibration is None or states_tau(args.calibration)
+    r = import_video(args.input, out, camera(args, tau_required=False), fps=args.fps, start_s=args.start,
+                     duration_s=args.duration, report_dir=args.report, fit_time_constant=args.fit_tau,
+                     tau_stated=tau_stated, say=lambda m: print(m, file=sys.stderr))
     for note in r.notes:
         print(f"note: {note}", file=sys.stderr)
     print(f"wrote {r.path}: {r.n_frames} frames, {r.n_gyro} gyro samples estimated from the video "

@@ -15,6 +15,11 @@ included), estimates the rotation track and writes:
   flagged (duplicated, cut, untracked) and the overlay found (JSON), and the dataset
   ``motion/sigma_rad_s`` [M] (each gyro sample's 1σ error, rad/s, from the rotation fit);
 - ``/import``: where it came from (file, codec, bit depth, luma range), ``motion_source = "video"``.
+
+With ``fit_tau`` (or a camera file that gives no τ) the detector's τ is fitted to the frames' comet
+tails along the track (`thermod.calib.tau_fit`, on the band compressed video keeps), the track is
+estimated again with it, and ``/motion`` holds the fit (``tau_fit``, JSON); a stated τ more than 3σ
+from the fit is reported.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from thermod.calib.tau_fit import START_TAU_S, VIDEO_BAND, TauFit, fit_tau
 from thermod.errors import ThermodError
 from thermod.ingest.camera_video import put_frames_and_gyro, read_camera_video
 from thermod.io import video
@@ -57,24 +63,27 @@ class ImportedVideo:
     video_info: video.VideoInfo
     notes: list[str] = field(default_factory=list)
     seconds: dict = field(default_factory=dict)
+    tau_fit: TauFit | None = None
 
     def report(self) -> dict:
         """The import's report (strict JSON once through `jsonable`)."""
         return jsonable({"recording": str(self.path), "frames": self.n_frames, "gyro_samples": self.n_gyro,
                          "motion_source": SOURCE, "track": self.track.to_dict(),
                          "calibration": self.calibration.as_dict(), "notes": self.notes,
-                         "seconds": self.seconds})
+                         "seconds": self.seconds,
+                         "tau_fit": None if self.tau_fit is None else self.tau_fit.to_dict()})
 
 
 def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: Calibration, *,
                  fps: float | None = None, max_bytes: int = video.DEFAULT_MAX_BYTES, start_s: float = 0.0,
                  duration_s: float | None = None, rate_hz: float = DEFAULT_RATE_HZ,
-                 report_dir: str | os.PathLike | None = None,
-                 say: Callable[[str], None] | None = None) -> ImportedVideo:
+                 report_dir: str | os.PathLike | None = None, fit_time_constant: bool = False,
+                 tau_stated: bool = True, say: Callable[[str], None] | None = None) -> ImportedVideo:
     """Read a video, estimate its rotation track and write the recording (module docstring). `camera`
-    gives the intrinsics, τ and readout (`thermod.io.camera_file`). With `report_dir`, writes
-    ``track.json`` and ``track.png`` (the estimated rate per axis, flagged frames marked). Raises a
-    ThermodError naming the file and what was wrong; nothing is written then."""
+    gives the intrinsics, τ and readout (`thermod.io.camera_file`); `tau_stated` False: its τ is not
+    known and is fitted (as with `fit_time_constant`). With `report_dir`, writes ``track.json`` and
+    ``track.png`` (the estimated rate per axis, flagged frames marked). Raises a ThermodError naming
+    the file and what was wrong; nothing is written then."""
     say = say or (lambda _msg: None)
     t_start = time.perf_counter()
     cv = read_camera_video(video_path, camera, VideoImportError,
@@ -86,18 +95,16 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
     say(f"video: {len(vf.t)} frames of {info.width}×{info.height} ({info.bit_depth}-bit {info.codec}), "
         f"{vf.t[-1] - vf.t[0]:.1f} s at {1.0 / period:.3g} fps; no gyro: the motion comes from the pictures")
     t_read = time.perf_counter()
-    try:
-        track = estimate_track(vf.frames, vf.t, calib.intrinsics, tau_s=calib.tau_s,
-                               readout_s=calib.readout_s, name=str(video_path))
-    except TrackError as e:
-        raise VideoImportError(str(e)) from None
-    t_track = time.perf_counter()
-    # the kernel window before the first frame, and past each stretch's last knot the lag plus what a
-    # frame's kernel reads beyond its read time (thermod.restore.policy.gyro_span)
+    if not tau_stated:
+        calib = calib.replace(tau_s=START_TAU_S)
+    track = _track(vf, calib, video_path)
     margin = calib.gyro_condition_margin_s + 4.0 / rate_hz
-    gt, gr, gs = track.gyro(rate_hz, lead_s=kernel_span_s(calib) + margin, tail_s=track.lag_s + margin)
-    if len(gt) < 2:
-        raise VideoImportError(f"{video_path}: no stretch of frames with a known motion")
+    tau_fit = None
+    if fit_time_constant or not tau_stated:
+        calib, track, tau_fit = _fit_tau(vf, calib, track, video_path, rate_hz, margin, tau_stated, notes,
+                                         say)
+    t_track = time.perf_counter()
+    gt, gr, gs = _track_gyro(track, calib, rate_hz, margin, video_path)
     flagged = track.flagged()
     for what, frames in flagged.items():
         if frames:
@@ -107,13 +114,13 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
     if track.overlay is not None:
         notes.append(f"a static overlay covers {track.overlay.mean():.1%} of the frame (found by itself; not "
                      "tracked)")
-    path = _write(out, vf, gt, gr, gs, calib, track, {
+    path = _write(out, vf, gt, gr, gs, calib, track, tau_fit, {
         "video": str(video_path), "video_codec": info.codec, "video_bit_depth": info.bit_depth,
         "video_luma_only": info.luma_only, "video_full_range": info.full_range, "motion_source": SOURCE,
         "agc": "per-frame AGC left in the frames" if info.bit_depth == 8 else "none assumed (16-bit)"})
     t_write = time.perf_counter()
     seconds = {"read_video": t_read - t_start, "track": t_track - t_read, "write": t_write - t_track}
-    imported = ImportedVideo(path, calib, track, len(vf.t), len(gt), info, notes, seconds)
+    imported = ImportedVideo(path, calib, track, len(vf.t), len(gt), info, notes, seconds, tau_fit)
     if report_dir is not None:
         rd = Path(report_dir)
         rd.mkdir(parents=True, exist_ok=True)
@@ -122,13 +129,61 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
     return imported
 
 
+def _track(vf: video.VideoFrames, calib: Calibration, video_path) -> RotationTrack:
+    try:
+        return estimate_track(vf.frames, vf.t, calib.intrinsics, tau_s=calib.tau_s, readout_s=calib.readout_s,
+                              name=str(video_path))
+    except TrackError as e:
+        raise VideoImportError(str(e)) from None
+
+
+def _track_gyro(track: RotationTrack, calib: Calibration, rate_hz: float, margin: float, video_path):
+    """The track sampled as a gyro: the kernel window before the first frame, and past each stretch's
+    last knot the lag plus what a frame's kernel reads beyond its read time
+    (thermod.restore.policy.gyro_span)."""
+    gt, gr, gs = track.gyro(rate_hz, lead_s=kernel_span_s(calib) + margin, tail_s=track.lag_s + margin)
+    if len(gt) < 2:
+        raise VideoImportError(f"{video_path}: no stretch of frames with a known motion")
+    return gt, gr, gs
+
+
+def _fit_tau(vf, calib: Calibration, track: RotationTrack, video_path, rate_hz, margin, tau_stated: bool,
+             notes: list[str], say) -> tuple[Calibration, RotationTrack, TauFit]:
+    """τ fitted to the frames along the track; the track again with the fitted τ (its lag is τ's).
+    A camera file's τ is kept, with a note, when the pictures do not show τ; with no τ stated that
+    is a VideoImportError."""
+    gt, gr, _ = _track_gyro(track, calib, rate_hz, margin, video_path)
+    fit = fit_tau(vf.frames, vf.t, gt, gr, calib, start_tau_s=calib.tau_s, pairs=track.status == "ok",
+                  band=VIDEO_BAND)
+    if fit.tau_s is None:
+        if not tau_stated:
+            raise VideoImportError(f"{video_path}: the camera file gives no tau_s and the pictures do not "
+                                   f"show it ({fit.note}); give the detector's time constant (tau_s, or "
+                                   "--tau)")
+        notes.append(f"{fit.note}; the camera file's tau_s {1e3 * calib.tau_s:.2f} ms is kept")
+        return calib, track, fit
+    text = (f"tau fitted from the pictures: {1e3 * fit.tau_s:.2f} ± {1e3 * fit.sigma_s:.2f} ms "
+            f"({fit.patches} frame pairs)")
+    if tau_stated:
+        text += (f"; the camera file says {1e3 * calib.tau_s:.2f} ms, " +
+                 (f"{abs(calib.tau_s - fit.tau_s) / fit.sigma_s:.1f}σ away: it disagrees with the pictures"
+                  if fit.disagrees_with(calib.tau_s) else "within 3σ"))
+    notes.append(text)
+    say(text)
+    calib = calib.replace(tau_s=float(fit.tau_s))
+    return calib, _track(vf, calib, video_path), fit
+
+
 def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, sigma, calib: Calibration, track: RotationTrack,
-           attrs: dict) -> Path:
+           tau_fit: TauFit | None, attrs: dict) -> Path:
     w = Writer(out)
     try:
         put_frames_and_gyro(w, vf, gyro_t, gyro_rate, calib)
         w.put(f"{MOTION_GROUP}/sigma_rad_s", np.asarray(sigma, np.float32))
-        w.set_attrs(MOTION_GROUP, motion_attrs(track))
+        m = motion_attrs(track)
+        if tau_fit is not None:
+            m["tau_fit"] = json.dumps(jsonable(tau_fit.to_dict()), allow_nan=False)
+        w.set_attrs(MOTION_GROUP, m)
         w.set_attrs("import", attrs)
         return w.commit(calib)
     except BaseException:

@@ -8,7 +8,8 @@ What a user of a thermal camera knows, in a ``[camera]`` table:
     hfov_deg = 32.0             # one of: hfov_deg, focal_length_mm (with pixel_pitch_um), fx (px)
     pixel_pitch_um = 12.0
     frame_rate_hz = 60.0
-    tau_s = 0.010               # the detector's thermal time constant
+    tau_s = 0.010               # the detector's thermal time constant (a video-only import fits it
+                                # from the pictures when it is left out)
     readout_s = 0.0             # rolling readout, first row to last (0 = unknown or global)
     f_number = 1.0              # optional, with wavelength_um: the Eq. 19 optical PSF
 
@@ -50,9 +51,11 @@ def preset_path(name: str) -> Path:
     return Path(str(resources.files("thermod.configs").joinpath("cameras", f"{name}.toml")))
 
 
-def camera_from_table(path: str, table, base: Calibration | None = None) -> Calibration:
+def camera_from_table(path: str, table, base: Calibration | None = None, *,
+                      tau_required: bool = True) -> Calibration:
     """Validate a ``[camera]`` table; what it omits keeps `base`'s values (default: `Calibration()`).
-    Every bad key is reported in one ConfigError naming the file."""
+    Every bad key is reported in one ConfigError naming the file. `tau_required`: whether ``tau_s``
+    must be given (a caller that fits τ itself passes False, and asks `states_tau`)."""
     s = Section(path, "camera", table)
     d = base or Calibration()
     width = s.pop("width", None, int, lo=8, hi=16384, required=True)
@@ -71,7 +74,8 @@ def camera_from_table(path: str, table, base: Calibration | None = None) -> Cali
     kw = dict(cx=s.pop("cx", None, float), cy=s.pop("cy", None, float),
               frame_rate_hz=s.pop("frame_rate_hz", None, float, lo=0.0, lo_open=True, hi=10000.0,
                                   required=True),
-              tau_s=s.pop("tau_s", None, float, lo=0.0, lo_open=True, hi=1.0, required=True),
+              tau_s=s.pop("tau_s", None if tau_required else d.tau_s, float, lo=0.0, lo_open=True, hi=1.0,
+                          required=tau_required),
               f_number=s.pop("f_number", d.f_number, float, lo=0.1, hi=100.0),
               wavelength_um=s.pop("wavelength_um", d.wavelength_um, float, lo=0.1, hi=100.0),
               readout_s=s.pop("readout_s", 0.0, float, lo=0.0, hi=1.0))
@@ -96,14 +100,21 @@ def camera_from_table(path: str, table, base: Calibration | None = None) -> Cali
         raise ConfigError(f"{path}: camera.{e.field}: {e.problem}") from None
 
 
-def load_camera(path: str | os.PathLike, base: Calibration | None = None) -> Calibration:
+def load_camera(path: str | os.PathLike, base: Calibration | None = None, *,
+                tau_required: bool = True) -> Calibration:
     """The calibration a CAMERA.toml describes: its ``[camera]`` table, or else its ``[calibration]``
     table. Anything else is a ConfigError naming the file."""
     p = Path(path)
     raw = read_toml(p)
     if "camera" in raw:
-        return camera_from_table(str(p), raw["camera"], base)
+        return camera_from_table(str(p), raw["camera"], base, tau_required=tau_required)
     if "calibration" in raw:
         return calibration_from_table(str(p), raw["calibration"], base)
     raise ConfigError(f"{p}: expected a [camera] table (width, height, hfov_deg, frame_rate_hz, tau_s, …) "
                       "or a [calibration] table")
+
+
+def states_tau(path: str | os.PathLike) -> bool:
+    """Whether a CAMERA.toml gives the detector's τ (``tau_s`` in its [camera] or [calibration] table)."""
+    raw = read_toml(Path(path))
+    return any(isinstance(raw.get(t), dict) and "tau_s" in raw[t] for t in ("camera", "calibration"))
