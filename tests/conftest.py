@@ -1,6 +1,9 @@
 """Fixtures every folder uses. `require(ok, what)` skips a test that needs a real component which is
-missing, and fails it instead under THERMOD_STRICT=1 (CI); the rules live in tests/support."""
+missing, and fails it instead under THERMOD_STRICT=1 (CI); the rules live in tests/support. Tests
+marked `costly` (analyses of minutes each) are left out of `make test` and checked by
+`python -m benchmarks.bench_costly`, which sets THERMOD_COSTLY=1."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -29,4 +32,9 @@ def pytest_collection_modifyitems(config, items):
     def minutes(item) -> float:
         m = item.get_closest_marker("heavy")
         return float(m.args[0]) if m is not None and m.args else 0.0
+    if os.environ.get("THERMOD_COSTLY") != "1":
+        costly = [item for item in items if item.get_closest_marker("costly") is not None]
+        if costly:
+            config.hook.pytest_deselected(items=costly)
+            items[:] = [item for item in items if item.get_closest_marker("costly") is None]
     items.sort(key=lambda item: -minutes(item))      # stable: file and test order kept otherwise

@@ -177,7 +177,15 @@ def test_refinement_keeps_the_sync(flight, tmp_path):
                 "--calibration", cam, "--report", rep)
     assert r.returncode == 0, r.stderr
     attrs = check_import(out, sim.log_offset_s, sim.camera_from_body, 1 / FPS)
-    assert json.loads(attrs["refinement"]) is not None
+    ref = json.loads(attrs["refinement"])
+    # issue 34: the refinement carries the identifiability check's σ and says what it could not tell
+    # apart; an ambiguous effect is reported, not written
+    assert len(ref["ambiguous"]) == len(ref["identifiability"]) == len(ref["named"]) == 1
+    ident = ref["identifiability"][0]
+    if ident:
+        assert len(ident["sigma"]) == len(ident["params"]) and all(s >= 0 for s in ident["sigma"])
+    unsure = {e for a in ref["ambiguous"][0] for e in a["effects"]}
+    assert not unsure & set(ref["named"][0])
     report = json.loads((rep / "sync.json").read_text())
     assert report["sync"]["time_offset_s"]["sigma"] > 0 and (rep / "sync.png").stat().st_size > 10_000
 

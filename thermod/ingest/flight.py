@@ -174,7 +174,9 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
                                                                "sigma": fine.time_offset_sigma_s},
                                              "R_cam_gyro": fine.R_cam_gyro.tolist(),
                                              "gyro_bias_rad_s": fine.bias_rad_s.tolist()}
-        say(f"refined on {refine_windows} stretch(es): named {', '.join(sum(ref.named, [])) or 'nothing'}; "
+        unsure = sorted({a["label"] for stretch in ref.ambiguous for a in stretch})
+        say(f"refined on {refine_windows} stretch(es): named {', '.join(sum(ref.named, [])) or 'nothing'}"
+            + (f" ({'; '.join(unsure)}: not applied)" if unsure else "") + "; "
             f"offset {offset:+.4f} s, readout {changes['readout_s'] * 1e3:.2f} ms, "
             f"τ {changes['tau_s'] * 1e3:.2f} ms")
     t_refine = time.perf_counter()

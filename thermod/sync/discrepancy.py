@@ -8,14 +8,16 @@ refines the time offset, the misalignment and the gyro bias, and names the reado
 motion excites them. `discrepancy_recording` makes that recording: the stretch of `window_s` whose
 picture rotates most, the AGC undone (`thermod.motion.agc`: the forward model needs one count scale),
 the log's samples around it and the sync's calibration. `refine_with_discrepancy` runs the workflow on
-it with `DISCREPANCY_CANDIDATES`. The workflow gives no standard errors; running it on several
-disjoint stretches (`windows`) gives their spread.
+it with `DISCREPANCY_CANDIDATES`. The workflow's identifiability check (issue 34) gives each
+parameter's σ and the pairs the motion cannot tell apart: an `ambiguous` effect is reported, not
+applied (its parameters stay at the sync's values). Running it on several disjoint stretches
+(`windows`) also gives their spread.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -95,6 +97,8 @@ class DiscrepancyRefinement:
     per_stretch: list[dict]
     named: list[list[str]]
     unexplained: list[bool]
+    ambiguous: list[list[dict]] = field(default_factory=list)   # per stretch: the ambiguous entries
+    identifiability: list[dict] = field(default_factory=list)   # per stretch: σ, ρ, each effect's test
 
     def summary(self) -> dict:
         out = {}
@@ -107,6 +111,7 @@ class DiscrepancyRefinement:
 
     def to_dict(self) -> dict:
         return {"stretches": self.per_stretch, "named": self.named, "unexplained": self.unexplained,
+                "ambiguous": self.ambiguous, "identifiability": self.identifiability,
                 "summary": self.summary(),
                 "uncertainty": "standard error of the mean over disjoint stretches (None for one)"}
 
@@ -118,17 +123,19 @@ def refine_with_discrepancy(frames, frame_t, gyro_t, gyro_rate, result: SyncResu
     """Run the motion-only discrepancy workflow on `windows` disjoint stretches (module docstring)."""
     from thermod.calib.discrepancy import Model, analyse, prepare
 
-    per, named, unexpl = [], [], []
+    per, named, unexpl, ambiguous, ident = [], [], [], [], []
     for i0, i1 in stretches(result, window_s, windows):
         rec = discrepancy_recording(frames, frame_t, gyro_t, gyro_rate, result, intrinsics,
                                     frames_range=(i0, i1), agc=agc)
         data = prepare(rec, rec.calibration, name=f"synced video frames {i0}–{i1 - 1}", work_width=work_width)
         ana = analyse([data], Model(rec.calibration), candidates=candidates, max_steps=max_steps,
                       progress=progress)
-        c = ana.model.final_calibration()
+        c = ana.calibration()        # an ambiguous effect's parameters left at the sync's values
         per.append({"time_offset_s": result.time_offset_s + c.time_offset_s,
                     "R_cam_gyro": np.asarray(c.R_cam_gyro_matrix).tolist(),
                     "gyro_bias_rad_s": list(c.bias_rad_s), "readout_s": c.readout_s, "tau_s": c.tau_s})
         named.append(ana.named)
         unexpl.append(bool(ana.unexplained))
-    return DiscrepancyRefinement(per, named, unexpl)
+        ambiguous.append(list(ana.ambiguous))
+        ident.append(dict(ana.identifiability))
+    return DiscrepancyRefinement(per, named, unexpl, ambiguous, ident)
