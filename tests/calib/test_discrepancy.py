@@ -168,7 +168,7 @@ PAIRS = {
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pair", list(PAIRS))
+@pytest.mark.parametrize("pair", [pytest.param("offset+bias", marks=pytest.mark.costly), "offset+readout"])
 def test_two_hidden_effects_are_both_found(pair):
     eff, candidates = PAIRS[pair]
     rec, ana = analysed(pair, eff, candidates=candidates)

@@ -44,6 +44,7 @@ def test_clean_flight_recording_adds_nothing():
     assert ana.noise_floor < ana.gap_initial < 1.2 * ana.noise_floor + 0.05
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_high_contrast_clean_flight_is_not_unexplained():
     fr, ana = analysed("contrast-clean", {}, scene=high_contrast_scene(nominal_calibration(SIZE)))
@@ -51,6 +52,7 @@ def test_high_contrast_clean_flight_is_not_unexplained():
     assert ana.steps == []
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_clean_flight_with_vibration_names_no_gyro_effect():
     # a 10 Hz rotor vibration (15 °/s RMS, harmonics to 40 Hz) on top of the flight attitude
@@ -58,6 +60,7 @@ def test_clean_flight_with_vibration_names_no_gyro_effect():
     assert ana.named == [] and not ana.unexplained
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_lowpass_under_slow_flight_motion_is_reported_as_the_simpler_time_offset(require):
     # The flight attitude alone (below ~6 Hz) through a 40 Hz DLPF: the filter acts as its 5.6 ms
@@ -82,6 +85,7 @@ OUTSIDE = {
 }
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 @pytest.mark.parametrize("case", list(OUTSIDE))
 def test_effect_outside_the_vocabulary_is_unexplained_not_misnamed(case):

@@ -39,9 +39,13 @@ CASES = {
                   lambda a, c, t: len(a.model.ffc) == 1 and abs(a.model.ffc[0].step_counts - 20.0) < 1.5),
 }
 
+# checked by benchmarks/bench_costly.py rather than make test (1.7 CPU-min on the CI host)
+COSTLY = {"time_constant"}
+
 
 @pytest.mark.slow
-@pytest.mark.parametrize("hidden", list(CASES))
+@pytest.mark.parametrize("hidden", [pytest.param(h, marks=pytest.mark.costly) if h in COSTLY else h
+                                    for h in CASES])
 def test_hidden_effect_is_named_from_a_flight_alone(hidden, require):
     require(REAL_LOG, "../shared/data/gyro (the real Betaflight log)")
     effects, vib, candidates, check = CASES[hidden]

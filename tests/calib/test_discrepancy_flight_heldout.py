@@ -27,6 +27,7 @@ from thermod.sim.flight_recordings import REAL_LOG, flight_recording, high_contr
 pytestmark = pytest.mark.heavy(4)      # CPU minutes on one core
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_an_offset_that_cancels_the_readouts_mean_delay_is_named_with_it(require):
     # log from 23 s: roll 118 °/s RMS, pitch 5.5; half a second at the defaults' size and working width

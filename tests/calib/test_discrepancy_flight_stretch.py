@@ -51,6 +51,7 @@ def test_the_true_model_keeps_its_pixels_where_the_flight_reaches_the_scene_edge
     assert gap_truth < 0.5 * gap_nominal, (gap_truth, gap_nominal)
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_a_flat_field_step_seen_from_new_views_is_recovered(require):
     """The views after the event see scene the ones before did not, and a canvas made without the step

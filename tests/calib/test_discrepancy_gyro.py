@@ -359,6 +359,7 @@ def test_lowpass_under_narrowband_motion_is_reported_as_the_simpler_time_offset(
     assert not ana.unexplained
 
 
+@pytest.mark.costly
 @pytest.mark.slow
 def test_saturation_with_a_bias_names_both():
     rec, ana = _analysed("saturation+bias", {"gyro_saturation": 0.7, "gyro_bias": (0.02, -0.015, 0.01)},
