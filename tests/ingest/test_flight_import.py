@@ -174,7 +174,7 @@ def test_refinement_keeps_the_sync(flight, tmp_path):
     sim, cam = flight
     out, rep = tmp_path / "rec.h5", tmp_path / "report"
     r = thermod("import", sim.video_path, "--gyro", sim.log_paths["ardupilot"], "-o", out,
-                "--calibration", cam, "--report", rep)
+                "--calibration", cam, "--report", rep, "--refine")
     assert r.returncode == 0, r.stderr
     attrs = check_import(out, sim.log_offset_s, sim.camera_from_body, 1 / FPS)
     ref = json.loads(attrs["refinement"])

@@ -70,8 +70,9 @@ def run(args) -> int:
     if import_video.is_video(args.input):     # a video with no gyro: the motion from the pictures
         return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
-                   if getattr(args, k) is not None] + (["--no-refine"] if args.no_refine else []) \
-        + (["--start"] if args.start else []) + (["--fit-tau"] if args.fit_tau else [])
+                   if getattr(args, k) is not None]
+    flight_only += [flag for flag, on in (("--refine", args.refine), ("--no-refine", args.no_refine),
+                                          ("--start", bool(args.start)), ("--fit-tau", args.fit_tau)) if on]
     if flight_only:
         raise ThermodError(f"{args.input}: {', '.join(flight_only)} apply to a flight import "
                            "(with --gyro LOG)")

@@ -5,8 +5,8 @@ The camera comes from ``--calibration CAMERA.toml`` (a ``[camera]`` or ``[calibr
 `thermod.io.camera_file`) or ``--camera PRESET`` (config/cameras/); one of the two is required, since
 the focal length and τ are not in the video. ``--fps`` gives a TIFF sequence's frame rate,
 ``--log-index`` picks one log of a multi-log file, ``--start``/``--duration`` import a part of the
-video, ``--no-refine`` skips the discrepancy refinement and ``--report DIR`` writes sync.json and
-sync.png.
+video, ``--refine`` adds the discrepancy refinement (minutes on 2 cores; the sync alone takes
+seconds) and ``--report DIR`` writes sync.json and sync.png.
 """
 
 from __future__ import annotations
@@ -35,8 +35,10 @@ def add_arguments(p) -> None:
                    help="import the video from S seconds after its first frame (default 0)")
     g.add_argument("--duration", type=float, default=None, metavar="D",
                    help="import D seconds of video (default: to its end)")
-    g.add_argument("--no-refine", action="store_true",
-                   help="skip the discrepancy refinement of offset, mount, bias, readout and τ")
+    g.add_argument("--refine", action="store_true",
+                   help="also refine offset, mount, bias, readout and τ with the discrepancy workflow on the "
+                        "stretch that rotates most (minutes on 2 cores; the sync alone takes seconds)")
+    g.add_argument("--no-refine", action="store_true", help="no refinement (the default; kept for scripts)")
     g.add_argument("--report", default=None, metavar="DIR", help="write sync.json and sync.png here")
     g.add_argument("--fit-tau", action="store_true",
                    help="without --gyro: fit the detector's τ to the frames' comet tails (also done when the "
@@ -82,10 +84,12 @@ def run(args) -> int:
         raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
     if args.fit_tau:
         raise ThermodError(f"{args.input}: --fit-tau applies to a video imported without --gyro (with a "
-                           "log, the sync's refinement fits τ unless --no-refine)")
+                           "log, --refine fits τ)")
+    if args.refine and args.no_refine:
+        raise ThermodError(f"{args.input}: --refine and --no-refine contradict each other")
     cam = camera(args)
     r = import_flight(args.input, args.gyro, out, cam, fps=args.fps, log_index=args.log_index,
-                      refine=not args.no_refine, report_dir=args.report, start_s=args.start,
+                      refine=args.refine, report_dir=args.report, start_s=args.start,
                       duration_s=args.duration,
                       say=lambda m: print(m, file=sys.stderr))
     for note in r.notes:

@@ -35,7 +35,7 @@ def run(args) -> int:
 
     other = [f"--{k.replace('_', '-')}" for k in ("log_index", "image_topic", "imu_topic",
                                                   "camera_info_topic") if getattr(args, k, None) is not None]
-    other += ["--no-refine"] if args.no_refine else []
+    other += [f for f, on in (("--refine", args.refine), ("--no-refine", args.no_refine)) if on]
     if other:
         raise ThermodError(f"{args.input}: {', '.join(other)} do not apply to a video imported without "
                            "--gyro")

@@ -96,7 +96,7 @@ class ImportedFlight:
 
 def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, out: str | os.PathLike,
                   camera: Calibration, *, fps: float | None = None, log_index: int | None = None,
-                  refine: bool = True, refine_windows: int = 1, report_dir: str | os.PathLike | None = None,
+                  refine: bool = False, refine_windows: int = 1, report_dir: str | os.PathLike | None = None,
                   max_bytes: int = video.DEFAULT_MAX_BYTES, start_s: float = 0.0,
                   duration_s: float | None = None,
                   say: Callable[[str], None] | None = None) -> ImportedFlight:
