@@ -8,6 +8,7 @@ to the simulator's truth than the blurry input. The thresholds are measured on t
 fail with τ 6 % too long or short, the time offset applied with the wrong sign, or a 3τ window.
 """
 
+import threading
 import time
 
 import cv2
@@ -273,6 +274,36 @@ def test_frames_the_ring_overwrote_are_said_in_the_next_frames_header(sharp):
     assert [o.frame_id for o in outs] == [106, 107, 108, 109]
     assert [o.overrun_before for o in outs] == [6, 0, 0, 0]
     assert p.stats()["counters"]["frames_overrun"] == 6
+
+
+def test_an_overwritten_frames_own_camera_losses_are_counted_with_the_overrun(sharp):
+    # the camera lost frame 103 (frame 104 says gap_before = 1), then the scheduler fell behind and the
+    # ring overwrote 104 unread: 105's header must count both missing frames (CI saw 2 missing, 1 said)
+    release = threading.Event()
+    col = Collector()
+
+    def sink(o):
+        col(o)
+        release.wait(30)                      # the scheduler publishes frame 100, then waits here
+    gr, fr = GyroRing(5000), FrameRing(4, (H, W))
+    cfg = PipelineConfig(workers=1, job_queue=4, wait_timeout_s=0.05, reorder_timeout_s=2.0)
+    p = Pipeline(gr, fr, CAL, DeblurConfig(enabled=False), cfg, sink)
+    img = sharp.astype(np.uint16)
+    fr.write(img, time.monotonic(), frame_id=100, arrival=time.monotonic())
+    p.start(start_index=0)
+    try:
+        assert col.wait(1)[0].frame_id == 100
+        for fid, gap in ((101, 0), (102, 0), (104, 1), (105, 0), (106, 0), (107, 0), (108, 0)):
+            fr.write(img, time.monotonic(), frame_id=fid, arrival=time.monotonic(), gap_before=gap)
+        release.set()                         # indices 1–3 (frames 101, 102, 104) are gone
+        outs = col.wait(5)
+    finally:
+        release.set()
+        p.stop()
+    assert [o.frame_id for o in outs] == [100, 105, 106, 107, 108]
+    missing = [b.frame_id - a.frame_id - 1 for a, b in zip(outs, outs[1:], strict=False)]
+    assert missing == [o.camera_gap_before + o.overrun_before for o in outs[1:]] == [4, 0, 0, 0]
+    assert p.stats()["counters"]["frames_overrun"] == 4
 
 
 class SlowDeconvolver(Deconvolver):

@@ -88,7 +88,8 @@ class FrameOut:
     coverage: float | None = None
     n_samples: int = 0
     camera_gap_before: int = 0
-    overrun_before: int = 0         # frames the frame ring overwrote unread just before this one
+    overrun_before: int = 0         # frames the frame ring overwrote unread just before this one, with
+                                    # the camera's losses before them (no longer told apart)
     t_done: float = 0.0             # host monotonic when released
     kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
     method: str | None = None       # how it was deblurred (`thermod.io.wire.METHODS`)
@@ -393,6 +394,7 @@ class Pipeline:
     # ------------------------------------------------------------------ scheduler
     def _schedule_loop(self) -> None:
         i = self._next_index
+        last_id = None            # the frame id of the last frame read
         while not self._stop.is_set():
             self.heartbeat["scheduler"] = time.monotonic()
             self.supervise()
@@ -408,6 +410,14 @@ class Pipeline:
                 self._skip_outputs(i, got)
                 i = got
                 continue
+            if got.index in self._overrun_at and last_id is not None:
+                # an overwritten frame's own camera losses (its gap_before) went with it: the frame ids
+                # say how many frames in all are missing before this one
+                unseen = got.frame_id - last_id - 1 - got.gap_before - self._overrun_at[got.index]
+                if unseen > 0:
+                    self._count("frames_overrun", unseen)
+                    self._overrun_at[got.index] += unseen
+            last_id = got.frame_id
             try:
                 self._schedule(got)
             except Exception:            # never let one frame kill the scheduler
