@@ -93,7 +93,9 @@ def main() -> None:
             "H.264 pulls τ low: its residual coding keeps less of a comet tail's change between frames "
             "the higher the frequency, so the fit scores only up to 0.075 cycles per px "
             "(`thermod.calib.tau_fit.VIDEO_BAND`; docs/design.md, \"Importing a video without a gyro\").", ""]
-    OUT.write_text("\n".join(text))
+    # the sections below the table (studies measured by hand) are kept
+    kept = OUT.read_text().partition("\n## ")[1:] if OUT.exists() else ("", "")
+    OUT.write_text("\n".join(text) + "".join(kept))
     print(f"wrote {OUT}")
 
 
