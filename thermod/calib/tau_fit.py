@@ -20,6 +20,7 @@ import numpy as np
 
 from thermod.calib import live
 from thermod.physics.calibration import Calibration
+from thermod.physics.kernels.grids import has_hole
 
 # cycles per full-resolution px: the highest frequency scored on compressed video. H.264's residual
 # coding keeps less of the change of a comet tail between frames the higher the frequency, which pulls
@@ -28,7 +29,6 @@ from thermod.physics.calibration import Calibration
 VIDEO_BAND = 0.075
 START_TAU_S = 0.010       # a scan's centre when nothing is known: typical uncooled cores are 7–14 ms
 MAX_SCANS = 4             # scans before giving up on a peak that keeps to the edge
-HOLE_PERIODS = 4.0        # a step between gyro samples this many median periods long is a hole
 
 
 @dataclass(frozen=True)
@@ -63,15 +63,15 @@ def fit_tau(frames, frame_t: np.ndarray, gyro_t: np.ndarray, gyro_rate: np.ndarr
     n = len(frame_t)
     if n < 2:
         return TauFit(None, None, 0, (), "tau_s: not estimated: fewer than two frames")
-    usable = np.ones(n - 1, bool) if pairs is None else np.asarray(pairs, bool).copy()
+    usable = np.ones(n - 1, bool) if pairs is None else np.asarray(pairs, bool)
     centre = float(start_tau_s if start_tau_s is not None else calib.tau_s)
-    holes = _gyro_holes(np.asarray(gyro_t, np.float64))
+    gyro_t = np.asarray(gyro_t, np.float64)
     scans: list[tuple[float, float]] = []
     tau = sigma = problem = None
     used = 0
     for _ in range(MAX_SCANS):
-        q, blk, used = _scan(frames, frame_t, gyro_t, gyro_rate, calib.replace(tau_s=centre), usable, holes,
-                             width, band)
+        q, blk, used = _scan(frames, frame_t, gyro_t, gyro_rate, calib.replace(tau_s=centre), usable, width,
+                             band)
         taus = centre * live.TAU_SCAN
         scans.append((round(float(1e3 * taus[0]), 3), round(float(1e3 * taus[-1]), 3)))
         tau, sigma, problem = live.tau_peak(q, blk, taus)
@@ -89,22 +89,15 @@ def fit_tau(frames, frame_t: np.ndarray, gyro_t: np.ndarray, gyro_rate: np.ndarr
     return TauFit(tau, sigma, used, tuple(scans), note)
 
 
-def _gyro_holes(gyro_t: np.ndarray) -> np.ndarray:
-    """[K, 2] (start, end) of every step between gyro samples longer than `HOLE_PERIODS` periods."""
-    if len(gyro_t) < 2:
-        return np.zeros((0, 2))
-    d = np.diff(gyro_t)
-    big = np.flatnonzero(d > HOLE_PERIODS * float(np.median(d)))
-    return np.c_[gyro_t[big], gyro_t[big + 1]]
-
-
-def _covered(holes: np.ndarray, gyro_t: np.ndarray, t0: float, t1: float) -> bool:
+def _covered(gyro_t: np.ndarray, rate_hz: float, t0: float, t1: float) -> bool:
+    """Whether the samples reach over [t0, t1] with no hole inside (`has_hole`)."""
     if len(gyro_t) < 2 or t0 < gyro_t[0] or t1 > gyro_t[-1]:
         return False
-    return not np.any((holes[:, 1] > t0) & (holes[:, 0] < t1))
+    i0, i1 = np.searchsorted(gyro_t, [t0, t1])
+    return not has_hole(gyro_t[max(i0 - 1, 0):i1 + 1], rate_hz)
 
 
-def _scan(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, usable, holes, width, band):
+def _scan(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, usable, width, band):
     """([n, T] coherence per patch pair over the scan around calib.tau_s, [n] jackknife block, pairs)."""
     per_working_px = max(1.0, calib.width / float(width))          # full-res px per working px
     reg = live.Registrar(calib, width=width, tau_band_max=live.TAU_BAND_MAX if band is None else
@@ -117,14 +110,12 @@ def _scan(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, usable, holes,
     rows, order = [], []
     tails: dict[int, live.TailSpectra] = {}
     small: dict[int, np.ndarray] = {}       # the downsampled frames of the current pair
-
-    gt = np.asarray(gyro_t, np.float64)
     for k in range(1, len(frame_t)):
         if not usable[k - 1]:
             continue
         g0 = float(calib.camera_time_to_gyro(frame_t[k - 1] - reach))
         g1 = float(calib.camera_time_to_gyro(frame_t[k]))
-        if not _covered(holes, gt, g0, g1):
+        if not _covered(gyro_t, calib.rate_hz, g0, g1):
             continue
         ta, tb = np.full(P, frame_t[k - 1]), np.full(P, frame_t[k])
         pred = live.predict(calib, integ, ta, tb, reg.centres, bias, offset)
@@ -133,20 +124,17 @@ def _scan(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, usable, holes,
         patches = reg.tau_patches(va, vb, calib.tau_s)
         if not patches.any():
             continue
-        for j in (k - 1, k):
-            if j not in small:
-                small[j] = reg.downsample(frames[j])
-        small.pop(k - 2, None)
+        # only the pair's two frames are kept (a skipped pair leaves nothing behind)
+        small = {j: small[j] if j in small else reg.downsample(frames[j]) for j in (k - 1, k)}
         a, b = small[k - 1], small[k]
         shift, resp = reg.measure(a, b, pred, va, vb, calib.tau_s)
         patches &= resp >= live.MIN_RESPONSE
         if not patches.any():
             continue
-        for j in (k - 1, k):
-            if j not in tails:
-                tails[j] = live.tail_spectra(calib, integ, float(frame_t[j]), reg.centres, bias, offset,
-                                             taus, reg.ext_f_full, live.TAU_REF)
-        tails.pop(k - 2, None)
+        tails = {j: tails[j] if j in tails else
+                 live.tail_spectra(calib, integ, float(frame_t[j]), reg.centres, bias, offset, taus,
+                                   reg.ext_f_full, live.TAU_REF)
+                 for j in (k - 1, k)}
         c = reg.tau_coherence(a, b, pred, shift, resp, tails[k - 1], tails[k], patches)
         ok = np.all(np.isfinite(c), axis=1)
         rows.append(c[ok])

@@ -28,11 +28,11 @@ import numpy as np
 
 from thermod.errors import ThermodError
 from thermod.physics.calibration import Calibration
+from thermod.physics.kernels.grids import MAX_STEP_PERIODS, has_hole  # noqa: F401 - the rule's names here too
 from thermod.restore.plan import grids_within, kernel_window, render
 from thermod.restore.settings import DeblurConfig
 
 START_COVERAGE = 0.9      # a kernel at the start of the gyro stream keeping this much is deblurred
-MAX_STEP_PERIODS = 4.0    # a step between gyro samples longer than this many periods is a hole
 
 
 @dataclass(frozen=True)
@@ -64,11 +64,6 @@ def gyro_span(calib: Calibration, deblur: DeblurConfig, t_frame: float) -> tuple
     t0_cam, t1_cam = kernel_window(calib, deblur, t_frame)
     g0, g1 = (float(x) for x in calib.camera_time_to_gyro(np.array([t0_cam, t1_cam])))   # clock drift
     return g0, g1, 2.0 / calib.rate_hz + calib.gyro_condition_margin_s
-
-
-def has_hole(gyro_t: np.ndarray, rate_hz: float) -> bool:
-    """Whether consecutive samples are further apart than `MAX_STEP_PERIODS` periods."""
-    return len(gyro_t) > 1 and bool(np.max(np.diff(gyro_t)) > MAX_STEP_PERIODS / rate_hz)
 
 
 def refused_early(deblur: DeblurConfig, ffc: bool) -> PassThrough | None:

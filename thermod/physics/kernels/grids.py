@@ -3,7 +3,8 @@
 `kernel_span_s`: the kernel of a frame whose last row is read at t_k covers (t_k − span, t_k], the
 span m·τ for a thermal kernel (Eq. 18; m = 5 leaves 0.7 % of the weight out) or the exposure for a
 photon one (Eq. 17), plus the rolling readout before the last row. Everything that cuts a gyro
-window for a frame (the daemon, offline deblurring, the flight import, calibration) uses it.
+window for a frame (the daemon, offline deblurring, the flight import, calibration) uses it, and
+`has_hole` says whether the window's samples hold a hole (a step over `MAX_STEP_PERIODS` periods).
 
 `grids_within`: the coarsest grid over which one kernel per cell stays within a tolerance of the
 true kernel everywhere in the cell, from the rotational flow field (`grids_within`'s docstring).
@@ -15,6 +16,13 @@ import numpy as np
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.detector import default_photon_exposure_s
+
+MAX_STEP_PERIODS = 4.0    # a step between gyro samples longer than this many periods is a hole
+
+
+def has_hole(gyro_t: np.ndarray, rate_hz: float) -> bool:
+    """Whether consecutive samples are further apart than `MAX_STEP_PERIODS` periods."""
+    return len(gyro_t) > 1 and bool(np.max(np.diff(gyro_t)) > MAX_STEP_PERIODS / rate_hz)
 
 
 def kernel_span_s(calib: Calibration, *, kind: str = "thermal", m: float = 5.0,
