@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from thermod.physics.geometry import integrate_rotations, so3_exp_many
+from thermod.physics.geometry import integrate_rotations, jit_cores, trapezoid_step_into
 
 from .checks import DeconvError, check_frame, check_image, check_kernel
 from .noise import noise_sigma, value_range_of
@@ -80,10 +80,37 @@ def camera_orientations(gyro_t, gyro_rate, calib, t_ref: float, times) -> np.nda
     tc = tc[i0:i1]
     w = (np.asarray(r, np.float64)[i0:i1] - np.asarray(calib.bias_rad_s)) @ calib.gyro_to_camera_matrix.T
     Q = integrate_rotations(tc, w, t_ref)
-    j = np.clip(np.searchsorted(tc, times, side="right") - 1, 0, len(tc) - 1)
-    ws = np.stack([np.interp(times, tc, w[:, a]) for a in range(3)], axis=1)
-    E = so3_exp_many(0.5 * (w[j] + ws) * (times - tc[j])[:, None])
-    return np.einsum("nij,njk->nik", Q[j], E)
+    out = np.empty((len(times), 3, 3))
+    _orientations_at(tc, np.ascontiguousarray(w), Q, times, out)
+    return out
+
+
+jit_cores()   # the geometry's trapezoid step, callable from the jitted code below
+
+
+@njit(cache=True, nogil=True)
+def _orientations_at(tc, w, Q, times, out):
+    """out[k] = Q[j] · exp([½(ω_j + ω(s)) (s − t_j)]×) at s = times[k], t_j the last sample at or before
+    s (the first before them all), ω(s) interpolated linearly and held beyond the samples: the
+    integrator's trapezoid step from the sample to s."""
+    n = tc.shape[0]
+    E = np.empty((3, 3))
+    ws = np.empty(3)
+    for k in range(times.shape[0]):
+        s = times[k]
+        j = np.searchsorted(tc, s, side="right") - 1
+        if j < 0:
+            j = 0
+        if s <= tc[0]:
+            ws[:] = w[0]
+        elif j >= n - 1:
+            j = n - 1
+            ws[:] = w[n - 1]
+        else:
+            f = (s - tc[j]) / (tc[j + 1] - tc[j])
+            for a in range(3):
+                ws[a] = w[j, a] + f * (w[j + 1, a] - w[j, a])
+        trapezoid_step_into(Q[j], w[j], ws, s - tc[j], E, out[k])
 
 
 @njit(cache=True, nogil=True)
