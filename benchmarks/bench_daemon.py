@@ -604,10 +604,11 @@ def cpu_medians(r: dict) -> dict:
 
 
 def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
-            fps: float = 50.0) -> list[dict]:
+            fps: float = 50.0, gyro: str = "sim") -> list[dict]:
     """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
-    otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times.
-    The machine's yardstick is measured first, on the quiet machine (the first row's ``yardstick``)."""
+    otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times;
+    `gyro` "video": with no gyro, the motion measured from the frames. The machine's yardstick is
+    measured first, on the quiet machine (the first row's ``yardstick``)."""
     from benchmarks.yardstick import yardstick_line
 
     rows, line = [], yardstick_line()
@@ -615,9 +616,10 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     for _ in range(repeats):
         for q in quotas:
             print(f"payload: quota {q or 'none'} for {seconds:g} s …", file=sys.stderr, flush=True)
-            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY)
+            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY,
+                           extra=(f"sources.gyro.kind={gyro}",))
             kept = r.pop("kept")
-            r.update(quota=q, cpu=cpu_medians(r), yardstick=line,
+            r.update(quota=q, gyro=gyro, cpu=cpu_medians(r), yardstick=line,
                      psnr=float(np.median([truth_psnr(img, truth.truth_for(fid), central=False)
                                            for fid, img in kept])),
                      psnr_blurry=float(np.median([truth_psnr(np.asarray(truth.frame_for(fid), np.float32),
@@ -630,7 +632,9 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
 def print_payload(rows: list[dict]) -> None:
     print(rows[0]["yardstick"], "(before the runs)")
     w, h = rows[0]["size"]
-    print(f"\nthe default daemon, {w}×{h} at {rows[0]['fps']:g} fps, {os.cpu_count()} cores, load average "
+    motion = " with no gyro (the motion from the frames)" if rows[0].get("gyro") == "video" else ""
+    print(f"\nthe default daemon{motion}, {w}×{h} at {rows[0]['fps']:g} fps, {os.cpu_count()} cores, "
+          "load average "
           f"{os.getloadavg()[0]:.1f} after the runs")
     print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
           "| PSNR dB (blurry) | steady after s | not deblurred | deblurred by |")

@@ -203,7 +203,7 @@ def test_registry_is_the_one_list_of_kinds():
     from thermod.runtime import sources
 
     assert tuple(sources.GYROS) == ("sim", "replay", "icm42688_spi", "icm42688_i2c", "mpu6000", "bmi088",
-                                    "iio", "serial")
+                                    "iio", "serial", "video")
     assert tuple(sources.CAMERAS) == ("sim", "replay", "aravis", "v4l2")
     # an option's schema in the registry is what the loader enforces
     lo = sources.GYROS["serial"].options["baud"].lo

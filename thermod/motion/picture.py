@@ -133,7 +133,8 @@ def fit_rotation(prev_rays: np.ndarray, next_rays: np.ndarray, f_px: float, rng:
     if len(pairs) == 0:
         return None
     Qs = _kabsch(prev_rays[pairs], next_rays[pairs])
-    err = np.linalg.norm(prev_rays[None] - np.einsum("sij,nj->sni", Qs, next_rays), axis=2)
+    d = prev_rays[None] - np.matmul(next_rays[None], np.transpose(Qs, (0, 2, 1)))
+    err = np.sqrt(np.sum(d * d, axis=2))
     thresh = thresh_px / f_px
     inl = err < thresh
     best = int(np.argmax(inl.sum(axis=1)))
@@ -157,6 +158,113 @@ def _work_intrinsics(intr: Intrinsics, work_width: int) -> tuple[Intrinsics, flo
     return (intr.scaled(scale) if scale != 1.0 else intr), scale
 
 
+@dataclass
+class PairFit:
+    """The rotation between two working frames: `rotvec` (rad, camera frame, Q = R(t0)ᵀ R(t1)), its
+    information matrix `info` (rad⁻²), the inlier corners' count and residual (working px), and per band
+    of rows the same fit (NaN / zeros where a band has too few) with the band's mean lead (share of the
+    readout its corners are read before the frame time)."""
+
+    rotvec: np.ndarray
+    info: np.ndarray
+    n_features: int
+    residual_px: float
+    band_rotvec: np.ndarray
+    band_info: np.ndarray
+    band_lead: np.ndarray
+    lead: float            # the inliers' mean lead (the whole-frame fit's)
+
+    @property
+    def noise_rad(self) -> float:
+        """RMS error of the rotation estimate (rad)."""
+        return math.sqrt(np.trace(np.linalg.inv(self.info)) / 3.0)
+
+
+class PairRegistrar:
+    """Registers consecutive frames (module docstring): `prepare` turns a frame into its 8-bit working
+    image, `measure` fits the rotation between two of them. `resize_first`: shrink before normalising
+    (the percentiles of the working image, not of the full frame: cheaper, for a live stream)."""
+
+    def __init__(self, intrinsics: Intrinsics, *, work_width: int = 160, max_features: int = 150,
+                 seed: int = 0, smooth_px: float = 0.0, resize_first: bool = False, lk_levels: int = 3):
+        import cv2
+
+        self.full = intrinsics
+        self.work, self.scale = _work_intrinsics(intrinsics, work_width)
+        self.K_inv = self.work.K_inv
+        self.f_px = math.sqrt(self.work.fx * self.work.fy)
+        self.rng = np.random.default_rng(seed)
+        self.size = (self.work.width, self.work.height)
+        self.border = np.zeros((self.work.height, self.work.width), np.uint8)
+        self.edge = max(3, self.work.width // 40)
+        self.border[self.edge:-self.edge, self.edge:-self.edge] = 1
+        self.max_features, self.smooth_px, self.resize_first = max_features, smooth_px, resize_first
+        self.lk = {"winSize": (15, 15), "maxLevel": int(lk_levels),
+                   "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
+
+    def prepare(self, frame) -> np.ndarray:
+        """The frame's working image (8 bits, normalised on its own: an AGC drops out)."""
+        import cv2
+
+        if self.resize_first and self.scale != 1.0:
+            small = cv2.resize(np.asarray(frame, np.float32), self.size, interpolation=cv2.INTER_AREA)
+            z = normalise_frame(small)
+        else:
+            z = normalise_frame(frame)
+            if self.scale != 1.0:
+                z = cv2.resize(z, self.size, interpolation=cv2.INTER_AREA)
+        if self.smooth_px > 0:
+            z = cv2.GaussianBlur(z, (0, 0), self.smooth_px)
+            z = z / max(float(np.percentile(z, 99) - np.percentile(z, 1)), 1e-6)
+        return _to_u8(z)
+
+    def measure(self, prev: np.ndarray, cur: np.ndarray, *, bands: bool = True,
+                predicted: np.ndarray | None = None) -> PairFit | None:
+        """The rotation from working image `prev` to `cur`, or None with too few corners agreeing;
+        `bands` False leaves the band fits out (NaN). `predicted`: a rotation vector expected for the pair
+        (e.g. the last one's), from which the corners' tracks start, both ways: a fast, smeared pair
+        then needs only the change of motion tracked."""
+        import cv2
+
+        p0 = cv2.goodFeaturesToTrack(prev, self.max_features, 0.005, self.edge, mask=self.border, blockSize=5)
+        if p0 is None or len(p0) < MIN_FEATURES:
+            return None
+        lk, guess = self.lk, None
+        if predicted is not None and np.all(np.isfinite(predicted)):
+            from thermod.physics.geometry import so3_exp
+
+            # v_prev = Q v_cur: corner p of prev lies at K Qᵀ K⁻¹ p in cur
+            H = self.work.K @ so3_exp(predicted).T @ self.K_inv
+            guess = cv2.perspectiveTransform(p0.astype(np.float64), H).astype(np.float32)
+            lk = {**self.lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess.copy() if guess is not None else None, **lk)
+        pb, stb, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, p0.copy() if guess is not None else None, **lk)
+        ok = (st[:, 0] == 1) & (stb[:, 0] == 1) & (np.linalg.norm((pb - p0)[:, 0], axis=1) < 0.5)
+        a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
+        if not len(a):
+            return None
+        ra, rb = _rays(a, self.K_inv), _rays(b, self.K_inv)
+        fit = fit_rotation(ra, rb, self.f_px, self.rng)
+        if fit is None:
+            return None
+        Q, mask, sigma = fit
+        ra, rb = ra[mask], rb[mask]
+        brot = np.full((BANDS, 3), np.nan)
+        binfo = np.zeros((BANDS, 3, 3))
+        blead = np.full(BANDS, np.nan)
+        band = np.minimum((b[mask, 1] / self.work.height * BANDS).astype(int), BANDS - 1)
+        row_full = (b[mask, 1] + 0.5) / self.scale - 0.5         # working row → full-frame row
+        lead = 1.0 - (row_full + 1.0) / self.full.height
+        for j in range(BANDS if bands else 0):
+            sel = band == j
+            if sel.sum() >= MIN_FEATURES:
+                brot[j] = so3_log(_kabsch(ra[sel], rb[sel]))
+                binfo[j] = _information(rb[sel], sigma)
+                blead[j] = float(np.mean(lead[sel]))
+        return PairFit(so3_log(Q), _information(rb, sigma), int(mask.sum()), sigma * self.f_px, brot, binfo,
+                       blead, float(np.mean(lead)))
+
+
 def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int = 160,
                    max_features: int = 150, seed: int = 0, smooth_px: float = 0.0,
                    progress=None) -> PictureMotion:
@@ -165,30 +273,10 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
     `frames` [N, H, W] grey, or a sequence of [H, W] frames (any integer or float type: each frame is
     normalised on its own, and read once);
     `frame_t` [N] seconds on the video clock; `intrinsics` of the full frame."""
-    import cv2
-
     t = np.asarray(frame_t, dtype=np.float64)
     n = len(frames)
-    work, scale = _work_intrinsics(intrinsics, work_width)
-    K_inv = work.K_inv
-    f_px = math.sqrt(work.fx * work.fy)
-    rng = np.random.default_rng(seed)
-    size = (work.width, work.height)
-    border = np.zeros((work.height, work.width), np.uint8)
-    m = max(3, work.width // 40)
-    border[m:-m, m:-m] = 1
-    lk = {"winSize": (15, 15), "maxLevel": 3,
-          "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
-
-    def prepared(k):
-        z = normalise_frame(frames[k])
-        if scale != 1.0:
-            z = cv2.resize(z, size, interpolation=cv2.INTER_AREA)
-        if smooth_px > 0:
-            z = cv2.GaussianBlur(z, (0, 0), smooth_px)
-            z = z / max(float(np.percentile(z, 99) - np.percentile(z, 1)), 1e-6)
-        return _to_u8(z)
-
+    reg = PairRegistrar(intrinsics, work_width=work_width, max_features=max_features, seed=seed,
+                        smooth_px=smooth_px)
     rotvec = np.full((n - 1, 3), np.nan)
     info = np.zeros((n - 1, 3, 3))
     nfeat = np.zeros(n - 1, dtype=np.int64)
@@ -196,37 +284,19 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
     brot = np.full((n - 1, BANDS, 3), np.nan)
     binfo = np.zeros((n - 1, BANDS, 3, 3))
     blead = np.full((n - 1, BANDS), np.nan)
-    row_full = lambda y: (y + 0.5) / scale - 0.5        # noqa: E731  (working row → full-frame row)
-    prev = prepared(0)
+    prev = reg.prepare(frames[0])
     for k in range(1, n):
-        cur = prepared(k)
-        p0 = cv2.goodFeaturesToTrack(prev, max_features, 0.005, max(3, work.width // 40), mask=border,
-                                     blockSize=5)
-        if p0 is not None and len(p0) >= MIN_FEATURES:
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, None, **lk)
-            pb, stb, _ = cv2.calcOpticalFlowPyrLK(cur, prev, p1, None, **lk)
-            ok = (st[:, 0] == 1) & (stb[:, 0] == 1) & (np.linalg.norm((pb - p0)[:, 0], axis=1) < 0.5)
-            a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
-            fit = fit_rotation(_rays(a, K_inv), _rays(b, K_inv), f_px, rng) if len(a) else None
-            if fit is not None:
-                Q, mask, sigma = fit
-                rotvec[k - 1] = so3_log(Q)
-                ra, rb = _rays(a, K_inv)[mask], _rays(b, K_inv)[mask]
-                info[k - 1] = _information(rb, sigma)
-                nfeat[k - 1] = int(mask.sum())
-                resid[k - 1] = sigma * f_px
-                band = np.minimum((b[mask, 1] / work.height * BANDS).astype(int), BANDS - 1)
-                lead = 1.0 - (row_full(b[mask, 1]) + 1.0) / intrinsics.height
-                for j in range(BANDS):
-                    sel = band == j
-                    if sel.sum() >= MIN_FEATURES:
-                        brot[k - 1, j] = so3_log(_kabsch(ra[sel], rb[sel]))
-                        binfo[k - 1, j] = _information(rb[sel], sigma)
-                        blead[k - 1, j] = float(np.mean(lead[sel]))
+        cur = reg.prepare(frames[k])
+        fit = reg.measure(prev, cur)
+        if fit is not None:
+            rotvec[k - 1], info[k - 1], nfeat[k - 1], resid[k - 1] = fit.rotvec, fit.info, fit.n_features, \
+                fit.residual_px
+            brot[k - 1], binfo[k - 1], blead[k - 1] = fit.band_rotvec, fit.band_info, fit.band_lead
         prev = cur
         if progress is not None:
             progress(k, n - 1)
-    return PictureMotion(t[:-1].copy(), t[1:].copy(), rotvec, info, nfeat, resid, work, brot, binfo, blead)
+    return PictureMotion(t[:-1].copy(), t[1:].copy(), rotvec, info, nfeat, resid, reg.work, brot, binfo,
+                         blead)
 
 
 def _information(rays: np.ndarray, sigma: float) -> np.ndarray:

@@ -73,6 +73,13 @@ class Daemon:
             log.info("calibration: the replayed recording's own (sources.camera.calibration = 'config' "
                      "for the configuration's)")
             cfg = self.cfg = dataclasses.replace(cfg, calibration=calib)
+        # a video source measures the camera's own rotation: its rates are camera-frame, on the frames' clock
+        self._offer_frame = getattr(self.gyro, "offer", None)
+        if self._offer_frame is not None:
+            calib = self.gyro.calibration_for(cfg.calibration)
+            cfg = self.cfg = dataclasses.replace(cfg, calibration=calib)
+            self.gyro.bind(calib)
+            log.info("gyro: none; the motion is measured from the camera's frames (one frame of latency)")
         if publisher is None:
             from thermod.runtime.publish import Publisher
             p = cfg.publish
@@ -100,7 +107,9 @@ class Daemon:
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
                                  deconvolver_factory=deconvolver_factory)
         self.monitor = None       # the live calibration monitor ([monitor], thermod.runtime.monitor)
-        if cfg.monitor.enabled:
+        if cfg.monitor.enabled and self._offer_frame is not None:
+            log.info("monitor: off (the motion comes from the frames it would check it against)")
+        elif cfg.monitor.enabled:
             from thermod.runtime.monitor import Monitor
             self.monitor = Monitor(cfg.monitor, self.gyro_ring, self.frame_ring, lambda: self.pipeline.calib,
                                    short_of_cpu=lambda: self.pipeline.short_of_cpu())
@@ -138,6 +147,8 @@ class Daemon:
             self.counters["frames_wrong_shape"] += 1
             raise DeviceError(f"{self.camera_state.name}: {e} (calibration.width/height)") from None
         self.camera_state.items += 1
+        if self._offer_frame is not None:
+            self._offer_frame(f.image, f.t)
         if f.gap_before:
             self.counters["camera_frames_lost"] += int(f.gap_before)
         if self.cfg.publish.raw:

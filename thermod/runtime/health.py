@@ -119,6 +119,8 @@ class Health:
             "governor": gov,
             "pipeline": {k: v for k, v in ps.items() if k not in ("counters", "governor")} | {"counters": pc},
             "threads": snap.threads, "ready": snap.ready, "gyro_online": snap.gyro_online,
+            # where the kernels' motion comes from: "gyro", or "video" (measured from the frames themselves)
+            "motion_source": getattr(snap.sources["gyro"][0], "motion_source", "gyro"),
             # until the latency is steady (`thermod.runtime.settling`): numbers before it are cold-start ones
             "warming_up": bool(ps.get("warming_up", False)),
             "publisher": {k: pub[k] for k in PUBLISHER_KEYS if k in pub},

@@ -154,6 +154,12 @@ def _v4l2(cfg, payload):
                       timestamp_clock=o["timestamp_clock"], timestamp_offset_s=o["timestamp_offset_s"])
 
 
+def _video_gyro(cfg, payload):
+    from thermod.drivers.video_gyro import VideoGyro
+    o = cfg.gyro.options
+    return VideoGyro(cfg.calibration, rate_hz=o["rate_hz"], work_width=o["work_width"])
+
+
 def _sim_gyro(cfg, payload):
     return payload.gyro_source()
 
@@ -200,6 +206,10 @@ GYROS: Mapping[str, Driver] = _table(
                                   "rate_hz": Key(float, 1000.0, 1.0, 32000.0)}, _iio),
     Driver("serial", "device file", {"baud": Key(int, 921600, 1200, 12_000_000),
                                      "low_latency": Key(bool, True)}, _serial),
+    # no gyro: the rotation measured from the camera's own frames (drivers/video_gyro.py)
+    Driver("video", None, {"rate_hz": Key(float, 1000.0, 100.0, 4000.0, doc="samples per second it sends"),
+                           "work_width": Key(int, 160, 64, 640, doc="width of the images it registers (px)")},
+           _video_gyro),
 )
 
 CAMERAS: Mapping[str, Driver] = _table(

@@ -1,0 +1,102 @@
+"""A gyro source that has no gyro: the camera's rotation measured from its own frames.
+
+``[sources.gyro] kind = "video"``. The daemon hands it every frame it receives (`offer`, from the camera
+thread: the frame is shrunk to its working image there and queued); the gyro thread's `poll` registers
+each against the one before (`thermod.motion.live.LiveTrack`) and returns the camera-frame rates as a
+`GyroBatch` stamped with the frames' host times, so the frame clock is the gyro clock. The daemon runs
+it with an identity gyro → camera calibration (`IDENTITY_GYRO`). A frame's samples arrive with the next
+frame: one frame period of added latency. Registration failures leave holes, flagged ``gap_before``.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+
+import numpy as np
+
+from thermod.drivers.gyro_base import GyroBatch, GyroSource
+from thermod.motion.live import DEFAULT_RATE_HZ, LiveTrack
+
+QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
+                          # spans it: a longer interval, not a hole)
+# the calibration's gyro part for rates that are the camera's own, on the frames' clock
+IDENTITY_GYRO = dict(R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+                     bias_rad_s=(0.0, 0.0, 0.0), time_offset_s=0.0, scale=(1.0, 1.0, 1.0),
+                     clock_drift_ppm=0.0, gyro_lowpass_hz=0.0, gyro_range_rad_s=0.0, gyro_clip_gain=1.0)
+
+
+def video_calibration(calib, rate_hz: float = DEFAULT_RATE_HZ):
+    """`calib` with the gyro part of a video source: identity mounting, no bias, offset or filter."""
+    return calib.replace(rate_hz=float(rate_hz), **IDENTITY_GYRO)
+
+
+class VideoGyro(GyroSource):
+    """Rates from the camera's frames (module docstring). `calib`: the camera's intrinsics, τ and
+    readout (`bind` replaces it before start when the calibration in force is another)."""
+
+    motion_source = "video"
+
+    def __init__(self, calib, *, rate_hz: float = DEFAULT_RATE_HZ, work_width: int = 160):
+        super().__init__()
+        self.name = "video (the camera's own frames)"
+        self.rate_hz, self.work_width = float(rate_hz), int(work_width)
+        self.track: LiveTrack | None = None
+        self.bind(calib)
+        self._frames: collections.deque = collections.deque()
+        self._cond = threading.Condition()
+        self._seq = 0
+        self._running = False
+        self._stats.update(frames_offered=0, frames_skipped=0)
+
+    def calibration_for(self, calib):
+        """The calibration the daemon runs this source with: `calib`'s camera, the video's gyro part."""
+        return video_calibration(calib, self.rate_hz)
+
+    def bind(self, calib) -> None:
+        """Measure with this calibration's intrinsics, τ and readout."""
+        self.track = LiveTrack(calib.intrinsics, tau_s=calib.tau_s, readout_s=calib.readout_s,
+                               rate_hz=self.rate_hz, work_width=self.work_width)
+
+    def start(self) -> None:
+        self._running = True
+
+    def stop(self) -> None:
+        with self._cond:
+            self._running = False
+            self._frames.clear()
+            self._cond.notify_all()
+
+    def offer(self, image: np.ndarray, t: float) -> None:
+        """A frame the camera delivered (read at host time `t`): its working image joins the queue."""
+        work = self.track.reg.prepare(image)
+        with self._cond:
+            self._stats["frames_offered"] += 1
+            if len(self._frames) >= QUEUE_FRAMES:
+                self._frames.popleft()
+                self._stats["frames_skipped"] += 1
+            self._frames.append((work, float(t)))
+            self._cond.notify()
+
+    def poll(self, timeout: float) -> GyroBatch | None:
+        with self._cond:
+            if not self._frames:
+                self._cond.wait(timeout)
+            if not self._frames:
+                return None
+            work, t = self._frames.popleft()
+        s = self.track.push_working(work, t)
+        if s is None:
+            return None
+        batch = GyroBatch(s.t, s.rate, self._seq, gap_before=s.gap_before)
+        self._seq += len(s.t)
+        return self._count_batch(batch)
+
+    def stats(self) -> dict:
+        out = super().stats()
+        out.update(self.track.counts, motion_source=self.motion_source,
+                   sigma_rad_s=self.track.last_sigma_rad_s)
+        return out
+
+
+__all__ = ["IDENTITY_GYRO", "VideoGyro", "video_calibration"]

@@ -1,0 +1,67 @@
+"""The daemon with no gyro (``[sources.gyro] kind = "video"``, in-process on the simulated payload's
+camera, 160×120): the motion comes from the frames, one frame late; every frame is published or
+counted, most are deblurred, and health, the calibration in force and the frames say where the motion
+came from."""
+
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from thermod.runtime import config
+from thermod.runtime.daemon import Daemon
+
+pytestmark = pytest.mark.slow
+
+# reasons a frame may go out raw here: the pictures could not be registered around it (too little
+# texture, or the payload's loop starting over: a cut), or a stalled host dropped its job
+ALLOWED_RAW = {"gyro_gap", "gyro_incomplete", "overload"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
+    opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "calibration.width": 160,
+            "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
+            "pipeline.workers": 2, "pipeline.job_queue": 16, "sources.gyro.kind": "video"}
+    d = Daemon(config.load(None, opts))
+    assert d.monitor is None                        # it would check the motion against itself
+    c = d.pipeline.calib
+    np.testing.assert_array_equal(c.gyro_to_camera_matrix, np.eye(3))
+    assert c.time_offset_s == 0 and c.bias_rad_s == (0.0, 0.0, 0.0)
+    seen = []
+    emit = d.pipeline.emit
+
+    def keep(o):
+        seen.append((o.frame_id, o.deblurred, o.method, o.reason))
+        emit(o)
+
+    d.pipeline.emit = keep
+    d.start()
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 6.0:
+            d.tick()
+            time.sleep(0.05)
+        h = d.health()
+        running = list(seen)
+    finally:
+        d.stop()
+    pc = d.pipeline.stats()["counters"]
+    n = pc["frames_in"]
+    assert n >= 150 and pc["frames_out"] == n == len(seen)                # every frame published
+    ids = [f for f, *_ in seen]
+    assert ids == sorted(ids)
+    assert h["motion_source"] == "video"
+    gyro = h["devices"]["gyro"]["stats"]
+    assert gyro["motion_source"] == "video" and gyro["measured"] >= 0.8 * gyro["frames"], gyro
+    raw = [s for s in running if not s[1]]
+    assert {s[3] for s in raw} <= ALLOWED_RAW, raw
+    # holes pass a few frames through each; the rest is deblurred
+    assert len(raw) <= 0.2 * len(running), (len(raw), gyro)
+    assert h["calibration"]["monitor"]["enabled"] is False
