@@ -5,7 +5,8 @@ thread: the frame is shrunk to its working image there and queued); the gyro thr
 each against the one before (`thermod.motion.live.LiveTrack`) and returns the camera-frame rates as a
 `GyroBatch` stamped with the frames' host times, so the frame clock is the gyro clock. The daemon runs
 it with an identity gyro → camera calibration (`IDENTITY_GYRO`). A frame's samples arrive with the next
-frame: one frame period of added latency. Registration failures leave holes, flagged ``gap_before``.
+frame: one frame period of added latency (two across a bridged interval: the daemon's wait for samples
+is at least `samples_wait_s`). Registration failures leave holes, flagged ``gap_before``.
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ import threading
 import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch, GyroSource
-from thermod.motion.live import DEFAULT_RATE_HZ, LiveTrack
+from thermod.motion.live import DEFAULT_RATE_HZ, MAX_BRIDGED, LiveTrack
 
+REGISTER_S = 0.02         # allowed for a frame's registration before its samples are late
 QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
                           # spans it: a longer interval, not a hole)
 # the calibration's gyro part for rates that are the camera's own, on the frames' clock
@@ -48,6 +50,12 @@ class VideoGyro(GyroSource):
         self._seq = 0
         self._running = False
         self._stats.update(frames_offered=0, frames_skipped=0)
+
+    @staticmethod
+    def samples_wait_s(frame_rate_hz: float) -> float:
+        """How long a frame may wait for its samples: the next frame, one more across a bridged interval
+        (`thermod.motion.live.MAX_BRIDGED`), and their registration."""
+        return (1 + MAX_BRIDGED) / float(frame_rate_hz) + REGISTER_S
 
     def calibration_for(self, calib):
         """The calibration the daemon runs this source with: `calib`'s camera, the video's gyro part."""

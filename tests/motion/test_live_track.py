@@ -104,3 +104,44 @@ def test_the_video_source_hands_the_daemon_camera_frame_rates(swaying):
     st = src.stats()
     assert st["motion_source"] == "video" and st["frames_offered"] == 6
     assert st["samples"] == sum(map(len, batches))
+
+
+def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying):
+    rec, motion = swaying
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    measure, calls = tr.reg.measure, []
+
+    def failing_once(*a, **k):               # the pair into frame 10 cannot be registered
+        calls.append(1)
+        return None if len(calls) == 10 else measure(*a, **k)
+
+    tr.reg.measure = failing_once
+    got = run(tr, rec.frames[:20], rec.t[:20])
+    assert tr.counts["untracked"] == 1 and tr.counts["bridged"] == 1
+    assert not any(s.gap_before for s in got)
+    t = np.concatenate([s.t for s in got])
+    w = np.concatenate([s.rate for s in got])
+    sig = np.concatenate([s.sigma for s in got])
+    np.testing.assert_allclose(np.diff(t), 1e-3, rtol=1e-6)             # no sample missing, none twice
+    # no samples for frame 9 until frame 11 came: the batch after the failure reaches frame 10's time
+    assert len(got) == 18 and got[8].t[-1] < rec.t[9] < got[9].t[-1]
+    inside = (t > rec.t[9] - CALIB.tau_s) & (t < rec.t[10] - CALIB.tau_s)
+    truth = motion.omega(t[inside] - rec.t[0])
+    err = math.sqrt(np.mean((w[inside] - truth) ** 2) / np.mean(truth ** 2))
+    assert err < 3 * RATE_TOL
+    assert np.median(sig[inside]) > np.median(sig[~inside])             # and it says it is less sure there
+
+
+def test_two_pairs_in_a_row_leave_a_hole(swaying):
+    rec, _ = swaying
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    measure, calls = tr.reg.measure, []
+
+    def failing_twice(*a, **k):
+        calls.append(1)
+        return None if len(calls) in (10, 11) else measure(*a, **k)
+
+    tr.reg.measure = failing_twice
+    got = run(tr, rec.frames[:20], rec.t[:20])
+    assert tr.counts["untracked"] == 2 and tr.counts["bridged"] == 0
+    assert [s.gap_before for s in got].count(True) == 1

@@ -13,11 +13,14 @@ go out then: a frame is deblurred one frame period later than with a gyro, never
 extrapolated over more than (t_{k−1} − m_k)⁺ = (τ + lead · readout − ½ period)⁺.
 
 The rule it keeps: no invented motion. A pair that cannot be registered (too little texture, a scene
-cut: the registered images correlate below `MIN_REGISTERED_NCC`) leaves its interval without samples,
-and the next samples say `gap_before`, so the frames whose kernel window spans it pass through. A
-frame identical to the one before (a repeated frame) is skipped: the next one is registered across
-it. The batch import's track (`thermod.motion.track`) does more with the whole video at hand: static
-overlays, cubic splines, the bands' own lags.
+cut: the registered images correlate below `MIN_REGISTERED_NCC`) is unknown. One unknown interval
+between two measured ones is bridged: the rates of its neighbours are interpolated across it, its
+samples' σ widened by half their difference, and the frame before it waits one more period for them.
+Two in a row leave the stretch without samples, and the next samples say `gap_before`, so the frames
+whose kernel window spans the hole pass through. A frame identical to the one before (a repeated
+frame) is skipped: the next one is registered across it. The batch import's track
+(`thermod.motion.track`) does more with the whole video at hand: static overlays, cubic splines, the
+bands' own lags.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from thermod.physics.geometry import Intrinsics
 LEAD_SAMPLES = 3          # samples sent past the frame time (the kernel window's padding)
 MAX_REPEATS = 2           # repeated frames skipped in a row; then the pair is registered anyway (a still,
                           # noiseless scene repeats without a camera fault)
+MAX_BRIDGED = 1           # unknown intervals between two measured ones that their rates are interpolated over
 DEFAULT_RATE_HZ = 1000.0
 # corners and pyramid levels per pair: 100 and 2 (a working frame moves a few px per period) against the
 # import's 150 and 3 took 4.7 ms a frame for 7.3 at 640×480, with the rate error 5.5 °/s RMS for 5.2
@@ -71,7 +75,9 @@ class LiveTrack:
         self._next_t: float | None = None    # the next sample's time (None: a new stretch starts)
         self._gap = False
         self._repeats = 0
-        self.counts = {"frames": 0, "measured": 0, "untracked": 0, "cut": 0, "duplicate": 0, "samples": 0}
+        self._unknown = 0                    # unknown intervals since the anchor's
+        self.counts = {"frames": 0, "measured": 0, "untracked": 0, "cut": 0, "duplicate": 0, "bridged": 0,
+                       "samples": 0}
         self.last_sigma_rad_s = math.nan
 
     def push(self, frame, t: float) -> Samples | None:
@@ -100,9 +106,13 @@ class LiveTrack:
             status = "cut"
         if status != "ok":
             self.counts[status] += 1
-            self._lose_stretch()
+            self._unknown += 1
+            if self._anchor is None or self._unknown > MAX_BRIDGED:
+                self._lose_stretch()
             return None
         self.counts["measured"] += 1
+        bridged, self._unknown = self._unknown > 0, 0
+        self.counts["bridged"] += bridged
         dt = t - t_prev
         rate = fit.rotvec / dt
         sigma = fit.noise_rad / dt
@@ -111,15 +121,17 @@ class LiveTrack:
         old, self._anchor = self._anchor, (m, rate, sigma)
         if self._next_t is None:                 # a stretch starts where its first interval does
             self._next_t = t_prev - self.tau_s - fit.lead * self.readout_s
-        return self._emit(old, t_prev + LEAD_SAMPLES * self.h)
+        # across a bridged interval the rate may have done anything between its neighbours' values
+        spread = 0.5 * float(np.linalg.norm(rate - old[1])) if bridged and old is not None else 0.0
+        return self._emit(old, t_prev + LEAD_SAMPLES * self.h, spread)
 
     def _lose_stretch(self) -> None:
-        """The motion over the last interval is unknown: the samples stop, and resume flagged."""
+        """The motion over the last intervals is unknown: the samples stop, and resume flagged."""
         if self._next_t is not None:
             self._gap = True
-        self._anchor, self._next_t = None, None
+        self._anchor, self._next_t, self._unknown = None, None, 0
 
-    def _emit(self, old, until: float) -> Samples | None:
+    def _emit(self, old, until: float, spread: float = 0.0) -> Samples | None:
         n = int(math.floor((until - self._next_t) / self.h)) + 1
         if n <= 0:
             return None
@@ -132,7 +144,7 @@ class LiveTrack:
             m0, r0, s0 = old
             f = np.clip((ts - m0) / (m - m0), 0.0, 1.0)[:, None] if m > m0 else np.ones((n, 1))
             w = r0 + f * (rate - r0)
-            s = np.where(f[:, 0] < 1.0, np.maximum(s0, sigma), sigma)
+            s = np.where(f[:, 0] < 1.0, np.maximum(s0, sigma) + spread, sigma)
         self._next_t = float(ts[-1] + self.h)
         gap, self._gap = self._gap, False
         self.counts["samples"] += n

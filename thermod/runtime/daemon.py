@@ -77,7 +77,9 @@ class Daemon:
         self._offer_frame = getattr(self.gyro, "offer", None)
         if self._offer_frame is not None:
             calib = self.gyro.calibration_for(cfg.calibration)
-            cfg = self.cfg = dataclasses.replace(cfg, calibration=calib)
+            wait = max(cfg.pipeline.wait_timeout_s, self.gyro.samples_wait_s(calib.frame_rate_hz))
+            cfg = self.cfg = dataclasses.replace(cfg, calibration=calib, pipeline=dataclasses.replace(
+                cfg.pipeline, wait_timeout_s=wait))
             self.gyro.bind(calib)
             log.info("gyro: none; the motion is measured from the camera's frames (one frame of latency)")
         if publisher is None:
