@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import os
 import sys
 import time
@@ -148,6 +149,7 @@ class WatchStats:
                              f"{g.get('budget_ms', nan):.1f} ms, load ×{g.get('load', nan):.2f}, "
                              f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
             lines += cpu_lines(h)
+            lines += motion_lines(h)
             lines.append(f"daemon rates {_compact(h.get('rates'))}")
             lines.append(f"daemon drops {_compact({k: v for k, v in (h.get('drops') or {}).items() if v})}")
             lines.append(f"devices      {_devices(h.get('devices'))}")
@@ -189,6 +191,19 @@ def cpu_lines(h: dict) -> list[str]:
         out.append("stage ms     " + ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in stages.items())
                    + " (p50/p99)" + warm)
     return out
+
+
+def motion_lines(h: dict) -> list[str]:
+    """Where the kernels' motion comes from, when it is not a gyro: the video source's registrations."""
+    if h.get("motion_source") != "video":
+        return []
+    st = ((h.get("devices") or {}).get("gyro") or {}).get("stats") or {}
+    sigma = st.get("sigma_rad_s")
+    return [f"motion       from the video (no gyro): {st.get('measured', 0)} of {st.get('frames', 0)} frame "
+            f"pairs registered, {st.get('bridged', 0)} bridged, {st.get('untracked', 0)} untracked, "
+            f"{st.get('cut', 0)} cuts, {st.get('duplicate', 0)} repeats"
+            + (f", last σ {math.degrees(sigma):.2f} °/s" if isinstance(sigma, (int, float))
+               and math.isfinite(sigma) else "")]
 
 
 def calibration_lines(cal) -> list[str]:
