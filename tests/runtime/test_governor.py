@@ -414,6 +414,27 @@ def test_the_temporal_rung_coarsens_no_further_than_its_tolerance():
     assert labels[-1] == "temporal"
 
 
+def test_the_temporal_rung_climbs_back_to_its_floor_as_it_is_kept_there():
+    """Temporal over its 3×4 floor costs 22 ms at idle: over the climb threshold of the budget
+    (0.75 × 25.5 = 19.1 ms) but within that of `keep_s` (0.75 × 34 = 25.5 ms), where the rung is kept.
+    A load of 2× for 3 s steps it down to Wiener; once the load is gone it comes back, and stays."""
+    def cost(fam, cells, load=1.0):
+        ms = (16 + 24 * (cells - 1) / 47) if fam == "temporal" else (3 + 7 * (cells - 1) / 47)
+        return load * ms / 1e3
+
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam in ("temporal", "wiener"):
+        for cells in (1, 12, 48):
+            g.seed(fam, cells, cost(fam, cells))
+    assert 19.1e-3 < cost("temporal", 12) < 25.5e-3
+    labels, t = feed(g, 0.0, 3.0, cost, needed=(6, 8), floor=(3, 4))
+    assert labels[-1] == "temporal 3×4"
+    labels, t = feed(g, t, 3.0, lambda f, c: cost(f, c, 2.0), needed=(6, 8), floor=(3, 4))
+    assert labels[-1].startswith("wiener") and g.counts["degrades"] == 1
+    labels, t = feed(g, t, 6.0, cost, needed=(6, 8), floor=(3, 4))
+    assert labels[-100:].count("temporal 3×4") == 100 and g.counts["climbs"] == 1
+
+
 def test_the_last_rung_keeps_its_floor_over_the_latency_budget():
     """Large frames: Wiener over the 3×4 floor costs 30 ms, over the 25.5 ms latency budget but within
     the 34 ms the workers keep up with; one kernel (20 ms) would fit the budget but misplaces the

@@ -11,8 +11,8 @@ Cost: predicted = reference × L + O, with a reference per (solver family, kerne
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
 over its reference) and O the median round trip around a child's solve (`overhead_s`).
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
-within ``(1 − margin)`` of the budget, ``hold_s`` after its last change; a climb undone within two
-holds doubles the hold (up to ``max_hold_s``).
+within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
+after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
 
 It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
 and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
@@ -281,6 +281,13 @@ class Governor:
         g = self._grids(i, needed, floor)[-1]
         return g if self._keep_cost(i, g) <= self.keep_s else None
 
+    def _keeps_with_margin(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> bool:
+        """A coarsening rung's climb back: its floor predicted within ``(1 − margin)`` of `keep_s`, the
+        limit it is kept at (`_keeps`), as a climb within the budget has the budget's margin."""
+        if not self.rungs[i].coarsens:
+            return False
+        return self._keep_cost(i, self._grids(i, needed, floor)[-1]) <= self.keep_s * (1 - self.margin)
+
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
         ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
@@ -321,6 +328,7 @@ class Governor:
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 for i in range(self.index):                       # best rung that fits with margin
                     if self._fits_any(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None \
+                            or self._keeps_with_margin(i, worst, worst_floor) \
                             or (i == self.full_last and self._keeps_beyond_floor(
                                 i, worst, self.keep_s * (1 - self.margin)) is not None):
                         self._move(i, now)
