@@ -3,10 +3,11 @@ tests/cli/test_watch_record.py)."""
 
 import contextlib
 import os
+import shutil
 import signal
-import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -17,11 +18,12 @@ from thermod.client.subscriber import Subscriber
 
 @contextlib.contextmanager
 def running_daemon(*extra_args: str, ready_timeout_s: float = 240.0):
-    """`thermod run --raw` on the simulated payload on a free loopback port; yields its endpoint once its
-    health says ready (frames and samples flowing: the first start renders the loop), SIGTERM after."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        ep = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    """`thermod run --raw` on the simulated payload on an ``ipc://`` socket of its own; yields its endpoint
+    once its health says ready (frames and samples flowing: the first start renders the loop), SIGTERM
+    after. Not a free TCP port: between finding one and binding it, another test's daemon may take it,
+    and this test would then subscribe to that daemon (seen: a recording with another's calibration)."""
+    where = tempfile.mkdtemp(prefix="thermod-")
+    ep = f"ipc://{where}/pub.sock"
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[2] / ".numba_cache"))
     proc = subprocess.Popen([str(Path(sys.executable).with_name("thermod")), "run", "--endpoint", ep,
@@ -41,3 +43,4 @@ def running_daemon(*extra_args: str, ready_timeout_s: float = 240.0):
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(20)
+        shutil.rmtree(where, ignore_errors=True)
