@@ -12,15 +12,11 @@ beyond the newest one. Frame k arrives with ω_k, so the samples up to t_{k−1}
 go out then: a frame is deblurred one frame period later than with a gyro, never with a rate
 extrapolated over more than (t_{k−1} − m_k)⁺ = (τ + lead · readout − ½ period)⁺.
 
-The rule it keeps: no invented motion. A pair that cannot be registered (too little texture, a scene
-cut: the registered images correlate below `MIN_REGISTERED_NCC`) is unknown. One unknown interval
-between two measured ones is bridged: the rates of its neighbours are interpolated across it, its
-samples' σ widened by half their difference, and the frame before it waits one more period for them.
-Two in a row leave the stretch without samples, and the next samples say `gap_before`, so the frames
-whose kernel window spans the hole pass through. A frame identical to the one before (a repeated
-frame) is skipped: the next one is registered across it. The batch import's track
-(`thermod.motion.track`) does more with the whole video at hand: static overlays, cubic splines, the
-bands' own lags.
+The rule it keeps: a rate only where the pictures measured it, or across one interval between two
+measured ones (a pair that cannot be registered: too little texture, or a cut, `MIN_REGISTERED_NCC`),
+which is bridged by its neighbours' rates with σ widened by half their difference. Two unknown
+intervals in a row stop the samples; the next say `gap_before`, and the frames whose kernel window
+spans the hole pass through. A repeated frame is skipped and the next registered across it.
 """
 
 from __future__ import annotations
