@@ -1,0 +1,206 @@
+"""The daemon against `thermod deblur` on the same recordings: six simulated flights with truth, each
+replayed in real time through the default daemon and deblurred offline, both scored against the truth.
+
+    .venv/bin/python -m benchmarks.bench_replay [--seconds 6] [--cases N] [--size 640x480]
+
+Each recording (`thermod.sim.synth`, `make run`'s camera: 640×480 at 50 fps, τ 8 ms, NETD 50 mK, a
+paper-grade gyro) is a scene under a motion the tests do not use; they are cached in
+$TMPDIR/thermod_replay. The daemon is `config/sim.toml`'s but for its sources (``replay`` at speed 1,
+no loop): the same deblur, pipeline, governor and monitor. It is fed by its replay drivers and
+observed from a subscriber in this process; `thermod deblur` runs with its defaults. PSNR: the whole
+frame on the truth's 8-bit 0.5–99.5 % scale, the median over the frames after the first `--skip`
+seconds (the daemon's warm-up) that both deblurred. Prints, per recording, the daemon's and the
+offline PSNR, the blurry frames', the gap, the daemon's share deblurred and temporal and its latency
+p99 (published − frame time), and the machine's yardstick. Target (issue 35): the daemon within
+0.3 dB of `thermod deblur`, ≥ 80 % temporal, ≥ 99.5 % deblurred, p99 ≤ 60 ms on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+THERMOD = Path(sys.executable).with_name("thermod")
+# (scene, motion): held-out pairs, none the daemon tests or the payload use together
+CASES = (("real:2", "multirotor:40"), ("real:3", "shake:3"), ("texture", "pan:80"),
+         ("real:4", "vibration:15:45"), ("real:5", "multirotor:80"), ("texture", "sway"))
+
+
+def calibration(size):
+    from thermod.physics.calibration import Calibration
+
+    w, h = size
+    f = (w / 640) / math.radians(0.0391)      # the paper's SBTI field of view (config/sim.toml) at any size
+    return Calibration(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2, tau_s=0.008,
+                       frame_rate_hz=50.0)
+
+
+def recording_for(case: int, seconds: float, size, directory: Path) -> Path:
+    """The case's recording (simulated once, then cached)."""
+    from thermod.io import recording
+    from thermod.sim import synth
+    from thermod.sim.gyro_model import GyroErrorModel
+
+    scene, motion = CASES[case]
+    path = directory / f"case{case}-{size[0]}x{size[1]}-{seconds:g}s.h5"
+    if not path.exists():
+        rec = synth.simulate(scene, motion, seconds, calibration(size), effects={"netd": 0.05},
+                             seed=20 + case, gyro=GyroErrorModel.paper())
+        tmp = path.with_suffix(".tmp.h5")
+        recording.write(tmp, rec)
+        tmp.replace(path)
+    return path
+
+
+def replay_toml(rec: Path, endpoint: str, out: Path) -> Path:
+    """config/sim.toml with replayed sources: its [calibration] goes (the recording's is used) and
+    so does [sim] (no simulated payload)."""
+    import tomllib
+
+    raw = tomllib.loads((REPO / "config" / "sim.toml").read_text())
+    keep = ("deblur", "pipeline", "monitor")
+    lines = [f'[sources.gyro]\nkind = "replay"\npath = "{rec}"\nloop = false\nspeed = 1.0\n',
+             f'[sources.camera]\nkind = "replay"\npath = "{rec}"\nloop = false\nspeed = 1.0\n',
+             f'[publish]\nendpoint = "{endpoint}"\n']
+    for name in keep:
+        lines.append(f"[{name}]")
+        for k, v in raw[name].items():
+            lines.append(f"{k} = {_toml(v)}")
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    return repr(v)
+
+
+def psnr(est, truth) -> float:
+    lo, hi = np.percentile(truth, (0.5, 99.5))
+    e = np.clip((est - lo) / (hi - lo), 0, 1) * 255
+    t = np.clip((truth - lo) / (hi - lo), 0, 1) * 255
+    return 10 * math.log10(255**2 / max(float(np.mean((e - t) ** 2)), 1e-12))
+
+
+def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
+    """Replay through `thermod run`; per frame (index in the recording): deblurred, method, latency, PSNR."""
+    from thermod.client.subscriber import Subscriber
+
+    ep = f"ipc://{work}/pub.sock"
+    toml = replay_toml(rec_path, ep, work / "replay.toml")
+    env = dict(os.environ)
+    env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
+    proc = subprocess.Popen([str(THERMOD), "run", "-c", str(toml)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, env=env, text=True)
+    got: dict[int, tuple] = {}
+    try:
+        with Subscriber(ep, topics=("frame",), rcvhwm=100000) as sub:
+            deadline = time.monotonic() + 240 + n_frames / 50.0
+            while time.monotonic() < deadline and proc.poll() is None:
+                m = sub.recv(timeout=0.5)
+                if m is None:
+                    if got and len(got) >= n_frames:
+                        break
+                    continue
+                _, h, img = m
+                k = int(h["frame_id"])         # a replay numbers its frames by their index in the recording
+                got[k] = (bool(h["deblurred"]), h.get("method"), 1e3 * (h["published"] - h["t"]),
+                          psnr(img, truth[k]) if 0 <= k < len(truth) else math.nan)
+                if len(got) >= n_frames:
+                    break
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return got
+
+
+def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float], list[bool], float]:
+    import h5py
+
+    from thermod.io import recording
+
+    out = work / "offline.h5"
+    t0 = time.perf_counter()
+    subprocess.run([str(THERMOD), "deblur", str(rec_path), "-o", str(out)], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    wall = time.perf_counter() - t0
+    r = recording.read(out)
+    with h5py.File(out) as f:
+        ok = f["deblurred/deblurred"][()].astype(bool).tolist()
+    return [psnr(r.deblurred[k], truth[k]) for k in range(len(truth))], ok, wall
+
+
+def run_case(case: int, seconds: float, size, skip_s: float, cache: Path) -> dict:
+    from thermod.io import recording
+
+    path = recording_for(case, seconds, size, cache)
+    rec = recording.read(path)
+    truth = np.asarray(rec.extras["truth/frames"], np.float32)
+    blurry = [psnr(rec.frames[k].astype(np.float32), truth[k]) for k in range(len(truth))]
+    with tempfile.TemporaryDirectory(prefix="thermod-replay-") as d:
+        work = Path(d)
+        lv = live(path, truth, len(truth), work)
+        off, off_ok, off_wall = offline(path, truth, work)
+    first = int(round(skip_s * rec.calibration.frame_rate_hz))
+    both = [k for k in range(first, len(truth)) if k in lv and lv[k][0] and off_ok[k]]
+    lat = [v[2] for k, v in lv.items() if k >= first]
+    methods = [v[1] for k, v in lv.items() if k >= first]
+    return {"case": f"{CASES[case][0]} / {CASES[case][1]}", "frames": len(truth), "published": len(lv),
+            "deblurred_pct": 100.0 * sum(v[0] for k, v in lv.items() if k >= first) / max(1, len(methods)),
+            "temporal_pct": 100.0 * sum(m == "temporal" for m in methods) / max(1, len(methods)),
+            "p99_ms": float(np.percentile(lat, 99)) if lat else math.nan,
+            "live": float(np.median([lv[k][3] for k in both])) if both else math.nan,
+            "offline": float(np.median([off[k] for k in both])) if both else math.nan,
+            "blurry": float(np.median([blurry[k] for k in both])) if both else math.nan,
+            "scored": len(both), "offline_s_per_frame": off_wall / len(truth)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=6.0, help="length of each recording")
+    ap.add_argument("--skip", type=float, default=2.0, help="seconds of warm-up left out of the scores")
+    ap.add_argument("--cases", type=int, default=len(CASES))
+    ap.add_argument("--size", default="640x480")
+    args = ap.parse_args(argv)
+    size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
+    cache = Path(os.environ.get("TMPDIR", "/tmp")) / "thermod_replay"
+    cache.mkdir(parents=True, exist_ok=True)
+    from benchmarks.yardstick import yardstick_line
+
+    print(yardstick_line(), "(before the runs)", flush=True)
+    rows = []
+    print("| recording (scene / motion) | daemon dB | `thermod deblur` dB | daemon − offline | blurry dB "
+          "| deblurred % | temporal % | p99 ms | frames scored |")
+    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+    for case in range(min(args.cases, len(CASES))):
+        r = run_case(case, args.seconds, size, args.skip, cache)
+        rows.append(r)
+        print(f"| {r['case']} | {r['live']:.2f} | {r['offline']:.2f} | {r['live'] - r['offline']:+.2f} | "
+              f"{r['blurry']:.2f} | {r['deblurred_pct']:.1f} | {r['temporal_pct']:.1f} | {r['p99_ms']:.1f} | "
+              f"{r['scored']} |", flush=True)
+    gaps = [r["live"] - r["offline"] for r in rows]
+    per_frame = np.median([r["offline_s_per_frame"] for r in rows])
+    print(f"\nmean daemon − offline {np.mean(gaps):+.2f} dB (worst {min(gaps):+.2f}); load average "
+          f"{os.getloadavg()[0]:.1f} after the runs; offline {per_frame:.2f} s a frame (wall)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
