@@ -207,8 +207,10 @@ class PairRegistrar:
         import cv2
 
         if self.resize_first and self.scale != 1.0:
-            small = cv2.resize(np.asarray(frame, np.float32), self.size, interpolation=cv2.INTER_AREA)
-            z = normalise_frame(small)
+            f = np.asarray(frame)
+            if f.dtype not in (np.uint8, np.uint16, np.float32):   # what cv2 shrinks as it is
+                f = f.astype(np.float32)
+            z = normalise_frame(cv2.resize(f, self.size, interpolation=cv2.INTER_AREA))
         else:
             z = normalise_frame(frame)
             if self.scale != 1.0:
