@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.client.subscriber import Subscriber
 from thermod.client.web import LAYOUT, LiveView, WebError, WebServer, kernel_image, parse_bind
 from thermod.io.wire import MessageError, decode, pack_kernel
@@ -286,12 +287,6 @@ def test_watch_cli_reports_a_bad_http_address(capsys):
 
 
 # ------------------------------------------------------------------------ a real browser, a real daemon
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def screenshot(url, path, profile):
     chromium = shutil.which("chromium")
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -320,7 +315,7 @@ def test_chromium_renders_the_live_page(require, tmp_path):
     require(shutil.which("chromium") is not None, "chromium (Debian package chromium)")
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     daemon = subprocess.Popen([str(THERMOD), "run", "--raw", "--endpoint", ep, "--set",
                                "deblur.method=wiener", "--seconds", "400"],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)

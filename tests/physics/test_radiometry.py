@@ -3,7 +3,6 @@ inverse, domains and validation; the [radiometry] config section; the daemon's `
 real Subscriber receives it; `thermod deblur --celsius` end to end."""
 
 import math
-import socket
 import threading
 import time
 import warnings
@@ -14,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.support.endpoints import private_endpoint
 from thermod.cli import main
 from thermod.errors import ConfigError
 from thermod.io import recording, wire
@@ -160,12 +160,6 @@ def test_celsius_is_a_wire_topic_of_frames():
 
 
 # ------------------------------------------------------------------------------ the daemon
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("source", ["config", "camera"])
 def test_daemon_publishes_celsius_next_to_each_frame(source):
@@ -176,7 +170,7 @@ def test_daemon_publishes_celsius_next_to_each_frame(source):
     from thermod.runtime.sdnotify import Notifier
     from thermod.sim.payload import SimCamera
 
-    ep = f"tcp://127.0.0.1:{_free_port()}"
+    ep = private_endpoint()
     # the simulated payload's counts are ~17 850 (real scene; 17 200–18 900 procedural): near 25 °C
     consts = dict(R=3.4e5, B=1428.0, F=1.0, O=15000.0) if source == "config" else dict(SimCamera.PLANCK)
     overrides = {"publish.endpoint": ep, "deblur.method": "wiener"}
@@ -286,7 +280,7 @@ def test_sighup_reload_applies_a_new_radiometry_model(tmp_path):
     from thermod.runtime.sdnotify import Notifier
 
     p = _toml(tmp_path, '[radiometry]\nmodel = "linear"\ngain = 0.01\noffset = -273.15\n')
-    ep = f"tcp://127.0.0.1:{_free_port()}"
+    ep = private_endpoint()
     d = Daemon(config.load(p, {"publish.endpoint": ep}), notifier=Notifier(None, env={}),
                overrides={"publish.endpoint": ep})
     assert d.cfg.radiometry == Linear(0.01, -273.15)
@@ -322,7 +316,7 @@ path = "{src}"
 kind = "replay"
 path = "{src}"
 [publish]
-endpoint = "tcp://127.0.0.1:{_free_port()}"
+endpoint = "{private_endpoint()}"
 [radiometry]
 model = "camera"
 """)

@@ -5,13 +5,13 @@ same frames, and passes the same frames through for the same reason (`thermod.re
 decides for both)."""
 
 import math
-import socket
 import time
 
 import h5py
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.cli.__main__ import main
 from thermod.client.subscriber import Subscriber
 from thermod.io import recording
@@ -26,11 +26,6 @@ N_FRAMES = 24
 # 0.002 over a 2000-count range. Without --adaptive (offline's finest grid on every frame) 62 counts.
 TOLERANCE = 0.05
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +42,7 @@ def rec_path(tmp_path_factory):
 
 
 def _daemon_frames(path, tmp_path) -> dict:
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     toml = tmp_path / "replay.toml"
     toml.write_text(f"""
 [sources.gyro]

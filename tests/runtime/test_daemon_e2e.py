@@ -9,7 +9,6 @@ the calibration, SIGTERM → exit 0 before systemd's TimeoutStopSec would kill i
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.client.subscriber import Subscriber
 from thermod.physics.calibration import Calibration
 from thermod.restore.policy import START_COVERAGE
@@ -36,11 +36,6 @@ RECORD_RATIO_LIMIT = 0.65
 TIMEOUT_STOP_S = 15.0          # systemd/thermod.service TimeoutStopSec
 THERMOD = Path(sys.executable).with_name("thermod")
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def env():
@@ -61,7 +56,7 @@ def payload():
 @pytest.mark.slow
 def test_thermod_run_end_to_end(payload):
     cfg, pl = payload
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     proc = subprocess.Popen([str(THERMOD), "run", "--endpoint", ep, "--raw", "-v", "--seconds", "120"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env(), text=True)
     frames, raws, healths, gyro = {}, {}, [], []
@@ -265,7 +260,7 @@ def test_record_output_deblurs_with_thermod_deblur(payload, tmp_path):
     from thermod.io import recording
 
     _, pl = payload
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     daemon = _start(["run", "--endpoint", ep, "--raw", "--seconds", "60"])
     try:
         _wait_ready(ep, daemon)
@@ -322,7 +317,7 @@ path = "{pl.cache_path}"
 [deblur]
 method = "wiener"
 [publish]
-endpoint = "tcp://127.0.0.1:{free_port()}"
+endpoint = "{private_endpoint()}"
 """)
     cfg = config.load(cfg_path)
     d = Daemon(cfg)

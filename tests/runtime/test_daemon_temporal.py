@@ -4,25 +4,20 @@ either), ≥ 99 % by the temporal rung unless the governor stepped down (the fir
 health and the frames' metadata name the method, and the governor's ladder starts with the temporal
 rung, whose cost warm-up measured."""
 
-import socket
 import time
 
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.runtime import config
 from thermod.runtime.daemon import Daemon
 
 pytestmark = pytest.mark.slow
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def test_the_default_daemon_deblurs_temporally():
-    opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "calibration.width": 160,
+    opts = {"publish.endpoint": private_endpoint(), "calibration.width": 160,
             "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
             "pipeline.workers": 2, "monitor.enabled": False,
             # a deeper job queue than the default: the shared test machine stalls the process for

@@ -3,12 +3,12 @@ camera, 160×120): the motion comes from the frames, one frame late; every frame
 counted, most are deblurred, and health, the calibration in force and the frames say where the motion
 came from."""
 
-import socket
 import time
 
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.runtime import config
 from thermod.runtime.daemon import Daemon
 
@@ -19,14 +19,9 @@ pytestmark = pytest.mark.slow
 ALLOWED_RAW = {"gyro_gap", "gyro_incomplete", "overload"}
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
-    opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "calibration.width": 160,
+    opts = {"publish.endpoint": private_endpoint(), "calibration.width": 160,
             "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
             "pipeline.workers": 2, "pipeline.job_queue": 16, "sources.gyro.kind": "video"}
     d = Daemon(config.load(None, opts))

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import zmq
 
+from tests.support.endpoints import private_endpoint
 from thermod.chaos import HiccupGyro
 from thermod.client.subscriber import Subscriber
 from thermod.runtime import config
@@ -21,11 +22,6 @@ from thermod.sim.payload import SimPayload
 
 pytestmark = pytest.mark.slow
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Frames(threading.Thread):
@@ -77,7 +73,7 @@ class NotifySocket(threading.Thread):
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("faults")
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     cfg_path = tmp / "sim.toml"
     cfg_path.write_text(config.default_path().read_text())
     # the recording subscriber shares this process (and its GIL) with the daemon: on a loaded machine it

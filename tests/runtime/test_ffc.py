@@ -8,7 +8,6 @@ Aravis (the Aravis fake camera has none: never FFC).
 """
 
 import collections
-import socket
 import threading
 import time
 
@@ -17,6 +16,7 @@ import pytest
 
 from tests.support import aravis  # the Aravis fake GigE camera fixture, shared
 from tests.support.collecting import Collector
+from tests.support.endpoints import private_endpoint
 from thermod.drivers.v4l2_camera import BOSON_FFC_IN_PROGRESS, BOSON_STATUS_WORD, V4L2Camera, boson_ffc_state
 from thermod.io.wire import REASONS
 from thermod.physics.calibration import Calibration
@@ -237,12 +237,6 @@ def test_aravis_fake_camera_never_ffc(fake_camera):
 
 
 # ------------------------------------------------------------------------------ daemon on the sim payload
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.mark.slow
 def test_daemon_on_simulated_payload_with_ffc_schedule(tmp_path):
     """The simulated payload runs an FFC every 1.013 s for 0.3 s (50 fps: starts and ends fall between
@@ -255,7 +249,7 @@ def test_daemon_on_simulated_payload_with_ffc_schedule(tmp_path):
     from thermod.runtime.sdnotify import Notifier
     from thermod.sim.payload import SimPayload
 
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     settle = 0.05
     over = {"publish.endpoint": ep, "deblur.method": "wiener", "sim.ffc_interval_s": 1.013,
             "sim.ffc_duration_s": 0.3, "sim.ffc_step_counts": 25.0, "deblur.ffc_settle_s": settle}

@@ -3,12 +3,12 @@ bias and a time offset that drift during the run: the estimate converges to the 
 it, and apply = true moves the calibration in force towards the truth without raising the residual;
 with a camera whose τ is not the configuration's, the τ estimate converges to the camera's."""
 
-import socket
 import time
 
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.calib.live import TAU_MAX_REL_SIGMA
 from thermod.runtime import config
 from thermod.runtime.daemon import Daemon
@@ -34,11 +34,6 @@ FULL_WINDOW = 0.9         # of the monitor's motion window (4 s)
 TAU_PATCHES = 48          # the τ test waits for this many patch pairs (quiet host: 70–100 in 12 s)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def _estimate(d):
     return d.health()["calibration"]["estimate"]
@@ -62,7 +57,7 @@ def run(apply: bool, seconds: float, drift=DRIFT, until=None, **extra):
     """The daemon for `seconds`, then on until `until(daemon)` holds (checked each second), for at most
     3 × `seconds` in all: a monitor starved by a loaded host (it runs at nice 19, within 10 % of a
     core) takes longer, and what it finds is what the tests check, not how fast."""
-    opts = {"publish.endpoint": f"tcp://127.0.0.1:{free_port()}", "deblur.method": "wiener",
+    opts = {"publish.endpoint": private_endpoint(), "deblur.method": "wiener",
             "calibration.width": 160, "calibration.height": 120, "calibration.fx": 366.0,
             "calibration.fy": 366.0, "monitor.apply": apply, "pipeline.workers": 1, "sim.loop_s": LOOP_S,
             "monitor.cpu_share": 0.10, **extra}

@@ -2,11 +2,11 @@
 asks for its ``[calibration]`` (``[sources.camera] calibration = "config"``); a SIGHUP reload keeps
 that choice."""
 
-import socket
 
 import numpy as np
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.errors import ConfigError
 from thermod.io import recording
 from thermod.physics.calibration import Calibration
@@ -15,11 +15,6 @@ from thermod.runtime.daemon import Daemon
 
 FPS, RATE, N = 50.0, 1000.0, 10
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -57,7 +52,7 @@ tau_s = {tau}
 [deblur]
 method = "wiener"
 [publish]
-endpoint = "tcp://127.0.0.1:{free_port()}"
+endpoint = "{private_endpoint()}"
 [monitor]
 enabled = false
 """)

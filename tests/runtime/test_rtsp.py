@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.support.endpoints import free_port, private_endpoint
 from thermod.errors import ConfigError
 from thermod.runtime import config
 from thermod.runtime.config import RtspConfig
@@ -21,11 +22,6 @@ from thermod.runtime.rtsp import Agc, RtspError, RtspServer, compose, output_siz
 REPO = Path(__file__).resolve().parents[2]
 THERMOD = Path(sys.executable).with_name("thermod")
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def env() -> dict:
@@ -126,7 +122,7 @@ def test_thermod_run_rtsp_without_gstreamer_exits_with_the_packages(monkeypatch,
     from thermod.cli import main
     monkeypatch.setitem(sys.modules, "gi", None)
     rc = main(["run", "--rtsp", f"rtsp://127.0.0.1:{free_port()}/thermal", "--endpoint",
-               f"tcp://127.0.0.1:{free_port()}", "--seconds", "1"])
+               private_endpoint(), "--seconds", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and "thermod run: error: rtsp:" in err and "gir1.2-gst-rtsp-server-1.0" in err
 
@@ -140,7 +136,7 @@ def test_thermod_run_rtsp_port_taken_is_one_line_exit_2(capsys, require):
         taken.listen()
         port = taken.getsockname()[1]
         rc = main(["run", "--rtsp", f"rtsp://127.0.0.1:{port}/thermal", "--endpoint",
-                   f"tcp://127.0.0.1:{free_port()}", "--seconds", "1"])
+                   private_endpoint(), "--seconds", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and f"rtsp.url: cannot listen on 127.0.0.1:{port}" in err and "in use" in err, err
 
@@ -240,7 +236,7 @@ def test_thermod_run_rtsp_played_by_ffmpeg(view, require):
     from thermod.client.subscriber import Subscriber
     cal = config.load().calibration
     url = f"rtsp://127.0.0.1:{free_port()}/thermal"
-    ep = f"tcp://127.0.0.1:{free_port()}"
+    ep = private_endpoint()
     # the hand-held shake these picture statistics were measured on: the default multirotor motion
     # swings the scene's few dark objects in and out of view, and the smoothed AGC range lags behind
     # (agc_smoothing 0.8), so some decoded frames' 1st percentile sits at 72–168 (AGC as designed)

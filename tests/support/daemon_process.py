@@ -3,16 +3,15 @@ tests/cli/test_watch_record.py)."""
 
 import contextlib
 import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
+from tests.support.endpoints import private_endpoint
 from thermod.client.subscriber import Subscriber
 
 
@@ -20,10 +19,8 @@ from thermod.client.subscriber import Subscriber
 def running_daemon(*extra_args: str, ready_timeout_s: float = 240.0):
     """`thermod run --raw` on the simulated payload on an ``ipc://`` socket of its own; yields its endpoint
     once its health says ready (frames and samples flowing: the first start renders the loop), SIGTERM
-    after. Not a free TCP port: between finding one and binding it, another test's daemon may take it,
-    and this test would then subscribe to that daemon (seen: a recording with another's calibration)."""
-    where = tempfile.mkdtemp(prefix="thermod-")
-    ep = f"ipc://{where}/pub.sock"
+    after (`tests.support.endpoints.private_endpoint`)."""
+    ep = private_endpoint()
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[2] / ".numba_cache"))
     proc = subprocess.Popen([str(Path(sys.executable).with_name("thermod")), "run", "--endpoint", ep,
@@ -43,4 +40,3 @@ def running_daemon(*extra_args: str, ready_timeout_s: float = 240.0):
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(20)
-        shutil.rmtree(where, ignore_errors=True)
