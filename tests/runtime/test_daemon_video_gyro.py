@@ -60,3 +60,21 @@ def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
     # holes pass a few frames through each; the rest is deblurred
     assert len(raw) <= 0.2 * len(running), (len(raw), gyro)
     assert h["calibration"]["monitor"]["enabled"] is False
+
+
+def test_a_reload_keeps_the_video_sources_calibration_and_takes_a_new_tau():
+    opts = {"publish.endpoint": private_endpoint(), "calibration.width": 160, "calibration.height": 120,
+            "calibration.fx": 366.0, "calibration.fy": 366.0, "sources.gyro.kind": "video",
+            "calibration.time_offset_s": 0.004}
+    d = Daemon(config.load(None, opts), overrides=opts)
+    track = d.gyro.track
+    assert d.pipeline.calib.time_offset_s == 0
+    assert d.reload()                                       # nothing changed: nothing to restart
+    assert d.reload_status["restart_needed"] == [] and d.pipeline.calib.time_offset_s == 0
+    assert d.gyro.track is track
+    d.overrides["calibration.tau_s"] = 0.011
+    assert d.reload()
+    c = d.pipeline.calib
+    assert c.tau_s == 0.011 and c.time_offset_s == 0 and d.gyro.track is not track
+    assert d.gyro.track.tau_s == 0.011
+    np.testing.assert_array_equal(c.gyro_to_camera_matrix, np.eye(3))

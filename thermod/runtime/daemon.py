@@ -73,14 +73,10 @@ class Daemon:
             log.info("calibration: the replayed recording's own (sources.camera.calibration = 'config' "
                      "for the configuration's)")
             cfg = self.cfg = dataclasses.replace(cfg, calibration=calib)
-        # a video source measures the camera's own rotation: its rates are camera-frame, on the frames' clock
-        self._offer_frame = getattr(self.gyro, "offer", None)
+        self._offer_frame = getattr(self.gyro, "offer", None)     # a video source: fed the frames
         if self._offer_frame is not None:
-            calib = self.gyro.calibration_for(cfg.calibration)
-            wait = max(cfg.pipeline.wait_timeout_s, self.gyro.samples_wait_s(calib.frame_rate_hz))
-            cfg = self.cfg = dataclasses.replace(cfg, calibration=calib, pipeline=dataclasses.replace(
-                cfg.pipeline, wait_timeout_s=wait))
-            self.gyro.bind(calib)
+            cfg = self.cfg = self._for_video_motion(cfg)
+            self.gyro.bind(cfg.calibration)
             log.info("gyro: none; the motion is measured from the camera's frames (one frame of latency)")
         if publisher is None:
             from thermod.runtime.publish import Publisher
@@ -265,6 +261,16 @@ class Daemon:
         steps = ", ".join(f"{name} {1e3 * (b - a):.0f} ms" for (_, a), (name, b) in itertools.pairwise(marks))
         log.info("stopped after %.2f s (%s)", time.monotonic() - t0, steps)
 
+    def _for_video_motion(self, cfg: configmod.Config) -> configmod.Config:
+        """`cfg` as a video source runs it: its rates are the camera's own, on the frames' clock (the
+        calibration's gyro part is the identity), and a frame waits for the next one's registration."""
+        if self._offer_frame is None:
+            return cfg
+        calib = self.gyro.calibration_for(cfg.calibration)
+        wait = max(cfg.pipeline.wait_timeout_s, self.gyro.samples_wait_s(calib.frame_rate_hz))
+        return dataclasses.replace(cfg, calibration=calib,
+                                   pipeline=dataclasses.replace(cfg.pipeline, wait_timeout_s=wait))
+
     def reload(self) -> bool:
         """SIGHUP: re-read the configuration and apply its calibration and deblur settings live.
 
@@ -277,9 +283,12 @@ class Daemon:
         try:
             new = configmod.load(None if self.cfg.path.startswith("<") else self.cfg.path, self.overrides)
             calib, _ = sources.calibration_in_force(new, self.camera)
-            new = dataclasses.replace(new, calibration=calib)
+            new = self._for_video_motion(dataclasses.replace(new, calibration=calib))
             self._check_reload(new)
             self.pipeline.update(calib=new.calibration, deblur=new.deblur)
+            if self._offer_frame is not None and \
+                    _camera_part(new.calibration) != _camera_part(self.cfg.calibration):
+                self.gyro.bind(new.calibration)     # a new τ, readout or lens: the next pair starts afresh
         except Exception as e:  # noqa: BLE001 - a reload must never take the running daemon down
             why = str(e) if isinstance(e, ThermodError) else f"{type(e).__name__}: {e}"
             log.error("reload refused, keeping the running configuration: %s", why)
@@ -404,3 +413,8 @@ class Daemon:
         if self.ready:
             self.notifier.status(self._status_line())
         return h
+
+
+def _camera_part(c) -> tuple:
+    """What a video source measures with: the intrinsics, τ and readout."""
+    return (c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.tau_s, c.readout_s)
