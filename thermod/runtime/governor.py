@@ -270,23 +270,17 @@ class Governor:
         limit = self.keep_s if limit is None else limit
         return next((g for g in self._grids(i, needed, (1, 1), True) if self._keep_cost(i, g) <= limit), None)
 
-    def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
+    def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int], limit: float | None = None
+               ) -> tuple[int, int] | None:
         """The coarsest grid rung i, a coarsening rung, keeps when none fits the budget: its floor (the
         grid within ``temporal_tol_px``), if its solve there is predicted within `keep_s` (the workers
         keep up with the frame rate) at the load of the last `KEEP_S` (a burst shorter than about half
         of it moves that median little). None: a rung above the last gives its method up, the last
-        its floor (`choose`)."""
+        its floor (`choose`). `limit`: keep_s unless given (a climb back asks for a margin below it)."""
         if not self.rungs[i].coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
-        return g if self._keep_cost(i, g) <= self.keep_s else None
-
-    def _keeps_with_margin(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> bool:
-        """A coarsening rung's climb back: its floor predicted within ``(1 − margin)`` of `keep_s`, the
-        limit it is kept at (`_keeps`), as a climb within the budget has the budget's margin."""
-        if not self.rungs[i].coarsens:
-            return False
-        return self._keep_cost(i, self._grids(i, needed, floor)[-1]) <= self.keep_s * (1 - self.margin)
+        return g if self._keep_cost(i, g) <= (self.keep_s if limit is None else limit) else None
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
@@ -326,11 +320,11 @@ class Governor:
                 if i < len(self.rungs):
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
+                budget, keep = self.budget_s * (1 - self.margin), self.keep_s * (1 - self.margin)
                 for i in range(self.index):                       # best rung that fits with margin
-                    if self._fits_any(i, worst, self.budget_s * (1 - self.margin), worst_floor) is not None \
-                            or self._keeps_with_margin(i, worst, worst_floor) \
-                            or (i == self.full_last and self._keeps_beyond_floor(
-                                i, worst, self.keep_s * (1 - self.margin)) is not None):
+                    if self._fits_any(i, worst, budget, worst_floor) is not None \
+                            or self._keeps(i, worst, worst_floor, keep) is not None \
+                            or (i == self.full_last and self._keeps_beyond_floor(i, worst, keep) is not None):
                         self._move(i, now)
                         break
             last = len(self.rungs) - 1
