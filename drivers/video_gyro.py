@@ -4,7 +4,7 @@
 thread: the frame is shrunk to its working image there and queued); the gyro thread's `poll` registers
 each against the one before (`thermod.motion.live.LiveTrack`) and returns the camera-frame rates as a
 `GyroBatch` stamped with the frames' host times, so the frame clock is the gyro clock. The daemon runs
-it with an identity gyro → camera calibration (`IDENTITY_GYRO`). A frame's samples arrive with the next
+it with the camera's own gyro part (`Calibration.with_camera_gyro`). A frame's samples arrive with the next
 frame: one frame period of added latency (two across a bridged interval: the daemon's wait for samples
 is at least `samples_wait_s`). Registration failures leave holes, flagged ``gap_before``.
 """
@@ -22,15 +22,6 @@ from thermod.motion.live import DEFAULT_RATE_HZ, MAX_BRIDGED, LiveTrack
 REGISTER_S = 0.02         # allowed for a frame's registration before its samples are late
 QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
                           # spans it: a longer interval, not a hole)
-# the calibration's gyro part for rates that are the camera's own, on the frames' clock
-IDENTITY_GYRO = dict(R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
-                     bias_rad_s=(0.0, 0.0, 0.0), time_offset_s=0.0, scale=(1.0, 1.0, 1.0),
-                     clock_drift_ppm=0.0, gyro_lowpass_hz=0.0, gyro_range_rad_s=0.0, gyro_clip_gain=1.0)
-
-
-def video_calibration(calib, rate_hz: float = DEFAULT_RATE_HZ):
-    """`calib` with the gyro part of a video source: identity mounting, no bias, offset or filter."""
-    return calib.replace(rate_hz=float(rate_hz), **IDENTITY_GYRO)
 
 
 class VideoGyro(GyroSource):
@@ -48,7 +39,6 @@ class VideoGyro(GyroSource):
         self._frames: collections.deque = collections.deque()
         self._cond = threading.Condition()
         self._seq = 0
-        self._running = False
         self._stats.update(frames_offered=0, frames_skipped=0)
 
     @staticmethod
@@ -59,7 +49,7 @@ class VideoGyro(GyroSource):
 
     def calibration_for(self, calib):
         """The calibration the daemon runs this source with: `calib`'s camera, the video's gyro part."""
-        return video_calibration(calib, self.rate_hz)
+        return calib.with_camera_gyro(self.rate_hz)
 
     def bind(self, calib) -> None:
         """Measure with this calibration's intrinsics, τ and readout."""
@@ -67,11 +57,10 @@ class VideoGyro(GyroSource):
                                rate_hz=self.rate_hz, work_width=self.work_width)
 
     def start(self) -> None:
-        self._running = True
+        pass
 
     def stop(self) -> None:
         with self._cond:
-            self._running = False
             self._frames.clear()
             self._cond.notify_all()
 
@@ -107,4 +96,4 @@ class VideoGyro(GyroSource):
         return out
 
 
-__all__ = ["IDENTITY_GYRO", "VideoGyro", "video_calibration"]
+__all__ = ["VideoGyro"]

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from thermod.drivers.video_gyro import VideoGyro, video_calibration
+from thermod.drivers.video_gyro import VideoGyro
 from thermod.motion.live import LEAD_SAMPLES, LiveTrack
 from thermod.physics.calibration import Calibration
 from thermod.sim import motion as mo
@@ -86,8 +86,9 @@ def test_a_repeated_frame_is_registered_across_not_read_as_a_stop(swaying):
 
 def test_the_video_source_hands_the_daemon_camera_frame_rates(swaying):
     rec, _ = swaying
-    calib = video_calibration(CALIB)
-    assert calib.time_offset_s == 0 and calib.bias_rad_s == (0.0, 0.0, 0.0)
+    calib = CALIB.replace(time_offset_s=0.003, bias_rad_s=(0.01, 0.0, 0.0), gyro_lowpass_hz=80.0)
+    calib = VideoGyro(calib).calibration_for(calib)
+    assert calib.time_offset_s == 0 and calib.bias_rad_s == (0.0, 0.0, 0.0) and calib.gyro_lowpass_hz == 0
     np.testing.assert_array_equal(calib.gyro_to_camera_matrix, np.eye(3))
     src = VideoGyro(calib)
     src.start()

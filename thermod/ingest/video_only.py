@@ -90,8 +90,7 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
                            "estimating the motion from the pictures needs a video of several frames",
                            fps=fps, max_bytes=max_bytes, start_s=start_s, duration_s=duration_s)
     vf, period, notes, info = cv.frames, cv.period_s, cv.notes, cv.frames.info
-    calib = cv.camera.replace(rate_hz=float(rate_hz), time_offset_s=0.0, bias_rad_s=(0.0, 0.0, 0.0),
-                              R_cam_gyro=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
+    calib = cv.camera.with_camera_gyro(rate_hz)
     say(f"video: {len(vf.t)} frames of {info.width}×{info.height} ({info.bit_depth}-bit {info.codec}), "
         f"{vf.t[-1] - vf.t[0]:.1f} s at {1.0 / period:.3g} fps; no gyro: the motion comes from the pictures")
     t_read = time.perf_counter()

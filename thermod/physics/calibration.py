@@ -267,6 +267,13 @@ class Calibration:
     def replace(self, **changes) -> Calibration:
         return dataclasses.replace(self, **changes)
 
+    def with_camera_gyro(self, rate_hz: float) -> Calibration:
+        """This camera with the gyro part of rates measured from its own pictures: camera-frame samples
+        at `rate_hz` on the frames' clock (every other gyro key at its neutral default: no mounting,
+        bias, scale, offset, drift, filter or clipping)."""
+        neutral = {f.name: f.default for f in dataclasses.fields(self) if f.name in GYRO_KEYS[1:]}
+        return dataclasses.replace(self, rate_hz=float(rate_hz), **neutral)
+
     def with_misalignment(self, rotvec_rad) -> Calibration:
         """Compose an extra gyro→camera rotation (camera side) onto R_cam_gyro."""
         R = so3_exp(rotvec_rad) @ self.R_cam_gyro_matrix
