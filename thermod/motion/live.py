@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from thermod.motion.picture import PairRegistrar
+from thermod.motion.picture import U8_PER_UNIT, PairRegistrar
 from thermod.motion.track import DUPLICATE_ABS, MIN_REGISTERED_NCC, registered_ncc
 from thermod.physics.geometry import Intrinsics
 
@@ -86,7 +86,7 @@ class LiveTrack:
         self.counts["frames"] += 1
         prev, t_prev = self._prev, self._prev_t
         if prev is not None and self._repeats < MAX_REPEATS and \
-                np.median(np.abs(cur.astype(np.int16) - prev)) <= DUPLICATE_ABS * 160:
+                np.median(np.abs(cur.astype(np.int16) - prev)) <= DUPLICATE_ABS * U8_PER_UNIT:
             self.counts["duplicate"] += 1          # a repeated frame: register the next one across it
             self._repeats += 1
             return None
@@ -113,10 +113,10 @@ class LiveTrack:
         rate = fit.rotvec / dt
         sigma = fit.noise_rad / dt
         self.last_sigma_rad_s = sigma
-        m = 0.5 * (t_prev + t) - self.tau_s - fit.lead * self.readout_s
-        old, self._anchor = self._anchor, (m, rate, sigma)
+        lag = self.tau_s + fit.lead * self.readout_s
+        old, self._anchor = self._anchor, (0.5 * (t_prev + t) - lag, rate, sigma)
         if self._next_t is None:                 # a stretch starts where its first interval does
-            self._next_t = t_prev - self.tau_s - fit.lead * self.readout_s
+            self._next_t = t_prev - lag
         # across a bridged interval the rate may have done anything between its neighbours' values
         spread = 0.5 * float(np.linalg.norm(rate - old[1])) if bridged and old is not None else 0.0
         return self._emit(old, t_prev + LEAD_SAMPLES * self.h, spread)

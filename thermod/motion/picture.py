@@ -99,8 +99,11 @@ def normalise_frame(frame: np.ndarray) -> np.ndarray:
     return (f - np.float32(med)) / np.float32(spread)
 
 
+U8_PER_UNIT = 160.0           # working-image codes per unit of the normalised scale (1–99 % spread 1)
+
+
 def _to_u8(z: np.ndarray) -> np.ndarray:
-    return np.clip(128.0 + 160.0 * z, 0, 255).astype(np.uint8)
+    return np.clip(128.0 + U8_PER_UNIT * z, 0, 255).astype(np.uint8)
 
 
 def _rays(pts: np.ndarray, K_inv: np.ndarray) -> np.ndarray:
