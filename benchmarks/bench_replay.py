@@ -90,10 +90,13 @@ def _toml(v) -> str:
 
 
 def psnr(est, truth) -> float:
-    lo, hi = np.percentile(truth, (0.5, 99.5))
-    e = np.clip((est - lo) / (hi - lo), 0, 1) * 255
-    t = np.clip((truth - lo) / (hi - lo), 0, 1) * 255
-    return 10 * math.log10(255**2 / max(float(np.mean((e - t) ** 2)), 1e-12))
+    """PSNR (dB) on the truth's 8-bit 0.5–99.5 % scale, as bench_temporal_daemon scores."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from benchmarks.bench_quality import to8
+
+    lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
+    return float(peak_signal_noise_ratio(to8(truth, lo, hi), to8(est, lo, hi), data_range=255))
 
 
 def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
