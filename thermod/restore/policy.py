@@ -14,7 +14,10 @@ A frame read at t_k is passed through, in this order, when
   start of the gyro stream, where a kernel keeping `START_COVERAGE` (only its oldest tail precedes
   the first sample) is deblurred (``Plan.start_partial``).
 
-The daemon's pipeline and `thermod deblur` (`thermod.batch`) both decide through `plan_frame`.
+The daemon's pipeline and `thermod deblur` (`thermod.batch`) both decide through these rules:
+offline `plan_frame` applies them at once; the daemon's scheduler applies those before the kernel
+(`order_kernel`) and the worker that solves the frame renders it and applies the rest
+(`render_order`).
 """
 
 from __future__ import annotations
@@ -80,12 +83,42 @@ def plan_frame(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, calib:
                first_gyro_t: float | None = None, choose: Callable[[tuple, tuple], tuple] | None = None,
                renderer=render) -> Plan | PassThrough:
     """Plan the frame read at `t_frame` (camera clock, last row) from raw gyro samples (a window
-    around it or a whole recording's; only the frame's span counts), per the module's rules.
+    around it or a whole recording's; only the frame's span counts), per the module's rules:
+    `order_kernel`, then `render_order`.
 
     `first_gyro_t`: the first sample of the gyro stream (default: the first given). `choose(needed,
     floor)`: the grid to render, given the grid the roll needs and the coarsest the governor may keep
     (`grids_within`); without it an adaptive ``deblur.mode`` renders the needed grid. `renderer`:
     `thermod.restore.plan.render` or a stand-in with its signature."""
+    order = order_kernel(t_frame, gyro_t, gyro_rate, calib, deblur, gap=gap, ffc=ffc, online=online,
+                         first_gyro_t=first_gyro_t, choose=choose)
+    return order if isinstance(order, PassThrough) else render_order(order, calib, renderer)
+
+
+@dataclass(frozen=True)
+class KernelOrder:
+    """A frame the rules before its kernel accept: what the kernel is rendered from. The daemon's
+    scheduler makes it and the worker that solves the frame renders it (`render_order`), so the
+    render runs beside the solve, not in the scheduler."""
+
+    t_frame: float
+    gyro_t: np.ndarray               # the samples of the kernel window (and its margin)
+    gyro_rate: np.ndarray
+    deblur: DeblurConfig             # with the grid chosen (mode uniform or grid)
+    online: bool = True
+    started_inside: bool = False     # the gyro stream began inside the window (`START_COVERAGE`)
+
+    @property
+    def info(self) -> dict:
+        return {"n_samples": len(self.gyro_t)}
+
+
+def order_kernel(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, calib: Calibration,
+                 deblur: DeblurConfig, *, gap: bool = False, ffc: bool = False, online: bool = True,
+                 first_gyro_t: float | None = None,
+                 choose: Callable[[tuple, tuple], tuple] | None = None) -> KernelOrder | PassThrough:
+    """The rules before the kernel (disabled, ffc, gyro_gap, no samples) and the grid choice: the
+    frame's `KernelOrder`, or why it passes through. Arguments as `plan_frame`."""
     early = refused_early(deblur, ffc)
     if early is not None:
         return early
@@ -96,23 +129,38 @@ def plan_frame(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, calib:
     t, rate = gyro_t[i0:i1], np.asarray(gyro_rate)[i0:i1]
     if gap or has_hole(t, calib.rate_hz):
         return PassThrough("gyro_gap", {"n_samples": len(t)}, "samples lost inside the kernel window")
-    lacking = "gyro_incomplete" if online else "gyro_offline"
     if len(t) < 2:
-        return PassThrough(lacking, {"coverage": 0.0, "n_samples": len(t)}, "no gyro samples in the window")
+        return PassThrough("gyro_incomplete" if online else "gyro_offline",
+                           {"coverage": 0.0, "n_samples": len(t)}, "no gyro samples in the window")
     try:
         if choose is not None:
             needed, floor = grids_within(t, rate, calib, t_frame, deblur,
                                          (deblur.grid_tol_px, deblur.temporal_tol_px))
             g = tuple(choose(needed, floor))
             deblur = dataclasses.replace(deblur, mode="uniform" if g == (1, 1) else "grid", grid=g)
-        kernel, info = renderer(t, rate, calib, t_frame, deblur)
     except Exception as e:  # noqa: BLE001 - a kernel that cannot be made costs its frame, never the stream
-        what = str(e) if isinstance(e, ThermodError) else f"{type(e).__name__}: {e}"
-        return PassThrough("kernel_error", {"n_samples": len(t)}, f"the kernel could not be rendered: {what}")
-    if info["coverage"] >= deblur.min_coverage:
-        return Plan(kernel, info, deblur)
+        return _kernel_error(e, len(t))
     first = float(gyro_t[0]) if first_gyro_t is None and len(gyro_t) else first_gyro_t
     started = first is not None and math.isfinite(first) and first > g0
-    if started and info["coverage"] >= START_COVERAGE:
+    return KernelOrder(float(t_frame), t, rate, deblur, online, started)
+
+
+def render_order(order: KernelOrder, calib: Calibration, renderer=render) -> Plan | PassThrough:
+    """The ordered kernel rendered, and the coverage rule applied: a `Plan`, or why the frame
+    passes through (``kernel_error``, ``gyro_incomplete`` / ``gyro_offline`` with the kernel)."""
+    deblur = order.deblur
+    try:
+        kernel, info = renderer(order.gyro_t, order.gyro_rate, calib, order.t_frame, deblur)
+    except Exception as e:  # noqa: BLE001 - a kernel that cannot be made costs its frame, never the stream
+        return _kernel_error(e, len(order.gyro_t))
+    if info["coverage"] >= deblur.min_coverage:
+        return Plan(kernel, info, deblur)
+    if order.started_inside and info["coverage"] >= START_COVERAGE:
         return Plan(kernel, info, deblur, start_partial=True)
-    return PassThrough(lacking, info, f"gyro coverage {info['coverage']:.3f} < {deblur.min_coverage}", kernel)
+    return PassThrough("gyro_incomplete" if order.online else "gyro_offline", info,
+                       f"gyro coverage {info['coverage']:.3f} < {deblur.min_coverage}", kernel)
+
+
+def _kernel_error(e: Exception, n_samples: int) -> PassThrough:
+    what = str(e) if isinstance(e, ThermodError) else f"{type(e).__name__}: {e}"
+    return PassThrough("kernel_error", {"n_samples": n_samples}, f"the kernel could not be rendered: {what}")

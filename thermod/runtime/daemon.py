@@ -103,7 +103,7 @@ class Daemon:
                                   max_step_s=MAX_STEP_PERIODS / c.rate_hz)
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
-                                 deconvolver_factory=deconvolver_factory)
+                                 deconvolver_factory=deconvolver_factory, kernels=cfg.publish.kernel)
         self.monitor = None       # the live calibration monitor ([monitor], thermod.runtime.monitor)
         if cfg.monitor.enabled and self._offer_frame is not None:
             log.info("monitor: off (the motion comes from the frames it would check it against)")

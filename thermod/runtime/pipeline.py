@@ -1,13 +1,14 @@
-"""Frame scheduler → kernel renderer → deconvolution workers → in-order output.
+"""Frame scheduler → deconvolution workers (kernel render, solve) → in-order output.
 
 For every frame k read at t_k (camera clock) the scheduler waits, at most until ``max(t_k, arrival)
 + wait_timeout_s``, for the gyro ring to hold a sample at or after t_k (asking a FIFO driver for a
-read meanwhile), copies the samples of its window (t_k − m·τ − readout, t_k] (Eq. 18) and plans the
-frame with `thermod.restore.policy.plan_frame`, the policy `thermod deblur` follows too: a kernel or
-kernel grid (Eq. 16–19) at the grid the governor chooses (`thermod.runtime.governor`), or a
+read meanwhile), copies the samples of its window (t_k − m·τ − readout, t_k] (Eq. 18) and applies
+the policy `thermod deblur` follows too (`thermod.restore.policy`): the rules before the kernel and
+the grid the governor chooses (`thermod.runtime.governor`) give the frame's `KernelOrder`, or a
 pass-through with its reason (`thermod.io.wire.REASONS`; the camera's flat-field corrections are
 tracked here, `Pipeline._ffc_hold`). A job goes to a bounded queue served by worker threads, each
-solving in a child process of its own (`thermod.runtime.solvers`), so N workers use N cores.
+solving in a child process of its own (`thermod.runtime.solvers`), so N workers use N cores; the
+worker renders the kernel or kernel grid (Eq. 16–19) and applies the coverage rule there.
 
 Temporal rungs take the newest restored frame before k as the prior (`PRIOR_FRAMES` are kept); a
 worker whose predecessor is still being solved waits for it after its own solve, at most half the
@@ -39,11 +40,10 @@ import numpy as np
 
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S
-from thermod.physics.deconv.tiles import central_cell
 from thermod.physics.gyro_effects import CLIP_TOL
 from thermod.physics.kernels.grids import coarser_grids
-from thermod.restore.plan import kernel_window, make_deconvolver, render
-from thermod.restore.policy import PassThrough, gyro_span, plan_frame, refused_early
+from thermod.restore.plan import grids_within, kernel_window, make_deconvolver, render
+from thermod.restore.policy import KernelOrder, PassThrough, gyro_span, order_kernel, refused_early
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
 from thermod.runtime.cpu import StageTimes, usable_cpus
@@ -91,7 +91,8 @@ class FrameOut:
     overrun_before: int = 0         # frames the frame ring overwrote unread just before this one, with
                                     # the camera's losses before them (no longer told apart)
     t_done: float = 0.0             # host monotonic when released
-    kernel: object = None           # the Kernel or KernelGrid a deblurred frame was deconvolved with
+    kernel: tuple | None = None     # the kernel a deblurred frame was deconvolved with, packed for the
+                                    # wire (`thermod.io.wire.pack_kernel`; when the pipeline keeps kernels)
     method: str | None = None       # how it was deblurred (`thermod.io.wire.METHODS`)
     prior_frames: int = 0           # temporal: frames between its prior and it (0: solved alone)
     grid: tuple[int, int] | None = None   # the kernel grid it was solved with ((1, 1): one kernel)
@@ -104,14 +105,14 @@ class FrameOut:
 @dataclass
 class _Job:
     slot: FrameSlot
-    kernel: object                  # Kernel or KernelGrid
+    order: KernelOrder              # its kernel, rendered by the worker that solves it
     info: dict
     generation: int
     choice: Choice | None = None
     warp_gyro: tuple | None = None  # (t, rate) raw gyro from before the prior to the frame: the warp's
     t_queued: float = field(default_factory=time.monotonic)
     gyro_wait_s: float = 0.0        # the scheduler's wait for the gyro to cover the frame
-    render_s: float = 0.0           # the scheduler's grid choice and kernel rendering
+    render_s: float = 0.0           # the scheduler's grid choice (the worker adds the kernel's render)
 
 
 @dataclass(frozen=True)
@@ -169,17 +170,21 @@ class Pipeline:
         block (e.g. `Publisher.publish_frame(..., copy=False)`).
     deconvolver_factory : DeblurConfig → object with ``run(image, kernel)`` / ``run_varying(image,
         grid)`` (default `thermod.physics.deconv.Deconvolver`), one per worker thread.
-    renderer : same signature as `render` (default), the seam for the kernel renderer.
+    renderer : same signature as `render` (default), the seam for the kernel renderer (run by the
+        workers, in their child processes: it must pickle there).
+    kernels : keep each deblurred frame's kernel, packed for the wire, in `FrameOut.kernel`.
     """
 
     def __init__(self, gyro_ring: GyroRing, frame_ring: FrameRing, calib: Calibration, deblur: DeblurConfig,
                  cfg: PipelineConfig, emit: Callable[[FrameOut], None], *,
-                 deconvolver_factory: Callable | None = None, renderer: Callable | None = None):
+                 deconvolver_factory: Callable | None = None, renderer: Callable | None = None,
+                 kernels: bool = True):
         self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
         self._settings = _Settings(calib, deblur, 0)
         self._process_settings = None   # (BLAS thread limits, GIL switch interval) to restore at stop
         self._factory = deconvolver_factory or make_deconvolver
         self._render = renderer or render
+        self._kernels = bool(kernels)
         self.n_workers = cfg.workers or default_workers()
         self.gyro_online = True           # the daemon clears this while the gyro device is down
         self._stop = threading.Event()
@@ -236,17 +241,17 @@ class Pipeline:
         yy, xx = np.mgrid[:h, :w_px]
         img = (8000.0 + 200.0 * np.sin(xx / 7.0) * np.cos(yy / 11.0)
                + np.random.default_rng(0).normal(0.0, 10.0, (h, w_px))).astype(np.float32)
-        uniform, _ = self._render(tg, rate, s.calib, 0.0, dataclasses.replace(s.deblur, mode="uniform"))
-        grids = []
+        # the scheduler's grid choice runs here, in this process: its compiled code loaded now
+        grids_within(tg, rate, s.calib, 0.0, s.deblur, (s.deblur.grid_tol_px, s.deblur.temporal_tol_px))
+        orders = [KernelOrder(0.0, tg, rate, dataclasses.replace(s.deblur, mode="uniform"))]
         if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
             for g in coarser_grids(tuple(s.deblur.grid), s.calib.width / s.calib.height)[:-1]:
-                at_g = dataclasses.replace(s.deblur, mode="grid", grid=g)
-                grids.append(self._render(tg, rate, s.calib, 0.0, at_g)[0])
+                orders.append(KernelOrder(0.0, tg, rate, dataclasses.replace(s.deblur, mode="grid", grid=g)))
         self._start_solvers()
         left = max(0.0, budget_s - (time.monotonic() - t0))
 
         def warm(solver):
-            solver.warm(s, gov.rungs, img, uniform, grids, max_kernel_px=max_kernel_px, budget_s=left)
+            solver.warm(s, gov.rungs, img, orders[0], orders[1:], max_kernel_px=max_kernel_px, budget_s=left)
 
         if isinstance(self._solvers[0], InChild):     # each child on its own core: together
             with ThreadPoolExecutor(len(self._solvers), thread_name_prefix="thermod-warm") as pool:
@@ -254,9 +259,10 @@ class Pipeline:
         else:
             for solver in self._solvers:
                 warm(solver)
-        # timed as the stream's jobs are (the solve, and a child's round trip), on the first worker, alone
-        for fam, cells, compute_s, overhead_s in rung_costs(self._solvers[0], s, gov.rungs, img, uniform,
-                                                            grids):
+        # timed as the stream's jobs are (the render, the solve, and a child's round trip), on the first
+        # worker, alone
+        for fam, cells, compute_s, overhead_s in rung_costs(self._solvers[0], s, gov.rungs, img, orders[0],
+                                                            orders[1:]):
             gov.seed(fam, cells, compute_s, overhead_s)
         return time.monotonic() - t0
 
@@ -274,9 +280,9 @@ class Pipeline:
         if self._solvers:
             return
         n = self.n_workers
-        if self.cfg.processes and not _picklable(self._factory):
-            log.info("the deconvolver factory %r cannot go to a child process; solving in the worker threads",
-                     self._factory)
+        if self.cfg.processes and not (_picklable(self._factory) and _picklable(self._render)):
+            log.info("the deconvolver factory %r or the renderer %r cannot go to a child process; solving in "
+                     "the worker threads", self._factory, self._render)
         elif self.cfg.processes:
             try:
                 probe = self._factory(self._settings.deblur)
@@ -284,14 +290,14 @@ class Pipeline:
                 info = probe.padded_shape(shape, shape) if hasattr(probe, "padded_shape") else shape
                 layout = Layout(shape, n, slots_needed(n, PRIOR_FRAMES), info[0] * (info[1] // 2 + 1))
                 self._frames = SharedFrames(layout)
-                self._solvers = start_children(self._factory, self._frames, n)
+                self._solvers = start_children(self._factory, self._frames, n, self._render)
                 return
             except (OSError, SolverError) as e:
                 log.warning("solver processes unavailable (%s); solving in the worker threads", e)
                 if self._frames is not None:
                     self._frames.close()
                     self._frames = None
-        self._solvers = [InThread(self._factory) for _ in range(n)]
+        self._solvers = [InThread(self._factory, self._render) for _ in range(n)]
 
     def _solver_at(self, i: int):
         """Worker i's solvers; a child that died is replaced (a fresh interpreter: ~1 s)."""
@@ -451,17 +457,12 @@ class Pipeline:
             chosen.append(self.governor.choose(needed, time.monotonic(), floor))
             return chosen[-1].grid
 
-        plan = plan_frame(slot.t, w.t, w.rate, s.calib, s.deblur, gap=w.gap, online=self.gyro_online,
-                          first_gyro_t=w.oldest_t, choose=choose, renderer=self._render)
-        if isinstance(plan, PassThrough):
-            if plan.reason == "kernel_error":
-                self._count("kernel_errors", 1)
-                log.error("kernel rendering failed for frame %d: %s", slot.frame_id, plan.detail)
-            self._passthrough(slot, plan.reason, plan.info)
+        order = order_kernel(slot.t, w.t, w.rate, s.calib, s.deblur, gap=w.gap, online=self.gyro_online,
+                             first_gyro_t=w.oldest_t, choose=choose)
+        if isinstance(order, PassThrough):
+            self._refused(slot, order)
             return
-        if plan.start_partial:
-            self._count("start_partial_kernels", 1)
-        kernel, info, choice = plan.kernel, plan.info, chosen[-1]
+        choice = chosen[-1]
         warp_gyro = None
         if any(r.temporal for r in self.governor.rungs):
             # the warp from a prior up to MAX_AGE_S old: rows read from t − MAX_AGE_S − readout on
@@ -472,8 +473,15 @@ class Pipeline:
             else:
                 self._count("temporal_gyro_gap", 1)
         now = time.monotonic()
-        self._enqueue(_Job(slot, kernel, info, s.generation, choice, warp_gyro, t_queued=now,
+        self._enqueue(_Job(slot, order, order.info, s.generation, choice, warp_gyro, t_queued=now,
                            gyro_wait_s=t_render - t_wait, render_s=now - t_render))
+
+    def _refused(self, slot: FrameSlot, refusal: PassThrough) -> None:
+        """A frame the policy passes through (before its kernel, or on it)."""
+        if refusal.reason == "kernel_error":
+            self._count("kernel_errors", 1)
+            log.error("kernel rendering failed for frame %d: %s", slot.frame_id, refusal.detail)
+        self._passthrough(slot, refusal.reason, refusal.info)
 
     def _ffc_hold(self, slot: FrameSlot, s: _Settings) -> bool:
         """Whether a frame must pass through because of a flat-field correction (FFC).
@@ -578,9 +586,19 @@ class Pipeline:
                 if caught_up:
                     self._count("catch_up", 1)
                 wait_s = 0.0 if caught_up else 0.5 * gov.budget_s
-                got = solver.solve(s, rung, job.slot.image, job.kernel, job.slot.t, job.warp_gyro,
-                                   lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s))
+                got = solver.solve(s, rung, job.slot.image, job.order, job.slot.t, job.warp_gyro,
+                                   lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s),
+                                   pack=self._kernels)
+                if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
+                    self._keep_estimate(index, None)
+                    self._worker_busy_since[i] = None
+                    self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
+                                         queue=t_start - job.t_queued)
+                    self._refused(job.slot, got.passthrough)
+                    continue
                 est = got.estimate
+                if got.start_partial:
+                    self._count("start_partial_kernels", 1)
                 method, prior_frames, grid = rung.name, got.prior_frames, got.grid
                 if rung.temporal:
                     if prior_frames == 0:
@@ -590,8 +608,8 @@ class Pipeline:
                         self._count(f"temporal_prior_{prior_frames}", 1)
                 t_end = time.monotonic()
                 gov.observe(gov.family(rung), grid[0] * grid[1], got.compute_s, t_end, got.overhead_s)
-                self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s,
-                                     queue=t_start - job.t_queued, solve=got.seconds,
+                self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
+                                     queue=t_start - job.t_queued, solve=got.seconds - got.render_s,
                                      prior_wait=t_end - t_start - got.seconds)
                 out = got.image
                 if out.shape != job.slot.image.shape:
@@ -612,14 +630,7 @@ class Pipeline:
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
             self._count(f"method_{method}", 1)
-            kernel = job.kernel
-            if hasattr(kernel, "kernels") and grid == (1, 1):
-                # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
-                r, c = central_cell(job.kernel.centers, out.shape)
-                kernel = job.kernel.kernels[r][c]
-                job.info = {**job.info, "kernel_size": tuple(int(s) for s in kernel.weights.shape),
-                            "kernel_extent_px": float(kernel.extent_px)}
-            o = self._out(job.slot, out, True, None, job.info, kernel)
+            o = self._out(job.slot, out, True, None, {**job.info, **got.info}, got.kernel)
             o.method = method
             o.prior_frames = prior_frames
             o.grid = grid

@@ -272,8 +272,9 @@ class Publisher:
     def publish_kernel(self, kernel, t: float, *, frame_id: int, **extra) -> int:
         """The blur kernel a deblurred frame was deconvolved with (`thermod.io.wire.pack_kernel`):
         float32 [kh, kw], or [rows, cols, kh, kw] for a grid; header ``origin``, ``extent_px``,
-        ``coverage``, and the frame's ``t`` and ``frame_id``."""
-        fields, weights = pack_kernel(kernel)
+        ``coverage``, and the frame's ``t`` and ``frame_id``. `kernel`: a Kernel, a KernelGrid, or
+        one already packed (`pack_kernel`'s (fields, weights))."""
+        fields, weights = kernel if isinstance(kernel, tuple) else pack_kernel(kernel)
         header = dict(extra, t=float(t), frame_id=int(frame_id), deblurred=False, **fields)
         return self.publish("kernel", header, weights)
 

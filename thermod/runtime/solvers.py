@@ -7,11 +7,14 @@ the measurement: `benchmarks/bench_gil.py`, benchmarks/results/daemon.md).
 
 Data path (process mode): the pipeline owns one `SharedFrames` block (a memfd mapped by the parent
 and every child): one input frame per worker and a pool of output slots, each an image and the
-spectrum of a temporal `Estimate`. A job sends only its kernel and gyro window through the pipe; the
-child writes its result into the slot the parent gave it. A slot that holds an estimate stays
-reserved while the pipeline keeps it as a prior or a job on another worker uses it
-(`SharedFrames.retain` / `release`). A temporal solve asks the parent for its prior once its own
-x₀ is done (the ``prior`` round trip): the parent waits there for frame k − 1, as a thread would.
+spectrum of a temporal `Estimate`. A job sends only its `KernelOrder` (the gyro window and the grid
+chosen) through the pipe: the child renders the kernel (beside the other worker's solve, not in the
+scheduler; a grid's cells are not pickled) and writes its result into the slot the parent gave it,
+returning the kernel packed for the wire (`thermod.io.wire.pack_kernel`) when it is published. A
+slot that holds an estimate stays reserved while the pipeline keeps it as a prior or a job on
+another worker uses it (`SharedFrames.retain` / `release`). A temporal solve asks the parent for its
+prior once its own x₀ is done (the ``prior`` round trip): the parent waits there for frame k − 1,
+as a thread would.
 
 `solve_job` and `warm_solvers` are the one implementation of a job and of the warm-up. `InThread`
 runs them in the worker's thread and `InChild` in the child (`_child_main`). The pipeline sees
@@ -29,14 +32,17 @@ import signal
 import threading
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.reduction import recv_handle, send_handle
 
 import numpy as np
 
+from thermod.io.wire import pack_kernel
 from thermod.physics.deconv.half import HalfResolution
 from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
-from thermod.restore.plan import solved_grid
+from thermod.physics.deconv.tiles import central_cell
+from thermod.restore.plan import render, solved_grid
+from thermod.restore.policy import KernelOrder, PassThrough, render_order
 from thermod.runtime.governor import Governor
 
 CHILD_START_S = 60.0      # a child that has not answered its first message by then is given up
@@ -50,15 +56,20 @@ class SolverError(RuntimeError):
 
 @dataclass
 class Solved:
-    """One job's result."""
+    """One job's result: the frame deblurred, or (`passthrough`) why its kernel refused it."""
 
-    image: np.ndarray          # float32 counts, owned by the caller
+    image: np.ndarray | None   # float32 counts, owned by the caller (None: passed through)
     estimate: object           # the next frame's prior (`Estimate` or `SharedEstimate`), or None
     prior_frames: int          # frames between the prior used and this frame (0: solved alone)
-    seconds: float             # the solve's wall time, the wait for the prior left out
+    seconds: float             # the solve's wall time (its render included), the wait for the prior left out
     grid: tuple[int, int]      # the kernel grid it was solved with ((1, 1): one kernel)
     compute_s: float = math.nan   # of `seconds`, the solve itself (a child's own clock; the rest is the
                                   # round trip: frame copies, pipe, the parent's GIL)
+    render_s: float = 0.0      # of `compute_s`, the kernel's render
+    info: dict = field(default_factory=dict)   # the render's (kernel_size, extent, coverage, n_samples)
+    kernel: tuple | None = None   # the kernel solved with, packed for the wire (`pack_kernel`), if asked
+    start_partial: bool = False   # deblurred under the stream's start rule (`START_COVERAGE`)
+    passthrough: PassThrough | None = None   # the kernel's rules refused the frame (not solved)
 
     @property
     def overhead_s(self) -> float:
@@ -92,16 +103,29 @@ def make_solver(factory, rung, deblur, calib):
     return d
 
 
-def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, warp_gyro, prior) -> Solved:
+def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, warp_gyro, prior, *,
+              renderer=render, pack: bool = False) -> Solved:
     """Solve one frame by `rung` with the solvers in `decs` (one per family, built on first use).
+    `kernel`: a `KernelOrder`, rendered here by `renderer` under the policy's coverage rule
+    (`render_order`; a refused frame comes back as `Solved.passthrough`), or a rendered kernel.
     `prior` (temporal rungs): a callable returning the newest restored frame before this one, or
-    None; it is called after the frame's own solve and may wait."""
+    None; it is called after the frame's own solve and may wait. `pack`: return the kernel solved
+    with, packed for the wire."""
+    t0 = time.perf_counter()
+    info, start_partial = {}, False
+    if isinstance(kernel, KernelOrder):
+        plan = render_order(kernel, calib, renderer)
+        if isinstance(plan, PassThrough):
+            seconds = time.perf_counter() - t0
+            return Solved(None, None, 0, seconds, (1, 1), compute_s=seconds, render_s=seconds,
+                          info=dict(plan.info), passthrough=PassThrough(plan.reason, plan.info, plan.detail))
+        kernel, info, start_partial = plan.kernel, dict(plan.info), plan.start_partial
+    render_s = time.perf_counter() - t0
     fam = Governor.family(rung)
     deconv = decs.get(fam)
     if deconv is None:
         deconv = decs[fam] = make_solver(factory, rung, deblur, calib)
     timed = _Timed(prior)
-    t0 = time.perf_counter()
     if rung.temporal:
         gt, gr = warp_gyro if warp_gyro is not None else (None, None)
         out, est = deconv.solve(img, kernel, t_frame, gt, gr, timed if gt is not None else None)
@@ -110,8 +134,17 @@ def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, wa
         out = deconv.run_varying(img, kernel) if hasattr(kernel, "kernels") else deconv.run(img, kernel)
         est, prior_frames, solver = None, 0, deconv
     seconds = time.perf_counter() - t0 - timed.waited
-    return Solved(np.asarray(out, np.float32), est, prior_frames, seconds, solved_grid(solver, kernel),
-                  compute_s=seconds)
+    out = np.asarray(out, np.float32)
+    grid = solved_grid(solver, kernel)
+    if hasattr(kernel, "kernels") and grid == (1, 1):
+        # the deconvolver's uniform shortcut solved with the central cell: say so, kernel included
+        r, c = central_cell(kernel.centers, out.shape)
+        kernel = kernel.kernels[r][c]
+        if info:
+            info.update(kernel_size=tuple(int(s) for s in kernel.weights.shape),
+                        kernel_extent_px=float(kernel.extent_px))
+    return Solved(out, est, prior_frames, seconds, grid, compute_s=seconds, render_s=render_s, info=info,
+                  kernel=pack_kernel(kernel) if pack else None, start_partial=start_partial)
 
 
 @dataclass
@@ -123,12 +156,15 @@ class _WarmKernel:
 
 
 def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids, *, max_kernel_px: int,
-                 budget_s: float) -> None:
-    """Build the solvers of every rung into `decs` and run each once on `uniform` and on each of
-    `grids` (a temporal rung with a prior: the frame before, restored, warped across one frame
-    period), then build the FFT plans of every padded shape a kernel up to `max_kernel_px` can
-    need, within `budget_s`. Plans are measured here (FFTW), not estimated mid-stream."""
+                 budget_s: float, renderer=render) -> None:
+    """Render `uniform` and `grids` (`KernelOrder`s; the renderer's compiled code loaded here), build
+    the solvers of every rung into `decs` and run each once on the uniform kernel and on each grid
+    (a temporal rung with a prior: the frame before, restored, warped across one frame period),
+    then build the FFT plans of every padded shape a kernel up to `max_kernel_px` can need, within
+    `budget_s`. Plans are measured here (FFTW), not estimated mid-stream."""
     t_end = time.monotonic() + budget_s
+    uniform, *grids = [renderer(o.gyro_t, o.gyro_rate, calib, o.t_frame, o.deblur)[0]
+                       for o in [uniform, *grids]]
     period = 1.0 / calib.frame_rate_hz
     tg, rate = warm_gyro(calib)
     for rung in rungs:
@@ -215,22 +251,23 @@ def limit_threads():
 class InThread:
     """A worker's solvers in its own thread (one per worker; the process's GIL is shared)."""
 
-    def __init__(self, factory):
-        self.factory = factory
+    def __init__(self, factory, renderer=render):
+        self.factory, self.renderer = factory, renderer
         self.decs: dict = {}
         self._generation = None
 
     def warm(self, settings, rungs, img, uniform, grids, *, max_kernel_px, budget_s) -> None:
         self._generation = (settings.deblur, settings.calib)
         warm_solvers(self.decs, self.factory, rungs, settings.deblur, settings.calib, img, uniform, grids,
-                     max_kernel_px=max_kernel_px, budget_s=budget_s)
+                     max_kernel_px=max_kernel_px, budget_s=budget_s, renderer=self.renderer)
 
-    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
+    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior, *,
+              pack: bool = False) -> Solved:
         if self._generation != (settings.deblur, settings.calib):
             self.decs, self._generation = {}, (settings.deblur, settings.calib)
         img = np.asarray(image, np.float32)
         return solve_job(self.decs, self.factory, rung, settings.deblur, settings.calib, img, kernel, t_frame,
-                         warp_gyro, prior)
+                         warp_gyro, prior, renderer=self.renderer, pack=pack)
 
     def reset(self) -> None:
         """Forget the solvers (after a failed job: the next one starts from fresh state)."""
@@ -352,7 +389,7 @@ class SharedEstimate:
 
 
 # ------------------------------------------------------------------------------ in a child process
-def _child_main(conn, factory) -> None:
+def _child_main(conn, factory, renderer=render) -> None:
     """A child's loop: map the shared frames, then serve ``warm``, ``solve`` and ``stop``.
 
     SIGTERM and SIGINT are ignored: systemd's stop and a terminal's Ctrl-C reach the whole process
@@ -395,19 +432,25 @@ def _child_main(conn, factory) -> None:
                 decs = {}
             elif kind == "warm":
                 _, rungs, img, uniform, grids, kw = msg
-                warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, **kw)
+                warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, renderer=renderer,
+                             **kw)
                 conn.send(("warmed",))
             elif kind == "solve":
-                _, rung, worker, slot, kernel, t_frame, warp_gyro = msg
+                _, rung, worker, slot, kernel, t_frame, warp_gyro, pack = msg
                 got = solve_job(decs, factory, rung, deblur, calib, inputs[worker], kernel, t_frame,
-                                warp_gyro, prior)
+                                warp_gyro, prior, renderer=renderer, pack=pack)
+                if got.passthrough is not None:
+                    p = got.passthrough
+                    conn.send(("passed", p.reason, p.info, p.detail, got.seconds))
+                    continue
                 images[slot][...] = got.image
                 est = None
                 if got.estimate is not None and got.estimate.info.size <= layout.info_capacity:
                     info = got.estimate.info
                     infos[slot][:info.size] = info.ravel()
                     est = (float(got.estimate.t_frame), tuple(info.shape), tuple(got.estimate.shape))
-                conn.send(("done", got.prior_frames, got.seconds, tuple(got.grid), est))
+                conn.send(("done", got.prior_frames, got.seconds, tuple(got.grid), est, got.render_s,
+                           got.info, got.kernel, got.start_partial))
         except Exception:
             decs = {}                    # the next job starts from fresh state
             try:
@@ -419,12 +462,13 @@ def _child_main(conn, factory) -> None:
 class InChild:
     """A worker's solvers in a child process (spawned: a fresh interpreter, a GIL of its own)."""
 
-    def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True):
+    def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True, renderer=render):
         self.frames, self.worker = frames, worker
         self._generation = None
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_child_main, args=(child, factory), name=f"thermod-solve{worker}",
+        self.proc = ctx.Process(target=_child_main, args=(child, factory, renderer),
+                                name=f"thermod-solve{worker}",
                                 daemon=True)
         self.proc.start()
         child.close()
@@ -493,7 +537,8 @@ class InChild:
         self._send(("warm", list(rungs), img, uniform, grids, kw))
         self._recv(budget_s + CHILD_START_S)
 
-    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior) -> Solved:
+    def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior, *,
+              pack: bool = False) -> Solved:
         """Solve in the child. `prior` is called here, in the worker's thread, when the child asks."""
         frames = self.frames
         t0 = time.perf_counter()
@@ -501,9 +546,10 @@ class InChild:
         slot = frames.acquire()
         lent: list[SharedEstimate] = []
         waited = 0.0
+        est = None
         try:
             self._settings(settings)
-            self._send(("solve", rung, self.worker, slot, kernel, float(t_frame), warp_gyro))
+            self._send(("solve", rung, self.worker, slot, kernel, float(t_frame), warp_gyro, bool(pack)))
             while True:
                 msg = self._recv(SOLVE_TIMEOUT_S)
                 if msg[0] != "prior":
@@ -517,15 +563,20 @@ class InChild:
                 else:
                     self._send(None)
                 waited += time.perf_counter() - w0
-            _, prior_frames, compute_s, grid, est_meta = msg
+            if msg[0] == "passed":
+                _, reason, info, detail, compute_s = msg
+                seconds = time.perf_counter() - t0 - waited
+                return Solved(None, None, 0, seconds, (1, 1), compute_s=min(compute_s, seconds),
+                              render_s=compute_s, info=info, passthrough=PassThrough(reason, info, detail))
+            _, prior_frames, compute_s, grid, est_meta, render_s, info, packed, start_partial = msg
             image_out = frames.images[slot].copy()
-            est = None
             if est_meta is not None:
                 t_est, info_shape, shape = est_meta
                 est = SharedEstimate(frames, slot, t_est, tuple(info_shape), tuple(shape))
             seconds = time.perf_counter() - t0 - waited
             return Solved(image_out, est, prior_frames, seconds, tuple(grid),
-                          compute_s=min(compute_s, seconds))
+                          compute_s=min(compute_s, seconds), render_s=render_s, info=info, kernel=packed,
+                          start_partial=start_partial)
         except BaseException:
             est = None
             raise
@@ -570,13 +621,13 @@ def close_all(solvers: list, timeout: float = 1.0) -> None:
             solver.close()
 
 
-def start_children(factory, frames: SharedFrames, workers: int) -> list[InChild]:
+def start_children(factory, frames: SharedFrames, workers: int, renderer=render) -> list[InChild]:
     """One `InChild` per worker, started together (each child's start-up, about 1 s of imports,
     overlaps the others')."""
     out: list[InChild] = []
     try:
         for i in range(workers):
-            out.append(InChild(factory, frames, i, wait=False))
+            out.append(InChild(factory, frames, i, wait=False, renderer=renderer))
         for c in out:
             c.wait_ready()
     except BaseException:
