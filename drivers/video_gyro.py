@@ -92,7 +92,7 @@ class VideoGyro(GyroSource):
     def stats(self) -> dict:
         out = super().stats()
         out.update(self.track.counts, motion_source=self.motion_source,
-                   sigma_rad_s=self.track.last_sigma_rad_s)
+                   sigma_rad_s=self.track.last_sigma_rad_s, overlay_fraction=self.track.overlay.fraction)
         return out
 
 

@@ -16,7 +16,9 @@ The rule it keeps: a rate only where the pictures measured it, or across one int
 measured ones (a pair that cannot be registered: too little texture, or a cut, `MIN_REGISTERED_NCC`),
 which is bridged by its neighbours' rates with σ widened by half their difference. Two unknown
 intervals in a row stop the samples; the next say `gap_before`, and the frames whose kernel window
-spans the hole pass through. A repeated frame is skipped and the next registered across it.
+spans the hole pass through. A repeated frame is skipped and the next registered across it. A static
+overlay (a logo, OSD text) is found as the import finds it (`thermod.motion.track.overlay_mask`), on
+running means over the stream (`OverlayWatch`), and no corner is taken on it.
 """
 
 from __future__ import annotations
@@ -27,7 +29,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.motion.picture import U8_PER_UNIT, PairRegistrar
-from thermod.motion.track import DUPLICATE_ABS, MIN_REGISTERED_NCC, registered_ncc
+from thermod.motion.track import (
+    DUPLICATE_ABS,
+    MIN_REGISTERED_NCC,
+    OVERLAY_MOVING_RATIO,
+    gradient_magnitude,
+    overlay_mask,
+    registered_ncc,
+)
 from thermod.physics.geometry import Intrinsics
 
 LEAD_SAMPLES = 3          # samples sent past the frame time (the kernel window's padding)
@@ -40,6 +49,41 @@ DEFAULT_RATE_HZ = 1000.0
 # (the simulated payload's loop, 44 °/s RMS)
 FEATURES = 100
 LK_LEVELS = 2
+OVERLAY_MEMORY = 0.98     # the overlay's running means keep this much per pair (~50 pairs, 1 s at 50 fps)
+OVERLAY_EVERY = 5         # pairs between two looks for an overlay (the first after as many)
+
+
+class OverlayWatch:
+    """A static overlay in a stream of working images: running means of each pixel's gradient and
+    frame-to-frame change, judged every `OVERLAY_EVERY` pairs by the import's rule (`overlay_mask`).
+    While the scene does not move (a still camera) the last judgement stands: nothing tells an
+    overlay from the scene then, and corners on either agree."""
+
+    def __init__(self):
+        self._G: np.ndarray | None = None
+        self._D: np.ndarray | None = None
+        self._pairs = 0
+        self.mask: np.ndarray | None = None
+
+    def add(self, prev: np.ndarray, cur: np.ndarray) -> None:
+        z0, z1 = prev.astype(np.float32), cur.astype(np.float32)
+        g, d = gradient_magnitude(z1), np.abs(z1 - z0)
+        if self._G is None or self._G.shape != g.shape:
+            self._G, self._D, self._pairs = g, d, 0
+        else:
+            self._G = OVERLAY_MEMORY * self._G + (1 - OVERLAY_MEMORY) * g
+            self._D = OVERLAY_MEMORY * self._D + (1 - OVERLAY_MEMORY) * d
+        self._pairs += 1
+        if self._pairs % OVERLAY_EVERY == 0:
+            G, D = self._G, self._D
+            textured = G > np.percentile(G, 75)
+            moving = float(np.median(D[textured] / np.maximum(G[textured], 1e-6))) if textured.any() else 0.0
+            if moving >= OVERLAY_MOVING_RATIO:
+                self.mask = overlay_mask(G, D)
+
+    @property
+    def fraction(self) -> float:
+        return float(self.mask.mean()) if self.mask is not None else 0.0
 
 
 @dataclass
@@ -74,6 +118,7 @@ class LiveTrack:
         self._unknown = 0                    # unknown intervals since the anchor's
         self.counts = {"frames": 0, "measured": 0, "untracked": 0, "cut": 0, "duplicate": 0, "bridged": 0,
                        "samples": 0}
+        self.overlay = OverlayWatch()
         self.last_sigma_rad_s = math.nan
 
     def push(self, frame, t: float) -> Samples | None:
@@ -94,11 +139,13 @@ class LiveTrack:
         self._prev, self._prev_t = cur, t
         if prev is None or not t > t_prev:
             return None
+        self.overlay.add(prev, cur)
+        overlay = self.overlay.mask
         predicted = self._anchor[1] * (t - t_prev) if self._anchor is not None else None
-        fit = self.reg.measure(prev, cur, bands=False, predicted=predicted)
+        fit = self.reg.measure(prev, cur, bands=False, predicted=predicted, exclude=overlay)
         status = "untracked" if fit is None else "ok"
         if fit is not None and not registered_ncc(prev.astype(np.float32), cur.astype(np.float32), fit.rotvec,
-                                                  self.reg.work, None) >= MIN_REGISTERED_NCC:
+                                                  self.reg.work, overlay) >= MIN_REGISTERED_NCC:
             status = "cut"
         if status != "ok":
             self.counts[status] += 1

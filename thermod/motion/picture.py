@@ -224,14 +224,17 @@ class PairRegistrar:
         return _to_u8(z)
 
     def measure(self, prev: np.ndarray, cur: np.ndarray, *, bands: bool = True,
-                predicted: np.ndarray | None = None) -> PairFit | None:
+                predicted: np.ndarray | None = None, exclude: np.ndarray | None = None) -> PairFit | None:
         """The rotation from working image `prev` to `cur`, or None with too few corners agreeing;
         `bands` False leaves the band fits out (NaN). `predicted`: a rotation vector expected for the pair
         (e.g. the last one's), from which the corners' tracks start, both ways: a fast, smeared pair
-        then needs only the change of motion tracked."""
+        then needs only the change of motion tracked. `exclude`: working pixels where no corner is
+        taken (a static overlay)."""
         import cv2
 
-        p0 = cv2.goodFeaturesToTrack(prev, self.max_features, 0.005, self.edge, mask=self.border, blockSize=5)
+        where = self.border if exclude is None else self.border & ~exclude.astype(bool)
+        p0 = cv2.goodFeaturesToTrack(prev, self.max_features, 0.005, self.edge, mask=where.astype(np.uint8),
+                                     blockSize=5)
         if p0 is None or len(p0) < MIN_FEATURES:
             return None
         lk, guess = self.lk, None

@@ -202,16 +202,8 @@ def duplicates(work: list[np.ndarray]) -> np.ndarray:
 
 
 def static_overlay(work: list[np.ndarray], still: np.ndarray | None = None) -> np.ndarray | None:
-    """The working-resolution mask of a static overlay, or None (module docstring, 1).
-
-    For each pixel, G = mean |∇z| and D = mean |z_{k+1} − z_k| over consecutive frames (duplicates,
-    `still`, left out). A textured pixel (G above the frame's 75th percentile) moving with the scene
-    has D/G of the order of its motion in pixels; a printed one has D/G near zero. The overlay is the
-    textured pixels with D/G < `OVERLAY_STILL_SHARE` × the median textured pixel's, when that one moves
-    (D/G ≥ `OVERLAY_MOVING_RATIO`), dilated; none when it would cover more than
-    `OVERLAY_MAX_FRACTION` of the frame (a still camera)."""
-    import cv2
-
+    """The working-resolution mask of a static overlay, or None (module docstring, 1): `overlay_mask`
+    of the mean gradient and mean change over consecutive frames (duplicates, `still`, left out)."""
     n = len(work)
     if n < 3:
         return None
@@ -222,15 +214,32 @@ def static_overlay(work: list[np.ndarray], still: np.ndarray | None = None) -> n
     for k in range(1, n):
         if still[k]:
             continue
-        gx = cv2.Sobel(work[k], cv2.CV_32F, 1, 0, ksize=3) / 8
-        gy = cv2.Sobel(work[k], cv2.CV_32F, 0, 1, ksize=3) / 8
-        G += np.hypot(gx, gy)
+        G += gradient_magnitude(work[k])
         D += np.abs(work[k] - work[k - 1])
         m += 1
     if m < 2:
         return None
-    G /= m
-    D /= m
+    return overlay_mask(G / m, D / m)
+
+
+def gradient_magnitude(z: np.ndarray) -> np.ndarray:
+    """|∇z| per pixel (Sobel, per pixel of displacement)."""
+    import cv2
+
+    gx = cv2.Sobel(z, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(z, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return np.hypot(gx, gy)
+
+
+def overlay_mask(G: np.ndarray, D: np.ndarray) -> np.ndarray | None:
+    """The static overlay from a pixel's mean gradient G = mean |∇z| and mean frame-to-frame change
+    D = mean |z_{k+1} − z_k|, or None. A textured pixel (G above the frame's 75th percentile) moving
+    with the scene has D/G of the order of its motion in pixels; a printed one has D/G near zero. The
+    overlay is the textured pixels with D/G < `OVERLAY_STILL_SHARE` × the median textured pixel's,
+    when that one moves (D/G ≥ `OVERLAY_MOVING_RATIO`), dilated; none when it would cover more than
+    `OVERLAY_MAX_FRACTION` of the frame (a still camera)."""
+    import cv2
+
     textured = G > np.percentile(G, 75)
     if textured.sum() < 16:          # a flat picture: nothing printed on it can be told apart
         return None
