@@ -180,7 +180,9 @@ def test_healthy_baseline_and_sd_notify(rig):
     got = frames_after(rig, t, lambda got: len(got) >= 20 and any(x["deblurred"] for x in got))
     h = rig.d.health()
     published_or_counted(got, h0, rig.d.health())
-    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"])
+    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"],
+                                    [(x.get("coverage"), x.get("n_samples"), x.get("latency_s"), x.get("frame_id"))
+                                     for x in got if x["reason"] == "gyro_incomplete"])
     assert h["devices"]["gyro"]["state"] == "running" and h["devices"]["camera"]["state"] == "running"
     assert all(h["threads"].values()), h["threads"]
     msgs = rig.notify.drain()
@@ -309,7 +311,9 @@ def test_slow_subscriber_has_no_effect(rig):
     published_or_counted(got, h0, rig.d.health())          # the normal subscriber misses nothing
     seqs = [x["seq"] for x in got]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
-    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"])
+    assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"],
+                                    [(x.get("coverage"), x.get("n_samples"), x.get("latency_s"), x.get("frame_id"))
+                                     for x in got if x["reason"] == "gyro_incomplete"])
 
 
 def test_reload_applies_deblur_and_calibration_without_losing_frames(rig):

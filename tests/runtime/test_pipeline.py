@@ -456,3 +456,32 @@ def test_a_running_pipeline_keeps_blas_and_opencv_to_one_thread_each():
     finally:
         p.stop()
     assert blas_threads() == before
+
+
+def test_a_starved_gyro_reader_is_waited_for_a_silent_one_is_not(sharp):
+    # The reader delivered nothing since the frame came (a thread starved of a core or the GIL): the
+    # frame waits past wait_timeout_s for it and is deblurred. A reader that delivered, without the
+    # frame's newest samples, leaves the frame to pass through after wait_timeout_s, as before.
+    col = Collector()
+    gr, fr, p = make(col, wait=0.05)
+    delivered = [-np.inf]
+    p.gyro_delivered = lambda: delivered[0]
+    p.start()
+    try:
+        now = time.monotonic()
+        gyro_until(gr, now - 0.3, now - 0.03)                 # the newest 30 ms not yet read
+        fr.write(sharp.astype(np.uint16), now, frame_id=1, arrival=now)
+        time.sleep(0.09)                                      # past wait_timeout_s, reader still silent
+        delivered[0] = time.monotonic()
+        gyro_until(gr, now - 0.03 + 1 / RATE, now + 0.01, seq0=271)
+        a = col.wait(1)[0]
+        t1 = time.monotonic()
+        gyro_until(gr, now + 0.01 + 1 / RATE, t1 - 0.03, seq0=312)
+        delivered[0] = t1 + 0.001                              # the reader ran: samples are simply missing
+        fr.write(sharp.astype(np.uint16), t1, frame_id=2, arrival=t1)
+        b = col.wait(2)[1]
+    finally:
+        p.stop()
+    assert a.deblurred and a.latency_s >= 0.09
+    assert not b.deblurred and b.reason == "gyro_incomplete" and b.latency_s < 0.05 + 0.09
+    assert p.stats()["counters"]["gyro_late_waits"] == 1

@@ -113,6 +113,7 @@ class Daemon:
                                    short_of_cpu=lambda: self.pipeline.short_of_cpu())
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
+        self.pipeline.gyro_delivered = lambda: self.gyro_state.last_data
         self.camera_state = DeviceState(self.camera.name)
         self.driver_threads: list[DriverThread] = []
         self.counters = collections.Counter()

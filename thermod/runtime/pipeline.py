@@ -16,11 +16,10 @@ budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_A
 for the warp; a frame solved without a prior is published as ``wiener``.
 
 Nothing received is lost silently: a job that waited longer than the budget is solved by its
-cheapest rung (``catch_up``); a full queue drops its oldest job (``overload``, passed through); a
-worker that raises passes its frame through (``worker_error``) and is replaced; frames overwritten
-in the ring before the scheduler read them are counted (``frames_overrun``). Outputs leave in frame
-order (a frame more than ``reorder_timeout_s`` late is released out of order). Every wait has a
-timeout, every queue a bound, every drop a counter (`Pipeline.stats`).
+cheapest rung (``catch_up``); a full queue drops its oldest job (``overload``); a worker that raises
+passes its frame through (``worker_error``) and is replaced; frames overwritten in the ring unread
+are counted (``frames_overrun``). Outputs leave in frame order (one more than ``reorder_timeout_s``
+late is released out of order). Every wait has a timeout, every drop a counter (`Pipeline.stats`).
 """
 
 from __future__ import annotations
@@ -70,6 +69,8 @@ GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
 SHORT_OF_CPU_S = 10.0   # the pipeline is short of CPU while this long holds SHORT_OF_CPU_DROPS overload drops
 SHORT_OF_CPU_DROPS = 3  # (one drop is a stall, not a shortage: the monitor goes on through it)
 PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
+STARVED_WAIT_S = 0.1   # beyond wait_timeout_s, how long a frame waits for a gyro reader that has delivered
+                       # nothing since the frame came (starved of a core or the GIL, not short of samples)
 
 
 @dataclass
@@ -187,6 +188,8 @@ class Pipeline:
         self._kernels = bool(kernels)
         self.n_workers = cfg.workers or default_workers()
         self.gyro_online = True           # the daemon clears this while the gyro device is down
+        # when the gyro reader last delivered samples (host monotonic); set by the daemon (`_wait_for_gyro`)
+        self.gyro_delivered: Callable[[], float] | None = None
         self._stop = threading.Event()
         self._jobs: collections.deque[_Job] = collections.deque()
         self._jobs_cond = threading.Condition()
@@ -444,8 +447,7 @@ class Pipeline:
         g0, g1, margin = gyro_span(s.calib, s.deblur, slot.t)
         t_wait = time.monotonic()
         if self.gyro_online:
-            deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
-            self.gyro_ring.wait_until(g1, deadline - time.monotonic())
+            self._wait_for_gyro(g1, slot)
         t_render = time.monotonic()
         w = self.gyro_ring.window(g0 - margin, g1 + margin, pad=2)
         if s.calib.gyro_range_rad_s > 0 and len(w) and np.any(np.abs(w.rate) >= s.calib.gyro_range_rad_s
@@ -475,6 +477,23 @@ class Pipeline:
         now = time.monotonic()
         self._enqueue(_Job(slot, order, order.info, s.generation, choice, warp_gyro, t_queued=now,
                            gyro_wait_s=t_render - t_wait, render_s=now - t_render))
+
+    def _wait_for_gyro(self, g1: float, slot: FrameSlot) -> None:
+        """Wait until the gyro ring covers gyro time `g1`, at most until ``max(t, arrival) +
+        wait_timeout_s``; then, while the reader has delivered nothing since the frame came, up to
+        `STARVED_WAIT_S` more: its silence says the reader has not run, not that samples are missing
+        (a loaded payload starves a thread for tens of ms: the frame waits, and is deblurred)."""
+        deadline = max(slot.t, slot.arrival) + self.cfg.wait_timeout_s
+        if self.gyro_ring.wait_until(g1, deadline - time.monotonic()) or self.gyro_delivered is None:
+            return
+        cap = deadline + STARVED_WAIT_S
+        while self.gyro_delivered() < slot.arrival and (left := cap - time.monotonic()) > 0:
+            if self.gyro_ring.wait_until(g1, min(left, 0.005)):
+                self._count("gyro_late_waits", 1)
+                return
+        # a delivery is stamped before its samples reach the ring: give the writer that moment
+        if self.gyro_ring.wait_until(g1, 0.005) and time.monotonic() > deadline + 0.005:
+            self._count("gyro_late_waits", 1)
 
     def _refused(self, slot: FrameSlot, refusal: PassThrough) -> None:
         """A frame the policy passes through (before its kernel, or on it)."""
