@@ -113,6 +113,12 @@ def rig(tmp_path_factory):
     frames.join(5)
 
 
+def late(frames):
+    """(coverage, samples, latency, frame id) of each frame passed through as gyro_incomplete."""
+    return [(x.get("coverage"), x.get("n_samples"), x.get("latency_s"), x.get("frame_id"))
+            for x in frames if x["reason"] == "gyro_incomplete"]
+
+
 def deblurring(frames, before=None, after=None):
     """Every frame deblurred, or passed through only because the deconvolution workers were busy
     (``overload``: how many depends on the machine's speed, so it is not asserted); never for a
@@ -181,8 +187,7 @@ def test_healthy_baseline_and_sd_notify(rig):
     h = rig.d.health()
     published_or_counted(got, h0, rig.d.health())
     assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"],
-                                    [(x.get("coverage"), x.get("n_samples"), x.get("latency_s"), x.get("frame_id"))
-                                     for x in got if x["reason"] == "gyro_incomplete"])
+                                    late(got))
     assert h["devices"]["gyro"]["state"] == "running" and h["devices"]["camera"]["state"] == "running"
     assert all(h["threads"].values()), h["threads"]
     msgs = rig.notify.drain()
@@ -312,8 +317,7 @@ def test_slow_subscriber_has_no_effect(rig):
     seqs = [x["seq"] for x in got]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
     assert deblurring(got, h0, h), (collections.Counter(x["reason"] for x in got), h["drops"],
-                                    [(x.get("coverage"), x.get("n_samples"), x.get("latency_s"), x.get("frame_id"))
-                                     for x in got if x["reason"] == "gyro_incomplete"])
+                                    late(got))
 
 
 def test_reload_applies_deblur_and_calibration_without_losing_frames(rig):
