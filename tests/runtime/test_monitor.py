@@ -117,7 +117,8 @@ def test_estimate_converges_to_the_drifting_truth():
     assert np.all(np.abs(b - b_true)[:2] < np.maximum(BIAS_TOL, 4.0 * sigma)), (b, b_true, e)
     assert abs(e["time_offset_s"] - truth.time_offset_s) < OFFSET_TOL, (e, truth.time_offset_s)
     assert all(s > 0 for s in e["gyro_bias_rad_s_sigma"]) and e["time_offset_s_sigma"] > 0
-    assert e["tau_s"] is None or abs(e["tau_s"] - truth.tau_s) < 3 * e["tau_s_sigma"], e
+    # τ's σ is a 16-block jackknife (15 dof): beyond 3σ 0.9 % of the time, one CI run in a hundred
+    assert e["tau_s"] is None or abs(e["tau_s"] - truth.tau_s) < 4 * e["tau_s_sigma"], e
     assert d.pipeline.calib == d.cfg.calibration                 # apply = false: nothing changed
     share = cal["monitor"]["cpu_share"]
     assert share is not None and share <= 0.10 * 1.5               # the budget, with scheduling slack
