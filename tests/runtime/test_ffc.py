@@ -180,8 +180,10 @@ def test_v4l2_boson_frames_flagged_from_telemetry(top):
     contains telemetry."""
     img = np.full((512, 640), 3000, np.uint16)
     ffc_frames = {3, 4, 5, 9}
+    # 32 driver buffers (0.5 s at 60 fps): the telemetry is the point here, not a reader starved by a
+    # loaded test host, which dropped frames from OpenCV's default 4 (a bare clone's suite, once)
     dev = EmuV4L2Device(img, telemetry_rows=(2, 0) if top else (0, 2), fps_modes=(60.0,),
-                        ffc_frames=ffc_frames)
+                        ffc_frames=ffc_frames, n_buffers=32)
     cam = V4L2Camera("/dev/video0", width=640, height=512, telemetry_rows=(2, 0) if top else (0, 2),
                      capture_factory=dev.open, frame_rate_hz=60.0)
     cam.start()
