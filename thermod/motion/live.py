@@ -36,6 +36,7 @@ from thermod.motion.track import (
     gradient_magnitude,
     overlay_mask,
     registered_ncc,
+    scene_motion,
 )
 from thermod.physics.geometry import Intrinsics
 
@@ -75,11 +76,9 @@ class OverlayWatch:
             self._D = OVERLAY_MEMORY * self._D + (1 - OVERLAY_MEMORY) * d
         self._pairs += 1
         if self._pairs % OVERLAY_EVERY == 0:
-            G, D = self._G, self._D
-            textured = G > np.percentile(G, 75)
-            moving = float(np.median(D[textured] / np.maximum(G[textured], 1e-6))) if textured.any() else 0.0
-            if moving >= OVERLAY_MOVING_RATIO:
-                self.mask = overlay_mask(G, D)
+            moving = scene_motion(self._G, self._D)
+            if moving is not None and moving >= OVERLAY_MOVING_RATIO:
+                self.mask = overlay_mask(self._G, self._D)
 
     @property
     def fraction(self) -> float:

@@ -231,6 +231,15 @@ def gradient_magnitude(z: np.ndarray) -> np.ndarray:
     return np.hypot(gx, gy)
 
 
+def scene_motion(G: np.ndarray, D: np.ndarray) -> float | None:
+    """The median D/G of the textured pixels (G above the frame's 75th percentile): about the scene's
+    motion in pixels per frame; None on a flat picture (fewer than 16 textured pixels)."""
+    textured = G > np.percentile(G, 75)
+    if textured.sum() < 16:          # a flat picture: nothing printed on it can be told apart
+        return None
+    return float(np.median(D[textured] / np.maximum(G[textured], 1e-6)))
+
+
 def overlay_mask(G: np.ndarray, D: np.ndarray) -> np.ndarray | None:
     """The static overlay from a pixel's mean gradient G = mean |∇z| and mean frame-to-frame change
     D = mean |z_{k+1} − z_k|, or None. A textured pixel (G above the frame's 75th percentile) moving
@@ -240,13 +249,11 @@ def overlay_mask(G: np.ndarray, D: np.ndarray) -> np.ndarray | None:
     `OVERLAY_MAX_FRACTION` of the frame (a still camera)."""
     import cv2
 
+    moving = scene_motion(G, D)
+    if moving is None or not moving >= OVERLAY_MOVING_RATIO:
+        return None
     textured = G > np.percentile(G, 75)
-    if textured.sum() < 16:          # a flat picture: nothing printed on it can be told apart
-        return None
     ratio = D / np.maximum(G, 1e-6)
-    moving = float(np.median(ratio[textured]))
-    if not moving >= OVERLAY_MOVING_RATIO:
-        return None
     mask = (textured & (ratio < OVERLAY_STILL_SHARE * moving)).astype(np.uint8)
     # lone pixels are noise; an overlay is a cluster of printed strokes
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((2, 2), np.uint8))

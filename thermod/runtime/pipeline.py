@@ -107,7 +107,6 @@ class FrameOut:
 class _Job:
     slot: FrameSlot
     order: KernelOrder              # its kernel, rendered by the worker that solves it
-    info: dict
     generation: int
     choice: Choice | None = None
     warp_gyro: tuple | None = None  # (t, rate) raw gyro from before the prior to the frame: the warp's
@@ -188,7 +187,8 @@ class Pipeline:
         self._kernels = bool(kernels)
         self.n_workers = cfg.workers or default_workers()
         self.gyro_online = True           # the daemon clears this while the gyro device is down
-        # when the gyro reader last delivered samples (host monotonic); set by the daemon (`_wait_for_gyro`)
+        # when the gyro reader last delivered samples (host monotonic), set by the daemon: read by
+        # `_wait_for_gyro` to tell a reader that has not run from samples that are missing
         self.gyro_delivered: Callable[[], float] | None = None
         self._stop = threading.Event()
         self._jobs: collections.deque[_Job] = collections.deque()
@@ -341,7 +341,7 @@ class Pipeline:
             self._jobs.clear()
         for job in left:
             self._count("shutdown_passthrough", 1)
-            self._passthrough(job.slot, "overload", job.info)
+            self._passthrough(job.slot, "overload", job.order.info)
         self._flush_pending(force=True)
         self._close_solvers()
         if self._process_settings is not None:     # the process may go on (tests, an embedding app)
@@ -475,7 +475,7 @@ class Pipeline:
             else:
                 self._count("temporal_gyro_gap", 1)
         now = time.monotonic()
-        self._enqueue(_Job(slot, order, order.info, s.generation, choice, warp_gyro, t_queued=now,
+        self._enqueue(_Job(slot, order, s.generation, choice, warp_gyro, t_queued=now,
                            gyro_wait_s=t_render - t_wait, render_s=now - t_render))
 
     def _wait_for_gyro(self, g1: float, slot: FrameSlot) -> None:
@@ -487,12 +487,11 @@ class Pipeline:
         if self.gyro_ring.wait_until(g1, deadline - time.monotonic()) or self.gyro_delivered is None:
             return
         cap = deadline + STARVED_WAIT_S
-        while self.gyro_delivered() < slot.arrival and (left := cap - time.monotonic()) > 0:
-            if self.gyro_ring.wait_until(g1, min(left, 0.005)):
-                self._count("gyro_late_waits", 1)
-                return
+        covered = False
+        while not covered and self.gyro_delivered() < slot.arrival and (left := cap - time.monotonic()) > 0:
+            covered = self.gyro_ring.wait_until(g1, min(left, 0.005))
         # a delivery is stamped before its samples reach the ring: give the writer that moment
-        if self.gyro_ring.wait_until(g1, 0.005) and time.monotonic() > deadline + 0.005:
+        if covered or self.gyro_ring.wait_until(g1, 0.005):
             self._count("gyro_late_waits", 1)
 
     def _refused(self, slot: FrameSlot, refusal: PassThrough) -> None:
@@ -535,7 +534,7 @@ class Pipeline:
             self._overload_drops.append(time.monotonic())
             self._count("jobs_dropped", 1)
             self.governor.overloaded(time.monotonic())
-            self._passthrough(dropped.slot, "overload", dropped.info)
+            self._passthrough(dropped.slot, "overload", dropped.order.info)
 
     # ------------------------------------------------------------------ workers
     def _spawn_worker(self, i: int) -> None:
@@ -643,13 +642,13 @@ class Pipeline:
                               job.slot.frame_id)
                 solver.reset()
                 self._worker_busy_since[i] = None
-                self._passthrough(job.slot, "worker_error", job.info)
+                self._passthrough(job.slot, "worker_error", job.order.info)
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
             self._keep_estimate(index, est)
             self._worker_busy_since[i] = None
             self._count("deblurred", 1)
             self._count(f"method_{method}", 1)
-            o = self._out(job.slot, out, True, None, {**job.info, **got.info}, got.kernel)
+            o = self._out(job.slot, out, True, None, {**job.order.info, **got.info}, got.kernel)
             o.method = method
             o.prior_frames = prior_frames
             o.grid = grid
