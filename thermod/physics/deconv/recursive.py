@@ -46,6 +46,8 @@ HALF_TEST_SLACK = 4.0        # the test on 2×2 means: its reference × this (th
 PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
+SPECTRUM_MIN = 128           # the weights' spectrum: at least this many points per axis (a power of two)
+SPECTRUM_OVERSAMPLE = 4      # ... and at least this many per kernel length, so |K|² is sampled finely
 
 PROFILE: dict[str, float] = {}   # thread CPU seconds per stage of the last correction (for profiling)
 
@@ -131,15 +133,6 @@ def _mean_square_step(p, step):
                 d = p[i * step, (j + 1) * step] - v
                 sx += d * d
     return 0.5 * (sy / max((h - 1) * w, 1) + sx / max(h * (w - 1), 1))
-
-
-@njit(cache=True, nogil=True)
-def _weigh(wgt, X, out):
-    """out = wgt · X (a real weight per frequency)."""
-    h, w = X.shape
-    for i in range(h):
-        for j in range(w):
-            out[i, j] = X[i, j] * wgt[i, j]
 
 
 _INTERP_REACH = {cv2.INTER_LINEAR: 1, cv2.INTER_CUBIC: 2, cv2.INTER_LANCZOS4: 4}
@@ -252,6 +245,31 @@ def _weigh_sampled(wgt, rows, cols, factor, X, out):
             out[i, j] = X[i, j] * (factor * wgt[ri, cols[j]])
 
 
+def _spectrum_shape(kshape, plan_shape) -> tuple[int, int]:
+    """The grid the spectral weights are computed on: a power of two per axis, at least `SPECTRUM_MIN`
+    and `SPECTRUM_OVERSAMPLE` kernel lengths, at most the frame's FFT size. |K|² varies over
+    1 / (kernel length), the prior's gain and the image prior more slowly, so the weights are read
+    off this grid at each of the frame's frequencies (nearest) for a fraction of a frame-sized pass."""
+    def side(k, n):
+        m = SPECTRUM_MIN
+        while m < SPECTRUM_OVERSAMPLE * k:
+            m *= 2
+        return min(m, n)
+    return side(kshape[0], plan_shape[0]), side(kshape[1], plan_shape[1])
+
+
+def _full_shape(half_spectrum: np.ndarray) -> tuple[int, int]:
+    """The (even-width) real grid whose half spectrum this is."""
+    return half_spectrum.shape[0], 2 * (half_spectrum.shape[1] - 1)
+
+
+def _weigh_forward(plan, wgt: np.ndarray) -> None:
+    """plan.cin = wgt · F(plan.rin), the weights read off their own grid at the plan's frequencies."""
+    spec = _full_shape(wgt)
+    _weigh_sampled(wgt, _frequency_index(plan.shape[0], spec[0], half=False),
+                   _frequency_index(plan.shape[1], spec[1], half=True), np.float32(1.0), plan.fwd(), plan.cin)
+
+
 def _half_frequency_index(n_half: int, n_full: int, half: bool) -> np.ndarray:
     """Indices into an `n_full`-point spectrum (cycles/px) of an `n_half`-point one's frequencies on a
     grid of twice the pixel pitch (cycles per 2 px)."""
@@ -310,6 +328,7 @@ class RecursiveDeconvolver:
             raise DeconvError("interpolation: expected cv2.INTER_LINEAR, INTER_CUBIC or INTER_LANCZOS4, "
                               f"got {interpolation!r}")
         self._gains: dict[tuple[int, int], np.ndarray] = {}
+        self._grads: dict[tuple[int, int], np.ndarray] = {}
         self._boxes: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         self._buf: dict[str, np.ndarray] = {}
         self._buf_shape: tuple[int, int] | None = None
@@ -355,10 +374,9 @@ class RecursiveDeconvolver:
         w, origin = check_kernel(k0)
         shape = tuple(dec.padded_shape(img.shape, w.shape))
         plan = dec._plan(shape)
-        _, K2 = dec._otf(plan, w, origin)          # a hit after a uniform solve of this kernel
+        spec = _spectrum_shape(w.shape, shape)
+        K2 = self._kernel_power(w, origin, spec)
         self._count_single(img.shape, kernel, cells if grid else 1, shape, dec)
-        if grid and cells > 1:
-            self.last_fft_pairs += 0.5             # the central kernel's frame-sized OTF
         c = np.float32(1.0 / lam)
         out, info = x0, None
         self.last_prior_frames, self.last_weight = 0, 0.0
@@ -371,7 +389,7 @@ class RecursiveDeconvolver:
             info = K2.copy()
         self.last_seconds = (t1 - t0, time.perf_counter() - t1)
         self.last_cpu_seconds = (c1 - c0, time.thread_time() - c1)
-        return out, Estimate(out, t_frame, info, shape)
+        return out, Estimate(out, t_frame, info, spec)
 
     def _count_single(self, img_shape, kernel, cells, shape, dec) -> None:
         steps = len(dec._betas) if dec.method == "kf" else 0
@@ -412,12 +430,13 @@ class RecursiveDeconvolver:
         grad2 = _mean_square_step(p, 2) * float(scale) ** 2 / 4.0
         q = self.registration_px ** 2 * grad2 / sigma ** 2
         tp = _lap("grad", tp)
-        rows = _frequency_index(plan.shape[0], past.shape[0], half=False)
-        cols = _frequency_index(plan.shape[1], past.shape[1], half=True)
+        spec = _full_shape(K2)
+        rows = _frequency_index(spec[0], past.shape[0], half=False)
+        cols = _frequency_index(spec[1], past.shape[1], half=True)
         Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
-        by, bx = self._box_gain(plan.shape)
+        by, bx = self._box_gain(spec)
         nb_full, nb_half = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
-                                           self._gain(plan.shape), plan.g2, float(c), PRIOR_REG,
+                                           self._gain(spec), self._g2(spec), float(c), PRIOR_REG,
                                            float(plan.norm), by, bx, Hw, Ww, info)
         tp = _lap("spectral_w", tp)
         if self.half_test:
@@ -431,7 +450,7 @@ class RecursiveDeconvolver:
         # the correction x₀ + F⁻¹[w F(m (p − x₀))]
         _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
         tp = _lap("corr_fill", tp)
-        _weigh(Ww, plan.fwd(), plan.cin)
+        _weigh_forward(plan, Ww)
         tp = _lap("corr_fwd", tp)
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
@@ -443,7 +462,7 @@ class RecursiveDeconvolver:
         """The prior's weight m: x₀ against the single solve's output for data k ⊛ p."""
         H, W = img.shape
         prepare(p, 0, 0, H, W, np.float32(lo), scale, plan.rin)
-        _weigh(Hw, plan.fwd(), plan.cin)
+        _weigh_forward(plan, Hw)
         r2 = buf["r2"]
         _squared_misfit(x0, plan.inv(), np.float32(lo), scale, r2)
         e = cv2.blur(r2, (WINDOW_PX, WINDOW_PX))
@@ -462,8 +481,8 @@ class RecursiveDeconvolver:
         cv2.resize(p, (w2, h2), dst=ph, interpolation=cv2.INTER_AREA)
         hplan = self.single._plan(tuple(fast_len((v + 1) // 2) for v in plan.shape))
         prepare(ph, 0, 0, h2, w2, np.float32(lo), scale, hplan.rin)
-        hrows = _half_frequency_index(hplan.shape[0], plan.shape[0], half=False)
-        hcols = _half_frequency_index(hplan.shape[1], plan.shape[1], half=True)
+        hrows = _half_frequency_index(hplan.shape[0], Hw.shape[0], half=False)
+        hcols = _half_frequency_index(hplan.shape[1], _full_shape(Hw)[1], half=True)
         _weigh_sampled(Hw, hrows, hcols, np.float32(hplan.norm / plan.norm), hplan.fwd(), hplan.cin)
         _squared_misfit(x0h, hplan.inv(), np.float32(lo), scale, r2h)
         e = cv2.blur(r2h, (TEST_WINDOW_PX, TEST_WINDOW_PX))
@@ -490,6 +509,25 @@ class RecursiveDeconvolver:
         if g is None:
             g = self._boxes[shape] = (np.cos(np.pi * np.fft.fftfreq(shape[0])) ** 2,
                                       np.cos(np.pi * np.fft.rfftfreq(shape[1])) ** 2)
+        return g
+
+    def _kernel_power(self, w: np.ndarray, origin, spec) -> np.ndarray:
+        """|K|² of a kernel (origin at index (0, 0)) on the half spectrum of `spec`."""
+        psf = np.zeros(spec, np.float32)
+        rows = (np.arange(w.shape[0]) - origin[0]) % spec[0]
+        cols = (np.arange(w.shape[1]) - origin[1]) % spec[1]
+        psf[np.ix_(rows, cols)] = w
+        K = np.fft.rfft2(psf)
+        return (K.real * K.real + K.imag * K.imag).astype(np.float32)
+
+    def _g2(self, shape) -> np.ndarray:
+        """|F∂x|² + |F∂y|² (the image prior's response) on the half spectrum of `shape` (cached)."""
+        g = self._grads.get(shape)
+        if g is None:
+            ky = np.fft.fftfreq(shape[0])[:, None]
+            kx = np.fft.rfftfreq(shape[1])[None, :]
+            g = self._grads[shape] = ((2 - 2 * np.cos(2 * np.pi * kx))
+                                      + (2 - 2 * np.cos(2 * np.pi * ky))).astype(np.float32)
         return g
 
     def _gain(self, shape) -> np.ndarray:
