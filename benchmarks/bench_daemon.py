@@ -603,23 +603,42 @@ def cpu_medians(r: dict) -> dict:
     return out
 
 
+def configured(table: str, key: str):
+    """`make run`'s setting (config/sim.toml)."""
+    import tomllib
+
+    return tomllib.loads((REPO / "config" / "sim.toml").read_text())[table][key]
+
+
 def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
-            fps: float = 50.0, gyro: str = "sim") -> list[dict]:
+            fps: float = 50.0, gyro: str = "sim", like_yardstick_ms: float | None = None) -> list[dict]:
     """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
     otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times;
     `gyro` "video": with no gyro, the motion measured from the frames. The machine's yardstick is
-    measured first, on the quiet machine (the first row's ``yardstick``)."""
-    from benchmarks.yardstick import yardstick_line
+    measured first, on the quiet machine (the first row's ``yardstick``).
 
-    rows, line = [], yardstick_line()
+    `like_yardstick_ms`: emulate a machine whose yardstick reads that (`emulated`): every frame's work
+    takes s = this machine's yardstick / that times longer here, so the camera runs at fps / s and the
+    latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s."""
+    from benchmarks.yardstick import yardstick_line, yardstick_ms
+
+    rows, extra, scale = [], [f"sources.gyro.kind={gyro}"], 1.0
+    here = yardstick_ms()
+    line = yardstick_line(ms=here)
+    if like_yardstick_ms is not None:
+        scale = here / float(like_yardstick_ms)
+        fps = fps / scale
+        extra.append(f"deblur.max_solve_s={configured('deblur', 'max_solve_s') * scale:.4f}")
+        line += f"; emulating a machine at {like_yardstick_ms:g} ms: {fps:.1f} fps, times ÷ {scale:.2f}"
     truth = prepared_payload(size, fps)
     for _ in range(repeats):
         for q in quotas:
             print(f"payload: quota {q or 'none'} for {seconds:g} s …", file=sys.stderr, flush=True)
-            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY,
-                           extra=(f"sources.gyro.kind={gyro}",))
+            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY, extra=tuple(extra))
             kept = r.pop("kept")
-            r.update(quota=q, gyro=gyro, cpu=cpu_medians(r), yardstick=line,
+            for k in ("p50_ms", "p95_ms", "p99_ms"):
+                r[k] /= scale
+            r.update(quota=q, gyro=gyro, cpu=cpu_medians(r), yardstick=line, time_scale=scale,
                      psnr=float(np.median([truth_psnr(img, truth.truth_for(fid), central=False)
                                            for fid, img in kept])),
                      psnr_blurry=float(np.median([truth_psnr(np.asarray(truth.frame_for(fid), np.float32),

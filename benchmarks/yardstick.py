@@ -43,9 +43,10 @@ def yardstick_ms(reps: int = 5) -> float:
     return 1e3 * float(np.median(times))
 
 
-def yardstick_line(reps: int = 5) -> str:
-    """One line for a results file: the yardstick, the cores and the load average."""
-    ms = yardstick_ms(reps)
+def yardstick_line(reps: int = 5, ms: float | None = None) -> str:
+    """One line for a results file: the yardstick (measured unless `ms` is given), the cores and the
+    load average."""
+    ms = yardstick_ms(reps) if ms is None else ms
     return (f"yardstick (plain reference K&F, 320×256, `benchmarks/yardstick.py`): {ms:.0f} ms/frame; "
             f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
 
