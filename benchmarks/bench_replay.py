@@ -2,6 +2,7 @@
 replayed in real time through the default daemon and deblurred offline, both scored against the truth.
 
     .venv/bin/python -m benchmarks.bench_replay [--seconds 6] [--cases N] [--size 640x480]
+    .venv/bin/python -m benchmarks.bench_replay --rung-in-order     # the ceiling at 100 % temporal
 
 Each recording (`thermod.sim.synth`, `make run`'s camera: 640×480 at 50 fps, τ 8 ms, NETD 50 mK, a
 paper-grade gyro) is a scene under a motion the tests do not use; they are cached in
@@ -150,6 +151,52 @@ def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float],
     return [psnr(r.deblurred[k], truth[k]) for k in range(len(truth))], ok, wall
 
 
+def rung_in_order(rec, truth: np.ndarray, stride: int) -> list[float]:
+    """PSNR per frame of the daemon's temporal rung at 100 %: `config/sim.toml`'s deblur, its adaptive
+    kernel grid, the recursive solve over its Wiener solver with the prior from frame t − `stride`
+    (2: two workers, each frame's predecessor still being solved), in read order."""
+    from thermod.physics.deconv.recursive import RecursiveDeconvolver
+    from thermod.restore.plan import make_deconvolver, render
+    from thermod.runtime.config import load
+    from thermod.runtime.governor import ladder
+
+    deblur = load(REPO / "config" / "sim.toml").deblur
+    rung = ladder(deblur)[0]
+    if not rung.temporal:
+        raise SystemExit("--rung-in-order: config/sim.toml's ladder has no temporal rung")
+    c = rec.calibration
+    rd = RecursiveDeconvolver(c, make_deconvolver(rung.deblur(deblur), live=False),
+                              min_coverage=deblur.min_coverage)
+    estimates, out = {}, []
+    for i in range(len(truth)):
+        t = float(rec.t[i])
+        kernel, _ = render(rec.gyro_t, rec.gyro_rate, c, t, deblur)
+        frame = np.asarray(rec.frames[i], np.float32)
+        prior = estimates.pop(i - stride, None)
+        img, estimates[i] = rd.solve(frame, kernel, t, rec.gyro_t, rec.gyro_rate, prior)
+        out.append(psnr(img, truth[i]))
+    return out
+
+
+def run_in_order(case: int, seconds: float, size, skip_s: float, cache: Path) -> dict:
+    """The daemon's temporal rung in read order (t − 1 and t − 2 priors) and `thermod deblur`."""
+    from thermod.io import recording
+
+    path = recording_for(case, seconds, size, cache)
+    rec = recording.read(path)
+    truth = np.asarray(rec.extras["truth/frames"], np.float32)
+    with tempfile.TemporaryDirectory(prefix="thermod-replay-") as d:
+        off, off_ok, _ = offline(path, truth, Path(d))
+    first = int(round(skip_s * rec.calibration.frame_rate_hz))
+    scored = [k for k in range(first, len(truth)) if off_ok[k]]
+    row = {"case": f"{CASES[case][0]} / {CASES[case][1]}",
+           "offline": float(np.median([off[k] for k in scored]))}
+    for stride in (1, 2):
+        got = rung_in_order(rec, truth, stride)
+        row[f"t-{stride}"] = float(np.median([got[k] for k in scored]))
+    return row
+
+
 def run_case(case: int, seconds: float, size, skip_s: float, cache: Path) -> dict:
     from thermod.io import recording
 
@@ -181,6 +228,9 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", type=float, default=2.0, help="seconds of warm-up left out of the scores")
     ap.add_argument("--cases", type=int, default=len(CASES))
     ap.add_argument("--size", default="640x480")
+    ap.add_argument("--rung-in-order", action="store_true",
+                    help="no daemon: its temporal rung run offline in read order (what it publishes at "
+                         "100 %% temporal) against `thermod deblur`")
     args = ap.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     cache = Path(os.environ.get("TMPDIR", "/tmp")) / "thermod_replay"
@@ -188,6 +238,8 @@ def main(argv=None) -> int:
     from benchmarks.yardstick import yardstick_line
 
     print(yardstick_line(), "(before the runs)", flush=True)
+    if args.rung_in_order:
+        return print_in_order(args, size, cache)
     rows = []
     print("| recording (scene / motion) | daemon dB | `thermod deblur` dB | daemon − offline | blurry dB "
           "| deblurred % | temporal % | p99 ms | frames scored |")
@@ -202,6 +254,20 @@ def main(argv=None) -> int:
     per_frame = np.median([r["offline_s_per_frame"] for r in rows])
     print(f"\nmean daemon − offline {np.mean(gaps):+.2f} dB (worst {min(gaps):+.2f}); load average "
           f"{os.getloadavg()[0]:.1f} after the runs; offline {per_frame:.2f} s a frame (wall)")
+    return 0
+
+
+def print_in_order(args, size, cache: Path) -> int:
+    print("| recording (scene / motion) | temporal rung, prior t − 1 | prior t − 2 | `thermod deblur` "
+          "| t − 1 − offline | t − 2 − offline |")
+    print("|---|---|---|---|---|---|", flush=True)
+    gaps = []
+    for case in range(min(args.cases, len(CASES))):
+        r = run_in_order(case, args.seconds, size, args.skip, cache)
+        gaps.append(r["t-2"] - r["offline"])
+        print(f"| {r['case']} | {r['t-1']:.2f} | {r['t-2']:.2f} | {r['offline']:.2f} | "
+              f"{r['t-1'] - r['offline']:+.2f} | {r['t-2'] - r['offline']:+.2f} |", flush=True)
+    print(f"\nmean t − 2 − offline {np.mean(gaps):+.2f} dB (worst {min(gaps):+.2f})")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""A 60-second chaos soak (`thermod.chaos`): the daemon on the simulated payload under a random
+"""A 40-second chaos soak (`thermod.chaos`): the daemon on the simulated payload under a random
 schedule of gyro, camera, clock, reload and subscriber faults. Every camera frame is published or
 counted under a reason, no thread dies, bad reloads are refused and good ones applied, the watchdog
 keeps being fed within the unit's WatchdogSec, and memory does not grow without bound. No rates are
@@ -14,22 +14,23 @@ from thermod.io.wire import REASONS
 pytestmark = pytest.mark.slow
 
 UNIT = Path(__file__).resolve().parents[2] / "systemd" / "thermod.service"
+SOAK_S = 40.0            # every fault kind is scheduled by 30 s (seeds 1-3 and 9); bench_chaos soaks longer
 RSS_GROWTH_MB = 200      # generous: stalled subscribers pin at most publish.max_queue_mb (128 MB) together
 
 
 @pytest.fixture(scope="module")
 def soak(tmp_path_factory):
-    r = chaos.run(60.0, seed=9, method="wiener", workdir=tmp_path_factory.mktemp("chaos"),
+    r = chaos.run(SOAK_S, seed=9, method="wiener", workdir=tmp_path_factory.mktemp("chaos"),
                   watchdog_s=chaos.unit_watchdog_s(UNIT))
     print(chaos.table(r))
     return r
 
 
 def test_the_schedule_covers_every_fault_kind():
-    kinds = {f.kind for f in chaos.schedule(60.0, seed=9)}
+    kinds = {f.kind for f in chaos.schedule(SOAK_S, seed=9)}
     assert kinds == set(chaos.KINDS)
     # and is reproducible from its seed, different for another
-    assert chaos.schedule(60.0, seed=9) == chaos.schedule(60.0, seed=9) != chaos.schedule(60.0, seed=10)
+    assert chaos.schedule(SOAK_S, seed=9) == chaos.schedule(SOAK_S, seed=9) != chaos.schedule(SOAK_S, seed=10)
 
 
 def test_every_frame_published_or_counted(soak):
@@ -65,7 +66,7 @@ def test_reloads_bad_refused_good_applied(soak):
 
 def test_watchdog_fed_within_watchdog_sec(soak):
     wd = soak["watchdog"]
-    assert wd["pings"] >= 30
+    assert wd["pings"] >= SOAK_S / 2       # the daemon pings every second
     assert wd["longest_gap_s"] < chaos.unit_watchdog_s(UNIT), wd
 
 
