@@ -130,8 +130,8 @@ def order_kernel(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, cali
     if gap or has_hole(t, calib.rate_hz):
         return PassThrough("gyro_gap", {"n_samples": len(t)}, "samples lost inside the kernel window")
     if len(t) < 2:
-        return PassThrough("gyro_incomplete" if online else "gyro_offline",
-                           {"coverage": 0.0, "n_samples": len(t)}, "no gyro samples in the window")
+        return PassThrough(_short_of_gyro(online), {"coverage": 0.0, "n_samples": len(t)},
+                           "no gyro samples in the window")
     try:
         if choose is not None:
             needed, floor = grids_within(t, rate, calib, t_frame, deblur,
@@ -157,8 +157,13 @@ def render_order(order: KernelOrder, calib: Calibration, renderer=render) -> Pla
         return Plan(kernel, info, deblur)
     if order.started_inside and info["coverage"] >= START_COVERAGE:
         return Plan(kernel, info, deblur, start_partial=True)
-    return PassThrough("gyro_incomplete" if order.online else "gyro_offline", info,
+    return PassThrough(_short_of_gyro(order.online), info,
                        f"gyro coverage {info['coverage']:.3f} < {deblur.min_coverage}", kernel)
+
+
+def _short_of_gyro(online: bool) -> str:
+    """The reason of a frame whose window the gyro does not cover: late samples, or a gyro that is down."""
+    return "gyro_incomplete" if online else "gyro_offline"
 
 
 def _kernel_error(e: Exception, n_samples: int) -> PassThrough:

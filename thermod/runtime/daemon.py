@@ -418,4 +418,4 @@ class Daemon:
 
 def _camera_part(c) -> tuple:
     """What a video source measures with: the intrinsics, τ and readout."""
-    return (c.width, c.height, c.fx, c.fy, c.cx, c.cy, c.tau_s, c.readout_s)
+    return (c.intrinsics, c.tau_s, c.readout_s)

@@ -608,8 +608,7 @@ class Pipeline:
                                    lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s),
                                    pack=self._kernels)
                 if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
-                    self._keep_estimate(index, None)
-                    self._worker_busy_since[i] = None
+                    self._job_done(i, index, None)
                     self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
                                          queue=t_start - job.t_queued)
                     self._refused(job.slot, got.passthrough)
@@ -636,16 +635,15 @@ class Pipeline:
             except Exception:
                 if est is not None and hasattr(est, "release"):
                     est.release()
-                self._keep_estimate(index, None)
+                self._keep_estimate(index, None)       # the next frame solves alone, now
                 self._count("worker_errors", 1)
                 log.exception("deconvolution failed on frame %d; passing it through and replacing the worker",
                               job.slot.frame_id)
                 solver.reset()
-                self._worker_busy_since[i] = None
+                self._worker_busy_since[i] = None      # busy until its solver is replaced
                 self._passthrough(job.slot, "worker_error", job.order.info)
                 return            # this thread ends; supervise() starts a fresh one (fresh state)
-            self._keep_estimate(index, est)
-            self._worker_busy_since[i] = None
+            self._job_done(i, index, est)
             self._count("deblurred", 1)
             self._count(f"method_{method}", 1)
             o = self._out(job.slot, out, True, None, {**job.order.info, **got.info}, got.kernel)
@@ -653,6 +651,11 @@ class Pipeline:
             o.prior_frames = prior_frames
             o.grid = grid
             self._complete(o)
+
+    def _job_done(self, worker: int, index: int, estimate) -> None:
+        """Worker `worker` is free again; frame `index` leaves `estimate` (None: no prior) to the next."""
+        self._keep_estimate(index, estimate)
+        self._worker_busy_since[worker] = None
 
     # ------------------------------------------------------------------ output (in order)
     def _out(self, slot: FrameSlot, image, deblurred: bool, reason: str | None, info: dict,
