@@ -611,7 +611,8 @@ def configured(table: str, key: str):
 
 
 def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
-            fps: float = 50.0, gyro: str = "sim", like_yardstick_ms: float | None = None) -> list[dict]:
+            fps: float = 50.0, gyro: str = "sim", like_yardstick_ms: float | None = None,
+            sets: tuple[str, ...] = ()) -> list[dict]:
     """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
     otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times;
     `gyro` "video": with no gyro, the motion measured from the frames. The machine's yardstick is
@@ -619,10 +620,11 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
 
     `like_yardstick_ms`: emulate a machine whose yardstick reads that (`emulated`): every frame's work
     takes s = this machine's yardstick / that times longer here, so the camera runs at fps / s and the
-    latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s."""
+    latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s.
+    `sets`: more ``KEY=VALUE`` overrides of the daemon's configuration."""
     from benchmarks.yardstick import yardstick_line, yardstick_ms
 
-    rows, extra, scale = [], [f"sources.gyro.kind={gyro}"], 1.0
+    rows, extra, scale = [], [f"sources.gyro.kind={gyro}", *sets], 1.0
     here = yardstick_ms()
     line = yardstick_line(ms=here)
     if like_yardstick_ms is not None:

@@ -45,11 +45,13 @@ def main(argv=None) -> int:
                     help="emulate a machine whose yardstick reads MS ms/frame, e.g. 326 (issue 35's): the "
                          "frame rate and latency cap scaled by this machine's yardstick / MS, the latencies "
                          "reported on that machine's time scale")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a configuration override for the daemon (repeatable)")
     args = ap.parse_args(argv)
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     quotas = tuple(None if q == "none" else float(q) for q in args.quotas.split(","))
     print_payload(payload(15.0 if args.quick else args.seconds, quotas, args.repeats, size, args.rate,
-                          args.gyro, args.like_yardstick))
+                          args.gyro, args.like_yardstick, tuple(args.set)))
     return 0
 
 
