@@ -163,3 +163,56 @@ def test_a_prior_is_rejected_where_it_disagrees(half_test):
     assert 0.12 < weights[0] - weights[1] < 0.3, weights
     inner = (slice(8, 50), slice(8, 70))
     assert np.abs(x - rd.last_single)[inner].max() < 0.05 * float(np.std(img))
+
+
+@pytest.mark.parametrize("kshape", [(9, 9), (77, 7), (31, 120)])
+def test_the_weights_spectrum_samples_the_kernel_power_of_the_frame_grid(kshape):
+    """|K|² on the weights' own grid, read off at the frame FFT's frequencies, is the frame grid's |K|²
+    (a comet's power varies over 1 / its length; the grid holds ≥ 4 lengths per axis)."""
+    from thermod.physics.deconv.recursive import (
+        SPECTRUM_MIN,
+        _frequency_index,
+        _full_shape,
+        _spectrum_shape,
+    )
+
+    rng = np.random.default_rng(1)
+    w = np.zeros(kshape, np.float32)
+    y = np.clip(np.round(np.linspace(0, kshape[0] - 1, 200) + rng.normal(0, 0.3, 200)), 0, kshape[0] - 1)
+    x = np.clip(np.round(np.linspace(0, kshape[1] - 1, 200)), 0, kshape[1] - 1)
+    np.add.at(w, (y.astype(int), x.astype(int)), np.exp(-np.arange(200) / 40.0))   # an exponential comet
+    w /= w.sum()
+    origin = (kshape[0] - 1, kshape[1] - 1)
+    rd = RecursiveDeconvolver(SMALL)
+    plan_shape = Deconvolver().padded_shape((480, 640), kshape)
+    spec = _spectrum_shape(kshape, plan_shape)
+    for k, side, n in zip(kshape, spec, plan_shape, strict=True):
+        assert k <= side <= n and side % 2 == 0 and side >= min(n, max(SPECTRUM_MIN, 4 * k))
+    small = rd._kernel_power(w, origin, spec)
+    assert _full_shape(small) == spec
+    full = rd._kernel_power(w, origin, plan_shape)
+    read = small[np.ix_(_frequency_index(plan_shape[0], spec[0], half=False),
+                        _frequency_index(plan_shape[1], spec[1], half=True))]
+    assert read.shape == full.shape
+    # nearest-frequency reading: off by at most half a step of the coarser grid, up to 15 % of the peak
+    # (1 at f = 0) on a long comet's main-lobe slope, a few thousandths on average
+    err = np.abs(read - full)
+    assert float(err.max()) < 0.16 and float(err.mean()) < 0.005, (float(err.max()), float(err.mean()))
+
+
+def test_the_weights_on_their_own_grid_restore_as_on_the_frame_grid(monkeypatch):
+    """The stream restored with the weights on a grid of 4 kernel lengths (no floor: far coarser than
+    the frame's FFT grid at this size) and on the frame's FFT grid (`SPECTRUM_MIN` beyond any frame)
+    agree to a small fraction of the error either has."""
+    from thermod.physics.deconv import recursive
+
+    rec = record(pan(25.0), n=6)
+    monkeypatch.setattr(recursive, "SPECTRUM_MIN", 2)
+    rd = RecursiveDeconvolver(SMALL)
+    got = stream(rec, rd)
+    assert rd._gains and all(a < b for a, b in zip(min(rd._gains), (SMALL.height, SMALL.width), strict=True))
+    monkeypatch.setattr(recursive, "SPECTRUM_MIN", 1 << 16)
+    ref = stream(rec, RecursiveDeconvolver(SMALL))
+    for (_, x, truth), (_, y, _) in zip(got[2:], ref[2:], strict=True):
+        assert float(np.sqrt(np.mean((x - y) ** 2))) < 0.05 * float(np.sqrt(np.mean((y - truth) ** 2)))
+        assert abs(psnr(x, truth) - psnr(y, truth)) < 0.05
