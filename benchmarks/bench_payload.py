@@ -48,6 +48,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a configuration override for the daemon (repeatable)")
     args = ap.parse_args(argv)
+    if args.like_yardstick is not None and not args.like_yardstick > 0:
+        ap.error(f"--like-yardstick: expected a yardstick in ms/frame > 0, got {args.like_yardstick:g}")
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     quotas = tuple(None if q == "none" else float(q) for q in args.quotas.split(","))
     print_payload(payload(15.0 if args.quick else args.seconds, quotas, args.repeats, size, args.rate,
