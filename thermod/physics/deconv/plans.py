@@ -144,10 +144,7 @@ class Plan:
         else:
             self.rin = np.empty(shape, np.float32)
             self.cin = np.empty(cshape, np.complex64)
-        # |F∂x|² + |F∂y|² of the circular forward differences
-        ky = np.fft.fftfreq(hp).astype(np.float64)[:, None]
-        kx = np.fft.rfftfreq(wp).astype(np.float64)[None, :]
-        self.g2 = ((2 - 2 * np.cos(2 * np.pi * kx)) + (2 - 2 * np.cos(2 * np.pi * ky))).astype(np.float32)
+        self.g2 = gradient_power((hp, wp))
         self.wx = np.empty((3, wp), np.float32)  # row scratch for the fused w-step
         self.wy = np.empty((2, wp), np.float32)
         self.idx = np.empty(wp, np.int32)
@@ -175,6 +172,24 @@ class Plan:
             self._b.execute()
             return self.rout
         return scipy.fft.irfft2(self.cin, s=self.shape[-2:], workers=self.workers)
+
+
+def gradient_power(shape) -> np.ndarray:
+    """|F∂x|² + |F∂y|² of the circular forward differences (the image prior's response) on the half
+    spectrum of an (h, w) grid."""
+    ky = np.fft.fftfreq(shape[0]).astype(np.float64)[:, None]
+    kx = np.fft.rfftfreq(shape[1]).astype(np.float64)[None, :]
+    return ((2 - 2 * np.cos(2 * np.pi * kx)) + (2 - 2 * np.cos(2 * np.pi * ky))).astype(np.float32)
+
+
+def place_kernel(psf: np.ndarray, w: np.ndarray, origin) -> np.ndarray:
+    """`psf` (2-D) set to the kernel `w` with its origin at index (0, 0), wrapped, zero elsewhere: the
+    layout whose FFT is the OTF that does not displace the image. Returns `psf`."""
+    psf.fill(0.0)
+    rows = (np.arange(w.shape[0]) - origin[0]) % psf.shape[0]
+    cols = (np.arange(w.shape[1]) - origin[1]) % psf.shape[1]
+    psf[np.ix_(rows, cols)] = w
+    return psf
 
 
 def fast_len(n: int) -> int:

@@ -30,7 +30,7 @@ from numba import njit
 
 from .checks import DeconvError, check_frame, check_kernel
 from .noise import noise_sigma, value_range_of
-from .plans import fast_len
+from .plans import fast_len, gradient_power, place_kernel
 from .solver import TILE_OVERLAP, Deconvolver
 from .temporal import MAP_STEP_PX, coarse_warp_maps
 from .tiles import TILE_MARGIN_PX
@@ -513,21 +513,14 @@ class RecursiveDeconvolver:
 
     def _kernel_power(self, w: np.ndarray, origin, spec) -> np.ndarray:
         """|K|² of a kernel (origin at index (0, 0)) on the half spectrum of `spec`."""
-        psf = np.zeros(spec, np.float32)
-        rows = (np.arange(w.shape[0]) - origin[0]) % spec[0]
-        cols = (np.arange(w.shape[1]) - origin[1]) % spec[1]
-        psf[np.ix_(rows, cols)] = w
-        K = np.fft.rfft2(psf)
+        K = np.fft.rfft2(place_kernel(np.empty(spec, np.float32), w, origin))
         return (K.real * K.real + K.imag * K.imag).astype(np.float32)
 
     def _g2(self, shape) -> np.ndarray:
-        """|F∂x|² + |F∂y|² (the image prior's response) on the half spectrum of `shape` (cached)."""
+        """`gradient_power` of `shape`, as the single solve's plans hold it (cached per shape)."""
         g = self._grads.get(shape)
         if g is None:
-            ky = np.fft.fftfreq(shape[0])[:, None]
-            kx = np.fft.rfftfreq(shape[1])[None, :]
-            g = self._grads[shape] = ((2 - 2 * np.cos(2 * np.pi * kx))
-                                      + (2 - 2 * np.cos(2 * np.pi * ky))).astype(np.float32)
+            g = self._grads[shape] = gradient_power(shape)
         return g
 
     def _gain(self, shape) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 
 from .checks import DeconvError, check_image, check_kernel
 from .noise import NOISE_LAMBDA, NoiseLambda, noise_sigma, value_range_of
-from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, Plan, fast_len, pyfftw
+from .plans import MAX_PLANS, PLANNING_TIMELIMIT_S, Plan, fast_len, place_kernel, pyfftw
 from .tiles import TILE_MARGIN_PX, central_cell, moments, stack_kernels, tile_weights
 from .wstep import (
     BETA_MAX,
@@ -161,13 +161,8 @@ class Deconvolver:
         if hit is not None:
             self._otfs.move_to_end(key)
             return hit
-        hp, wp = plan.shape
-        psf = plan.rin   # the plan's own float32 FFT: a tile solve renders one OTF per tile per frame
-        psf.fill(0.0)
-        kh, kw = w.shape
-        rows = (np.arange(kh) - origin[0]) % hp
-        cols = (np.arange(kw) - origin[1]) % wp
-        psf[np.ix_(rows, cols)] = w
+        # into the plan's own float32 FFT: a tile solve renders one OTF per tile per frame
+        place_kernel(plan.rin, w, origin)
         K = np.array(plan.fwd(), np.complex64)
         K2 = (K.real * K.real + K.imag * K.imag).astype(np.float32)
         self._otfs[key] = (K, K2)
