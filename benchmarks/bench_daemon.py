@@ -603,13 +603,6 @@ def cpu_medians(r: dict) -> dict:
     return out
 
 
-def configured(table: str, key: str):
-    """`make run`'s setting (config/sim.toml)."""
-    import tomllib
-
-    return tomllib.loads((REPO / "config" / "sim.toml").read_text())[table][key]
-
-
 def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
             fps: float = 50.0, gyro: str = "sim", like_yardstick_ms: float | None = None,
             sets: tuple[str, ...] = ()) -> list[dict]:
@@ -623,6 +616,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s.
     `sets`: more ``KEY=VALUE`` overrides of the daemon's configuration."""
     from benchmarks.yardstick import yardstick_line, yardstick_ms
+    from thermod.runtime import config
 
     rows, extra, scale = [], [f"sources.gyro.kind={gyro}", *sets], 1.0
     here = yardstick_ms()
@@ -630,7 +624,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     if like_yardstick_ms is not None:
         scale = here / float(like_yardstick_ms)
         fps = fps / scale
-        extra.append(f"deblur.max_solve_s={configured('deblur', 'max_solve_s') * scale:.4f}")
+        extra.append(f"deblur.max_solve_s={config.load().deblur.max_solve_s * scale:.4f}")
         line += f"; emulating a machine at {like_yardstick_ms:g} ms: {fps:.1f} fps, times ÷ {scale:.2f}"
     truth = prepared_payload(size, fps)
     for _ in range(repeats):
