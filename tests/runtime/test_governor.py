@@ -547,3 +547,40 @@ def test_a_round_trip_is_added_to_every_prediction_not_scaled():
     # in the worker's own thread there is no round trip: nothing is added
     h = seeded()
     assert h.overhead_s == 0.0 and h.predict("wiener", 1) == pytest.approx(3e-3)
+
+
+def test_a_temporal_solve_costs_its_single_solve_plus_a_correction_that_ignores_the_grid():
+    """Warm-up (ms): Wiener 6 over 3×4 and 3 on one kernel; temporal 16 and 13 over them, a 10 ms
+    correction in each. In the stream the kernels are longer than the warm-up's, so Wiener costs 3× its
+    reference (L = 3), while the correction, a whole-frame FFT pair and warp, costs 1.2× its own. One
+    load factor over the temporal references predicted 48 ms for temporal over 3×4 (over the 34 ms the
+    workers keep up with): the frames would go to Wiener. x₀ plus the correction measured: 18 + 12 = 30 ms."""
+    g = Governor(DeblurConfig(), FPS, 2)
+    for fam, cells, ms, corr in (("temporal", 1, 13, 10), ("temporal", 12, 16, 10), ("wiener", 1, 3, 0),
+                                 ("wiener", 12, 6, 0)):
+        g.seed(fam, cells, ms / 1e3, 0.0, corr / 1e3)
+    assert g.predict("temporal", 12) == pytest.approx(16e-3)
+    t = 0.0
+    for _ in range(20):                    # temporal frames: x₀ over 3×4 at 18 ms, correction at 12
+        g.observe("temporal", 12, 30e-3, t, 0.0, 12e-3)
+        t += 0.02
+    assert g.load == pytest.approx(3.0)
+    assert g.predict("wiener", 12) == pytest.approx(18e-3)
+    assert g.predict("temporal", 12) == pytest.approx(30e-3)
+    assert g.predict("temporal", 1) == pytest.approx(9e-3 + 12e-3)
+    assert g.state()["correction_ms"] == pytest.approx(12.0)
+    # Wiener frames alone move x₀'s share; the correction keeps its measured ratio to the load factor
+    for _ in range(20):
+        g.observe("wiener", 12, 12e-3, t)
+        t += 0.02
+    assert g.load == pytest.approx(2.0)
+    assert g.predict("temporal", 12) == pytest.approx(12e-3 + 8e-3)
+    # and the stream stays temporal (on the grid that fits: one kernel, 9 + 12 ms)
+    x0 = {1: 9e-3, 6: 13.5e-3, 12: 18e-3}
+    for _ in range(200):
+        c = g.choose((3, 4), t)
+        cells = c.grid[0] * c.grid[1]
+        corr = 12e-3 if c.rung.temporal else 0.0
+        g.observe(g.family(c.rung), cells, x0[cells] + corr, t, 0.0, corr)
+        t += 0.02
+    assert c.label == "temporal" and g.predict("temporal", 1) == pytest.approx(21e-3)

@@ -9,7 +9,10 @@ fps × (1 − headroom)``, the longest solve the workers keep up with.
 
 Cost: predicted = reference × L + O, with a reference per (solver family, kernel cells) timed at
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
-over its reference) and O the median round trip around a child's solve (`overhead_s`).
+over its reference) and O the median round trip around a child's solve (`overhead_s`). A temporal
+rung costs its own solve x₀ (the single-frame family's key, which its frames measure too) plus the
+correction by its prior, whose cost does not depend on the grid: predicted = ref(single) × L +
+C × L × S + O, C the correction timed at warm-up and S its measured cost over C × L (1 until seen).
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
@@ -71,6 +74,13 @@ def ladder(deblur: DeblurConfig) -> list[Rung]:
     return [*rungs, last]
 
 
+def single_family(rung: Rung) -> str:
+    """The governor's family of a temporal rung's own solve x₀ (the single-frame rung it equals)."""
+    if rung.method == "kf":
+        return "kf" if rung.kf_iterations is None else f"kf{rung.kf_iterations}"
+    return "wiener"
+
+
 @dataclass
 class Choice:
     """What the governor decided for one frame."""
@@ -118,6 +128,11 @@ class Governor:
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
         self._overheads: collections.deque = collections.deque(maxlen=WINDOW)   # round trips (s)
+        # a temporal family → the single-frame family its x₀ is solved by; its correction's cost
+        self._single = {self.family(r): single_family(r) for r in self.rungs if r.temporal}
+        self._corr_seeds: list[float] = []                 # warm-up corrections (s) at L = 1
+        self._corr: collections.deque = collections.deque(maxlen=WINDOW)   # in-stream corrections (s)
+        self._corr_scale = 1.0                             # S (module docstring)
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
@@ -131,14 +146,23 @@ class Governor:
             return f"{rung.name}{rung.kf_iterations}"
         return rung.name
 
-    def seed(self, family: str, cells: int, seconds: float, overhead_s: float = 0.0) -> None:
+    def seed(self, family: str, cells: int, seconds: float, overhead_s: float = 0.0,
+             correction_s: float = 0.0) -> None:
         """A key's reference cost, measured before going live (warm-up, an idle worker): the ratios
         between the keys' references are what the load factor scales; `overhead_s`, the round trip
-        around that solve, seeds the overhead every prediction adds."""
+        around that solve, seeds the overhead every prediction adds; `correction_s`, a temporal
+        solve's correction, seeds C (module docstring)."""
         if seconds > 0 and math.isfinite(seconds):
             with self._lock:
                 self._ref[family, cells] = float(seconds) / self.load
                 self._add_overhead(overhead_s)
+                if family in self._single and 0 < correction_s < seconds:
+                    self._corr_seeds.append(float(correction_s) / self.load)
+
+    @property
+    def _corr_ref(self) -> float:
+        """C: the median warm-up correction at L = 1 (0: none seeded, temporal keys stand alone)."""
+        return statistics.median(self._corr_seeds) if self._corr_seeds else 0.0
 
     def _add_overhead(self, overhead_s: float) -> None:
         if overhead_s >= 0 and math.isfinite(overhead_s):
@@ -170,47 +194,71 @@ class Governor:
             return rlo * cells / lo
         return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
 
-    def _predict(self, family: str, cells: int) -> float:
-        return self._reference(family, cells) * self.load + self.overhead_s
+    def _cost(self, family: str, cells: int, load: float) -> float:
+        single = self._single.get(family)
+        if single is None or not self._corr_ref:
+            return self._reference(family, cells) * load + self.overhead_s
+        correction = self._corr_ref * load * self._corr_scale
+        return self._reference(single, cells) * load + correction + self.overhead_s
 
-    def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
-        """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
-        time `now`."""
+    def _predict(self, family: str, cells: int) -> float:
+        return self._cost(family, cells, self.load)
+
+    def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0,
+                correction_s: float = 0.0) -> None:
+        """A worker's measured solve time (s; the solve itself), the round trip around it and (a
+        temporal solve) its correction's share, at host time `now`."""
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
             self._add_overhead(overhead_s)
-            key = (family, cells)
-            if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
-                self._recent[key] = collections.deque(maxlen=WINDOW)
-                self._stretch[key] = 0
-            self._last_seen[key] = now
-            self._stretch[key] += 1
-            if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
+            single = self._single.get(family)
+            if single is not None and self._corr_ref:
+                # x₀ is the single family's solve: it moves that key (and L); the rest is the correction
+                correction_s = min(max(float(correction_s), 0.0), float(seconds))
+                self._observe(single, cells, float(seconds) - correction_s, now)
+                if correction_s > 0:
+                    self._corr.append(correction_s)
+                    if len(self._corr) >= MIN_SOLVES:
+                        self._corr_scale = statistics.median(self._corr) / (self._corr_ref * self.load)
                 return
-            recent = self._recent[key]
-            recent.append(float(seconds))
-            if len(recent) < MIN_SOLVES:
+            self._observe(family, cells, float(seconds), now)
+
+    def _observe(self, family: str, cells: int, seconds: float, now: float) -> None:
+        """One solve of a key: moves L (cold solves and short stretches aside)."""
+        if seconds <= 0:
+            return
+        key = (family, cells)
+        if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
+            self._recent[key] = collections.deque(maxlen=WINDOW)
+            self._stretch[key] = 0
+        self._last_seen[key] = now
+        self._stretch[key] += 1
+        if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
+            return
+        recent = self._recent[key]
+        recent.append(float(seconds))
+        if len(recent) < MIN_SOLVES:
+            return
+        med = statistics.median(recent)
+        ref = self._reference(family, cells)
+        if key not in self._ref:
+            if ref <= 0:                               # a family never seeded: learn it at today's L
+                self._ref[key] = med / self.load
                 return
-            med = statistics.median(recent)
-            ref = self._reference(family, cells)
-            if key not in self._ref:
-                if ref <= 0:                               # a family never seeded: learn it at today's L
-                    self._ref[key] = med / self.load
-                    return
-                self._ref[key] = ref                       # interpolated: fixed from now on
-            self.load = med / self._ref[key]
-            ratios = self._ratios
-            ratios.append((now, float(seconds) / self._ref[key]))
-            while ratios and ratios[0][0] < now - KEEP_S:
-                ratios.popleft()
+            self._ref[key] = ref                       # interpolated: fixed from now on
+        self.load = med / self._ref[key]
+        ratios = self._ratios
+        ratios.append((now, float(seconds) / self._ref[key]))
+        while ratios and ratios[0][0] < now - KEEP_S:
+            ratios.popleft()
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            refs, load = dict(old._ref), old.load
+            refs, load, corr, scale = dict(old._ref), old.load, list(old._corr_seeds), old._corr_scale
         with self._lock:
-            self._ref, self.load = refs, load
+            self._ref, self.load, self._corr_seeds, self._corr_scale = refs, load, corr, scale
 
     # ------------------------------------------------------------------ decisions
     def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
@@ -284,8 +332,7 @@ class Governor:
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
-        ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
-        return ref * self._keep_load() + self.overhead_s
+        return self._cost(self.family(self.rungs[i]), grid[0] * grid[1], self._keep_load())
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
@@ -387,6 +434,7 @@ class Governor:
                 "keep_load": round(self._keep_load(), 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
+                "correction_ms": round(1e3 * self._corr_ref * self.load * self._corr_scale, 2),
                 "solves_measured": sum(len(d) for d in self._recent.values()),
                 "frames": dict(self.frames),
                 **self.counts,
