@@ -101,7 +101,8 @@ def psnr(est, truth) -> float:
 
 
 def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
-    """Replay through `thermod run`; per frame (index in the recording): deblurred, method, latency, PSNR."""
+    """Replay through `thermod run`; per frame (index in the recording): deblurred, method, latency, PSNR.
+    The frames are scored after the run: scoring them as they arrive took CPU from the daemon."""
     from thermod.client.subscriber import Subscriber
 
     ep = f"ipc://{work}/pub.sock"
@@ -122,8 +123,7 @@ def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
                     continue
                 _, h, img = m
                 k = int(h["frame_id"])         # a replay numbers its frames by their index in the recording
-                got[k] = (bool(h["deblurred"]), h.get("method"), 1e3 * (h["published"] - h["t"]),
-                          psnr(img, truth[k]) if 0 <= k < len(truth) else math.nan)
+                got[k] = (bool(h["deblurred"]), h.get("method"), 1e3 * (h["published"] - h["t"]), img)
                 if len(got) >= n_frames:
                     break
     finally:
@@ -132,7 +132,8 @@ def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
             proc.wait(30)
         except subprocess.TimeoutExpired:
             proc.kill()
-    return got
+    return {k: (d, m, ms, psnr(img, truth[k]) if 0 <= k < len(truth) else math.nan)
+            for k, (d, m, ms, img) in got.items()}
 
 
 def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float], list[bool], float]:

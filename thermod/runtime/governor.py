@@ -11,8 +11,8 @@ Cost: predicted = reference × L + O, with a reference per (solver family, kerne
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
 over its reference) and O the median round trip around a child's solve (`overhead_s`). A temporal
 rung costs its own solve x₀ (the single-frame family's key, which its frames measure too) plus the
-correction by its prior, whose cost does not depend on the grid: predicted = ref(single) × L +
-C × L × S + O, C the correction timed at warm-up and S its measured cost over C × L (1 until seen).
+correction by its prior, whose cost does not depend on the grid: predicted = ref(single) × L + C +
+O, C the median correction measured over the last `CORRECTION_STALE_S` (none: the warm-up's × L).
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
@@ -40,6 +40,7 @@ MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) be
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 NEEDED_S = 1.0                    # rungs are judged on the finest grid needed over this long
 KEEP_S = 2.0                      # the keep rule's load: the median over this long of every key's solves
+CORRECTION_STALE_S = 10.0         # temporal corrections older than this no longer set S (it returns to 1)
 
 
 @dataclass(frozen=True)
@@ -131,8 +132,7 @@ class Governor:
         # a temporal family → the single-frame family its x₀ is solved by; its correction's cost
         self._single = {self.family(r): single_family(r) for r in self.rungs if r.temporal}
         self._corr_seeds: list[float] = []                 # warm-up corrections (s) at L = 1
-        self._corr: collections.deque = collections.deque(maxlen=WINDOW)   # in-stream corrections (s)
-        self._corr_scale = 1.0                             # S (module docstring)
+        self._corr: collections.deque = collections.deque(maxlen=WINDOW)   # (time, in-stream correction s)
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
@@ -151,7 +151,7 @@ class Governor:
         """A key's reference cost, measured before going live (warm-up, an idle worker): the ratios
         between the keys' references are what the load factor scales; `overhead_s`, the round trip
         around that solve, seeds the overhead every prediction adds; `correction_s`, a temporal
-        solve's correction, seeds C (module docstring)."""
+        solve's correction, seeds the correction's cost (module docstring)."""
         if seconds > 0 and math.isfinite(seconds):
             with self._lock:
                 self._ref[family, cells] = float(seconds) / self.load
@@ -161,7 +161,7 @@ class Governor:
 
     @property
     def _corr_ref(self) -> float:
-        """C: the median warm-up correction at L = 1 (0: none seeded, temporal keys stand alone)."""
+        """The median warm-up correction at L = 1 (0: none seeded, temporal keys stand alone)."""
         return statistics.median(self._corr_seeds) if self._corr_seeds else 0.0
 
     def _add_overhead(self, overhead_s: float) -> None:
@@ -198,8 +198,14 @@ class Governor:
         single = self._single.get(family)
         if single is None or not self._corr_ref:
             return self._reference(family, cells) * load + self.overhead_s
-        correction = self._corr_ref * load * self._corr_scale
-        return self._reference(single, cells) * load + correction + self.overhead_s
+        return self._reference(single, cells) * load + self._correction(load) + self.overhead_s
+
+    def _correction(self, load: float) -> float:
+        """A temporal solve's correction (s): the median of the last `CORRECTION_STALE_S`, or the
+        warm-up's at load factor `load`."""
+        if len(self._corr) >= MIN_SOLVES:
+            return statistics.median(c for _, c in self._corr)
+        return self._corr_ref * load
 
     def _predict(self, family: str, cells: int) -> float:
         return self._cost(family, cells, self.load)
@@ -213,21 +219,20 @@ class Governor:
         with self._lock:
             self._add_overhead(overhead_s)
             single = self._single.get(family)
-            if single is not None and self._corr_ref:
+            if single is None or not self._corr_ref:
+                self._observe(family, cells, float(seconds), now)
+            else:
                 # x₀ is the single family's solve: it moves that key (and L); the rest is the correction
                 correction_s = min(max(float(correction_s), 0.0), float(seconds))
-                self._observe(single, cells, float(seconds) - correction_s, now)
-                if correction_s > 0:
-                    self._corr.append(correction_s)
-                    if len(self._corr) >= MIN_SOLVES:
-                        self._corr_scale = statistics.median(self._corr) / (self._corr_ref * self.load)
-                return
-            self._observe(family, cells, float(seconds), now)
+                if self._observe(single, cells, float(seconds) - correction_s, now) and correction_s > 0:
+                    self._corr.append((now, correction_s))     # (a cold solve's plans are not its cost)
+            while self._corr and self._corr[0][0] < now - CORRECTION_STALE_S:
+                self._corr.popleft()
 
-    def _observe(self, family: str, cells: int, seconds: float, now: float) -> None:
-        """One solve of a key: moves L (cold solves and short stretches aside)."""
+    def _observe(self, family: str, cells: int, seconds: float, now: float) -> bool:
+        """One solve of a key: moves L (cold solves and short stretches aside). False: a cold solve."""
         if seconds <= 0:
-            return
+            return False
         key = (family, cells)
         if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
             self._recent[key] = collections.deque(maxlen=WINDOW)
@@ -235,30 +240,32 @@ class Governor:
         self._last_seen[key] = now
         self._stretch[key] += 1
         if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
-            return
+            return False
         recent = self._recent[key]
         recent.append(float(seconds))
         if len(recent) < MIN_SOLVES:
-            return
+            return True
         med = statistics.median(recent)
         ref = self._reference(family, cells)
         if key not in self._ref:
             if ref <= 0:                               # a family never seeded: learn it at today's L
                 self._ref[key] = med / self.load
-                return
+                return True
             self._ref[key] = ref                       # interpolated: fixed from now on
         self.load = med / self._ref[key]
         ratios = self._ratios
         ratios.append((now, float(seconds) / self._ref[key]))
         while ratios and ratios[0][0] < now - KEEP_S:
             ratios.popleft()
+        return True
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            refs, load, corr, scale = dict(old._ref), old.load, list(old._corr_seeds), old._corr_scale
+            refs, load, seeds, corr = dict(old._ref), old.load, list(old._corr_seeds), list(old._corr)
         with self._lock:
-            self._ref, self.load, self._corr_seeds, self._corr_scale = refs, load, corr, scale
+            self._ref, self.load, self._corr_seeds = refs, load, seeds
+            self._corr.extend(corr)
 
     # ------------------------------------------------------------------ decisions
     def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
@@ -434,7 +441,7 @@ class Governor:
                 "keep_load": round(self._keep_load(), 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
-                "correction_ms": round(1e3 * self._corr_ref * self.load * self._corr_scale, 2),
+                "correction_ms": round(1e3 * self._correction(self.load), 2),
                 "solves_measured": sum(len(d) for d in self._recent.values()),
                 "frames": dict(self.frames),
                 **self.counts,
