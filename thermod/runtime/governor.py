@@ -9,10 +9,7 @@ fps × (1 − headroom)``, the longest solve the workers keep up with.
 
 Cost: predicted = reference × L + O, with a reference per (solver family, kernel cells) timed at
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
-over its reference) and O the median round trip around a child's solve (`overhead_s`). A temporal
-rung costs its own solve x₀ (the single-frame family's key, which its frames measure too) plus the
-correction by its prior, whose cost does not depend on the grid: predicted = ref(single) × L + C +
-O, C the median correction measured over the last `CORRECTION_STALE_S` (none: the warm-up's × L).
+over its reference) and O the median round trip around a child's solve (`overhead_s`).
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
@@ -40,7 +37,6 @@ MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) be
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 NEEDED_S = 1.0                    # rungs are judged on the finest grid needed over this long
 KEEP_S = 2.0                      # the keep rule's load: the median over this long of every key's solves
-CORRECTION_STALE_S = 10.0         # temporal corrections older than this no longer set S (it returns to 1)
 
 
 @dataclass(frozen=True)
@@ -73,13 +69,6 @@ def ladder(deblur: DeblurConfig) -> list[Rung]:
     if deblur.kf_iterations is None or deblur.kf_iterations > FAST_KF_ITERATIONS:
         rungs.append(Rung("kf_fast", "kf", FAST_KF_ITERATIONS, varying))
     return [*rungs, last]
-
-
-def single_family(rung: Rung) -> str:
-    """The governor's family of a temporal rung's own solve x₀ (the single-frame rung it equals)."""
-    if rung.method == "kf":
-        return "kf" if rung.kf_iterations is None else f"kf{rung.kf_iterations}"
-    return "wiener"
 
 
 @dataclass
@@ -129,10 +118,6 @@ class Governor:
         self._last_seen: dict[tuple[str, int], float] = {}
         self.load = 1.0
         self._overheads: collections.deque = collections.deque(maxlen=WINDOW)   # round trips (s)
-        # a temporal family → the single-frame family its x₀ is solved by; its correction's cost
-        self._single = {self.family(r): single_family(r) for r in self.rungs if r.temporal}
-        self._corr_seeds: list[float] = []                 # warm-up corrections (s) at L = 1
-        self._corr: collections.deque = collections.deque(maxlen=WINDOW)   # (time, in-stream correction s)
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
@@ -146,23 +131,14 @@ class Governor:
             return f"{rung.name}{rung.kf_iterations}"
         return rung.name
 
-    def seed(self, family: str, cells: int, seconds: float, overhead_s: float = 0.0,
-             correction_s: float = 0.0) -> None:
+    def seed(self, family: str, cells: int, seconds: float, overhead_s: float = 0.0) -> None:
         """A key's reference cost, measured before going live (warm-up, an idle worker): the ratios
         between the keys' references are what the load factor scales; `overhead_s`, the round trip
-        around that solve, seeds the overhead every prediction adds; `correction_s`, a temporal
-        solve's correction, seeds the correction's cost (module docstring)."""
+        around that solve, seeds the overhead every prediction adds."""
         if seconds > 0 and math.isfinite(seconds):
             with self._lock:
                 self._ref[family, cells] = float(seconds) / self.load
                 self._add_overhead(overhead_s)
-                if family in self._single and 0 < correction_s < seconds:
-                    self._corr_seeds.append(float(correction_s) / self.load)
-
-    @property
-    def _corr_ref(self) -> float:
-        """The median warm-up correction at L = 1 (0: none seeded, temporal keys stand alone)."""
-        return statistics.median(self._corr_seeds) if self._corr_seeds else 0.0
 
     def _add_overhead(self, overhead_s: float) -> None:
         if overhead_s >= 0 and math.isfinite(overhead_s):
@@ -194,78 +170,47 @@ class Governor:
             return rlo * cells / lo
         return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
 
-    def _cost(self, family: str, cells: int, load: float) -> float:
-        single = self._single.get(family)
-        if single is None or not self._corr_ref:
-            return self._reference(family, cells) * load + self.overhead_s
-        return self._reference(single, cells) * load + self._correction(load) + self.overhead_s
-
-    def _correction(self, load: float) -> float:
-        """A temporal solve's correction (s): the median of the last `CORRECTION_STALE_S`, or the
-        warm-up's at load factor `load`."""
-        if len(self._corr) >= MIN_SOLVES:
-            return statistics.median(c for _, c in self._corr)
-        return self._corr_ref * load
-
     def _predict(self, family: str, cells: int) -> float:
-        return self._cost(family, cells, self.load)
+        return self._reference(family, cells) * self.load + self.overhead_s
 
-    def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0,
-                correction_s: float = 0.0) -> None:
-        """A worker's measured solve time (s; the solve itself), the round trip around it and (a
-        temporal solve) its correction's share, at host time `now`."""
+    def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
+        """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
+        time `now`."""
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
             self._add_overhead(overhead_s)
-            single = self._single.get(family)
-            if single is None or not self._corr_ref:
-                self._observe(family, cells, float(seconds), now)
-            else:
-                # x₀ is the single family's solve: it moves that key (and L); the rest is the correction
-                correction_s = min(max(float(correction_s), 0.0), float(seconds))
-                if self._observe(single, cells, float(seconds) - correction_s, now) and correction_s > 0:
-                    self._corr.append((now, correction_s))     # (a cold solve's plans are not its cost)
-            while self._corr and self._corr[0][0] < now - CORRECTION_STALE_S:
-                self._corr.popleft()
-
-    def _observe(self, family: str, cells: int, seconds: float, now: float) -> bool:
-        """One solve of a key: moves L (cold solves and short stretches aside). False: a cold solve."""
-        if seconds <= 0:
-            return False
-        key = (family, cells)
-        if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
-            self._recent[key] = collections.deque(maxlen=WINDOW)
-            self._stretch[key] = 0
-        self._last_seen[key] = now
-        self._stretch[key] += 1
-        if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
-            return False
-        recent = self._recent[key]
-        recent.append(float(seconds))
-        if len(recent) < MIN_SOLVES:
-            return True
-        med = statistics.median(recent)
-        ref = self._reference(family, cells)
-        if key not in self._ref:
-            if ref <= 0:                               # a family never seeded: learn it at today's L
-                self._ref[key] = med / self.load
-                return True
-            self._ref[key] = ref                       # interpolated: fixed from now on
-        self.load = med / self._ref[key]
-        ratios = self._ratios
-        ratios.append((now, float(seconds) / self._ref[key]))
-        while ratios and ratios[0][0] < now - KEEP_S:
-            ratios.popleft()
-        return True
+            key = (family, cells)
+            if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
+                self._recent[key] = collections.deque(maxlen=WINDOW)
+                self._stretch[key] = 0
+            self._last_seen[key] = now
+            self._stretch[key] += 1
+            if self._stretch[key] <= self.workers:        # each worker's first solve of the stretch: cold
+                return
+            recent = self._recent[key]
+            recent.append(float(seconds))
+            if len(recent) < MIN_SOLVES:
+                return
+            med = statistics.median(recent)
+            ref = self._reference(family, cells)
+            if key not in self._ref:
+                if ref <= 0:                               # a family never seeded: learn it at today's L
+                    self._ref[key] = med / self.load
+                    return
+                self._ref[key] = ref                       # interpolated: fixed from now on
+            self.load = med / self._ref[key]
+            ratios = self._ratios
+            ratios.append((now, float(seconds) / self._ref[key]))
+            while ratios and ratios[0][0] < now - KEEP_S:
+                ratios.popleft()
 
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            refs, load, seeds, corr = dict(old._ref), old.load, list(old._corr_seeds), list(old._corr)
+            refs, load = dict(old._ref), old.load
         with self._lock:
-            self._ref, self.load, self._corr_seeds = refs, load, seeds
-            self._corr.extend(corr)
+            self._ref, self.load = refs, load
 
     # ------------------------------------------------------------------ decisions
     def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
@@ -339,7 +284,8 @@ class Governor:
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
-        return self._cost(self.family(self.rungs[i]), grid[0] * grid[1], self._keep_load())
+        ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
+        return ref * self._keep_load() + self.overhead_s
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
@@ -441,7 +387,6 @@ class Governor:
                 "keep_load": round(self._keep_load(), 3),
                 "hold_s": self.hold_s,
                 "cost_ms": {f"{f}×{c}": round(1e3 * self._predict(f, c), 2) for f, c in sorted(self._ref)},
-                "correction_ms": round(1e3 * self._correction(self.load), 2),
                 "solves_measured": sum(len(d) for d in self._recent.values()),
                 "frames": dict(self.frames),
                 **self.counts,

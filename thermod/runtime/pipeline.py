@@ -264,9 +264,9 @@ class Pipeline:
                 warm(solver)
         # timed as the stream's jobs are (the render, the solve, and a child's round trip), on the first
         # worker, alone
-        for fam, cells, compute_s, overhead_s, correction_s in rung_costs(self._solvers[0], s, gov.rungs, img,
-                                                                          orders[0], orders[1:]):
-            gov.seed(fam, cells, compute_s, overhead_s, correction_s)
+        for fam, cells, compute_s, overhead_s in rung_costs(self._solvers[0], s, gov.rungs, img, orders[0],
+                                                            orders[1:]):
+            gov.seed(fam, cells, compute_s, overhead_s)
         return time.monotonic() - t0
 
     def _set_process_limits(self) -> None:
@@ -624,8 +624,7 @@ class Pipeline:
                     else:
                         self._count(f"temporal_prior_{prior_frames}", 1)
                 t_end = time.monotonic()
-                gov.observe(gov.family(rung), grid[0] * grid[1], got.compute_s, t_end, got.overhead_s,
-                            got.correction_s)
+                gov.observe(gov.family(rung), grid[0] * grid[1], got.compute_s, t_end, got.overhead_s)
                 self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
                                      queue=t_start - job.t_queued, solve=got.seconds - got.render_s,
                                      prior_wait=t_end - t_start - got.seconds)

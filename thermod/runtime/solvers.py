@@ -70,7 +70,6 @@ class Solved:
     kernel: tuple | None = None   # the kernel solved with, packed for the wire (`pack_kernel`), if asked
     start_partial: bool = False   # deblurred under the stream's start rule (`START_COVERAGE`)
     passthrough: PassThrough | None = None   # the kernel's rules refused the frame (not solved)
-    correction_s: float = 0.0     # of `compute_s`, a temporal solve's correction by its prior (0: none)
 
     @property
     def overhead_s(self) -> float:
@@ -131,10 +130,9 @@ def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, wa
         gt, gr = warp_gyro if warp_gyro is not None else (None, None)
         out, est = deconv.solve(img, kernel, t_frame, gt, gr, timed if gt is not None else None)
         prior_frames, solver = deconv.last_prior_frames, deconv.single
-        correction_s = max(0.0, deconv.last_seconds[1] - timed.waited) if prior_frames else 0.0
     else:
         out = deconv.run_varying(img, kernel) if hasattr(kernel, "kernels") else deconv.run(img, kernel)
-        est, prior_frames, solver, correction_s = None, 0, deconv, 0.0
+        est, prior_frames, solver = None, 0, deconv
     seconds = time.perf_counter() - t0 - timed.waited
     out = np.asarray(out, np.float32)
     grid = solved_grid(solver, kernel)
@@ -146,8 +144,7 @@ def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, wa
             info.update(kernel_size=tuple(int(s) for s in kernel.weights.shape),
                         kernel_extent_px=float(kernel.extent_px))
     return Solved(out, est, prior_frames, seconds, grid, compute_s=seconds, render_s=render_s, info=info,
-                  kernel=pack_kernel(kernel) if pack else None, start_partial=start_partial,
-                  correction_s=correction_s)
+                  kernel=pack_kernel(kernel) if pack else None, start_partial=start_partial)
 
 
 @dataclass
@@ -201,12 +198,11 @@ def warm_solvers(decs: dict, factory, rungs, deblur, calib, img, uniform, grids,
 
 
 def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -> list[tuple]:
-    """``[(family, cells, compute_s, overhead_s, correction_s)]``: each rung's cost on `uniform` and
-    on each of `grids`, timed through `solver.solve` as the stream's jobs are: the solve itself, the
-    round trip around it (in a child; 0 in a thread) and a temporal solve's correction (its share of
-    the solve), from the fastest of `repeats` (a preempted run would make a rung look dearer than it
-    is). A temporal rung is timed with a prior: the frame before, restored, warped across one frame
-    period of roll."""
+    """``[(family, cells, compute_s, overhead_s)]``: each rung's cost on `uniform` and on each of
+    `grids`, timed through `solver.solve` as the stream's jobs are: the solve itself, and the round
+    trip around it (in a child; 0 in a thread), from the fastest of `repeats` (a preempted run would
+    make a rung look dearer than it is). A temporal rung
+    is timed with a prior: the frame before, restored, warped across one frame period of roll."""
     period = 1.0 / settings.calib.frame_rate_hz
     gyro = warm_gyro(settings.calib)
     out = []
@@ -229,7 +225,7 @@ def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -
                 raise RuntimeError(f"warm-up: the {rung.name} rung found no prior")
             g = runs[0].grid                      # a coarse grid may be one kernel in disguise
             best = min(runs, key=lambda r: r.seconds)
-            out.append((fam, g[0] * g[1], best.compute_s, best.overhead_s, best.correction_s))
+            out.append((fam, g[0] * g[1], best.compute_s, best.overhead_s))
     return out
 
 
@@ -454,7 +450,7 @@ def _child_main(conn, factory, renderer=render) -> None:
                     infos[slot][:info.size] = info.ravel()
                     est = (float(got.estimate.t_frame), tuple(info.shape), tuple(got.estimate.shape))
                 conn.send(("done", got.prior_frames, got.seconds, tuple(got.grid), est, got.render_s,
-                           got.info, got.kernel, got.start_partial, got.correction_s))
+                           got.info, got.kernel, got.start_partial))
         except Exception:
             decs = {}                    # the next job starts from fresh state
             try:
@@ -572,7 +568,7 @@ class InChild:
                 seconds = time.perf_counter() - t0 - waited
                 return Solved(None, None, 0, seconds, (1, 1), compute_s=min(compute_s, seconds),
                               render_s=compute_s, info=info, passthrough=PassThrough(reason, info, detail))
-            _, prior_frames, compute_s, grid, est_meta, render_s, info, packed, start_partial, corr_s = msg
+            _, prior_frames, compute_s, grid, est_meta, render_s, info, packed, start_partial = msg
             image_out = frames.images[slot].copy()
             if est_meta is not None:
                 t_est, info_shape, shape = est_meta
@@ -580,7 +576,7 @@ class InChild:
             seconds = time.perf_counter() - t0 - waited
             return Solved(image_out, est, prior_frames, seconds, tuple(grid),
                           compute_s=min(compute_s, seconds), render_s=render_s, info=info, kernel=packed,
-                          start_partial=start_partial, correction_s=corr_s)
+                          start_partial=start_partial)
         except BaseException:
             est = None
             raise
