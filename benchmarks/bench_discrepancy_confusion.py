@@ -15,10 +15,10 @@ else **missed**; every named effect that is not hidden is a **wrong name**.
     .venv/bin/python -m benchmarks.bench_discrepancy_confusion [--cases LOG:SECONDS:EFFECT,...]
         [--out benchmarks/results/discrepancy_heldout.md]
 
-Prints a row per case as it ends, then the confusion table over every case measured so far: results
-are kept one JSON line per case in $TMPDIR/thermod_confusion/results.jsonl (a case already there is not
-run again), so the cases can run as separate processes; `--out` writes the table into the results
-file's confusion section (`--cases ""` writes what is cached). `--list` prints the case names. Each
+Prints a row per case as it ends, then the confusion table over every case measured so far. Results
+are kept one JSON line per case in benchmarks/results/discrepancy_heldout.jsonl (a case already there
+is not run again; delete its line to measure it anew), so the cases can run as separate processes;
+`--out` writes the table into the results file's confusion section (`--cases ""` writes what is cached). `--list` prints the case names. Each
 case costs minutes of CPU, a 3 s flight several times a 0.8 s one (the table's CPU s column).
 """
 
@@ -29,7 +29,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -55,6 +54,7 @@ EFFECTS = {
 }
 SECONDS = (0.8, 3.0)
 TIMING = ("time_offset", "rolling_readout", "gyro_bias", "time_constant")
+RESULTS = Path(__file__).resolve().parent / "results" / "discrepancy_heldout.jsonl"
 SECTION = "## Confusion table: flights from three logs (issue 34)"
 
 
@@ -209,8 +209,7 @@ def main(argv=None) -> int:
     unknown = [n for n in names if n not in case_names()]
     if unknown:
         raise SystemExit(f"--cases: unknown {unknown}; `--list` names them")
-    cache = Path(os.environ.get("TMPDIR", tempfile.gettempdir())) / "thermod_confusion" / "results.jsonl"
-    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache = RESULTS
 
     def load() -> list[dict]:
         if not cache.exists():
