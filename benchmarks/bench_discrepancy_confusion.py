@@ -18,8 +18,9 @@ else **missed**; every named effect that is not hidden is a **wrong name**.
 Prints a row per case as it ends, then the confusion table over every case measured so far. Results
 are kept one JSON line per case in benchmarks/results/discrepancy_heldout.jsonl (a case already there
 is not run again; delete its line to measure it anew), so the cases can run as separate processes;
-`--out` writes the table into the results file's confusion section (`--cases ""` writes what is cached). `--list` prints the case names. Each
-case costs minutes of CPU, a 3 s flight several times a 0.8 s one (the table's CPU s column).
+`--out` writes the table into the results file's confusion section (`--cases ""` writes what is
+cached). `--list` prints the case names. Each case costs minutes of CPU, a 3 s flight several times a
+0.8 s one (the table's CPU s column).
 """
 
 from __future__ import annotations

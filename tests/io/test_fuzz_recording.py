@@ -2,8 +2,8 @@
 documented error types leave `recording.read`, the frame iterator and `thermod deblur`.
 
 Mutations: attributes out of range or of the wrong type, datasets of the wrong shape or dtype (or
-missing), flipped bytes anywhere in the file and truncation. Bounded (~200 examples per target,
-no deadline) so it runs in CI.
+missing; the optional static-overlay mask among them), flipped bytes anywhere in the file and
+truncation. Bounded (~200 examples per target, no deadline) so it runs in CI.
 """
 
 import io
@@ -33,8 +33,10 @@ def _valid_bytes() -> bytes:
     gyro_t = np.arange(0.0, 0.1, 0.001)
     rate = np.zeros((len(gyro_t), 3), np.float32)
     rate[:, 1] = 0.3
+    extras = {"truth/frames": np.zeros((N, H, W), np.float32),
+              recording.OVERLAY_DATASET: np.eye(H, W, dtype=np.uint8)}
     rec = recording.Recording(rng.integers(0, 2**14, (N, H, W), dtype=np.uint16), 0.05 + 0.02 * np.arange(N),
-                              gyro_t, rate, calib, extras={"truth/frames": np.zeros((N, H, W), np.float32)},
+                              gyro_t, rate, calib, extras=extras,
                               extra_attrs={"truth": {"note": "sim"}})
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "v.h5"
@@ -43,7 +45,7 @@ def _valid_bytes() -> bytes:
 
 
 VALID = _valid_bytes()
-DATASETS = ("camera/frames", "camera/t", "gyro/t", "gyro/rate", "truth/frames")
+DATASETS = ("camera/frames", "camera/t", "gyro/t", "gyro/rate", "truth/frames", recording.OVERLAY_DATASET)
 ATTR_KEYS = CAMERA_KEYS + GYRO_KEYS + ("format", "version")    # every key the reader takes
 
 values = st.one_of(
@@ -122,11 +124,14 @@ def _apply(path: Path, muts) -> None:
             f = h5py.File(path, "a")
         except OSError:
             continue                       # already unreadable: later mutations cannot apply
-        with f:
-            try:
-                _mutate(f, m)
-            except (OSError, ValueError, TypeError, KeyError, RuntimeError):
-                pass                       # h5py refused this mutation (e.g. unsupported attribute type)
+        try:
+            with f:
+                try:
+                    _mutate(f, m)
+                except (OSError, ValueError, TypeError, KeyError, RuntimeError):
+                    pass                   # h5py refused this mutation (e.g. unsupported attribute type)
+        except (OSError, RuntimeError):
+            pass                           # closing the damaged file failed (h5py 3.16 says so): as it is
 
 
 def _mutate(f, m) -> None:

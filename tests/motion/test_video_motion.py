@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from thermod.ingest.video_only import VideoImportError, import_video
-from thermod.io import video
+from thermod.io import recording, video
 from thermod.motion.track import TrackError, estimate_track
 from thermod.physics.calibration import Calibration
 from thermod.sim.flight_video import simulate_flight
@@ -131,6 +131,18 @@ def test_a_static_logo_does_not_pull_the_estimate_to_zero(clip):
     # the motion is measured, not zero: the estimate's RMS is the truth's within the tolerance
     ratio = np.sqrt(np.nanmean(track.rate_at_frames() ** 2) / np.mean(true ** 2))
     assert abs(ratio - 1) < RATE_TOL
+
+
+def test_the_import_writes_the_logo_mask_for_deblurring(clip, tmp_path):
+    sim, vf, cam = clip
+    path = video.write_video(tmp_path / "logo.mp4", with_logo(vf.frames), vf.t - vf.t[0], crf=18)
+    out = import_video(path, tmp_path / "logo.h5", cam).path
+    with recording.Reader(out) as r:
+        mask = r.overlay()
+    assert mask is not None and mask.shape == (HEIGHT, WIDTH)
+    ys, xs = np.nonzero(mask)
+    # the printed box (4..70, 4..26) and its halo, nothing else
+    assert xs.max() <= 80 and ys.max() <= 34 and mask[4:27, 4:71].mean() > 0.3, (xs.max(), ys.max())
 
 
 def test_a_duplicated_frame_and_a_scene_cut_are_flagged_and_invent_no_motion(clip):

@@ -24,6 +24,7 @@ import numpy as np
 
 from thermod.errors import RecordingError, ThermodError
 from thermod.io import recording
+from thermod.restore.overlay import grown
 from thermod.restore.settings import DeblurConfig
 
 log = logging.getLogger(__name__)
@@ -200,26 +201,32 @@ def temporal_deconvolver(cfg: DeblurConfig, calib, dec):
 
 
 def _deblur_frame(frame: np.ndarray, reader: recording.Reader, calib, t: float, cfg: DeblurConfig, dec,
-                  tdec=None):
+                  tdec=None, overlay=None):
     """(deblurred frame, "") or (None, why it is passed through), by the daemon's per-frame policy
     (`thermod.restore.policy.plan_frame`; a recording's gyro stream is whole, so ``gyro_incomplete``
     and ``gyro_gap`` are the only gyro reasons). With `tdec` every frame whose kernel renders enters
     its history, a passed-through one too (its low coverage keeps it out of the joint solves, while the
-    history stays in read order)."""
+    history stays in read order). `overlay`: (mask, grown mask) of a static overlay, kept out of the
+    solve (`thermod.restore.overlay`)."""
+    from thermod.restore import overlay as ov
     from thermod.restore.policy import PassThrough, plan_frame
 
     plan = plan_frame(t, reader.gyro_t, reader.gyro_rate, calib, cfg)
+    image = frame if overlay is None else ov.fill(frame, overlay[1])
     if isinstance(plan, PassThrough):
         if tdec is not None and plan.kernel is not None:
-            tdec.push(frame, plan.kernel, t)
+            tdec.push(image, plan.kernel, t)
         return None, str(plan)
     try:
         if tdec is not None:
-            return tdec.run(frame, plan.kernel, t, reader.gyro_t, reader.gyro_rate), ""
-        grid = hasattr(plan.kernel, "kernels")
-        return (dec.run_varying(frame, plan.kernel) if grid else dec.run(frame, plan.kernel)), ""
+            out = tdec.run(image, plan.kernel, t, reader.gyro_t, reader.gyro_rate)
+        elif hasattr(plan.kernel, "kernels"):
+            out = dec.run_varying(image, plan.kernel)
+        else:
+            out = dec.run(image, plan.kernel)
     except ThermodError as e:   # a kernel that cannot be inverted: keep the frame
         return None, f"kernel_error: {e}"
+    return (out if overlay is None else ov.keep(out, frame, overlay[0])), ""
 
 
 def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, dec, bar, model=None) \
@@ -248,11 +255,13 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     ok = np.zeros(n, dtype=bool)
     tdec = temporal_deconvolver(cfg, calib, dec)
     views = np.zeros(n, dtype=np.int8)     # frames each solve used (0: passed through)
+    mask = r.overlay()
+    overlay = None if mask is None else (mask, grown(mask))
     for i in range(n):
         frame = r.frame(i)
         w.append_frame(frame, r.t[i])
         t0 = time.perf_counter()
-        out, why = _deblur_frame(frame, r, calib, float(r.t[i]), cfg, dec, tdec)
+        out, why = _deblur_frame(frame, r, calib, float(r.t[i]), cfg, dec, tdec, overlay)
         times.append(time.perf_counter() - t0)
         if out is None:
             passed.append((i, why))
@@ -272,7 +281,8 @@ def _deblur_stream(r: recording.Reader, calib, job: Job, w: recording.Writer, de
     w.put("deblurred/views", views)
     # a gyro estimated from the pictures (thermod.ingest.video_only) is said so in the output too
     motion = str(r.group_attrs().get("motion", {}).get("source", "gyro"))
-    w.set_attrs("deblurred", {"motion_source": motion, "kernel": cfg.kernel, "method": dec.method,
+    w.set_attrs("deblurred", {"motion_source": motion, "overlay_kept": mask is not None,
+                              "kernel": cfg.kernel, "method": dec.method,
                               "mode": cfg.mode,
                               "solver": "temporal" if tdec is not None else "single-frame",
                               "temporal_views": int(cfg.temporal_views),

@@ -12,8 +12,10 @@ included), estimates the rotation track and writes:
   frames too poor in texture to track), so `thermod deblur` passes the frames that reach into them
   through (``gyro_gap``) instead of inventing motion;
 - ``/motion``: attributes ``source = "video"``, the blur lag the track was shifted by, the frames
-  flagged (duplicated, cut, untracked) and the overlay found (JSON), and the dataset
-  ``motion/sigma_rad_s`` [M] (each gyro sample's 1σ error, rad/s, from the rotation fit);
+  flagged (duplicated, cut, untracked) and the overlay found (JSON), the dataset
+  ``motion/sigma_rad_s`` [M] (each gyro sample's 1σ error, rad/s, from the rotation fit) and, when a
+  static overlay was found, ``motion/overlay`` (uint8 [H, W], 1 = overlay; `thermod deblur` keeps it
+  out of the solve, `thermod.restore.overlay`);
 - ``/import``: where it came from (file, codec, bit depth, luma range), ``motion_source = "video"``.
 
 With ``fit_tau`` (or a camera file that gives no τ) the detector's τ is fitted to the frames' comet
@@ -38,8 +40,8 @@ from thermod.errors import ThermodError
 from thermod.ingest.camera_video import put_frames_and_gyro, read_camera_video
 from thermod.io import video
 from thermod.io.json_safe import jsonable
-from thermod.io.recording import Writer
-from thermod.motion.track import DEFAULT_RATE_HZ, RotationTrack, TrackError, estimate_track
+from thermod.io.recording import OVERLAY_DATASET, Writer
+from thermod.motion.track import DEFAULT_RATE_HZ, RotationTrack, TrackError, estimate_track, full_resolution
 from thermod.physics.calibration import Calibration
 from thermod.physics.kernels.grids import kernel_span_s
 
@@ -179,6 +181,8 @@ def _write(out, vf: video.VideoFrames, gyro_t, gyro_rate, sigma, calib: Calibrat
     try:
         put_frames_and_gyro(w, vf, gyro_t, gyro_rate, calib)
         w.put(f"{MOTION_GROUP}/sigma_rad_s", np.asarray(sigma, np.float32))
+        if track.overlay is not None:     # kept out of the solve by `thermod deblur` (restore.overlay)
+            w.put(OVERLAY_DATASET, full_resolution(track.overlay, calib.width, calib.height))
         m = motion_attrs(track)
         if tau_fit is not None:
             m["tau_fit"] = json.dumps(jsonable(tau_fit.to_dict()), allow_nan=False)

@@ -12,6 +12,13 @@ import numpy as np
 
 def jsonable(x):
     """Plain JSON types; non-finite floats become null so non-Python parsers accept the header."""
+    t = type(x)
+    if t is str or t is int or t is bool or x is None:     # the common leaves first: headers are hot
+        return x
+    if t is float:
+        return x if math.isfinite(x) else None
+    if t is dict:
+        return {k if type(k) is str else str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, dict):
         return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):

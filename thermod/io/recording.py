@@ -27,6 +27,9 @@ from thermod.physics.calibration import CAMERA_KEYS, Calibration, CalibrationErr
 FORMAT = "thermod-recording"
 VERSION = 1
 REQUIRED_CAMERA_ATTRS = CAMERA_KEYS
+# optional: a static overlay burnt into the frames (uint8 or bool [H, W], nonzero = overlay), found by
+# the video import; deblurring keeps it out of the solve
+OVERLAY_DATASET = "motion/overlay"
 REQUIRED_GYRO_ATTRS = ("rate_hz", "R_cam_gyro", "bias_rad_s", "time_offset_s")
 
 
@@ -334,6 +337,17 @@ class Reader:
         with _Guard(self.path, "/"):
             self._f.visititems(visit)
         return out
+
+    def overlay(self) -> np.ndarray | None:
+        """The static overlay's mask (bool [H, W]) when the recording has one (`OVERLAY_DATASET`)."""
+        with _Guard(self.path, OVERLAY_DATASET):
+            if OVERLAY_DATASET not in self._f:
+                return None
+        hw = self.frame_shape
+        ds = _dataset(self.path, self._f, OVERLAY_DATASET, "ub", 2, lambda s: s == hw,
+                      f"uint8 [height, width] = [{hw[0]}, {hw[1]}], nonzero on the overlay")
+        with _Guard(self.path, OVERLAY_DATASET):
+            return np.asarray(ds[()]) != 0
 
     def dataset(self, name: str) -> h5py.Dataset:
         """An optional dataset by path, shape and storage checked (not read)."""

@@ -265,6 +265,15 @@ def overlay_mask(G: np.ndarray, D: np.ndarray) -> np.ndarray | None:
     return mask.astype(bool)
 
 
+def full_resolution(overlay: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A working-resolution overlay mask at the frames' `width` × `height` (uint8, 1 = overlay),
+    grown by one px (the nearest-neighbour resize's staircase)."""
+    import cv2
+
+    m = cv2.resize(overlay.astype(np.uint8), (int(width), int(height)), interpolation=cv2.INTER_NEAREST)
+    return cv2.dilate(m, np.ones((3, 3), np.uint8))
+
+
 class _Inpainted:
     """Frames with the overlay inpainted from their surroundings, one at a time (a lazy sequence)."""
 
@@ -342,7 +351,6 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     [H, W] frames (AGC allowed); `frame_t` [N] s (a frame's time: its last row read); `tau_s`,
     `readout_s` the camera's. Raises `TrackError` naming `name` when the video is too short or has
     too little texture to track."""
-    import cv2
 
     n = len(frames)
     t = np.asarray(frame_t, np.float64)
@@ -357,11 +365,7 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     work, scale = _work_frames(frames, work_width)
     dup = duplicates(work)
     overlay = static_overlay(work, dup)
-    mask_full = None
-    if overlay is not None:
-        mask_full = cv2.resize(overlay.astype(np.uint8), (intrinsics.width, intrinsics.height),
-                               interpolation=cv2.INTER_NEAREST)
-        mask_full = cv2.dilate(mask_full, np.ones((3, 3), np.uint8))
+    mask_full = None if overlay is None else full_resolution(overlay, intrinsics.width, intrinsics.height)
     kept = np.flatnonzero(~dup)
     pm = picture_motion(_Inpainted(frames, mask_full, kept), t[kept], intrinsics, work_width=work_width,
                         smooth_px=SMOOTH_PX, progress=progress)

@@ -120,6 +120,7 @@ class Governor:
         self._overheads: collections.deque = collections.deque(maxlen=WINDOW)   # round trips (s)
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
+        self._memo: dict = {}          # costs derived from the state above, cleared when it changes
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
 
@@ -139,6 +140,7 @@ class Governor:
             with self._lock:
                 self._ref[family, cells] = float(seconds) / self.load
                 self._add_overhead(overhead_s)
+                self._memo.clear()
 
     def _add_overhead(self, overhead_s: float) -> None:
         if overhead_s >= 0 and math.isfinite(overhead_s):
@@ -148,7 +150,10 @@ class Governor:
     def overhead_s(self) -> float:
         """The median round trip around a solve (s): what a solve costs beyond its own work, whatever
         the work (the frame's copies, the pipe, the parent's GIL)."""
-        return statistics.median(self._overheads) if self._overheads else 0.0
+        memo = self._memo
+        if "overhead" not in memo:
+            memo["overhead"] = statistics.median(self._overheads) if self._overheads else 0.0
+        return memo["overhead"]
 
     def predict(self, family: str, cells: int) -> float:
         """Predicted wall time (s) of one solve of `family` over `cells` kernel cells."""
@@ -159,6 +164,11 @@ class Governor:
         key = (family, cells)
         if key in self._ref:
             return self._ref[key]
+        if key not in self._memo:
+            self._memo[key] = self._interpolated(family, cells)
+        return self._memo[key]
+
+    def _interpolated(self, family: str, cells: int) -> float:
         # never seeded: between the family's nearest references, linear in cells
         known = sorted(c for f, c in self._ref if f == family)
         if not known:
@@ -179,6 +189,7 @@ class Governor:
         if not (seconds > 0 and math.isfinite(seconds)):
             return
         with self._lock:
+            self._memo.clear()
             self._add_overhead(overhead_s)
             key = (family, cells)
             if key not in self._recent or now - self._last_seen.get(key, -math.inf) > STALE_S:
@@ -211,6 +222,7 @@ class Governor:
             refs, load = dict(old._ref), old.load
         with self._lock:
             self._ref, self.load = refs, load
+            self._memo.clear()
 
     # ------------------------------------------------------------------ decisions
     def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
@@ -289,7 +301,11 @@ class Governor:
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
-        return statistics.median(x for _, x in self._ratios) if len(self._ratios) >= MIN_SOLVES else self.load
+        memo = self._memo
+        if "keep_load" not in memo:
+            memo["keep_load"] = statistics.median(x for _, x in self._ratios) \
+                if len(self._ratios) >= MIN_SOLVES else self.load
+        return memo["keep_load"]
 
     def _recent_grids(self) -> tuple[tuple[int, int], tuple[int, int]]:
         """(the finest grid needed, the median floor) over the last `NEEDED_S`: rungs are judged on
