@@ -137,7 +137,7 @@ class FifoGyro(GyroSource):
         self._started = False
         self._next_read = 0.0
         self._wanted = threading.Event()
-        self._stats.update(invalid=0, recoveries=0, bad_counts=0)
+        self._stats.update(invalid=0, recoveries=0, bad_counts=0, lost_uncertainty=0)
 
     # -- chip hooks ------------------------------------------------------------------------------
     def _identify(self) -> None:
@@ -264,10 +264,12 @@ class FifoGyro(GyroSource):
         self._mark_gap(time.monotonic())
         self._needs_recovery = False
 
-    def _mark_gap(self, t_now: float) -> None:
+    def _mark_gap(self, t_now: float, uncertainty_s: float = 0.0) -> None:
         # every sample between the newest one handed out and now is gone; the count is estimated
-        # from host time, so the counter-to-time fit restarts (keeping its drift)
+        # from host time (± `uncertainty_s`, counted in `lost_uncertainty`), so the counter-to-time
+        # fit restarts (keeping its drift)
         n = max(0, int(round((t_now - self._t_last) * self.rate_hz)))
+        self._stats["lost_uncertainty"] += int(math.ceil(uncertainty_s * self.rate_hz))
         self._seq += n
         self._t_last = t_now
         self._gap_pending = True
@@ -283,10 +285,14 @@ class FifoGyro(GyroSource):
         if overflow or not 0 <= count <= self.fifo_size:
             # an overflow, or a count no FIFO can hold (a bus glitch reads all ones): the content
             # cannot be trusted, so flush it and estimate what was lost from host time
+            # the FIFO restarts when the flush reaches the chip, somewhere within this bracket (a
+            # reader preempted inside it would otherwise count its preemption as lost samples)
+            t0 = time.monotonic()
             with self._io("FIFO flush"):
                 self._flush()
+            t1 = time.monotonic()
             self._stats["overflows" if overflow else "bad_counts"] += 1
-            self._mark_gap(time.monotonic())
+            self._mark_gap(0.5 * (t0 + t1), 0.5 * (t1 - t0))
             return None
         nbytes = count - count % self.packet_size
         if nbytes == 0:

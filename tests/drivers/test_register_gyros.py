@@ -212,10 +212,11 @@ def test_fifo_overflow_detected_flushed_counted(name):
     for prev, b in zip(batches[:-1], batches[1:], strict=True):
         assert b.seq == prev.seq + len(prev) + b.n_lost
     # the lost count is estimated from host time; the truth is in the rates. The estimate is off by
-    # what the reader's own preemption around the flush adds: ±2 samples when reads are timely, more
-    # when this run's reads were late (a loaded machine)
+    # what the reader's own preemption adds: ±2 samples when reads are timely, more when this run's
+    # reads were late (a loaded machine), and at most the half-bracket around the flush that the
+    # driver reports (`lost_uncertainty`: a reader preempted inside the flush's call)
     late = read_lateness(after, returned, decode)
-    tol = 2 + int(math.ceil(1000.0 * max(float(np.percentile(late, 90)), 0.0)))
+    tol = 2 + int(math.ceil(1000.0 * max(float(np.percentile(late, 90)), 0.0))) + st["lost_uncertainty"]
     for i in gaps:
         t_last_true = decode(batches[i - 1].rate[-1:, 0], batches[i - 1].t[-1:])[0]
         t_next_true = decode(batches[i].rate[:1, 0], batches[i].t[:1])[0]

@@ -4,24 +4,19 @@ estimated from the pictures (`thermod.motion.track`).
 `import_video` reads the video (`thermod.io.video`: container timestamps, variable frame rate
 included), estimates the rotation track and writes:
 
-- ``/camera/frames``: the video's frames as delivered (8-bit AGC'd frames widened to uint16, values
-  0–255), ``/camera/t`` the video's times; the calibration is the camera file's, its frame rate the
-  video's;
+- ``/camera/frames``, ``/camera/t``: the video's frames as delivered (8-bit AGC'd frames widened to
+  uint16) and times; the calibration is the camera file's, its frame rate the video's;
 - ``/gyro/t``, ``/gyro/rate``: the track's camera-frame rate sampled at 1 kHz on the video clock
-  (R_cam_gyro = I, bias 0, offset 0), with holes (no samples) where the motion is unknown (scene cuts,
-  frames too poor in texture to track), so `thermod deblur` passes the frames that reach into them
-  through (``gyro_gap``) instead of inventing motion;
-- ``/motion``: attributes ``source = "video"``, the blur lag the track was shifted by, the frames
-  flagged (duplicated, cut, untracked) and the overlay found (JSON), the dataset
-  ``motion/sigma_rad_s`` [M] (each gyro sample's 1σ error, rad/s, from the rotation fit) and, when a
-  static overlay was found, ``motion/overlay`` (uint8 [H, W], 1 = overlay; `thermod deblur` keeps it
-  out of the solve, `thermod.restore.overlay`);
+  (R_cam_gyro = I), with holes where the motion is unknown (cuts, frames too poor in texture), so
+  `thermod deblur` passes the frames that reach into them through (``gyro_gap``);
+- ``/motion``: attributes ``source = "video"``, the blur lag, the frames flagged and the overlay
+  found (JSON); ``motion/sigma_rad_s`` [M] (each sample's 1σ, rad/s) and, when a static overlay was
+  found, ``motion/overlay`` (uint8 [H, W]; kept out of the solve by `thermod.restore.overlay`);
 - ``/import``: where it came from (file, codec, bit depth, luma range), ``motion_source = "video"``.
 
 With ``fit_tau`` (or a camera file that gives no τ) the detector's τ is fitted to the frames' comet
-tails along the track (`thermod.calib.tau_fit`, on the band compressed video keeps), the track is
-estimated again with it, and ``/motion`` holds the fit (``tau_fit``, JSON); a stated τ more than 3σ
-from the fit is reported.
+tails along the track (`thermod.calib.tau_fit`), the track is estimated again with it, and
+``/motion`` holds the fit (``tau_fit``, JSON); a stated τ more than 3σ from the fit is reported.
 """
 
 from __future__ import annotations
