@@ -452,7 +452,10 @@ class VideoWriter:
             s.pix_fmt = "yuv420p"
             s.time_base = WRITE_TIME_BASE
             s.codec_context.time_base = WRITE_TIME_BASE
-            s.options = {"crf": str(int(crf)), "preset": preset}
+            # mbtree off: PyAV's bundled x264 (av 17–18) encodes the same frames differently from run
+            # to run with it (4 of 6 encodes differed, up to 24 codes); without it every encode is the
+            # same, and what the tests and benchmarks measure on a video is repeatable
+            s.options = {"crf": str(int(crf)), "preset": preset, "x264-params": "mbtree=0"}
             # full range: luma 0–255 is the frame as given; limited: 16–235, as the input had it
             s.codec_context.color_range = 2 if self.full_range else 1
             self._s = s
