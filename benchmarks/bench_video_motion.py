@@ -234,9 +234,10 @@ def main() -> None:
             "Reading the table: the flagged intervals are the fastest ones (beyond the tracker's reach, or a "
             "fit its neighbours contradict); their frames pass through, which the median PSNR hardly sees. "
             "A static logo is kept out of every variant's solve (the mask the import found): solved with "
-            "the scene's kernel, a printed overlay rings into the scene around it. The truth shift says how far the assumed lag (τ, + ½ readout) is from the "
-            "best one; the rolling-readout clip's rate error comes mostly from the banded fit's ends next to "
-            "the flagged intervals (held beyond them).", ""]
+            "the scene's kernel, a printed overlay rings into the scene around it. The truth shift says "
+            "how far the assumed lag (τ, + ½ readout) is from the best one; the rolling-readout clip's rate "
+            "error comes mostly from the banded fit's ends next to the flagged intervals (held beyond "
+            "them).", ""]
     OUT.write_text("\n".join(text))
     print(f"wrote {OUT}")
 
