@@ -18,6 +18,8 @@ import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch, GyroSource
 from thermod.motion.live import DEFAULT_RATE_HZ, MAX_BRIDGED, LiveTrack
+from thermod.motion.track import full_resolution
+from thermod.restore.overlay import grown
 
 REGISTER_S = 0.02         # allowed for a frame's registration before its samples are late
 QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
@@ -55,6 +57,22 @@ class VideoGyro(GyroSource):
         """Measure with this calibration's intrinsics, τ and readout."""
         self.track = LiveTrack(calib.intrinsics, tau_s=calib.tau_s, readout_s=calib.readout_s,
                                rate_hz=self.rate_hz, work_width=self.work_width)
+        self._size = (int(calib.width), int(calib.height))
+        self._overlay: tuple | None = None
+        self._overlay_from = None
+
+    def overlay(self) -> tuple | None:
+        """The static overlay found so far at the frames' size, as (mask bool, grown mask uint8: what
+        the solve inpaints, `thermod.restore.overlay`), or None. The same objects while the mask holds."""
+        work = self.track.overlay.mask
+        if work is None:
+            return None
+        if work is not self._overlay_from:
+            mask = full_resolution(work, *self._size).astype(bool)
+            if self._overlay is None or not np.array_equal(mask, self._overlay[0]):
+                self._overlay = (mask, grown(mask))
+            self._overlay_from = work
+        return self._overlay
 
     def start(self) -> None:
         pass

@@ -88,6 +88,24 @@ def test_a_static_logo_is_found_and_left_out(swaying):
     assert err < RATE_TOL
 
 
+def test_the_video_source_hands_the_logo_to_the_solve_at_the_frames_size(swaying):
+    rec, _ = swaying
+    src = VideoGyro(CALIB)
+    src.start()
+    assert src.overlay() is None
+    for f, t in zip(with_logo(rec.frames[:20]), rec.t[:20], strict=True):
+        src.offer(f, t)
+        src.poll(0.1)
+    src.stop()
+    got = src.overlay()
+    assert got is not None and src.overlay() is got                  # the same objects while it holds
+    mask, filled = got
+    assert mask.shape == filled.shape == (CALIB.height, CALIB.width) and mask.dtype == bool
+    ys, xs = np.nonzero(mask)
+    assert xs.max() <= 80 and ys.max() <= 34 and mask[4:27, 4:71].mean() > 0.3   # the logo's box
+    assert np.all(filled[mask])                                       # the solve fills at least the mask
+
+
 def test_a_frame_without_texture_leaves_a_flagged_hole_not_invented_motion(swaying):
     rec, _ = swaying
     frames = [np.asarray(f, np.float32) for f in rec.frames[:20]]

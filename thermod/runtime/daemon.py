@@ -114,6 +114,7 @@ class Daemon:
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
         self.pipeline.gyro_delivered = lambda: self.gyro_state.last_data
+        self.pipeline.overlay = getattr(self.gyro, "overlay", None)    # a video source finds logos
         self.camera_state = DeviceState(self.camera.name)
         self.driver_threads: list[DriverThread] = []
         self.counters = collections.Counter()

@@ -113,6 +113,7 @@ class _Job:
     t_queued: float = field(default_factory=time.monotonic)
     gyro_wait_s: float = 0.0        # the scheduler's wait for the gyro to cover the frame
     render_s: float = 0.0           # the scheduler's grid choice (the worker adds the kernel's render)
+    keep_out: tuple | None = None   # a static overlay's (mask, grown mask): kept out of the solve
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,9 @@ class Pipeline:
         # when the gyro reader last delivered samples (host monotonic), set by the daemon: read by
         # `_wait_for_gyro` to tell a reader that has not run from samples that are missing
         self.gyro_delivered: Callable[[], float] | None = None
+        # a static overlay burnt into the frames, as (mask, grown mask) or None, set by the daemon when
+        # its gyro source finds one (the video source): kept out of the solve (`thermod.restore.overlay`)
+        self.overlay: Callable[[], tuple | None] | None = None
         self._stop = threading.Event()
         self._jobs: collections.deque[_Job] = collections.deque()
         self._jobs_cond = threading.Condition()
@@ -474,9 +478,12 @@ class Pipeline:
                 warp_gyro = (ww.t, ww.rate)
             else:
                 self._count("temporal_gyro_gap", 1)
+        keep_out = self.overlay() if self.overlay is not None else None
+        if keep_out is not None:
+            self._count("overlay_kept", 1)
         now = time.monotonic()
         self._enqueue(_Job(slot, order, s.generation, choice, warp_gyro, t_queued=now,
-                           gyro_wait_s=t_render - t_wait, render_s=now - t_render))
+                           gyro_wait_s=t_render - t_wait, render_s=now - t_render, keep_out=keep_out))
 
     def _wait_for_gyro(self, g1: float, slot: FrameSlot) -> None:
         """Wait until the gyro ring covers gyro time `g1`, at most until ``max(t, arrival) +
@@ -606,7 +613,7 @@ class Pipeline:
                 wait_s = 0.0 if caught_up else 0.5 * gov.budget_s
                 got = solver.solve(s, rung, job.slot.image, job.order, job.slot.t, job.warp_gyro,
                                    lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s),
-                                   pack=self._kernels)
+                                   pack=self._kernels, keep_out=job.keep_out)
                 if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
                     self._job_done(i, index, None)
                     self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,

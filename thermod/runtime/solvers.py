@@ -24,6 +24,7 @@ any of them through ``solve``, as the stream's jobs are timed.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import mmap
 import multiprocessing
@@ -41,6 +42,7 @@ from thermod.io.wire import pack_kernel
 from thermod.physics.deconv.half import HalfResolution
 from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
 from thermod.physics.deconv.tiles import central_cell
+from thermod.restore import overlay
 from thermod.restore.plan import render, solved_grid
 from thermod.restore.policy import KernelOrder, PassThrough, render_order
 from thermod.runtime.governor import Governor
@@ -92,6 +94,13 @@ class _Timed:
             self.waited += time.perf_counter() - t0
 
 
+def _kept(got: Solved, image, keep_out) -> Solved:
+    """`got` with a static overlay's pixels (`keep_out[0]`) taken back from the input `image`."""
+    if keep_out is None or got.image is None:
+        return got
+    return dataclasses.replace(got, image=overlay.keep(got.image, image, keep_out[0]))
+
+
 def make_solver(factory, rung, deblur, calib):
     """A worker's solver for `rung`: the factory's deconvolver, wrapped in a `RecursiveDeconvolver`
     for a temporal rung."""
@@ -104,8 +113,10 @@ def make_solver(factory, rung, deblur, calib):
 
 
 def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, warp_gyro, prior, *,
-              renderer=render, pack: bool = False) -> Solved:
+              renderer=render, pack: bool = False, fill_mask: np.ndarray | None = None) -> Solved:
     """Solve one frame by `rung` with the solvers in `decs` (one per family, built on first use).
+    `fill_mask` (uint8, `thermod.restore.overlay.grown`): a static overlay, inpainted before the solve
+    (the caller takes its pixels back from the input: the restored frame stays the next one's prior).
     `kernel`: a `KernelOrder`, rendered here by `renderer` under the policy's coverage rule
     (`render_order`; a refused frame comes back as `Solved.passthrough`), or a rendered kernel.
     `prior` (temporal rungs): a callable returning the newest restored frame before this one, or
@@ -121,6 +132,8 @@ def solve_job(decs: dict, factory, rung, deblur, calib, img, kernel, t_frame, wa
                           info=dict(plan.info), passthrough=PassThrough(plan.reason, plan.info, plan.detail))
         kernel, info, start_partial = plan.kernel, dict(plan.info), plan.start_partial
     render_s = time.perf_counter() - t0
+    if fill_mask is not None:
+        img = overlay.fill(img, fill_mask)
     fam = Governor.family(rung)
     deconv = decs.get(fam)
     if deconv is None:
@@ -262,12 +275,14 @@ class InThread:
                      max_kernel_px=max_kernel_px, budget_s=budget_s, renderer=self.renderer)
 
     def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior, *,
-              pack: bool = False) -> Solved:
+              pack: bool = False, keep_out=None) -> Solved:
         if self._generation != (settings.deblur, settings.calib):
             self.decs, self._generation = {}, (settings.deblur, settings.calib)
         img = np.asarray(image, np.float32)
-        return solve_job(self.decs, self.factory, rung, settings.deblur, settings.calib, img, kernel, t_frame,
-                         warp_gyro, prior, renderer=self.renderer, pack=pack)
+        got = solve_job(self.decs, self.factory, rung, settings.deblur, settings.calib, img, kernel, t_frame,
+                        warp_gyro, prior, renderer=self.renderer, pack=pack,
+                        fill_mask=None if keep_out is None else keep_out[1])
+        return _kept(got, image, keep_out)
 
     def reset(self) -> None:
         """Forget the solvers (after a failed job: the next one starts from fresh state)."""
@@ -404,7 +419,7 @@ def _child_main(conn, factory, renderer=render) -> None:
     inputs, images, infos = layout.views(buf)
     limit_threads()
     decs: dict = {}
-    deblur = calib = None
+    deblur = calib = fill_mask = None
 
     def prior():
         conn.send(("prior",))
@@ -430,6 +445,9 @@ def _child_main(conn, factory, renderer=render) -> None:
             if kind == "settings":
                 _, deblur, calib = msg
                 decs = {}
+            elif kind == "overlay":
+                fill_mask = None if msg[1] is None else np.unpackbits(msg[1], count=msg[2][0] * msg[2][1]
+                                                                      ).reshape(msg[2])
             elif kind == "warm":
                 _, rungs, img, uniform, grids, kw = msg
                 warm_solvers(decs, factory, rungs, deblur, calib, img, uniform, grids, renderer=renderer,
@@ -438,7 +456,7 @@ def _child_main(conn, factory, renderer=render) -> None:
             elif kind == "solve":
                 _, rung, worker, slot, kernel, t_frame, warp_gyro, pack = msg
                 got = solve_job(decs, factory, rung, deblur, calib, inputs[worker], kernel, t_frame,
-                                warp_gyro, prior, renderer=renderer, pack=pack)
+                                warp_gyro, prior, renderer=renderer, pack=pack, fill_mask=fill_mask)
                 if got.passthrough is not None:
                     p = got.passthrough
                     conn.send(("passed", p.reason, p.info, p.detail, got.seconds))
@@ -465,6 +483,7 @@ class InChild:
     def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True, renderer=render):
         self.frames, self.worker = frames, worker
         self._generation = None
+        self._overlay_sent = None
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_child_main, args=(child, factory, renderer),
@@ -531,6 +550,13 @@ class InChild:
             self._send(("settings", settings.deblur, settings.calib))
             self._generation = gen
 
+    def _overlay(self, keep_out) -> None:
+        grown = None if keep_out is None else keep_out[1]
+        if grown is not self._overlay_sent:
+            self._send(("overlay", None, None) if grown is None else
+                       ("overlay", np.packbits(grown.astype(bool)), grown.shape))
+            self._overlay_sent = grown
+
     def warm(self, settings, rungs, img, uniform, grids, *, max_kernel_px, budget_s) -> None:
         self._settings(settings)
         kw = dict(max_kernel_px=max_kernel_px, budget_s=budget_s)
@@ -538,8 +564,9 @@ class InChild:
         self._recv(budget_s + CHILD_START_S)
 
     def solve(self, settings, rung, image, kernel, t_frame, warp_gyro, prior, *,
-              pack: bool = False) -> Solved:
-        """Solve in the child. `prior` is called here, in the worker's thread, when the child asks."""
+              pack: bool = False, keep_out=None) -> Solved:
+        """Solve in the child. `prior` is called here, in the worker's thread, when the child asks.
+        `keep_out`: a static overlay's (mask, grown mask), sent to the child when it changes."""
         frames = self.frames
         t0 = time.perf_counter()
         np.copyto(frames.inputs[self.worker], image, casting="unsafe")
@@ -549,6 +576,7 @@ class InChild:
         est = None
         try:
             self._settings(settings)
+            self._overlay(keep_out)
             self._send(("solve", rung, self.worker, slot, kernel, float(t_frame), warp_gyro, bool(pack)))
             while True:
                 msg = self._recv(SOLVE_TIMEOUT_S)
@@ -574,9 +602,10 @@ class InChild:
                 t_est, info_shape, shape = est_meta
                 est = SharedEstimate(frames, slot, t_est, tuple(info_shape), tuple(shape))
             seconds = time.perf_counter() - t0 - waited
-            return Solved(image_out, est, prior_frames, seconds, tuple(grid),
-                          compute_s=min(compute_s, seconds), render_s=render_s, info=info, kernel=packed,
-                          start_partial=start_partial)
+            got = Solved(image_out, est, prior_frames, seconds, tuple(grid),
+                         compute_s=min(compute_s, seconds), render_s=render_s, info=info, kernel=packed,
+                         start_partial=start_partial)
+            return _kept(got, image, keep_out)
         except BaseException:
             est = None
             raise
