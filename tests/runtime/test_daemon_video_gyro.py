@@ -20,6 +20,27 @@ ALLOWED_RAW = {"gyro_gap", "gyro_incomplete", "overload"}
 
 
 
+def run(d: Daemon, seen: list, what, seconds: float = 6.0, then=None):
+    """Start `d` with each published frame's `what(frame)` appended to `seen`, run it for `seconds`,
+    and return `then()` (called before the stop)."""
+    emit = d.pipeline.emit
+
+    def keep(o):
+        seen.append(what(o))
+        emit(o)
+
+    d.pipeline.emit = keep
+    d.start()
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            d.tick()
+            time.sleep(0.05)
+        return then() if then is not None else None
+    finally:
+        d.stop()
+
+
 def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
     opts = {"publish.endpoint": private_endpoint(), "calibration.width": 160,
             "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
@@ -30,23 +51,8 @@ def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
     np.testing.assert_array_equal(c.gyro_to_camera_matrix, np.eye(3))
     assert c.time_offset_s == 0 and c.bias_rad_s == (0.0, 0.0, 0.0)
     seen = []
-    emit = d.pipeline.emit
-
-    def keep(o):
-        seen.append((o.frame_id, o.deblurred, o.method, o.reason))
-        emit(o)
-
-    d.pipeline.emit = keep
-    d.start()
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 6.0:
-            d.tick()
-            time.sleep(0.05)
-        h = d.health()
-        running = list(seen)
-    finally:
-        d.stop()
+    h, running = run(d, seen, lambda o: (o.frame_id, o.deblurred, o.method, o.reason),
+                     then=lambda: (d.health(), list(seen)))
     pc = d.pipeline.stats()["counters"]
     n = pc["frames_in"]
     assert n >= 150 and pc["frames_out"] == n == len(seen)                # every frame published
@@ -106,23 +112,9 @@ def test_a_logo_in_the_stream_is_kept_out_of_the_solve():
         on_frame(dataclasses.replace(f, image=img))
 
     d._on_frame = with_logo
-    seen = []
-    emit = d.pipeline.emit
-
-    def keep(o):
-        seen.append((o.deblurred, float(np.mean(o.image[strokes] == level[0]))))   # strokes as sent
-        emit(o)
-
-    d.pipeline.emit = keep
-    d.start()
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 6.0:
-            d.tick()
-            time.sleep(0.05)
-        overlay = d.gyro.overlay()
-    finally:
-        d.stop()
+    seen = []       # (deblurred, share of the strokes' pixels at their printed level)
+    overlay = run(d, seen, lambda o: (o.deblurred, float(np.mean(o.image[strokes] == level[0]))),
+                  then=d.gyro.overlay)
     pc = d.pipeline.stats()["counters"]
     assert pc["frames_out"] == pc["frames_in"] == len(seen)
     found = overlay[0][strokes].mean() if overlay is not None else 0.0

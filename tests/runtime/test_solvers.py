@@ -69,12 +69,12 @@ def frames():
     f.close()
 
 
-def _run(solver, stream, gyro):
+def _run(solver, stream, gyro, keep_out=None):
     rung = ladder(TEMPORAL)[0]
     assert rung.temporal
     prev, outs = None, []
     for img, k, t in stream:
-        got = solver.solve(_Settings(TEMPORAL), rung, img, k, t, gyro, lambda p=prev: p)
+        got = solver.solve(_Settings(TEMPORAL), rung, img, k, t, gyro, lambda p=prev: p, keep_out=keep_out)
         outs.append(got)
         if isinstance(prev, SharedEstimate):
             prev.release()
@@ -118,20 +118,9 @@ def test_a_static_overlay_is_kept_out_of_the_solve_in_the_thread_and_in_the_chil
     hi = np.float32(np.percentile(data[0][0], 99.9) + 300)
     logo = [(np.where(mask, hi, img).astype(np.float32), k, t) for img, k, t in data]
     keep_out = (mask, grown(mask))
-    rung = ladder(TEMPORAL)[0]
 
     def run(solver, keep):
-        prev, outs = None, []
-        for img, k, t in logo:
-            got = solver.solve(_Settings(TEMPORAL), rung, img, k, t, gyro, lambda p=prev: p,
-                               keep_out=keep_out if keep else None)
-            outs.append(got.image)
-            if isinstance(prev, SharedEstimate):
-                prev.release()
-            prev = got.estimate
-        if isinstance(prev, SharedEstimate):
-            prev.release()
-        return outs
+        return [got.image for got in _run(solver, logo, gyro, keep_out if keep else None)]
 
     truth = np.where(mask, hi, load_scene("texture", (H, W), seed=3))[near]     # the stream's sharp scene
     plain = run(InThread(make_deconvolver), False)
