@@ -84,7 +84,7 @@ class VideoGyro(GyroSource):
 
     def offer(self, image: np.ndarray, t: float) -> None:
         """A frame the camera delivered (read at host time `t`): its working image joins the queue."""
-        work = self.track.reg.prepare(image)
+        work = self.track.prepare(image)
         with self._cond:
             self._stats["frames_offered"] += 1
             if len(self._frames) >= QUEUE_FRAMES:

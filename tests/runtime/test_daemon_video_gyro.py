@@ -119,7 +119,9 @@ def test_a_logo_in_the_stream_is_kept_out_of_the_solve():
     assert pc["frames_out"] == pc["frames_in"] == len(seen)
     found = overlay[0][strokes].mean() if overlay is not None else 0.0
     assert found > 0.6                                                    # most of the strokes (0.72)
-    assert pc["overlay_kept"] > 0.2 * pc["frames_in"], pc                 # measured 121 of 300
+    # found 5 pairs in and left out of the pictures' normalisation: measured 293 of 301 frames kept it,
+    # 295 deblurred (before the normalisation left it out, its strokes set the 99 % level: 121, 200)
+    assert pc["overlay_kept"] > 0.8 * pc["frames_in"] and pc["deblurred"] > 0.8 * pc["frames_in"], pc
     shares = [share for deblurred, share in seen if deblurred]
     # solved as scene (before the overlay is found), a stroke's pixel is never its printed level; kept
     # out, those the mask covers are (0.72 of them here)

@@ -122,10 +122,15 @@ class LiveTrack:
 
     def push(self, frame, t: float) -> Samples | None:
         """Register the frame read at host time `t` (its last row) against the previous one."""
-        return self.push_working(self.reg.prepare(frame), t)
+        return self.push_working(self.prepare(frame), t)
+
+    def prepare(self, frame) -> np.ndarray:
+        """The frame's working image, the overlay found so far left out of its normalisation (its
+        strokes, the brightest pixels, would set the 99 % level and flatten the scene)."""
+        return self.reg.prepare(frame, self.overlay.mask)
 
     def push_working(self, cur: np.ndarray, t: float) -> Samples | None:
-        """`push` of a frame already turned into its working image (`self.reg.prepare`)."""
+        """`push` of a frame already turned into its working image (`prepare`)."""
         t = float(t)
         self.counts["frames"] += 1
         prev, t_prev = self._prev, self._prev_t

@@ -88,11 +88,13 @@ class PictureMotion:
         return out
 
 
-def normalise_frame(frame: np.ndarray) -> np.ndarray:
+def normalise_frame(frame: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
     """A frame's counts → float32 with median 0 and 1–99 % spread 1: a per-frame affine gain and
-    offset (an AGC) drops out."""
+    offset (an AGC) drops out. `exclude` (bool, the frame's shape): pixels left out of the
+    percentiles (a static overlay, whose bright strokes would otherwise set the 99 % level)."""
     f = np.asarray(frame, dtype=np.float32)
-    lo, med, hi = np.percentile(f, (1.0, 50.0, 99.0))
+    use = f if exclude is None or exclude.shape != f.shape or exclude.all() else f[~exclude]
+    lo, med, hi = np.percentile(use, (1.0, 50.0, 99.0))
     spread = float(hi - lo)
     if not spread > 0:
         spread = float(np.std(f)) or 1.0
@@ -205,17 +207,18 @@ class PairRegistrar:
         self.lk = {"winSize": (15, 15), "maxLevel": int(lk_levels),
                    "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
-    def prepare(self, frame) -> np.ndarray:
-        """The frame's working image (8 bits, normalised on its own: an AGC drops out)."""
+    def prepare(self, frame, exclude: np.ndarray | None = None) -> np.ndarray:
+        """The frame's working image (8 bits, normalised on its own: an AGC drops out). `exclude`
+        (bool, working size): a static overlay, left out of the normalisation."""
         import cv2
 
         if self.resize_first and self.scale != 1.0:
             f = np.asarray(frame)
             if f.dtype not in (np.uint8, np.uint16, np.float32):   # what cv2 shrinks as it is
                 f = f.astype(np.float32)
-            z = normalise_frame(cv2.resize(f, self.size, interpolation=cv2.INTER_AREA))
+            z = normalise_frame(cv2.resize(f, self.size, interpolation=cv2.INTER_AREA), exclude)
         else:
-            z = normalise_frame(frame)
+            z = normalise_frame(frame, exclude)
             if self.scale != 1.0:
                 z = cv2.resize(z, self.size, interpolation=cv2.INTER_AREA)
         if self.smooth_px > 0:
