@@ -309,8 +309,14 @@ def test_invalid_samples_are_dropped_but_keep_their_ticks():
     gyro.start()
     chip.invalid_samples = 7                       # the first samples after the gyro powers on
     batches, returned = collect_timed(gyro, 300)
-    assert gyro.stats()["invalid"] == 7 and batches[0].seq == 7
-    assert batches[0].gap_before and batches[0].n_lost == 7 == gyro.stats()["lost"]
+    # a valid sample or two may come first: on a loaded machine the chip samples between the start's
+    # flush and the line above (seen once in a full make test: one, seq 0)
+    gaps = [i for i, b in enumerate(batches) if b.gap_before]
+    assert len(gaps) == 1 and gyro.stats()["invalid"] == 7, (gaps, gyro.stats())
+    g = batches[gaps[0]]
+    before = sum(len(b) for b in batches[:gaps[0]])
+    assert before <= 3 and g.seq == before + 7                  # the invalid ones kept their ticks
+    assert g.n_lost == 7 == gyro.stats()["lost"]
     t, r = cat(batches)
     assert len(t) == sum(len(b) for b in batches) and np.all(r != -np.radians(2000))
     assert np.all(np.diff(t) > 0)
