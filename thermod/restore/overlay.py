@@ -4,7 +4,8 @@ The overlay is printed after the optics: the camera's motion does not blur it, s
 the scene's kernel rings around every stroke, into the scene beside it. The solve sees the frame with
 the overlay filled in from its surroundings (`fill`: local means of the known pixels over the mask
 grown by `GROW_PX`, the encoder's halo around the strokes); the output takes the overlay's own
-pixels back from the input (`keep`). The mask is the one the video import found (`motion/overlay`).
+pixels back from the input (`keep`). The mask is the one the video import found (`motion/overlay`),
+or the one the live video source finds (`VideoGyro.overlay`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ def fill(image: np.ndarray, filled_mask: np.ndarray) -> np.ndarray:
     """`image` (float32) with the pixels of `filled_mask` (uint8, from `grown`) filled from their
     surroundings: each the mean of the known pixels in the smallest box (5, 11, 23, … px) that holds
     at least one, so the fill is as smooth as the scene's blur and has no edge of its own. Only the
-    mask's bounding box is touched (~0.5 ms for a logo on a 640×480 frame; OpenCV's Telea: 6 ms)."""
+    mask's bounding box is touched (its cost against OpenCV's Telea: benchmarks/results/video_motion.md)."""
     import cv2
 
     out = np.array(image, dtype=np.float32, copy=True)
