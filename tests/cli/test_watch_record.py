@@ -254,6 +254,41 @@ def test_watch_summary_of_a_daemon_health_is_short_lines():
 
 
 # ---------------------------------------------------------------------------------------- record
+def test_record_waits_for_the_gyro_that_covers_its_last_frame(pub, tmp_path):
+    """Time up: no frame after the deadline is kept, but the gyro batches trailing the last frame
+    are; a gyro that never catches up costs at most the drain time."""
+    sub = connect(pub, ("raw", "gyro", "health"))
+    img = np.full((H, W), 1000, np.uint16)
+    for k in range(5):
+        pub.publish_raw(img, 10.0 + 0.02 * k, frame_id=k + 1)
+    t = 10.0 + np.arange(40) * 1e-3  # the gyro so far ends 40 ms before the last frame
+
+    def late():
+        time.sleep(0.5)  # after the deadline
+        pub.publish_raw(img, 10.1, frame_id=6)
+        pub.publish_gyro(t[:20] + 0.04, np.zeros((20, 3)), seq=40)
+        pub.publish_gyro(t[:30] + 0.06, np.zeros((30, 3)), seq=60)  # to 10.089: covered
+
+    pub.publish_gyro(t, np.zeros((40, 3)), seq=0)
+    feeder = threading.Thread(target=late)
+    feeder.start()
+    started = time.monotonic()
+    writer = record(sub, 0.3, RecordWriter(tmp_path / "rec.h5"), drain_s=30.0)
+    feeder.join()
+    assert time.monotonic() - started < 10  # it stopped once covered, not at the drain's end
+    assert writer.n_frames == 5 and sum(map(len, writer.gyro_t)) == 90
+    writer.close()
+    sub.close()
+
+    sub = connect(pub, ("raw", "gyro", "health"))
+    pub.publish_raw(img, 20.0, frame_id=1)
+    started = time.monotonic()
+    writer = record(sub, 0.2, RecordWriter(tmp_path / "rec2.h5"), drain_s=0.5)
+    assert 0.6 < time.monotonic() - started < 5 and writer.n_frames == 1
+    writer.close()
+    sub.close()
+
+
 def test_record_real_data_round_trip(pub, shared_data, tmp_path):
     """Real gyro log and real frames through the wire: the recording holds exactly what was sent,
     frames in time order, the lost gyro batch visible as a seq jump, the calibration from health."""

@@ -43,14 +43,19 @@ def add_arguments(p) -> None:
 
 
 def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False,
-           counts: dict | None = None) -> RecordWriter:
+           counts: dict | None = None, drain_s: float = 1.0) -> RecordWriter:
     """Receive into `writer` until `seconds` pass, `stop()` is true or Ctrl-C. `counts`, if given,
     gets ``camera_frames_lost``: the frames the camera lost between two raw frames received (each raw
-    header's ``gap_before``, the first one's left out), which skip frame ids without a message lost."""
+    header's ``gap_before``, the first one's left out), which skip frame ids without a message lost.
+
+    Gyro samples travel in batches that can trail the frames they cover, so when `seconds` pass the
+    recorder takes no more frames but keeps the gyro coming, for at most `drain_s`, until it reaches
+    the last frame kept: every frame recorded has the motion that blurred it."""
     t_end = None if seconds is None else time.monotonic() + seconds
     counts = {} if counts is None else counts
     counts.setdefault("camera_frames_lost", 0)
     first_raw = True
+    last_frame_t = last_gyro_t = -np.inf
     try:
         while not stop() and (t_end is None or time.monotonic() < t_end):
             msg = sub.recv(0.2 if t_end is None else min(0.2, max(0.0, t_end - time.monotonic())))
@@ -60,10 +65,30 @@ def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=la
                     if not first_raw and isinstance(gap, int) and gap > 0:
                         counts["camera_frames_lost"] += gap
                     first_raw = False
+                    last_frame_t = max(last_frame_t, _last_time(msg[1].get("t")))
+                elif msg[0] == "gyro":
+                    last_gyro_t = max(last_gyro_t, _last_time(msg[2]))
+                writer.add(*msg)
+        drain_end = time.monotonic() + drain_s
+        while last_gyro_t < last_frame_t and (now := time.monotonic()) < drain_end:
+            msg = sub.recv(min(0.2, drain_end - now))
+            if msg is not None and msg[0] != "raw":
+                if msg[0] == "gyro":
+                    last_gyro_t = max(last_gyro_t, _last_time(msg[2]))
                 writer.add(*msg)
     except KeyboardInterrupt:
         log.info("interrupted: writing what was received")
     return writer
+
+
+def _last_time(x) -> float:
+    """The last finite time in a raw header's ``t`` or a gyro batch; -inf when there is none."""
+    try:
+        t = np.asarray(x["t"] if isinstance(x, np.ndarray) and x.dtype.names else x, float).ravel()
+    except (TypeError, ValueError, KeyError):
+        return -np.inf
+    t = t[np.isfinite(t)]
+    return float(t.max()) if t.size else -np.inf
 
 
 def run(args) -> int:
