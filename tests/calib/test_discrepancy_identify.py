@@ -107,3 +107,35 @@ def test_the_report_carries_the_correlation_and_sigma_and_writes_no_ambiguous_va
     assert f"readout_s = {nominal.readout_s!r}" in toml
     assert f"time_offset_s = {nominal.time_offset_s!r}" in toml
     assert back["model"]["readout_s"] == nominal.readout_s
+
+
+def test_a_bias_axis_within_its_resolution_is_held_at_nominal_and_said(tmp_path):
+    """A bias about x and y on slow motion: the effect is named, and the z axis, whose joint value lies
+    within its resolution of nominal (~0.9 °/s on this motion), is held there and reported, not written
+    as a measurement (bf42's 3 s flight named 0.20 °/s for a true 0.86)."""
+    nominal = nominal_calibration(SIZE)
+    bias = (0.03, -0.03, 0.0)
+    rec = simulate("texture", _slow(), SECONDS, nominal, {"netd": 0.05, "gyro_bias": bias}, seed=0)
+    problem = D.Problem([D.prepare(rec, nominal, name="flight", work_width=WORK_WIDTH)])
+    model = D.Model(nominal.replace(bias_rad_s=(0.03, -0.03, 0.004)))      # the search's z: off, small
+    problem.refresh(model)
+    ctx = D.StepContext.at(problem, problem.evaluate(model, keep=True), ("gyro_bias",), 0.05)
+    final, ident = identify.check(ctx, model, D.Model(nominal), ["gyro_bias"], 10.0, lambda m: None)
+    assert ident.identified == ["gyro_bias"] and not ident.ambiguous, ident.tests
+    held = {u["param"]: u for u in ident.unresolved}
+    assert set(held) == {"bias_z_rad_s"}, ident.unresolved
+    z = held["bias_z_rad_s"]
+    assert abs(z["joint_value"]) < z["resolution"] and z["sigma"] < z["resolution"]
+    assert final.calib.bias_rad_s[2] == nominal.bias_rad_s[2]
+    assert np.allclose(final.calib.bias_rad_s[:2], bias[:2], atol=0.3 * DEG), final.calib.bias_rad_s
+    # the report and model.toml say so
+    ana = D.Analysis(0.3, 0.09, 0.04, [], False, final, D.Model(nominal))
+    ana.snapshots.append(("nominal", np.zeros((4, 4)), 0.3))
+    ana.gaps.append(("nominal", 0.3, 0.04))
+    ana.identifiability = ident.report()
+    D.write_report(ana, tmp_path, ["flight.h5"], "[calibration]\nwidth = 160\n")
+    toml = (tmp_path / "model.toml").read_text()
+    assert toml.startswith("# gyro_bias: bias_z_rad_s not resolved by this motion"), toml[:200]
+    assert "bias_z_rad_s not resolved" in (tmp_path / "report.md").read_text()
+    assert json.loads((tmp_path / "report.json").read_text())["identifiability"]["unresolved"][0]["param"] \
+        == "bias_z_rad_s"

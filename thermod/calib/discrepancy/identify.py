@@ -79,6 +79,7 @@ class Identifiability:
     identified: list
     ambiguous: list = field(default_factory=list)
     dropped: list = field(default_factory=list)       # failed, and not needed as a set either
+    unresolved: list = field(default_factory=list)    # axes of an identified effect held at nominal
     rule: str = ""
 
     def report(self) -> dict:
@@ -271,13 +272,18 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
                 x_final = fitter.fit(x_final, np.setdiff1d(every, _index(set(dropped))))
         else:
             dropped, x_final = rest, x_rest
+    x_final, unresolved = _hold_unresolved_axes(fitter, ok, x_final, res_u, sd_u, nom, dropped)
+    for u in unresolved:
+        say(f"  {u['effect']} {u['param']}: {u['joint_value']:.4g} is within its resolution "
+            f"±{u['resolution']:.2g} of nominal: held at nominal, not named")
     vals = x_final * UNITS
     ident = Identifiability(
         params=[p[1] for p in PARAMS], values=[float(v + n) for v, n in zip(vals, nom, strict=True)],
         nominal=[float(v) for v in nom], sigma=[float(s) for s in sd_u * UNITS],
         resolution=[float(s) for s in res_u * UNITS],
         correlation=[[round(float(v), 4) for v in row] for row in rho], gap_joint=problem.gap(ssr_joint),
-        tests=tests, identified=ok, ambiguous=ambiguous, dropped=dropped, rule=RULE.format(bic_min=bic_min))
+        tests=tests, identified=ok, ambiguous=ambiguous, dropped=dropped, unresolved=unresolved,
+        rule=RULE.format(bic_min=bic_min))
     final = _make(model, nominal, x_final)
     problem.restore(fitter.saved)
     problem.refresh(final, fpn=ctx.fpn, keep_mask=True, rebuild_scene=True)
@@ -285,12 +291,35 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
     return final, ident
 
 
+def _hold_unresolved_axes(fitter: _Fitter, identified, x, res_u, sd_u, nom, dropped) -> tuple:
+    """An identified effect of several parameters (the bias's three axes) is named axis by axis: an axis
+    whose joint value lies within its resolution of nominal (held there alone, the SSR would rise by
+    less than min_gain: the rule for an effect, per axis) is held at nominal and the rest refitted,
+    unless every axis is (the effect is then resolved only as a whole, and kept). Returns the values
+    and one entry per held axis."""
+    held = []
+    for e in identified:
+        idx = _index({e})
+        weak = [int(i) for i in idx if abs(x[i]) < res_u[i]]
+        if len(idx) > 1 and 0 < len(weak) < len(idx):
+            held += [(e, i) for i in weak]
+    if not held:
+        return x, []
+    out = [{"effect": e, "param": PARAMS[i][1], "joint_value": float(nom[i] + x[i] * UNITS[i]),
+            "resolution": float(res_u[i] * UNITS[i]), "sigma": float(sd_u[i] * UNITS[i])} for e, i in held]
+    x = x.copy()
+    fixed = [i for _, i in held] + list(_index(set(dropped)))
+    x[fixed] = 0.0
+    return fitter.fit(x, np.setdiff1d(np.arange(len(PARAMS)), fixed)), out
+
+
 RULE = ("an effect among time_offset, rolling_readout, gyro_bias, time_constant is named only when, held "
         "at nominal with the other three refitted jointly (projected cost), the SSR rises decisively: "
         "ΔBIC > {bic_min:g} on effective samples for its parameters and by at least min_gain (the forward "
         "model's precision, (½·model_tol)² of the signal), and the joint fit's curvature puts its value "
         "that far from nominal too; effects that fail but are needed as a set "
-        "(the same test for the set) are reported ambiguous, not named")
+        "(the same test for the set) are reported ambiguous, not named; an axis of a named bias within "
+        "its resolution of nominal is held there (not resolved by this motion)")
 
 
 def effect_correlation(rho: np.ndarray, a: str, b: str) -> float:

@@ -234,7 +234,10 @@ def _ambiguous_header(ana: Analysis) -> str:
     """Comment lines for model.toml: which fields stay at the values under test because the flight could
     not tell their effects apart."""
     return "".join(f"# {a['label']}: their fields keep the values under test; to separate them record "
-                   f"{a['separating_motion']}\n" for a in ana.ambiguous)
+                   f"{a['separating_motion']}\n" for a in ana.ambiguous) + "".join(
+        f"# {u['effect']}: {u['param']} not resolved by this motion (joint fit {u['joint_value']:.4g}, "
+        f"resolution ±{u['resolution']:.2g}): it keeps the value under test\n"
+        for u in ana.identifiability.get("unresolved", []))
 
 
 def _identifiability_md(ana: Analysis) -> list[str]:
@@ -258,6 +261,10 @@ def _identifiability_md(ana: Analysis) -> list[str]:
     for e, t in idf["tests"].items():
         md.append(f"| {e} | {t['gap_without']:.4f} | {t['gap_joint']:.4f} | {t['delta_bic']:.1f} | "
                   f"{t['delta_ssr_share']:.2f} | {'identified' if t['identified'] else 'not identified'} |")
+    for u in idf.get("unresolved", []):
+        md += ["", f"**{u['effect']}: {u['param']} not resolved** — its joint value {u['joint_value']:.4g} "
+               f"lies within its resolution ±{u['resolution']:.2g} (σ {u['sigma']:.2g}) of nominal; it is "
+               "held at nominal and the effect is named on its other axes."]
     for a in ana.ambiguous:
         md += ["", f"**{a['label']}** — not named, and model.toml keeps their values under test.", ""]
         md += [f"- {x}" for x in a["evidence"]]
@@ -293,6 +300,8 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
           f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**",
           *[f"- **{a['label']}**: the flight cannot tell these apart (see Identifiability); none is named"
             for a in ana.ambiguous],
+          *[f"- **{u['effect']} {u['param']}**: not resolved by this flight (see Identifiability); it keeps "
+            "the value under test" for u in ana.identifiability.get("unresolved", [])],
           f"- reference: **{ana.reference}** ("
           + ("mean of the static lead-in" if ana.reference == "static" else
              "no static lead-in: a scene canvas estimated by least squares from the moving frames")
