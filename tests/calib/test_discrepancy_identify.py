@@ -26,6 +26,8 @@ from thermod.sim import motion as mo
 from thermod.sim.flight_recordings import nominal_calibration
 from thermod.sim.synth import simulate
 
+pytestmark = pytest.mark.heavy(3)      # CPU minutes on one core (measured 2.9 on a bare clone)
+
 DEG = math.pi / 180
 SIZE, WORK_WIDTH, SECONDS = (160, 120), 80, 0.4
 

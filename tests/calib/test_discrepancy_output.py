@@ -21,6 +21,8 @@ from thermod.io.json_safe import jsonable
 from thermod.runtime import config
 from thermod.sim.flight_recordings import flight_recording, nominal_calibration
 
+pytestmark = pytest.mark.heavy(2)      # CPU minutes on one core (about 1.5 on a bare clone)
+
 
 def _strict(text: str):
     def reject(name):
