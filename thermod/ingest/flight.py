@@ -175,6 +175,8 @@ def import_flight(video_path: str | os.PathLike, log_path: str | os.PathLike, ou
                                              "R_cam_gyro": fine.R_cam_gyro.tolist(),
                                              "gyro_bias_rad_s": fine.bias_rad_s.tolist()}
         unsure = sorted({a["label"] for stretch in ref.ambiguous for a in stretch})
+        unsure += sorted({f"{u['effect']} {u['param']} not resolved" for stretch in ref.identifiability
+                          for u in stretch.get("unresolved", [])})
         say(f"refined on {refine_windows} stretch(es): named {', '.join(sum(ref.named, [])) or 'nothing'}"
             + (f" ({'; '.join(unsure)}: not applied)" if unsure else "") + "; "
             f"offset {offset:+.4f} s, readout {changes['readout_s'] * 1e3:.2f} ms, "
