@@ -9,8 +9,9 @@ wrongly. Logs (../shared/data, SOURCES.md): the Betaflight 2 kHz CSV the search 
 flights from the same start. Hidden: each timing effect alone, and the offset + readout pair.
 
 A truth effect counts as **named** when the search names it within issue 6's tolerance (offset ±1 ms,
-readout ±20 %, bias ±0.3 °/s per axis, τ ±10 %), **ambiguous** when it is in an `ambiguous` entry,
-else **missed**; every named effect that is not hidden is a **wrong name**.
+readout ±20 %, bias ±0.3 °/s on each axis it resolved, τ ±10 %; a bias axis within its resolution of
+nominal is held there and reported `unresolved`, and the verdict says so), **ambiguous** when it is in
+an `ambiguous` entry, else **missed**; every named effect that is not hidden is a **wrong name**.
 
     .venv/bin/python -m benchmarks.bench_discrepancy_confusion [--cases LOG:SECONDS:EFFECT,...]
         [--out benchmarks/results/discrepancy_heldout.md]
