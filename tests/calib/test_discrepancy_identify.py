@@ -142,3 +142,26 @@ def test_a_bias_axis_within_its_resolution_is_held_at_nominal_and_said(tmp_path)
     assert "bias_z_rad_s not resolved" in (tmp_path / "report.md").read_text()
     assert json.loads((tmp_path / "report.json").read_text())["identifiability"]["unresolved"][0]["param"] \
         == "bias_z_rad_s"
+
+
+def test_a_bias_resolved_only_as_a_whole_keeps_every_axis():
+    """Every axis within its own resolution but the effect identified as a whole (the axes trade off):
+    the values are kept, none held; one axis weak among resolved ones: that one held, the rest refitted
+    with it fixed, and a dropped effect stays at nominal through the refit."""
+    class Fitter:                   # the refit's contract: only the free parameters move
+        def fit(self, x, free):
+            self.free = list(free)
+            out = np.array(x, float)
+            out[free] += 0.01
+            return out
+
+    res, sd, nom = np.ones(6), np.full(6, 0.1), np.zeros(6)
+    x = np.array([0.0, 0.0, 0.5, -0.4, 0.3, 0.0])          # bias axes 2–4, each within its resolution 1
+    kept, held = identify._hold_unresolved_axes(Fitter(), ["gyro_bias"], x, res, sd, nom, [])
+    assert held == [] and np.array_equal(kept, x)
+    x = np.array([0.0, 0.0, 2.0, -1.5, 0.3, 0.0])          # z weak, x and y resolved
+    f = Fitter()
+    kept, held = identify._hold_unresolved_axes(f, ["gyro_bias"], x, res, sd, nom, ["rolling_readout"])
+    assert [h["param"] for h in held] == ["bias_z_rad_s"] and held[0]["joint_value"] == pytest.approx(
+        0.3 * identify.UNITS[4])
+    assert kept[4] == 0.0 and kept[1] == 0.0 and 4 not in f.free and 1 not in f.free and 2 in f.free
