@@ -39,6 +39,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parents[1]
 import numpy as np  # noqa: E402
 
 from thermod.calib import discrepancy as D  # noqa: E402
+from thermod.calib.discrepancy import identify  # noqa: E402
 from thermod.sim.flight_recordings import flight_recording  # noqa: E402
 from thermod.sim.scenes import shared_data_dir  # noqa: E402
 
@@ -72,7 +73,7 @@ def within(effect: str, c, t, unresolved=()) -> bool:
     if effect == "rolling_readout":
         return abs(c.readout_s - t.readout_s) < 0.2 * t.readout_s
     if effect == "gyro_bias":
-        names = ("bias_x_rad_s", "bias_y_rad_s", "bias_z_rad_s")
+        names = [label for effect, label, _ in identify.PARAMS if effect == "gyro_bias"]
         axes = [i for i, p in enumerate(names) if p not in unresolved]
         return bool(np.all(np.abs(np.subtract(c.bias_rad_s, t.bias_rad_s))[axes] < 0.3 * DEG))
     if effect == "time_constant":

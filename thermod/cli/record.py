@@ -55,37 +55,40 @@ def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=la
     counts = {} if counts is None else counts
     counts.setdefault("camera_frames_lost", 0)
     first_raw = True
-    last_frame_t = last_gyro_t = -np.inf
+    newest = {"raw": -np.inf, "gyro": -np.inf}      # the newest frame time and gyro sample time kept
+
+    def take(msg) -> None:
+        nonlocal first_raw
+        topic, header, array = msg
+        if topic == "raw":
+            gap = header.get("gap_before", 0)
+            if not first_raw and isinstance(gap, int) and gap > 0:
+                counts["camera_frames_lost"] += gap
+            first_raw = False
+        if topic in newest:
+            newest[topic] = max(newest[topic], _newest(header.get("t") if topic == "raw" else array["t"]))
+        writer.add(*msg)
+
     try:
         while not stop() and (t_end is None or time.monotonic() < t_end):
             msg = sub.recv(0.2 if t_end is None else min(0.2, max(0.0, t_end - time.monotonic())))
             if msg is not None:
-                if msg[0] == "raw":
-                    gap = msg[1].get("gap_before", 0)
-                    if not first_raw and isinstance(gap, int) and gap > 0:
-                        counts["camera_frames_lost"] += gap
-                    first_raw = False
-                    last_frame_t = max(last_frame_t, _last_time(msg[1].get("t")))
-                elif msg[0] == "gyro":
-                    last_gyro_t = max(last_gyro_t, _last_time(msg[2]))
-                writer.add(*msg)
+                take(msg)
         drain_end = time.monotonic() + drain_s
-        while last_gyro_t < last_frame_t and (now := time.monotonic()) < drain_end:
+        while newest["gyro"] < newest["raw"] and (now := time.monotonic()) < drain_end:
             msg = sub.recv(min(0.2, drain_end - now))
             if msg is not None and msg[0] != "raw":
-                if msg[0] == "gyro":
-                    last_gyro_t = max(last_gyro_t, _last_time(msg[2]))
-                writer.add(*msg)
+                take(msg)
     except KeyboardInterrupt:
         log.info("interrupted: writing what was received")
     return writer
 
 
-def _last_time(x) -> float:
-    """The last finite time in a raw header's ``t`` or a gyro batch; -inf when there is none."""
+def _newest(t) -> float:
+    """The latest finite time among `t` (a header's time or a batch's times); -inf when there is none."""
     try:
-        t = np.asarray(x["t"] if isinstance(x, np.ndarray) and x.dtype.names else x, float).ravel()
-    except (TypeError, ValueError, KeyError):
+        t = np.asarray(t, float).ravel()
+    except (TypeError, ValueError):
         return -np.inf
     t = t[np.isfinite(t)]
     return float(t.max()) if t.size else -np.inf
