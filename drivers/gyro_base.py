@@ -267,14 +267,15 @@ class FifoGyro(GyroSource):
     def _mark_gap(self, t_now: float, uncertainty_s: float = 0.0) -> None:
         # every sample between the newest one handed out and now is gone; the count is estimated
         # from host time (± `uncertainty_s`, counted in `lost_uncertainty`), so the counter-to-time
-        # fit restarts (keeping its drift)
+        # fit restarts (keeping its drift), anchored at the flush: the last sample counted as lost was
+        # taken by `t_now`, and the next read may come late
         n = max(0, int(round((t_now - self._t_last) * self.rate_hz)))
         self._stats["lost_uncertainty"] += int(math.ceil(uncertainty_s * self.rate_hz))
         self._seq += n
         self._t_last = t_now
         self._gap_pending = True
         self._lost_pending += n
-        self.clock.restart()
+        self.clock.restart(anchor=(self._seq - 1, t_now))
 
     def _read_once(self) -> GyroBatch | None:
         if self._needs_recovery:

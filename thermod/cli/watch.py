@@ -70,6 +70,7 @@ class WatchStats:
         self.raw = 0
         self.gyro_samples = 0
         self.gyro_t = [np.inf, -np.inf]
+        self.gyro_seq = [None, None]           # device index of the first sample seen, one past the last
         self.gyro_gap_batches = 0
         self.gyro_lost = 0
         self.health: dict | None = None
@@ -97,6 +98,11 @@ class WatchStats:
             self.gyro_samples += n
             if n:
                 self.gyro_t = [min(self.gyro_t[0], float(array["t"][0])), max(self.gyro_t[1], header["t"])]
+                if "sample_seq" in header:
+                    first, end = int(header["sample_seq"]), int(header["sample_seq"]) + n
+                    lo, hi = self.gyro_seq
+                    self.gyro_seq = [first if lo is None else min(lo, first),
+                                     end if hi is None else max(hi, end)]
             self.gyro_gap_batches += bool(header.get("gap_before"))
             self.gyro_lost += int(header.get("n_lost") or 0)
         elif topic == "health":
@@ -106,6 +112,10 @@ class WatchStats:
         t0, t1 = self.frame_t
         fps = (self.frames - 1) / (t1 - t0) if self.frames > 1 and t1 > t0 else float("nan")
         span = self.gyro_t[1] - self.gyro_t[0]
+        lo, hi = self.gyro_seq
+        # the device's sample rate on the host clock: its sample indices count the samples lost at
+        # the device or on the way, so this is the clock mapping's rate, whatever was lost
+        device_hz = (hi - lo - 1) / span if lo is not None and hi - lo > 1 and span > 0 else float("nan")
         return {
             "frames": self.frames,
             "fps": fps,
@@ -116,6 +126,7 @@ class WatchStats:
             "latency_receive_ms": _percentiles(self.lat_receive),
             "raw": self.raw,
             "gyro_hz": (self.gyro_samples - 1) / span if self.gyro_samples > 1 and span > 0 else float("nan"),
+            "gyro_device_hz": device_hz,
             "gyro_gap_batches": self.gyro_gap_batches,
             "gyro_samples_lost": self.gyro_lost,
             "lost_messages": dict(gaps or {}),
@@ -131,8 +142,9 @@ class WatchStats:
             "  published−t " + "".join(f"{lp[k]:9.2f}" for k in ("p50", "p95", "p99", "max")),
             "  received−t  " + "".join(f"{lr[k]:9.2f}" for k in ("p50", "p95", "p99", "max")),
             f"raw frames   {s['raw']:>8d}",
-            f"gyro         {self.gyro_samples:>8d} samples {s['gyro_hz']:9.1f} Hz   gap batches "
-            f"{s['gyro_gap_batches']}   samples lost {s['gyro_samples_lost']}",
+            f"gyro         {self.gyro_samples:>8d} samples {s['gyro_hz']:9.1f} Hz (device "
+            f"{s['gyro_device_hz']:.1f} Hz)   gap batches {s['gyro_gap_batches']}   samples lost "
+            f"{s['gyro_samples_lost']}",
             "lost msgs    " + (", ".join(f"{k} {v}" for k, v in sorted(s["lost_messages"].items()) if v)
                                or "none"),
         ]

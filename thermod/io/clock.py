@@ -157,10 +157,17 @@ class ClockMapper:
         self._add(ticks, t)
         return False
 
-    def restart(self) -> None:
+    def restart(self, anchor: tuple[int, float] | None = None) -> None:
         """Forget the offset (keep the drift): the driver knows the counter lost continuity, e.g. after
-        a FIFO flush whose lost sample count is only estimated. Not counted in ``resets``."""
+        a FIFO flush whose lost sample count is only estimated. Not counted in ``resets``.
+
+        ``anchor`` (ticks, host time) starts the new fit at a point the driver knows, such as the
+        flush itself: the first read after a FIFO overflow is often a late one (the reader was
+        starved, which is why the FIFO overflowed), and a fit started on it times the samples
+        after the gap late by that read's delay until a timely read lowers the line."""
         self._clear()
+        if anchor is not None:
+            self._start(int(anchor[0]), float(anchor[1]))
 
     def _start(self, ticks: int, t: float) -> None:
         self._ref = ticks
