@@ -11,7 +11,9 @@ flights from the same start. Hidden: each timing effect alone, and the offset + 
 A truth effect counts as **named** when the search names it within issue 6's tolerance (offset ±1 ms,
 readout ±20 %, bias ±0.3 °/s on each axis it resolved, τ ±10 %; a bias axis within its resolution of
 nominal is held there and reported `unresolved`, and the verdict says so), **ambiguous** when it is in
-an `ambiguous` entry, else **missed**; every named effect that is not hidden is a **wrong name**.
+an `ambiguous` entry, **below resolution** when the report says what the flight resolves and the hidden
+change lies within it on every parameter (no naming rule could name it from this motion), else
+**missed**; every named effect that is not hidden is a **wrong name**.
 
     .venv/bin/python -m benchmarks.bench_discrepancy_confusion [--cases LOG:SECONDS:EFFECT,...]
         [--out benchmarks/results/discrepancy_heldout.md]
@@ -90,10 +92,16 @@ def run_case(name: str, data: Path) -> dict:
     d = D.prepare(fr.rec, fr.nominal, name=name, work_width=WORK_WIDTH)
     ana = D.analyse([d], D.Model(fr.nominal))
     hidden = effect.split("+")
-    c, t = ana.model.calib, fr.truth
+    c, t, c_nom = ana.model.calib, fr.truth, fr.nominal
     ident = ana.identifiability
     rho = ident.get("correlation")
     unresolved = [u["param"] for u in ident.get("unresolved", [])]
+    # what the report says the flight resolves: the identifiability check's, else the one at the final model
+    res = (dict(zip(ident["params"], ident["resolution"], strict=True)) if ident else
+           {k: v["resolution"] for k, v in ana.resolution.items()})
+    change = dict(zip([p[1] for p in identify.PARAMS], np.abs(np.subtract(
+        [t.time_offset_s, t.readout_s, *t.bias_rad_s, t.tau_s],
+        [c_nom.time_offset_s, c_nom.readout_s, *c_nom.bias_rad_s, c_nom.tau_s])).tolist(), strict=True))
     return {
         "case": name, "hidden": hidden, "named": ana.named, "ambiguous": ana.ambiguous_effects,
         "ambiguous_labels": [a["label"] for a in ana.ambiguous],
@@ -101,7 +109,10 @@ def run_case(name: str, data: Path) -> dict:
         "within": {h: within(h, c, t, unresolved) for h in hidden if h in ana.named},
         "unresolved": unresolved,
         "sigma": dict(zip(ident["params"], ident["sigma"], strict=True)) if ident else None,
-        "resolution": dict(zip(ident["params"], ident["resolution"], strict=True)) if ident else None,
+        "resolution": res or None,
+        "said_resolution": bool(res),
+        "below_resolution": {h: bool(res) and all(change[p[1]] < res[p[1]] for p in identify.PARAMS
+                                                  if p[0] == h and change[p[1]] > 0) for h in hidden},
         "values": {"time_offset_ms": 1e3 * c.time_offset_s, "readout_ms": 1e3 * c.readout_s,
                    "bias_deg_s": [v / DEG for v in c.bias_rad_s], "tau_ms": 1e3 * c.tau_s},
         "sigma_readout_ms": 1e3 * ident["sigma"][1] if ident else None,
@@ -121,6 +132,8 @@ def verdict(r: dict) -> dict:
                 f" ({held} not resolved: held at nominal)" if held and h == "gyro_bias" else "")
         elif h in r["ambiguous"]:
             out[h] = "ambiguous"
+        elif r.get("below_resolution", {}).get(h):
+            out[h] = "below resolution"
         else:
             out[h] = "missed"
     return out
@@ -146,7 +159,7 @@ CASE_HEADER = ["| case (log:s:hidden) | named | ambiguous | wrong names | verdic
                "ρ(offset, readout) | readout σ / resolution (ms) | gap → final (floor) | unexplained "
                "| CPU s |",
                "|---|---|---|---|---|---|---:|---:|---|---|---:|"]
-COLUMNS = (*TIMING, "other", "ambiguous", "nothing")
+COLUMNS = (*TIMING, "other", "ambiguous", "below resolution", "nothing")
 
 
 def confusion(results: list[dict]) -> list[str]:
@@ -163,7 +176,7 @@ def confusion(results: list[dict]) -> list[str]:
             for r in rs:
                 cells = dict.fromkeys(COLUMNS, 0)
                 for h, what in verdict(r).items():
-                    col = "ambiguous" if what == "ambiguous" else "nothing"
+                    col = what if what in ("ambiguous", "below resolution") else "nothing"
                     cells[h if what.startswith("named") else col] += 1
                 for w in r["wrong"]:
                     cells[w if w in TIMING else "other"] += 1
@@ -172,26 +185,31 @@ def confusion(results: list[dict]) -> list[str]:
     return lines
 
 
-def totals(results: list[dict]) -> tuple[int, int, int, int]:
-    """(wrong names, hidden effects named in tolerance, ambiguous, missed or out of tolerance)."""
+def totals(results: list[dict]) -> tuple[int, int, int, int, int]:
+    """(wrong names, hidden effects named in tolerance, ambiguous, below resolution, missed or out of
+    tolerance)."""
     wrong = sum(len(r["wrong"]) for r in results)
     v = [x for r in results for x in verdict(r).values()]
     named = sum(x == "named" or x.startswith("named (") for x in v)
-    return wrong, named, v.count("ambiguous"), len(v) - named - v.count("ambiguous")
+    amb, below = v.count("ambiguous"), v.count("below resolution")
+    return wrong, named, amb, below, len(v) - named - amb - below
 
 
 def write(out: Path, results: list[dict]) -> None:
-    wrong, named, amb, missed = totals(results)
+    wrong, named, amb, below, missed = totals(results)
+    n = named + amb + below + missed
     done = {r["case"] for r in results}
     todo = [n for n in case_names() if n not in done]
     body = [SECTION, "",
             f"<!-- summary: motion-only discrepancy on flights from three real logs (0.8 s and 3 s, roll, "
             f"640×480), each timing effect alone and the offset + readout pair | {wrong} wrong names; "
-            f"{named} named, {amb} ambiguous, {missed} missed of {named + amb + missed} hidden effects "
+            f"{named} named, {amb} ambiguous, {below} below the flight's resolution, {missed} missed of {n} "
+            f"hidden effects "
             f"({len(results)} of {len(case_names())} cases) | 0 wrong names -->", "",
             __doc__.split("\n\n")[1].replace("\n", " "), "",
-            f"Totals: **{wrong} wrong names**; of {named + amb + missed} hidden effects {named} named within "
-            f"tolerance, {amb} reported ambiguous, {missed} missed or out of tolerance.", ""]
+            f"Totals: **{wrong} wrong names**; of {n} hidden effects {named} named within tolerance, {amb} "
+            f"reported ambiguous, {below} below the resolution the report states, {missed} missed or out "
+            "of tolerance.", ""]
     body += CASE_HEADER + [row(r) for r in results]
     body += confusion(results)
     body += ["", "Command (each case also alone: `--cases bf42:0.8:rolling_readout`):",
@@ -240,8 +258,8 @@ def main(argv=None) -> int:
     order = {n: i for i, n in enumerate(case_names())}
     results = sorted(load(), key=lambda x: order.get(x["case"], 1 << 30))
     print("\n".join(confusion(results)))
-    wrong, named, amb, missed = totals(results)
-    print(f"\n{wrong} wrong names; {named} named, {amb} ambiguous, {missed} missed")
+    wrong, named, amb, below, missed = totals(results)
+    print(f"\n{wrong} wrong names; {named} named, {amb} ambiguous, {below} below resolution, {missed} missed")
     if args.out:
         write(Path(args.out), results)
     return 1 if wrong else 0

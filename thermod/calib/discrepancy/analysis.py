@@ -12,7 +12,14 @@ import numpy as np
 from thermod.calib.discrepancy import identify
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.diagnostics import diagnostics, pooled_response_signature, response_signature
-from thermod.calib.discrepancy.effects import CANDIDATES, EFFECTS, Effect, FitResult, format_params
+from thermod.calib.discrepancy.effects import (
+    CANDIDATES,
+    EFFECTS,
+    Effect,
+    FitResult,
+    format_params,
+    format_resolution,
+)
 from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
 from thermod.io.json_safe import jsonable
@@ -86,6 +93,9 @@ class Analysis:
     response_signature_pooled_z: float = 0.0
     identifiability: dict = field(default_factory=dict)   # `identify.Identifiability.report()`, if run
     ambiguous: list = field(default_factory=list)          # its ambiguous entries (none named)
+    # motion only, when the identifiability check did not run: what the recording resolves of the
+    # timing effects at the final model (`identify.resolution_at`); a change within it cannot be named
+    resolution: dict = field(default_factory=dict)
 
     @property
     def named(self) -> list[str]:
@@ -116,6 +126,7 @@ class Analysis:
             "response_signature_gain": self.response_signature_gain,
             "response_signature_pooled_z": self.response_signature_pooled_z,
             "ambiguous": self.ambiguous, "identifiability": self.identifiability,
+            "resolution": self.resolution,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -400,6 +411,12 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         ev = problem.evaluate(model, keep=True)
     if identifiability and problem.has_motion_reference and set(ana.named) & identify.TRIGGERS:
         model = _identify(StepContext.at(problem, ev, ana.named, model_tol, fpn), model, crit, ana, say)
+        ev = problem.evaluate(model, keep=True)
+    if problem.has_motion_reference and not ana.identifiability:
+        say("what this recording resolves of the timing effects (smaller changes cannot be named):")
+        ana.resolution = identify.resolution_at(StepContext.at(problem, ev, ana.named, model_tol, fpn),
+                                                model, ana.nominal)
+        say("  " + format_resolution(ana.resolution))
         ev = problem.evaluate(model, keep=True)
     ana.finish(model, problem, ev, crit, time.monotonic() - t_start)
     for a in ana.ambiguous:

@@ -602,6 +602,16 @@ if set(EFFECTS) - set(VOCABULARY):        # one vocabulary: every candidate is a
 CANDIDATES = tuple(EFFECTS)
 
 
+def format_resolution(resolution: dict) -> str:
+    """'time_offset ±0.4 ms, …, gyro_bias ±(0.1, 0.2, 0.9) °/s, …' of `Analysis.resolution`."""
+    by: dict[str, list] = {}
+    for v in resolution.values():
+        by.setdefault(v["effect"], []).append(v["resolution"])
+    return ", ".join(
+        f"{e} ±({', '.join(f'{math.degrees(r):.2g}' for r in rs)}) °/s" if e == "gyro_bias"
+        else f"{e} ±{1e3 * rs[0]:.2g} ms" for e, rs in by.items())
+
+
 def format_params(p: dict) -> str:
     """An effect's parameters on one line, four significant digits each ("n/a" for a missing value)."""
     def num(x) -> str:

@@ -204,23 +204,7 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
     ssr_joint = fitter.ssr(x_joint)
     say(f"  joint fit of {', '.join(CONFOUNDED)}: gap {problem.gap(ssr_joint):.4f}")
 
-    # curvature at the joint optimum (projected: what the canvas can take is no information)
-    m_joint = _make(model, nominal, x_joint)
-    ev = problem.evaluate(m_joint, keep=True)
-    lo, hi = _bounds(nominal)
-    J, r, _ = projected_jacobian(problem, lambda x: _make(model, nominal, x), x_joint, ev, 0.5, lo, hi,
-                                 problem.scene_iters)
-    # one independent sample's variance: the residual's (or the noise's, if lower) per pixel, times the
-    # pixels per independent sample
-    s2 = max(ev.ssr, problem.noise_ss()) / max(ev.n, 1) * effective_area(ev.residuals)
-    info_inv = np.linalg.pinv(J.T @ J)
-    cov_u = s2 * info_inv
-    sd_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
-    # a parameter moved by its resolution, the others refitted, raises the SSR by min_gain
-    res_u = np.sqrt(np.maximum(np.diag(info_inv), 0.0) * ctx.min_gain)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.nan_to_num(cov_u / np.outer(sd_u, sd_u))
-    np.fill_diagonal(rho, 1.0)
+    info_inv, sd_u, res_u, rho = _curvature(ctx, model, nominal, x_joint)
 
     c0 = nominal.calib
     nom = np.array([c0.time_offset_s, c0.readout_s, *c0.bias_rad_s, c0.tau_s], float)
@@ -289,6 +273,37 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
     problem.refresh(final, fpn=ctx.fpn, keep_mask=True, rebuild_scene=True)
     problem.refresh(final, fpn=ctx.fpn, keep_mask=True)
     return final, ident
+
+
+def _curvature(ctx: StepContext, model: Model, nominal: Model, x: np.ndarray) -> tuple:
+    """(J⁺J⁻¹, σ, resolution, ρ) of the parameters at `x` (units of `UNITS`), from the projected
+    Jacobian (what the canvas can take is no information). σ: one independent sample's variance (the
+    residual's, or the noise's if lower, per pixel, times the pixels per independent sample) through the
+    inverse curvature; resolution: the move that, the others refitted, raises the SSR by min_gain."""
+    problem = ctx.problem
+    ev = problem.evaluate(_make(model, nominal, x), keep=True)
+    lo, hi = _bounds(nominal)
+    J, _, _ = projected_jacobian(problem, lambda v: _make(model, nominal, v), x, ev, 0.5, lo, hi,
+                                 problem.scene_iters)
+    s2 = max(ev.ssr, problem.noise_ss()) / max(ev.n, 1) * effective_area(ev.residuals)
+    info_inv = np.linalg.pinv(J.T @ J)
+    cov_u = s2 * info_inv
+    sd_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
+    res_u = np.sqrt(np.maximum(np.diag(info_inv), 0.0) * ctx.min_gain)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.nan_to_num(cov_u / np.outer(sd_u, sd_u))
+    np.fill_diagonal(rho, 1.0)
+    return info_inv, sd_u, res_u, rho
+
+
+def resolution_at(ctx: StepContext, model: Model, nominal: Model) -> dict:
+    """What the recording resolves at `model`: per parameter of the four effects, the smallest change
+    from it that the naming rule could name (the SSR rises by min_gain, the others refitted) and its
+    1σ, in physical units. A change within its resolution is below what this motion can tell."""
+    x = _x_of(model, nominal)
+    _, sd_u, res_u, _ = _curvature(ctx, model, nominal, x)
+    return {p[1]: {"effect": p[0], "resolution": float(r * p[2]), "sigma": float(sd * p[2])}
+            for p, r, sd in zip(PARAMS, res_u, sd_u, strict=True)}
 
 
 def _hold_unresolved_axes(fitter: _Fitter, identified, x, res_u, sd_u, nom, dropped) -> tuple:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from thermod.calib.discrepancy.effects import format_params
+from thermod.calib.discrepancy.effects import format_params, format_resolution
 from thermod.errors import ConfigError
 from thermod.io.json_safe import jsonable
 from thermod.physics.calibration import Calibration
@@ -302,6 +302,9 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
             for a in ana.ambiguous],
           *[f"- **{u['effect']} {u['param']}**: not resolved by this flight (see Identifiability); it keeps "
             "the value under test" for u in ana.identifiability.get("unresolved", [])],
+          *([f"- resolution of this flight: a timing effect smaller than {format_resolution(ana.resolution)} "
+             "(its change from the model; the others refitted) cannot be named from this motion"]
+            if ana.resolution else []),
           f"- reference: **{ana.reference}** ("
           + ("mean of the static lead-in" if ana.reference == "static" else
              "no static lead-in: a scene canvas estimated by least squares from the moving frames")
