@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from thermod.calib.discrepancy import identify
@@ -49,11 +50,17 @@ def test_clean_flight_recording_adds_nothing():
     # Nothing named, so the report says what the flight resolves: each timing parameter's smallest
     # change the naming rule could name. A 6 ms offset moves this flight's image 0.33 px RMS (module
     # docstring): measured ±5.1 ms for the offset, ±4.8 ms for τ, 0.08–0.64 °/s for the bias axes.
-    res = {k: v["resolution"] for k, v in ana.resolution.items()}
+    res = {k: v["resolution"] for k, v in ana.resolution["parameters"].items()}
     assert set(res) == {p[1] for p in identify.PARAMS}
     assert 2e-3 < res["time_offset_s"] < 1e-2 and 2e-3 < res["tau_s"] < 1e-2
     assert all(0.01 < math.degrees(res[f"bias_{a}_rad_s"]) < 2.0 for a in "xyz")
-    assert all(0 < v["sigma"] < v["resolution"] for v in ana.resolution.values())
+    assert all(0 < v["sigma"] < v["resolution"] for v in ana.resolution["parameters"].values())
+    # the curvature in units of min_gain: a change of one parameter alone (the others held) rises at
+    # least as fast as one the others may absorb
+    rise = np.array(ana.resolution["rise"])
+    assert np.allclose(rise, rise.T, rtol=1e-6, atol=0)
+    assert np.all(np.linalg.eigvalsh(rise) > -1e-9 * rise.max())
+    assert all(rise[i, i] * r ** 2 >= 1 - 1e-6 for i, r in enumerate(res[p[1]] for p in identify.PARAMS))
     assert ana.report()["resolution"] == ana.resolution
     md = _markdown(ana, ["clean.h5"], [])
     offset_ms = 1e3 * res["time_offset_s"]

@@ -605,7 +605,7 @@ CANDIDATES = tuple(EFFECTS)
 def format_resolution(resolution: dict) -> str:
     """'time_offset ±0.4 ms, …, gyro_bias ±(0.1, 0.2, 0.9) °/s, …' of `Analysis.resolution`."""
     by: dict[str, list] = {}
-    for v in resolution.values():
+    for v in resolution["parameters"].values():
         by.setdefault(v["effect"], []).append(v["resolution"])
     return ", ".join(
         f"{e} ±({', '.join(f'{math.degrees(r):.2g}' for r in rs)}) °/s" if e == "gyro_bias"

@@ -297,13 +297,17 @@ def _curvature(ctx: StepContext, model: Model, nominal: Model, x: np.ndarray) ->
 
 
 def resolution_at(ctx: StepContext, model: Model, nominal: Model) -> dict:
-    """What the recording resolves at `model`: per parameter of the four effects, the smallest change
-    from it that the naming rule could name (the SSR rises by min_gain, the others refitted) and its
-    1σ, in physical units. A change within its resolution is below what this motion can tell."""
+    """What the recording resolves at `model`, in physical units: ``parameters`` holds, per parameter of
+    the four effects, its resolution (the smallest change from the model that the naming rule could
+    name: the SSR rises by min_gain, the others refitted) and 1σ; ``rise`` [6, 6] is the curvature in
+    units of min_gain, so a change Δ of all six raises the SSR by about Δᵀ·rise·Δ·min_gain. A change
+    whose rise is below 1 is below what this motion can tell, whatever fit is tried."""
     x = _x_of(model, nominal)
-    _, sd_u, res_u, _ = _curvature(ctx, model, nominal, x)
-    return {p[1]: {"effect": p[0], "resolution": float(r * p[2]), "sigma": float(sd * p[2])}
-            for p, r, sd in zip(PARAMS, res_u, sd_u, strict=True)}
+    info_inv, sd_u, res_u, _ = _curvature(ctx, model, nominal, x)
+    rise = np.linalg.pinv(info_inv) / max(ctx.min_gain, 1e-30) / np.outer(UNITS, UNITS)
+    return {"parameters": {p[1]: {"effect": p[0], "resolution": float(r * p[2]), "sigma": float(sd * p[2])}
+                           for p, r, sd in zip(PARAMS, res_u, sd_u, strict=True)},
+            "rise": [[float(v) for v in row] for row in rise]}
 
 
 def _hold_unresolved_axes(fitter: _Fitter, identified, x, res_u, sd_u, nom, dropped) -> tuple:
