@@ -123,6 +123,10 @@ def test_a_logo_in_the_stream_is_kept_out_of_the_solve():
     # 295 deblurred (before the normalisation left it out, its strokes set the 99 % level: 121, 200)
     assert pc["overlay_kept"] > 0.8 * pc["frames_in"] and pc["deblurred"] > 0.8 * pc["frames_in"], pc
     shares = [share for deblurred, share in seen if deblurred]
-    # solved as scene (before the overlay is found), a stroke's pixel is never its printed level; kept
-    # out, those the mask covers are (0.72 of them here)
-    assert len(shares) > 20 and shares[0] == 0.0 and np.median(shares[-20:]) > 0.6, shares
+    # solved as scene (the frames scheduled before the overlay was found, the first ones: once found it
+    # stays), a stroke's pixel is never its printed level; kept out, those the mask covers are (0.72 of
+    # them here). On a loaded host the frames before it may all pass through (the first deblurred frame
+    # of a bare clone's suite kept it out already)
+    before = pc["frames_in"] - pc["overlay_kept"]
+    assert all(share == 0.0 for deblurred, share in seen[:before] if deblurred), seen[:before]
+    assert len(shares) > 20 and np.median(shares[-20:]) > 0.6, shares
