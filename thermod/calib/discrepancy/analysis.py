@@ -93,8 +93,8 @@ class Analysis:
     response_signature_pooled_z: float = 0.0
     identifiability: dict = field(default_factory=dict)   # `identify.Identifiability.report()`, if run
     ambiguous: list = field(default_factory=list)          # its ambiguous entries (none named)
-    # motion only, when the identifiability check did not run: what the recording resolves of the
-    # timing effects at the final model (`identify.resolution_at`); a change within it cannot be named
+    # motion only, when no timing effect was named or found ambiguous: what the recording resolves of
+    # them at the final model (`identify.resolution_at`); a change within it cannot be named
     resolution: dict = field(default_factory=dict)
 
     @property
@@ -376,7 +376,9 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         f"{sum(len(d.frame_t) for d in recs)} motion frames at {recs[0].fm.w}×{recs[0].fm.h}")
     ana.snapshot("nominal", problem, ev)
     ctx = None
+    searched = False
     while remaining and len(ana.steps) < max_steps and crit.worth_searching(problem, ev.ssr):
+        searched = True
         ctx = StepContext.at(problem, ev, ana.named, model_tol, fpn)
         chosen = _search_step(ctx, model, ev, remaining, crit, ana, say)
         if chosen is None:
@@ -409,10 +411,18 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         model = _refit(ctx, model, [EFFECTS[n] for n in ana.named], fpn, ana.nominal, say)
         model = _prune(ctx, model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
-    if identifiability and problem.has_motion_reference and set(ana.named) & identify.TRIGGERS:
+    # a residual worth a search, not beyond the model's precision, and no timing effect named: a pair
+    # whose effects cancel one at a time (an offset of −readout/2) escapes the greedy search, not the
+    # joint fit
+    missed_timing = (searched and not set(ana.named) & set(identify.CONFOUNDED)
+                     and not crit.unexplained(problem, ev.ssr))
+    if identifiability and problem.has_motion_reference and (set(ana.named) & identify.TRIGGERS
+                                                              or missed_timing):
+        if missed_timing:
+            say("the search named no timing effect over a residual worth one: the four fitted jointly")
         model = _identify(StepContext.at(problem, ev, ana.named, model_tol, fpn), model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
-    if problem.has_motion_reference and not ana.identifiability:
+    if problem.has_motion_reference and not set(ana.named) & set(identify.CONFOUNDED) and not ana.ambiguous:
         say("what this recording resolves of the timing effects (smaller changes cannot be named):")
         ana.resolution = identify.resolution_at(StepContext.at(problem, ev, ana.named, model_tol, fpn),
                                                 model, ana.nominal)

@@ -270,6 +270,8 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
         rule=RULE.format(bic_min=bic_min))
     final = _make(model, nominal, x_final)
     problem.restore(fitter.saved)
+    if np.array_equal(x_final, _x_of(model, nominal)):
+        return model, ident              # nothing moved: the search's own canvas stands
     problem.refresh(final, fpn=ctx.fpn, keep_mask=True, rebuild_scene=True)
     problem.refresh(final, fpn=ctx.fpn, keep_mask=True)
     return final, ident
