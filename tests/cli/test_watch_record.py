@@ -251,6 +251,11 @@ def test_watch_gyro_rates_with_samples_lost_at_the_device():
     assert s["gyro_hz"] == pytest.approx(299 / 0.499)
     assert s["gyro_samples_lost"] == 200 and s["gyro_gap_batches"] == 1
     assert "(device 1000.0 Hz)" in st.format()
+    # a restarted device numbers its samples from 0 again: a new run of indices, not a negative span
+    arr = np.zeros(100, [("t", "<f8"), ("rate", "<f4", (3,))])
+    arr["t"] = 5.5 + np.arange(100) * 1e-3
+    st.add("gyro", {"t": float(arr["t"][-1]), "sample_seq": 0, "gap_before": True, "n_lost": 0}, arr)
+    assert st.summary()["gyro_device_hz"] == pytest.approx((500 + 100 - 1) / 0.599)
 
 
 def test_watch_summary_of_a_daemon_health_is_short_lines():

@@ -70,7 +70,8 @@ class WatchStats:
         self.raw = 0
         self.gyro_samples = 0
         self.gyro_t = [np.inf, -np.inf]
-        self.gyro_seq = [None, None]           # device index of the first sample seen, one past the last
+        self.gyro_indices = 0                  # device sample indices the batches span, skipped ones included
+        self._gyro_seq_end: int | None = None  # one past the newest batch's last index
         self.gyro_gap_batches = 0
         self.gyro_lost = 0
         self.health: dict | None = None
@@ -99,10 +100,11 @@ class WatchStats:
             if n:
                 self.gyro_t = [min(self.gyro_t[0], float(array["t"][0])), max(self.gyro_t[1], header["t"])]
                 if "sample_seq" in header:
-                    first, end = int(header["sample_seq"]), int(header["sample_seq"]) + n
-                    lo, hi = self.gyro_seq
-                    self.gyro_seq = [first if lo is None else min(lo, first),
-                                     end if hi is None else max(hi, end)]
+                    first, last = int(header["sample_seq"]), self._gyro_seq_end
+                    # indices skipped since the last batch were samples lost; indices going back mean a
+                    # restarted device (a reload): a new run of indices starts there
+                    self.gyro_indices += n if last is None or first < last else first + n - last
+                    self._gyro_seq_end = first + n
             self.gyro_gap_batches += bool(header.get("gap_before"))
             self.gyro_lost += int(header.get("n_lost") or 0)
         elif topic == "health":
@@ -112,10 +114,10 @@ class WatchStats:
         t0, t1 = self.frame_t
         fps = (self.frames - 1) / (t1 - t0) if self.frames > 1 and t1 > t0 else float("nan")
         span = self.gyro_t[1] - self.gyro_t[0]
-        lo, hi = self.gyro_seq
         # the device's sample rate on the host clock: its sample indices count the samples lost at
         # the device or on the way, so this is the clock mapping's rate, whatever was lost
-        device_hz = (hi - lo - 1) / span if lo is not None and hi - lo > 1 and span > 0 else float("nan")
+        k = self.gyro_indices
+        device_hz = (k - 1) / span if k > 1 and span > 0 else float("nan")
         return {
             "frames": self.frames,
             "fps": fps,
