@@ -58,6 +58,13 @@ def test_cli_output_is_strict_json_with_no_numpy_warning(flight_file, tmp_path):
     assert "Warning" not in proc.stderr, proc.stderr[-2000:]
     rep = _strict((out / "report.json").read_text())
     assert rep["reference"] == "motion" and rep["noise_floor"] > 0
+    # which kernel explains the smear: one entry per recording, said on stdout too
+    sm = _strict((out / "smear.json").read_text())
+    assert [e["recording"] for e in sm] == [str(flight_file)]
+    assert set(sm[0]["models"]) == {"none", "box", "exponential"}
+    assert "which kernel explains the smear" in proc.stdout
+    if sm[0]["frames"]:
+        assert (out / "smear_0.png").stat().st_size > 0
 
 
 @pytest.mark.slow

@@ -1,17 +1,21 @@
 """`thermod discrepancy REC.h5 [REC2.h5 …] --out DIR [--config model.toml]`: which calibration effect
-is the model missing, and how large is it? The workflow is `thermod.calib.discrepancy`."""
+is the model missing, and how large is it? The workflow is `thermod.calib.discrepancy`; which kernel
+explains the smear (none, box, exponential) is `thermod.calib.smear` (smear.json, smear_<i>.png)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import tomllib
 from pathlib import Path
 
+from thermod.calib import smear
 from thermod.calib.discrepancy import CANDIDATES, EFFECTS, Model, analyse, prepare, write_report
 from thermod.errors import ConfigError
 from thermod.io import recording as recording_io
+from thermod.io.json_safe import jsonable
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config as cfgmod
 
@@ -66,6 +70,18 @@ def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibr
     return calib, None
 
 
+def _smear(recs, paths, calib: Calibration, out: Path, say) -> None:
+    """smear.json and smear_<i>.png: which kernel explains each recording's smear (`thermod.calib.smear`)."""
+    results = []
+    for i, (p, r) in enumerate(zip(paths, recs, strict=True)):
+        res = smear.compare(r.frames, r.t, r.gyro_t, r.gyro_rate, calib)
+        results.append({"recording": str(p), **res.to_dict()})
+        if res.frames:
+            smear.plot(res, out / f"smear_{i}.png")
+        say(f"{p}: {res.summary()}")
+    (out / "smear.json").write_text(json.dumps(jsonable(results), indent=1, allow_nan=False))
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("recordings", nargs="+", metavar="REC.h5",
                         help="format-v1 recordings: a static segment followed by motion, or motion only")
@@ -114,6 +130,7 @@ def run(args) -> int:
     if config_text is None:       # model.toml: the packaged default configuration, new calibration
         config_text = cfgmod.default_path().read_text()
     write_report(ana, args.out, args.recordings, config_text)
+    _smear(recs, args.recordings, calib, Path(args.out), say)
     for a in ana.ambiguous:
         say(f"{a['label']}: not named; model.toml keeps their values under test; to separate them record "
             f"{a['separating_motion']}")
