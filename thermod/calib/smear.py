@@ -8,7 +8,9 @@ K_{k−1} ⊛ B_k = K_k ⊛ warp(B_{k−1}) (the kernels commute; the warp betwe
 kernel). A per-frame gain and offset (an AGC) are fitted by least squares over the warp's support,
 and the gap of a model is ‖left − fitted right‖ / ‖left − its mean‖ there: dividing by the blurred
 signal's own size keeps a wider kernel from scoring by smoothing alone. The model with the least
-gap over all frames explains the smear; the per-frame gaps are the evidence. The motion may be the
+gap over all frames explains the smear when it also beats the runner-up on a significant majority
+of the frames (one-sided sign test, p < `SIGNIFICANCE`), else the verdict is undecided; the
+per-frame gaps are the evidence. The motion may be the
 recording's gyro or the track estimated from the video: the rule needs no truth and no static scene.
 docs/design.md §8, "Which kernel explains the smear".
 """
@@ -19,6 +21,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import binomtest
 
 from thermod.errors import RecordingError
 from thermod.physics.calibration import Calibration
@@ -29,6 +32,7 @@ from thermod.physics.kernels.render import render_photon_kernel, render_thermal_
 MODELS = ("none", "box", "exponential")
 MIN_EXTENT_PX = 2.0        # a frame smears when its exponential kernel (the calibration's τ) spans this
 TAU_SCAN = np.geomspace(0.5, 2.0, 9)   # τ scanned, × the calibration's
+SIGNIFICANCE = 0.05        # the leader is named when it wins this clearly frame by frame (sign test)
 MIN_PIXELS = 1000          # of warp support for a frame to count
 
 
@@ -41,21 +45,29 @@ class SmearComparison:
     gaps: dict[str, list[float]] = field(default_factory=dict)
     total: dict[str, float] = field(default_factory=dict)  # √(Σ SSR / Σ signal) over the frames
     tau_s: float = math.nan                                # the exponential's τ that fits best
-    best: str | None = None
-    margin: float = math.nan        # the runner-up's total / the best's (> 1)
+    best: str | None = None         # the leader, when it leads on a significant share of the frames
+    leader: str | None = None       # the model with the least total gap
+    margin: float = math.nan        # the runner-up's total / the leader's (> 1)
+    wins: int = 0                   # frames on which the leader's gap is below the runner-up's
+    p_value: float = math.nan       # one-sided sign test of those wins
     note: str = ""
 
     def to_dict(self) -> dict:
         return {"models": list(MODELS), "frames": self.frames, "extent_px": self.extent_px,
                 "gaps": self.gaps, "total": self.total, "tau_s": self.tau_s, "best": self.best,
-                "margin": self.margin, "note": self.note}
+                "leader": self.leader, "margin": self.margin, "wins": self.wins, "p_value": self.p_value,
+                "note": self.note}
 
     def summary(self) -> str:
-        if self.best is None:
+        if not self.frames:
             return f"which kernel explains the smear: undecided ({self.note})"
         tot = ", ".join(f"{m} {self.total[m]:.4f}" for m in MODELS)
-        return (f"which kernel explains the smear: {self.best} (gap over {len(self.frames)} smeared frames: "
-                f"{tot}; τ {1e3 * self.tau_s:.1f} ms; the runner-up leaves {self.margin:.2f}× the residual)")
+        evidence = (f"gap over {len(self.frames)} smeared frames: {tot}; τ {1e3 * self.tau_s:.1f} ms; "
+                    f"{self.leader} ahead of the runner-up on {self.wins} frames, "
+                    f"sign test p {self.p_value:.2g}")
+        if self.best is None:
+            return f"which kernel explains the smear: undecided ({self.note}; {evidence})"
+        return f"which kernel explains the smear: {self.best} ({evidence})"
 
 
 def _affine_residual(measured: np.ndarray, pred: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
@@ -128,10 +140,18 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
         out.gaps[m] = [float(v) for v in np.sqrt(np.asarray(ssr[key]) / np.maximum(sig[key], 1e-30))]
         out.total[m] = total(key)
     order = sorted(MODELS, key=lambda m: out.total[m])
-    out.best = order[0]
+    out.leader = order[0]
     out.margin = out.total[order[1]] / max(out.total[order[0]], 1e-30)
+    out.wins = int(np.sum(np.asarray(out.gaps[order[0]]) < np.asarray(out.gaps[order[1]])))
+    out.p_value = float(binomtest(out.wins, len(out.frames), 0.5, alternative="greater").pvalue)
+    notes = []
+    if out.p_value < SIGNIFICANCE:
+        out.best = out.leader
+    else:
+        notes.append(f"{order[0]} and {order[1]} not told apart frame by frame")
     if best_tau in (0, len(taus) - 1):
-        out.note = "τ at the edge of its scan (0.5–2× the calibration's)"
+        notes.append("τ at the edge of its scan (0.5–2× the calibration's)")
+    out.note = "; ".join(notes)
     return out
 
 
@@ -149,7 +169,8 @@ def plot(result: SmearComparison, path) -> None:
         ax.plot(result.extent_px, result.gaps.get(m, []), marker, label=f"{label}: {total:.4f}")
     ax.set_xlabel("smear of the frame (exponential kernel extent, px)")
     ax.set_ylabel("gap: frames k and k − 1, each blurred\nby the other's kernel")
-    ax.set_title("which kernel explains the smear" + (f": {result.best}" if result.best else ""))
+    ax.set_title("which kernel explains the smear: " + (result.best or f"undecided ({result.leader} ahead, "
+                                                                   f"p {result.p_value:.2g})"))
     ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
