@@ -10,8 +10,8 @@ and the gap of a model is ‖left − fitted right‖ / ‖left − its mean‖ 
 signal's own size keeps a wider kernel from scoring by smoothing alone. The model with the least
 gap over all frames explains the smear when it also beats the runner-up on a significant majority
 of the frames (one-sided sign test, p < `SIGNIFICANCE`), else the verdict is undecided; the
-per-frame gaps are the evidence. The motion may be the
-recording's gyro or the track estimated from the video: the rule needs no truth and no static scene.
+per-frame gaps are the evidence. The motion may be the recording's gyro or the track estimated from
+the video: the rule needs no truth and no static scene.
 docs/design.md §8, "Which kernel explains the smear".
 """
 
@@ -28,6 +28,7 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.temporal import warp, warp_maps, warped_support
 from thermod.physics.kernels.blur import blur
 from thermod.physics.kernels.render import render_photon_kernel, render_thermal_kernel
+from thermod.physics.kernels.types import KernelError
 
 MODELS = ("none", "box", "exponential")
 MIN_EXTENT_PX = 2.0        # a frame smears when its exponential kernel (the calibration's τ) spans this
@@ -93,7 +94,7 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
     for k in range(len(t)):
         try:
             extent[k] = render_thermal_kernel(gyro_t, gyro_rate, calib, float(t[k]), psf=False).extent_px
-        except ValueError:
+        except KernelError:          # no gyro around this frame: it is not compared
             extent[k] = math.nan
     cand = [k for k in range(1, len(t)) if extent[k] >= MIN_EXTENT_PX and np.isfinite(extent[k - 1])]
     cand = sorted(sorted(cand, key=lambda k: -extent[k])[:max_frames])
@@ -129,6 +130,7 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
     if not out.frames:
         out.note = f"no frame smears by ≥ {MIN_EXTENT_PX:g} px with the frame before it in view"
         return out
+
     def total(key) -> float:
         return math.sqrt(float(np.sum(ssr[key])) / max(float(np.sum(sig[key])), 1e-30))
 

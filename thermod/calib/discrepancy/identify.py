@@ -204,7 +204,7 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
     ssr_joint = fitter.ssr(x_joint)
     say(f"  joint fit of {', '.join(CONFOUNDED)}: gap {problem.gap(ssr_joint):.4f}")
 
-    info_inv, sd_u, res_u, rho = _curvature(ctx, model, nominal, x_joint)
+    _, info_inv, sd_u, res_u, rho = _curvature(ctx, model, nominal, x_joint)
 
     c0 = nominal.calib
     nom = np.array([c0.time_offset_s, c0.readout_s, *c0.bias_rad_s, c0.tau_s], float)
@@ -278,7 +278,7 @@ def check(ctx: StepContext, model: Model, nominal: Model, named: list[str], bic_
 
 
 def _curvature(ctx: StepContext, model: Model, nominal: Model, x: np.ndarray) -> tuple:
-    """(J⁺J⁻¹, σ, resolution, ρ) of the parameters at `x` (units of `UNITS`), from the projected
+    """(JᵀJ, (JᵀJ)⁺, σ, resolution, ρ) of the parameters at `x` (units of `UNITS`), from the projected
     Jacobian (what the canvas can take is no information). σ: one independent sample's variance (the
     residual's, or the noise's if lower, per pixel, times the pixels per independent sample) through the
     inverse curvature; resolution: the move that, the others refitted, raises the SSR by min_gain."""
@@ -288,14 +288,15 @@ def _curvature(ctx: StepContext, model: Model, nominal: Model, x: np.ndarray) ->
     J, _, _ = projected_jacobian(problem, lambda v: _make(model, nominal, v), x, ev, 0.5, lo, hi,
                                  problem.scene_iters)
     s2 = max(ev.ssr, problem.noise_ss()) / max(ev.n, 1) * effective_area(ev.residuals)
-    info_inv = np.linalg.pinv(J.T @ J)
+    info = J.T @ J
+    info_inv = np.linalg.pinv(info)
     cov_u = s2 * info_inv
     sd_u = np.sqrt(np.maximum(np.diag(cov_u), 0.0))
     res_u = np.sqrt(np.maximum(np.diag(info_inv), 0.0) * ctx.min_gain)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.nan_to_num(cov_u / np.outer(sd_u, sd_u))
     np.fill_diagonal(rho, 1.0)
-    return info_inv, sd_u, res_u, rho
+    return info, info_inv, sd_u, res_u, rho
 
 
 def resolution_at(ctx: StepContext, model: Model, nominal: Model) -> dict:
@@ -305,8 +306,8 @@ def resolution_at(ctx: StepContext, model: Model, nominal: Model) -> dict:
     units of min_gain, so a change Δ of all six raises the SSR by about Δᵀ·rise·Δ·min_gain. A change
     whose rise is below 1 is below what this motion can tell, whatever fit is tried."""
     x = _x_of(model, nominal)
-    info_inv, sd_u, res_u, _ = _curvature(ctx, model, nominal, x)
-    rise = np.linalg.pinv(info_inv) / max(ctx.min_gain, 1e-30) / np.outer(UNITS, UNITS)
+    info, _, sd_u, res_u, _ = _curvature(ctx, model, nominal, x)
+    rise = info / max(ctx.min_gain, 1e-30) / np.outer(UNITS, UNITS)
     return {"parameters": {p[1]: {"effect": p[0], "resolution": float(r * p[2]), "sigma": float(sd * p[2])}
                            for p, r, sd in zip(PARAMS, res_u, sd_u, strict=True)},
             "rise": [[float(v) for v in row] for row in rise]}
