@@ -22,6 +22,7 @@ import logging
 import math
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,18 @@ log = logging.getLogger(__name__)
 # Temporal-noise frames, cycled against the loop: with a loop of N frames a frame meets the same noise
 # again only after lcm(N, 17) frames (1700 for the default 2 s at 50 fps)
 NOISE_FRAMES = 17
+
+
+class CpuBook:
+    """Thread CPU seconds spent emulating devices, booked from any thread: ``book(thread_time_at_start)``."""
+
+    def __init__(self) -> None:
+        self.cpu_s = 0.0
+        self._lock = threading.Lock()
+
+    def __call__(self, c0: float) -> None:
+        with self._lock:
+            self.cpu_s += time.thread_time() - c0
 
 
 class SimPayload:
@@ -63,8 +76,8 @@ class SimPayload:
         self._camera: SimCamera | None = None
         self._gyro = None
         self.drift = None                         # a `thermod.sim.gyro_model.GyroDrift` on top of the truth
-        self.cpu_s = 0.0                          # thread CPU spent emulating (frames, gyro FIFO): a real
-        self._cpu_lock = threading.Lock()         # payload does not pay it (`thermod.runtime.cpu`)
+        self.book = CpuBook()                     # thread CPU spent emulating (frames, gyro FIFO): a real
+                                                  # payload does not pay it (`thermod.runtime.cpu`)
 
     # ------------------------------------------------------------------ the loop
     def cached(self) -> bool:
@@ -119,12 +132,12 @@ class SimPayload:
         img = self.frames[k % self.n_frames]
         if self.noise is not None:
             img = np.clip(img.astype(np.int32) + self.noise[k % len(self.noise)], 0, 65535).astype(np.uint16)
-        self._book(c0)
+        self.book(c0)
         return img
 
-    def _book(self, c0: float) -> None:
-        with self._cpu_lock:
-            self.cpu_s += time.thread_time() - c0
+    @property
+    def cpu_s(self) -> float:
+        return self.book.cpu_s
 
     def frame_at(self, k: int) -> np.ndarray:
         """The emulated camera's frame index k (0-based): `frame_for(k + 1)`."""
@@ -152,15 +165,6 @@ class SimPayload:
     def stop(self) -> None:
         pass
 
-    def _rate_fn(self, t: np.ndarray) -> np.ndarray:
-        # the raw gyro-frame rate of the loop's motion (true calibration inverted), on the payload clock;
-        # with a drift, a sample stamped t shows the motion at t + offset(t), plus bias(t)
-        t0 = self.t0 if self.t0 is not None else 0.0
-        tt = np.asarray(t, np.float64) - t0
-        if self.drift is None:
-            return self.loop.rate_gyro(tt)
-        return self.loop.rate_gyro(tt + self.drift.offset(tt)) + self.drift.bias(tt)
-
     def true_calibration(self, t: float) -> Calibration:
         """The gyro ↔ camera calibration that is true at host time t: the loop's (no time offset), plus the
         drift, plus the camera's transport latency. Its frames carry device timestamps of the last row's
@@ -174,36 +178,83 @@ class SimPayload:
         o = latency + (float(self.drift.offset(tt)) if self.drift is not None else 0.0)
         return c.replace(bias_rad_s=tuple(np.asarray(b, float).tolist()), time_offset_s=c.time_offset_s + o)
 
+    def gyro_builder(self) -> EmulatedGyro:
+        """What builds the payload's gyro in the gyro process (picklable; after `prepare` and `start`:
+        the emulator's clock starts at T0)."""
+        if self.loop is None or self.t0 is None:
+            raise RuntimeError("SimPayload.gyro_builder: prepare() and start() first")
+        return EmulatedGyro(self.loop.gyro_motion, self.t0, self.drift, self.cfg.gyro_noise_rad_s,
+                            self.cfg.seed, self.cfg.gyro_rate_hz)
+
+    def _rate_fn(self, t: np.ndarray) -> np.ndarray:
+        # read at each FIFO fill: the loop, T0 and the drift may be set after the driver is built
+        return drifted_rate(self.loop.gyro_motion, self.t0 if self.t0 is not None else 0.0, self.drift, t)
+
     def gyro_source(self):
-        """The real ICM-42688-P driver on its SPI register emulator, fed by the payload's motion."""
+        """The payload's gyro in this process (`emulated_icm42688`), its emulation CPU booked as the
+        payload's; `chip` is its emulator (faults)."""
         if self._gyro is None:
-            from thermod.drivers.bus import SPIBus
-            from thermod.drivers.icm42688 import ICM42688
-            from thermod.sim.emu_registers import EmuSPI, ICM42688Emu
-
-            self.chip = ICM42688Emu(rate_fn=self._rate_fn, noise_rad_s=self.cfg.gyro_noise_rad_s,
-                                    seed=self.cfg.seed)
-            payload = self
-
-            class BookedSPI(EmuSPI):
-                """The emulated bus, its transfers booked as the payload's CPU (a real SPI is an ioctl)."""
-
-                def xfer2(self, data):
-                    c0 = time.thread_time()
-                    try:
-                        return super().xfer2(data)
-                    finally:
-                        payload._book(c0)
-
-            self._gyro = ICM42688(SPIBus(BookedSPI(self.chip)), full_scale_dps=2000.0,
-                                  rate_hz=self.cfg.gyro_rate_hz,
-                                  name="ICM-42688-P (sim)")
+            self._gyro = emulated_icm42688(self._rate_fn, self.cfg.gyro_noise_rad_s, self.cfg.seed,
+                                           self.cfg.gyro_rate_hz, self.book)
+            self.chip = self._gyro.emulator
         return self._gyro
 
     def camera_source(self) -> SimCamera:
         if self._camera is None:
             self._camera = SimCamera(self)
         return self._camera
+
+
+def drifted_rate(motion: playback.LoopMotion, t0: float, drift, t) -> np.ndarray:
+    """The raw rate the payload's gyro shows at host times t: the loop motion from T0 on; with a
+    `thermod.sim.gyro_model.GyroDrift`, a sample stamped t shows the motion at t + offset(t), plus bias(t)."""
+    tt = np.asarray(t, np.float64) - t0
+    if drift is None:
+        return motion.rate_gyro(tt)
+    return motion.rate_gyro(tt + drift.offset(tt)) + drift.bias(tt)
+
+
+def emulated_icm42688(rate_fn, noise_rad_s: float, seed: int, rate_hz: float, book: CpuBook):
+    """The real ICM-42688-P driver over the SPI bus seam on the register-level emulator
+    (`thermod.sim.emu_registers.ICM42688Emu`), whose FIFO fills at the output data rate in real time
+    with ``rate_fn(t)``. Each transfer's CPU is booked in `book` (a real payload's SPI transfer is an
+    ioctl). The driver carries ``emulator`` (the chip: faults) and ``emulation_cpu`` (`book`)."""
+    from thermod.drivers.bus import SPIBus
+    from thermod.drivers.icm42688 import ICM42688
+    from thermod.sim.emu_registers import EmuSPI, ICM42688Emu
+
+    class BookedSPI(EmuSPI):
+        def xfer2(self, data):
+            c0 = time.thread_time()
+            try:
+                return super().xfer2(data)
+            finally:
+                book(c0)
+
+    chip = ICM42688Emu(rate_fn=rate_fn, noise_rad_s=noise_rad_s, seed=seed)
+    driver = ICM42688(SPIBus(BookedSPI(chip)), full_scale_dps=2000.0, rate_hz=rate_hz,
+                      name="ICM-42688-P (sim)")
+    driver.emulator, driver.emulation_cpu = chip, book
+    return driver
+
+
+@dataclass(frozen=True)
+class EmulatedGyro:
+    """The payload's gyro as a picklable constructor, for the gyro process: the loop's motion (not its
+    frames), T0 and the drift, fixed when the daemon starts its drivers."""
+
+    motion: playback.LoopMotion
+    t0: float
+    drift: object | None
+    noise_rad_s: float
+    seed: int
+    rate_hz: float
+
+    def rate(self, t) -> np.ndarray:
+        return drifted_rate(self.motion, self.t0, self.drift, t)
+
+    def __call__(self):
+        return emulated_icm42688(self.rate, self.noise_rad_s, self.seed, self.rate_hz, CpuBook())
 
 
 class SimCamera(CameraSource):

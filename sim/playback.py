@@ -77,9 +77,28 @@ def loop_motion(spec: str, loop_s: float, seed: int = 0) -> mo.Motion:
     raise ThermodError(f"playback motion {spec!r}: not periodic; use sway[:deg], static, shake or vibration")
 
 
+@dataclass(frozen=True)
+class LoopMotion:
+    """The loop's motion as the gyro sees it: what a real-time emulator samples. Small and picklable,
+    so the gyro process (`thermod.runtime.gyro_process`) gets it without the loop's frames."""
+
+    motion: mo.Motion
+    period_s: float
+    true_calib: Calibration
+
+    def omega_camera(self, t) -> np.ndarray:
+        """True camera-frame rate (rad/s) at loop time t (any real t; periodic)."""
+        return self.motion.omega(np.mod(np.asarray(t, np.float64), self.period_s))
+
+    def rate_gyro(self, t) -> np.ndarray:
+        """What an ideal gyro outputs at camera time t (gyro frame, raw: ω_g = scale⁻¹ Rᵀ ω_cam + bias
+        with the TRUE calibration), for a real-time emulator to sample and add its own noise to."""
+        return self.true_calib.camera_to_gyro(self.omega_camera(t))
+
+
 class Playback:
     """A pre-rendered loop: `frames` uint16 [N, H, W] read at loop times `t` (k/fps, last row),
-    `period_s` = N/fps, the nominal = true `calib`, and the motion for the gyro."""
+    `period_s` = N/fps, the nominal = true `calib`, and the motion for the gyro (`gyro_motion`)."""
 
     def __init__(self, rec: recording.Recording, motion: mo.Motion, spec: PlaybackSpec):
         self.frames = rec.frames
@@ -90,21 +109,17 @@ class Playback:
         self.truth = rec.extras.get("truth/frames")
         self.true_calib = Calibration.from_attrs(rec.extra_attrs["truth"], rec.extra_attrs["truth"]) \
             if "truth" in rec.extra_attrs else rec.calibration
+        self.gyro_motion = LoopMotion(motion, self.period_s, self.true_calib)
 
     def index_at(self, t: float) -> int:
         """The loop frame whose read time is the last one at or before t (seconds since start)."""
         return int(math.floor(t * self.calib.frame_rate_hz + 1e-9)) % len(self.frames)
 
     def omega_camera(self, t) -> np.ndarray:
-        """True camera-frame rate (rad/s) at loop time t (any real t; periodic)."""
-        return self.motion.omega(np.mod(np.asarray(t, np.float64), self.period_s))
+        return self.gyro_motion.omega_camera(t)
 
     def rate_gyro(self, t) -> np.ndarray:
-        """What an ideal gyro outputs at camera time t (gyro frame, raw: ω_g = scale⁻¹ Rᵀ ω_cam + bias
-        with the TRUE calibration), for a real-time emulator to sample and add its own noise to."""
-        c = self.true_calib
-        w = self.omega_camera(t)
-        return c.camera_to_gyro(w)
+        return self.gyro_motion.rate_gyro(t)
 
 
 def cache_dir() -> Path:

@@ -49,7 +49,8 @@ def test_default_is_the_packaged_sim_toml():
 def test_hardware_examples_parse_and_name_missing_device():
     cfg = config.load(CONFIG_DIR / "a655sc_icm42688_spi.toml", check_devices=False)
     assert cfg.gyro.kind == "icm42688_spi" and cfg.gyro.device == "/dev/spidev0.0"
-    assert dict(cfg.gyro.options) == {"speed_hz": 10_000_000, "odr_hz": 1000, "full_scale_dps": 2000}
+    assert dict(cfg.gyro.options) == {"speed_hz": 10_000_000, "odr_hz": 1000, "full_scale_dps": 2000,
+                                      "own_process": True}
     assert cfg.camera.kind == "aravis" and cfg.camera.device == "FLIR-A655sc"
     R = np.asarray(cfg.calibration.R_cam_gyro)
     np.testing.assert_allclose(R, np.diag([1.0, -1.0, -1.0]))

@@ -104,6 +104,33 @@ def test_stage_times_give_p50_and_p99_in_ms_and_ignore_missing_values():
     assert s["solve"][0] == pytest.approx(50.5, abs=0.01) and s["solve"][1] == pytest.approx(99.01, abs=0.01)
 
 
+def test_the_gyro_process_is_its_own_stage_and_its_emulation_is_the_payloads():
+    """A child spinning 0.3 s, 0.2 s of which emulated the chip (reported by the child): gyro_process
+    0.1 s, sim_payload 0.2 s, and the overhead is the parent's plus the gyro process's."""
+    meter = CpuMeter()
+    child = subprocess.Popen([sys.executable, "-c", "import sys, time\nsys.stdin.readline()\n"
+                              "t = time.process_time()\nwhile time.process_time() - t < 0.3: pass\n"
+                              "print(flush=True)\nsys.stdin.readline()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        time.sleep(0.3)          # its interpreter's start-up, before the first reading
+        meter.sample(gyro_pids=(child.pid,), sim_cpu_s=0.0, gyro_sim_cpu_s=2.0)
+        child.stdin.write("go\n")
+        child.stdin.flush()
+        assert child.stdout.readline() == "\n"
+        out = meter.sample(gyro_pids=(child.pid,), sim_cpu_s=0.0, gyro_sim_cpu_s=2.2)
+    finally:
+        child.stdin.write("end\n")
+        child.stdin.flush()
+        child.wait(10)
+    dt = out["interval_s"]
+    assert out["stages"]["gyro_process"] * dt / 100 == pytest.approx(0.1, abs=0.04)
+    assert out["stages"]["sim_payload"] * dt / 100 == pytest.approx(0.2, abs=0.01)
+    assert out["parent_without_sim"] == pytest.approx(out["parent"], abs=0.11)   # none of it in the parent
+    overhead = out["parent"] + out["stages"]["gyro_process"]
+    assert out["overhead_without_sim"] == pytest.approx(overhead, abs=0.11)
+
+
 def test_watch_prints_the_breakdown_from_health():
     h = {"cpu": {"stages": {"solves": 120.0, "scheduler": 15.0, "gyro_driver": 4.0, "sim_payload": 10.0},
                  "parent": 29.0, "parent_without_sim": 19.0},
@@ -113,6 +140,11 @@ def test_watch_prints_the_breakdown_from_health():
                         "simulated payload 10.0")
     assert lines[1] == "stage ms     queue 0.3/12.5, solve 20.1/41.0 (p50/p99)"
     assert cpu_lines({}) == []
+    # a daemon whose gyro reads in its own process: the rest is the parent's and that process's
+    h["cpu"] = {"stages": {"solves": 120.0, "gyro_process": 6.0, "scheduler": 15.0, "sim_payload": 10.0},
+                "parent": 29.0, "parent_without_sim": 19.0, "overhead_without_sim": 25.0}
+    assert cpu_lines(h)[0] == ("cpu % core   solves 120.0, the rest 25.0 (scheduler 15.0, gyro_process 6.0), "
+                               "simulated payload 10.0")
 
 
 def test_a_cgroup_cpu_quota_caps_the_cores_the_workers_use(tmp_path):

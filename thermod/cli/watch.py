@@ -196,7 +196,7 @@ def cpu_lines(h: dict) -> list[str]:
         rest = sorted(((k, v) for k, v in st.items() if k not in ("solves", "sim_payload")),
                       key=lambda kv: -kv[1])
         out.append(f"cpu % core   solves {st.get('solves', 0.0):.1f}, the rest "
-                   f"{cpu.get('parent_without_sim', 0.0):.1f} ("
+                   f"{cpu.get('overhead_without_sim', cpu.get('parent_without_sim', 0.0)):.1f} ("
                    + ", ".join(f"{k} {v:.1f}" for k, v in rest) + ")"
                    + (f", simulated payload {st['sim_payload']:.1f}" if "sim_payload" in st else ""))
     stages = (h.get("pipeline") or {}).get("stage_ms") or {}

@@ -489,7 +489,7 @@ function cpuText(h) {
   const parts = Object.keys(st).filter(k => k !== "solves" && k !== "sim_payload")
     .sort((a, b) => st[b] - st[a]).map(k => k + " " + fmt(st[k], 1));
   let out = "<br>CPU (% of one core): solves " + fmt(st.solves, 1) + ", the rest " +
-    fmt(h.cpu.parent_without_sim, 1) + " (" + parts.join(", ") + ")" +
+    fmt(h.cpu.overhead_without_sim ?? h.cpu.parent_without_sim, 1) + " (" + parts.join(", ") + ")" +
     (sim === undefined ? "" : ", simulated payload " + fmt(sim, 1));
   const sm = h.stage_ms || {};
   const lat = Object.keys(sm).map(k => k + " " + fmt(sm[k][0], 1) + "/" + fmt(sm[k][1], 1));

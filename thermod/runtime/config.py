@@ -75,6 +75,13 @@ class SourceConfig:
     realtime_priority: int = setting(0, lo=0, hi=99, doc="SCHED_FIFO priority of the driver; 0 = normal")
     retry_max_s: float = setting(2.0, lo=0.01, hi=60.0, doc="reconnect back-off ceiling")
 
+    # pickled into the gyro process (`thermod.runtime.gyro_process`): the read-only options as a dict
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "options": dict(self.options)}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update({**state, "options": MappingProxyType(state["options"])})
+
 
 @dataclass(frozen=True)
 class SimConfig:

@@ -70,12 +70,15 @@ class CpuMeter:
     def __init__(self) -> None:
         self._last: dict[object, float] = {}
         self._t: float | None = None
-        self._sim: float | None = None
         self._proc: float | None = None
 
-    def sample(self, child_pids=(), sim_cpu_s: float | None = None, now: float | None = None) -> dict:
-        """``{"stages": {stage: %}, "solves": %, "parent": %, "sim_payload": %, "interval_s": s}`` since
-        the last call (empty stages on the first)."""
+    def sample(self, child_pids=(), sim_cpu_s: float | None = None, now: float | None = None,
+               gyro_pids=(), gyro_sim_cpu_s: float | None = None) -> dict:
+        """``{"stages": {stage: %}, "parent": %, "parent_without_sim": %, "overhead_without_sim": %,
+        "interval_s": s}`` since the last call (empty stages on the first). `child_pids` are the solver
+        children (stage ``solves``), `gyro_pids` the gyro process (``gyro_process``); `sim_cpu_s` and
+        `gyro_sim_cpu_s` the payload's emulation CPU so far in this process and in the gyro process.
+        The overhead is everything but the solves and the emulation: the parent and the gyro process."""
         now = time.monotonic() if now is None else now
         used: dict[str, float] = collections.defaultdict(float)
         seen: dict[object, float] = {}
@@ -87,31 +90,44 @@ class CpuMeter:
             seen[key] = c
             if key in self._last:
                 used[stage_of(th.name)] += max(0.0, c - self._last[key])
-        for pid in child_pids:
-            c = process_cpu_s(pid)
-            if c is None:
-                continue
-            key = ("p", pid)
-            seen[key] = c
-            if key in self._last:
-                used["solves"] += max(0.0, c - self._last[key])
+        for stage, pids in (("solves", child_pids), ("gyro_process", gyro_pids)):
+            for pid in pids:
+                c = process_cpu_s(pid)
+                if c is None:
+                    continue
+                key = ("p", pid)
+                seen[key] = c
+                if key in self._last:
+                    used[stage] += max(0.0, c - self._last[key])
+        for key, total in (("sim", sim_cpu_s), ("gyro_sim", gyro_sim_cpu_s)):
+            if total is not None:
+                seen[key] = total
         proc = time.process_time()
         dt = None if self._t is None else now - self._t
         out: dict = {"interval_s": dt, "stages": {}}
         if dt and dt > 0:
-            if sim_cpu_s is not None and self._sim is not None:
-                sim = max(0.0, sim_cpu_s - self._sim)
-                # the payload's work ran in the driver threads: moved from them
-                for s in ("gyro_driver", "camera_driver"):
-                    take = min(sim, used.get(s, 0.0))
-                    used[s] = used.get(s, 0.0) - take
-                    sim -= take
-                used["sim_payload"] = max(0.0, sim_cpu_s - self._sim)
+            # the payload's work ran in the drivers: moved from them to sim_payload
+            parent_sim = self._move_sim(used, seen, "sim", ("gyro_driver", "camera_driver"))
+            self._move_sim(used, seen, "gyro_sim", ("gyro_process",))
             out["stages"] = {k: round(100.0 * v / dt, 1) for k, v in sorted(used.items())}
             out["parent"] = round(100.0 * (proc - self._proc) / dt, 1)
-            out["parent_without_sim"] = round(out["parent"] - out["stages"].get("sim_payload", 0.0), 1)
-        self._last, self._t, self._sim, self._proc = seen, now, sim_cpu_s, proc
+            out["parent_without_sim"] = round(out["parent"] - 100.0 * parent_sim / dt, 1)
+            gyro = out["stages"].get("gyro_process", 0.0)
+            out["overhead_without_sim"] = round(out["parent_without_sim"] + gyro, 1)
+        self._last, self._t, self._proc = seen, now, proc
         return out
+
+    def _move_sim(self, used: dict, seen: dict, key: str, stages: tuple[str, ...]) -> float:
+        """Move the emulation CPU `key` spent since the last call from `stages` to ``sim_payload``."""
+        if key not in seen or key not in self._last:
+            return 0.0
+        sim = left = max(0.0, seen[key] - self._last[key])
+        for s in stages:
+            take = min(left, used.get(s, 0.0))
+            used[s] = used.get(s, 0.0) - take
+            left -= take
+        used["sim_payload"] = used.get("sim_payload", 0.0) + sim
+        return sim
 
 
 class StageTimes:

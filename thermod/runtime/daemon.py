@@ -37,6 +37,7 @@ from thermod.runtime import config as configmod
 from thermod.runtime import sources
 from thermod.runtime.cpu import CpuMeter
 from thermod.runtime.driver_thread import DeviceState, DriverThread
+from thermod.runtime.gyro_process import GyroProcess, GyroPump
 from thermod.runtime.health import Health, Snapshot, status_line
 from thermod.runtime.pipeline import FrameOut, Pipeline
 from thermod.runtime.rings import FrameRing, GyroRing
@@ -47,6 +48,7 @@ _UNREAD = object()         # the camera's radiometric constants have not been as
 log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
+GYRO_STALL_S = 0.5          # a gyro silent this long is stalled (it delivers every few ms)
 # sections a running daemon cannot change: a reload that changes them is applied in part
 _RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp", "monitor")
 
@@ -65,7 +67,14 @@ class Daemon:
         self.cfg = cfg
         self.overrides = dict(overrides or {})
         self.payload = sources.simulated_payload(cfg) if gyro is None or camera is None else None
-        self.gyro: Source = gyro if gyro is not None else sources.build_gyro(cfg, self.payload)
+        if gyro is None and cfg.gyro.options.get("own_process", False):
+            g = cfg.gyro
+            self.gyro: Source = GyroProcess(
+                f"{g.kind} gyro", poll_timeout=g.poll_timeout_s, priority=g.realtime_priority,
+                retry_max_s=g.retry_max_s, stall_s=GYRO_STALL_S,
+                preload=("thermod.sim.payload",) if cfg.gyro.kind == "sim" else ("thermod.runtime.sources",))
+        else:
+            self.gyro = gyro if gyro is not None else sources.build_gyro(cfg, self.payload)
         self.camera: Source = camera if camera is not None else sources.build_camera(cfg, self.payload)
         # a replayed recording runs with its own calibration unless the config asks for its [calibration]
         calib, self.calibration_source = sources.calibration_in_force(cfg, self.camera)
@@ -198,6 +207,8 @@ class Daemon:
         log.info("publishing on %s", self.publisher.endpoint)
         if self.rtsp is not None:
             self.rtsp.start()     # a taken port fails here too
+        if isinstance(self.gyro, GyroProcess):
+            self.gyro.spawn()         # its interpreter starts while the payload and the workers prepare
         if self.payload is not None:
             if not self.payload.cached():
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
@@ -212,11 +223,18 @@ class Daemon:
         frame_period = 1.0 / cfg.calibration.frame_rate_hz
         # a FIFO gyro reads on a slow interval (its CPU) and at once when a frame waits for it
         self.gyro_ring.request = getattr(self.gyro, "request_read", None)
+        if isinstance(self.gyro, GyroProcess):
+            self.gyro.start(sources.gyro_builder(cfg, self.payload))
+            gyro_thread = GyroPump(self.gyro, self._on_gyro, self.gyro_state, self._stop,
+                                   on_down=self._gyro_down, on_up=self._gyro_up)
+        else:
+            g = cfg.gyro
+            gyro_thread = DriverThread("gyro", self.gyro, self._on_gyro, self.gyro_state, self._stop,
+                                       poll_timeout=g.poll_timeout_s, priority=g.realtime_priority,
+                                       retry_max_s=g.retry_max_s, stall_s=GYRO_STALL_S,
+                                       on_down=self._gyro_down, on_up=self._gyro_up)
         self.driver_threads = [
-            DriverThread("gyro", self.gyro, self._on_gyro, self.gyro_state, self._stop,
-                         poll_timeout=cfg.gyro.poll_timeout_s, priority=cfg.gyro.realtime_priority,
-                         retry_max_s=cfg.gyro.retry_max_s, stall_s=0.5,
-                         on_down=self._gyro_down, on_up=self._gyro_up),
+            gyro_thread,
             DriverThread("camera", self.camera, self._on_frame, self.camera_state, self._stop,
                          poll_timeout=cfg.camera.poll_timeout_s, priority=cfg.camera.realtime_priority,
                          retry_max_s=cfg.camera.retry_max_s, stall_s=max(STALL_MIN_S, 10 * frame_period)),
@@ -369,8 +387,13 @@ class Daemon:
         meter's period."""
         now = time.monotonic() if now is None else now
         if update_rates:
-            sim = self.payload.cpu_s if self.payload is not None else None
-            self._cpu_report = self._cpu.sample(self.pipeline.solver_pids(), sim, now)
+            sim = None if self.payload is None else self.payload.cpu_s
+            if isinstance(self.gyro, GyroProcess):
+                gyro_pids, gyro_sim = (() if self.gyro.pid is None else (self.gyro.pid,)), self.gyro.sim_cpu_s
+            else:
+                gyro_pids, gyro_sim = (), None
+            self._cpu_report = self._cpu.sample(self.pipeline.solver_pids(), sim, now, gyro_pids=gyro_pids,
+                                                gyro_sim_cpu_s=gyro_sim if sim is not None else None)
         return self._health.message(self._snapshot(now), now, update_rates=update_rates)
 
     def _snapshot(self, now: float) -> Snapshot:

@@ -8,6 +8,7 @@ constructors, never by the daemon itself.
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import os
 from collections.abc import Callable, Mapping
@@ -178,34 +179,39 @@ _REPLAY_CAMERA = {**_REPLAY, "calibration": Key(
     doc="the calibration a replayed camera runs with: its recording's own, or the config's [calibration]")}
 
 
+# a FIFO or stream gyro read in a process of its own (`thermod.runtime.gyro_process`): its deadline never
+# waits on the daemon's GIL
+_OWN_PROCESS = {"own_process": Key(bool, True, doc="read it in a process of its own (a GIL of its own)")}
+
+
 def _table(*drivers: Driver) -> Mapping[str, Driver]:
     return MappingProxyType({d.kind: d for d in drivers})
 
 
 GYROS: Mapping[str, Driver] = _table(
-    Driver("sim", None, {}, _sim_gyro),
+    Driver("sim", None, {**_OWN_PROCESS}, _sim_gyro),
     Driver("replay", "recording", _REPLAY, _replay_gyro),
     Driver("icm42688_spi", "device file", {"speed_hz": Key(int, 10_000_000, 100_000, 24_000_000),
                                            "odr_hz": Key(int, 1000, choices=_ODR),
-                                           "full_scale_dps": Key(int, 2000, choices=_FS)},
+                                           "full_scale_dps": Key(int, 2000, choices=_FS), **_OWN_PROCESS},
            _icm42688(True)),
     Driver("icm42688_i2c", "device file", {"address": Key(int, 0x68, choices=(0x68, 0x69)),
                                            "odr_hz": Key(int, 1000, choices=_ODR),
-                                           "full_scale_dps": Key(int, 2000, choices=_FS)},
+                                           "full_scale_dps": Key(int, 2000, choices=_FS), **_OWN_PROCESS},
            _icm42688(False)),
     Driver("mpu6000", "device file", {"speed_hz": Key(int, 1_000_000, 100_000, 20_000_000),
                                       "odr_hz": Key(int, 1000, choices=(1000, 8000)),
-                                      "full_scale_dps": Key(int, 2000, choices=(250, 500, 1000, 2000))},
-           _mpu6000),
+                                      "full_scale_dps": Key(int, 2000, choices=(250, 500, 1000, 2000)),
+                                      **_OWN_PROCESS}, _mpu6000),
     Driver("bmi088", "device file", {"bus": Key(str, "spi", choices=("spi", "i2c")),
                                      "address": Key(int, 0x68, choices=(0x68, 0x69)),
                                      "speed_hz": Key(int, 10_000_000, 100_000, 10_000_000),
                                      "odr_hz": Key(int, 1000, choices=(1000, 2000)),
-                                     "full_scale_dps": Key(int, 2000, choices=_FS)}, _bmi088),
+                                     "full_scale_dps": Key(int, 2000, choices=_FS), **_OWN_PROCESS}, _bmi088),
     Driver("iio", "device file", {"buffer_length": Key(int, 256, 2, 65536),
-                                  "rate_hz": Key(float, 1000.0, 1.0, 32000.0)}, _iio),
+                                  "rate_hz": Key(float, 1000.0, 1.0, 32000.0), **_OWN_PROCESS}, _iio),
     Driver("serial", "device file", {"baud": Key(int, 921600, 1200, 12_000_000),
-                                     "low_latency": Key(bool, True)}, _serial),
+                                     "low_latency": Key(bool, True), **_OWN_PROCESS}, _serial),
     # no gyro: the rotation measured from the camera's own frames (drivers/video_gyro.py)
     Driver("video", None, {"rate_hz": Key(float, 1000.0, 100.0, 4000.0, doc="samples per second it sends"),
                            "work_width": Key(int, 160, 64, 640, doc="width of the images it registers (px)")},
@@ -276,6 +282,14 @@ def build(role: str, cfg: Config, payload=None) -> Source:
 
 def build_gyro(cfg: Config, payload=None) -> Source:
     return build("gyro", cfg, payload)
+
+
+def gyro_builder(cfg: Config, payload=None):
+    """A picklable constructor of the configured gyro, for the gyro process: the simulated payload's
+    emulated chip (after `SimPayload.start`), else `build_gyro` on the configuration."""
+    if cfg.gyro.kind == "sim":
+        return payload.gyro_builder()
+    return functools.partial(build_gyro, cfg)
 
 
 def build_camera(cfg: Config, payload=None) -> Source:

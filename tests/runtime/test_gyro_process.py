@@ -1,0 +1,151 @@
+"""The gyro read in a process of its own: the daemon's GIL held past the FIFO's depth loses no sample
+there (it does in-process), a child that dies is respawned with the gap marked, and a constructor
+that fails is reported and retried."""
+
+import ctypes
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+
+from thermod.errors import DeviceError
+from thermod.physics.calibration import Calibration
+from thermod.runtime.driver_thread import DeviceState, DriverThread
+from thermod.runtime.gyro_process import GyroProcess, GyroPump
+from thermod.sim import playback
+from thermod.sim.payload import EmulatedGyro
+
+RATE_HZ = 1000.0
+FIFO_S = 2048 / 8 / RATE_HZ          # the emulated ICM-42688-P's FIFO: 256 gyro packets
+
+
+def emulated(t0: float) -> EmulatedGyro:
+    motion = playback.LoopMotion(playback.loop_motion("sway:2", 2.0, 0), 2.0, Calibration())
+    return EmulatedGyro(motion, t0, None, 0.002, 0, RATE_HZ)
+
+
+class Collector:
+    def __init__(self):
+        self.batches, self.lock = [], threading.Lock()
+
+    def __call__(self, b):
+        with self.lock:
+            self.batches.append(b)
+
+    def seqs(self) -> np.ndarray:
+        with self.lock:
+            return np.concatenate([b.seq + np.arange(len(b)) for b in self.batches])
+
+    def gaps(self) -> list:
+        with self.lock:
+            return [(b.seq, b.n_lost) for b in self.batches if b.gap_before]
+
+    def wait_for(self, n: int, timeout: float = 60.0) -> None:
+        end = time.monotonic() + timeout
+        while sum(len(b) for b in list(self.batches)) < n:
+            assert time.monotonic() < end, f"only {sum(len(b) for b in self.batches)} of {n} samples"
+            time.sleep(0.02)
+
+
+def hold_the_gil(seconds: float) -> None:
+    """Sleep in C with the GIL held (a `PyDLL` call does not release it): no other thread of this
+    process runs Python meanwhile, as during a long GIL-bound call in the scheduler."""
+    ctypes.PyDLL(None).usleep(int(seconds * 1e6))
+
+
+def process_gyro(stall_s: float = 0.5) -> GyroProcess:
+    return GyroProcess("sim gyro", poll_timeout=0.002, priority=0, retry_max_s=0.5, stall_s=stall_s,
+                       preload=("thermod.sim.payload",))
+
+
+def test_a_parent_holding_its_gil_past_the_fifo_loses_no_sample_in_the_gyro_process():
+    sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
+    gyro = process_gyro()
+    gyro.spawn()
+    gyro.start(emulated(time.monotonic()))
+    pump = GyroPump(gyro, sink, state, stop)
+    pump.start()
+    try:
+        sink.wait_for(300)
+        hold_the_gil(3 * FIFO_S)
+        n = len(sink.seqs())
+        sink.wait_for(n + 500)
+    finally:
+        stop.set()
+        pump.join(5.0)
+    seq = sink.seqs()
+    assert sink.gaps() == [] and np.all(np.diff(seq) == 1), sink.gaps()
+    assert gyro.stats()["overflows"] == 0 and state.state == "stopped"
+    assert not gyro.alive()
+
+
+def test_the_same_stall_overflows_the_fifo_of_a_reader_in_the_parent():
+    """The counterpart: read in this process, the same GIL hold overflows the FIFO (counted, a gap)."""
+    sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
+    th = DriverThread("gyro", emulated(time.monotonic())(), sink, state, stop, poll_timeout=0.002,
+                      priority=0, retry_max_s=0.5, stall_s=0.5)
+    th.start()
+    try:
+        sink.wait_for(300)
+        hold_the_gil(3 * FIFO_S)
+        n = len(sink.seqs())
+        sink.wait_for(n + 300)
+    finally:
+        stop.set()
+        th.join(5.0)
+    gaps = sink.gaps()
+    assert len(gaps) >= 1 and sum(lost for _, lost in gaps) >= 1.5 * FIFO_S * RATE_HZ, gaps
+
+
+def test_a_gyro_process_that_dies_is_respawned_and_the_gap_marked():
+    sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
+    downs, ups = [], []
+    gyro = process_gyro()
+    gyro.start(emulated(time.monotonic()))
+    pump = GyroPump(gyro, sink, state, stop, on_down=lambda: downs.append(1), on_up=lambda: ups.append(1))
+    pump.start()
+    try:
+        sink.wait_for(200)
+        first = gyro.pid
+        os.kill(first, signal.SIGKILL)
+        end = time.monotonic() + 60
+        while gyro.stats()["process_spawns"] < 2 or state.state != "running":
+            assert time.monotonic() < end, (gyro.stats(), state)
+            time.sleep(0.05)
+        n = len(sink.seqs())
+        sink.wait_for(n + 200)
+    finally:
+        stop.set()
+        pump.join(5.0)
+    assert gyro.pid is None or gyro.pid != first
+    assert state.restarts >= 1 and "gyro process exited" in state.last_error
+    assert downs and len(ups) >= 2          # running → error → running
+    # the first batch of the new child says samples were lost before it
+    assert len(sink.gaps()) >= 1
+
+
+class Unplugged:
+    """A constructor that fails as a missing device does (picklable: the child imports this module)."""
+
+    def __call__(self):
+        raise DeviceError("/dev/spidev9.9: no such device")
+
+
+def test_a_constructor_that_fails_is_reported_and_retried():
+    sink, state, stop = Collector(), DeviceState("gyro"), threading.Event()
+    gyro = process_gyro()
+    gyro.start(Unplugged())
+    pump = GyroPump(gyro, sink, state, stop)
+    pump.start()
+    try:
+        end = time.monotonic() + 60
+        while gyro.stats()["process_spawns"] < 3:
+            assert time.monotonic() < end, (gyro.stats(), state)
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        pump.join(5.0)
+    assert state.errors >= 2 and "/dev/spidev9.9: no such device" in state.last_error
+    assert sink.batches == []
