@@ -291,7 +291,7 @@ def _child_main(conn, q, want, stop, opts: dict, preload: tuple[str, ...]) -> No
     last = -math.inf
     try:
         while not stop.is_set() and os.getppid() == parent:
-            if want.wait(0.02):
+            if want.wait(max(0.0, STATE_EVERY_S - (time.monotonic() - last))):
                 want.clear()
                 if (ask := getattr(src, "request_read", None)) is not None:
                     ask()
