@@ -600,6 +600,9 @@ def cpu_medians(r: dict) -> dict:
     out = {k: float(np.median([c["stages"].get(k, 0.0) for c in periods])) for k in keys}
     out["parent"] = float(np.median([c["parent"] for c in periods]))
     out["parent_without_sim"] = float(np.median([c["parent_without_sim"] for c in periods]))
+    # the overhead: the parent's and the gyro process's, less the payload's emulation
+    out["overhead_without_sim"] = float(np.median([c.get("overhead_without_sim", c["parent_without_sim"])
+                                                   for c in periods]))
     return out
 
 
@@ -663,7 +666,8 @@ def print_payload(rows: list[dict]) -> None:
               f"{r.get('steady_after_s') or 'not yet'} | {r['reasons'] or '-'} | {methods_text(r)} |")
     print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
           "stage latency p50 / p99 ms at the run's end (`health.pipeline.stage_ms`)")
-    stages = sorted({k for r in rows for k in r["cpu"]} - {"parent", "parent_without_sim"})
+    totals = {"parent", "parent_without_sim", "overhead_without_sim"}
+    stages = sorted({k for r in rows for k in r["cpu"]} - totals)
     print("| CPU quota | " + " | ".join(stages) + " | all but solves and sim | stage ms p50/p99 |")
     print("|---" * (len(stages) + 3) + "|")
     for r in rows:
@@ -671,7 +675,7 @@ def print_payload(rows: list[dict]) -> None:
         q = "none" if r["quota"] is None else f"{r['quota']:g} cores"
         lat = ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in r["stage_ms"].items())
         print(f"| {q} | " + " | ".join(f"{c.get(k, 0.0):.1f}" for k in stages)
-              + f" | {c.get('parent_without_sim', float('nan')):.1f} | {lat} |")
+              + f" | {c.get('overhead_without_sim', float('nan')):.1f} | {lat} |")
 
 
 def methods_text(r: dict) -> str:

@@ -92,6 +92,9 @@ class GyroDeviceError(DeviceError):
     """A gyro driver's I/O or identification failure; each driver raises its own subclass."""
 
 
+READ_INTERVAL_MAX_S = 0.025
+
+
 class FifoGyro(GyroSource):
     """Common FIFO-reading loop of the register-chip drivers (ICM-42688-P, MPU-6000/6050, BMI088).
 
@@ -111,8 +114,8 @@ class FifoGyro(GyroSource):
     fifo_size = 1024
     full_scales_dps: tuple[float, ...] = ()
 
-    def __init__(self, bus, *, full_scale_dps: float, rate_hz: float = 1000.0, read_interval_s: float = 0.010,
-                 clock_window_s: float = 20.0, name: str | None = None):
+    def __init__(self, bus, *, full_scale_dps: float, rate_hz: float = 1000.0,
+                 read_interval_s: float | None = None, clock_window_s: float = 20.0, name: str | None = None):
         super().__init__()
         if full_scale_dps not in self.full_scales_dps:
             raise self.error_type(f"{self.chip}: full_scale_dps={full_scale_dps!r} is not supported, "
@@ -121,7 +124,7 @@ class FifoGyro(GyroSource):
         self.name = name or f"{self.chip} ({bus.describe()})"
         self.full_scale_dps = float(full_scale_dps)
         self.rate_hz = float(rate_hz)
-        self.read_interval_s = float(read_interval_s)
+        self._read_interval_s = None if read_interval_s is None else float(read_interval_s)
         self.clock_window_s = float(clock_window_s)
         # rad/s per LSB: ±full scale spans the signed 16-bit range
         self.rad_per_lsb = np.float32(np.deg2rad(self.full_scale_dps) / 32768.0)
@@ -138,6 +141,23 @@ class FifoGyro(GyroSource):
         self._next_read = 0.0
         self._wanted = threading.Event()
         self._stats.update(invalid=0, recoveries=0, bad_counts=0, lost_uncertainty=0)
+
+    @property
+    def fifo_seconds(self) -> float:
+        """How long the FIFO takes to fill at the output data rate."""
+        return self.fifo_size / self.packet_size / self.rate_hz
+
+    @property
+    def read_interval_s(self) -> float:
+        """The FIFO is read this often: an eighth of its fill time, at most 25 ms (a frame that waits for
+        samples asks for a read at once, so the interval bounds the CPU, not the latency)."""
+        if self._read_interval_s is not None:
+            return self._read_interval_s
+        return min(READ_INTERVAL_MAX_S, self.fifo_seconds / 8)
+
+    @read_interval_s.setter
+    def read_interval_s(self, seconds: float) -> None:
+        self._read_interval_s = float(seconds)
 
     # -- chip hooks ------------------------------------------------------------------------------
     def _identify(self) -> None:
