@@ -6,11 +6,11 @@ stretch of GIL-bound work, or a loaded host, makes it miss that deadline: sample
 
 `GyroProcess` spawns a child (a fresh interpreter, a GIL of its own) that builds the source with a
 picklable constructor and runs the same `DriverThread` on it as the daemon would: real-time priority,
-retries, back-off, stall detection and restarts. Every batch, and the device's state every
-`STATE_EVERY_S` and at each change, goes through a `multiprocessing.Queue`, whose feeder thread
-buffers while the parent is slow: a starved parent delays samples, it does not lose them (up to
-`QUEUE_BATCHES`, after which the child counts them lost and marks the gap). The parent's pump thread
-(`start_pump`, named ``thermod-gyro``) hands the batches to the daemon's sink and mirrors the child's
+retries, back-off, stall detection and restarts. Every batch (raw bytes, no pickling), and the
+device's state every `STATE_EVERY_S` and at each change, goes through a pipe of `PIPE_BYTES` (about
+40 s of samples): a starved parent delays samples, it does not lose them; one that does not read
+for longer blocks the reader, and the FIFO's overflow is counted as usual. The parent's pump thread
+(`GyroPump`, named ``thermod-gyro``) hands the batches to the daemon's sink and mirrors the child's
 `DeviceState`; a child that dies is respawned with back-off and the samples it held count as a gap.
 """
 
@@ -21,10 +21,13 @@ import logging
 import math
 import multiprocessing
 import os
-import queue
+import pickle
 import signal
+import struct
 import threading
 import time
+
+import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch
 from thermod.runtime.driver_thread import DeviceState
@@ -32,7 +35,8 @@ from thermod.runtime.driver_thread import DeviceState
 log = logging.getLogger("thermod.runtime.daemon")
 
 STATE_EVERY_S = 0.25          # the child reports the device's state this often (and at each change)
-QUEUE_BATCHES = 20_000        # batches the child holds for a parent that does not read (≥ 20 s at 1 kHz)
+PIPE_BYTES = 1 << 20          # the data pipe's buffer (Linux's default limit for a user): ~40 s at 1 kHz
+_BATCH = struct.Struct("<qBqI")   # seq, gap_before, n_lost, n; then t float64[n], rate float32[n, 3]
 SPAWN_TIMEOUT_S = 60.0        # a child that does not say "ready" by then (a hung import) is restarted
 _exiting = threading.Event()  # the interpreter is exiting: multiprocessing ends the child, none respawns
 atexit.register(_exiting.set)
@@ -66,7 +70,7 @@ class GyroProcess:
         self.child_error = ""           # the current child's last error
         self._ctx = multiprocessing.get_context("spawn")
         self._want = self._ctx.Event()
-        self._proc = self._queue = self._stop = self._conn = None
+        self._proc = self._stop = self._conn = self._data = None
         self._stats: dict = {}
         self._build = None
         self._sim_base = 0.0            # emulation CPU of children before the current one
@@ -76,16 +80,18 @@ class GyroProcess:
         """Start the child's interpreter (imports take a while); `start` hands it the constructor."""
         if self._proc is not None and self._proc.is_alive():
             return
-        self._queue = self._ctx.Queue()
         self._stop = self._ctx.Event()
         parent_conn, child_conn = self._ctx.Pipe()
+        data_r, data_w = self._ctx.Pipe(duplex=False)
+        _enlarge(data_w.fileno())
         self._proc = self._ctx.Process(target=_child_main, name="thermod-gyro-process", daemon=True,
-                                       args=(child_conn, self._queue, self._want, self._stop, self.opts,
+                                       args=(child_conn, data_w, self._want, self._stop, self.opts,
                                              self.preload))
         self._proc.start()
         self.child_error = ""
         child_conn.close()
-        self._conn = parent_conn
+        data_w.close()
+        self._conn, self._data = parent_conn, data_r
         self.spawns += 1
 
     def start(self, build=None) -> None:
@@ -106,12 +112,10 @@ class GyroProcess:
 
     def _drop_child(self) -> None:
         self._sim_base = self.sim_cpu_s
-        if self._queue is not None:
-            self._queue.cancel_join_thread()
-            self._queue.close()
-        if self._conn is not None:
-            self._conn.close()
-        self._proc = self._queue = self._conn = None
+        for c in (self._conn, self._data):
+            if c is not None:
+                c.close()
+        self._proc = self._conn = self._data = None
 
     @property
     def pid(self) -> int | None:
@@ -129,15 +133,24 @@ class GyroProcess:
         return {**self._stats, "process_pid": self.pid, "process_spawns": self.spawns}
 
     def get(self, timeout: float):
-        """The child's next message, or None."""
+        """The child's next message (a `GyroBatch` or a state tuple), or None."""
         try:
-            return self._queue.get(timeout=timeout)
-        except (queue.Empty, EOFError, OSError, ValueError):   # closed or dead queue: the pump restarts it
+            if self._data is None or not self._data.poll(timeout):
+                return None
+            buf = self._data.recv_bytes()
+        except (EOFError, OSError, ValueError):     # a dead child's pipe: the pump restarts it
             return None
+        if buf[:1] == b"S":
+            return pickle.loads(buf[1:])
+        seq, gap, n_lost, n = _BATCH.unpack_from(buf, 1)
+        at = 1 + _BATCH.size
+        t = np.frombuffer(buf, "<f8", n, at)
+        rate = np.frombuffer(buf, "<f4", 3 * n, at + 8 * n).reshape(n, 3)
+        return GyroBatch(t, rate, seq, bool(gap), n_lost)
 
     def take_report(self, msg: tuple) -> dict:
         """A "state" message: keep the stats, clock and emulation CPU; return the device's state."""
-        _, state, stats, clock, sim_cpu = msg
+        state, stats, clock, sim_cpu = msg
         self.child_error = state["last_error"]
         self._stats = stats
         self.clock = None if clock is None else ClockReport(clock)
@@ -208,13 +221,12 @@ class GyroPump(threading.Thread):
                     backoff = self._child_died(backoff)
                     started = time.monotonic()
                 continue
-            if msg[0] == "state":
+            if isinstance(msg, tuple):
                 self._mirror(self.p.take_report(msg))
                 if self.st.state == "running":
                     backoff = 0.05
                 continue
-            _, t, rate, seq, gap_before, n_lost = msg
-            b = GyroBatch(t, rate, seq, gap_before, n_lost)
+            b = msg
             if self._respawned:                   # the samples a dead child held: a gap (count unknown)
                 b.gap_before, self._respawned = True, False
             try:
@@ -236,9 +248,21 @@ def _clock_report(clk) -> dict | None:
             "resets": int(clk.resets)}
 
 
-def _child_main(conn, q, want, stop, opts: dict, preload: tuple[str, ...]) -> None:
+def _enlarge(fd: int) -> None:
+    """Give the data pipe `PIPE_BYTES` of buffer where the system allows (F_SETPIPE_SZ, Linux)."""
+    import fcntl
+
+    for size in (PIPE_BYTES, PIPE_BYTES // 4):
+        try:
+            fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, size)
+            return
+        except (OSError, AttributeError):
+            continue
+
+
+def _child_main(conn, data, want, stop, opts: dict, preload: tuple[str, ...]) -> None:
     """The gyro process: wait for the constructor, run a `DriverThread` on the source until told to stop
-    or the parent is gone; batches and state reports go into `q`."""
+    or the parent is gone; batches and state reports go into `data`."""
     import importlib
 
     from thermod.runtime.driver_thread import DriverThread
@@ -253,17 +277,20 @@ def _child_main(conn, q, want, stop, opts: dict, preload: tuple[str, ...]) -> No
         if stop.is_set() or os.getppid() != parent:
             return
     build = conn.recv()
+    sending = threading.Lock()      # the driver thread and this one both send: one message at a time
+
+    def send_state(state: dict, stats: dict, clock, sim_cpu: float) -> None:
+        with sending:
+            data.send_bytes(b"S" + pickle.dumps((state, stats, clock, sim_cpu)))
+
     try:
         src = build()
     except Exception as e:   # noqa: BLE001 - said once, in the parent's health, then the parent retries
-        q.put(("state", {**{k: getattr(DeviceState("gyro"), k) for k in _STATE_KEYS}, "state": "error",
-                         "last_error": f"{type(e).__name__}: {e}"}, {}, None, 0.0))
-        q.close()
-        q.join_thread()
+        send_state({**{k: getattr(DeviceState("gyro"), k) for k in _STATE_KEYS}, "state": "error",
+                    "last_error": f"{type(e).__name__}: {e}"}, {}, None, 0.0)
         raise SystemExit(1) from None
     st = DeviceState(src.name)
     halt = threading.Event()
-    held = {"seq": None}           # a batch the queue could not take: the next one carries the gap
 
     def report() -> None:
         book = getattr(src, "emulation_cpu", None)
@@ -271,18 +298,16 @@ def _child_main(conn, q, want, stop, opts: dict, preload: tuple[str, ...]) -> No
             stats = {k: v for k, v in src.stats().items() if isinstance(v, (int, float, str, bool))}
         except Exception as e:  # noqa: BLE001 - the parent reports it
             stats = {"stats_error": f"{type(e).__name__}: {e}"}
-        q.put(("state", {k: getattr(st, k) for k in _STATE_KEYS}, stats, _clock_report(src.clock),
-               0.0 if book is None else book.cpu_s))
+        send_state({k: getattr(st, k) for k in _STATE_KEYS}, stats, _clock_report(src.clock),
+                   0.0 if book is None else book.cpu_s)
 
     def sink(b: GyroBatch) -> None:
-        gap, lost = b.gap_before, b.n_lost
-        if held["seq"] is not None:
-            gap, lost = True, lost + b.seq - held["seq"]
-            held["seq"] = None
-        if q.qsize() >= QUEUE_BATCHES:       # the parent has not read for that long: count, not grow
-            held["seq"] = held["seq"] if held["seq"] is not None else b.seq
-            return
-        q.put(("batch", b.t, b.rate, int(b.seq), bool(gap), int(lost)))
+        n = len(b)
+        msg = b"".join((b"B", _BATCH.pack(int(b.seq), bool(b.gap_before), int(b.n_lost), n),
+                        np.ascontiguousarray(b.t, "<f8").tobytes(),
+                        np.ascontiguousarray(b.rate, "<f4").tobytes()))
+        with sending:
+            data.send_bytes(msg)
 
     th = DriverThread("gyro", src, sink, st, halt, poll_timeout=opts["poll_timeout"],
                       priority=opts["priority"], retry_max_s=opts["retry_max_s"], stall_s=opts["stall_s"],
@@ -301,4 +326,3 @@ def _child_main(conn, q, want, stop, opts: dict, preload: tuple[str, ...]) -> No
     finally:
         halt.set()
         th.join(1.0)
-        q.cancel_join_thread()      # the parent has stopped reading: buffered batches are not waited for
