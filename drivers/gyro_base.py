@@ -247,6 +247,11 @@ class FifoGyro(GyroSource):
         the frame's wait, which would otherwise average half the interval."""
         self._wanted.set()
 
+    def wake_on(self, event) -> None:
+        """Wait for read requests on `event` (a `threading.Event` or a `multiprocessing.Event` that
+        another process sets) instead of this driver's own: setting it is `request_read`."""
+        self._wanted = event
+
     def _wait(self, seconds: float) -> None:
         if self._wanted.wait(max(0.0, seconds)):
             self._wanted.clear()

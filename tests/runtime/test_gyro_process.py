@@ -149,3 +149,30 @@ def test_a_constructor_that_fails_is_reported_and_retried():
         pump.join(5.0)
     assert state.errors >= 2 and "/dev/spidev9.9: no such device" in state.last_error
     assert sink.batches == []
+
+
+def test_a_read_request_wakes_the_reader_in_the_child():
+    """Asked every 5 ms (as a frame waiting for samples asks), the child reads far more often than
+    its interval (25 ms for this FIFO) alone would: the request reaches its reader."""
+    sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
+    gyro = process_gyro()
+    gyro.start(emulated(time.monotonic()))
+    pump = GyroPump(gyro, sink, state, stop)
+    pump.start()
+
+    def batches_in(seconds: float, ask: bool) -> int:
+        n0, end = len(sink.batches), time.monotonic() + seconds
+        while time.monotonic() < end:
+            if ask:
+                gyro.request_read()
+            time.sleep(0.005)
+        return len(sink.batches) - n0
+
+    try:
+        sink.wait_for(100)
+        alone = batches_in(2.0, ask=False)
+        asked = batches_in(2.0, ask=True)
+    finally:
+        stop.set()
+        pump.join(5.0)
+    assert asked >= 1.5 * alone and alone >= 40, (alone, asked)

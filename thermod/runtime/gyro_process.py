@@ -30,7 +30,7 @@ import time
 import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch
-from thermod.runtime.driver_thread import DeviceState
+from thermod.runtime.driver_thread import DeviceState, set_realtime
 
 log = logging.getLogger("thermod.runtime.daemon")
 
@@ -207,6 +207,8 @@ class GyroPump(threading.Thread):
         return min(self.p.opts["retry_max_s"], backoff * 2)
 
     def run(self) -> None:
+        # the parent's end of the gyro path: the frames wait on it, as on a driver thread in-process
+        set_realtime(self.p.opts["priority"], "gyro pump")
         backoff = 0.05
         started = time.monotonic()
         while not self.stop_ev.is_set() and not _exiting.is_set():
@@ -309,6 +311,12 @@ def _child_main(conn, data, want, stop, opts: dict, preload: tuple[str, ...]) ->
         with sending:
             data.send_bytes(msg)
 
+    # a FIFO driver waits on the parent's request event itself: a read request wakes the real-time
+    # reader directly, not through this thread
+    relay = getattr(src, "request_read", None)
+    if (wake_on := getattr(src, "wake_on", None)) is not None:
+        wake_on(want)
+        relay = None
     th = DriverThread("gyro", src, sink, st, halt, poll_timeout=opts["poll_timeout"],
                       priority=opts["priority"], retry_max_s=opts["retry_max_s"], stall_s=opts["stall_s"],
                       on_down=report, on_up=report)
@@ -316,10 +324,12 @@ def _child_main(conn, data, want, stop, opts: dict, preload: tuple[str, ...]) ->
     last = -math.inf
     try:
         while not stop.is_set() and os.getppid() == parent:
-            if want.wait(max(0.0, STATE_EVERY_S - (time.monotonic() - last))):
+            left = max(0.0, STATE_EVERY_S - (time.monotonic() - last))
+            if relay is None:
+                stop.wait(left)
+            elif want.wait(left):
                 want.clear()
-                if (ask := getattr(src, "request_read", None)) is not None:
-                    ask()
+                relay()
             if time.monotonic() - last >= STATE_EVERY_S:
                 last = time.monotonic()
                 report()
