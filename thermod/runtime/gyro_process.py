@@ -22,6 +22,7 @@ import math
 import multiprocessing
 import os
 import pickle
+import select
 import signal
 import struct
 import threading
@@ -69,8 +70,7 @@ class GyroProcess:
         self.spawns = 0
         self.child_error = ""           # the current child's last error
         self._ctx = multiprocessing.get_context("spawn")
-        self._want = self._ctx.Event()
-        self._proc = self._stop = self._conn = self._data = None
+        self._proc = self._stop = self._conn = self._data = self._wake = None
         self._stats: dict = {}
         self._build = None
         self._sim_base = 0.0            # emulation CPU of children before the current one
@@ -84,14 +84,16 @@ class GyroProcess:
         parent_conn, child_conn = self._ctx.Pipe()
         data_r, data_w = self._ctx.Pipe(duplex=False)
         _enlarge(data_w.fileno())
+        wake_r, wake_w = self._ctx.Pipe(duplex=False)
+        os.set_blocking(wake_w.fileno(), False)
         self._proc = self._ctx.Process(target=_child_main, name="thermod-gyro-process", daemon=True,
-                                       args=(child_conn, data_w, self._want, self._stop, self.opts,
+                                       args=(child_conn, data_w, wake_r, self._stop, self.opts,
                                              self.preload))
         self._proc.start()
         self.child_error = ""
-        child_conn.close()
-        data_w.close()
-        self._conn, self._data = parent_conn, data_r
+        for c in (child_conn, data_w, wake_r):
+            c.close()
+        self._conn, self._data, self._wake = parent_conn, data_r, wake_w
         self.spawns += 1
 
     def start(self, build=None) -> None:
@@ -112,10 +114,10 @@ class GyroProcess:
 
     def _drop_child(self) -> None:
         self._sim_base = self.sim_cpu_s
-        for c in (self._conn, self._data):
+        for c in (self._conn, self._data, self._wake):
             if c is not None:
                 c.close()
-        self._proc = self._conn = self._data = None
+        self._proc = self._conn = self._data = self._wake = None
 
     @property
     def pid(self) -> int | None:
@@ -127,7 +129,9 @@ class GyroProcess:
     # ------------------------------------------------------------------ what the daemon asks of a source
     def request_read(self) -> None:
         """A frame waits for its newest samples: the child reads the FIFO now."""
-        self._want.set()
+        wake = self._wake
+        if wake is not None:
+            WakeUp.poke(wake.fileno())
 
     def stats(self) -> dict:
         return {**self._stats, "process_pid": self.pid, "process_spawns": self.spawns}
@@ -243,6 +247,35 @@ class GyroPump(threading.Thread):
 
 
 # ---------------------------------------------------------------------------------------- the child
+class WakeUp:
+    """A read request across processes that never blocks the one asking (a `multiprocessing.Event`'s
+    `set` waits for the woken side to acknowledge): a byte written to a non-blocking pipe, dropped
+    when one is pending. It has an `Event`'s ``wait``, ``clear`` and ``set`` for `FifoGyro.wake_on`."""
+
+    def __init__(self, conn):
+        self._conn, self._fd = conn, conn.fileno()      # the Connection keeps the descriptor open
+        os.set_blocking(self._fd, False)
+
+    @staticmethod
+    def poke(fd: int) -> None:
+        try:
+            os.write(fd, b"\0")
+        except (BlockingIOError, OSError):   # one pending already, or the child is gone
+            pass
+
+    def set(self) -> None:                  # `Event` API; only the parent asks, through `poke`
+        pass
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return bool(select.select([self._fd], [], [], timeout)[0])
+
+    def clear(self) -> None:
+        try:
+            while os.read(self._fd, 4096):
+                pass
+        except BlockingIOError:
+            pass
+
 def _clock_report(clk) -> dict | None:
     if clk is None:
         return None
@@ -262,7 +295,7 @@ def _enlarge(fd: int) -> None:
             continue
 
 
-def _child_main(conn, data, want, stop, opts: dict, preload: tuple[str, ...]) -> None:
+def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) -> None:
     """The gyro process: wait for the constructor, run a `DriverThread` on the source until told to stop
     or the parent is gone; batches and state reports go into `data`."""
     import importlib
@@ -311,8 +344,9 @@ def _child_main(conn, data, want, stop, opts: dict, preload: tuple[str, ...]) ->
         with sending:
             data.send_bytes(msg)
 
-    # a FIFO driver waits on the parent's request event itself: a read request wakes the real-time
-    # reader directly, not through this thread
+    # a FIFO driver waits on the parent's requests itself: a request wakes the real-time reader
+    # directly, not through this thread
+    want = WakeUp(wake)
     relay = getattr(src, "request_read", None)
     if (wake_on := getattr(src, "wake_on", None)) is not None:
         wake_on(want)
