@@ -36,6 +36,7 @@ from thermod.runtime.driver_thread import DeviceState, set_realtime
 log = logging.getLogger("thermod.runtime.daemon")
 
 STATE_EVERY_S = 0.25          # the child reports the device's state this often (and at each change)
+FIFO_POLL_S = 0.05            # a FIFO driver's poll timeout in the child, at least (fewer empty wake-ups)
 PIPE_BYTES = 1 << 20          # the data pipe's buffer (Linux's default limit for a user): ~40 s at 1 kHz
 _BATCH = struct.Struct("<qBqI")   # seq, gap_before, n_lost, n; then t float64[n], rate float32[n, 3]
 SPAWN_TIMEOUT_S = 60.0        # a child that does not say "ready" by then (a hung import) is restarted
@@ -348,10 +349,13 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
     # directly, not through this thread
     want = WakeUp(wake)
     relay = getattr(src, "request_read", None)
+    poll_timeout = opts["poll_timeout"]
     if (wake_on := getattr(src, "wake_on", None)) is not None:
         wake_on(want)
         relay = None
-    th = DriverThread("gyro", src, sink, st, halt, poll_timeout=opts["poll_timeout"],
+        # its reads come at its interval or on a request; the timeout only bounds how soon it stops
+        poll_timeout = max(poll_timeout, FIFO_POLL_S)
+    th = DriverThread("gyro", src, sink, st, halt, poll_timeout=poll_timeout,
                       priority=opts["priority"], retry_max_s=opts["retry_max_s"], stall_s=opts["stall_s"],
                       on_down=report, on_up=report)
     th.start()
