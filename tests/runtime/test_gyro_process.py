@@ -176,3 +176,40 @@ def test_a_read_request_wakes_the_reader_in_the_child():
         stop.set()
         pump.join(5.0)
     assert asked >= 1.5 * alone and alone >= 40, (alone, asked)
+
+
+class UnpluggedAfter:
+    """The emulated gyro, unplugged for `seconds` after `after` s (every bus access fails, then the chip
+    comes back power-cycled): built in the child, as a real chip fails there."""
+
+    def __init__(self, t0: float, after: float, seconds: float):
+        self.t0, self.after, self.seconds = t0, after, seconds
+
+    def __call__(self):
+        driver = emulated(self.t0)()
+        threading.Timer(self.after, driver.emulator.unplug, (self.seconds,)).start()
+        return driver
+
+
+def test_a_device_error_in_the_child_is_mirrored_and_recovered():
+    sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
+    downs, ups = [], []
+    gyro = process_gyro()
+    gyro.start(UnpluggedAfter(time.monotonic(), after=1.0, seconds=0.4))
+    pump = GyroPump(gyro, sink, state, stop, on_down=lambda: downs.append(state.last_error),
+                    on_up=lambda: ups.append(1))
+    pump.start()
+    try:
+        end = time.monotonic() + 60
+        while not (downs and len(ups) >= 2 and state.state == "running"):
+            assert time.monotonic() < end, (state, gyro.stats())
+            time.sleep(0.05)
+        n = len(sink.seqs())
+        sink.wait_for(n + 100)
+    finally:
+        stop.set()
+        pump.join(5.0)
+    assert gyro.stats()["process_spawns"] == 1            # the child recovered the device itself
+    assert state.errors >= 1 and "failed" in downs[0], downs
+    gaps = sink.gaps()
+    assert gaps and gaps[0][1] >= 300, gaps                # ≥ 0.3 s of samples lost while unplugged, counted
