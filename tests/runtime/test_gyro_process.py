@@ -49,6 +49,14 @@ class Collector:
             time.sleep(0.02)
 
 
+def wait_until(ok, state, timeout: float = 60.0) -> None:
+    """Until `ok()` holds; the timeout only catches a hang (a loaded host just takes longer)."""
+    end = time.monotonic() + timeout
+    while not ok():
+        assert time.monotonic() < end, state()
+        time.sleep(0.05)
+
+
 def hold_the_gil(seconds: float) -> None:
     """Sleep in C with the GIL held (a `PyDLL` call does not release it): no other thread of this
     process runs Python meanwhile, as during a long GIL-bound call in the scheduler."""
@@ -60,21 +68,25 @@ def process_gyro(stall_s: float = 0.5) -> GyroProcess:
                        preload=("thermod.sim.payload",))
 
 
+def stalled_for_three_fifos(reader, sink: Collector, stop: threading.Event) -> None:
+    """Start `reader` (a thread feeding `sink`), hold this process's GIL for three FIFO fills once
+    samples flow, go on until 300 more samples came, and stop it."""
+    reader.start()
+    try:
+        sink.wait_for(300)
+        hold_the_gil(3 * FIFO_S)
+        sink.wait_for(len(sink.seqs()) + 300)
+    finally:
+        stop.set()
+        reader.join(5.0)
+
+
 def test_a_parent_holding_its_gil_past_the_fifo_loses_no_sample_in_the_gyro_process():
     sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
     gyro = process_gyro()
     gyro.spawn()
     gyro.start(emulated(time.monotonic()))
-    pump = GyroPump(gyro, sink, state, stop)
-    pump.start()
-    try:
-        sink.wait_for(300)
-        hold_the_gil(3 * FIFO_S)
-        n = len(sink.seqs())
-        sink.wait_for(n + 500)
-    finally:
-        stop.set()
-        pump.join(5.0)
+    stalled_for_three_fifos(GyroPump(gyro, sink, state, stop), sink, stop)
     seq = sink.seqs()
     assert sink.gaps() == [] and np.all(np.diff(seq) == 1), sink.gaps()
     assert gyro.stats()["overflows"] == 0 and state.state == "stopped"
@@ -86,15 +98,7 @@ def test_the_same_stall_overflows_the_fifo_of_a_reader_in_the_parent():
     sink, state, stop = Collector(), DeviceState("sim gyro"), threading.Event()
     th = DriverThread("gyro", emulated(time.monotonic())(), sink, state, stop, poll_timeout=0.002,
                       priority=0, retry_max_s=0.5, stall_s=0.5)
-    th.start()
-    try:
-        sink.wait_for(300)
-        hold_the_gil(3 * FIFO_S)
-        n = len(sink.seqs())
-        sink.wait_for(n + 300)
-    finally:
-        stop.set()
-        th.join(5.0)
+    stalled_for_three_fifos(th, sink, stop)
     gaps = sink.gaps()
     assert len(gaps) >= 1 and sum(lost for _, lost in gaps) >= 1.5 * FIFO_S * RATE_HZ, gaps
 
@@ -110,12 +114,9 @@ def test_a_gyro_process_that_dies_is_respawned_and_the_gap_marked():
         sink.wait_for(200)
         first = gyro.pid
         os.kill(first, signal.SIGKILL)
-        end = time.monotonic() + 60
-        while gyro.stats()["process_spawns"] < 2 or state.state != "running":
-            assert time.monotonic() < end, (gyro.stats(), state)
-            time.sleep(0.05)
-        n = len(sink.seqs())
-        sink.wait_for(n + 200)
+        wait_until(lambda: gyro.stats()["process_spawns"] >= 2 and state.state == "running",
+                   lambda: (gyro.stats(), state))
+        sink.wait_for(len(sink.seqs()) + 200)
     finally:
         stop.set()
         pump.join(5.0)
@@ -140,10 +141,7 @@ def test_a_constructor_that_fails_is_reported_and_retried():
     pump = GyroPump(gyro, sink, state, stop)
     pump.start()
     try:
-        end = time.monotonic() + 60
-        while gyro.stats()["process_spawns"] < 3:
-            assert time.monotonic() < end, (gyro.stats(), state)
-            time.sleep(0.05)
+        wait_until(lambda: gyro.stats()["process_spawns"] >= 3, lambda: (gyro.stats(), state))
     finally:
         stop.set()
         pump.join(5.0)
@@ -200,12 +198,9 @@ def test_a_device_error_in_the_child_is_mirrored_and_recovered():
                     on_up=lambda: ups.append(1))
     pump.start()
     try:
-        end = time.monotonic() + 60
-        while not (downs and len(ups) >= 2 and state.state == "running"):
-            assert time.monotonic() < end, (state, gyro.stats())
-            time.sleep(0.05)
-        n = len(sink.seqs())
-        sink.wait_for(n + 100)
+        wait_until(lambda: downs and len(ups) >= 2 and state.state == "running",
+                   lambda: (state, gyro.stats()))
+        sink.wait_for(len(sink.seqs()) + 100)
     finally:
         stop.set()
         pump.join(5.0)
