@@ -208,3 +208,14 @@ def test_a_device_error_in_the_child_is_mirrored_and_recovered():
     assert state.errors >= 1 and "failed" in downs[0], downs
     gaps = sink.gaps()
     assert gaps and gaps[0][1] >= 300, gaps                # ≥ 0.3 s of samples lost while unplugged, counted
+
+
+def test_a_child_spawned_but_never_given_its_source_stops_with_the_daemon():
+    """The daemon spawns the child before it prepares; a start that fails after that still ends it."""
+    gyro = process_gyro()
+    gyro.spawn()
+    pid = gyro.pid
+    assert gyro.alive()
+    gyro.stop(timeout=5.0)
+    assert not gyro.alive() and gyro.pid is None
+    assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"

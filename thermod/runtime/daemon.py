@@ -260,6 +260,8 @@ class Daemon:
             marks.append((stage, time.monotonic()))
         for th in self.driver_threads:
             th.join(max(0.05, 0.8 - (time.monotonic() - t0)))
+        if isinstance(self.gyro, GyroProcess):
+            self.gyro.stop(timeout=0.3)    # spawned even when the start failed before its pump ran
         mark("drivers")
         if self.monitor is not None:
             self.monitor.stop(timeout=0.3)

@@ -75,6 +75,7 @@ class GyroProcess:
         self._stats: dict = {}
         self._build = None
         self._sim_base = 0.0            # emulation CPU of children before the current one
+        self._stopping = threading.Lock()
 
     # ------------------------------------------------------------------ the child's life
     def spawn(self) -> None:
@@ -104,14 +105,17 @@ class GyroProcess:
         self._conn.send(self._build)
 
     def stop(self, timeout: float = 1.0) -> None:
-        if self._proc is None:
-            return
-        self._stop.set()
-        self._proc.join(timeout)
-        if self._proc.is_alive():
-            self._proc.kill()
-            self._proc.join(1.0)
-        self._drop_child()
+        """End the child (the pump's end, or the daemon's when its start failed before the pump ran)."""
+        with self._stopping:
+            proc = self._proc
+            if proc is None:
+                return
+            self._stop.set()
+            proc.join(timeout)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+            self._drop_child()
 
     def _drop_child(self) -> None:
         self._sim_base = self.sim_cpu_s
