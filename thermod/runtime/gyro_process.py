@@ -64,7 +64,7 @@ class GyroProcess:
                  stall_s: float, preload: tuple[str, ...] = ()):
         self.name = name
         self.opts = dict(poll_timeout=poll_timeout, priority=priority, retry_max_s=retry_max_s,
-                         stall_s=stall_s, log_level=logging.getLogger().getEffectiveLevel())
+                         stall_s=stall_s, log_level=log.getEffectiveLevel())
         self.preload = preload
         self.clock: ClockReport | None = None
         self.sim_cpu_s = 0.0            # the emulated device's CPU in the child (a real one costs none)
