@@ -72,7 +72,7 @@ class Daemon:
             self.gyro: Source = GyroProcess(
                 f"{g.kind} gyro", poll_timeout=g.poll_timeout_s, priority=g.realtime_priority,
                 retry_max_s=g.retry_max_s, stall_s=GYRO_STALL_S,
-                preload=("thermod.sim.payload",) if cfg.gyro.kind == "sim" else ("thermod.runtime.sources",))
+                preload=("thermod.sim.payload",) if g.kind == "sim" else ())   # a driver's module is light
         else:
             self.gyro = gyro if gyro is not None else sources.build_gyro(cfg, self.payload)
         self.camera: Source = camera if camera is not None else sources.build_camera(cfg, self.payload)

@@ -27,11 +27,13 @@ import signal
 import struct
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 
 from thermod.drivers.gyro_base import GyroBatch
 from thermod.runtime.driver_thread import DeviceState, set_realtime
+from thermod.runtime.health import source_clock
 
 log = logging.getLogger("thermod.runtime.daemon")
 
@@ -45,15 +47,8 @@ atexit.register(_exiting.set)
 _STATE_KEYS = ("state", "last_error", "errors", "restarts", "last_data", "heartbeat", "realtime")
 
 
-class ClockReport:
-    """The child's device-clock fit, as health reads it (`thermod.runtime.health.source_clock`)."""
-
-    def __init__(self, d: dict):
-        self.residual_std_s, self.drift_ppm, self.resets = d["residual_std_s"], d["drift_ppm"], d["resets"]
-
-
 class GyroProcess:
-    """A gyro source run in a child process; the daemon reads it with `start_pump`.
+    """A gyro source run in a child process; the daemon reads it with a `GyroPump`.
 
     ``build`` is a picklable zero-argument constructor of the source (e.g.
     ``functools.partial(sources.build_gyro, cfg)``, `thermod.sim.payload.EmulatedGyro`); ``preload``
@@ -66,7 +61,7 @@ class GyroProcess:
         self.opts = dict(poll_timeout=poll_timeout, priority=priority, retry_max_s=retry_max_s,
                          stall_s=stall_s, log_level=log.getEffectiveLevel())
         self.preload = preload
-        self.clock: ClockReport | None = None
+        self.clock: SimpleNamespace | None = None   # the child's clock fit, as health reads a source's
         self.sim_cpu_s = 0.0            # the emulated device's CPU in the child (a real one costs none)
         self.spawns = 0
         self.child_error = ""           # the current child's last error
@@ -162,15 +157,9 @@ class GyroProcess:
         state, stats, clock, sim_cpu = msg
         self.child_error = state["last_error"]
         self._stats = stats
-        self.clock = None if clock is None else ClockReport(clock)
+        self.clock = None if clock is None else SimpleNamespace(**clock)
         self.sim_cpu_s = self._sim_base + float(sim_cpu)
         return state
-
-    def start_pump(self, sink, state: DeviceState, stop: threading.Event, *, on_down=None, on_up=None):
-        """The parent's ``thermod-gyro`` thread (started): batches → `sink`, the child's state → `state`."""
-        th = GyroPump(self, sink, state, stop, on_down=on_down, on_up=on_up)
-        th.start()
-        return th
 
 
 class GyroPump(threading.Thread):
@@ -191,7 +180,7 @@ class GyroPump(threading.Thread):
     def _mirror(self, state: dict) -> None:
         was = self.st.state
         for k in _STATE_KEYS:
-            setattr(self.st, k, state[k] + self._before.get(k, 0) if k in self._before else state[k])
+            setattr(self.st, k, state[k] + self._before[k] if k in self._before else state[k])
         self.st.last_error = state["last_error"] or self._died
         now_up = self.st.state == "running"
         if was == "running" and not now_up and self.on_down:
@@ -281,12 +270,6 @@ class WakeUp:
         except BlockingIOError:
             pass
 
-def _clock_report(clk) -> dict | None:
-    if clk is None:
-        return None
-    return {"residual_std_s": float(clk.residual_std_s), "drift_ppm": float(clk.drift_ppm),
-            "resets": int(clk.resets)}
-
 
 def _enlarge(fd: int) -> None:
     """Give the data pipe `PIPE_BYTES` of buffer where the system allows (F_SETPIPE_SZ, Linux)."""
@@ -338,7 +321,7 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
             stats = {k: v for k, v in src.stats().items() if isinstance(v, (int, float, str, bool))}
         except Exception as e:  # noqa: BLE001 - the parent reports it
             stats = {"stats_error": f"{type(e).__name__}: {e}"}
-        send_state({k: getattr(st, k) for k in _STATE_KEYS}, stats, _clock_report(src.clock),
+        send_state({k: getattr(st, k) for k in _STATE_KEYS}, stats, source_clock(src),
                    0.0 if book is None else book.cpu_s)
 
     def sink(b: GyroBatch) -> None:
