@@ -628,6 +628,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
         scale = here / float(like_yardstick_ms)
         fps = fps / scale
         extra.append(f"deblur.max_solve_s={config.load().deblur.max_solve_s * scale:.4f}")
+        extra.append(f"deblur.latency_p99_s={config.load().deblur.latency_p99_s * scale:.4f}")
         line += f"; emulating a machine at {like_yardstick_ms:g} ms: {fps:.1f} fps, times ÷ {scale:.2f}"
     truth = prepared_payload(size, fps)
     for _ in range(repeats):
@@ -647,6 +648,13 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     return rows
 
 
+def loop_text(gov: dict) -> str:
+    """The governor's latency loop at the run's end: its budget scale and how often it moved."""
+    if "latency_scale" not in gov:
+        return "-"
+    return f"×{gov['latency_scale']:.2f} ({gov.get('tightened', 0)}↓ {gov.get('relaxed', 0)}↑)"
+
+
 def print_payload(rows: list[dict]) -> None:
     print(rows[0]["yardstick"], "(before the runs)")
     w, h = rows[0]["size"]
@@ -655,15 +663,17 @@ def print_payload(rows: list[dict]) -> None:
           "load average "
           f"{os.getloadavg()[0]:.1f} after the runs")
     print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
-          "| PSNR dB (blurry) | steady after s | not deblurred | deblurred by |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| PSNR dB (blurry) | steady after s | latency loop | not deblurred | deblurred by |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
         q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
         print(f"| {q} | {r['frames']}/{r['expected']} | {r['deblurred_pct']:.1f} | "
               f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['psnr']:.2f} ({r['psnr_blurry']:.2f}) | "
-              f"{r.get('steady_after_s') or 'not yet'} | {r['reasons'] or '-'} | {methods_text(r)} |")
+              f"{r.get('steady_after_s') or 'not yet'} | {loop_text(r['governor'])} | "
+              f"{r['reasons'] or '-'} | "
+              f"{methods_text(r)} |")
     print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
           "stage latency p50 / p99 ms at the run's end (`health.pipeline.stage_ms`)")
     totals = {"parent", "parent_without_sim", "overhead_without_sim"}

@@ -553,3 +553,42 @@ def test_a_round_trip_is_added_to_every_prediction_not_scaled():
     # in the worker's own thread there is no round trip: nothing is added
     h = seeded()
     assert h.overhead_s == 0.0 and h.predict("wiener", 1) == pytest.approx(3e-3)
+
+
+def test_a_tail_over_the_latency_goal_coarsens_the_grid_to_its_floor_and_back():
+    """The latency loop (`Governor.released`): windows of 150 published frames whose p99 is twice the
+    60 ms goal scale the budget by 0.75 a window, down to 0.3; the grid then coarsens to the frame's
+    floor and no further, although one kernel would fit. A tail within the goal (p99 55, p95 40 ms)
+    moves nothing; a low one relaxes the scale ×1.15 a window back to 1 and the finest grid.
+    Wiener costs (ms): 4 one kernel, 14 over 3×4, 24 over 6×8; budget 25.5, `keep_s` 34 ms."""
+    g = Governor(DeblurConfig(method="wiener", temporal_views=1), FPS, 2)
+    for cells, ms in ((1, 4), (12, 14), (48, 24)):
+        g.seed("wiener", cells, ms / 1e3)
+    cost = {1: 4, 12: 14, 48: 24}
+
+    def wiener(fam, cells):
+        return g.predict(fam, cells) if cells not in cost else cost[cells] / 1e3
+
+    def window(t, slow_ms, fast_ms=20.0, slow=3):
+        for k in range(150):
+            g.released((slow_ms if k < slow else fast_ms) / 1e3, t)
+            t += 1 / FPS
+        return t
+
+    labels, t = feed(g, 0.0, 1.0, wiener, needed=(6, 8), floor=(2, 3))
+    assert labels[-1] == "wiener 6×8" and g.scale == 1.0
+    t = window(t, 55.0, 40.0, slow=1)                 # p99 ≈ 55, p95 = 40: within the goal
+    assert g.scale == 1.0 and g.counts["tightened"] == g.counts["relaxed"] == 0
+    t = window(t, 120.0)
+    assert g.scale == pytest.approx(0.75) and g.latency_p99_s == pytest.approx(0.120)
+    for _ in range(6):
+        t = window(t, 120.0)
+    assert g.scale == pytest.approx(0.3) and g.counts["tightened"] == 5     # 0.75⁴ = 0.32, then the floor
+    labels, t = feed(g, t, 1.0, wiener, needed=(6, 8), floor=(2, 3))
+    assert set(labels[-25:]) == {"wiener 2×3"}      # the floor; one kernel (4 ms) would fit 0.3 × 25.5
+    assert g.state()["latency_scale"] == 0.3 and g.state()["budget_ms"] == pytest.approx(7.65)
+    for _ in range(10):
+        t = window(t, 20.0)
+    assert g.scale == 1.0 and g.counts["relaxed"] == 9                       # 0.3 × 1.15⁹ > 1
+    labels, t = feed(g, t, 1.0, wiener, needed=(6, 8), floor=(2, 3))
+    assert labels[-1] == "wiener 6×8"

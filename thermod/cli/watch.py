@@ -160,7 +160,9 @@ class WatchStats:
             if g.get("method"):
                 nan = float("nan")
                 lines.append(f"governor     {g['method']} (ladder {' > '.join(g.get('ladder', []))}), budget "
-                             f"{g.get('budget_ms', nan):.1f} ms, load ×{g.get('load', nan):.2f}, "
+                             f"{g.get('budget_ms', nan):.1f} ms (×{g.get('latency_scale', 1.0):.2f} "
+                             f"for a p99 of {g.get('latency_goal_ms', nan):.0f} ms), "
+                             f"load ×{g.get('load', nan):.2f}, "
                              f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
             lines += cpu_lines(h)
             lines += motion_lines(h)

@@ -33,6 +33,7 @@ class DeblurConfig:
     governor: bool = True            # degrade the method, not the share of frames (`runtime.governor`)
     max_solve_s: float = 0.030       # governor: longest solve wanted per frame, for latency (s)
     headroom: float = 0.15           # governor: share of the budget kept free for jitter
+    latency_p99_s: float = 0.060     # governor: the published frames' p99 latency it holds (s)
     m: float = 5.0                   # kernel window = m·τ
     min_coverage: float = 0.99       # gyro coverage below this → pass through
     ffc_settle_s: float | None = None  # after a flat-field correction: pass through this long (None: m·τ)
@@ -62,6 +63,8 @@ DEBLUR = with_defaults(DeblurConfig, {
     "governor": Key(bool, doc="degrade the method under load, not the share of frames deblurred"),
     "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
     "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
+    "latency_p99_s": Key(float, lo=0.001, hi=60.0, doc="governor: the p99 latency (read to published) "
+                         "it scales its budget to hold"),
     "m": Key(float, lo=1.0, hi=20.0, doc="kernel window = m·τ"),
     "min_coverage": Key(float, lo=0.0, hi=1.0, doc="gyro coverage below this → pass through"),
     "ffc_settle_s": Key(float, lo=0.0, hi=60.0, doc="pass through this long after an FFC; absent: m·τ"),

@@ -33,7 +33,7 @@ THREAD_STAGES = (
     ("thermod-rtsp", "rtsp"),
     ("MainThread", "main"),
 )
-PIPELINE_STAGES = ("gyro_wait", "render", "queue", "solve", "prior_wait", "reorder", "publish")
+PIPELINE_STAGES = ("arrival", "gyro_wait", "render", "queue", "solve", "prior_wait", "reorder", "publish")
 _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 

@@ -13,6 +13,8 @@ over its reference) and O the median round trip around a child's solve (`overhea
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
+Tail: `released` scales both limits toward the published p99 `latency_p99_s` (the latency loop),
+never pushing the last full-resolution rung below its floor.
 
 It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
 and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
@@ -37,6 +39,10 @@ MIN_SOLVES = 3                    # solves of a stretch (after its cold ones) be
 STALE_S = 1.0                     # a key unused this long starts a new stretch (its window is cleared)
 NEEDED_S = 1.0                    # rungs are judged on the finest grid needed over this long
 KEEP_S = 2.0                      # the keep rule's load: the median over this long of every key's solves
+TAIL_FRAMES = 150                 # the latency loop judges each scale on this many released frames
+TAIL_STALE_S = 20.0               # ... released within this long (a slow camera's window spans more)
+TAIL_P95_SHARE = 0.75             # the p95 is held to this share of the p99 goal (45 of 60 ms)
+MIN_SCALE = 0.3                   # the loop never scales the budgets below this share
 
 
 @dataclass(frozen=True)
@@ -106,6 +112,10 @@ class Governor:
         self.aspect = float(aspect)
         self.budget_s = min(workers / frame_rate_hz, deblur.max_solve_s) * (1.0 - deblur.headroom)
         self.keep_s = workers / frame_rate_hz * (1.0 - deblur.headroom)   # the workers still keep up
+        self.latency_goal_s = deblur.latency_p99_s
+        self.scale = 1.0                # the latency loop's share of budget_s and keep_s (`released`)
+        self.latency_p99_s: float | None = None     # the p99 of the last judged window
+        self._released: collections.deque = collections.deque()   # (time, latency) since the last revision
         self.hold_s, self.base_hold_s, self.max_hold_s, self.margin = hold_s, hold_s, max_hold_s, margin
         self.index = 0
         self._last_change = -math.inf
@@ -121,7 +131,8 @@ class Governor:
         self._ratios: collections.deque = collections.deque()   # (time, solve / its reference), KEEP_S
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self._memo: dict = {}          # costs derived from the state above, cleared when it changes
-        self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0}
+        self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0,
+                       "tightened": 0, "relaxed": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
 
     # ------------------------------------------------------------------ costs
@@ -219,10 +230,49 @@ class Governor:
     def inherit(self, old: Governor) -> None:
         """Keep what `old` measured (a reload with new deblur settings keeps the machine's costs)."""
         with old._lock:
-            refs, load = dict(old._ref), old.load
+            refs, load, scale = dict(old._ref), old.load, old.scale
         with self._lock:
-            self._ref, self.load = refs, load
+            self._ref, self.load, self.scale = refs, load, scale
             self._memo.clear()
+
+    # ------------------------------------------------------------------ the latency loop
+    @property
+    def limit_s(self) -> float:
+        """The solve budget the decisions use: `budget_s` times the latency loop's scale."""
+        return self.budget_s * self.scale
+
+    @property
+    def keep_limit_s(self) -> float:
+        """The keep rules' limit: `keep_s` times the latency loop's scale."""
+        return self.keep_s * self.scale
+
+    def released(self, latency_s: float, now: float) -> None:
+        """A deblurred frame was published `latency_s` after its read (host time `now`).
+
+        The predictions budget a solve's median; the published tail also holds the queue and the
+        host's slow solves. Every `TAIL_FRAMES` frames the loop compares the window's p99 with the
+        goal and its p95 with `TAIL_P95_SHARE` of it, r the larger ratio: r > 1 scales both budgets
+        by 1/r (at most ×0.75 a step, down to `MIN_SCALE`); r < 1 − margin scales them ×1.15, up to 1.
+        Each scale is judged on frames solved under it (the window starts again)."""
+        if not self.enabled or not (latency_s >= 0 and math.isfinite(latency_s)):
+            return
+        with self._lock:
+            window = self._released
+            window.append((now, float(latency_s)))
+            while window and window[0][0] < now - TAIL_STALE_S:
+                window.popleft()
+            if len(window) < TAIL_FRAMES:
+                return
+            q = statistics.quantiles((x for _, x in window), n=100, method="inclusive")
+            window.clear()
+            self.latency_p99_s = q[98]
+            r = max(q[98] / self.latency_goal_s, q[94] / (TAIL_P95_SHARE * self.latency_goal_s))
+            if r > 1.0 and self.scale > MIN_SCALE:
+                self.scale = max(MIN_SCALE, self.scale * max(0.75, 1.0 / r))
+                self.counts["tightened"] += 1
+            elif r < 1.0 - self.margin and self.scale < 1.0:
+                self.scale = min(1.0, self.scale * 1.15)
+                self.counts["relaxed"] += 1
 
     # ------------------------------------------------------------------ decisions
     def _grids(self, i: int, needed: tuple[int, int], floor: tuple[int, int],
@@ -262,10 +312,14 @@ class Governor:
     def _pick(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The grid rung i solves this frame with, or None: within the budget down to the floor; on
         its floor within `keep_s` (the rung in use and the last full-resolution one); the last
-        full-resolution rung then beyond its floor within the budget, then within `keep_s`."""
-        g = self._fits(i, needed, self.budget_s, floor)
+        full-resolution rung then beyond its floor within the budget, then within `keep_s`. The
+        latency loop scales the first two limits; the last full-resolution rung is not pushed
+        below its floor by it (a coarser grid than the floor costs more quality than tail)."""
+        g = self._fits(i, needed, self.limit_s, floor)
         if g is None and i in (self.index, self.full_last):
             g = self._keeps(i, needed, floor)
+        if g is None and i == self.full_last and self.scale < 1.0:
+            g = self._keeps(i, needed, floor, self.keep_s)    # the latency loop stops at the floor
         if g is None and i == self.full_last:
             g = self._fits(i, needed, self.budget_s, floor, True)
         if g is None and i == self.full_last:
@@ -278,7 +332,7 @@ class Governor:
         kernel, predicted within `keep_s`. Full resolution over the latency budget restores more than
         half resolution within it (one kernel at 1280×1024: benchmarks/results/payload.md),
         and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
-        unless given (a climb back asks for a margin below it)."""
+        unless given (a climb back asks for a margin below it); the latency loop does not scale it."""
         limit = self.keep_s if limit is None else limit
         return next((g for g in self._grids(i, needed, (1, 1), True) if self._keep_cost(i, g) <= limit), None)
 
@@ -292,7 +346,7 @@ class Governor:
         if not self.rungs[i].coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
-        return g if self._keep_cost(i, g) <= (self.keep_s if limit is None else limit) else None
+        return g if self._keep_cost(i, g) <= (self.keep_limit_s if limit is None else limit) else None
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
@@ -336,11 +390,12 @@ class Governor:
                 if i < len(self.rungs):
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
-                budget, keep = self.budget_s * (1 - self.margin), self.keep_s * (1 - self.margin)
+                budget, keep = self.limit_s * (1 - self.margin), self.keep_limit_s * (1 - self.margin)
                 for i in range(self.index):                       # best rung that fits with margin
                     if self._fits_any(i, worst, budget, worst_floor) is not None \
                             or self._keeps(i, worst, worst_floor, keep) is not None \
-                            or (i == self.full_last and self._keeps_beyond_floor(i, worst, keep) is not None):
+                            or (i == self.full_last and self._keeps_beyond_floor(
+                                i, worst, self.keep_s * (1 - self.margin)) is not None):
                         self._move(i, now)
                         break
             last = len(self.rungs) - 1
@@ -366,7 +421,7 @@ class Governor:
             if not self.enabled or self.index >= len(self.rungs) - 1:
                 return
             worst, floor = self._recent_grids()
-            if self._fits_any(self.index, worst, self.budget_s * (1 - self.margin), floor) is not None:
+            if self._fits_any(self.index, worst, self.limit_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
             self.counts["overload_steps"] += 1
@@ -397,7 +452,10 @@ class Governor:
                 "method": self.rungs[self.index].name,
                 "rung": self.index,
                 "ladder": [r.name for r in self.rungs],
-                "budget_ms": round(1e3 * self.budget_s, 2),
+                "budget_ms": round(1e3 * self.limit_s, 2),
+                "latency_scale": round(self.scale, 3),
+                "latency_goal_ms": round(1e3 * self.latency_goal_s, 1),
+                "latency_p99_ms": None if self.latency_p99_s is None else round(1e3 * self.latency_p99_s, 1),
                 "load": round(self.load, 3),
                 "overhead_ms": round(1e3 * self.overhead_s, 2),
                 "keep_load": round(self._keep_load(), 3),

@@ -111,6 +111,7 @@ class _Job:
     choice: Choice | None = None
     warp_gyro: tuple | None = None  # (t, rate) raw gyro from before the prior to the frame: the warp's
     t_queued: float = field(default_factory=time.monotonic)
+    arrival_s: float = 0.0          # from the frame's read time to the scheduler taking it up
     gyro_wait_s: float = 0.0        # the scheduler's wait for the gyro to cover the frame
     render_s: float = 0.0           # the scheduler's grid choice (the worker adds the kernel's render)
     keep_out: tuple | None = None   # a static overlay's (mask, grown mask): kept out of the solve
@@ -483,7 +484,8 @@ class Pipeline:
             self._count("overlay_kept", 1)
         now = time.monotonic()
         self._enqueue(_Job(slot, order, s.generation, choice, warp_gyro, t_queued=now,
-                           gyro_wait_s=t_render - t_wait, render_s=now - t_render, keep_out=keep_out))
+                           arrival_s=t_wait - slot.t, gyro_wait_s=t_render - t_wait, render_s=now - t_render,
+                           keep_out=keep_out))
 
     def _wait_for_gyro(self, g1: float, slot: FrameSlot) -> None:
         """Wait until the gyro ring covers gyro time `g1`, at most until ``max(t, arrival) +
@@ -616,8 +618,8 @@ class Pipeline:
                                    pack=self._kernels, keep_out=job.keep_out)
                 if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
                     self._job_done(i, index, None)
-                    self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
-                                         queue=t_start - job.t_queued)
+                    self.stage_times.add(arrival=job.arrival_s, gyro_wait=job.gyro_wait_s,
+                                         render=job.render_s + got.render_s, queue=t_start - job.t_queued)
                     self._refused(job.slot, got.passthrough)
                     continue
                 est = got.estimate
@@ -632,7 +634,8 @@ class Pipeline:
                         self._count(f"temporal_prior_{prior_frames}", 1)
                 t_end = time.monotonic()
                 gov.observe(gov.family(rung), grid[0] * grid[1], got.compute_s, t_end, got.overhead_s)
-                self.stage_times.add(gyro_wait=job.gyro_wait_s, render=job.render_s + got.render_s,
+                self.stage_times.add(arrival=job.arrival_s, gyro_wait=job.gyro_wait_s,
+                                     render=job.render_s + got.render_s,
                                      queue=t_start - job.t_queued, solve=got.seconds - got.render_s,
                                      prior_wait=t_end - t_start - got.seconds)
                 out = got.image
@@ -719,6 +722,8 @@ class Pipeline:
                 self._count("frames_out", 1)
                 with self._lat_lock:
                     self._latencies.append(o.latency_s)
+                if o.method is not None and not self.settling.state(o.t_done)["warming_up"]:
+                    self.governor.released(o.latency_s, o.t_done)   # the tail after the start-up
                 self.settling.add(o.t_done, o.latency_s)
 
     # ------------------------------------------------------------------ health
