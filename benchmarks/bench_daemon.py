@@ -137,10 +137,12 @@ def prepared_payload(size: tuple[int, int], fps: float):
     return payload
 
 
-def cpu_quota_group(cores: float) -> tuple[Path, Path]:
-    """A cgroup whose processes share `cores` of CPU time (v2 ``cpu.max``, else v1 CFS quota):
-    ``(its cgroup.procs, its directory)``. Root only; SystemExit with the reason otherwise."""
-    period = 100_000
+def cpu_quota_group(cores: float, period_ms: float = 100.0) -> tuple[Path, Path]:
+    """A cgroup whose processes share `cores` of CPU time (v2 ``cpu.max``, else v1 CFS quota) per
+    period of `period_ms` (100 ms: the kernel's and systemd's default; a group that spends its
+    quota early in a period is stopped for the rest of it): ``(its cgroup.procs, its directory)``.
+    Root only; SystemExit with the reason otherwise."""
+    period = int(round(period_ms * 1000))
     name = f"thermod-bench-{os.getpid()}"
     v2 = Path("/sys/fs/cgroup/cgroup.controllers")
     base = Path("/sys/fs/cgroup") if v2.exists() else Path("/sys/fs/cgroup/cpu")
@@ -159,7 +161,7 @@ def cpu_quota_group(cores: float) -> tuple[Path, Path]:
 
 def run_daemon(fps: float, seconds: float, method: str | None, soak: bool = False, *, cpus: str | None = None,
                extra: tuple[str, ...] = (), size: tuple[int, int] = (640, 480), keep_every: int = 0,
-               quota: float | None = None) -> dict:
+               quota: float | None = None, quota_period_ms: float = 100.0) -> dict:
     from thermod.client.subscriber import Subscriber
 
     ep = f"tcp://127.0.0.1:{free_port()}"
@@ -171,7 +173,7 @@ def run_daemon(fps: float, seconds: float, method: str | None, soak: bool = Fals
         cmd = ["taskset", "-c", cpus, *cmd]
     group = None
     if quota is not None:        # the daemon and its solver children in a cgroup of `quota` cores
-        procs, group = cpu_quota_group(quota)
+        procs, group = cpu_quota_group(quota, quota_period_ms)
         cmd = ["sh", "-c", f'echo $$ > {procs} && exec "$@"', "sh", *cmd]
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
@@ -608,7 +610,7 @@ def cpu_medians(r: dict) -> dict:
 
 def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tuple[int, int] = (640, 480),
             fps: float = 50.0, gyro: str = "sim", like_yardstick_ms: float | None = None,
-            sets: tuple[str, ...] = ()) -> list[dict]:
+            sets: tuple[str, ...] = (), quota_period_ms: float = 100.0) -> list[dict]:
     """The default daemon (`make run`'s configuration, 640×480 at 50 fps unless `size` and `fps` say
     otherwise) on this machine's cores and under CPU quotas (cores), interleaved `repeats` times;
     `gyro` "video": with no gyro, the motion measured from the frames. The machine's yardstick is
@@ -634,11 +636,13 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     for _ in range(repeats):
         for q in quotas:
             print(f"payload: quota {q or 'none'} for {seconds:g} s …", file=sys.stderr, flush=True)
-            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY, extra=tuple(extra))
+            r = run_daemon(fps, seconds, None, quota=q, size=size, keep_every=KEEP_EVERY, extra=tuple(extra),
+                           quota_period_ms=quota_period_ms)
             kept = r.pop("kept")
             for k in ("p50_ms", "p95_ms", "p99_ms"):
                 r[k] /= scale
-            r.update(quota=q, gyro=gyro, cpu=cpu_medians(r), yardstick=line, time_scale=scale,
+            r.update(quota=q, quota_period_ms=quota_period_ms, gyro=gyro, cpu=cpu_medians(r), yardstick=line,
+                     time_scale=scale,
                      psnr=float(np.median([truth_psnr(img, truth.truth_for(fid), central=False)
                                            for fid, img in kept])),
                      psnr_blurry=float(np.median([truth_psnr(np.asarray(truth.frame_for(fid), np.float32),
@@ -668,6 +672,8 @@ def print_payload(rows: list[dict]) -> None:
     for r in rows:
         temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
         q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
+        if r["quota"] is not None and r.get("quota_period_ms", 100.0) != 100.0:
+            q += f" per {r['quota_period_ms']:g} ms"
         print(f"| {q} | {r['frames']}/{r['expected']} | {r['deblurred_pct']:.1f} | "
               f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['psnr']:.2f} ({r['psnr_blurry']:.2f}) | "

@@ -45,15 +45,20 @@ def main(argv=None) -> int:
                     help="emulate a machine whose yardstick reads MS ms/frame, e.g. 326 (issue 35's): the "
                          "frame rate and latency cap scaled by this machine's yardstick / MS, the latencies "
                          "reported on that machine's time scale")
+    ap.add_argument("--quota-period-ms", type=float, default=100.0, metavar="MS",
+                    help="the quota's period (default 100, the kernel's and systemd's CPUQuotaPeriodSec): "
+                         "a group that spends its quota early in a period is stopped for the rest of it")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a configuration override for the daemon (repeatable)")
     args = ap.parse_args(argv)
+    if not 1.0 <= args.quota_period_ms <= 1000.0:
+        ap.error(f"--quota-period-ms: expected 1 to 1000 ms, got {args.quota_period_ms:g}")
     if args.like_yardstick is not None and not args.like_yardstick > 0:
         ap.error(f"--like-yardstick: expected a yardstick in ms/frame > 0, got {args.like_yardstick:g}")
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     quotas = tuple(None if q == "none" else float(q) for q in args.quotas.split(","))
     print_payload(payload(15.0 if args.quick else args.seconds, quotas, args.repeats, size, args.rate,
-                          args.gyro, args.like_yardstick, tuple(args.set)))
+                          args.gyro, args.like_yardstick, tuple(args.set), args.quota_period_ms))
     return 0
 
 
