@@ -49,6 +49,7 @@ log = logging.getLogger("thermod.runtime.daemon")
 
 STALL_MIN_S = 1.0
 GYRO_STALL_S = 0.5          # a gyro silent this long is stalled (it delivers every few ms)
+GYRO_START_WAIT_S = 5.0     # the camera waits this long at most for a gyro process's first samples
 # sections a running daemon cannot change: a reload that changes them is applied in part
 _RESTART_SECTIONS = ("gyro", "camera", "publish", "pipeline", "sim", "rtsp", "monitor")
 
@@ -239,10 +240,24 @@ class Daemon:
                          poll_timeout=cfg.camera.poll_timeout_s, priority=cfg.camera.realtime_priority,
                          retry_max_s=cfg.camera.retry_max_s, stall_s=max(STALL_MIN_S, 10 * frame_period)),
         ]
-        for th in self.driver_threads:
+        gyro_thread.start()
+        if isinstance(self.gyro, GyroProcess):
+            self._await_gyro(GYRO_START_WAIT_S)
+        for th in self.driver_threads[1:]:
             th.start()
         if self.monitor is not None:
             self.monitor.start()
+
+    def _await_gyro(self, timeout: float) -> None:
+        """Wait until the gyro's first samples are in the ring, at most `timeout` s: the camera starts
+        then, so the first frames find their motion (a gyro process builds its source only now). A gyro
+        that is not up by then is waited for frame by frame, as any outage."""
+        deadline = time.monotonic() + timeout
+        while self.gyro_ring.count == 0 and time.monotonic() < deadline and not self._stop.is_set() \
+                and self.gyro_state.state != "error":
+            time.sleep(0.01)
+        if self.gyro_ring.count == 0:
+            log.warning("gyro: no sample yet (%s); starting the camera anyway", self.gyro_state.state)
 
     def _gyro_down(self) -> None:
         self.pipeline.gyro_online = False
