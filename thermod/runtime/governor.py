@@ -68,7 +68,7 @@ def ladder(deblur: DeblurConfig) -> list[Rung]:
     last = Rung("wiener", "wiener", None, varying, coarsens=True)
     if deblur.temporal_views > 1:
         return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last,
-                Rung("wiener_half", "wiener", None, False, half=True)]
+                Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)]
     if deblur.method == "wiener":
         return [last]
     rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]
@@ -316,7 +316,7 @@ class Governor:
         latency loop scales the first two limits; the last full-resolution rung is not pushed
         below its floor by it (a coarser grid than the floor costs more quality than tail)."""
         g = self._fits(i, needed, self.limit_s, floor)
-        if g is None and i in (self.index, self.full_last):
+        if g is None and (i in (self.index, self.full_last) or self.rungs[i].half):
             g = self._keeps(i, needed, floor)
         if g is None and i == self.full_last and self.scale < 1.0:
             g = self._keeps(i, needed, floor, self.keep_s)    # the latency loop stops at the floor
@@ -404,8 +404,8 @@ class Governor:
             while g is None and i < last:                             # this frame only: a cheaper rung
                 i += 1
                 g = self._pick(i, needed, floor)
-            if g is None:             # the last rung, not even on its floor: whatever grid fits
-                g = self._fits(i, needed, self.budget_s, floor, True)
+            if g is None:             # the last rung, not even on its floor: whatever grid fits or keeps up
+                g = self._fits(i, needed, self.budget_s, floor, True) or self._keeps_beyond_floor(i, needed)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c

@@ -20,7 +20,6 @@ import numpy as np
 
 from .checks import check_image, check_kernel
 from .solver import Deconvolver
-from .tiles import central_cell
 
 
 @dataclass(frozen=True)
@@ -50,11 +49,25 @@ def halve_kernel(kernel) -> _HalfKernel:
     return _HalfKernel(out.astype(np.float32), (oy2, ox2))
 
 
+@dataclass(frozen=True)
+class _HalfGrid:
+    """Duck-typed `thermod.physics.kernels.KernelGrid` on the half grid: each cell's kernel halved, its
+    centre at (y − ½) / 2, (x − ½) / 2 (where the full pixel (y, x) falls among the half ones)."""
+
+    kernels: list
+    centers: np.ndarray
+
+    @classmethod
+    def of(cls, grid) -> _HalfGrid:
+        centers = (np.asarray(grid.centers, np.float64) - 0.5) / 2.0
+        return cls([[halve_kernel(k) for k in row] for row in grid.kernels], centers)
+
+
 class HalfResolution:
     """A `Deconvolver` run on the 2×2-averaged frame (see the module docstring).
 
-    ``run(image, kernel)`` and ``run_varying(image, grid)`` (a grid is solved with its central cell's
-    kernel: this is the rung below every grid) return float32 counts of the full frame.
+    ``run(image, kernel)`` and ``run_varying(image, grid)`` (each cell's kernel halved) return
+    float32 counts of the full frame.
     """
 
     def __init__(self, single: Deconvolver | None = None):
@@ -73,9 +86,17 @@ class HalfResolution:
         self.last_cells = 1
         return cv2.resize(np.asarray(out, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
 
-    def run_varying(self, image, grid, **kw) -> np.ndarray:
-        r, c = central_cell(np.asarray(grid.centers, np.float64), np.asarray(image).shape[:2])
-        return self.run(image, grid.kernels[r][c], value_range=kw.get("value_range"))
+    def run_varying(self, image, grid, *, value_range=None, uniform_tol_px: float = 0.5, **kw) -> np.ndarray:
+        """The half frame solved over `grid`'s kernels, each halved, at its cells' centres on the half
+        grid; `uniform_tol_px` stays a full-frame tolerance."""
+        img = check_image(image)
+        h, w = img.shape
+        h2, w2 = max(1, h // 2), max(1, w // 2)
+        half = cv2.resize(img[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
+        out = self.single.run_varying(half, _HalfGrid.of(grid), value_range=value_range,
+                                      uniform_tol_px=0.5 * uniform_tol_px, **kw)
+        self.last_cells = self.single.last_cells
+        return cv2.resize(np.asarray(out, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
 
     def padded_shape(self, shape, kshape) -> tuple[int, int]:
         """The wrapped solver's FFT size for the half frame (warm-up builds these plans)."""
