@@ -480,31 +480,39 @@ def test_a_payload_short_of_cpu_gets_half_resolution_frames_not_raw_ones():
     assert labels[-1].startswith("temporal")
 
 
-def test_one_kernel_at_full_resolution_comes_before_half_resolution():
-    """A large sensor: Wiener over its 3×4 floor costs 60 ms, beyond `keep_s` (34 ms), but on one
-    kernel 20 ms, within the budget (25.5 ms): the frames get Wiener on one kernel, which restores
-    more than half resolution; `wiener_half` only when even that does not fit."""
+def test_half_resolution_over_the_floor_comes_before_one_full_resolution_kernel():
+    """A large sensor: Wiener over its 3×4 floor costs 60 ms, beyond `keep_s` (34 ms), on one kernel
+    20 ms, within the budget (25.5 ms); Wiener at half resolution over the floor 15 ms. Below the
+    floor the half-resolution rung comes first: over its floor it restored 32.98 dB where one
+    full-resolution kernel restored 28.18 on the simulated payload at 1280×1024. Beyond the budget
+    it coarsens below the floor: it is the last resort, so it keeps to the budget, not `keep_s`."""
     def cost(fam, cells, load=1.0):
-        base = {"temporal": 40 + 4 * cells, "wiener": 20 + 40 * (cells - 1) / 11, "wiener_half": 6}[fam]
+        base = {"temporal": 40 + 4 * cells, "wiener": 20 + 40 * (cells - 1) / 11,
+                "wiener_half": 4 + cells * 11 / 12}[fam]
         return load * base / 1e3
 
     g = Governor(DeblurConfig(), FPS, 2)
     for fam, cells in (("temporal", 1), ("temporal", 12), ("wiener", 1), ("wiener", 6), ("wiener", 12),
-                       ("wiener_half", 1)):
+                       ("wiener_half", 1), ("wiener_half", 12)):
         g.seed(fam, cells, cost(fam, cells))
     labels, t = feed(g, 0.0, 6.0, cost, needed=(3, 4), floor=(3, 4))
-    assert labels[-100:].count("wiener") == 100, labels[-5:]
+    assert labels[-100:].count("wiener_half 3×4") == 100, labels[-5:]
+    assert "wiener" not in labels
     labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 2.0), needed=(3, 4), floor=(3, 4))
-    assert labels[-100:].count("wiener_half") == 100, labels[-5:]
+    # 30 ms over its floor: the last resort keeps to the budget (no keep_s rule), 19 ms over 2×3
+    assert labels[-100:].count("wiener_half 2×3") == 100, labels[-5:]
+    labels, t = feed(g, t, 6.0, lambda f, c: cost(f, c, 4.0), needed=(3, 4), floor=(3, 4))
+    assert labels[-100:].count("wiener_half") == 100, labels[-5:]           # 60 ms; one kernel 19.7
+    labels, t = feed(g, t, 12.0, cost, needed=(3, 4), floor=(3, 4))
+    assert labels[-1] == "wiener_half 3×4"
 
 
-
-def test_full_resolution_over_the_latency_budget_comes_before_half_resolution():
-    """1280×1024 at 30 fps: Wiener on one kernel costs 40 ms, over the latency budget (25.5 ms) but
-    within what two workers keep up with (`keep_s`, 56.7 ms), and over its 2×3 floor 65 ms, beyond
-    both: the frames get one kernel at full resolution, over the budget,
-    rather than half resolution; `wiener_half` only beyond `keep_s`, over its floor while that keeps
-    up (19.5 ms idle), and back to full resolution when the load allows it again."""
+def test_full_resolution_over_its_floor_within_keep_s_comes_before_half_resolution():
+    """1280×1024 at 30 fps: Wiener over its 2×3 floor costs 65 ms idle, over the latency budget
+    (25.5 ms) and beyond what two workers keep up with (`keep_s`, 56.7 ms), on one kernel 40 ms; the
+    frames go to `wiener_half` over the floor (19.5 ms), never to one full-resolution kernel. At a
+    0.6× load the floor (39 ms) is within 75 % of `keep_s`: full resolution over its floor, and back
+    to half resolution when the load returns."""
     def cost(fam, cells, load=1.0):
         base = {"temporal": 70 + 4 * cells, "wiener": 40 + 5 * (cells - 1),
                 "wiener_half": 12 + 1.5 * (cells - 1)}[fam]
@@ -529,11 +537,12 @@ def test_full_resolution_over_the_latency_budget_comes_before_half_resolution():
         return out
 
     labels = run(6.0, 1.0)
-    assert labels[-60:] == [("wiener", (1, 1))] * 60, labels[-3:]
-    labels = run(6.0, 1.6)                                  # 64 ms: beyond keep_s
-    assert labels[-60:] == [("wiener_half", (2, 3))] * 60, labels[-3:]    # 31.2 ms on its floor
-    labels = run(12.0, 1.0)                                 # 40 ms: within 75 % of keep_s again
-    assert labels[-60:] == [("wiener", (1, 1))] * 60, labels[-3:]
+    assert labels[-60:] == [("wiener_half", (2, 3))] * 60, labels[-3:]
+    assert ("wiener", (1, 1)) not in labels
+    labels = run(12.0, 0.6)
+    assert labels[-60:] == [("wiener", (2, 3))] * 60, labels[-3:]
+    labels = run(12.0, 1.0)
+    assert labels[-60:] == [("wiener_half", (2, 3))] * 60, labels[-3:]
 
 
 def test_a_round_trip_is_added_to_every_prediction_not_scaled():

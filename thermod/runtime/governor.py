@@ -13,8 +13,7 @@ over its reference) and O the median round trip around a child's solve (`overhea
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
-Tail: `released` scales both limits toward the published p99 `latency_p99_s` (the latency loop),
-never pushing the last full-resolution rung below its floor.
+Tail: `released` scales both limits toward the published p99 `latency_p99_s` (the latency loop).
 
 It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
 and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
@@ -105,9 +104,9 @@ class Governor:
                  hold_s: float = 2.0, max_hold_s: float = 32.0, margin: float = 0.25):
         self.deblur = deblur
         self.rungs = ladder(deblur)
-        # the last rung at full resolution: the floor and last-resort rules are its; the half-resolution
-        # rung below it takes only frames it cannot take even on one kernel
+        # the last rung at full resolution keeps its floor within keep_s; below the floor, the last rung
         self.full_last = max(i for i, r in enumerate(self.rungs) if not r.half)
+        self.last = len(self.rungs) - 1      # the rung that goes below its floor when nothing else fits
         self.enabled = bool(deblur.governor)
         self.aspect = float(aspect)
         self.budget_s = min(workers / frame_rate_hz, deblur.max_solve_s) * (1.0 - deblur.headroom)
@@ -302,38 +301,36 @@ class Governor:
 
     def _fits_any(self, i: int, needed: tuple[int, int], limit: float,
                   floor: tuple[int, int]) -> tuple[int, int] | None:
-        """`_fits` down to the floor; for the last full-resolution rung, beyond it too (one kernel
-        at full resolution restores more than half resolution)."""
+        """`_fits` down to the floor; for the last rung, beyond it too."""
         g = self._fits(i, needed, limit, floor)
-        if g is None and i == self.full_last:
+        if g is None and i == self.last:
             g = self._fits(i, needed, limit, floor, True)
         return g
 
     def _pick(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The grid rung i solves this frame with, or None: within the budget down to the floor; on
-        its floor within `keep_s` (the rung in use and the last full-resolution one); the last
-        full-resolution rung then beyond its floor within the budget, then within `keep_s`. The
-        latency loop scales the first two limits; the last full-resolution rung is not pushed
-        below its floor by it (a coarser grid than the floor costs more quality than tail)."""
+        its floor within `keep_s` (the rung in use and the last full-resolution one; not the
+        half-resolution rung, the last resort, which keeps to the budget); the last rung
+        then beyond its floor within the budget, and, when it is a full-resolution one (no
+        half-resolution rung below), within `keep_s`. The latency loop scales every limit. Below the
+        floor the half-resolution rung comes before full resolution: over its floor it restores
+        about what full resolution does there, and far more than one full-resolution kernel
+        (benchmarks/results/payload.md, "Half resolution over a grid")."""
         g = self._fits(i, needed, self.limit_s, floor)
-        if g is None and (i in (self.index, self.full_last) or self.rungs[i].half):
+        if g is None and i in (self.index, self.full_last) and not self.rungs[i].half:
             g = self._keeps(i, needed, floor)
-        if g is None and i == self.full_last and self.scale < 1.0:
-            g = self._keeps(i, needed, floor, self.keep_s)    # the latency loop stops at the floor
-        if g is None and i == self.full_last:
-            g = self._fits(i, needed, self.budget_s, floor, True)
-        if g is None and i == self.full_last:
-            g = self._keeps_beyond_floor(i, needed)
+        if g is None and i == self.last:
+            g = self._fits(i, needed, self.limit_s, floor, True)
+            if g is None and not self.rungs[i].half:
+                g = self._keeps_beyond_floor(i, needed)
         return g
 
     def _keeps_beyond_floor(self, i: int, needed: tuple[int, int], limit: float | None = None
                             ) -> tuple[int, int] | None:
-        """The last full-resolution rung, when nothing fits the budget: the finest grid, down to one
-        kernel, predicted within `keep_s`. Full resolution over the latency budget restores more than
-        half resolution within it (one kernel at 1280×1024: benchmarks/results/payload.md),
-        and the workers still keep up; half resolution is for a machine that cannot. `limit`: keep_s
-        unless given (a climb back asks for a margin below it); the latency loop does not scale it."""
-        limit = self.keep_s if limit is None else limit
+        """The last rung at full resolution with none below it (the single-frame ladder's Wiener),
+        when nothing fits the budget: the finest grid, down to one kernel, predicted within `keep_s`
+        (scaled by the latency loop), or `limit` (a climb back asks for a margin below it)."""
+        limit = self.keep_limit_s if limit is None else limit
         return next((g for g in self._grids(i, needed, (1, 1), True) if self._keep_cost(i, g) <= limit), None)
 
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int], limit: float | None = None
@@ -394,8 +391,8 @@ class Governor:
                 for i in range(self.index):                       # best rung that fits with margin
                     if self._fits_any(i, worst, budget, worst_floor) is not None \
                             or self._keeps(i, worst, worst_floor, keep) is not None \
-                            or (i == self.full_last and self._keeps_beyond_floor(
-                                i, worst, self.keep_s * (1 - self.margin)) is not None):
+                            or (i == self.last and not self.rungs[i].half
+                                and self._keeps_beyond_floor(i, worst, keep) is not None):
                         self._move(i, now)
                         break
             last = len(self.rungs) - 1
@@ -404,8 +401,8 @@ class Governor:
             while g is None and i < last:                             # this frame only: a cheaper rung
                 i += 1
                 g = self._pick(i, needed, floor)
-            if g is None:             # the last rung, not even on its floor: whatever grid fits or keeps up
-                g = self._fits(i, needed, self.budget_s, floor, True) or self._keeps_beyond_floor(i, needed)
+            if g is None:             # the last rung, not even on its floor: whatever grid fits
+                g = self._fits(i, needed, self.limit_s, floor, True)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
