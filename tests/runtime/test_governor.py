@@ -19,10 +19,11 @@ from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver, kernel_spread
 from thermod.physics.kernels.grids import coarser_grids
 from thermod.restore.plan import grid_needed, make_deconvolver, render, solved_grid
+from thermod.restore.policy import KernelOrder
 from thermod.restore.settings import DeblurConfig
 from thermod.runtime.config import PipelineConfig
-from thermod.runtime.governor import Governor, ladder
-from thermod.runtime.pipeline import Pipeline, rung_for
+from thermod.runtime.governor import Choice, Governor, ladder
+from thermod.runtime.pipeline import Pipeline, order_for, rung_for
 from thermod.runtime.rings import FrameRing, GyroRing
 from thermod.sim.scenes import load_scene
 
@@ -207,6 +208,20 @@ def test_a_job_that_waited_longer_than_a_solve_may_take_is_caught_up_by_the_chea
     t.seed("temporal", 1, 8e-3)
     c = t.choose((1, 1), 0.0)
     assert rung_for(t, c, 0.030) == (c.rung, True)                      # temporal drains at its own pace
+
+
+def test_a_caught_up_job_on_the_half_resolution_rung_is_solved_on_one_kernel():
+    """The scheduler chose Wiener over 3×4 for the job; it waited past the budget, so the cheapest
+    rung takes it, and on one kernel: the queue drains at that rung's cheapest cost."""
+    g = Governor(DeblurConfig(), FPS, 2)
+    c = Choice(g.rungs[1], (3, 4), 1)                                     # Wiener over 3×4
+    over_grid = KernelOrder(0.0, np.zeros(3), np.zeros((3, 3), np.float32),
+                            DeblurConfig(mode="grid", grid=(3, 4)))
+    rung, caught_up = rung_for(g, c, 0.030)
+    assert caught_up and rung.half
+    assert order_for(rung, over_grid, caught_up).deblur.mode == "uniform"
+    assert order_for(rung, over_grid, False) is over_grid                 # not caught up: as scheduled
+    assert order_for(g.rungs[1], over_grid, True) is over_grid            # a full-resolution rung keeps it
 
 
 def test_overload_steps_down_unless_it_was_a_stall_and_the_last_rung_stays():

@@ -141,6 +141,15 @@ def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
     return rung, False
 
 
+def order_for(rung, order: KernelOrder, caught_up: bool) -> KernelOrder:
+    """The kernel order a worker renders: the scheduler's, or one kernel for a caught-up job on the
+    half-resolution rung (the queue drains at that rung's cheapest cost, not over the grid chosen
+    for the rung the job was scheduled to)."""
+    if caught_up and rung.half and order.deblur.mode != "uniform":
+        return dataclasses.replace(order, deblur=dataclasses.replace(order.deblur, mode="uniform"))
+    return order
+
+
 def default_workers() -> int:
     """One worker per usable core: the affinity, capped by a CPU quota (a cgroup's, systemd's
     ``CPUQuota=``; `thermod.runtime.cpu.usable_cpus`)."""
@@ -613,7 +622,8 @@ class Pipeline:
                 if caught_up:
                     self._count("catch_up", 1)
                 wait_s = 0.0 if caught_up else 0.5 * gov.budget_s
-                got = solver.solve(s, rung, job.slot.image, job.order, job.slot.t, job.warp_gyro,
+                order = order_for(rung, job.order, caught_up)
+                got = solver.solve(s, rung, job.slot.image, order, job.slot.t, job.warp_gyro,
                                    lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s),
                                    pack=self._kernels, keep_out=job.keep_out)
                 if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
