@@ -606,7 +606,7 @@ def test_a_tail_over_the_latency_goal_coarsens_the_grid_to_its_floor_and_back():
     t = window(t, 55.0, 40.0, slow=1)                 # p99 ≈ 55, p95 = 40: within the goal
     assert g.scale == 1.0 and g.counts["tightened"] == g.counts["relaxed"] == 0
     t = window(t, 120.0)
-    assert g.scale == pytest.approx(0.75) and g.latency_p99_s == pytest.approx(0.120)
+    assert g.scale == pytest.approx(0.75) and g.measured_p99_s == pytest.approx(0.120)
     for _ in range(6):
         t = window(t, 120.0)
     assert g.scale == pytest.approx(0.3) and g.counts["tightened"] == 5     # 0.75⁴ = 0.32, then the floor

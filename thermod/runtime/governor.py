@@ -113,7 +113,7 @@ class Governor:
         self.keep_s = workers / frame_rate_hz * (1.0 - deblur.headroom)   # the workers still keep up
         self.latency_goal_s = deblur.latency_p99_s
         self.scale = 1.0                # the latency loop's share of budget_s and keep_s (`released`)
-        self.latency_p99_s: float | None = None     # the p99 of the last judged window
+        self.measured_p99_s: float | None = None    # the p99 of the last judged window
         self._released: collections.deque = collections.deque()   # (time, latency) since the last revision
         self.hold_s, self.base_hold_s, self.max_hold_s, self.margin = hold_s, hold_s, max_hold_s, margin
         self.index = 0
@@ -264,7 +264,7 @@ class Governor:
                 return
             q = statistics.quantiles((x for _, x in window), n=100, method="inclusive")
             window.clear()
-            self.latency_p99_s = q[98]
+            self.measured_p99_s = q[98]
             r = max(q[98] / self.latency_goal_s, q[94] / (TAIL_P95_SHARE * self.latency_goal_s))
             if r > 1.0 and self.scale > MIN_SCALE:
                 self.scale = max(MIN_SCALE, self.scale * max(0.75, 1.0 / r))
@@ -299,14 +299,6 @@ class Governor:
                 return g
         return None
 
-    def _fits_any(self, i: int, needed: tuple[int, int], limit: float,
-                  floor: tuple[int, int]) -> tuple[int, int] | None:
-        """`_fits` down to the floor; for the last rung, beyond it too."""
-        g = self._fits(i, needed, limit, floor)
-        if g is None and i == self.last:
-            g = self._fits(i, needed, limit, floor, True)
-        return g
-
     def _pick(self, i: int, needed: tuple[int, int], floor: tuple[int, int]) -> tuple[int, int] | None:
         """The grid rung i solves this frame with, or None: within the budget down to the floor; on
         its floor within `keep_s` (the rung in use and the last full-resolution one; not the
@@ -325,13 +317,12 @@ class Governor:
                 g = self._keeps_beyond_floor(i, needed)
         return g
 
-    def _keeps_beyond_floor(self, i: int, needed: tuple[int, int], limit: float | None = None
-                            ) -> tuple[int, int] | None:
+    def _keeps_beyond_floor(self, i: int, needed: tuple[int, int]) -> tuple[int, int] | None:
         """The last rung at full resolution with none below it (the single-frame ladder's Wiener),
         when nothing fits the budget: the finest grid, down to one kernel, predicted within `keep_s`
-        (scaled by the latency loop), or `limit` (a climb back asks for a margin below it)."""
-        limit = self.keep_limit_s if limit is None else limit
-        return next((g for g in self._grids(i, needed, (1, 1), True) if self._keep_cost(i, g) <= limit), None)
+        (scaled by the latency loop)."""
+        return next((g for g in self._grids(i, needed, (1, 1), True)
+                     if self._keep_cost(i, g) <= self.keep_limit_s), None)
 
     def _keeps(self, i: int, needed: tuple[int, int], floor: tuple[int, int], limit: float | None = None
                ) -> tuple[int, int] | None:
@@ -382,27 +373,22 @@ class Governor:
             worst, worst_floor = self._recent_grids()
             if self._pick(self.index, worst, worst_floor) is None:        # over budget: step down now
                 i = self.index + 1
-                while i < len(self.rungs) - 1 and self._pick(i, worst, worst_floor) is None:
+                while i < self.last and self._pick(i, worst, worst_floor) is None:
                     i += 1
-                if i < len(self.rungs):
+                if i <= self.last:
                     self._move(i, now)
             elif self.index > 0 and now - self._last_change >= self.hold_s:
                 budget, keep = self.limit_s * (1 - self.margin), self.keep_limit_s * (1 - self.margin)
                 for i in range(self.index):                       # best rung that fits with margin
-                    if self._fits_any(i, worst, budget, worst_floor) is not None \
-                            or self._keeps(i, worst, worst_floor, keep) is not None \
-                            or (i == self.last and not self.rungs[i].half
-                                and self._keeps_beyond_floor(i, worst, keep) is not None):
+                    if self._fits(i, worst, budget, worst_floor) is not None \
+                            or self._keeps(i, worst, worst_floor, keep) is not None:
                         self._move(i, now)
                         break
-            last = len(self.rungs) - 1
             i = self.index
             g = self._pick(i, needed, floor)
-            while g is None and i < last:                             # this frame only: a cheaper rung
+            while g is None and i < self.last:                        # this frame only: a cheaper rung
                 i += 1
                 g = self._pick(i, needed, floor)
-            if g is None:             # the last rung, not even on its floor: whatever grid fits
-                g = self._fits(i, needed, self.limit_s, floor, True)
             c = Choice(self.rungs[i], g or (1, 1), i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
@@ -415,10 +401,10 @@ class Governor:
         counted in ``stalls``) and a cheaper method would not have kept the frame: the rung stays
         (the measured solve times move the load factor if the machine stays slower)."""
         with self._lock:
-            if not self.enabled or self.index >= len(self.rungs) - 1:
+            if not self.enabled or self.index >= self.last:
                 return
             worst, floor = self._recent_grids()
-            if self._fits_any(self.index, worst, self.limit_s * (1 - self.margin), floor) is not None:
+            if self._fits(self.index, worst, self.limit_s * (1 - self.margin), floor) is not None:
                 self.counts["stalls"] += 1
                 return
             self.counts["overload_steps"] += 1
@@ -452,7 +438,8 @@ class Governor:
                 "budget_ms": round(1e3 * self.limit_s, 2),
                 "latency_scale": round(self.scale, 3),
                 "latency_goal_ms": round(1e3 * self.latency_goal_s, 1),
-                "latency_p99_ms": None if self.latency_p99_s is None else round(1e3 * self.latency_p99_s, 1),
+                "latency_p99_ms": None if self.measured_p99_s is None
+                else round(1e3 * self.measured_p99_s, 1),
                 "load": round(self.load, 3),
                 "overhead_ms": round(1e3 * self.overhead_s, 2),
                 "keep_load": round(self._keep_load(), 3),

@@ -78,23 +78,21 @@ class HalfResolution:
         return getattr(self.single, name)
 
     def run(self, image, kernel, *, value_range=None) -> np.ndarray:
-        img = check_image(image)
-        h, w = img.shape
-        h2, w2 = max(1, h // 2), max(1, w // 2)
-        half = cv2.resize(img[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
-        out = self.single.run(half, halve_kernel(kernel), value_range=value_range)
-        self.last_cells = 1
-        return cv2.resize(np.asarray(out, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+        return self._solved_at_half(image, lambda half: self.single.run(
+            half, halve_kernel(kernel), value_range=value_range))
 
     def run_varying(self, image, grid, *, value_range=None, uniform_tol_px: float = 0.5, **kw) -> np.ndarray:
         """The half frame solved over `grid`'s kernels, each halved, at its cells' centres on the half
         grid; `uniform_tol_px` stays a full-frame tolerance."""
+        return self._solved_at_half(image, lambda half: self.single.run_varying(
+            half, _HalfGrid.of(grid), value_range=value_range, uniform_tol_px=0.5 * uniform_tol_px, **kw))
+
+    def _solved_at_half(self, image, solve) -> np.ndarray:
+        """`solve` on the 2×2-averaged frame, its result brought back to the frame's size."""
         img = check_image(image)
         h, w = img.shape
         h2, w2 = max(1, h // 2), max(1, w // 2)
-        half = cv2.resize(img[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA)
-        out = self.single.run_varying(half, _HalfGrid.of(grid), value_range=value_range,
-                                      uniform_tol_px=0.5 * uniform_tol_px, **kw)
+        out = solve(cv2.resize(img[:2 * h2, :2 * w2], (w2, h2), interpolation=cv2.INTER_AREA))
         self.last_cells = self.single.last_cells
         return cv2.resize(np.asarray(out, np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
 
