@@ -20,12 +20,14 @@ docs/design.md §1.5, "Temporal deconvolution, the recursive solve".
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.fft
 from numba import njit
 
 from .checks import DeconvError, check_frame, check_kernel
@@ -270,21 +272,27 @@ def _weigh_forward(plan, wgt: np.ndarray) -> None:
                    _frequency_index(plan.shape[1], spec[1], half=True), np.float32(1.0), plan.fwd(), plan.cin)
 
 
+@functools.lru_cache(maxsize=64)
 def _half_frequency_index(n_half: int, n_full: int, half: bool) -> np.ndarray:
     """Indices into an `n_full`-point spectrum (cycles/px) of an `n_half`-point one's frequencies on a
-    grid of twice the pixel pitch (cycles per 2 px)."""
+    grid of twice the pixel pitch (cycles per 2 px). Cached: a frame's shapes repeat (read-only)."""
     f = 0.5 * (np.fft.rfftfreq(n_half) if half else np.fft.fftfreq(n_half))
     idx = np.rint(f * n_full).astype(np.int64)
-    return np.clip(idx, 0, n_full // 2) if half else idx % n_full
+    return _frozen(np.clip(idx, 0, n_full // 2) if half else idx % n_full)
 
 
+@functools.lru_cache(maxsize=64)
 def _frequency_index(n_new: int, n_old: int, half: bool) -> np.ndarray:
-    """Indices into an `n_old`-point spectrum of the frequencies nearest an `n_new`-point one's."""
+    """Indices into an `n_old`-point spectrum of the frequencies nearest an `n_new`-point one's.
+    Cached: a frame's shapes repeat (read-only)."""
     f = np.fft.rfftfreq(n_new) if half else np.fft.fftfreq(n_new)
     idx = np.rint(f * n_old).astype(np.int64)
-    if half:
-        return np.clip(idx, 0, n_old // 2)
-    return idx % n_old
+    return _frozen(np.clip(idx, 0, n_old // 2) if half else idx % n_old)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 # ---------------------------------------------------------------------------------- the solver
@@ -513,8 +521,8 @@ class RecursiveDeconvolver:
 
     def _kernel_power(self, w: np.ndarray, origin, spec) -> np.ndarray:
         """|K|² of a kernel (origin at index (0, 0)) on the half spectrum of `spec`."""
-        K = np.fft.rfft2(place_kernel(np.empty(spec, np.float32), w, origin))
-        return (K.real * K.real + K.imag * K.imag).astype(np.float32)
+        K = scipy.fft.rfft2(place_kernel(np.empty(spec, np.float32), w, origin), workers=1)
+        return K.real * K.real + K.imag * K.imag       # float32: scipy.fft keeps the input's precision
 
     def _g2(self, shape) -> np.ndarray:
         """`gradient_power` of `shape`, as the single solve's plans hold it (cached per shape)."""
