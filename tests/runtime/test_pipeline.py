@@ -307,11 +307,15 @@ def test_an_overwritten_frames_own_camera_losses_are_counted_with_the_overrun(sh
 
 
 class SlowDeconvolver(Deconvolver):
-    """The real deconvolver on a slow machine (fault injection for overload): 1 s per frame, far
-    longer than the test takes to write its frames however loaded the machine (0.16 s nominal)."""
+    """The real deconvolver on a slow machine (fault injection for overload): 1 s per frame once
+    `slow` is set, far longer than the test takes to write its frames however loaded the machine
+    (0.16 s nominal). Set after the warm-up, whose dozens of solves would each sleep too."""
+
+    slow = threading.Event()
 
     def run(self, image, kernel, **kw):
-        time.sleep(1.0)
+        if self.slow.is_set():
+            time.sleep(1.0)
         return super().run(image, kernel, **kw)
 
 
@@ -319,6 +323,7 @@ def test_overload_drops_oldest_job_and_publishes_it_passed_through(sharp):
     rng = np.random.default_rng(2)
     col = Collector()
     gr, fr, p = make(col, workers=1, job_queue=1, factory=lambda d: SlowDeconvolver(d.method, d.alpha, d.lam))
+    SlowDeconvolver.slow.set()
     p.start()
     try:
         t0 = time.monotonic()
@@ -331,6 +336,7 @@ def test_overload_drops_oldest_job_and_publishes_it_passed_through(sharp):
         outs = col.wait(n)
     finally:
         p.stop()
+        SlowDeconvolver.slow.clear()
     assert [o.frame_id for o in outs] == list(range(n))        # every frame exactly once, in order
     reasons = [o.reason for o in outs]
     c = p.stats()["counters"]
