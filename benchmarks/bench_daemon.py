@@ -659,6 +659,12 @@ def loop_text(gov: dict) -> str:
     return f"×{gov['latency_scale']:.2f} ({gov.get('tightened', 0)}↓ {gov.get('relaxed', 0)}↑)"
 
 
+def load_text(gov: dict) -> str:
+    """A solve's cost in the stream over its cost in the warm-up, on the idle daemon (the governor's
+    load factor at the run's end; issue 35 asks ≤ 1.3)."""
+    return f"×{gov['load']:.2f}" if "load" in gov else "-"
+
+
 def print_payload(rows: list[dict]) -> None:
     print(rows[0]["yardstick"], "(before the runs)")
     w, h = rows[0]["size"]
@@ -667,8 +673,9 @@ def print_payload(rows: list[dict]) -> None:
           "load average "
           f"{os.getloadavg()[0]:.1f} after the runs")
     print("| CPU quota | frames published | deblurred % | temporal % | p50 ms | p95 ms | p99 ms | gyro lost "
-          "| PSNR dB (blurry) | steady after s | latency loop | not deblurred | deblurred by |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| PSNR dB (blurry) | steady after s | latency loop | solve in stream / idle | not deblurred "
+          "| deblurred by |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         temporal = sum(v for k, v in r["methods"].items() if k.startswith("temporal"))
         q = "none (all cores)" if r["quota"] is None else f"{r['quota']:g} cores"
@@ -678,6 +685,7 @@ def print_payload(rows: list[dict]) -> None:
               f"{100 * temporal / max(1, r['frames']):.1f} | {r['p50_ms']:.1f} | {r['p95_ms']:.1f} | "
               f"{r['p99_ms']:.1f} | {r['gyro_lost']} | {r['psnr']:.2f} ({r['psnr_blurry']:.2f}) | "
               f"{r.get('steady_after_s') or 'not yet'} | {loop_text(r['governor'])} | "
+              f"{load_text(r['governor'])} | "
               f"{r['reasons'] or '-'} | "
               f"{methods_text(r)} |")
     print("\nCPU per stage, % of one core (median over the run's 1 s health periods; `health.cpu`); "
