@@ -36,6 +36,7 @@ DEFAULT_RATE_HZ = 1000.0
 OUTLIER_K = 8.0              # an interval's rate misses its neighbours' prediction by > this × the median
 OUTLIER_MIN_RAD_S = math.radians(45.0)   # ... and by more than this
 BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
+SMOOTH_MIN_KNOTS = 6         # `gyro(smooth=True)`: stretches of fewer frames are interpolated
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
 WORK_WIDTH = 160             # the picture motion's working width
@@ -84,12 +85,17 @@ class RotationTrack:
         """Mean rate over each interval (rad/s, NaN where unknown)."""
         return self.rotvec / np.diff(self.frame_t)[:, None]
 
-    def gyro(self, rate_hz: float = DEFAULT_RATE_HZ, lead_s: float = 0.0, tail_s: float = 0.0):
+    def gyro(self, rate_hz: float = DEFAULT_RATE_HZ, lead_s: float = 0.0, tail_s: float = 0.0,
+             smooth: bool = False):
         """(t [M], rate [M, 3] rad/s camera frame, sigma [M] rad/s): the spline's derivative sampled at
         `rate_hz` on the video clock over each stretch of known intervals, shifted by the lag. The rate
         is held `lead_s` before the first frame of the video (its kernel window) and `tail_s` after each
         stretch's last knot (which lies `lag_s` before its frame's read time), but never into the
-        `HOLE_PERIODS` samples before the next stretch: no samples inside an unknown interval."""
+        `HOLE_PERIODS` samples before the next stretch: no samples inside an unknown interval.
+        `smooth`: a smoothing spline through the measured angles instead of the interpolating one
+        (`_smoothed_rate`), for τ's fit, which the rate's noise biases; the kernels take the
+        interpolated rate (the one benchmarks/results/video_motion.md measured). A rolling readout's
+        banded fit is penalised already and is the same either way."""
         h = 1.0 / rate_hz
         known = self.known
         stretches = []
@@ -105,7 +111,7 @@ class RotationTrack:
             k = j
         out = []
         for i, (k, j) in enumerate(stretches):
-            t, w, s = self._stretch(k, j, h, lead_s if k == 0 else 0.0, tail_s)
+            t, w, s = self._stretch(k, j, h, lead_s if k == 0 else 0.0, tail_s, smooth)
             if i + 1 < len(stretches):
                 nxt = self.frame_t[stretches[i + 1][0]] - self.lag_s
                 keep = t < nxt - HOLE_PERIODS * h
@@ -115,7 +121,7 @@ class RotationTrack:
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0)
         return tuple(np.concatenate([o[i] for o in out]) for i in range(3))
 
-    def _stretch(self, k: int, j: int, h: float, lead_s: float, tail_s: float):
+    def _stretch(self, k: int, j: int, h: float, lead_s: float, tail_s: float, smooth: bool = False):
         from scipy.interpolate import CubicSpline
 
         knots = self.frame_t[k:j + 1] - self.lag_s
@@ -124,9 +130,14 @@ class RotationTrack:
             rate, dom = self._banded_rate(self.frame_t[k], self.frame_t[j])
         if rate is None:
             theta = np.r_[np.zeros((1, 3)), np.cumsum(self.rotvec[k:j], axis=0)]
-            # ≥ 4 knots: not-a-knot (a cubic through four points is exact); fewer: the natural spline
-            spline = CubicSpline(knots, theta, bc_type="not-a-knot" if len(knots) >= 4 else "natural")
-            rate, dom = spline.derivative(), (knots[0], knots[-1])
+            if smooth and len(knots) >= SMOOTH_MIN_KNOTS and np.any(self.sigma_rad[k:j] > 0):
+                rate = _smoothed_rate(knots, theta)
+            else:
+                # exact angles, or too few to smooth: not-a-knot from 4 knots (a cubic through four
+                # points is exact), the natural spline below
+                rate = CubicSpline(knots, theta, bc_type="not-a-knot" if len(knots) >= 4 else "natural"
+                                   ).derivative()
+            dom = (knots[0], knots[-1])
         lo, hi = knots[0] - lead_s, knots[-1] + tail_s
         t = lo + h * np.arange(int(math.floor((hi - lo) / h)) + 1)
         w = rate(np.clip(t, *dom))            # held beyond the ends
@@ -345,6 +356,22 @@ def _outliers(rotvec: np.ndarray, t: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- main
+def _smoothed_rate(knots: np.ndarray, theta: np.ndarray):
+    """The rate of measured angles θ [n, 3] at the knots: per axis, the derivative of a cubic
+    smoothing spline whose smoothing generalised cross-validation chooses
+    (`scipy.interpolate.make_smoothing_spline`), over an abscissa in frame periods. τ's fit regresses
+    the comet tails on the rate, and noise in a regressor biases its fit: through the interpolating
+    spline's rate τ came out 10–25 % short on the real flight's clips, 8–11 % through this one
+    (benchmarks/results/video_tau.md)."""
+    from scipy.interpolate import make_smoothing_spline
+
+    # in frame periods: with the abscissa in seconds the cross-validation's search flattened a 2 Hz sway
+    t0, period = float(knots[0]), float(np.median(np.diff(knots)))
+    x = (knots - t0) / period
+    axes = [make_smoothing_spline(x, theta[:, a]).derivative() for a in range(theta.shape[1])]
+    return lambda t: np.stack([d((np.asarray(t) - t0) / period) for d in axes], axis=-1) / period
+
+
 def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, readout_s: float = 0.0,
                    work_width: int = WORK_WIDTH, name: str = "video", progress=None) -> RotationTrack:
     """The rotation track of a video (module docstring). `frames` [N, H, W] grey or a sequence of
