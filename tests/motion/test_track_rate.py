@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from thermod.motion.track import RotationTrack
@@ -10,7 +12,7 @@ from thermod.motion.track import RotationTrack
 FPS = 30.0
 
 
-def track(noise_rad: float, seed: int = 0) -> tuple[RotationTrack, callable]:
+def track(noise_rad: float, seed: int = 0) -> tuple[RotationTrack, Callable]:
     """60 frames of a smooth 2 Hz sway (rad/s amplitude 1.0, 0.6, 0.3 per axis), each interval's rotation
     measured with `noise_rad` RMS of independent error; and the true rate as a function of time."""
     t = np.arange(60) / FPS

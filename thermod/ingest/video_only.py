@@ -152,7 +152,6 @@ def _fit_tau(vf, calib: Calibration, track: RotationTrack, video_path, rate_hz, 
     fitted once more along it: a start far from τ (a wrong camera file) misplaces the first track
     and shortens the first fit (benchmarks/results/video_tau.md). A camera file's τ is kept, with a
     note, when the pictures do not show τ; with no τ stated that is a VideoImportError."""
-    stated = calib.tau_s
 
     def fitted(calib, track):
         gt, gr, _ = _track_gyro(track, calib, rate_hz, margin, video_path, smooth=True)
@@ -161,12 +160,10 @@ def _fit_tau(vf, calib: Calibration, track: RotationTrack, video_path, rate_hz, 
 
     fit = fitted(calib, track)
     if fit.tau_s is not None:
-        again_calib = calib.replace(tau_s=float(fit.tau_s))
-        again_track = _track(vf, again_calib, video_path)
-        again = fitted(again_calib, again_track)
+        first = calib.replace(tau_s=float(fit.tau_s))
+        again = fitted(first, _track(vf, first, video_path))
         if again.tau_s is not None:      # its scans follow the first fit's in the report
             fit = replace(again, scans_ms=fit.scans_ms + again.scans_ms)
-            calib, track = again_calib, again_track
     if fit.tau_s is None:
         if not tau_stated:
             raise VideoImportError(f"{video_path}: the camera file gives no tau_s and the pictures do not "
@@ -177,9 +174,9 @@ def _fit_tau(vf, calib: Calibration, track: RotationTrack, video_path, rate_hz, 
     text = (f"tau fitted from the pictures: {1e3 * fit.tau_s:.2f} ± {1e3 * fit.sigma_s:.2f} ms "
             f"({fit.patches} frame pairs)")
     if tau_stated:
-        text += (f"; the camera file says {1e3 * stated:.2f} ms, " +
-                 (f"{abs(stated - fit.tau_s) / fit.sigma_s:.1f}σ away: it disagrees with the pictures"
-                  if fit.disagrees_with(stated) else "within 3σ"))
+        text += (f"; the camera file says {1e3 * calib.tau_s:.2f} ms, " +
+                 (f"{abs(calib.tau_s - fit.tau_s) / fit.sigma_s:.1f}σ away: it disagrees with the pictures"
+                  if fit.disagrees_with(calib.tau_s) else "within 3σ"))
     notes.append(text)
     say(text)
     calib = calib.replace(tau_s=float(fit.tau_s))

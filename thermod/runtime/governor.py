@@ -104,8 +104,7 @@ class Governor:
                  hold_s: float = 2.0, max_hold_s: float = 32.0, margin: float = 0.25):
         self.deblur = deblur
         self.rungs = ladder(deblur)
-        # the last rung at full resolution keeps its floor within keep_s; below the floor, the last rung
-        self.full_last = max(i for i, r in enumerate(self.rungs) if not r.half)
+        self.full_last = max(i for i, r in enumerate(self.rungs) if not r.half)   # keeps its floor in keep_s
         self.last = len(self.rungs) - 1      # the rung that goes below its floor when nothing else fits
         self.enabled = bool(deblur.governor)
         self.aspect = float(aspect)
