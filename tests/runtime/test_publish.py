@@ -256,6 +256,7 @@ def test_slow_subscriber_never_blocks_the_publisher():
             got.append(m[1]["seq"])
         assert 0 < len(got) < n  # HWM dropped most of them (150 MiB would not fit the buffers)
         assert lazy.gaps["frame"] == got[-1] - got[0] + 1 - len(got)
+        assert (lazy.first_seq["frame"], lazy.last_seq["frame"]) == (got[0], got[-1])
         assert got == sorted(got)
         lazy.close()
     finally:

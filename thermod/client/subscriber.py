@@ -58,7 +58,9 @@ class Subscriber:
         Receive high-water mark, in messages (ZeroMQ's default, 1000): beyond it messages are dropped
         and show up in `gaps`. Gyro batches are small but frequent, so do not set it too low.
 
-    Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``errors``
+    Attributes: ``gaps`` (topic → messages lost, from seq jumps), ``received``, ``first_seq`` and
+    ``last_seq`` (topic → seq of the first and latest message; with no restart, ``received + gaps``
+    equals ``last_seq − first_seq + 1``), ``errors``
     (`MessageError.kind` → count of rejected messages), ``disconnects`` (connections dropped, e.g. by a
     frame above ``max_message_bytes``; each is redialled), ``restarts`` (seq went backwards: the
     publisher restarted). Each returned header gains ``received`` (host monotonic at receipt).
@@ -82,7 +84,8 @@ class Subscriber:
         self.received = collections.Counter()
         self.restarts = collections.Counter()
         self.errors = collections.Counter()
-        self._last_seq: dict[str, int] = {}
+        self.first_seq: dict[str, int] = {}
+        self.last_seq: dict[str, int] = {}
         self._own_ctx = context is None
         self._ctx = zmq.Context() if context is None else context
         self._sock = self._ctx.socket(zmq.SUB)
@@ -166,13 +169,15 @@ class Subscriber:
         self._sock.connect(self.endpoint)
 
     def _track(self, topic: str, seq: int) -> None:
-        last = self._last_seq.get(topic)
-        if last is not None:
+        last = self.last_seq.get(topic)
+        if last is None:
+            self.first_seq[topic] = seq
+        else:
             if seq > last + 1:
                 self.gaps[topic] += seq - last - 1
             elif seq <= last:
                 self.restarts[topic] += 1
-        self._last_seq[topic] = seq
+        self.last_seq[topic] = seq
         self.received[topic] += 1
 
     def __iter__(self) -> Iterator:

@@ -340,14 +340,16 @@ class Publisher:
         """Counters: ``budget_dropped`` (per topic, not sent because ZeroMQ already held
         ``max_queue_bytes``), ``held_bytes``/``held_peak_bytes`` (sent payloads ZeroMQ still holds),
         ``queue_dropped`` (oldest dropped from the hand-off queue), ``hwm`` (per subscriber),
-        ``warnings`` (e.g. an insecure remote bind)."""
+        ``warnings`` (e.g. an insecure remote bind). ``held_bytes`` is read from the trackers now, not
+        at the sender's last pass, so it falls to 0 as soon as ZeroMQ lets the last payload go."""
         with self._lock:
+            held = sum(n for tracker, n in self._held if not tracker.done)
             return {"endpoint": self.endpoint, "running": self.running, "queued": dict(self._queued),
                     "sent": dict(self._sent), "queue_depth": len(self._queue),
                     "queue_bytes": self._queue_nbytes,
                     "queue_dropped": self._queue_dropped, "send_errors": self._send_errors,
                     "bytes_sent": self._bytes_sent, "hwm": self.hwm, "max_queue_bytes": self.max_queue_bytes,
-                    "held_bytes": self._held_bytes, "held_peak_bytes": self._held_peak,
+                    "held_bytes": held, "held_peak_bytes": self._held_peak,
                     "budget_dropped": dict(self._budget_dropped),
                     "budget_dropped_total": sum(self._budget_dropped.values()),
                     "warnings": list(self.warnings)}
