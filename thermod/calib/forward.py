@@ -35,6 +35,9 @@ from thermod.physics.geometry import integrate_rotations
 __all__ = ["ForwardModel", "GridTooLarge", "downsample", "orientations", "predict_frames"]
 
 
+VIEW_CACHE_ENTRIES = 2    # calibrations whose warped views are kept (one search point and its neighbour)
+
+
 class GridTooLarge(ValueError):
     """The fixed time grid would need more memory for its warped views than allowed."""
 
@@ -388,7 +391,8 @@ class ForwardModel:
     time_margin_s : float
         The step near a time t follows the fastest motion within ± this (candidate time offsets move it).
     cache_mb : float
-        Memory allowed for cached warped views (skipped when larger).
+        Memory allowed for cached warped views: the views of the last `VIEW_CACHE_ENTRIES` calibrations
+        that fit in it (a search alternates between a point and its neighbour on the same scene).
     max_views_mb : float
         Memory the warped views of one prediction may take at all; GridTooLarge beyond it (checked
         before anything is allocated: the step count follows from the gyro rate, fx and τ).
@@ -451,9 +455,8 @@ class ForwardModel:
         if interpolation not in ("linear", "cubic"):
             raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
         self._cubic = interpolation == "cubic"
-        self._cache_key = None
-        self._views = None
-        self._cache_ok = views_mb <= cache_mb
+        self._views: dict = {}          # gyro key → (V, M) for the current reference, oldest first
+        self._cache_slots = min(VIEW_CACHE_ENTRIES, int(cache_mb // max(views_mb, 1e-9)))
         self.origin = (0.0, 0.0)
         self.set_reference(reference, fpn)
 
@@ -487,7 +490,7 @@ class ForwardModel:
         crop = self.reference[iy:iy + self.h, ix:ix + self.w]
         view[:crop.shape[0], :crop.shape[1]] = crop
         self.reference_view = view          # the reference's own view (fallback where nothing is valid)
-        self._views, self._cache_key = None, None
+        self._views = {}
 
     # ------------------------------------------------------------------ geometry
     def _interval_speeds(self, calib: Calibration, nodes: np.ndarray, margin_s: float) -> np.ndarray:
@@ -520,15 +523,18 @@ class ForwardModel:
         """Reference and support sampled at the view times (grid start, then every step's mid-point):
         two float32 [n_steps + 1, h, w] arrays."""
         key = self._gyro_key(calib)
-        if self._views is not None and key == self._cache_key:
-            return self._views
+        if (hit := self._views.pop(key, None)) is not None:
+            self._views[key] = hit            # now the newest
+            return hit
         Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
         V = np.empty((len(Hs), self.h, self.w), np.float32)
         M = np.empty_like(V)
         _warp_views(self.reference, self.support, self._inner, Hs, self.origin[0], self.origin[1],
                     self._cubic, V, M)
-        if self._cache_ok:
-            self._views, self._cache_key = (V, M), key
+        if self._cache_slots:
+            while len(self._views) >= self._cache_slots:
+                del self._views[next(iter(self._views))]
+            self._views[key] = (V, M)
         return V, M
 
     def row_times(self, calib: Calibration) -> np.ndarray:
