@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from thermod.restore.overlay import grown
 REGISTER_S = 0.02         # allowed for a frame's registration before its samples are late
 QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
                           # spans it: a longer interval, not a hole)
+DELAY_WINDOW = 500        # registrations whose delay (offer → samples out) `stats` summarises
 
 
 class VideoGyro(GyroSource):
@@ -42,6 +44,7 @@ class VideoGyro(GyroSource):
         self._cond = threading.Condition()
         self._seq = 0
         self._stats.update(frames_offered=0, frames_skipped=0)
+        self._delays: collections.deque = collections.deque(maxlen=DELAY_WINDOW)
 
     @staticmethod
     def samples_wait_s(frame_rate_hz: float) -> float:
@@ -84,13 +87,14 @@ class VideoGyro(GyroSource):
 
     def offer(self, image: np.ndarray, t: float) -> None:
         """A frame the camera delivered (read at host time `t`): its working image joins the queue."""
+        offered = time.monotonic()
         work = self.track.prepare(image)
         with self._cond:
             self._stats["frames_offered"] += 1
             if len(self._frames) >= QUEUE_FRAMES:
                 self._frames.popleft()
                 self._stats["frames_skipped"] += 1
-            self._frames.append((work, float(t)))
+            self._frames.append((work, float(t), offered))
             self._cond.notify()
 
     def poll(self, timeout: float) -> GyroBatch | None:
@@ -99,8 +103,10 @@ class VideoGyro(GyroSource):
                 self._cond.wait(timeout)
             if not self._frames:
                 return None
-            work, t = self._frames.popleft()
+            work, t, offered = self._frames.popleft()
         s = self.track.push_working(work, t)
+        with self._cond:
+            self._delays.append(time.monotonic() - offered)
         if s is None:
             return None
         batch = GyroBatch(s.t, s.rate, self._seq, gap_before=s.gap_before)
@@ -111,6 +117,12 @@ class VideoGyro(GyroSource):
         out = super().stats()
         out.update(self.track.counts, motion_source=self.motion_source,
                    sigma_rad_s=self.track.last_sigma_rad_s, overlay_fraction=self.track.overlay.fraction)
+        with self._cond:
+            d = np.array(self._delays) * 1e3
+        if len(d):
+            # from a frame's offer to its pair's samples: what the frame before it waits beyond a period
+            out.update(register_delay_ms_p50=float(np.percentile(d, 50)),
+                       register_delay_ms_p99=float(np.percentile(d, 99)))
         return out
 
 

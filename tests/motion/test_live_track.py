@@ -158,6 +158,8 @@ def test_the_video_source_hands_the_daemon_camera_frame_rates(swaying):
     st = src.stats()
     assert st["motion_source"] == "video" and st["frames_offered"] == 6
     assert st["samples"] == sum(map(len, batches))
+    # each frame offered and registered in turn: its delay is its own registration's, a few ms
+    assert 0 < st["register_delay_ms_p50"] <= st["register_delay_ms_p99"] < 1000
 
 
 def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying):
