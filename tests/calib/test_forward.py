@@ -182,3 +182,18 @@ def test_adjoint_is_the_transpose_of_the_prediction(readout):
     c = rng.normal(0, 1, num.shape).astype(np.float32)
     lhs = float(np.sum(num.astype(np.float64) * c))
     assert float(np.sum(fm.adjoint(cal, c) * S)) == pytest.approx(lhs, rel=1e-5)
+
+
+def test_the_views_of_the_last_two_calibrations_are_kept_for_the_current_scene():
+    t, w = pan_gyro(0.2, 0.1)
+    fm = ForwardModel(blob(x=140.0), np.array([0.2]), t, w, CAL, t_ref=0.1)
+    a, b, c = (CAL.replace(time_offset_s=dt) for dt in (0.0, 0.002, 0.004))
+    va, vb = fm.views(a)[0], fm.views(b)[0]
+    assert fm.views(a)[0] is va and fm.views(b)[0] is vb      # a search's point and its neighbour
+    assert fm.views(c)[0] is not va and fm.views(b)[0] is vb  # c took the older one's place (a)
+    va2 = fm.views(a)[0]
+    assert va2 is not va and np.array_equal(va2, va)          # computed again: the same views
+    fm.set_reference(blob(x=120.0))                           # another scene: nothing kept
+    assert fm.views(a)[0] is not va2
+    small = ForwardModel(blob(x=140.0), np.array([0.2]), t, w, CAL, t_ref=0.1, cache_mb=1e-6)
+    assert small.views(a)[0] is not small.views(a)[0]         # no room: nothing kept
