@@ -342,14 +342,14 @@ class Publisher:
         ``queue_dropped`` (oldest dropped from the hand-off queue), ``hwm`` (per subscriber),
         ``warnings`` (e.g. an insecure remote bind). ``held_bytes`` is read from the trackers now, not
         at the sender's last pass, so it falls to 0 as soon as ZeroMQ lets the last payload go."""
+        self._release_held()
         with self._lock:
-            held = sum(n for tracker, n in self._held if not tracker.done)
             return {"endpoint": self.endpoint, "running": self.running, "queued": dict(self._queued),
                     "sent": dict(self._sent), "queue_depth": len(self._queue),
                     "queue_bytes": self._queue_nbytes,
                     "queue_dropped": self._queue_dropped, "send_errors": self._send_errors,
                     "bytes_sent": self._bytes_sent, "hwm": self.hwm, "max_queue_bytes": self.max_queue_bytes,
-                    "held_bytes": held, "held_peak_bytes": self._held_peak,
+                    "held_bytes": self._held_bytes, "held_peak_bytes": self._held_peak,
                     "budget_dropped": dict(self._budget_dropped),
                     "budget_dropped_total": sum(self._budget_dropped.values()),
                     "warnings": list(self.warnings)}
@@ -414,11 +414,11 @@ class Publisher:
             _remove_socket_file(owned)
 
     def _release_held(self) -> None:
-        """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them)."""
-        held = [(tr, n) for tr, n in self._held if not tr.done]
+        """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them).
+        Called by the sender and by `stats`, so under the lock the sender appends under."""
         with self._lock:
-            self._held = held
-            self._held_bytes = sum(n for _, n in held)
+            self._held = [(tr, n) for tr, n in self._held if not tr.done]
+            self._held_bytes = sum(n for _, n in self._held)
 
     def _drain(self, sock) -> None:
         self._release_held()
