@@ -25,7 +25,7 @@ from thermod.restore.overlay import grown
 REGISTER_S = 0.02         # allowed for a frame's registration before its samples are late
 QUEUE_FRAMES = 8          # frames waiting for registration; beyond, the oldest is skipped (the next pair
                           # spans it: a longer interval, not a hole)
-DELAY_WINDOW = 500        # registrations whose delay (offer → samples out) `stats` summarises
+DELAY_WINDOW = 500        # registrations whose delay (offer → registered) `stats` summarises
 
 
 class VideoGyro(GyroSource):
@@ -120,7 +120,8 @@ class VideoGyro(GyroSource):
         with self._cond:
             d = np.array(self._delays) * 1e3
         if len(d):
-            # from a frame's offer to its pair's samples: what the frame before it waits beyond a period
+            # from a frame's offer to its pair registered (the samples go out then): what the frame
+            # before it waits beyond a period
             out.update(register_delay_ms_p50=float(np.percentile(d, 50)),
                        register_delay_ms_p99=float(np.percentile(d, 99)))
         return out
