@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from tests.support.daemon_process import running_daemon
+from tests.support.losses import losses, rare_losses
 from thermod import cli
 from thermod.cli.record import record
 from thermod.cli.watch import Agc, PreviewWriter, WatchStats, side_by_side, to_u8, watch
@@ -469,8 +470,8 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
                     stats.add(*msg)
                     if msg[0] in ("frame", "raw"):
                         previews.add(*msg)
-            gaps, rejected = dict(sub.gaps), dict(sub.errors)
-            received, restarts = dict(sub.received), sum(sub.restarts.values())
+            rejected, subscriber_losses = dict(sub.errors), losses(sub)
+            gaps = subscriber_losses[0]
     cfg = config.load()
     rec = recording.read(out)
     assert rec.calibration == cfg.calibration and rec.frames.shape[1:] == (cfg.calibration.height,
@@ -497,10 +498,6 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
     # the device's rate on the host clock stays 1 kHz (a bare clone's suite read 972 Hz from the samples
     # alone, and 985 Hz when the samples after an overflow were timed from a late read)
     assert s["gyro_device_hz"] == pytest.approx(1000.0, abs=5), (s, gaps)
-    # PUB drops for a subscriber that falls SNDHWM messages behind (a CI host starved this test's
-    # process and it lost one gyro and one raw message of hundreds): seqs run on per topic, and a
-    # loss is rare, not a pattern (a seq that skipped as it counted would lose half)
-    assert not rejected and restarts == 0
-    assert all(gaps.get(t, 0) <= 0.1 * n for t, n in received.items()), (gaps, received)
+    assert not rejected and rare_losses(*subscriber_losses), subscriber_losses   # tests/support/losses.py
     assert s["latency_publish_ms"]["p50"] > 0
     assert len(list((tmp_path / "png").glob("watch_*.png"))) >= 2
