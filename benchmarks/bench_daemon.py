@@ -620,12 +620,13 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     takes s = this machine's yardstick / that times longer here, so the camera runs at fps / s and the
     latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s.
     `sets`: more ``KEY=VALUE`` overrides of the daemon's configuration."""
-    from benchmarks.yardstick import yardstick_line, yardstick_ms
+    from benchmarks.yardstick import jitter_line, yardstick_line, yardstick_ms
     from thermod.runtime import config
 
     rows, extra, scale = [], [f"sources.gyro.kind={gyro}", *sets], 1.0
     here = yardstick_ms()
     line = yardstick_line(ms=here)
+    jitter = jitter_line()
     if like_yardstick_ms is not None:
         scale = here / float(like_yardstick_ms)
         fps = fps / scale
@@ -642,7 +643,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
             for k in ("p50_ms", "p95_ms", "p99_ms"):
                 r[k] /= scale
             r.update(quota=q, quota_period_ms=quota_period_ms, gyro=gyro, cpu=cpu_medians(r), yardstick=line,
-                     time_scale=scale,
+                     jitter=jitter, time_scale=scale,
                      psnr=float(np.median([truth_psnr(img, truth.truth_for(fid), central=False)
                                            for fid, img in kept])),
                      psnr_blurry=float(np.median([truth_psnr(np.asarray(truth.frame_for(fid), np.float32),
@@ -667,6 +668,7 @@ def load_text(gov: dict) -> str:
 
 def print_payload(rows: list[dict]) -> None:
     print(rows[0]["yardstick"], "(before the runs)")
+    print(rows[0]["jitter"])
     w, h = rows[0]["size"]
     motion = " with no gyro (the motion from the frames)" if rows[0].get("gyro") == "video" else ""
     print(f"\nthe default daemon{motion}, {w}×{h} at {rows[0]['fps']:g} fps, {os.cpu_count()} cores, "

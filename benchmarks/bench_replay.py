@@ -236,9 +236,10 @@ def main(argv=None) -> int:
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     cache = Path(os.environ.get("TMPDIR", "/tmp")) / "thermod_replay"
     cache.mkdir(parents=True, exist_ok=True)
-    from benchmarks.yardstick import yardstick_line
+    from benchmarks.yardstick import jitter_line, yardstick_line
 
     print(yardstick_line(), "(before the runs)", flush=True)
+    print(jitter_line(), flush=True)
     if args.rung_in_order:
         return print_in_order(args, size, cache)
     rows = []
