@@ -175,6 +175,9 @@ def test_thermod_run_end_to_end(payload):
     in_flight = tot["frames_in"] - tot["frames_out"] - d.get("frames_overrun", 0) - d["camera_items_rejected"]
     assert 0 <= in_flight <= cfg.pipeline.frame_ring + cfg.pipeline.job_queue + 8, (tot, d)
     assert last["reload"]["ok"] is True
+    # nobody subscribed to kernels: none was packed or queued (XPUB tells the publisher who listens)
+    assert last["publisher"]["subscribed"] == ["frame", "gyro", "health", "raw"]
+    assert last["publisher"]["queued"]["kernel"] == 0 and last["publisher"]["queued"]["raw"] > 0
     cal = cfg.calibration.as_dict()
     assert {k: last["calibration"][k] for k in cal} == cal == last["calibration"]["applied"]
     assert last["calibration"]["source"] == "config"          # the monitor reports, applies nothing

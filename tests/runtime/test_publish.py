@@ -719,3 +719,40 @@ def test_an_ipc_publisher_removes_its_socket_file_and_listening_tells(tmp_path):
         assert listening(port_ep) is True
     assert listening(port_ep) is False
     assert listening("inproc://x") is None
+
+
+def _until(cond, timeout=30.0):
+    """Poll `cond` until true or `timeout` (a hang bound on a loaded machine, not a rate)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, "condition never held"
+        time.sleep(0.01)
+
+
+def test_wants_follows_what_plain_zmq_subscribers_subscribe_to(pub):
+    """XPUB hears each subscription: `wants` holds for a subscribed topic (or a prefix of it, ""
+    included) while a subscriber asks for it, and not after its last subscriber unsubscribes or
+    closes. The subscribers are bare pyzmq SUB sockets."""
+    ctx = zmq.Context.instance()
+    assert not pub.wants("kernel") and not pub.wants("frame")
+    a = ctx.socket(zmq.SUB)
+    a.connect(pub.endpoint)
+    a.setsockopt(zmq.SUBSCRIBE, b"kernel")
+    _until(lambda: pub.wants("kernel"))
+    assert not pub.wants("frame") and not pub.wants("raw")
+    b = ctx.socket(zmq.SUB)
+    b.connect(pub.endpoint)
+    b.setsockopt(zmq.SUBSCRIBE, b"kernel")
+    b.setsockopt(zmq.SUBSCRIBE, b"fr")                       # a prefix of "frame"
+    _until(lambda: pub.wants("frame"))
+    a.setsockopt(zmq.UNSUBSCRIBE, b"kernel")
+    time.sleep(0.5)                                          # b still asks for it
+    assert pub.wants("kernel")
+    b.close(linger=0)                                        # its connection closes: nobody asks
+    _until(lambda: not pub.wants("kernel") and not pub.wants("frame"))
+    a.setsockopt(zmq.SUBSCRIBE, b"")                         # everything
+    _until(lambda: pub.wants("kernel") and pub.wants("health"))
+    # and messages still flow to it as from a PUB socket
+    pub.publish_health()
+    assert a.poll(5000) and a.recv_multipart()[0] == b"health"
+    a.close(linger=0)

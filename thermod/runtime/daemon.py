@@ -113,7 +113,7 @@ class Daemon:
                                   max_step_s=MAX_STEP_PERIODS / c.rate_hz)
         self.frame_ring = FrameRing(cfg.pipeline.frame_ring, (c.height, c.width))
         self.pipeline = Pipeline(self.gyro_ring, self.frame_ring, c, cfg.deblur, cfg.pipeline, self._emit,
-                                 deconvolver_factory=deconvolver_factory, kernels=cfg.publish.kernel)
+                                 deconvolver_factory=deconvolver_factory, kernels=self._kernels_wanted)
         self.monitor = None       # the live calibration monitor ([monitor], thermod.runtime.monitor)
         if cfg.monitor.enabled and self._offer_frame is not None:
             log.info("monitor: off (the motion comes from the frames it would check it against)")
@@ -149,6 +149,15 @@ class Daemon:
         if self.cfg.publish.gyro:
             self.publisher.publish_gyro(b.t, b.rate, seq=b.seq, gap_before=b.gap_before, n_lost=b.n_lost)
 
+    def _wanted(self, topic: str) -> bool:
+        """Whether a subscriber now asks for `topic` (an injected publisher that cannot tell: yes)."""
+        wants = getattr(self.publisher, "wants", None)
+        return True if wants is None else wants(topic)
+
+    def _kernels_wanted(self) -> bool:
+        """Pack each frame's kernel for the wire: while it is published and subscribed to."""
+        return self.cfg.publish.kernel and self._wanted("kernel")
+
     def _on_frame(self, f) -> None:
         try:
             self.frame_ring.write(f.image, f.t, f.frame_id, f.arrival, f.gap_before,
@@ -161,7 +170,7 @@ class Daemon:
             self._offer_frame(f.image, f.t)
         if f.gap_before:
             self.counters["camera_frames_lost"] += int(f.gap_before)
-        if self.cfg.publish.raw:
+        if self.cfg.publish.raw and self._wanted("raw"):
             self.publisher.publish_raw(f.image, f.t, frame_id=f.frame_id, gap_before=int(f.gap_before))
         if self.rtsp is not None:
             self.rtsp.offer_raw(f.image, f.t, f.frame_id)
@@ -193,7 +202,8 @@ class Daemon:
                                      **frame_method_fields(o.method, o.grid))
         if self.cfg.publish.kernel and o.kernel is not None:
             self.publisher.publish_kernel(o.kernel, o.t, frame_id=o.frame_id)
-        if (rad := self.radiometry()) is not None:  # after deblurring: counts are linear in flux, °C not
+        if (rad := self.radiometry()) is not None and self._wanted("celsius"):
+            # after deblurring: counts are linear in flux, °C not
             self.publisher.publish("celsius", {"t": float(o.t), "frame_id": int(o.frame_id),
                                                "deblurred": bool(o.deblurred),
                                                "radiometry": rad.as_dict()},

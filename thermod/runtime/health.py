@@ -42,7 +42,7 @@ def source_clock(src: Source) -> dict | None:
 
 # what health shows of Publisher.stats()
 PUBLISHER_KEYS = ("queue_depth", "queue_dropped", "send_errors", "hwm", "held_bytes", "held_peak_bytes",
-                  "budget_dropped", "warnings")
+                  "budget_dropped", "warnings", "queued", "subscribed")
 
 
 @dataclass(frozen=True)

@@ -183,19 +183,20 @@ class Pipeline:
         grid)`` (default `thermod.physics.deconv.Deconvolver`), one per worker thread.
     renderer : same signature as `render` (default), the seam for the kernel renderer (run by the
         workers, in their child processes: it must pickle there).
-    kernels : keep each deblurred frame's kernel, packed for the wire, in `FrameOut.kernel`.
+    kernels : keep each deblurred frame's kernel, packed for the wire, in `FrameOut.kernel`; a callable
+        is asked at each job (the daemon's: while a subscriber subscribes to the kernel topic).
     """
 
     def __init__(self, gyro_ring: GyroRing, frame_ring: FrameRing, calib: Calibration, deblur: DeblurConfig,
                  cfg: PipelineConfig, emit: Callable[[FrameOut], None], *,
                  deconvolver_factory: Callable | None = None, renderer: Callable | None = None,
-                 kernels: bool = True):
+                 kernels: bool | Callable[[], bool] = True):
         self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
         self._settings = _Settings(calib, deblur, 0)
         self._process_settings = None   # (BLAS thread limits, GIL switch interval) to restore at stop
         self._factory = deconvolver_factory or make_deconvolver
         self._render = renderer or render
-        self._kernels = bool(kernels)
+        self._kernels = kernels if callable(kernels) else (lambda keep=bool(kernels): keep)
         self.n_workers = cfg.workers or default_workers()
         self.gyro_online = True           # the daemon clears this while the gyro device is down
         # when the gyro reader last delivered samples (host monotonic), set by the daemon: read by
@@ -625,7 +626,7 @@ class Pipeline:
                 order = order_for(rung, job.order, caught_up)
                 got = solver.solve(s, rung, job.slot.image, order, job.slot.t, job.warp_gyro,
                                    lambda index=index, wait_s=wait_s: self._prior_for(index, wait_s),
-                                   pack=self._kernels, keep_out=job.keep_out)
+                                   pack=self._kernels(), keep_out=job.keep_out)
                 if got.passthrough is not None:        # the kernel's coverage rule, or no kernel
                     self._job_done(i, index, None)
                     self.stage_times.add(arrival=job.arrival_s, gyro_wait=job.gyro_wait_s,

@@ -1,8 +1,10 @@
 """The daemon's ZeroMQ publisher for wire format v1 (docs/wire.md); the codec is `thermod.io.wire`, the
 endpoint and key rules `thermod.io.endpoints`, the subscriber `thermod.client.subscriber`.
 
-The daemon binds one PUB socket; every message is three frames ``[topic, header, payload]``.
-`Publisher` owns that socket in one thread and never blocks its callers.
+The daemon binds one XPUB socket (a PUB that also hears what its subscribers subscribe to); every
+message is three frames ``[topic, header, payload]``. `Publisher` owns that socket in one thread and
+never blocks its callers. `wants(topic)` says whether any subscriber now subscribes to a topic, so
+that work only a subscriber would read (packing kernels, copying raw frames) is skipped while none does.
 
 Security: the publisher binds loopback (or ``ipc://``) unless it has CURVE keys or is told
 ``allow_insecure_remote``. With ``curve_secret_key_file`` (a file written by
@@ -172,6 +174,7 @@ class Publisher:
         self._queue_nbytes = 0
         self._send_errors = 0
         self._bytes_sent = 0
+        self._subscribed: frozenset[bytes] = frozenset()   # the topic prefixes subscribers ask for now
 
     # ------------------------------------------------------------------ lifecycle
     def start(self, timeout: float = 5.0) -> Publisher:
@@ -211,6 +214,12 @@ class Publisher:
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
+
+    def wants(self, topic: str) -> bool:
+        """Whether some subscriber subscribes to `topic` now (a prefix of it, ``""`` included). A new
+        subscription is heard at the sender's next pass (within ``gyro_batch_s``, or 0.2 s)."""
+        name = topic.encode()
+        return any(name.startswith(p) for p in self._subscribed)
 
     # ------------------------------------------------------------------- publish
     def publish(self, topic: str, header: dict, array: np.ndarray | None = None, *, copy: bool = True) -> int:
@@ -340,7 +349,8 @@ class Publisher:
         """Counters: ``budget_dropped`` (per topic, not sent because ZeroMQ already held
         ``max_queue_bytes``), ``held_bytes``/``held_peak_bytes`` (sent payloads ZeroMQ still holds),
         ``queue_dropped`` (oldest dropped from the hand-off queue), ``hwm`` (per subscriber),
-        ``warnings`` (e.g. an insecure remote bind). ``held_bytes`` is read from the trackers now, not
+        ``warnings`` (e.g. an insecure remote bind), ``subscribed`` (the topic prefixes subscribers ask
+        for now; "" is every topic). ``held_bytes`` is read from the trackers now, not
         at the sender's last pass, so it falls to 0 as soon as ZeroMQ lets the last payload go."""
         self._release_held()
         with self._lock:
@@ -352,6 +362,7 @@ class Publisher:
                     "held_bytes": self._held_bytes, "held_peak_bytes": self._held_peak,
                     "budget_dropped": dict(self._budget_dropped),
                     "budget_dropped_total": sum(self._budget_dropped.values()),
+                    "subscribed": sorted(p.decode(errors="replace") for p in self._subscribed),
                     "warnings": list(self.warnings)}
 
     # -------------------------------------------------------------- sender thread
@@ -367,7 +378,7 @@ class Publisher:
                     auth = ThreadAuthenticator(ctx, log=log.getChild("auth"))
                     auth.start()
                     auth.configure_curve(domain="*", location=os.fspath(self.authorized_keys_dir))
-                sock = ctx.socket(zmq.PUB)
+                sock = ctx.socket(zmq.XPUB)
                 sock.setsockopt(zmq.SNDHWM, self.hwm)
                 # ZMTP heartbeats: a subscriber that stops reading stops answering them too, so its
                 # connection (and the queue it pins) is dropped after stall_timeout_s
@@ -400,6 +411,7 @@ class Publisher:
                 with self._gyro_lock:
                     self._flush_gyro_locked(older_than=None if stopping else self.gyro_batch_s)
                 sock.getsockopt(zmq.EVENTS)  # lets the socket finish closed subscribers' pipes (frees queues)
+                self._hear_subscriptions(sock)
                 self._drain(sock)
                 if stopping:
                     self._drain(sock)
@@ -412,6 +424,21 @@ class Publisher:
             if self._shared_ctx is None:
                 ctx.term()
             _remove_socket_file(owned)
+
+    def _hear_subscriptions(self, sock) -> None:
+        """Apply the (un)subscriptions XPUB passed up: ``\\x01`` + prefix when the first subscriber asks
+        for a prefix, ``\\x00`` + prefix when the last one leaves (or its connection closes)."""
+        subscribed = set(self._subscribed)
+        while True:
+            try:
+                msg = sock.recv(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            if msg[:1] == b"\x01":
+                subscribed.add(msg[1:])
+            elif msg[:1] == b"\x00":
+                subscribed.discard(msg[1:])
+        self._subscribed = frozenset(subscribed)
 
     def _release_held(self) -> None:
         """Forget the payloads ZeroMQ has let go of (every subscriber's queue sent or dropped them).
