@@ -434,6 +434,9 @@ class Publisher:
                 msg = sock.recv(zmq.NOBLOCK)
             except zmq.Again:
                 break
+            except zmq.ZMQError as e:     # the socket closing under a stop: keep what was heard
+                log.debug("subscriptions: %s", e)
+                break
             if msg[:1] == b"\x01":
                 subscribed.add(msg[1:])
             elif msg[:1] == b"\x00":
