@@ -224,6 +224,15 @@ def test_a_log_without_gyro_is_refused(tmp_path):
         read_flight_log(csv)
 
 
+@pytest.mark.parametrize("tscale", ["nan", "inf"])
+def test_a_gcsv_whose_time_scale_is_not_finite_is_refused(tmp_path, tscale):
+    rows = "".join(f"{37250000 + 1000 * k},-5055,-21524,85127\n" for k in range(2000))
+    path = tmp_path / "tscale.gcsv"
+    path.write_text(f"GYROFLOW IMU LOG\nversion,1.3\nid,x\ntscale,{tscale}\ngscale,1e-06\nt,gx,gy,gz\n" + rows)
+    with pytest.raises(FlightLogError, match=r"tscale\.gcsv: .*(time|tscale)"):
+        read_flight_log(path)
+
+
 def test_a_parser_panic_becomes_a_flight_log_error(tmp_path):
     bad = tmp_path / "panic.csv"          # telemetry-parser unwraps the time column: a Rust panic
     bad.write_text('"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n0,abc,1,2,3\n')
@@ -279,8 +288,9 @@ def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
     if kind == "random":
         blob = data.draw(st.binary(max_size=2048))
     elif kind == "text":
+        scale = st.sampled_from(["0.001", "1", "nan", "inf", "-1", "0", "1e308", "abc", ""])
         head = data.draw(st.sampled_from([
-            "GYROFLOW IMU LOG\nversion,1.3\ntscale,0.001\ngscale,1\nt,gx,gy,gz\n",
+            f"GYROFLOW IMU LOG\nversion,1.3\ntscale,{data.draw(scale)}\ngscale,{data.draw(scale)}\nt,gx,gy,gz\n",
             '"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n',
             "H Product:Blackbox flight data recorder by Nicholas Sherlock\n"]))
         body = data.draw(st.text(alphabet="0123456789,.-e\nabc\"", max_size=400))

@@ -212,3 +212,23 @@ def test_deblur_never_fails_unexpectedly(workdir, muts):
     else:
         assert str(p) in err and not out.exists()
         assert not (workdir / "out.h5.part").exists()
+
+
+@FUZZ
+@given(muts=mutations)
+# found by a sweep of bad inputs: a recording with no frames had no first frame to put the gyro on
+@example(muts=[("replace", "camera/frames", np.zeros((0, H, W), np.uint16)),
+               ("replace", "camera/t", np.zeros(0, np.float64))])
+def test_export_never_fails_unexpectedly(workdir, muts):
+    p = _mutated(workdir, muts)
+    out = workdir / "out.gcsv"
+    out.unlink(missing_ok=True)
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with redirect_stdout(stdout), redirect_stderr(stderr):
+        rc = main(["export", str(p), "--gcsv", str(out)])
+    err = stderr.getvalue()
+    event(f"exit {rc}")
+    assert rc in (0, 2), err               # 1 would be an internal error: a bug
+    assert "Traceback" not in err and "internal error" not in err, err
+    if rc != 0:
+        assert str(p) in err

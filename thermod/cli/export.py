@@ -34,6 +34,9 @@ def gcsv_series(path) -> tuple[np.ndarray, np.ndarray, dict]:
         source = str(r.group_attrs().get("motion", {}).get("source", "gyro"))
     t, rate = calib.gyro_to_camera(gyro_t, gyro_rate)
     if not imported:
+        if len(t_frames) == 0:
+            raise ThermodError(f"{path}: camera/t: no frames; expected at least one, whose time is the "
+                               "video clock's zero")
         t = t - t_frames[0]
     keep = t >= 0.0
     if np.count_nonzero(keep) < 2:

@@ -234,8 +234,12 @@ def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
                 g = s.get("Gyroscope") if isinstance(s, dict) else None
                 data = g.get("Data") if isinstance(g, dict) else None
                 if isinstance(data, list) and data and isinstance(data[0], dict) and "t" in data[0]:
+                    t0 = data[0]["t"]
+                    if not (isinstance(t0, (int, float)) and math.isfinite(t0)):
+                        raise FlightLogError(path, f"its first gyro sample's time is {t0!r}: expected a "
+                                                   "finite number (a .gcsv's tscale must be one)")
                     o = g.get("Orientation")
-                    return float(data[0]["t"]), (o if isinstance(o, str) else "")
+                    return float(t0), (o if isinstance(o, str) else "")
             if n >= size:
                 break
     return None
