@@ -228,7 +228,8 @@ def test_a_log_without_gyro_is_refused(tmp_path):
 def test_a_gcsv_whose_time_scale_is_not_finite_is_refused(tmp_path, tscale):
     rows = "".join(f"{37250000 + 1000 * k},-5055,-21524,85127\n" for k in range(2000))
     path = tmp_path / "tscale.gcsv"
-    path.write_text(f"GYROFLOW IMU LOG\nversion,1.3\nid,x\ntscale,{tscale}\ngscale,1e-06\nt,gx,gy,gz\n" + rows)
+    head = f"GYROFLOW IMU LOG\nversion,1.3\nid,x\ntscale,{tscale}\ngscale,1e-06\nt,gx,gy,gz\n"
+    path.write_text(head + rows)
     with pytest.raises(FlightLogError, match=r"tscale\.gcsv: .*(time|tscale)"):
         read_flight_log(path)
 
@@ -290,7 +291,8 @@ def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
     elif kind == "text":
         scale = st.sampled_from(["0.001", "1", "nan", "inf", "-1", "0", "1e308", "abc", ""])
         head = data.draw(st.sampled_from([
-            f"GYROFLOW IMU LOG\nversion,1.3\ntscale,{data.draw(scale)}\ngscale,{data.draw(scale)}\nt,gx,gy,gz\n",
+            f"GYROFLOW IMU LOG\nversion,1.3\ntscale,{data.draw(scale)}\ngscale,{data.draw(scale)}\n"
+            "t,gx,gy,gz\n",
             '"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n',
             "H Product:Blackbox flight data recorder by Nicholas Sherlock\n"]))
         body = data.draw(st.text(alphabet="0123456789,.-e\nabc\"", max_size=400))
