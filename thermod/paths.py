@@ -1,4 +1,8 @@
-"""Where thermod keeps what it can rebuild: one cache directory for every part.
+"""Where thermod keeps what it can rebuild, and the rule every file it writes keeps.
+
+An output file is written as ``<path>.part`` and renamed over `path`, so `output_problem` refuses a
+`path` that exists and is not a regular file (a directory, or a device such as ``/dev/null``: the
+rename would replace the device node) or whose directory does not exist.
 
 `cache_dir()` is ``$THERMOD_CACHE_DIR``, else ``$THERMOD_CACHE`` (the simulator's older name), else
 ``$XDG_CACHE_HOME/thermod`` (the systemd unit points it at the service's cache directory), else
@@ -9,7 +13,37 @@ pre-rendered loops (`thermod.sim.playback`) live there.
 from __future__ import annotations
 
 import os
+import stat
 from pathlib import Path
+
+
+def directory_problem(path: str | os.PathLike) -> str | None:
+    """Why `path` cannot be (made) a directory to write files into; None once it is one."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        return "it is a file: expected a directory (or a new one)"
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return f"cannot create it ({e.strerror or e})"
+    return None
+
+
+def output_problem(path: str | os.PathLike) -> str | None:
+    """Why `path` cannot take an output file written beside it and renamed over it; None if it can."""
+    p = Path(path)
+    try:
+        mode = p.stat().st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as e:
+        return f"cannot inspect it ({e.strerror or e})"
+    if mode is not None and not stat.S_ISREG(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a device or special file"
+        return f"it is {kind}: expected a regular file to write (or a new one)"
+    if not p.parent.is_dir():
+        return f"directory {p.parent} does not exist"
+    return None
 
 
 def cache_dir() -> Path:

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from thermod.errors import ThermodError
+from thermod.paths import directory_problem, output_problem
 
 
 def add_arguments(p) -> None:
@@ -63,7 +64,8 @@ def camera(args, *, tau_required: bool = True):
 
 
 def checked_video_options(args) -> Path:
-    """--fps, --start, --duration and -o checked (the options both video imports share); the output."""
+    """--fps, --start, --duration, -o and --report checked (the options both video imports share),
+    before any work; the output."""
     if args.fps is not None and not args.fps > 0:
         raise ThermodError(f"--fps {args.fps}: expected a frame rate > 0 Hz")
     if not (math.isfinite(args.start) and args.start >= 0):
@@ -71,8 +73,10 @@ def checked_video_options(args) -> Path:
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ThermodError(f"--duration {args.duration}: expected more than 0 seconds")
     out = Path(args.output)
-    if not out.parent.is_dir():
-        raise ThermodError(f"-o {out}: directory {out.parent} does not exist")
+    if (problem := output_problem(out)) is not None:
+        raise ThermodError(f"-o {out}: {problem}")
+    if args.report is not None and (problem := directory_problem(args.report)) is not None:
+        raise ThermodError(f"--report {args.report}: {problem}")
     return out
 
 

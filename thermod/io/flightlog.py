@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import FileError
+from thermod.paths import output_problem
 
 MAX_FILE_BYTES = 4 * 2**30
 MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
@@ -481,11 +482,20 @@ def _check_series(path: Path, t, rate) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _atomic_text(path: Path, header: str, body) -> None:
+    if (problem := output_problem(path)) is not None:
+        raise FlightLogError(path, problem)
     part = path.with_name(path.name + ".part")
-    with open(part, "w", encoding="ascii", newline="\n") as f:
-        f.write(header)
-        if isinstance(body, np.ndarray):
-            np.savetxt(f, body, fmt="%d", delimiter=",")
-        else:
-            f.write("\n".join(body) + "\n")
-    os.replace(part, path)
+    try:
+        with open(part, "w", encoding="ascii", newline="\n") as f:
+            f.write(header)
+            if isinstance(body, np.ndarray):
+                np.savetxt(f, body, fmt="%d", delimiter=",")
+            else:
+                f.write("\n".join(body) + "\n")
+        os.replace(part, path)
+    except OSError as e:
+        try:
+            part.unlink(missing_ok=True)
+        except OSError:
+            pass
+        raise FlightLogError(path, f"cannot write it ({e.strerror or e})") from None

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import RecordingError
+from thermod.paths import output_problem
 from thermod.physics.calibration import Calibration
 
 log = logging.getLogger(__name__)
@@ -139,6 +140,8 @@ class McapWriter:
 
         self.path = Path(path)
         self.part = self.path.with_name(self.path.name + ".part")
+        if (problem := output_problem(self.path)) is not None:
+            raise RecordingError(self.path, "file", problem)
         try:
             self._file = open(self.part, "wb")  # noqa: SIM115 (closed by commit/abort)
         except OSError as e:

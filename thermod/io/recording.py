@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 
 from thermod.errors import RecordingError
+from thermod.paths import output_problem
 from thermod.physics.calibration import CAMERA_KEYS, Calibration, CalibrationError
 
 FORMAT = "thermod-recording"
@@ -450,6 +451,8 @@ class Writer:
     def __init__(self, path: str | os.PathLike, suffix: str = ".part"):
         self.path = Path(path)
         self.part = self.path.with_name(self.path.name + suffix)
+        if (problem := output_problem(self.path)) is not None:
+            raise RecordingError(self.path, "file", problem)
         try:
             self.file = h5py.File(self.part, "w")
         except (OSError, ValueError) as e:
