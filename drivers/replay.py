@@ -199,6 +199,10 @@ class _ReplayStream:
     def _attach(self, source, speed: float, loop: bool, session: ReplaySession | None) -> None:
         self.session = _session(source, speed, loop, session)
         self.name = f"{self.session.name} {self.role}"
+        if len(self._times) == 0:
+            what = "frames (camera/t)" if self.role == "camera" else "gyro samples (gyro/t)"
+            raise DeviceError(f"{self.name}: the recording holds no {what}: nothing to replay as its "
+                              f"{self.role}")
         self._i = 0           # next item index within the lap
         self._lap = 0
         self._running = False

@@ -398,3 +398,19 @@ def test_offline_solver_comes_from_the_one_factory_and_honours_kf_iterations():
     assert deconvolver(DeblurConfig()).iterations == 6
     d = deconvolver(DeblurConfig(method="wiener", kf_iterations=3))
     assert d.method == "wiener" and not d.realtime       # offline plans are measured, not estimated
+
+
+def test_a_frame_smaller_than_the_grid_is_deblurred_over_a_grid_that_fits(tmp_path, capsys):
+    """The default 6×8 grid on a 4×4 recording is capped at one cell per pixel row and column: its
+    frames are deblurred, not passed through with a kernel error."""
+    calib = Calibration(width=4, height=4, cx=1.5, cy=1.5, fx=20.0, fy=20.0)
+    gyro_t = np.arange(0.0, 0.5, 0.001)
+    rate = np.zeros((len(gyro_t), 3), np.float32)
+    rate[:, 2] = 1.0
+    frames = np.random.default_rng(0).integers(900, 1100, (5, 4, 4)).astype(np.uint16)
+    src = tmp_path / "tiny.h5"
+    recording.write(src, recording.Recording(frames, 0.2 + 0.02 * np.arange(5), gyro_t, rate, calib))
+    out = tmp_path / "out.h5"
+    assert main(["deblur", str(src), "-o", str(out)]) == 0
+    res = recording.read(out)
+    assert res.deblurred.shape == frames.shape and "kernel_error" not in capsys.readouterr().out

@@ -244,3 +244,24 @@ def test_every_source_offers_name_clock_and_stats():
         assert isinstance(src.stats(), dict)
     assert sources[0].clock is None and sources[1].clock is None      # replayed times need no mapping
     assert all(isinstance(s.clock, ClockMapper) for s in sources[2:5])
+
+
+@pytest.mark.parametrize("empty", ["camera", "gyro"])
+@pytest.mark.parametrize("loop", [False, True])
+def test_a_stream_with_nothing_to_replay_is_refused_at_open(tmp_path, rec_path, empty, loop):
+    """A recording whose frames (or gyro samples) are all gone cannot stand in for that device: the
+    source says so when it is made, not with an IndexError from its driver thread."""
+    path, _ = rec_path
+    bad = tmp_path / "empty.h5"
+    bad.write_bytes(path.read_bytes())
+    with h5py.File(bad, "a") as f:
+        names = ("camera/frames", "camera/t") if empty == "camera" else ("gyro/t", "gyro/rate")
+        for name in names:
+            data = f[name][:0]
+            del f[name]
+            f[name] = data
+    source = ReplayCamera if empty == "camera" else ReplayGyro
+    other = ReplayGyro if empty == "camera" else ReplayCamera
+    with pytest.raises(DeviceError, match=rf"empty\.h5 {empty}: the recording holds no"):
+        source(bad, loop=loop)
+    other(bad, loop=loop)                     # the other stream is still there to replay

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from tests.support.collecting import Collector
+from thermod.errors import ConfigError
 from thermod.physics import kernels
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv import Deconvolver
@@ -491,3 +492,15 @@ def test_a_starved_gyro_reader_is_waited_for_a_silent_one_is_not(sharp):
     assert a.deblurred and a.latency_s >= 0.09
     assert not b.deblurred and b.reason == "gyro_incomplete" and b.latency_s < 0.05 + 0.09
     assert p.stats()["counters"]["gyro_late_waits"] == 1
+
+
+def test_frame_size_rules_the_grid_and_the_live_rungs():
+    """The grid never has more cells than the frame has pixel rows and columns, and the live rungs
+    refuse a frame too small for them with a configuration error (not a solver child's traceback)."""
+    d = DeblurConfig(grid=(6, 8))
+    assert d.within_frame(640, 480) is d
+    assert d.within_frame(2, 2).grid == (2, 2) and d.within_frame(5, 40).grid == (6, 5)
+    cfg = PipelineConfig(workers=1)
+    tiny = CAL.replace(width=8, height=8, cx=3.5, cy=3.5)
+    with pytest.raises(ConfigError, match=r"at least 16×16 px .* got 8×8"):
+        Pipeline(GyroRing(100), FrameRing(2, (8, 8)), tiny, d, cfg, lambda o: None)

@@ -122,6 +122,7 @@ def order_kernel(t_frame: float, gyro_t: np.ndarray, gyro_rate: np.ndarray, cali
     early = refused_early(deblur, ffc)
     if early is not None:
         return early
+    deblur = deblur.within_frame(calib.width, calib.height)
     g0, g1, margin = gyro_span(calib, deblur, t_frame)
     gyro_t = np.asarray(gyro_t, np.float64)
     i0, i1 = np.searchsorted(gyro_t, [g0 - margin, g1 + margin])

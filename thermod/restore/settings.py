@@ -8,6 +8,7 @@ table (`read_deblur`) and a command line's options (`deblur_settings`).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +38,13 @@ class DeblurConfig:
     m: float = 5.0                   # kernel window = m·τ
     min_coverage: float = 0.99       # gyro coverage below this → pass through
     ffc_settle_s: float | None = None  # after a flat-field correction: pass through this long (None: m·τ)
+
+    def within_frame(self, width: int, height: int) -> DeblurConfig:
+        """These settings with the grid capped at one cell per pixel row and column of a frame."""
+        rows, cols = self.grid
+        if rows <= height and cols <= width:
+            return self
+        return dataclasses.replace(self, grid=(max(1, min(rows, height)), max(1, min(cols, width))))
 
 
 #: ``[deblur]`` → DeblurConfig: the keys, ranges and rules a configuration file and a command line share.

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from thermod.errors import ConfigError
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.gyro_effects import CLIP_TOL
@@ -68,6 +69,7 @@ log = logging.getLogger(__name__)
 GIL_SWITCH_INTERVAL_S = 0.001   # while the pipeline runs (see `warmup`)
 SHORT_OF_CPU_S = 10.0   # the pipeline is short of CPU while this long holds SHORT_OF_CPU_DROPS overload drops
 SHORT_OF_CPU_DROPS = 3  # (one drop is a stall, not a shortage: the monitor goes on through it)
+MIN_FRAME_PX = 16      # the smallest frame side the live rungs take (`thermod deblur` takes less)
 PRIOR_FRAMES = 4       # restored frames kept as priors (a prior k − 1 … k − 4 frames back may be used)
 STARVED_WAIT_S = 0.1   # beyond wait_timeout_s, how long a frame waits for a gyro reader that has delivered
                        # nothing since the frame came (starved of a core or the GIL, not short of samples)
@@ -192,7 +194,12 @@ class Pipeline:
                  deconvolver_factory: Callable | None = None, renderer: Callable | None = None,
                  kernels: bool | Callable[[], bool] = True):
         self.gyro_ring, self.frame_ring, self.cfg, self.emit = gyro_ring, frame_ring, cfg, emit
-        self._settings = _Settings(calib, deblur, 0)
+        if min(calib.width, calib.height) < MIN_FRAME_PX:
+            raise ConfigError(f"calibration.width/height: the live rungs need frames of at least "
+                              f"{MIN_FRAME_PX}×{MIN_FRAME_PX} px (a half-resolution solve, a temporal "
+                              f"warp's support), got {calib.width}×{calib.height}; `thermod deblur` "
+                              "takes smaller ones")
+        self._settings = _Settings(calib, deblur.within_frame(calib.width, calib.height), 0)
         self._process_settings = None   # (BLAS thread limits, GIL switch interval) to restore at stop
         self._factory = deconvolver_factory or make_deconvolver
         self._render = renderer or render
@@ -380,7 +387,9 @@ class Pipeline:
         """Swap calibration / deblur settings (SIGHUP). Frames in flight finish with the old ones;
         workers rebuild their deconvolver when the deblur settings change."""
         s = self._settings
-        self._settings = new = _Settings(calib or s.calib, deblur or s.deblur, s.generation + 1)
+        calib = calib or s.calib
+        deblur = (deblur or s.deblur).within_frame(calib.width, calib.height)
+        self._settings = new = _Settings(calib, deblur, s.generation + 1)
         if new.deblur != s.deblur or new.calib.frame_rate_hz != s.calib.frame_rate_hz:
             gov = self._new_governor(new.calib, new.deblur)
             gov.inherit(self.governor)
