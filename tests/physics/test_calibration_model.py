@@ -74,7 +74,8 @@ def test_thermal_weights_and_photon_average():
     ({"R_cam_gyro": np.diag([1.0, 1.0, -1.0])}, "R_cam_gyro", "det +1"),        # a reflection
     ({"R_cam_gyro": np.eye(3) * 1.01}, "R_cam_gyro", "orthonormal"),
     ({"R_cam_gyro": np.eye(2)}, "R_cam_gyro", "3×3"),
-    ({"scale": (1.0, 0.0, 1.0)}, "scale", "positive"),
+    ({"scale": (1.0, 0.0, 1.0)}, "scale", "(0, 100]"),
+    ({"scale": (1e300,)}, "scale", "(0, 100]"),            # overflowed the kernel's size
     ({"scale": (1.0, 1.0)}, "scale", "1 or 3"),
     ({"bias_rad_s": (0.0, float("nan"), 0.0)}, "bias_rad_s", "finite"),
     ({"fx": 0.0}, "fx", "positive"),

@@ -95,6 +95,8 @@ def test_linear_model_and_its_inverse():
     (Planck, dict(R="1", B=1.0), "R"),
     (Planck, dict(R=True, B=1.0), "R"),
     (Linear, dict(gain=0.0), "gain"),
+    (Linear, dict(gain=1e308), "gain"),              # °C of every count would overflow to inf
+    (Linear, dict(gain=0.01, offset=-1e300), "offset"),
     (Linear, dict(gain=1.0, offset=float("inf")), "offset"),
 ])
 def test_models_refuse_bad_constants_naming_the_field(cls, kw, field):

@@ -143,8 +143,9 @@ class Calibration:
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
         scale = _vector("scale", self.scale, (1, 3))
         scale = scale * 3 if len(scale) == 1 else scale
-        if not all(x > 0 for x in scale):
-            raise CalibrationError("scale", f"expected 1 or 3 positive numbers, got {list(scale)}")
+        if not all(0 < x <= MAX_GYRO_SCALE for x in scale):
+            raise CalibrationError("scale", f"expected 1 or 3 numbers in (0, {MAX_GYRO_SCALE:g}], "
+                                            f"got {list(scale)}")
         set_(self, "scale", scale)
         set_(self, "R_cam_gyro", _rotation("R_cam_gyro", self.R_cam_gyro))
 
@@ -326,6 +327,7 @@ MAX_CLOCK_DRIFT_PPM = 1e5
 MIN_LOWPASS_HZ = 1.0
 MAX_GYRO_RANGE_RAD_S = math.radians(10000.0)
 MAX_CLIP_GAIN = 10.0
+MAX_GYRO_SCALE = 100.0      # a sensitivity error of a few %, or a units slip (deg as rad: ×57.3), not more
 
 
 def _check_gyro_effects(c: Calibration) -> None:

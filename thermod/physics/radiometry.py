@@ -115,6 +115,11 @@ class Planck:
         return {"model": self.model, "R": self.R, "B": self.B, "F": self.F, "O": self.O}
 
 
+# A linear output mode's scale is 0.01–0.1 K per count; these bounds keep °C of any 16-bit count finite
+MAX_LINEAR_GAIN = 1e3
+MAX_LINEAR_OFFSET = 1e4
+
+
 @dataclass(frozen=True)
 class Linear:
     """``°C = gain · counts + offset``; gain ≠ 0 (°C per count), offset (°C)."""
@@ -127,8 +132,11 @@ class Linear:
     def __post_init__(self):
         for f in fields(self):
             object.__setattr__(self, f.name, _finite(f.name, getattr(self, f.name)))
-        if self.gain == 0:
-            raise RadiometryError("gain", "expected a non-zero number (°C per count), got 0")
+        if not 0 < abs(self.gain) <= MAX_LINEAR_GAIN:
+            raise RadiometryError("gain", f"expected a non-zero number of at most ±{MAX_LINEAR_GAIN:g} °C per "
+                                          f"count, got {self.gain!r}")
+        if not abs(self.offset) <= MAX_LINEAR_OFFSET:
+            raise RadiometryError("offset", f"expected at most ±{MAX_LINEAR_OFFSET:g} °C, got {self.offset!r}")
 
     def to_celsius(self, counts) -> np.ndarray:
         """°C as float32, same shape as ``counts``."""
