@@ -133,10 +133,11 @@ class Linear:
         for f in fields(self):
             object.__setattr__(self, f.name, _finite(f.name, getattr(self, f.name)))
         if not 0 < abs(self.gain) <= MAX_LINEAR_GAIN:
-            raise RadiometryError("gain", f"expected a non-zero number of at most ±{MAX_LINEAR_GAIN:g} °C per "
-                                          f"count, got {self.gain!r}")
+            raise RadiometryError("gain", f"expected a non-zero number of at most ±{MAX_LINEAR_GAIN:g} °C "
+                                          f"per count, got {self.gain!r}")
         if not abs(self.offset) <= MAX_LINEAR_OFFSET:
-            raise RadiometryError("offset", f"expected at most ±{MAX_LINEAR_OFFSET:g} °C, got {self.offset!r}")
+            raise RadiometryError("offset", f"expected at most ±{MAX_LINEAR_OFFSET:g} °C, "
+                                            f"got {self.offset!r}")
 
     def to_celsius(self, counts) -> np.ndarray:
         """°C as float32, same shape as ``counts``."""
