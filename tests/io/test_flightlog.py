@@ -234,6 +234,22 @@ def test_a_gcsv_whose_time_scale_is_not_finite_is_refused(tmp_path, tscale):
         read_flight_log(path)
 
 
+@pytest.mark.parametrize("line, field", [("orientation,QQQ", "orientation"), ("orientation,", "orientation"),
+                                         ("orientation,XXY", "orientation"), ("gscale,abc", "gscale"),
+                                         ("tscale,0", "tscale")])
+def test_a_bad_gcsv_header_is_refused_before_the_parser_panics(tmp_path, capfd, line, field):
+    """telemetry-parser panics on a bad orientation (a Rust backtrace on stderr with RUST_BACKTRACE):
+    the header is checked first, and the error names the field."""
+    rows = "".join(f"{k},1,2,3\n" for k in range(2000))
+    path = tmp_path / "head.gcsv"
+    path.write_text(f"GYROFLOW IMU LOG\nversion,1.3\nid,x\n{line}\ntscale,0.001\ngscale,1\nt,gx,gy,gz\n"
+                    .replace("tscale,0.001\n", "" if line.startswith("tscale") else "tscale,0.001\n")
+                    .replace("gscale,1\n", "" if line.startswith("gscale") else "gscale,1\n") + rows)
+    with pytest.raises(FlightLogError, match=rf"head\.gcsv: {field} "):
+        read_flight_log(path)
+    assert "panicked" not in capfd.readouterr().err
+
+
 def test_a_parser_panic_becomes_a_flight_log_error(tmp_path):
     bad = tmp_path / "panic.csv"          # telemetry-parser unwraps the time column: a Rust panic
     bad.write_text('"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n0,abc,1,2,3\n')

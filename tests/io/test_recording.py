@@ -96,7 +96,7 @@ def test_write_is_atomic_and_validates(tmp_path):
 
 @pytest.mark.parametrize("group, key, value, expected", [
     ("gyro", "R_cam_gyro", np.zeros((3, 3)), "rotation matrix"),
-    ("gyro", "scale", np.zeros(3), "positive"),
+    ("gyro", "scale", np.zeros(3), "(0, 100]"),
     ("camera", "frame_rate_hz", 0.0, "(0, 10000] Hz"),
     ("camera", "pixel_pitch_um", 0.0, "(0, 1000] µm"),
     ("camera", "psf_beta", 0.0, "(0, 1]"),

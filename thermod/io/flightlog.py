@@ -115,7 +115,31 @@ def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> Fl
         head = f.read(16)
     if head.startswith(b"ULog\x01\x12\x35"):
         return _read_ulog(path, log_index)
+    if head.startswith(b"GYROFLOW IMU LOG"):
+        _check_gcsv_header(path)
     return _read_telemetry_parser(path, log_index)
+
+
+def _check_gcsv_header(path: Path, max_bytes: int = 1 << 16) -> None:
+    """A .gcsv header's `orientation` and `tscale` checked before telemetry-parser reads them (it
+    panics on a bad orientation, and a non-number tscale leaves every time empty)."""
+    with open(path, "rb") as f:
+        lines = f.read(max_bytes).decode("utf-8", "replace").splitlines()
+    for line in lines[1:]:
+        key, _, value = line.partition(",")
+        key, value = key.strip(), value.strip()
+        if key == "t" or key[:1].isdigit():
+            return                                          # the column names: the header is over
+        if key == "orientation" and (len(value) != 3 or sorted(value.upper()) != ["X", "Y", "Z"]):
+            raise FlightLogError(path, f"orientation {value!r}: expected a permutation of X, Y, Z "
+                                       "(a lower-case letter negates that axis)")
+        if key in ("tscale", "gscale"):
+            try:
+                ok = math.isfinite(float(value)) and float(value) > 0
+            except ValueError:
+                ok = False
+            if not ok:
+                raise FlightLogError(path, f"{key} {value!r}: expected a positive number")
 
 
 def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
