@@ -282,7 +282,7 @@ def test_batch_reports_every_failure_and_goes_on(tmp_path, capsys, monkeypatch):
     rc, text, err = deblur(capsys, *inputs, "-o", out, "--uniform", "--method", "wiener", "--jobs", "1")
     assert rc == 2
     assert f"{garbage}: file: not a readable HDF5 file" in err
-    assert f"{zero_scale}: gyro.attrs['scale']: expected 1 or 3 positive numbers" in err
+    assert f"{zero_scale}: gyro.attrs['scale']: expected 1 or 3 numbers in (0, 100]" in err
     assert f"{strings}: camera/t: expected" in err and "dtype |S1" in err
     assert f"{damaged}: camera/frames: frame 2: cannot be read" in err
     assert f"{out / 'blocked.h5'}: cannot write the output (a directory is in the way)" in err
