@@ -274,6 +274,34 @@ def test_rate_zero_and_non_increasing_times_are_refused(tmp_path):
         read_flight_log(slow)
 
 
+def test_a_rate_no_gyro_reads_is_refused(tmp_path):
+    """A row of 1e301 rad/s is finite but no gyro's: it is refused naming the file, not carried into
+    the sync (where it overflowed and read as "the rates never change")."""
+    t = np.arange(3000) / 1000.0
+    path = write_gcsv(tmp_path / "wild.gcsv", t, np.zeros((3000, 3)))
+    lines = path.read_text().splitlines()
+    i = lines.index("t,gx,gy,gz") + 1501
+    lines[i] = lines[i].split(",")[0] + ",0,1" + "0" * 307 + ",0"       # 1e301 rad/s at gscale 1e-6
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FlightLogError, match=r"wild\.gcsv: 1 gyro samples over 10000 rad/s"):
+        read_flight_log(path)
+
+
+def test_a_damaged_ulog_says_so_in_one_log_line_not_on_stdout(tmp_path, capfd, caplog):
+    """pyulog prints a line per damaged record; the reader keeps stdout clean and logs one summary."""
+    b = bytearray(ULG.read_bytes())
+    for i in range(3000, len(b), 997):
+        b[i] ^= 0xFF
+    path = tmp_path / "flip.ulg"
+    path.write_bytes(bytes(b))
+    with caplog.at_level("WARNING", logger="thermod.io.flightlog"):
+        with pytest.raises(FlightLogError, match=r"flip\.ulg: "):
+            read_flight_log(path)
+    assert capfd.readouterr().out == ""
+    said = [r.getMessage() for r in caplog.records if r.name == "thermod.io.flightlog"]
+    assert len(said) == 1 and "pyulog reported" in said[0] and "flip.ulg" in said[0]
+
+
 def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
     t = np.arange(5000) / 1000.0
     path = write_gcsv(tmp_path / "glitch.gcsv", t, np.zeros((5000, 3)))

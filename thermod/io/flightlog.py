@@ -20,6 +20,9 @@ axes and orientation strings: docs/design.md §3, "Flights from other tools".
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import math
 import os
 import tempfile
@@ -31,6 +34,8 @@ import numpy as np
 from thermod.errors import FileError
 from thermod.paths import output_problem
 
+log = logging.getLogger(__name__)
+
 MAX_FILE_BYTES = 4 * 2**30
 MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
 PROBE_BYTES = (2**15, 2**20, 2**24)
@@ -38,6 +43,7 @@ SEGMENT_GAP_S = 1.0
 MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
 MAX_DROPPED_FRACTION = 0.001       # isolated out-of-order samples a log may have
+MAX_GYRO_RAD_S = 1e4               # no gyro reads this (±4000 °/s is 70 rad/s; even deg read as rad is less)
 DEG = math.pi / 180.0
 
 # ω_cam = M · ω_FRD for a camera looking along the body's x axis, upright (its x right = body y,
@@ -339,11 +345,18 @@ def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
     if log_index not in (None, 0):
         raise FlightLogError(path, f"log {log_index}: a ULog file holds one log")
     topics = ["sensor_combined", "vehicle_angular_velocity"]
+    said = io.StringIO()          # pyulog prints a line per damaged record: one summary line instead
     try:
-        ulog = ULog(str(path), message_name_filter_list=topics, disable_str_exceptions=True)
+        with contextlib.redirect_stdout(said):
+            ulog = ULog(str(path), message_name_filter_list=topics, disable_str_exceptions=True)
     except Exception as e:                # noqa: BLE001 - pyulog raises plain Exceptions on damage
         raise FlightLogError(path, f"pyulog cannot read it: truncated or corrupt ULog "
                                    f"({type(e).__name__}: {e})") from None
+    finally:
+        lines = [ln for ln in said.getvalue().splitlines() if ln.strip()]
+        if lines:
+            log.warning("%s: pyulog reported %d damaged or unexpected records (first: %s)", path, len(lines),
+                        lines[0][:200])
     for name, cols in (("sensor_combined", ("gyro_rad[0]", "gyro_rad[1]", "gyro_rad[2]")),
                        ("vehicle_angular_velocity", ("xyz[0]", "xyz[1]", "xyz[2]"))):
         ds = [d for d in ulog.data_list if d.name == name and all(c in d.data for c in cols)]
@@ -367,6 +380,11 @@ def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, o
     ok = np.isfinite(t) & np.all(np.isfinite(rate), axis=1)
     if not np.all(ok):
         raise FlightLogError(path, f"{int(np.sum(~ok))} gyro samples with non-finite time or rate")
+    wild = np.any(np.abs(rate) > MAX_GYRO_RAD_S, axis=1)
+    if np.any(wild):
+        raise FlightLogError(path, f"{int(np.sum(wild))} gyro samples over {MAX_GYRO_RAD_S:g} rad/s (a MEMS "
+                                   "gyro's full scale is at most ±4000 °/s, 70 rad/s): a corrupt log or a "
+                                   "wrong gscale")
     keep = np.ones(len(t), dtype=bool)
     running = np.maximum.accumulate(t)
     keep[1:] = t[1:] > running[:-1]
