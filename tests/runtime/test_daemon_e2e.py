@@ -1,7 +1,8 @@
 """End to end: `thermod run` as a subprocess on the simulated payload, a subscriber over TCP loopback.
 
-Checks: wire-v1 headers, no sequence gaps, every gyro sample and every camera frame published or
-counted under a named reason (none lost on a healthy run), raw frames identical to what the payload's
+Checks: wire-v1 headers, every gyro sample and every camera frame published or counted under a named
+reason (none lost on a healthy run; the subscriber's own rare losses on a loaded host are told apart by
+the topic's seq, `tests/support/losses.py`), raw frames identical to what the payload's
 camera sent, deblurred frames much closer to the simulator's truth than the raw ones, health carrying
 the calibration, SIGTERM → exit 0 before systemd's TimeoutStopSec would kill it, and within 2 s with no
 ``ipc://`` socket file left behind.
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from tests.support.endpoints import private_endpoint
+from tests.support.losses import losses, rare_losses
 from thermod.client.subscriber import Subscriber
 from thermod.physics.calibration import Calibration
 from thermod.restore.policy import START_COVERAGE
@@ -89,7 +91,7 @@ def test_thermod_run_end_to_end(payload):
                     gyro.append((h, a["t"].copy()))
                 if n_deb >= 30 and n_raw_kept >= 100 and len(frames) >= 150 and len(healths) >= 10:
                     break
-            gaps = dict(sub.gaps)
+            subscriber_losses = losses(sub)
             errors = sub.errors
         assert proc.poll() is None, proc.communicate()[1][-3000:]
         proc.send_signal(signal.SIGHUP)          # reload calibration + deblur settings, keep running
@@ -103,7 +105,7 @@ def test_thermod_run_end_to_end(payload):
         out, err = proc.communicate()
     assert rc == 0, err[-3000:]
     assert t_ready is not None, err[-3000:]
-    assert sum(errors.values()) == 0 and gaps == {}, (errors, gaps)   # no seq gaps on any topic
+    assert sum(errors.values()) == 0 and rare_losses(*subscriber_losses), (errors, subscriber_losses)
 
     # --- wire v1 headers
     ids = sorted(frames)
@@ -115,23 +117,28 @@ def test_thermod_run_end_to_end(payload):
     # frames in order; between the first and the last every camera frame was published, or counted:
     # the camera's own losses (a reader starved by the load) show as camera_gap_before, frames the
     # frame ring overwrote before the scheduler read them (a scheduler starved) as overrun_before
+    # (checked across every pair of frames the subscriber received back to back, by the topic's seq)
     hs = [frames[i][0] for i in ids]
-    missing = [b["frame_id"] - a["frame_id"] - 1 for a, b in zip(hs, hs[1:], strict=False)]
-    assert missing == [h["camera_gap_before"] + h["overrun_before"] for h in hs[1:]], missing
+    pairs = [(a, b) for a, b in zip(hs, hs[1:], strict=False) if b["seq"] == a["seq"] + 1]
+    missing = [b["frame_id"] - a["frame_id"] - 1 for a, b in pairs]
+    assert missing == [b["camera_gap_before"] + b["overrun_before"] for _, b in pairs], missing
+    assert len(pairs) >= 0.9 * (len(hs) - 1)
     ts = [frames[i][0]["t"] for i in ids]
     assert np.all(np.diff(ts) > 0)
 
     # --- every gyro sample published: consecutive device sequence numbers, increasing times
     gt = np.concatenate([t for _, t in gyro])
     assert np.all(np.diff(gt) > 0)                               # no duplicates, no reordering
-    seqs = [h["sample_seq"] for h, _ in gyro]
-    lens = [h["n"] for h, _ in gyro]
-    lost = [h.get("n_lost", 0) for h, _ in gyro]
-    # every sample published or counted: a jump in the device sequence is samples the FIFO lost
-    assert all(s + n + k == s2 for s, n, s2, k in zip(seqs, lens, seqs[1:], lost[1:], strict=False))
+    # every sample published or counted: a jump in the device sequence is samples the FIFO lost (across
+    # every pair of batches received back to back)
+    heads = [h for h, _ in gyro]
+    back_to_back = [(a, b) for a, b in zip(heads, heads[1:], strict=False) if b["seq"] == a["seq"] + 1]
+    assert len(back_to_back) >= 0.9 * (len(gyro) - 1)
+    assert all(a["sample_seq"] + a["n"] + b.get("n_lost", 0) == b["sample_seq"] for a, b in back_to_back)
     # --- every camera frame published: each raw frame the camera delivered came out as a frame
     in_window = [i for i in raws if ids[0] <= i <= ids[-1]]
-    assert len(in_window) >= 100 and set(in_window) <= set(ids)
+    lost_frames = subscriber_losses[0].get("frame", 0)
+    assert len(in_window) >= 100 and len(set(in_window) - set(ids)) <= lost_frames
 
     # --- raw frames are exactly what the payload's camera sent (frame id k+1 ↔ loop frame k mod N)
     checked = 0
@@ -184,7 +191,7 @@ def test_thermod_run_end_to_end(payload):
     assert "estimate" in last["calibration"] and last["calibration"]["monitor"]["enabled"] is True
     assert Calibration.from_dict(last["calibration"]) == cfg.calibration
     # losses the devices had under load are counted (zero on an idle machine)
-    assert last["drops"]["gyro_lost"] >= sum(lost[1:])
+    assert last["drops"]["gyro_lost"] >= sum(h.get("n_lost", 0) for h in heads[1:])
     assert last["drops"]["camera_frames_lost"] >= sum(h["camera_gap_before"] for h in hs[1:])
     # --- where the time goes: CPU per stage (the solver children and the simulated payload apart)
     # and each pipeline stage's latency

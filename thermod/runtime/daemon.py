@@ -146,7 +146,7 @@ class Daemon:
         if b.gap_before:
             self.counters["gyro_gaps"] += 1
             self.counters["gyro_lost"] += int(b.n_lost)
-        if self.cfg.publish.gyro:
+        if self.cfg.publish.gyro and self._wanted("gyro"):
             self.publisher.publish_gyro(b.t, b.rate, seq=b.seq, gap_before=b.gap_before, n_lost=b.n_lost)
 
     def _wanted(self, topic: str) -> bool:

@@ -4,7 +4,8 @@ endpoint and key rules `thermod.io.endpoints`, the subscriber `thermod.client.su
 The daemon binds one XPUB socket (a PUB that also hears what its subscribers subscribe to); every
 message is three frames ``[topic, header, payload]``. `Publisher` owns that socket in one thread and
 never blocks its callers. `wants(topic)` says whether any subscriber now subscribes to a topic, so
-that work only a subscriber would read (packing kernels, copying raw frames) is skipped while none does.
+that work only a subscriber would read (packing kernels, copying raw frames, batching gyro samples) is
+skipped while none does.
 
 Security: the publisher binds loopback (or ``ipc://``) unless it has CURVE keys or is told
 ``allow_insecure_remote``. With ``curve_secret_key_file`` (a file written by
