@@ -2,7 +2,8 @@
 
 An output file is written as ``<path>.part`` and renamed over `path`, so `output_problem` refuses a
 `path` that exists and is not a regular file (a directory, or a device such as ``/dev/null``: the
-rename would replace the device node) or whose directory does not exist.
+rename would replace the device node) or whose directory does not exist. `input_problem` takes only a
+regular file as an input (a FIFO blocks its reader; /dev/zero never ends).
 
 `cache_dir()` is ``$THERMOD_CACHE_DIR``, else ``$THERMOD_CACHE`` (the simulator's older name), else
 ``$XDG_CACHE_HOME/thermod`` (the systemd unit points it at the service's cache directory), else
@@ -15,6 +16,22 @@ from __future__ import annotations
 import os
 import stat
 from pathlib import Path
+
+
+def input_problem(path: str | os.PathLike) -> str | None:
+    """Why `path` cannot be read as an input file; None if it can. A FIFO would block its reader and a
+    device such as /dev/zero never end, so only a regular file is taken."""
+    try:
+        mode = Path(path).stat().st_mode
+    except FileNotFoundError:
+        return "does not exist"
+    except OSError as e:
+        return f"cannot inspect it ({e.strerror or e})"
+    if stat.S_ISDIR(mode):
+        return "is a directory, expected a file"
+    if not stat.S_ISREG(mode):
+        return "is a device or special file (a FIFO, a socket), expected a regular file"
+    return None
 
 
 def directory_problem(path: str | os.PathLike) -> str | None:

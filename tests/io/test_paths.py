@@ -5,6 +5,8 @@ Every command that writes a file refuses a target that is not a regular file (`o
 import io
 import os
 import stat
+import subprocess
+import sys
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
@@ -87,3 +89,22 @@ def test_output_and_directory_problems(tmp_path):
     assert "does not exist" in output_problem(tmp_path / "no" / "x.h5")
     assert directory_problem(tmp_path / "a" / "b") is None and (tmp_path / "a" / "b").is_dir()
     assert "expected a directory" in directory_problem(tmp_path / "file")
+
+
+@pytest.mark.parametrize("command", ["deblur", "export", "run_config", "calibration_file"])
+def test_readers_refuse_a_fifo_instead_of_blocking_on_it(tmp_path, command):
+    """A FIFO would block its reader for ever (and /dev/zero never end): every file input takes only a
+    regular file, and says so with exit 2. Run as a process with a deadline, so a regression fails
+    instead of hanging the suite."""
+    fifo = tmp_path / "in.h5"
+    os.mkfifo(fifo)
+    rec = _recording(tmp_path / "ok.h5")
+    argv = {"deblur": ["deblur", str(fifo), "-o", str(tmp_path / "out.h5")],
+            "export": ["export", str(fifo), "--gcsv", str(tmp_path / "out.gcsv")],
+            "run_config": ["run", "--config", str(fifo), "--seconds", "1"],
+            "calibration_file": ["deblur", str(rec), "-o", str(tmp_path / "out.h5"), "--config", str(fifo)],
+            }[command]
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", *argv], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert str(fifo) in r.stderr and "regular file" in r.stderr and "Traceback" not in r.stderr

@@ -16,6 +16,7 @@ from thermod.calib.discrepancy import CANDIDATES, EFFECTS, Model, analyse, prepa
 from thermod.errors import ConfigError
 from thermod.io import recording as recording_io
 from thermod.io.json_safe import jsonable
+from thermod.io.toml_tables import read_toml
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config as cfgmod
 
@@ -29,17 +30,9 @@ def _config_calibration(path: str) -> tuple[Calibration, str | None]:
     A file holding only a [calibration] table (like the model.toml this command writes without
     `--config`) is validated by slotting it into the packaged default configuration.
     """
-    try:
-        text = Path(path).read_text()
-        raw = tomllib.loads(text)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such configuration file") from None
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    raw = read_toml(Path(path))         # a regular file of bounded size, valid UTF-8 TOML, or a ConfigError
     if "sources" in raw:
-        return cfgmod.load(path, check_devices=False).calibration, text
+        return cfgmod.load(path, check_devices=False).calibration, Path(path).read_text()
     other = sorted(set(raw) - {"calibration"})
     if other or "calibration" not in raw:
         raise ConfigError(f"{path}: expected a full thermod configuration (with [sources]) or a file with "

@@ -22,7 +22,7 @@ import h5py
 import numpy as np
 
 from thermod.errors import RecordingError
-from thermod.paths import output_problem
+from thermod.paths import input_problem, output_problem
 from thermod.physics.calibration import CAMERA_KEYS, Calibration, CalibrationError
 
 FORMAT = "thermod-recording"
@@ -180,6 +180,8 @@ def _attrs(path, f, group: str, required) -> dict:
 def open_file(path: str | os.PathLike) -> h5py.File:
     """Open a recording read-only after checking that it is format v1 (caller closes it)."""
     path = Path(path)
+    if (problem := input_problem(path)) is not None:
+        raise RecordingError(path, "file", problem)
     try:
         f = h5py.File(path, "r")
     except FileNotFoundError:

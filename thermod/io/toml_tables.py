@@ -23,8 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from thermod.errors import ConfigError
+from thermod.paths import input_problem
 
 REQUIRED = object()        # `Key.default` of a key the table must give
+MAX_TOML_BYTES = 16 * 2**20  # a TOML file read whole: a configuration or camera file is a few kB
 
 
 @dataclass(frozen=True)
@@ -312,12 +314,19 @@ def describe(kind) -> str:
 def read_toml(p: Path) -> dict:
     """The parsed TOML file at `p`; a missing or unreadable file is a ConfigError naming it."""
     name = str(p)
+    problem = input_problem(p)
+    if problem == "does not exist":
+        raise ConfigError(f"{name}: no such configuration file")
+    if problem is not None:
+        raise ConfigError(f"{name}: {problem}")
     try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{name}: no such configuration file") from None
+        with open(p, "rb") as f:
+            data = f.read(MAX_TOML_BYTES + 1)
     except OSError as e:
         raise ConfigError(f"{name}: cannot read: {e.strerror or e}") from None
+    if len(data) > MAX_TOML_BYTES:
+        raise ConfigError(f"{name}: over {MAX_TOML_BYTES // 2**20} MiB; a configuration or camera file "
+                          "is a few kB")
     return loads(data, name)
 
 
