@@ -220,7 +220,7 @@ def texture(h: int, w: int, seed: int = 0, clutter_k: float = 2.0) -> np.ndarray
     ss = 4                                    # supersampled masks: anti-aliased edges
     for _ in range(n_obj):
         dk = rng.choice([-1, 1], p=[0.3, 0.7]) * rng.uniform(2, 15) * COUNTS_PER_K
-        sz = rng.uniform(6, min(h, w) / 6)
+        sz = rng.uniform(6, max(6.0, min(h, w) / 6))      # a small frame: 6 px objects (one draw either way)
         cy, cx = rng.uniform(0, h), rng.uniform(0, w)
         y0, y1 = int(max(0, cy - sz)), int(min(h, cy + sz + 1))
         x0, x1 = int(max(0, cx - sz)), int(min(w, cx + sz + 1))

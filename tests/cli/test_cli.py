@@ -1,5 +1,8 @@
+import os
 import subprocess
 import sys
+
+import pytest
 
 from thermod import cli
 
@@ -81,3 +84,32 @@ def test_a_failed_deblur_prints_no_per_frame_time(tmp_path, capsys):
     assert rc == 2
     assert "ms/frame" not in out and "0 frames" not in out, out
     assert f"1 of 1 file(s) failed: {bad}" in err and "not a readable HDF5 file" in err, err
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["watch", "--endpoint", "tcp://127.0.0.1:9", "--seconds", "0"], "--seconds"),
+    (["watch", "--endpoint", "tcp://127.0.0.1:9", "--seconds", "nan"], "--seconds"),
+    (["watch", "--endpoint", "tcp://127.0.0.1:9", "--timeout", "-1"], "--timeout"),
+    (["watch", "--endpoint", "tcp://127.0.0.1:9", "--interval", "inf"], "--interval"),
+    (["record", "-o", "OUT/r.h5", "--endpoint", "tcp://127.0.0.1:9", "--seconds", "nan"], "--seconds"),
+])
+def test_time_options_are_checked_before_anything_runs(tmp_path, capsys, argv, name):
+    """Found by a sweep of bad inputs: these exited 1 (an internal error by the exit-status rule)
+    after waiting for a publisher; a bad number is exit 2 naming the option, at once."""
+    argv = [a.replace("OUT", str(tmp_path)) for a in argv]
+    assert cli.main(argv) == 2
+    assert name in capsys.readouterr().err
+
+
+def test_a_tiny_simulated_frame_and_a_fifo_in_the_report_directory(tmp_path):
+    """`thermod sim` of an 8×8 frame (its texture's objects no larger than 6 px), then `thermod
+    discrepancy` refusing, before its analysis, a report file that is a FIFO (the write would block)."""
+    rec = tmp_path / "s8.h5"
+    assert cli.main(["sim", "-o", str(rec), "--width", "8", "--height", "8", "--seconds", "0.3",
+                     "--no-progress"]) == 0
+    out = tmp_path / "rep"
+    out.mkdir()
+    os.mkfifo(out / "report.md")
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", "discrepancy", str(rec), "--out", str(out)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "report.md" in r.stderr and "regular file" in r.stderr, r.stderr

@@ -17,6 +17,7 @@ from thermod.errors import ConfigError
 from thermod.io import recording as recording_io
 from thermod.io.json_safe import jsonable
 from thermod.io.toml_tables import read_toml
+from thermod.paths import directory_problem, output_problem
 from thermod.physics.calibration import Calibration
 from thermod.runtime import config as cfgmod
 
@@ -46,6 +47,17 @@ def _config_calibration(path: str) -> tuple[Calibration, str | None]:
             if isinstance(cal.get(ck), (int, float)) and not isinstance(cal.get(ck), bool):
                 base.setdefault("sim", {})[sk] = cal[ck]
     return cfgmod.parse(base, str(path), check_devices=False).calibration, None
+
+
+def _check_out(out: Path) -> None:
+    """--out is (made) a directory, and the report's files there are regular files or new, before the
+    minutes of analysis (a FIFO named report.md would block the write at the end)."""
+    if (problem := directory_problem(out)) is not None:
+        raise ConfigError(f"--out {out}: {problem}")
+    names = ("report.json", "model.toml", "report.md", "smear.json")
+    for f in [out / n for n in names] + sorted(out.glob("*.png")):
+        if f.exists() and (problem := output_problem(f)) is not None:
+            raise ConfigError(f"--out {out}: {f.name}: {problem}")
 
 
 def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibration, str | None]:
@@ -97,6 +109,8 @@ def run(args) -> int:
         raise ConfigError(f"--candidates: unknown effect(s) {', '.join(bad)}; known: {', '.join(CANDIDATES)}")
     if args.work_width < 32:
         raise ConfigError(f"--work-width: expected ≥ 32 pixels, got {args.work_width}")
+
+    _check_out(Path(args.out))
 
     def say(msg):
         print(msg, flush=True)

@@ -16,6 +16,7 @@ if the recording cannot be completed, the ``.part`` file keeps the data and the 
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import sys
 import time
@@ -95,6 +96,9 @@ def _newest(t) -> float:
 
 
 def run(args) -> int:
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise RecordingError(Path(args.output), "--seconds",
+                             f"expected a finite number > 0, got {args.seconds}")
     calibration = None
     if args.config:
         from thermod.runtime import config

@@ -411,11 +411,19 @@ def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
     return stats
 
 
+def _check_times(args) -> None:
+    """The options in seconds and MiB: finite, positive (--timeout: 0 or more)."""
+    for name, v, zero_ok in (("--seconds", args.seconds, False), ("--interval", args.interval, False),
+                             ("--png-interval", args.png_interval, False), ("--timeout", args.timeout, True),
+                             ("--max-frame-mb", args.max_frame_mb, False)):
+        if v is not None and not (math.isfinite(v) and (v >= 0 if zero_ok else v > 0)):
+            raise ThermodError(f"{name} {v}: expected a finite number {'≥ 0' if zero_ok else '> 0'}")
+
+
 def run(args) -> int:
+    _check_times(args)
     topics = ("frame", "gyro", "health") if args.no_raw else ("frame", "raw", "gyro", "health")
     previews = PreviewWriter(args.png, args.png_interval) if args.png else None
-    if not args.max_frame_mb > 0:
-        raise ThermodError(f"--max-frame-mb: expected a positive size in MiB, got {args.max_frame_mb}")
     view = server = None
     if args.http:
         from thermod.client.web import LiveView, WebServer
