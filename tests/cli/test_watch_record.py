@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 import pytest
 
@@ -501,3 +502,29 @@ def test_record_and_watch_the_real_daemon(tmp_path, capsys):
     assert not rejected and rare_losses(*subscriber_losses), subscriber_losses   # tests/support/losses.py
     assert s["latency_publish_ms"]["p50"] > 0
     assert len(list((tmp_path / "png").glob("watch_*.png"))) >= 2
+
+
+def test_a_killed_recorder_leaves_its_frames_and_gyro_in_the_part_file(tmp_path):
+    """SIGKILL, no `finish`: the ``.part`` file still holds every frame and every gyro sample received
+    up to the last flush (here: every message, flushing at each). The gyro used to wait in memory for
+    `finish`, so a killed recorder lost all of it."""
+    out = tmp_path / "killed.h5"
+    script = f"""
+import os, signal
+import numpy as np
+from thermod.io.stream_recording import RecordWriter
+w = RecordWriter({str(out)!r}, flush_s=0.0)
+for k in range(5):
+    w.add("raw", {{"t": 1.0 + 0.02 * k, "frame_id": k}}, np.full((12, 16), 100 + k, np.uint16))
+    g = np.zeros(20, dtype=[("t", "<f8"), ("rate", "<f4", (3,))])
+    g["t"] = 1.0 + 0.02 * k + np.arange(20) * 1e-3
+    g["rate"][:, 2] = k
+    w.add("gyro", {{"sample_seq": 20 * k, "gap_before": False}}, g)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    with h5py.File(tmp_path / "killed.h5.part", "r") as f:
+        assert f["camera/frames"].shape[0] == 5 and f["gyro/t"].shape == (100,)
+        assert np.array_equal(f["record/gyro_seq"][:], np.arange(100))
+        assert np.array_equal(f["gyro/rate"][:, 2], np.repeat(np.arange(5), 20))

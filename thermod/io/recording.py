@@ -464,7 +464,10 @@ class Writer:
     def reserve(self, name: str, n: int, row_shape: tuple, dtype) -> None:
         """Create dataset `name` for `n` rows to be `append`ed (no resize per row; what is not
         filled is trimmed by `commit`)."""
-        chunks = (1, *row_shape) if row_shape else (4096,)
+        # chunks of at most 64 kB: a frame is one chunk (read one at a time), times and gyro samples
+        # are thousands to a chunk
+        row_bytes = int(np.prod(row_shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        chunks = (max(1, min(4096, 65536 // max(row_bytes, 1))), *row_shape)
         self.file.create_dataset(name, (n, *row_shape), dtype, maxshape=(None, *row_shape), chunks=chunks)
         self.rows[name] = 0
 
@@ -481,6 +484,30 @@ class Writer:
         else:
             ds[n] = row
         self.rows[name] = n + 1
+
+    def extend(self, name: str, rows, dtype=None) -> None:
+        """Add rows (along the first axis) to dataset `name`, created on first use from them."""
+        rows = np.asarray(rows, dtype=dtype)
+        if not len(rows):
+            return
+        if name not in self.rows:
+            self.reserve(name, 0, rows.shape[1:], rows.dtype)
+        ds, n = self.file[name], self.rows[name]
+        if n + len(rows) > ds.shape[0]:
+            ds.resize(n + len(rows), axis=0)
+        ds[n:n + len(rows)] = rows
+        self.rows[name] = n + len(rows)
+
+    def rewrite(self, name: str, data) -> None:
+        """Replace the rows of a dataset made by `append`/`extend` (its length may change)."""
+        data = np.asarray(data)
+        if name not in self.rows:
+            self.reserve(name, 0, data.shape[1:], data.dtype)
+        ds = self.file[name]
+        ds.resize(len(data), axis=0)
+        if len(data):
+            ds[...] = data
+        self.rows[name] = len(data)
 
     def _trim(self) -> None:
         for name, n in self.rows.items():

@@ -1,8 +1,8 @@
 """A format-v1 recording written from a stream of wire messages as they arrive (`RecordWriter`):
 ``raw`` frames go to disk one chunk each (``<path>.part``, so memory stays flat), ``gyro`` batches
-and the ``health`` calibration are kept until `finish`, which completes the file and renames it into
-place. Whatever fails, the ``.part`` file keeps every frame and gyro sample received and the error
-names it. `thermod record` (a live stream) and the bag ingest (`thermod.ingest.bag`) write with it.
+about every second, and `finish` completes the file (the gyro in time order, the calibration of the
+``health`` messages) and renames it into place. Whatever fails, the ``.part`` file keeps every frame
+and gyro sample received (a killed recorder: all but the last second's) and the error names it. `thermod record` (a live stream) and the bag ingest (`thermod.ingest.bag`) write with it.
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ class RecordWriter:
     """Streams received messages into ``<path>.part`` (through `thermod.io.recording.Writer`, the
     one writer of format v1); `finish()` completes the file.
 
-    Frames are appended to disk one chunk each; gyro samples (20 bytes each) stay in memory until
-    `finish`. Frames of another size than the first one are dropped and counted.
+    Frames are appended to disk one chunk each; gyro batches at each flush (they also stay in memory,
+    20 bytes a sample, to be put in time order at `finish`). Frames of another size than the first
+    one are dropped and counted.
     """
 
     def __init__(self, path, flush_s: float = 1.0):
@@ -40,6 +41,7 @@ class RecordWriter:
         self.gyro_rate: list[np.ndarray] = []
         self.gyro_seq: list[np.ndarray] = []
         self.gyro_gap: list[np.ndarray] = []
+        self._spooled = 0          # gyro batches on disk already
         self.calibration: dict | None = None
         self.health = 0
         self._flush_s, self._last_flush = flush_s, time.monotonic()
@@ -65,8 +67,20 @@ class RecordWriter:
                 self.calibration = header["calibration"]
         now = time.monotonic()
         if now - self._last_flush > self._flush_s:  # a crash then loses at most ~1 s
+            self._spool_gyro()
             self._w.flush()
             self._last_flush = now
+
+    def _spool_gyro(self) -> None:
+        """The gyro batches received since the last flush, appended to the ``.part`` file."""
+        k = self._spooled
+        if k < len(self.gyro_t):
+            w = self._w
+            w.extend("gyro/t", np.concatenate(self.gyro_t[k:]), np.float64)
+            w.extend("gyro/rate", np.concatenate(self.gyro_rate[k:]), np.float32)
+            w.extend("record/gyro_seq", np.concatenate(self.gyro_seq[k:]), np.int64)
+            w.extend("record/gyro_gap_before", np.concatenate(self.gyro_gap[k:]), bool)
+            self._spooled = len(self.gyro_t)
 
     def _add_frame(self, image: np.ndarray, t: float, frame_id: int) -> None:
         if image.ndim != 2 or image.dtype != np.uint16:
@@ -93,7 +107,7 @@ class RecordWriter:
         try:
             for name, data in zip(("gyro/t", "gyro/rate", "record/gyro_seq", "record/gyro_gap_before"),
                                   self._gyro(), strict=True):
-                w.put(name, data)
+                w.rewrite(name, data)           # in time order, repeats and non-finite samples out
             calibration, source = self._calibration(calibration)
             if self._shape is None:
                 w.put("record/frame_id", np.zeros(0, np.int64))
