@@ -2,7 +2,8 @@
 ``raw`` frames go to disk one chunk each (``<path>.part``, so memory stays flat), ``gyro`` batches
 about every second, and `finish` completes the file (the gyro in time order, the calibration of the
 ``health`` messages) and renames it into place. Whatever fails, the ``.part`` file keeps every frame
-and gyro sample received (a killed recorder: all but the last second's) and the error names it. `thermod record` (a live stream) and the bag ingest (`thermod.ingest.bag`) write with it.
+and gyro sample received (a killed recorder: all but the last second's) and the error names it.
+`thermod record` (a live stream) and the bag ingest (`thermod.ingest.bag`) write with it.
 """
 
 from __future__ import annotations

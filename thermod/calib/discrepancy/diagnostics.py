@@ -12,7 +12,7 @@ import numpy as np
 from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model, RecData
 from thermod.calib.discrepancy.problem import Evaluation, Problem, effective_area
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import RANGES, Calibration
 
 N_SPECTRUM_BINS = 10
 
@@ -182,8 +182,10 @@ def motion_jacobians(d: RecData, model: Model) -> list[np.ndarray]:
     c = model.calib
     period = 1.0 / c.frame_rate_hz
     ro = c.readout_s + 1e-3 if c.readout_s + 1e-3 <= period else c.readout_s - 1e-3
-    steps = [c.replace(time_offset_s=c.time_offset_s + 1e-3), c.replace(tau_s=1.05 * c.tau_s),
-             c.replace(readout_s=ro)]
+    # each step stays inside the field's range (a model at its upper end steps down)
+    off = c.time_offset_s + (1e-3 if c.time_offset_s + 1e-3 <= RANGES["time_offset_s"][1] else -1e-3)
+    tau = c.tau_s * (1.05 if 1.05 * c.tau_s <= RANGES["tau_s"][1] else 0.95)
+    steps = [c.replace(time_offset_s=off), c.replace(tau_s=tau), c.replace(readout_s=ro)]
     base, _ = sensor.predict(d, model)
     # only the span matters: each derivative is left in counts per step
     return [sensor.predict(d, dataclasses.replace(model, calib=cs))[0] - base for cs in steps]
