@@ -2,6 +2,8 @@
 written in Gyroflow's gcsv and Betaflight's CSV, read back through telemetry-parser; errors; fuzzing."""
 
 import functools
+import os
+import stat
 import tempfile
 from pathlib import Path
 
@@ -363,3 +365,14 @@ def test_fixture_logs_are_small_and_licensed():
     readme = (DATA / "README.md").read_text()
     assert BBL.name in readme and ULG.name in readme and "MIT" in readme and "BSD-3-Clause" in readme
     assert (DATA / "LICENSE-fc-blackbox-MIT").exists() and (DATA / "LICENSE-pyulog-BSD-3-Clause").exists()
+
+
+@pytest.mark.parametrize("writer", [write_gcsv, write_betaflight_csv, write_ardupilot_bin])
+def test_every_log_writer_refuses_a_special_file_as_its_target(tmp_path, writer):
+    """The three writers share one write-then-rename: a FIFO (or /dev/null) is refused, not replaced."""
+    target = tmp_path / "special"
+    os.mkfifo(target)
+    t = 1.0 + np.arange(200) / 500.0
+    with pytest.raises(FlightLogError, match="special file"):
+        writer(target, t, np.zeros((200, 3)))
+    assert stat.S_ISFIFO(target.stat().st_mode)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import ThermodError
+from thermod.paths import output_problem
 
 
 def add_arguments(p) -> None:
@@ -52,8 +53,8 @@ def run(args) -> int:
     from thermod.io import flightlog
 
     out = args.gcsv
-    if not out.parent.is_dir():
-        raise ThermodError(f"--gcsv {out}: directory {out.parent} does not exist")
+    if (problem := output_problem(out)) is not None:     # before reading the recording
+        raise ThermodError(f"--gcsv {out}: {problem}")
     t, rate, extra = gcsv_series(args.input)
     flightlog.write_gcsv(out, t, rate, orientation=flightlog.GCSV_ORIENTATION_OPENCV_CAMERA,
                          note=f"thermod export of {args.input.name}: camera-frame rates, video clock",

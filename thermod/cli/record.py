@@ -105,8 +105,6 @@ def run(args) -> int:
 
         calibration = config.load(args.config, check_devices=False).calibration
     out = Path(args.output)
-    if not out.parent.is_dir():
-        raise RecordingError(out, "file", f"directory {out.parent} does not exist")
     # SIGTERM and Ctrl-C end the loop between two messages: a KeyboardInterrupt raised inside an append
     # would leave a frame without its time and the whole recording refused
     stopping = []

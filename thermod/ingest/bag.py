@@ -22,6 +22,7 @@ from thermod.errors import RecordingError, ThermodError
 from thermod.io import mcap
 from thermod.io.stream_recording import RecordWriter
 from thermod.io.wire import GYRO_DTYPE
+from thermod.paths import output_problem
 from thermod.physics.calibration import Calibration
 
 log = logging.getLogger(__name__)
@@ -49,8 +50,8 @@ def import_bag(input_path, output, *, image_topic: str | None = None, imu_topic:
     """Stream a bag's frames and gyro into the recording `output` (module docstring); on any failure
     nothing is left at `output`. `calibration`: a TOML file whose [calibration] keys override the bag's."""
     out = Path(output)
-    if not out.parent.is_dir():
-        raise RecordingError(out, "file", f"directory {out.parent} does not exist")
+    if (problem := output_problem(out)) is not None:     # before reading the bag
+        raise RecordingError(out, "file", problem)
     with mcap.Bag(input_path) as bag:
         image_topic = pick_topic(bag, mcap.IMAGE, image_topic, IMAGE_TOPICS, "image-topic")
         imu_topic = pick_topic(bag, mcap.IMU, imu_topic, IMU_TOPICS, "imu-topic")

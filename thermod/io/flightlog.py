@@ -136,9 +136,8 @@ def _check_gcsv_header(path: Path, max_bytes: int = 1 << 16) -> None:
         key, value = key.strip(), value.strip()
         if key == "t" or key[:1].isdigit():
             return                                          # the column names: the header is over
-        if key == "orientation" and (len(value) != 3 or sorted(value.upper()) != ["X", "Y", "Z"]):
-            raise FlightLogError(path, f"orientation {value!r}: expected a permutation of X, Y, Z "
-                                       "(a lower-case letter negates that axis)")
+        if key == "orientation":
+            _check_orientation(path, value)
         if key in ("tscale", "gscale"):
             try:
                 ok = math.isfinite(float(value)) and float(value) > 0
@@ -276,11 +275,17 @@ def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
     return None
 
 
+def _check_orientation(path: Path, orientation: str) -> None:
+    """An orientation string is three of X, Y, Z, each once (lower case negates that axis)."""
+    if len(orientation) != 3 or sorted(orientation.upper()) != ["X", "Y", "Z"]:
+        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z "
+                                   "(a lower-case letter negates that axis)")
+
+
 def _unorient(path: Path, g: np.ndarray, orientation: str) -> np.ndarray:
     """Undo Gyroflow's axis mapping: out[i] = ±raw[axis] for each letter (lower case negates)."""
     o = orientation or "xzY"                       # telemetry-parser's default for a gcsv without one
-    if len(o) != 3 or sorted(o.upper()) != ["X", "Y", "Z"]:
-        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z")
+    _check_orientation(path, o)
     raw = np.empty_like(g)
     for i, c in enumerate(o):
         raw[:, "XYZ".index(c.upper())] = g[:, i] * (1.0 if c.isupper() else -1.0)
@@ -419,9 +424,7 @@ def write_gcsv(path: str | os.PathLike, t: np.ndarray, rate_rad_s: np.ndarray, *
     tells Gyroflow so. `extra` adds header rows (e.g. frame_readout_time in ms)."""
     path = Path(path)
     t, rate = _check_series(path, t, rate_rad_s)
-    if not (len(orientation) == 3 and sorted(orientation.upper()) == ["X", "Y", "Z"]):
-        raise FlightLogError(path, f"orientation {orientation!r}: expected a permutation of X, Y, Z "
-                                   "(lower case negates)")
+    _check_orientation(path, orientation)
     if not (gscale > 0 and tscale > 0):
         raise FlightLogError(path, "gscale and tscale must be > 0")
     ticks = np.round(t / tscale).astype(np.int64)
@@ -503,9 +506,7 @@ def write_ardupilot_bin(path: str | os.PathLike, t: np.ndarray, rate_frd_rad_s: 
         for i in range(n_imus):
             w = rate[k] + 0.001 * i
             out.append(imu.pack(0xA3, 0x95, 0x81, int(us[k]) + i * step, i, *w.tolist(), 0.0, 0.0, 0.0))
-    part = path.with_name(path.name + ".part")
-    part.write_bytes(b"".join(out))
-    os.replace(part, path)
+    _atomic_write(path, lambda f: f.write(b"".join(out)), text=False)
     return path
 
 
@@ -518,22 +519,29 @@ def _check_series(path: Path, t, rate) -> tuple[np.ndarray, np.ndarray]:
         raise FlightLogError(path, "times and rates must be finite")
     if np.any(np.diff(t) <= 0):
         raise FlightLogError(path, "times must increase strictly")
-    if not path.parent.is_dir():
-        raise FlightLogError(path, f"directory {path.parent} does not exist")
     return t, rate
 
 
 def _atomic_text(path: Path, header: str, body) -> None:
+    def write(f) -> None:
+        f.write(header)
+        if isinstance(body, np.ndarray):
+            np.savetxt(f, body, fmt="%d", delimiter=",")
+        else:
+            f.write("\n".join(body) + "\n")
+
+    _atomic_write(path, write, text=True)
+
+
+def _atomic_write(path: Path, write, *, text: bool) -> None:
+    """`write(f)` into ``<path>.part`` (ASCII text or bytes), renamed over `path` (the output rule of
+    `thermod.paths.output_problem` first); a failure removes the part and names `path`."""
     if (problem := output_problem(path)) is not None:
         raise FlightLogError(path, problem)
     part = path.with_name(path.name + ".part")
     try:
-        with open(part, "w", encoding="ascii", newline="\n") as f:
-            f.write(header)
-            if isinstance(body, np.ndarray):
-                np.savetxt(f, body, fmt="%d", delimiter=",")
-            else:
-                f.write("\n".join(body) + "\n")
+        with open(part, "w", encoding="ascii", newline="\n") if text else open(part, "wb") as f:
+            write(f)
         os.replace(part, path)
     except OSError as e:
         try:

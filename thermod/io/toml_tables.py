@@ -314,10 +314,9 @@ def describe(kind) -> str:
 def read_toml(p: Path) -> dict:
     """The parsed TOML file at `p`; a missing or unreadable file is a ConfigError naming it."""
     name = str(p)
-    problem = input_problem(p)
-    if problem == "does not exist":
+    if not p.exists():
         raise ConfigError(f"{name}: no such configuration file")
-    if problem is not None:
+    if (problem := input_problem(p)) is not None:
         raise ConfigError(f"{name}: {problem}")
     try:
         with open(p, "rb") as f:
