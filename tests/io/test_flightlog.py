@@ -132,6 +132,117 @@ def test_betaflight_csv_is_read_as_blackbox_in_frd(tmp_path):
     np.testing.assert_allclose(log.rate, w, atol=1e-5)
 
 
+def _decode_csv(t: np.ndarray, w_frd: np.ndarray, *, time_unit: str = "us", rotation: str = "raw") -> str:
+    """A CSV as blackbox_decode writes it: ", " between cells, units in brackets after the names
+    (--unit-frame-time us|s, --unit-rotation raw|deg/s|rad/s), flags as text, more columns around."""
+    flu = w_frd * [1, -1, -1]
+    gyro = {"raw": np.round(flu / DEG), "deg/s": flu / DEG, "rad/s": flu}[rotation]
+    unit = "" if rotation == "raw" else f" ({rotation})"
+    names = ["loopIteration", f"time ({time_unit})", "axisP[0]", "axisP[1]", "vbatLatest (V)",
+             *[f"gyroADC[{k}]{unit}" for k in range(3)], "motor[0]", "flightModeFlags (flags)"]
+    rows = [", ".join(names)]
+    for i, (ti, g) in enumerate(zip(t, gyro, strict=True)):
+        tt = str(round(ti * 1e6)) if time_unit == "us" else f"{ti:.6f}"
+        gg = [f"{v:g}" if rotation == "raw" else f"{v:.6f}" for v in g]
+        rows.append(", ".join([str(4 * i), tt, "3", "-2", "16.1", *gg, "1200", "ANGLE_MODE|HORIZON_MODE"]))
+    return "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize("time_unit,rotation", [("us", "raw"), ("s", "deg/s"), ("us", "rad/s")])
+@pytest.mark.parametrize("eol,bom", [("\n", False), ("\r\n", True)])
+def test_blackbox_decode_csv_is_read_in_its_stated_units(tmp_path, time_unit, rotation, eol, bom):
+    """blackbox_decode's CSV (``loopIteration, time (us), …``), which telemetry-parser does not
+    recognise, gives the same FRD rad/s on the FC's clock whatever units it was exported in, with
+    Windows line ends or a byte order mark."""
+    t = 452.2 + np.arange(2000) / 1000.0
+    w = np.zeros((2000, 3))
+    w[:, 0], w[:, 1], w[:, 2] = 0.5, -1.0, 2.0                                # whole °/s are not exact
+    w = np.round(w / DEG) * DEG
+    path = tmp_path / "LOG00001.01.csv"
+    text = _decode_csv(t, w, time_unit=time_unit, rotation=rotation).replace("\n", eol)
+    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + text.encode())
+    log = read_flight_log(path)
+    _check(log)
+    assert log.source_format == "betaflight-csv" and log.frame == "FRD" and len(log) == 2000
+    assert log.rate_hz == pytest.approx(1000, rel=1e-3)
+    np.testing.assert_allclose(log.t, t, atol=1e-6)
+    np.testing.assert_allclose(log.rate, w, atol=1e-5)
+
+
+def test_a_betaflight_csv_behind_a_bom_or_with_crlf_reads_like_the_plain_one(tmp_path):
+    t = 10.0 + np.arange(1000) / 2000.0
+    w = np.tile([0.2, -0.1, 0.05], (1000, 1))
+    plain = write_betaflight_csv(tmp_path / "bf.csv", t, w, integer_deg_s=False)
+    text = plain.read_bytes()
+    (tmp_path / "bom.csv").write_bytes(b"\xef\xbb\xbf" + text.replace(b"\n", b"\r\n"))
+    a, b = read_flight_log(plain), read_flight_log(tmp_path / "bom.csv")
+    assert b.source_format == "betaflight-csv" and "Betaflight 4.4.0" in b.model
+    np.testing.assert_array_equal(a.t, b.t)
+    np.testing.assert_array_equal(a.rate, b.rate)
+
+
+def test_a_csv_cut_mid_row_loses_that_row_but_a_damaged_one_is_refused(tmp_path, caplog):
+    t = 1.0 + np.arange(3000) / 1000.0
+    text = _decode_csv(t, np.zeros((3000, 3)))
+    cut = tmp_path / "cut.csv"
+    cut.write_text(text[: text.index("\n3000, ") + 4])                      # a crash mid-row
+    with caplog.at_level("WARNING", logger="thermod.io.flightlog"):
+        log = read_flight_log(cut)
+    assert len(log) == 750 and "skipped 1 unreadable data row" in caplog.text
+    bad = tmp_path / "bad.csv"
+    lines = text.splitlines()
+    for i in range(1, len(lines), 3):                                        # blackbox_decode's unknown time
+        cells = lines[i].split(", ")
+        lines[i] = ", ".join([cells[0], "X", *cells[2:]])
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FlightLogError, match=r"bad\.csv: \d+ of 3000 data rows without a number"):
+        read_flight_log(bad)
+
+
+@pytest.mark.parametrize("names,problem", [
+    ("loopIteration, time (us), axisP[0], rcCommand[0]",
+     r"no gyroADC\[0\], gyroADC\[1\], gyroADC\[2\] column"),
+    ("loopIteration, time (ms), gyroADC[0], gyroADC[1], gyroADC[2]",
+     r"time column in 'ms': expected us or s"),
+    ("loopIteration, time (us), gyroADC[0] (rad/s), gyroADC[1], gyroADC[2]",
+     r"gyroADC columns in '' and 'rad/s'"),
+    ('"loopIteration","iteration","gyroADC[0]","gyroADC[1]","gyroADC[2]"', r"no time column"),
+])
+def test_a_betaflight_csv_without_usable_columns_names_what_it_lacks(tmp_path, names, problem):
+    path = tmp_path / "cols.csv"
+    path.write_text(names + "\n" + "".join(f"{i}, {1000 * i}, 1, 2, 3\n" for i in range(100)))
+    with pytest.raises(FlightLogError, match=r"cols\.csv: " + problem):
+        read_flight_log(path)
+
+
+def test_real_betaflight_log_as_blackbox_decode_exports_it(tmp_path, shared_data, require):
+    """The real 1 kHz KakuteF7 log of shared/data, its gyroADC written as blackbox_decode's CSV:
+    the same samples as the binary log gives."""
+    bfl = shared_data / "logs" / "betaflight_4.2_LOG00037.BFL"
+    require(bfl.exists(), "shared/data/logs/betaflight_4.2_LOG00037.BFL (the real Betaflight log)")
+    real = read_flight_log(bfl)
+    path = tmp_path / "LOG00037.01.csv"
+    path.write_text(_decode_csv(real.t, real.rate))
+    log = read_flight_log(path)
+    assert log.source_format == "betaflight-csv" and log.rate_hz == pytest.approx(1000, rel=1e-3)
+    np.testing.assert_allclose(log.t, real.t, atol=1e-9)
+    np.testing.assert_allclose(log.rate, real.rate, atol=1e-9)
+
+
+def test_a_gcsv_behind_a_byte_order_mark_is_read_and_named(tmp_path):
+    t = 5.0 + np.arange(1000) / 1000.0
+    w = np.tile([0.1, 0.2, 0.3], (1000, 1))
+    text = write_gcsv(tmp_path / "plain.gcsv", t, w, orientation="YxZ").read_bytes()
+    path = tmp_path / "bom.gcsv"
+    path.write_bytes(b"\xef\xbb\xbf" + text)
+    log = read_flight_log(path)
+    assert log.path == str(path) and log.source_format == "gcsv" and log.orientation == "YxZ"
+    np.testing.assert_allclose(log.rate, w, atol=1e-6)
+    path.write_bytes(b"\xef\xbb\xbf" + text.replace(b"orientation,YxZ", b"orientation,YYZ"))
+    with pytest.raises(FlightLogError, match=r"bom\.gcsv: orientation 'YYZ'"):
+        read_flight_log(path)
+
+
 @pytest.mark.parametrize("n_imus,stagger_s", [(1, 0.0), (2, 0.0), (2, 5e-6), (3, 20e-6)])
 def test_ardupilot_bin_is_read_in_frd_keeping_the_first_imu(tmp_path, n_imus, stagger_s):
     rng = np.random.default_rng(n_imus)
@@ -222,7 +333,7 @@ def test_a_log_without_gyro_is_refused(tmp_path):
         read_flight_log(path)
     csv = tmp_path / "nogyro.csv"
     csv.write_text('"loopIteration","time","motor[0]"\n0,100,1000\n1,200,1001\n')
-    with pytest.raises(FlightLogError, match=r"nogyro\.csv: no gyro samples"):
+    with pytest.raises(FlightLogError, match=r"nogyro\.csv: no gyroADC\[0\], gyroADC\[1\], gyroADC\[2\] col"):
         read_flight_log(csv)
 
 
@@ -253,8 +364,10 @@ def test_a_bad_gcsv_header_is_refused_before_the_parser_panics(tmp_path, capfd, 
 
 
 def test_a_parser_panic_becomes_a_flight_log_error(tmp_path):
-    bad = tmp_path / "panic.csv"          # telemetry-parser unwraps the time column: a Rust panic
-    bad.write_text('"loopIteration","time","gyroADC[0]","gyroADC[1]","gyroADC[2]"\n0,abc,1,2,3\n')
+    # telemetry-parser unwraps the time column: a Rust panic (a data row before the column names keeps
+    # the file from thermod's own Betaflight CSV reader)
+    bad = tmp_path / "panic.csv"
+    bad.write_text('5,5\nloopIteration,time,gyroADC[0],gyroADC[1],gyroADC[2]\n0,abc,1,2,3\n')
     with pytest.raises(FlightLogError, match=r"panic\.csv: the parser failed: truncated or corrupt"):
         read_flight_log(bad)
 
@@ -278,15 +391,22 @@ def test_rate_zero_and_non_increasing_times_are_refused(tmp_path):
 
 def test_a_rate_no_gyro_reads_is_refused(tmp_path):
     """A row of 1e301 rad/s is finite but no gyro's: it is refused naming the file, not carried into
-    the sync (where it overflowed and read as "the rates never change")."""
+    the sync (where it overflowed and read as "the rates never change"); so is a log in °/s read as
+    rad/s (a .gcsv whose gscale is 1 for a logger writing °/s)."""
     t = np.arange(3000) / 1000.0
     path = write_gcsv(tmp_path / "wild.gcsv", t, np.zeros((3000, 3)))
     lines = path.read_text().splitlines()
     i = lines.index("t,gx,gy,gz") + 1501
     lines[i] = lines[i].split(",")[0] + ",0,1" + "0" * 307 + ",0"       # 1e301 rad/s at gscale 1e-6
     path.write_text("\n".join(lines) + "\n")
-    with pytest.raises(FlightLogError, match=r"wild\.gcsv: 1 gyro samples over 10000 rad/s"):
+    with pytest.raises(FlightLogError, match=r"wild\.gcsv: 1 gyro samples over 80 rad/s"):
         read_flight_log(path)
+    w = np.zeros((3000, 3))
+    w[1000:1200, 2] = 90 * DEG * np.sin(np.linspace(0, np.pi, 200)) ** 2      # a 90 °/s pan
+    deg = write_gcsv(tmp_path / "deg.gcsv", t, w / DEG, gscale=1e-3)          # °/s numbers, rad/s gscale
+    with pytest.raises(FlightLogError, match=r"deg\.gcsv: \d+ gyro samples over 80 rad/s .*°/s read as rad"):
+        read_flight_log(deg)
+    np.testing.assert_allclose(read_flight_log(write_gcsv(tmp_path / "rad.gcsv", t, w)).rate, w, atol=1e-6)
 
 
 def test_a_damaged_ulog_says_so_in_one_log_line_not_on_stdout(tmp_path, capfd, caplog):

@@ -2,8 +2,11 @@
 
 `read_flight_log(path)` returns a `FlightLog`: the gyro samples of one log, on the log's own clock,
 as angular rates in one stated body frame. Parsers: telemetry-parser (Gyroflow's: Betaflight/INAV
-blackbox ``.bbl``/``.bfl`` and its CSV export, ArduPilot ``.bin``, Gyroflow ``.gcsv``, and the other
-formats it detects) and pyulog (PX4 ``.ulg``: ``sensor_combined``, else ``vehicle_angular_velocity``).
+blackbox ``.bbl``/``.bfl``, ArduPilot ``.bin``, Gyroflow ``.gcsv``, and the other formats it detects),
+pyulog (PX4 ``.ulg``: ``sensor_combined``, else ``vehicle_angular_velocity``), and a reader of the
+``time`` and ``gyroADC`` columns of a Betaflight/INAV CSV (Blackbox Explorer's export and
+blackbox_decode's, in the units its column names state; telemetry-parser reads neither reliably).
+A text log behind a UTF-8 byte order mark is read without it.
 
 The rules it keeps: `t` is float64 s on the log's own clock, never shifted (the offset to the video
 is the sync's to find); `rate` is float64 [N, 3] rad/s in the frame `frame` names — ``"FRD"`` (the
@@ -20,13 +23,16 @@ axes and orientation strings: docs/design.md §3, "Flights from other tools".
 
 from __future__ import annotations
 
+import array
 import contextlib
+import csv
 import io
 import logging
 import math
 import os
+import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,12 +44,18 @@ log = logging.getLogger(__name__)
 
 MAX_FILE_BYTES = 4 * 2**30
 MAX_TP_FILE_BYTES = 64 * 2**20     # telemetry-parser formats: ~1.4 kB of Python objects per sample
+MAX_CSV_BYTES = 2**30              # a Betaflight CSV is read a row at a time into 32 bytes per sample
+MAX_BAD_ROW_FRACTION = 0.001       # unreadable CSV rows a log may have (a cut last row, a corrupt frame)
+HEAD_BYTES = 1 << 16               # where a text log's header rows are looked for
+BOM = b"\xef\xbb\xbf"                # a UTF-8 byte order mark, as Windows editors and exporters write it
 PROBE_BYTES = (2**15, 2**20, 2**24)
 SEGMENT_GAP_S = 1.0
 MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
 MAX_DROPPED_FRACTION = 0.001       # isolated out-of-order samples a log may have
-MAX_GYRO_RAD_S = 1e4               # no gyro reads this (±4000 °/s is 70 rad/s; even deg read as rad is less)
+# no MEMS gyro reads this (the widest full scale, ±4000 °/s, is 70 rad/s); a log in °/s read as rad/s
+# exceeds it as soon as the camera turns at 80 °/s
+MAX_GYRO_RAD_S = 80.0
 DEG = math.pi / 180.0
 
 # ω_cam = M · ω_FRD for a camera looking along the body's x axis, upright (its x right = body y,
@@ -118,12 +130,159 @@ def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> Fl
         raise FlightLogError(path, f"{size / 2**30:.1f} GiB, over the {MAX_FILE_BYTES / 2**30:.0f} GiB "
                                    "this reader accepts; cut the log to the flight")
     with open(path, "rb") as f:
-        head = f.read(16)
+        head = f.read(HEAD_BYTES)
     if head.startswith(b"ULog\x01\x12\x35"):
         return _read_ulog(path, log_index)
+    if (columns := _betaflight_csv_columns(head)) is not None:
+        return _read_betaflight_csv(path, *columns, log_index)
+    if head.startswith(BOM):
+        return _without_bom(path, log_index)
     if head.startswith(b"GYROFLOW IMU LOG"):
         _check_gcsv_header(path)
     return _read_telemetry_parser(path, log_index)
+
+
+def _without_bom(path: Path, log_index: int | None) -> FlightLog:
+    """A text log behind a UTF-8 byte order mark: telemetry-parser recognises no format behind one, so
+    it reads a copy without it; errors and the log still name `path`."""
+    _check_tp_size(path)
+    with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
+        plain = Path(d) / path.name
+        with open(path, "rb") as src, open(plain, "wb") as dst:
+            src.seek(len(BOM))
+            shutil.copyfileobj(src, dst)
+        try:
+            if plain.read_bytes()[:16].startswith(b"GYROFLOW IMU LOG"):
+                _check_gcsv_header(plain)
+            log = _read_telemetry_parser(plain, log_index)
+        except FlightLogError as e:
+            raise FlightLogError(path, e.problem) from None
+    return replace(log, path=str(path))
+
+
+def _check_tp_size(path: Path) -> None:
+    if path.stat().st_size > MAX_TP_FILE_BYTES:
+        raise FlightLogError(path, f"{path.stat().st_size / 2**20:.0f} MiB, over the "
+                                   f"{MAX_TP_FILE_BYTES / 2**20:.0f} MiB this reader accepts for this "
+                                   "format (telemetry-parser holds every sample in memory); cut the log")
+
+
+# ------------------------------------------------------------------------------- Betaflight CSV
+def _betaflight_csv_columns(head: bytes) -> tuple[int, list[str], str] | None:
+    """(0-based line of the column names, the names, the firmware) if the file's first bytes are a
+    Betaflight/INAV CSV — Blackbox Explorer's export (quoted ``"Product"``/``"Firmware revision"``
+    rows, then ``"loopIteration","time",…``) or blackbox_decode's (``loopIteration, time (us), …``,
+    units in brackets) — else None."""
+    text = head.removeprefix(BOM).decode("utf-8", "replace")
+    if "loopIteration" not in text:
+        return None
+    firmware = ""
+    for i, line in enumerate(text.splitlines()):
+        row = next(csv.reader([line], skipinitialspace=True), [])
+        if not row:
+            continue
+        if row[0].strip() == "loopIteration":
+            return i, [c.strip() for c in row], firmware
+        if len(row) == 2 and row[0].strip() == "Firmware revision":
+            firmware = row[1].strip()
+        elif row[0].strip().lstrip("-").replace(".", "", 1).isdigit():
+            return None                                  # a data row before the names: not this format
+    return None
+
+
+def _split_unit(name: str) -> tuple[str, str]:
+    """``"gyroADC[0] (deg/s)"`` → (``"gyroADC[0]"``, ``"deg/s"``); no bracket → (name, "")."""
+    base, _, unit = name.partition(" (")
+    return base.strip(), unit.rstrip(")").strip() if unit else ""
+
+
+TIME_UNITS_S = {"": 1e-6, "us": 1e-6, "s": 1.0}           # blackbox_decode --unit-frame-time
+GYRO_UNITS_RAD_S = {"": DEG, "raw": DEG, "deg/s": DEG, "rad/s": 1.0}   # --unit-rotation; raw is °/s
+
+
+def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware: str,
+                         log_index: int | None) -> FlightLog:
+    """The ``time`` and ``gyroADC[0..2]`` columns of a Betaflight CSV, a row at a time (the other
+    columns are not kept). Betaflight and INAV log the gyro in °/s about x forward, y left, z up; a
+    blackbox_decode export states other units in brackets. A row that does not parse (a last row cut
+    by a crash, a corrupt frame's ``X`` time, ``NaN``) is skipped, up to `MAX_BAD_ROW_FRACTION`."""
+    size = path.stat().st_size
+    if size > MAX_CSV_BYTES:
+        raise FlightLogError(path, f"{size / 2**20:.0f} MiB, over the {MAX_CSV_BYTES / 2**20:.0f} MiB this "
+                                   "reader accepts for a Betaflight CSV; cut the log to the flight")
+    split = [_split_unit(n) for n in names]
+    where = {base: (i, unit) for i, (base, unit) in reversed(list(enumerate(split)))}
+    if "time" not in where:
+        raise FlightLogError(path, f"no time column in the CSV's column names (expected loopIteration, "
+                                   f"time, …; got {', '.join(names[:4])}, …)")
+    missing = [f"gyroADC[{k}]" for k in range(3) if f"gyroADC[{k}]" not in where]
+    if missing:
+        raise FlightLogError(path, f"no {', '.join(missing)} column: expected the gyro in gyroADC[0..2] (was "
+                                   "the gyro left out of the blackbox fields or of the export?)")
+    cols = [where["time"][0]] + [where[f"gyroADC[{k}]"][0] for k in range(3)]
+    t_unit, g_units = where["time"][1], {where[f"gyroADC[{k}]"][1] for k in range(3)}
+    if t_unit not in TIME_UNITS_S:
+        raise FlightLogError(path, f"time column in {t_unit!r}: expected us or s")
+    if len(g_units) != 1 or not g_units <= GYRO_UNITS_RAD_S.keys():
+        raise FlightLogError(path, f"gyroADC columns in {' and '.join(sorted(map(repr, g_units)))}: expected "
+                                   "one of raw (°/s), deg/s or rad/s for all three")
+    g_unit = g_units.pop()
+    values = array.array("d")
+    n_rows = n_bad = 0
+    first_bad = ""
+    last = max(cols)
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
+            for _ in range(names_line + 1):
+                f.readline()
+            for row in csv.reader(f, skipinitialspace=True):
+                if not row:
+                    continue
+                n_rows += 1
+                try:
+                    if len(row) <= last:
+                        raise ValueError
+                    v = [float(row[c]) for c in cols]
+                    if not all(math.isfinite(x) for x in v):
+                        raise ValueError
+                except ValueError:
+                    n_bad += 1
+                    first_bad = first_bad or f"data row {n_rows}: {','.join(row)[:80]!r}"
+                    continue
+                values.extend(v)
+                if len(values) > 4 * MAX_SAMPLES:
+                    raise FlightLogError(path, f"over {MAX_SAMPLES} gyro samples, the most this reader takes")
+    except (csv.Error, UnicodeError) as e:
+        raise FlightLogError(path, f"not readable as CSV after {n_rows} data rows ({e})") from None
+    if n_bad > max(1, MAX_BAD_ROW_FRACTION * n_rows) or 0 < n_bad == n_rows:
+        raise FlightLogError(path, f"{n_bad} of {n_rows} data rows without a number for time and "
+                                   f"gyroADC[0..2] (first: {first_bad}): a corrupt or damaged export")
+    if n_bad:
+        log.warning("%s: skipped %d unreadable data row(s) of %d (%s)", path, n_bad, n_rows, first_bad)
+    a = np.frombuffer(values, dtype=np.float64).reshape(-1, 4)
+    t = a[:, 0] * TIME_UNITS_S[t_unit]
+    rate = (a[:, 1:] * GYRO_UNITS_RAD_S[g_unit]) @ FRD_FROM_BETAFLIGHT.T
+    t, rate, index, n_logs, lone = _pick_log(path, t, rate, log_index)
+    return _finish(path, "betaflight-csv", t, rate, "FRD", "", index, n_logs,
+                   f"BlackBox {firmware}".strip(), lone)
+
+
+def _pick_log(path: Path, t: np.ndarray, rate: np.ndarray, log_index: int | None
+              ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """(t, rate, index, number of logs, lone outliers dropped) of the log `log_index` picks (the
+    longest by default) among the parts of the clock `_segments` finds, lone wild stamps dropped."""
+    # a lone wild stamp is a glitch to drop, not a boundary between logs
+    lone = _lone_outliers(t)
+    t, rate = t[~lone], rate[~lone]
+    segments = _segments(t)
+    if log_index is None:
+        index = int(np.argmax([b - a for a, b in segments]))
+    elif 0 <= log_index < len(segments):
+        index = int(log_index)
+    else:
+        raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
+    lo, hi = segments[index]
+    return t[lo:hi], rate[lo:hi], index, len(segments), int(np.sum(lone))
 
 
 def _check_gcsv_header(path: Path, max_bytes: int = 1 << 16) -> None:
@@ -152,10 +311,7 @@ def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
     logged field as Python objects: 470 MB for a 0.66 MB blackbox log), but re-bases the times on
     the file's first gyro sample and rotates the axes into Gyroflow's frame. The raw samples of a
     short prefix of the file give that first time and the axis mapping, which are undone here."""
-    if path.stat().st_size > MAX_TP_FILE_BYTES:
-        raise FlightLogError(path, f"{path.stat().st_size / 2**20:.0f} MiB, over the "
-                                   f"{MAX_TP_FILE_BYTES / 2**20:.0f} MiB this reader accepts for this "
-                                   "format (telemetry-parser holds every sample in memory); cut the log")
+    _check_tp_size(path)
     with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
         # alone in a folder: telemetry-parser reads a sibling NAME.gcsv instead of the file it is given
         alone = Path(d) / path.name
@@ -193,20 +349,9 @@ def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
         raise FlightLogError(path, f"{int(np.sum(~finite))} gyro samples with non-finite time or rate")
     if fmt == "ardupilot":
         t, rate = _first_imu(path, t, rate)
-    # a lone wild stamp is a glitch to drop, not a boundary between logs
-    lone = _lone_outliers(t)
-    t, rate = t[~lone], rate[~lone]
-    segments = _segments(t)
-    if log_index is None:
-        index = int(np.argmax([b - a for a, b in segments]))
-    elif 0 <= log_index < len(segments):
-        index = int(log_index)
-    else:
-        raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
-    lo, hi = segments[index]
-    t, rate = t[lo:hi], rate[lo:hi]
-    return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, len(segments),
-                   f"{camera} {model}".strip(), int(np.sum(lone)))
+    t, rate, index, n_logs, lone = _pick_log(path, t, rate, log_index)
+    return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, n_logs,
+                   f"{camera} {model}".strip(), lone)
 
 
 def _lone_outliers(t: np.ndarray) -> np.ndarray:
@@ -236,8 +381,9 @@ def _tp_call(path: Path, fn):
         msg = str(e) or type(e).__name__
         if "Unsupported file format" in msg:
             raise FlightLogError(path, "not a log format telemetry-parser or pyulog reads (expected a "
-                                       "Betaflight .bbl/.bfl/.csv, ArduPilot .bin, Gyroflow .gcsv or "
-                                       "PX4 .ulg)") from None
+                                       "Betaflight .bbl/.bfl, a Betaflight CSV from Blackbox Explorer or "
+                                       "blackbox_decode with loopIteration, time and gyroADC[0..2] columns, "
+                                       "ArduPilot .bin, Gyroflow .gcsv or PX4 .ulg)") from None
         if "No metadata" in msg:
             raise FlightLogError(path, "no gyro samples (no telemetry in the file, or it is truncated)"
                                  ) from None
@@ -388,8 +534,8 @@ def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, o
     wild = np.any(np.abs(rate) > MAX_GYRO_RAD_S, axis=1)
     if np.any(wild):
         raise FlightLogError(path, f"{int(np.sum(wild))} gyro samples over {MAX_GYRO_RAD_S:g} rad/s (a MEMS "
-                                   "gyro's full scale is at most ±4000 °/s, 70 rad/s): a corrupt log or a "
-                                   "wrong gscale")
+                                   "gyro's full scale is at most ±4000 °/s, 70 rad/s): rates in °/s read as "
+                                   "rad/s (a .gcsv's gscale must turn its numbers to rad/s) or a corrupt log")
     keep = np.ones(len(t), dtype=bool)
     running = np.maximum.accumulate(t)
     keep[1:] = t[1:] > running[:-1]
