@@ -1,6 +1,7 @@
 """thermod.io.video against real FFmpeg (PyAV) files: round trips, variable frame rates, 16-bit
 video and TIFF sequences, every error class, and fuzzed bytes."""
 
+import re
 from fractions import Fraction
 from pathlib import Path
 
@@ -201,7 +202,7 @@ def test_tiff_sequence_errors_name_the_file(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ errors
-def test_truncated_videos_are_refused_naming_the_file(tmp_path):
+def test_a_cut_video_keeps_its_decoded_frames_with_a_note_and_a_lost_header_is_refused(tmp_path):
     frames = _texture(20, seed=9)
     mp4 = write_video(tmp_path / "cut.mp4", frames, np.arange(20) / 25.0)
     data = mp4.read_bytes()
@@ -221,13 +222,18 @@ def test_truncated_videos_are_refused_naming_the_file(tmp_path):
     data = (tmp_path / "fast.mp4").read_bytes()
     assert data[:64].find(b"moov") > 0
     (tmp_path / "fast.mp4").write_bytes(data[: len(data) * 7 // 10])
+    kept = read_video(tmp_path / "fast.mp4")
+    assert 5 <= len(kept.t) < 20 and np.allclose(kept.t, np.arange(len(kept.t)) / 25.0)
+    assert kept.notes and re.match(r"(decoding stopped at frame \d+|truncated)", kept.notes[0])
     with pytest.raises(VideoError, match=r"fast\.mp4: (decoding stopped at frame \d+|truncated)"):
-        read_video(tmp_path / "fast.mp4")
+        list(iter_video(tmp_path / "fast.mp4"))                  # streamed without notes: refused at the end
     mkv = _encode(tmp_path / "cut.mkv", "ffv1", "gray", frames, np.arange(20) * 40)
     data = mkv.read_bytes()
     mkv.write_bytes(data[: len(data) * 2 // 3])                   # clusters lost, duration declared
-    with pytest.raises(VideoError, match=r"cut\.mkv: truncated: the header declares 0\.8\d* s"):
-        read_video(mkv)
+    kept = read_video(mkv)
+    assert 5 <= len(kept.t) < 20 and np.array_equal(kept.frames, frames[: len(kept.t)])
+    assert re.match(r"truncated: the header declares 0\.8\d* s.* frames decoded before it are kept",
+                    kept.notes[0])
 
 
 def test_zero_frames_and_no_video_stream(tmp_path):

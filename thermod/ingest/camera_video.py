@@ -1,7 +1,9 @@
 """A thermal video read for an ingest, checked against the camera that shot it (`read_camera_video`):
 its size must be the camera's, it needs two frames or more, and its own frame rate (the median frame
 interval of its container timestamps) replaces the camera file's, with a note when they differ by more
-than `FRAME_RATE_TOLERANCE`, and the readout is held within one frame period."""
+than `FRAME_RATE_TOLERANCE`, and the readout is held within one frame period. Of a file's several video
+streams the one of the camera's size is read (else the one a player would play), with a note; the
+reader's notes (a cut, a rotation) are passed on."""
 
 from __future__ import annotations
 
@@ -30,9 +32,14 @@ def read_camera_video(video_path, camera: Calibration, error: type[Exception], n
                       start_s: float = 0.0, duration_s: float | None = None) -> CameraVideo:
     """Read `video_path` for `camera`; every refusal is an `error` naming the file (`needs` says what the
     ingest needs the frames for, e.g. "a sync needs a video of several seconds")."""
+    # of several video streams, the camera's size tells the thermal one
+    probed = video.probe_video(video_path, fps)
+    fits = [i for i, w, h in probed.video_streams if (w, h) == (camera.width, camera.height)]
+    chosen = probed.stream_index if probed.kind == "video" else None
     try:
         vf = video.read_video(video_path, fps=fps, max_bytes=max_bytes, start_s=start_s,
-                              duration_s=duration_s)
+                              duration_s=duration_s,
+                              stream=fits[0] if fits and chosen not in fits else None)
     except video.VideoTooLarge as e:
         raise error(f"{e}: import a part of it with --start S --duration D (seconds of video)") from None
     info = vf.info
@@ -43,7 +50,11 @@ def read_camera_video(video_path, camera: Calibration, error: type[Exception], n
         raise error(f"{video_path}: {len(vf.t)} frame(s); {needs}")
     period = float(np.median(np.diff(vf.t)))
     rate = 1.0 / period
-    notes = []
+    notes = list(vf.notes)
+    if len(info.video_streams) > 1:
+        notes.append(f"the file holds {len(info.video_streams)} video streams ("
+                     + ", ".join(f"#{i} {w}×{h}" for i, w, h in info.video_streams)
+                     + f"): #{info.stream_index} is read")
     if abs(rate - camera.frame_rate_hz) > FRAME_RATE_TOLERANCE * camera.frame_rate_hz:
         notes.append(f"the video runs at {rate:.3g} fps, the camera description says "
                      f"{camera.frame_rate_hz:.3g}: the video's rate is used")

@@ -7,7 +7,10 @@ a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
 
 The rules it keeps: a frame's time is float64 s on the container's own clock (its presentation
 timestamp; variable frame rate kept), never mapped to the flight log's (the sync's job); times
-increase strictly, and a repeated or decreasing timestamp is a `VideoError`, never re-ordered. A
+increase strictly, and a repeated or decreasing timestamp is a `VideoError`, never re-ordered (AVI
+stores no presentation times: its frames are timed by their slots, as FFmpeg's best-effort time). Of
+several video streams the one FFmpeg would play is read (`choose_stream`; cover art never). A file cut
+short keeps the frames decoded before the cut, with a note (`VideoFrames.notes`). A
 side over `MAX_SIDE`, more than `MAX_FRAMES` frames or a stack over `max_bytes` is refused before it
 is allocated; `iter_video` streams one frame at a time.
 
@@ -20,6 +23,7 @@ control: a percentile stretch whose gain and offset follow the scene smoothly. E
 from __future__ import annotations
 
 import glob
+import heapq
 import math
 import os
 import re
@@ -74,6 +78,8 @@ class VideoInfo:
     pix_fmt: str
     luma_only: bool = False
     full_range: bool = True       # False: limited-range YUV (16–235 luma at 8 bit), mapped to full on read
+    stream_index: int = 0         # the container's index of the stream read
+    video_streams: tuple[tuple[int, int, int], ...] = ()   # (index, width, height) of every video stream
 
     @property
     def dtype(self) -> np.dtype:
@@ -93,11 +99,14 @@ class VideoFrames:
     t: np.ndarray
     info: VideoInfo
     files: list[str] = field(default_factory=list)   # a TIFF sequence's files, in order
+    notes: list[str] = field(default_factory=list)   # what the reader kept or ignored (a cut, a rotation)
 
 
 # ----------------------------------------------------------------------------------------- reading
-def probe_video(source: str | os.PathLike, fps: float | None = None) -> VideoInfo:
-    """The `VideoInfo` of a video file, a folder of TIFFs or a TIFF glob (which needs `fps`)."""
+def probe_video(source: str | os.PathLike, fps: float | None = None, *, stream: int | None = None
+                ) -> VideoInfo:
+    """The `VideoInfo` of a video file, a folder of TIFFs or a TIFF glob (which needs `fps`); `stream`
+    is a container's stream index (default: `choose_stream`'s)."""
     files = _tiff_files(source)
     if files is not None:
         return _probe_tiffs(source, files, fps)
@@ -105,19 +114,21 @@ def probe_video(source: str | os.PathLike, fps: float | None = None) -> VideoInf
     path = _existing_file(source)
     try:
         with av.open(str(path), metadata_errors="replace") as c:
-            return _info_from_container(path, c)
+            return _info_from_container(path, c, stream)
     except _DECODE_ERRORS as e:
         raise VideoError(path, f"not a video FFmpeg can read, or truncated before its header ends ({e})"
                          ) from None
 
 
-def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0
+def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0, *,
+               stream: int | None = None, notes: list[str] | None = None
                ) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (t_s, frame) one frame at a time: frame is [H, W] uint8 or uint16 (module docstring).
 
     For a TIFF sequence `fps` (Hz) is required and frame k is at t0 + k / fps; for a video file
     `fps` and `t0` must be left unset (its own timestamps are used). Raises `VideoError` for a
-    truncated file, a missing video stream, zero frames or timestamps that do not increase."""
+    truncated file, a missing video stream, zero frames or timestamps that do not increase; with a
+    `notes` list, a file cut short after its first frame ends the frames with a note there instead."""
     files = _tiff_files(source)
     if files is not None:
         info = _probe_tiffs(source, files, fps)
@@ -126,24 +137,24 @@ def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
     if fps is not None or t0:
         raise VideoError(source, "fps/t0 apply to TIFF sequences only; a video file's own timestamps "
                                  "are used")
-    yield from _iter_av(_existing_file(source))
+    yield from _iter_av(_existing_file(source), stream, notes)
 
 
 def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0,
                max_bytes: int = DEFAULT_MAX_BYTES, *, start_s: float = 0.0,
-               duration_s: float | None = None) -> VideoFrames:
+               duration_s: float | None = None, stream: int | None = None) -> VideoFrames:
     """Load a video (or TIFF sequence) into memory: `VideoFrames`, with every frame or those read from
     `start_s` to `start_s` + `duration_s` after the first frame (times stay the file's own).
 
     Refuses, before decoding, a whole video whose declared frame count needs more than `max_bytes`,
     and stops with `VideoTooLarge` as soon as the frames kept exceed it (read a part of it, or
-    stream it with `iter_video`)."""
+    stream it with `iter_video`). A file cut short gives the frames before the cut, with a note."""
     start_s = float(start_s)
     if not (math.isfinite(start_s) and start_s >= 0):
         raise VideoError(source, f"start {start_s} s: expected 0 or more seconds after the first frame")
     if duration_s is not None and not (math.isfinite(duration_s) and duration_s > 0):
         raise VideoError(source, f"duration {duration_s} s: expected more than 0 seconds")
-    info = probe_video(source, fps)
+    info = probe_video(source, fps, stream=stream)
     whole = start_s == 0 and duration_s is None
     if whole and info.n_frames is not None and info.n_frames * info.frame_bytes > max_bytes:
         raise VideoTooLarge(source, f"{info.n_frames} frames of {info.width}×{info.height} need "
@@ -157,9 +168,10 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
     if duration_s is not None and info.frame_rate_hz:
         guess = min(guess, int(duration_s * info.frame_rate_hz) + 2)
     buf = np.empty((min(max(guess, 1), cap), info.height, info.width), info.dtype)
-    times = []
+    times, notes = [], []
     first = last = None
-    for t, f in iter_video(source, fps, t0):
+    for t, f in iter_video(source, fps, t0, stream=None if info.kind != "video" else info.stream_index,
+                           notes=notes):
         first = t if first is None else first
         last = t
         if t - first < start_s - WINDOW_TOLERANCE_S:
@@ -183,7 +195,7 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
                                  + (f" (the video lasts {last - first:.3g} s)" if first is not None else ""))
     frames = buf[:n] if n > 0.9 * buf.shape[0] else buf[:n].copy()
     files = _tiff_files(source) or []
-    return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files])
+    return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files], notes)
 
 
 def _av():
@@ -198,10 +210,37 @@ def _existing_file(source) -> Path:
     return path
 
 
-def _info_from_container(path: Path, c) -> VideoInfo:
-    if not c.streams.video:
-        raise VideoError(path, "contains no video stream")
-    s = c.streams.video[0]
+def choose_stream(streams) -> int | None:
+    """The video stream FFmpeg would play: cover art (attached pictures) left out, then the default
+    one, then the largest, then the first; None when there is none."""
+    attached = int(av.stream.Disposition.attached_pic)
+    default = int(av.stream.Disposition.default)
+    best, key = None, None
+    for s in streams:
+        disp = int(s.disposition or 0)
+        if disp & attached:
+            continue
+        k = (bool(disp & default), int(s.width or 0) * int(s.height or 0))
+        if key is None or k > key:
+            best, key = s.index, k
+    return best
+
+
+def _video_stream(path: Path, c, stream: int | None):
+    if stream is None:
+        stream = choose_stream(c.streams.video)
+        if stream is None:
+            raise VideoError(path, "contains no video stream (only cover art)" if c.streams.video
+                             else "contains no video stream")
+    found = [s for s in c.streams.video if s.index == stream]
+    if not found:
+        raise VideoError(path, f"has no video stream #{stream} (its video streams: "
+                               f"{[s.index for s in c.streams.video]})")
+    return found[0]
+
+
+def _info_from_container(path: Path, c, stream: int | None = None) -> VideoInfo:
+    s = _video_stream(path, c, stream)
     cc = s.codec_context
     if cc is None:
         raise VideoError(path, "its video stream has no codec FFmpeg can decode (damaged header?)")
@@ -210,8 +249,11 @@ def _info_from_container(path: Path, c) -> VideoInfo:
     pix = cc.pix_fmt or (s.format.name if s.format else "") or ""
     depth = 16 if pix in _GREY16 or _is_high_depth_yuv(pix) else 8
     luma_only = pix not in ("gray",) and pix not in _GREY16
-    # a player shows YUV as limited range unless the stream says full (yuvj*, or the range flag: 2 = JPEG)
-    full_range = not luma_only or pix.startswith("yuvj") or int(getattr(cc, "color_range", 0) or 0) == 2
+    # a player shows YUV as limited range unless the stream says full (yuvj*, or the range flag: 2 = JPEG);
+    # RGB and palette formats have no range (swscale's grey of them is full range)
+    yuv = pix.startswith(("yuv", "nv", "p0", "p2", "y2", "uyv", "yvy", "ayuv", "v210", "xv"))
+    full_range = (not luma_only or not yuv or pix.startswith("yuvj")
+                  or int(getattr(cc, "color_range", 0) or 0) == 2)
     n = int(s.frames) if s.frames else None
     if n is not None and n > MAX_FRAMES:
         raise VideoError(path, f"declares {n} frames, over the {MAX_FRAMES} this reader accepts")
@@ -224,8 +266,9 @@ def _info_from_container(path: Path, c) -> VideoInfo:
         start = c.start_time / 1e6 if c.start_time is not None and c.start_time > 0 else 0.0
         duration = c.duration / 1e6 - start
     rate = float(s.average_rate) if s.average_rate else None
+    streams = tuple((v.index, int(v.width or 0), int(v.height or 0)) for v in c.streams.video)
     return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only,
-                     full_range)
+                     full_range, s.index, streams)
 
 
 def limited_to_full(y: np.ndarray, bits: int = 8) -> np.ndarray:
@@ -260,7 +303,8 @@ def _check_size(path, w: int, h: int) -> None:
         raise VideoError(path, f"frame size {w}×{h}: expected 1–{MAX_SIDE} px per side")
 
 
-def _iter_av(path: Path) -> Iterator[tuple[float, np.ndarray]]:
+def _iter_av(path: Path, stream: int | None = None, notes: list[str] | None = None
+             ) -> Iterator[tuple[float, np.ndarray]]:
     av = _av()
     try:
         c = av.open(str(path), metadata_errors="replace")
@@ -268,37 +312,89 @@ def _iter_av(path: Path) -> Iterator[tuple[float, np.ndarray]]:
         raise VideoError(path, f"not a video FFmpeg can read, or truncated before its header ends ({e})"
                          ) from None
     with c:
-        info = _info_from_container(path, c)
-        s = c.streams.video[0]
-        n, first, last, periods = 0, 0.0, -math.inf, []
-        try:
-            for frame in c.decode(s):
-                t = _frame_time(path, frame, n)
-                if not t > last:
-                    raise VideoError(path, f"frame {n} has timestamp {t:.6f} s, not after the previous "
-                                           f"{last:.6f} s (expected strictly increasing presentation times)")
-                if n >= MAX_FRAMES:
-                    raise VideoError(path, f"more than {MAX_FRAMES} frames")
-                if n == 0:
-                    first = t
-                elif len(periods) < 1000:          # enough for the typical frame period
-                    periods.append(t - last)
-                img = _grey(path, frame, info)
-                last = t
-                n += 1
-                yield t, img
-        except _DECODE_ERRORS as e:
-            raise VideoError(path, f"decoding stopped at frame {n}: truncated or corrupt ({e})") from None
+        info = _info_from_container(path, c, stream)
+        s = c.streams.video[[v.index for v in c.streams.video].index(info.stream_index)]
+        # AVI stores no presentation times, only one slot per frame in decode order (with B-frames the
+        # demuxer's pts follow that order, not the pictures'): the frames, in presentation order, take the
+        # slots of the packets read so far, earliest first, as a decoder's reordering does with true pts
+        slots = [] if c.format.name == "avi" else None
+        n, first, last, periods, errors, damaged = 0, 0.0, -math.inf, [], [], []
+        for frame in _decoded(c, s, errors, slots):
+            t = _frame_time(path, frame, n, s.time_base, heapq.heappop(slots) if slots else None)
+            if frame.is_corrupt:       # its missing data concealed by the decoder: pixels no camera saw
+                damaged.append(n + len(damaged))
+                continue
+            if not t > last:
+                raise VideoError(path, f"frame {n} has timestamp {t:.6f} s, not after the previous "
+                                       f"{last:.6f} s (expected strictly increasing presentation times)")
+            if n >= MAX_FRAMES:
+                raise VideoError(path, f"more than {MAX_FRAMES} frames")
+            if n == 0:
+                first = t
+                _note_first_frame(frame, notes)
+            elif len(periods) < 1000:          # enough for the typical frame period
+                periods.append(t - last)
+            img = _grey(path, frame, info)
+            last = t
+            n += 1
+            yield t, img
     if n == 0:
-        raise VideoError(path, "the video stream holds zero decodable frames (empty or truncated)")
-    _check_complete(path, info, n, last - first, periods)
+        raise VideoError(path, "the video stream holds zero decodable frames (empty or truncated)"
+                         + (f" ({errors[0]})" if errors else "")
+                         + (f"; {len(damaged)} damaged" if damaged else ""))
+    if damaged and notes is None:
+        raise VideoError(path, f"frame {damaged[0]} is damaged (decoded with missing data concealed)")
+    if damaged:
+        notes.append(f"{len(damaged)} damaged frame(s) (decoded with missing data concealed) left out: "
+                     f"{damaged[:10]}{' …' if len(damaged) > 10 else ''}")
+    problem = (f"decoding stopped at frame {n}: truncated or corrupt ({errors[0]})" if errors
+               else _incomplete(info, n, last - first, periods))
+    if problem and notes is None:
+        raise VideoError(path, problem)
+    if problem:
+        notes.append(f"{problem}; the {n} frames decoded before it are kept")
 
 
-def _frame_time(path: Path, frame, k: int) -> float:
-    pts = frame.pts if frame.pts is not None else getattr(frame, "dts", None)
-    if pts is None or frame.time_base is None:
+def _decoded(c, s, errors: list, slots: list | None = None):
+    """The stream's frames in presentation order, up to the first damaged or cut packet (whose error is
+    appended to `errors`): the frames the decoder holds then are flushed, not lost. With `slots`, each
+    packet's decode time is pushed onto that heap before its frames are decoded."""
+    try:
+        for packet in c.demux(s):
+            if slots is not None and packet.size and packet.dts is not None:
+                heapq.heappush(slots, packet.dts)
+            yield from s.decode(packet)
+    except _DECODE_ERRORS as e:     # the demuxer's (a cut packet header) or the decoder's
+        errors.append(e)
+    if not errors:                  # demux's last, empty packet has flushed the decoder
+        return
+    try:
+        yield from s.decode(None)
+    except av.error.EOFError:
+        pass
+    except _DECODE_ERRORS as e:
+        errors.append(e)
+
+
+def _note_first_frame(frame, notes: list[str] | None) -> None:
+    """What a player would do to the frames that the reader does not: rotate, deinterlace."""
+    if notes is None:
+        return
+    rotation = int(round(getattr(frame, "rotation", 0) or 0)) % 360
+    if rotation:
+        notes.append(f"the file asks players to rotate it by {360 - rotation}° clockwise; the frames are "
+                     "read as coded (the sensor's rows and columns), unrotated")
+    if getattr(frame, "interlaced_frame", False):
+        notes.append("the video is interlaced: each frame's two fields are read woven as one picture")
+
+
+def _frame_time(path: Path, frame, k: int, time_base, slot: int | None = None) -> float:
+    pts = slot if slot is not None else frame.pts if frame.pts is not None else getattr(frame, "dts", None)
+    # the frames flushed from the decoder at the end carry no time base of their own: the stream's
+    time_base = frame.time_base or time_base
+    if pts is None or time_base is None:
         raise VideoError(path, f"frame {k} has no timestamp (expected a container with presentation times)")
-    t = float(pts * frame.time_base)
+    t = float(pts * time_base)
     if not math.isfinite(t):
         raise VideoError(path, f"frame {k} has a non-finite timestamp")
     return t
@@ -325,9 +421,9 @@ def _grey(path: Path, frame, info: VideoInfo) -> np.ndarray:
     return np.ascontiguousarray(frame.to_ndarray(format=target))
 
 
-def _check_complete(path: Path, info: VideoInfo, n: int, span: float, periods: list[float]) -> None:
-    """A stream that ends well before its header says it should was cut short: judged by the
-    declared duration when there is one (a frame count can count a CFR container's empty slots,
+def _incomplete(info: VideoInfo, n: int, span: float, periods: list[float]) -> str | None:
+    """How a stream that ends well before its header says it should was cut short, or None: judged by
+    the declared duration when there is one (a frame count can count a CFR container's empty slots,
     as AVI's does for variable-rate video), else by the declared frame count."""
     if info.duration_s and periods:
         period = float(np.median(periods))
@@ -335,10 +431,11 @@ def _check_complete(path: Path, info: VideoInfo, n: int, span: float, periods: l
         # the last frame lasts a nominal period in the header's sum, which a variable rate can exceed
         nominal = 1.0 / info.frame_rate_hz if info.frame_rate_hz else 0.0
         if missing > max(3 * period, 2 * nominal, 0.02 * info.duration_s):
-            raise VideoError(path, f"truncated: the header declares {info.duration_s:.3f} s, the decodable "
-                                   f"frames cover {info.duration_s - missing:.3f} s")
+            return (f"truncated: the header declares {info.duration_s:.3f} s, the decodable frames cover "
+                    f"{info.duration_s - missing:.3f} s")
     elif info.n_frames is not None and n < info.n_frames:
-        raise VideoError(path, f"truncated: the header declares {info.n_frames} frames, {n} could be decoded")
+        return f"truncated: the header declares {info.n_frames} frames, {n} could be decoded"
+    return None
 
 
 # ----------------------------------------------------------------------------------- TIFF sequences
