@@ -220,10 +220,19 @@ def choose_stream(streams) -> int | None:
         disp = int(s.disposition or 0)
         if disp & attached:
             continue
-        k = (bool(disp & default), int(s.width or 0) * int(s.height or 0))
+        k = (bool(disp & default), _size(s)[0] * _size(s)[1])
         if key is None or k > key:
             best, key = s.index, k
     return best
+
+
+def _size(s) -> tuple[int, int]:
+    """A stream's (width, height), (0, 0) when unknown (a damaged header leaves PyAV no codec
+    context, and then asking for the width raises)."""
+    try:
+        return int(s.width or 0), int(s.height or 0)
+    except (AttributeError, ValueError):
+        return 0, 0
 
 
 def _video_stream(path: Path, c, stream: int | None):
@@ -266,7 +275,7 @@ def _info_from_container(path: Path, c, stream: int | None = None) -> VideoInfo:
         start = c.start_time / 1e6 if c.start_time is not None and c.start_time > 0 else 0.0
         duration = c.duration / 1e6 - start
     rate = float(s.average_rate) if s.average_rate else None
-    streams = tuple((v.index, int(v.width or 0), int(v.height or 0)) for v in c.streams.video)
+    streams = tuple((v.index, *_size(v)) for v in c.streams.video)
     return VideoInfo(str(path), "video", w, h, depth, n, duration, rate, cc.name or "?", pix, luma_only,
                      full_range, s.index, streams)
 
