@@ -27,3 +27,7 @@ class FileError(ThermodError):
     def __init__(self, path, problem: str):
         self.path, self.problem = str(path), problem
         super().__init__(f"{path}: {problem}")
+
+
+class StopRequested(ThermodError):
+    """A stop (SIGTERM, SIGINT) came while waiting for something: that wait is abandoned."""

@@ -5,13 +5,15 @@ reason (none lost on a healthy run; the subscriber's own rare losses on a loaded
 the topic's seq, `tests/support/losses.py`), raw frames identical to what the payload's
 camera sent, deblurred frames much closer to the simulator's truth than the raw ones, health carrying
 the calibration, SIGTERM → exit 0 before systemd's TimeoutStopSec would kill it, and within 2 s with no
-``ipc://`` socket file left behind.
+``ipc://`` socket file left behind; a stop during the warm-up ends it at once and leaves no child
+process and no traceback.
 """
 
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -385,3 +387,97 @@ def test_sigterm_exits_within_2_s_and_removes_its_ipc_socket(payload, tmp_path):
     assert rc == 0, err[-3000:]
     assert took < 2.0, (took, err[-3000:])
     assert not sock.exists(), err[-3000:]
+
+
+# ------------------------------------------------------------------------- stopped during the warm-up
+def _alive(pid: int) -> bool:
+    """Whether process `pid` runs (a zombie waiting for its reaper does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _spawned_children(pid: int) -> list[int]:
+    """The multiprocessing children of `pid` (the gyro process and the solver children: spawned
+    interpreters running ``spawn_main``), from /proc."""
+    out = []
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read()
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == pid and b"spawn_main" in cmd:
+            out.append(int(d))
+    return out
+
+
+class _Log(threading.Thread):
+    """Reads a process's stderr to its end (every process holding it gone), line by line."""
+
+    def __init__(self, stream):
+        super().__init__(daemon=True)
+        self.stream, self.lines = stream, []
+
+    def run(self):
+        for line in self.stream:
+            self.lines.append(line)
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+
+def _in_warm_up(ep: str) -> tuple[subprocess.Popen, _Log, list[int]]:
+    """`thermod run` caught in its warm-up: every child it has then runs (the gyro process and one
+    solver child per worker, `default_workers` as the daemon counts them). Returns the process, its
+    log and the children's pids."""
+    from thermod.runtime.pipeline import default_workers
+
+    workers = config.load().pipeline.workers or default_workers()
+    proc = subprocess.Popen([str(THERMOD), "run", "--endpoint", ep, "--seconds", "300"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env(), text=True)
+    log = _Log(proc.stderr)
+    log.start()
+    deadline = time.monotonic() + 240           # a hang bound; the payload's loop is cached (fixture)
+    while len(kids := _spawned_children(proc.pid)) < workers + 1:
+        assert time.monotonic() < deadline and proc.poll() is None, log.text()[-3000:]
+        time.sleep(0.02)
+    assert "deconvolution workers ready" not in log.text(), "the warm-up ended before the test could stop it"
+    return proc, log, kids
+
+
+def _all_gone(pids: list[int], timeout: float = 30.0) -> list[int]:
+    """The pids of `pids` still running after `timeout` s (a hang bound: children of a dead parent
+    are reaped by init)."""
+    end = time.monotonic() + timeout
+    while (left := [p for p in pids if _alive(p)]) and time.monotonic() < end:
+        time.sleep(0.05)
+    return left
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_stop_during_the_warm_up_ends_it_and_every_child(payload, sig):
+    """systemd's stop (or Ctrl-C) while the solver children build their FFT plans: the daemon gives
+    up the warm-up at once, kills its children and exits 0, as after any stop. It used to finish the
+    warm-up first (4-15 s measured, deaf to the signal), and to start the stream before stopping it."""
+    proc, log, kids = _in_warm_up(private_endpoint())
+    try:
+        proc.send_signal(sig)
+        rc = proc.wait(timeout=TIMEOUT_STOP_S)      # a hang bound: the stop takes well under a second
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    log.join(60.0)
+    err = log.text()
+    assert rc == 0, err[-3000:]
+    assert "start abandoned" in err and "deconvolution workers ready" not in err, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert _all_gone(kids) == [], (kids, err[-3000:])
+

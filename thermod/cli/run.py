@@ -70,7 +70,6 @@ def run(args) -> int:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
     if args.config:
         _warn_if_open(args.config)
-    d = Daemon(cfg, overrides=ov)
     stop = threading.Event()
     reload_req = threading.Event()
 
@@ -78,16 +77,20 @@ def run(args) -> int:
         log.info("%s: shutting down", signal.Signals(signum).name)
         stop.set()
 
+    # before the daemon exists: a stop that comes during the start (seconds of warm-up) ends it there
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
     signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    d = Daemon(cfg, overrides=ov)
     try:
-        d.start()
+        started = d.start(abort=stop)
         # Start-up (numba, LLVM, the loaded modules) leaves ~10⁵ objects that live as long as the process:
         # frozen, the collector no longer walks them, neither in full collections while frames flow nor
-        # in the interpreter's teardown, which otherwise spends most of the 2 s a stop is allowed
+        # in the interpreter's teardown, which otherwise spends most of the 2 s a stop is allowed (also
+        # after a start that a stop abandoned)
         gc.freeze()
-        d.serve(stop, reload_req, seconds=args.seconds)
+        if started:
+            d.serve(stop, reload_req, seconds=args.seconds)
     finally:
         d.stop()
     return 0

@@ -11,10 +11,11 @@ pipeline's (`thermod.runtime.pipeline`) and the publisher's (`thermod.runtime.pu
 Faults: a gyro I/O error is retried with back-off while frames pass through flagged ``gyro_offline``;
 a camera error or stall (no frame for ``max(1 s, 10 frame periods)``) restarts the camera source
 with back-off. Every state change is logged once and visible in the health message.
-Signals: SIGTERM/SIGINT → clean shutdown (< 2 s), exit 0. SIGHUP → re-read the configuration and
-apply its calibration, deblur and radiometry settings to the running pipeline (no frame dropped);
-source/publish changes need a restart and are reported as such; a reload that fails keeps the
-running configuration and says why (log, ``health["reload"]``). Data flow: docs/design.md §6.
+Signals: SIGTERM/SIGINT → clean shutdown (< 2 s), exit 0, also during the start (`start`). SIGHUP →
+re-read the configuration and apply its calibration, deblur and radiometry settings to the running
+pipeline (no frame dropped); source/publish changes need a restart and are reported as such; a
+reload that fails keeps the running configuration and says why (log, ``health["reload"]``). Data
+flow: docs/design.md §6.
 
 Parts: `thermod.runtime.sources` (driver registry), `thermod.runtime.driver_thread` (one thread per
 device), `thermod.runtime.health` (the health message), this module; `thermod.cli.run` is the command.
@@ -30,7 +31,7 @@ import math
 import threading
 import time
 
-from thermod.errors import ConfigError, DeviceError, ThermodError
+from thermod.errors import ConfigError, DeviceError, StopRequested, ThermodError
 from thermod.io.wire import frame_method_fields
 from thermod.restore.policy import MAX_STEP_PERIODS
 from thermod.runtime import config as configmod
@@ -212,8 +213,27 @@ class Daemon:
             self.rtsp.offer(o.image, o.t, o.frame_id)
 
     # ---------------------------------------------------------------- lifecycle
-    def start(self) -> None:
+    def start(self, abort: threading.Event | None = None) -> bool:
+        """Start every part; `stop` ends them, also after a start that failed or was abandoned.
+
+        `abort` (the stop signal's event, as `serve` gets it): set before the start is done, it ends
+        the start between two steps, and the seconds of the workers' warm-up within a fraction of a
+        second (`Pipeline.warmup`); returns False then, True once started. The payload's preparation
+        (the simulated payload's loop, read or rendered here) runs to its end."""
+        try:
+            self._start(abort)
+        except StopRequested as e:
+            log.info("start abandoned: %s", e)
+            return False
+        return True
+
+    def _start(self, abort: threading.Event | None) -> None:
+        def check(step: str) -> None:
+            if abort is not None and abort.is_set():
+                raise StopRequested(f"stop requested {step}")
+
         cfg = self.cfg
+        check("before the start")
         self.publisher.start()  # first: a taken endpoint fails here, before seconds of payload preparation
         log.info("publishing on %s", self.publisher.endpoint)
         if self.rtsp is not None:
@@ -221,13 +241,17 @@ class Daemon:
         if isinstance(self.gyro, GyroProcess):
             self.gyro.spawn()         # its interpreter starts while the payload and the workers prepare
         if self.payload is not None:
+            check("before the simulated payload's preparation")
             if not self.payload.cached():
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
                             "this takes a while once", cfg.sim.loop_s, self.payload.cache_path)
                 self.notifier.extend_timeout(600.0)      # beyond TimeoutStartSec, once
             self.payload.prepare()
-        dt = self.pipeline.warmup()
+        check("before the warm-up")
+        log.info("warming up %d deconvolution workers", self.pipeline.n_workers)
+        dt = self.pipeline.warmup(abort=abort)
         log.info("renderer and %d deconvolution workers ready (%.2f s)", self.pipeline.n_workers, dt)
+        check("after the warm-up")
         if self.payload is not None:
             self.payload.start()
         self.pipeline.start(self.frame_ring.head)
@@ -252,20 +276,24 @@ class Daemon:
         ]
         gyro_thread.start()
         if isinstance(self.gyro, GyroProcess):
-            self._await_gyro(GYRO_START_WAIT_S)
+            self._await_gyro(GYRO_START_WAIT_S, abort)
+            check("while waiting for the gyro process")
         for th in self.driver_threads[1:]:
             th.start()
         if self.monitor is not None:
             self.monitor.start()
 
-    def _await_gyro(self, timeout: float) -> None:
-        """Wait until the gyro's first samples are in the ring, at most `timeout` s: the camera starts
-        then, so the first frames find their motion (a gyro process builds its source only now). A gyro
-        that is not up by then is waited for frame by frame, as any outage."""
+    def _await_gyro(self, timeout: float, abort: threading.Event | None = None) -> None:
+        """Wait until the gyro's first samples are in the ring, at most `timeout` s (or until `abort`
+        is set): the camera starts then, so the first frames find their motion (a gyro process builds
+        its source only now). A gyro that is not up by then is waited for frame by frame, as any
+        outage."""
         deadline = time.monotonic() + timeout
         while self.gyro_ring.count == 0 and time.monotonic() < deadline and not self._stop.is_set() \
-                and self.gyro_state.state != "error":
+                and self.gyro_state.state != "error" and not (abort is not None and abort.is_set()):
             time.sleep(0.01)
+        if abort is not None and abort.is_set():
+            return
         if self.gyro_ring.count == 0:
             log.warning("gyro: no sample yet (%s); starting the camera anyway", self.gyro_state.state)
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from thermod.errors import ConfigError
+from thermod.errors import ConfigError, StopRequested
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.gyro_effects import CLIP_TOL
@@ -244,7 +244,8 @@ class Pipeline:
         return Governor(deblur, calib.frame_rate_hz, self.n_workers, calib.width / calib.height)
 
     # ------------------------------------------------------------------ lifecycle
-    def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0) -> float:
+    def warmup(self, max_kernel_px: int = 64, budget_s: float = 30.0,
+               abort: threading.Event | None = None) -> float:
         """Start the workers' solvers (`cfg.processes`: a child process each) and build them, one per
         rung of the governor's ladder, before the first frame: the numba renderer compiled, LUTs, the
         FFT plans of every padded shape a kernel up to `max_kernel_px` can need (plans are per padded
@@ -254,7 +255,28 @@ class Pipeline:
         plans are built, through the call the stream's jobs use (a child's round trip included: what
         the governor is given in the stream). A temporal rung is timed with a prior (the frame before,
         restored, warped across one frame period of roll): its cost is the one it has in the stream.
-        The children warm up together. Returns seconds spent."""
+        The children warm up together. Returns seconds spent.
+
+        A set `abort` (the daemon's stop) ends the warm-up within `solvers.POLL_S`: the children are
+        killed (mid-warm-up they cannot hear "stop") and `StopRequested` is raised. Solving in
+        threads, the solver being built finishes first."""
+        t0 = time.monotonic()
+        try:
+            self._warmup(max_kernel_px, budget_s, abort)
+        except StopRequested:
+            self._close_solvers(timeout=0.0)
+            raise
+        finally:
+            for solver in self._solvers:     # the stream's stop lets a child finish its frame
+                if isinstance(solver, InChild):
+                    solver.abort = None
+        return time.monotonic() - t0
+
+    def _warmup(self, max_kernel_px: int, budget_s: float, abort: threading.Event | None) -> None:
+        def check() -> None:
+            if abort is not None and abort.is_set():
+                raise StopRequested("stop requested during the warm-up")
+
         t0 = time.monotonic()
         self._set_process_limits()
         s = self._settings
@@ -268,11 +290,12 @@ class Pipeline:
                + np.random.default_rng(0).normal(0.0, 10.0, (h, w_px))).astype(np.float32)
         # the scheduler's grid choice runs here, in this process: its compiled code loaded now
         grids_within(tg, rate, s.calib, 0.0, s.deblur, (s.deblur.grid_tol_px, s.deblur.temporal_tol_px))
+        check()
         orders = [KernelOrder(0.0, tg, rate, dataclasses.replace(s.deblur, mode="uniform"))]
         if any(r.varying for r in gov.rungs) and s.deblur.mode != "uniform":
             for g in coarser_grids(tuple(s.deblur.grid), s.calib.width / s.calib.height)[:-1]:
                 orders.append(KernelOrder(0.0, tg, rate, dataclasses.replace(s.deblur, mode="grid", grid=g)))
-        self._start_solvers()
+        self._start_solvers(abort)
         left = max(0.0, budget_s - (time.monotonic() - t0))
 
         def warm(solver):
@@ -283,13 +306,14 @@ class Pipeline:
                 list(pool.map(warm, self._solvers))
         else:
             for solver in self._solvers:
+                check()
                 warm(solver)
+        check()
         # timed as the stream's jobs are (the render, the solve, and a child's round trip), on the first
         # worker, alone
         for fam, cells, compute_s, overhead_s in rung_costs(self._solvers[0], s, gov.rungs, img, orders[0],
                                                             orders[1:]):
             gov.seed(fam, cells, compute_s, overhead_s)
-        return time.monotonic() - t0
 
     def _set_process_limits(self) -> None:
         """One thread per solve (the workers are the parallelism), and a short GIL switch interval:
@@ -299,9 +323,10 @@ class Pipeline:
             self._process_settings = (limit_threads(), sys.getswitchinterval())
             sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
 
-    def _start_solvers(self) -> None:
+    def _start_solvers(self, abort: threading.Event | None = None) -> None:
         """Each worker's solvers: a child process each when `cfg.processes` (threads when the children
-        cannot start, e.g. no memfd under a seccomp filter: said in the log), else in-thread."""
+        cannot start, e.g. no memfd under a seccomp filter: said in the log), else in-thread. `abort`:
+        see `warmup`."""
         if self._solvers:
             return
         n = self.n_workers
@@ -315,13 +340,15 @@ class Pipeline:
                 info = probe.padded_shape(shape, shape) if hasattr(probe, "padded_shape") else shape
                 layout = Layout(shape, n, slots_needed(n, PRIOR_FRAMES), info[0] * (info[1] // 2 + 1))
                 self._frames = SharedFrames(layout)
-                self._solvers = start_children(self._factory, self._frames, n, self._render)
+                self._solvers = start_children(self._factory, self._frames, n, self._render, abort=abort)
                 return
             except (OSError, SolverError) as e:
-                log.warning("solver processes unavailable (%s); solving in the worker threads", e)
                 if self._frames is not None:
                     self._frames.close()
                     self._frames = None
+                if abort is not None and abort.is_set():     # a child killed by the stop's signal
+                    raise StopRequested("stop requested while the solver children started") from None
+                log.warning("solver processes unavailable (%s); solving in the worker threads", e)
         self._solvers = [InThread(self._factory, self._render) for _ in range(n)]
 
     def _solver_at(self, i: int):
@@ -372,12 +399,12 @@ class Pipeline:
             sys.setswitchinterval(switch_interval)
             self._process_settings = None
 
-    def _close_solvers(self) -> None:
+    def _close_solvers(self, timeout: float = 0.5) -> None:
         if any(th is not None and th.is_alive() for th in self._workers):
             return        # a worker still solving past stop's timeout: its daemon thread ends with us
         with self._est_cond:
             self._estimates.clear()
-        close_all(self._solvers, timeout=0.5)
+        close_all(self._solvers, timeout=timeout)
         self._solvers = []
         if self._frames is not None:
             self._frames.close()

@@ -38,6 +38,7 @@ from multiprocessing.reduction import recv_handle, send_handle
 
 import numpy as np
 
+from thermod.errors import StopRequested
 from thermod.io.wire import pack_kernel
 from thermod.physics.deconv.half import HalfResolution
 from thermod.physics.deconv.recursive import Estimate, RecursiveDeconvolver
@@ -480,8 +481,12 @@ def _child_main(conn, factory, renderer=render) -> None:
 class InChild:
     """A worker's solvers in a child process (spawned: a fresh interpreter, a GIL of its own)."""
 
-    def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True, renderer=render):
+    def __init__(self, factory, frames: SharedFrames, worker: int, *, wait: bool = True, renderer=render,
+                 abort: threading.Event | None = None):
         self.frames, self.worker = frames, worker
+        # the daemon's stop, while it starts: a stop asked for ends every wait for this child
+        # (`StopRequested`) instead of waiting out a warm-up of seconds
+        self.abort = abort
         self._generation = None
         self._overlay_sent = None
         ctx = multiprocessing.get_context("spawn")
@@ -519,6 +524,8 @@ class InChild:
         """The child's next message; SolverError if it died, failed, or said nothing within `timeout`."""
         t_end = math.inf if timeout is None else time.monotonic() + timeout
         while True:
+            if self.abort is not None and self.abort.is_set():
+                raise StopRequested(f"solver child {self.worker}: stop requested while waiting for it")
             left = t_end - time.monotonic()
             if left <= 0:
                 self._kill()             # hung: whatever it says later would answer the wrong job
@@ -650,17 +657,19 @@ def close_all(solvers: list, timeout: float = 1.0) -> None:
             solver.close()
 
 
-def start_children(factory, frames: SharedFrames, workers: int, renderer=render) -> list[InChild]:
+def start_children(factory, frames: SharedFrames, workers: int, renderer=render,
+                   abort: threading.Event | None = None) -> list[InChild]:
     """One `InChild` per worker, started together (each child's start-up, about 1 s of imports,
-    overlaps the others')."""
+    overlaps the others'). A set `abort` ends the wait for them (`StopRequested`, `InChild.abort`)."""
     out: list[InChild] = []
     try:
         for i in range(workers):
-            out.append(InChild(factory, frames, i, wait=False, renderer=renderer))
+            out.append(InChild(factory, frames, i, wait=False, renderer=renderer, abort=abort))
         for c in out:
             c.wait_ready()
-    except BaseException:
-        close_all(out)
+    except BaseException as e:
+        # a child still importing cannot hear "stop": after a stop request it is killed at once
+        close_all(out, timeout=0.0 if isinstance(e, StopRequested) else 1.0)
         raise
     return out
 
