@@ -5,8 +5,8 @@ reason (none lost on a healthy run; the subscriber's own rare losses on a loaded
 the topic's seq, `tests/support/losses.py`), raw frames identical to what the payload's
 camera sent, deblurred frames much closer to the simulator's truth than the raw ones, health carrying
 the calibration, SIGTERM → exit 0 before systemd's TimeoutStopSec would kill it, and within 2 s with no
-``ipc://`` socket file left behind; a stop during the warm-up ends it at once and leaves no child
-process and no traceback.
+``ipc://`` socket file left behind; a stop during the warm-up ends it at once, and a stop or a
+SIGKILL then leaves no child process and no traceback.
 """
 
 import os
@@ -481,3 +481,18 @@ def test_a_stop_during_the_warm_up_ends_it_and_every_child(payload, sig):
     assert "Traceback" not in err, err[-3000:]
     assert _all_gone(kids) == [], (kids, err[-3000:])
 
+
+@pytest.mark.slow
+def test_a_daemon_killed_during_the_warm_up_leaves_no_child_and_no_traceback(payload):
+    """SIGKILL (an OOM kill, systemd's last resort): the gyro process, waiting for its source, sees
+    its parent's pipe at EOF and ends with one line; the solver children end at their next message.
+    The gyro process used to die of an EOFError traceback."""
+    proc, log, kids = _in_warm_up(private_endpoint())
+    proc.kill()
+    proc.wait(timeout=60.0)
+    log.join(120.0)                                # EOF: every child holding stderr has exited
+    err = log.text()
+    assert not log.is_alive(), "a child of the killed daemon still holds its stderr"
+    assert "Traceback" not in err and "EOFError" not in err, err[-3000:]
+    assert err.count("went away") <= 1, err[-3000:]
+    assert _all_gone(kids) == [], (kids, err[-3000:])

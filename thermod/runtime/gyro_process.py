@@ -285,26 +285,56 @@ def _enlarge(fd: int) -> None:
 
 def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) -> None:
     """The gyro process: wait for the constructor, run a `DriverThread` on the source until told to stop
-    or the parent is gone; batches and state reports go into `data`."""
+    or the parent is gone; batches and state reports go into `data`. A parent that goes away, at any
+    moment (its pipes at EOF or broken, this process re-parented), ends it with one log line."""
     import importlib
 
     from thermod.runtime.driver_thread import DriverThread
 
+    # the pid the parent gave at spawn: by now it may have died already and getppid() say another
+    parent = getattr(multiprocessing.parent_process(), "pid", None) or os.getppid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # the daemon stops us (Ctrl-C reaches the group)
     logging.basicConfig(level=opts.get("log_level", logging.INFO),
                         format="%(levelname)s %(name)s [gyro process]: %(message)s")
+    gone = threading.Event()        # the parent went away: nothing to read from nor send to any more
+
+    def orphaned() -> bool:
+        if not gone.is_set() and os.getppid() != parent:
+            gone.set()
+        return gone.is_set()
+
+    def left_alone() -> None:
+        log.info("the daemon (pid %d) went away; the gyro process ends", parent)
+
     for name in preload:
         importlib.import_module(name)
-    parent = os.getppid()
-    while not conn.poll(0.2):
-        if stop.is_set() or os.getppid() != parent:
-            return
-    build = conn.recv()
+    build = None
+    try:
+        while not conn.poll(0.2) and not orphaned():
+            if stop.is_set():
+                return
+        if not gone.is_set():
+            build = conn.recv()
+    except (EOFError, OSError):       # the parent's end closed: it died before handing the constructor
+        gone.set()
+    if gone.is_set():
+        left_alone()
+        return
     sending = threading.Lock()      # the driver thread and this one both send: one message at a time
+    halt = threading.Event()
+
+    def send(msg: bytes) -> None:
+        with sending:
+            if gone.is_set():
+                return
+            try:
+                data.send_bytes(msg)
+            except OSError:           # BrokenPipeError: the parent died; the loop below ends us
+                gone.set()
+                halt.set()
 
     def send_state(state: dict, stats: dict, clock, sim_cpu: float) -> None:
-        with sending:
-            data.send_bytes(b"S" + pickle.dumps((state, stats, clock, sim_cpu)))
+        send(b"S" + pickle.dumps((state, stats, clock, sim_cpu)))
 
     try:
         src = build()
@@ -313,7 +343,6 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
                     "last_error": f"{type(e).__name__}: {e}"}, {}, None, 0.0)
         raise SystemExit(1) from None
     st = DeviceState(src.name)
-    halt = threading.Event()
 
     def report() -> None:
         book = getattr(src, "emulation_cpu", None)
@@ -326,11 +355,9 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
 
     def sink(b: GyroBatch) -> None:
         n = len(b)
-        msg = b"".join((b"B", _BATCH.pack(int(b.seq), bool(b.gap_before), int(b.n_lost), n),
-                        np.ascontiguousarray(b.t, "<f8").tobytes(),
-                        np.ascontiguousarray(b.rate, "<f4").tobytes()))
-        with sending:
-            data.send_bytes(msg)
+        send(b"".join((b"B", _BATCH.pack(int(b.seq), bool(b.gap_before), int(b.n_lost), n),
+                       np.ascontiguousarray(b.t, "<f8").tobytes(),
+                       np.ascontiguousarray(b.rate, "<f4").tobytes())))
 
     # a FIFO driver waits on the parent's requests itself: a request wakes the real-time reader
     # directly, not through this thread
@@ -348,7 +375,7 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
     th.start()
     last = -math.inf
     try:
-        while not stop.is_set() and os.getppid() == parent:
+        while not stop.is_set() and not orphaned():
             left = max(0.0, STATE_EVERY_S - (time.monotonic() - last))
             if relay is None:
                 stop.wait(left)
@@ -361,3 +388,5 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
     finally:
         halt.set()
         th.join(1.0)
+    if gone.is_set():
+        left_alone()

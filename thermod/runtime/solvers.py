@@ -413,8 +413,11 @@ def _child_main(conn, factory, renderer=render) -> None:
     children (``stop``, then a kill). A parent that dies leaves the pipe at EOF: the child ends."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    fd = recv_handle(conn)
-    layout: Layout = conn.recv()
+    try:
+        fd = recv_handle(conn)
+        layout: Layout = conn.recv()
+    except (EOFError, OSError):
+        return                           # the parent went away while this interpreter started
     # mapped in full now (MAP_POPULATE): no page-table faults on a frame in flight
     buf = mmap.mmap(fd, layout.size, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
     inputs, images, infos = layout.views(buf)
@@ -431,7 +434,10 @@ def _child_main(conn, factory, renderer=render) -> None:
         info = infos[slot][:info_shape[0] * info_shape[1]].reshape(info_shape)
         return Estimate(images[slot], t_frame, info, tuple(shape))
 
-    conn.send(("ready", os.getpid()))
+    try:
+        conn.send(("ready", os.getpid()))
+    except OSError:
+        return                           # the parent went away
     while True:
         try:
             msg = conn.recv()
