@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 
+from thermod.drivers.gyro_base import GyroBatch
 from thermod.errors import DeviceError
 from thermod.physics.calibration import Calibration
 from thermod.runtime.driver_thread import DeviceState, DriverThread
@@ -218,4 +219,26 @@ def test_a_child_spawned_but_never_given_its_source_stops_with_the_daemon():
     assert gyro.alive()
     gyro.stop(timeout=5.0)
     assert not gyro.alive() and gyro.pid is None
+    assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+
+
+
+def test_sigterm_to_the_process_group_leaves_the_child_to_the_daemons_stop():
+    """systemd's stop sends SIGTERM to every process of the service. The child ignores it, as the
+    solver children do, and ends when the daemon stops it. It used to die inside `stop.wait`, and the
+    daemon's stop (before its pump noticed the death) then waited forever in `stop.set` for the dead
+    child's acknowledgement, until systemd's SIGKILL."""
+    gyro = process_gyro()
+    gyro.start(emulated(time.monotonic()))
+    end = time.monotonic() + 60.0               # a hang bound: samples come within a few seconds
+    while not isinstance(gyro.get(0.1), GyroBatch):
+        assert time.monotonic() < end and gyro.alive(), "no sample from the gyro process"
+    pid, proc = gyro.pid, gyro._proc
+    os.kill(pid, signal.SIGTERM)
+    proc.join(1.0)                              # a child that dies of it dies now
+    stopper = threading.Thread(target=gyro.stop, daemon=True)
+    stopper.start()
+    stopper.join(30.0)                          # a hang bound: the stop takes a fraction of a second
+    assert not stopper.is_alive(), "the gyro process's stop hung"
+    assert not gyro.alive() and proc.exitcode == 0, proc.exitcode
     assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"

@@ -105,7 +105,8 @@ class GyroProcess:
             proc = self._proc
             if proc is None:
                 return
-            self._stop.set()
+            if proc.is_alive():     # a dead child's event can wait forever for its acknowledgement
+                self._stop.set()
             proc.join(timeout)
             if proc.is_alive():
                 proc.kill()
@@ -293,7 +294,10 @@ def _child_main(conn, data, wake, stop, opts: dict, preload: tuple[str, ...]) ->
 
     # the pid the parent gave at spawn: by now it may have died already and getppid() say another
     parent = getattr(multiprocessing.parent_process(), "pid", None) or os.getppid()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)     # the daemon stops us (Ctrl-C reaches the group)
+    # the daemon stops us: systemd's stop and Ctrl-C reach the whole group, and a child dead of them
+    # inside `stop.wait` would leave the daemon's `stop.set` waiting for its acknowledgement forever
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=opts.get("log_level", logging.INFO),
                         format="%(levelname)s %(name)s [gyro process]: %(message)s")
     gone = threading.Event()        # the parent went away: nothing to read from nor send to any more
