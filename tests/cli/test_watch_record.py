@@ -450,6 +450,66 @@ def test_record_cli_interrupted_still_writes(pub, shared_data, tmp_path, sig):
     assert np.allclose(gyro_dt, 1e-3, atol=1e-6) and len(rec.gyro_t) >= 20 * (rec.n_frames - 1) - 100
 
 
+
+@pytest.mark.slow
+def test_record_gives_up_on_an_endpoint_nobody_listens_on(tmp_path):
+    """As `thermod watch`: nothing for ``--timeout`` s (default 4) and nothing listening at the
+    endpoint → exit 1, a line naming the endpoint, no file. It used to wait forever."""
+    out = tmp_path / "x.h5"
+    exe = Path(sys.executable).with_name("thermod")
+    try:     # 120 s only catches the recorder waiting forever
+        r = subprocess.run([str(exe), "record", "-o", str(out), "--endpoint", "tcp://127.0.0.1:9"],
+                           capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("thermod record still waiting for a dead endpoint after 120 s")
+    assert r.returncode == 1, r.stderr
+    assert "thermod record: nothing arrived from tcp://127.0.0.1:9 for " in r.stderr, r.stderr
+    assert "nothing listens there" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not out.exists() and not out.with_name(out.name + ".part").exists()
+
+
+@pytest.mark.slow
+def test_record_keeps_its_frames_when_the_daemon_goes_away(shared_data, tmp_path):
+    """The publisher stops mid-recording: the recorder gives up after its ``--timeout``, and the
+    recording holds every frame received, finished (no ``.part``); exit 1 says it ended early."""
+    calib = Calibration(width=W, height=H)
+    pub = Publisher("tcp://127.0.0.1:*", queue_size=512, hwm=512).start()
+    feeder = Feeder(pub, scene(shared_data), calib)
+    out = tmp_path / "rec.h5"
+    spool = out.with_name(out.name + ".part")
+    exe = Path(sys.executable).with_name("thermod")
+    proc = subprocess.Popen([str(exe), "record", "-o", str(out), "--endpoint", pub.endpoint,
+                             "--timeout", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        feeder.start()
+        # the publisher goes once the recorder has flushed frames to its spool and 30 more went out
+        deadline = time.monotonic() + 120      # a hang bound: how soon depends on the machine
+        while not spool.exists():
+            assert time.monotonic() < deadline and proc.poll() is None, "the recorder wrote nothing"
+            time.sleep(0.05)
+        sent = feeder.sent
+        while feeder.sent < sent + 30:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        feeder.halt.set()
+        feeder.join()
+        pub.stop()
+    try:
+        stdout, stderr = proc.communicate(timeout=120)   # a hang bound: it gives up after 1 s of silence
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail(f"thermod record still waiting 120 s after its publisher went: {proc.communicate()[1]}")
+    assert proc.returncode == 1, stderr
+    assert f"thermod record: the daemon went away from {pub.endpoint} for " in stderr, stderr
+    assert "wrote" in stdout and "Traceback" not in stderr, (stdout, stderr)
+    assert not spool.exists()
+    rec = recording.read(out)
+    assert rec.n_frames >= 1 and np.all(np.diff(rec.extras["record/frame_id"]) == 1)
+    assert rec.calibration == calib and rec.extra_attrs["record"]["calibration_source"] == "health"
+
+
 # ------------------------------------------------------------------------- against the real daemon
 @pytest.mark.slow
 def test_record_and_watch_the_real_daemon(tmp_path, capsys):

@@ -9,8 +9,10 @@ samples) and ``record/gyro_gap_before`` marks samples the driver flagged as foll
 ``lost_raw_messages`` (lost on the way) and ``camera_frames_lost`` (never sent: the camera lost
 them, as the daemon said in the next frame). The calibration comes from ``--config``, else from
 the daemon's ``health`` messages, else defaults sized to the frames (``record.attrs`` says which).
-Whatever stops the recording — time up, Ctrl-C, SIGTERM, an error — what was received is written;
-if the recording cannot be completed, the ``.part`` file keeps the data and the error names it.
+Whatever stops the recording — time up, Ctrl-C, SIGTERM, an error, the daemon gone (nothing for
+``--timeout`` s and nothing listening at the endpoint: exit 1, as `thermod watch`) — what was received
+is written; if the recording cannot be completed, the ``.part`` file keeps the data and the error
+names it.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from thermod.client.subscriber import Subscriber
+from thermod.client.subscriber import SILENCE_S, Silence, Subscriber, gone_message
 from thermod.errors import RecordingError, ThermodError
 from thermod.io.endpoints import DEFAULT_ENDPOINT
 from thermod.io.stream_recording import RecordWriter
@@ -38,15 +40,17 @@ def add_arguments(p) -> None:
                    "messages with deblurred frames too if it ends in .mcap (thermod.io.mcap)")
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
+    p.add_argument("--timeout", type=float, default=SILENCE_S, help=Silence.OPTION_HELP)
     p.add_argument("--config", default=None, help="take the calibration from this thermod.toml")
     p.add_argument("--curve-server-key", default=None, help="publisher's public certificate → CURVE")
     p.add_argument("--curve-client-key", default=None, help="this client's *.key_secret certificate")
 
 
 def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=lambda: False,
-           counts: dict | None = None, drain_s: float = 1.0) -> RecordWriter:
-    """Receive into `writer` until `seconds` pass, `stop()` is true or Ctrl-C. `counts`, if given,
-    gets ``camera_frames_lost``: the frames the camera lost between two raw frames received (each raw
+           counts: dict | None = None, drain_s: float = 1.0, silence: Silence | None = None) -> RecordWriter:
+    """Receive into `writer` until `seconds` pass, `stop()` is true, Ctrl-C, or `silence` finds the
+    publisher gone (`Silence`; ``silence.silent_s`` set). `counts`, if given, gets
+    ``camera_frames_lost``: the frames the camera lost between two raw frames received (each raw
     header's ``gap_before``, the first one's left out), which skip frame ids without a message lost.
 
     Gyro samples travel in batches that can trail the frames they cover, so when `seconds` pass the
@@ -72,9 +76,14 @@ def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=la
 
     try:
         while not stop() and (t_end is None or time.monotonic() < t_end):
-            msg = sub.recv(0.2 if t_end is None else min(0.2, max(0.0, t_end - time.monotonic())))
+            until = min(math.inf if t_end is None else t_end, math.inf if silence is None else silence.due)
+            msg = sub.recv(max(0.0, min(0.2, until - time.monotonic())))
             if msg is not None:
                 take(msg)
+                if silence is not None:
+                    silence.heard()
+            elif silence is not None and silence.gone():
+                return writer            # no gyro batch will trail the last frame either
         drain_end = time.monotonic() + drain_s
         while newest["gyro"] < newest["raw"] and (now := time.monotonic()) < drain_end:
             msg = sub.recv(min(0.2, drain_end - now))
@@ -99,6 +108,9 @@ def run(args) -> int:
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise RecordingError(Path(args.output), "--seconds",
                              f"expected a finite number > 0, got {args.seconds}")
+    if not (math.isfinite(args.timeout) and args.timeout >= 0):
+        raise RecordingError(Path(args.output), "--timeout",
+                             f"expected a finite number ≥ 0, got {args.timeout}")
     calibration = None
     if args.config:
         from thermod.runtime import config
@@ -116,6 +128,7 @@ def run(args) -> int:
             pass
     started = time.monotonic()
     attrs = {"endpoint": args.endpoint}
+    silence = Silence(args.endpoint, args.timeout)
     as_mcap = out.suffix.lower() == ".mcap"
     if as_mcap:
         from thermod.io.mcap import McapRecordWriter
@@ -127,7 +140,7 @@ def run(args) -> int:
                         curve_client_key_file=args.curve_client_key, rcvhwm=10000) as sub:
             counts: dict = {}
             try:
-                record(sub, args.seconds, writer, stop=lambda: bool(stopping), counts=counts)
+                record(sub, args.seconds, writer, stop=lambda: bool(stopping), counts=counts, silence=silence)
             finally:
                 attrs.update(counts)
                 attrs.update(seconds=time.monotonic() - started, lost_raw_messages=sub.gaps.get("raw", 0),
@@ -142,11 +155,26 @@ def run(args) -> int:
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+    # the daemon gone: what it sent is written above, and the exit status says the recording ended early
+    gone = None if silence.silent_s is None else gone_message("record", args.endpoint, silence.silent_s,
+                                                              received=not writer.empty)
     if writer.empty:
+        if gone is not None:
+            print(gone, file=sys.stderr)
+            return 1
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
     if as_mcap:
         print(f"wrote {out}: messages by topic {writer.counts}, calibration from {writer.source}")
-        return 0
+    else:
+        _summary(out, attrs)
+    if gone is not None:
+        print(gone, file=sys.stderr)
+        return 1
+    return 0
+
+
+def _summary(out: Path, attrs: dict) -> None:
+    """Print what the recording `out` holds (format v1)."""
     with h5py.File(out, "r") as f:
         n, shape, m = f["camera/t"].shape[0], f["camera/frames"].shape[1:], f["gyro/t"].shape[0]
         gt = f["gyro/t"][()]
@@ -161,4 +189,3 @@ def run(args) -> int:
     if n == 0:
         print("note: no raw frames: the daemon publishes them only with [publish] raw = true",
               file=sys.stderr)
-    return 0

@@ -24,25 +24,20 @@ from pathlib import Path
 
 import numpy as np
 
-from thermod.client.subscriber import Subscriber
+from thermod.client.subscriber import SILENCE_S, Silence, Subscriber, gone_message
 from thermod.errors import ThermodError
 from thermod.io.display import Agc, side_by_side, to_u8  # noqa: F401 - the previews' mapping
-from thermod.io.endpoints import DEFAULT_ENDPOINT, listening
+from thermod.io.endpoints import DEFAULT_ENDPOINT
 from thermod.io.wire import MAX_PAYLOAD_BYTES
 
 log = logging.getLogger(__name__)
-
-SILENCE_S = 4.0          # the daemon publishes health every second: four missed in a row
 
 
 def add_arguments(p) -> None:
     p.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help="publisher address (default %(default)s)")
     p.add_argument("--seconds", type=float, default=None, help="stop after N seconds (default: Ctrl-C)")
     p.add_argument("--interval", type=float, default=1.0, help="seconds between status lines")
-    p.add_argument("--timeout", type=float, default=SILENCE_S,
-                   help="when nothing arrives for this many seconds, check the endpoint and give up (exit 1) "
-                        "if nothing listens there (0: never; default %(default)s: the daemon publishes "
-                        "health every second)")
+    p.add_argument("--timeout", type=float, default=SILENCE_S, help=Silence.OPTION_HELP)
     p.add_argument("--png", metavar="DIR", default=None, help="write raw|deblurred preview PNGs to DIR")
     p.add_argument("--png-interval", type=float, default=1.0, help="seconds between previews")
     p.add_argument("--http", metavar="HOST:PORT", default=None,
@@ -371,29 +366,25 @@ def watch(sub: Subscriber, seconds: float | None, *, interval: float = 1.0,
           timeout: float = SILENCE_S) -> WatchStats:
     """Receive until `seconds` pass (None: until Ctrl-C), printing a status line every `interval`;
     every message also goes to `view` (a `thermod.client.web.LiveView`), sampled once a second.
-    After `timeout` s (0: no limit) with nothing received it checks the endpoint: if nothing listens
-    there (`endpoints.listening`) it stops early, with ``stats.silent_s`` set; a bound but silent
-    publisher (a daemon still starting up) is waited for."""
+    After `timeout` s (0: no limit) with nothing received it checks the endpoint (`Silence`): if
+    nothing listens there it stops early, with ``stats.silent_s`` set; a bound but silent publisher
+    (a daemon still starting up) is waited for."""
     out = sys.stdout if out is None else out
     stats = WatchStats()
+    silence = Silence(sub.endpoint, timeout)
     t_end = None if seconds is None else time.monotonic() + seconds
     next_line = time.monotonic() + interval
     next_sample = time.monotonic() + 1.0 if view is not None else np.inf
-    last_msg = time.monotonic()
-    check_at = last_msg + timeout if timeout > 0 else np.inf     # when silence makes it look
     try:
         while t_end is None or time.monotonic() < t_end:
-            wait = min(next_line, next_sample, t_end or np.inf, check_at) - time.monotonic()
+            wait = min(next_line, next_sample, t_end or np.inf, silence.due) - time.monotonic()
             msg = sub.recv(max(0.0, wait))
-            if msg is None and time.monotonic() >= check_at:
-                stats.listening = listening(sub.endpoint)
-                if stats.listening is False:
-                    stats.silent_s = time.monotonic() - last_msg
-                    break
-                check_at = time.monotonic() + timeout
+            gone = msg is None and silence.gone()
+            stats.listening, stats.silent_s = silence.listening, silence.silent_s
+            if gone:
+                break
             if msg is not None:
-                last_msg = time.monotonic()
-                check_at = last_msg + timeout if timeout > 0 else np.inf
+                silence.heard()
                 stats.add(*msg)
                 if previews is not None and msg[0] in ("frame", "raw"):
                     previews.add(*msg)
@@ -448,9 +439,8 @@ def run(args) -> int:
     if previews is not None and previews.written:
         print(f"previews: {len(previews.written)} PNGs in {previews.dir} (latest.png = newest)", flush=True)
     if stats.silent_s is not None:
-        what = "nothing arrived" if not stats.messages else "the daemon went away"
-        print(f"thermod watch: {what} from {args.endpoint} for {stats.silent_s:.1f} s and nothing listens "
-              "there; is `thermod run` up and publishing there? (--timeout 0 waits forever)", file=sys.stderr)
+        print(gone_message("watch", args.endpoint, stats.silent_s, received=bool(stats.messages)),
+              file=sys.stderr)
         return 1
     if stats.frames == 0:
         print(f"thermod watch: no frames from {args.endpoint}; is `thermod run` up and publishing there?",

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import time
 from collections.abc import Iterable, Iterator
 
@@ -25,12 +26,15 @@ from thermod.io.endpoints import (
     DEFAULT_ENDPOINT,
     TransportError,
     check_endpoint,
+    listening,
     load_keypair,
     load_public_key,
 )
 from thermod.io.wire import MAX_HEADER_BYTES, MAX_PAYLOAD_BYTES, TOPICS, MessageError, decode
 
 log = logging.getLogger(__name__)
+
+SILENCE_S = 4.0          # the daemon publishes health every second: four missed in a row
 
 
 class Subscriber:
@@ -201,3 +205,48 @@ class Subscriber:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class Silence:
+    """Tells a publisher that is gone from one that is quiet, for a client that would otherwise wait
+    forever (`thermod watch`, `thermod record`): after `timeout` s (0: never) with nothing received it
+    checks `endpoint` (`endpoints.listening`). Nothing listening there: gone. A bound but silent
+    publisher (a daemon still warming up) is waited for, `timeout` s at a time.
+
+    Call `heard` at each message and `gone` when a receive came back empty; `due` (host monotonic) is
+    when the next check is, for the receive's wait."""
+
+    OPTION_HELP = ("when nothing arrives for this many seconds, check the endpoint and give up (exit 1) "
+                   "if nothing listens there (0: never; default %(default)s: the daemon publishes health "
+                   "every second)")
+
+    def __init__(self, endpoint: str, timeout: float = SILENCE_S):
+        self.endpoint, self.timeout = endpoint, timeout
+        self.last = self.due = 0.0
+        self.listening: bool | None = None     # after a check: whether something listened at the endpoint
+        self.silent_s: float | None = None     # once gone: how long nothing had arrived
+        self.heard()
+
+    def heard(self) -> None:
+        """A message arrived."""
+        self.last = time.monotonic()
+        self.due = self.last + self.timeout if self.timeout > 0 else math.inf
+
+    def gone(self) -> bool:
+        """After an empty receive: whether the publisher is gone (``silent_s`` then set)."""
+        now = time.monotonic()
+        if now < self.due:
+            return False
+        self.listening = listening(self.endpoint)
+        if self.listening is False:
+            self.silent_s = now - self.last
+            return True
+        self.due = time.monotonic() + self.timeout
+        return False
+
+
+def gone_message(command: str, endpoint: str, silent_s: float, received: bool) -> str:
+    """The line `command` ends with once `Silence.gone`: `received` says whether anything came before."""
+    what = "the daemon went away" if received else "nothing arrived"
+    return (f"thermod {command}: {what} from {endpoint} for {silent_s:.1f} s and nothing listens there; "
+            "is `thermod run` up and publishing there? (--timeout 0 waits forever)")
