@@ -14,9 +14,6 @@ import signal
 import stat
 import threading
 
-from thermod.runtime import config
-from thermod.runtime.daemon import Daemon
-
 log = logging.getLogger("thermod.runtime.daemon")
 
 
@@ -36,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _overrides(args) -> tuple[dict, dict]:
     """({dotted key: value}, {dotted key: the option that set it}) from the command line."""
+    from thermod.runtime import config
+
     ov = dict(config.parse_override(s) for s in args.overrides)
     origins = {}
     if args.endpoint:
@@ -60,6 +59,20 @@ def _warn_if_open(path: str) -> None:
 
 
 def run(args) -> int:
+    stop = threading.Event()
+    reload_req = threading.Event()
+
+    def on_term(signum, frame):
+        log.info("%s: shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    # first, before the daemon's and the schema's modules are imported (seconds on a loaded payload):
+    # a stop during the start ends it there, and a SIGHUP then (a reload) waits for the daemon to serve
+    signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)
+    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    from thermod.runtime import config  # the configuration's schema imports the physics (~1 s)
+
     if args.list_keys:
         print(config.reference(), end="")
         return 0
@@ -70,17 +83,8 @@ def run(args) -> int:
         logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
     if args.config:
         _warn_if_open(args.config)
-    stop = threading.Event()
-    reload_req = threading.Event()
+    from thermod.runtime.daemon import Daemon
 
-    def on_term(signum, frame):
-        log.info("%s: shutting down", signal.Signals(signum).name)
-        stop.set()
-
-    # before the daemon exists: a stop that comes during the start (seconds of warm-up) ends it there
-    signal.signal(signal.SIGTERM, on_term)
-    signal.signal(signal.SIGINT, on_term)
-    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
     d = Daemon(cfg, overrides=ov)
     try:
         started = d.start(abort=stop)
