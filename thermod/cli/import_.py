@@ -4,7 +4,9 @@
 estimated from its pictures (`thermod.cli.import_video`, `thermod.ingest.video_only`). The
 calibration, in order of precedence: ``--calibration model.toml`` (its [calibration] keys), the
 ``thermod`` metadata of an MCAP written by thermod, a sensor_msgs/CameraInfo topic plus ``--tau``
-(the detector time constant, which no ROS message carries).
+(the detector time constant, which no ROS message carries). An MCAP file cut short (the
+``.mcap.part`` a killed `thermod record -o X.mcap` leaves) gives its complete messages, with a
+warning; its recorder writes the calibration last, so such a file needs ``--calibration``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ def add_arguments(p) -> None:
     from thermod.cli import import_flight
 
     p.add_argument("input", nargs="?", default=None,
-                   help=".mcap file, rosbag2 directory or ROS 1 .bag; with --gyro a video or TIFF sequence")
+                   help=".mcap file (or the .mcap.part of a killed `thermod record`: its complete "
+                   "messages), rosbag2 directory or ROS 1 .bag; with --gyro a video or TIFF sequence")
     p.add_argument("-o", "--output", default=None, help="recording to write (HDF5, format v1)")
     p.add_argument(
         "--image-topic",

@@ -109,11 +109,15 @@ def _base_calibration(bag: mcap.Bag, info_topic: str | None, calibration,
     missing = []
     if info_topic is None:
         missing.append("camera intrinsics (no sensor_msgs/msg/CameraInfo topic)")
+    elif bag.truncated and not bag.counts.get(info_topic):    # a cut file's counts are exact
+        missing.append(f"camera intrinsics (no complete message on {info_topic})")
     if tau is None:
         missing.append("the detector time constant (--tau S)")
     if missing:
+        cut = " (thermod record writes its calibration last, so a truncated recording has none)" \
+            if bag.truncated else ""
         raise ThermodError(
-            f"{bag.path}: no thermod calibration in the bag; missing {' and '.join(missing)}: "
+            f"{bag.path}: no thermod calibration in the bag; missing {' and '.join(missing)}{cut}: "
             "give --calibration model.toml (a [calibration] table) or those"
         )
     return None, "camera_info"
@@ -164,6 +168,10 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
 
 
 def _calibration(bag, base, info, frame_t, gyro_t, calibration, tau) -> Calibration:
+    if base is None and info is None and calibration is None:
+        # a CameraInfo topic without a message: defaults would pass for the camera's model
+        raise RecordingError(bag.path, "CameraInfo", "no message to take the camera intrinsics from; "
+                             "give --calibration model.toml (a [calibration] table)")
     if base is None and info is not None:
         if info["distorted"]:
             log.warning(

@@ -15,7 +15,9 @@ by thermod (frames: when the last row was read; gyro: the gyro's mapped clock, *
 record ``thermod`` (key ``calibration``, JSON), so `thermod import` restores it exactly.
 
 Read (`Bag`): a ``.mcap`` file through ``mcap`` + ``mcap_ros2``; a rosbag2 directory or a ROS 1
-``.bag`` through ``rosbags``. Messages are streamed in log-time order, never loaded all at once.
+``.bag`` through ``rosbags``. Messages are streamed in log-time order, never loaded all at once. An
+MCAP file without its summary — the ``.mcap.part`` a killed `thermod record` leaves, cut anywhere —
+is read from the start instead, in file order, up to its last complete message.
 """
 
 from __future__ import annotations
@@ -408,10 +410,11 @@ class Bag:
         self.topics: dict[str, str] = {}
         self.counts: dict[str, int] = {}
         self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False
         self._file = self._reader = None
         if not self.path.exists():
             raise RecordingError(self.path, "file", "does not exist")
-        if self.path.is_file() and self.path.suffix.lower() == ".mcap":
+        if self.path.is_file() and is_mcap_name(self.path):
             self._open_mcap()
         elif self.path.is_dir() or self.path.suffix.lower() == ".bag":
             self._open_rosbags()
@@ -419,20 +422,38 @@ class Bag:
             raise RecordingError(
                 self.path,
                 "file",
-                "expected an .mcap file, a rosbag2 directory (metadata.yaml + .db3/.mcap) or a ROS 1 .bag",
+                "expected an .mcap file (or the .mcap.part of an unfinished one), a rosbag2 directory "
+                "(metadata.yaml + .db3/.mcap) or a ROS 1 .bag",
             )
 
     def _open_mcap(self) -> None:
         from mcap.exceptions import McapError
-        from mcap.reader import make_reader
+        from mcap.reader import SeekingReader
         from mcap_ros2.decoder import DecoderFactory
 
         self._file = open(self.path, "rb")  # noqa: SIM115 (closed by close())
         try:
-            self._reader = make_reader(self._file, decoder_factories=[DecoderFactory()])
-            summary = self._reader.get_summary()
+            size = os.fstat(self._file.fileno()).st_size
+            self._bounded = _Bounded(self._file, size)
+            if self._bounded.read(len(MAGIC)) != MAGIC:
+                raise RecordingError(self.path, "file", "not a readable MCAP file (it does not start with "
+                                     "the MCAP magic)")
+            summary = None
+            # A file cut short does not end with the magic; its last bytes are not a footer and any
+            # offset read there is garbage, so the summary is only looked for before a closing magic.
+            if size >= 2 * len(MAGIC):
+                self._bounded.seek(size - len(MAGIC))
+            if size >= 2 * len(MAGIC) and self._bounded.read(len(MAGIC)) == MAGIC:
+                self._bounded.seek(0)     # the reader checks the magic where the file stands
+                self._reader = SeekingReader(self._bounded, decoder_factories=[DecoderFactory()],
+                                             record_size_limit=size)
+                try:
+                    summary = self._reader.get_summary()
+                except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error):
+                    summary = None
             if summary is None:
-                raise RecordingError(self.path, "summary", "MCAP file without a summary (not finished?)")
+                self._scan(size)
+                return
             for cid, ch in summary.channels.items():
                 schema = summary.schemas.get(ch.schema_id)
                 self.topics[ch.topic] = _ros2_name(schema.name) if schema else "?"
@@ -447,6 +468,56 @@ class Bag:
         except RecordingError:
             self.close()
             raise
+
+    def _scan(self, size: int) -> None:
+        """Topics, counts and metadata of an MCAP file without a usable summary, read from the start
+        (`mcap.stream_reader.StreamReader`) up to its footer or, cut short, its last complete
+        message; warns how many messages that leaves. No complete message: a `RecordingError`."""
+        from mcap.exceptions import McapError
+        from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+        from mcap.stream_reader import StreamReader
+
+        self._reader = None
+        self._bounded.seek(0)
+        schemas, channels = {}, {}
+        n = end = 0
+        stop = None
+        try:
+            for i, record in enumerate(StreamReader(self._bounded, record_size_limit=size).records):
+                if i == 0 and not isinstance(record, Header):
+                    raise RecordingError(self.path, "file", "not a readable MCAP file (no Header record "
+                                         f"after the magic, found {type(record).__name__})")
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                    schema = schemas.get(record.schema_id)
+                    self.topics[record.topic] = _ros2_name(schema.name) if schema else "?"
+                    self.counts.setdefault(record.topic, 0)
+                elif isinstance(record, Message):
+                    if record.channel_id not in channels:
+                        stop = f"a message on channel {record.channel_id}, which no Channel record declares"
+                        break
+                    self.counts[channels[record.channel_id].topic] += 1
+                    n, end = n + 1, self._bounded.pos
+                elif isinstance(record, Metadata):
+                    self.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Footer):
+                    return
+        # what a record cut short raises inside the library: its reads come back short (EndOfFile,
+        # struct.error), a length runs past the end (RecordLengthLimitExceeded), a string is cut
+        except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error) as e:
+            stop = f"{type(e).__module__}.{type(e).__name__}" + (f": {e}" if str(e) else "")
+        except BaseException:
+            self.close()
+            raise
+        if n == 0:
+            self.close()
+            raise RecordingError(self.path, "file", "not a readable MCAP file: it ends before any complete "
+                                 f"message ({size} bytes, no summary; {stop})")
+        self.truncated = True
+        log.warning("%s: truncated MCAP file (no summary; nothing complete after byte %d of %d: %s): "
+                    "recovered the %d complete messages before it", self.path, end, size, stop, n)
 
     def _open_rosbags(self) -> None:
         from rosbags.highlevel import AnyReader, AnyReaderError
@@ -468,11 +539,10 @@ class Bag:
             from mcap.exceptions import McapError
 
             try:
-                for _, channel, _, msg in self._reader.iter_decoded_messages(
-                    topics=topics, log_time_order=True
-                ):
-                    yield channel.topic, msg
-            except (McapError, ValueError, EOFError, IndexError, KeyError) as e:
+                yield from (self._scanned_messages(topics) if self._reader is None else (
+                    (channel.topic, msg) for _, channel, _, msg in
+                    self._reader.iter_decoded_messages(topics=topics, log_time_order=True)))
+            except (McapError, ValueError, EOFError, IndexError, KeyError, struct.error) as e:
                 raise RecordingError(
                     self.path, ",".join(topics), f"cannot decode a message ({type(e).__name__}: {e})"
                 ) from None
@@ -487,6 +557,25 @@ class Bag:
                 ) from None
             yield conn.topic, msg
 
+    def _scanned_messages(self, topics: list[str]) -> Iterator[tuple[str, object]]:
+        """A file without a summary, in file order (`mcap.reader.NonSeekingReader`, which would load
+        it whole to sort by log time): the messages `_scan` counted, no further, so the cut end is
+        never read."""
+        from mcap.reader import NonSeekingReader
+        from mcap_ros2.decoder import DecoderFactory
+
+        left = sum(self.counts.get(t, 0) for t in set(topics))
+        if left == 0:
+            return
+        self._bounded.seek(0)
+        reader = NonSeekingReader(self._bounded, decoder_factories=[DecoderFactory()],
+                                  record_size_limit=self._bounded.size)
+        for _, channel, _, msg in reader.iter_decoded_messages(topics=topics, log_time_order=False):
+            yield channel.topic, msg
+            left -= 1
+            if left == 0:
+                return
+
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
@@ -498,6 +587,37 @@ class Bag:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+def is_mcap_name(path: str | os.PathLike) -> bool:
+    """``X.mcap``, or ``X.mcap.part`` (what a recorder left when it could not finish)."""
+    name = Path(path).name.lower()
+    return name.endswith((".mcap", ".mcap.part"))
+
+
+class _Bounded:
+    """A binary file whose reads stop at its size. The mcap readers read lengths from the file and
+    then ``read(length)``, which allocates `length` bytes up front: on a damaged or cut file a
+    garbage length would allocate far more than the file holds."""
+
+    def __init__(self, f, size: int):
+        self._f, self.size, self.pos = f, size, f.tell()
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(0, self.size - self.pos)
+        data = self._f.read(left if n is None or n < 0 else min(n, left))
+        self.pos += len(data)
+        return data
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        self.pos = self._f.seek(offset, whence)
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
 
 
 def _ros2_name(msgtype: str) -> str:
