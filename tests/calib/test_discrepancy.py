@@ -529,10 +529,10 @@ def test_bad_input_is_a_one_line_error_exit_2(case, good_recording, tmp_path, ca
 
 def test_derived_sizes_are_guarded_before_allocation(good_recording):
     # A τ of 1 µs (the smallest a Calibration accepts) asks for sub-steps of τ/3: hundreds of
-    # thousands of warped views, more than a 100 MB budget allows; the error says so instead of
+    # thousands of warped views, more than a 100 MB budget allows; the error names τ instead of
     # allocating.
     rec = recording.read(good_recording)
-    with pytest.raises(RecordingError, match=r"good\.h5: camera/t, gyro/rate: .*time steps .*GB"):
+    with pytest.raises(RecordingError, match=r"good\.h5: camera\.attrs\['tau_s'\]: .*time steps .*GB"):
         D.prepare(rec, NOMINAL.replace(tau_s=1e-6), name="good.h5", max_views_mb=100)
     # below that, no detector: the Calibration refuses it before prepare() sees it
     with pytest.raises(CalibrationError, match=r"tau_s: expected a value in \[1e-06, 1\] s"):

@@ -39,7 +39,12 @@ VIEW_CACHE_ENTRIES = 2    # calibrations whose warped views are kept (one search
 
 
 class GridTooLarge(ValueError):
-    """The fixed time grid would need more memory for its warped views than allowed."""
+    """The fixed time grid would need more memory for its warped views than allowed: `views_mb` it
+    would take; `tau_limited` when the thermal step (τ), not the image speed, sets most of its steps."""
+
+    def __init__(self, message: str, views_mb: float = math.inf, tau_limited: bool = False):
+        super().__init__(message)
+        self.views_mb, self.tau_limited = views_mb, tau_limited
 
 
 def downsample(frames: np.ndarray, scale: float, smooth_px: float = 0.0) -> np.ndarray:
@@ -396,6 +401,8 @@ class ForwardModel:
     max_views_mb : float
         Memory the warped views of one prediction may take at all; GridTooLarge beyond it (checked
         before anything is allocated: the step count follows from the gyro rate, fx and τ).
+    prescaled : bool
+        `reference` (and `fpn`) are at the working resolution already.
     interpolation : "cubic" (default: least resampling blur; OpenCV's Keys kernel) or "linear".
 
     The views are sampled by a compiled kernel (one core, no threads): the reference canvas at
@@ -407,7 +414,7 @@ class ForwardModel:
                  scale: float = 1.0, fpn=None, max_step_px: float = 0.5, max_rate_factor: float = 1.3,
                  tau_min_s: float | None = None, cache_mb: float = 400.0, interpolation: str = "cubic",
                  max_views_mb: float = 4096.0, t_start: float | None = None, max_step_tau: float = 1 / 3,
-                 time_margin_s: float = 0.03):
+                 time_margin_s: float = 0.03, prescaled: bool = False):
         self.calib0 = calib
         self.scale = float(scale)
         self.intr = calib.intrinsics.scaled(self.scale)
@@ -437,11 +444,12 @@ class ForwardModel:
         n_float = float(np.sum(n_sub))
         views_mb = (n_float + 1) * self.h * self.w * 2 * 4 / 1e6
         if not views_mb <= max_views_mb:
+            tau_steps = float(np.sum(np.maximum(1.0, np.ceil(span / h_tau - 1e-9))))
             raise GridTooLarge(f"the forward model needs {n_float:.3g} time steps ({views_mb / 1e3:.3g} GB "
                                f"of warped views, limit {max_views_mb / 1e3:.3g} GB) for "
                                f"{nodes[-1] - self.t_start:.3g} s of motion at up to "
                                f"{float(speed.max()):.3g} px/s (working fx {self.intr.fx:.4g}, "
-                               f"τ {calib.tau_s:.3g} s)")
+                               f"τ {calib.tau_s:.3g} s)", views_mb, tau_steps >= 0.5 * n_float)
         n_sub = n_sub.astype(np.int64)
         first = np.repeat(np.cumsum(n_sub) - n_sub, n_sub)
         k = np.arange(int(n_sub.sum())) - first
@@ -458,7 +466,7 @@ class ForwardModel:
         self._views: dict = {}          # gyro key → (V, M) for the current reference, oldest first
         self._cache_slots = min(VIEW_CACHE_ENTRIES, int(cache_mb // max(views_mb, 1e-9)))
         self.origin = (0.0, 0.0)
-        self.set_reference(reference, fpn)
+        self.set_reference(reference, fpn, prescaled=prescaled)
 
     def set_reference(self, reference, fpn=None, *, prescaled: bool = False, origin=(0.0, 0.0),
                       support=None, subtract_fpn: bool = True) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.stats import binomtest
 
 from thermod.errors import RecordingError
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import RANGES, Calibration
 from thermod.physics.deconv.temporal import warp, warp_maps, warped_support
 from thermod.physics.kernels.blur import blur
 from thermod.physics.kernels.render import render_photon_kernel, render_thermal_kernel
@@ -98,7 +98,9 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
             extent[k] = math.nan
     cand = [k for k in range(1, len(t)) if extent[k] >= MIN_EXTENT_PX and np.isfinite(extent[k - 1])]
     cand = sorted(sorted(cand, key=lambda k: -extent[k])[:max_frames])
-    taus = float(calib.tau_s) * TAU_SCAN
+    # the scan stays inside the range a Calibration accepts (a τ near 1 s scans below it only)
+    taus = np.clip(float(calib.tau_s) * TAU_SCAN, *RANGES["tau_s"][:2])
+    taus = taus[np.r_[True, np.diff(taus) > 0]]
 
     def kernels(tk: float, tj: float, c: Calibration, photon: bool):
         render = render_photon_kernel if photon else render_thermal_kernel
@@ -152,7 +154,8 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
     else:
         notes.append(f"{order[0]} and {order[1]} not told apart frame by frame")
     if best_tau in (0, len(taus) - 1):
-        notes.append("τ at the edge of its scan (0.5–2× the calibration's)")
+        notes.append("τ at the edge of its scan (0.5–2× the calibration's)" if len(taus) == len(TAU_SCAN)
+                     else f"τ at the edge of its scan ({1e3 * taus[0]:.3g}–{1e3 * taus[-1]:.3g} ms)")
     out.note = "; ".join(notes)
     return out
 

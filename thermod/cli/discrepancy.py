@@ -11,17 +11,74 @@ import math
 import tomllib
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 from thermod.calib import smear
 from thermod.calib.discrepancy import CANDIDATES, EFFECTS, Model, analyse, prepare, write_report
-from thermod.errors import ConfigError
+from thermod.calib.discrepancy.data import working_scale
+from thermod.errors import ConfigError, RecordingError
 from thermod.io import recording as recording_io
 from thermod.io.json_safe import jsonable
 from thermod.io.toml_tables import read_toml
 from thermod.paths import directory_problem, output_problem
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import CAMERA_KEYS, RANGES, Calibration, CalibrationError
 from thermod.runtime import config as cfgmod
 
 log = logging.getLogger("thermod.calib.discrepancy")
+
+# What one recording may hold in memory: its frames (full resolution when they fit, else binned to the
+# working resolution as they are read, then only the first ones), and its timeline.
+MAX_FRAMES_MB = 512.0
+MAX_TIMELINE_BYTES = 512 * 2**20
+
+
+def load(path: str, work_width: int) -> tuple[recording_io.Recording, float]:
+    """The recording with at most `MAX_FRAMES_MB` of frames in memory, read one at a time; returns it
+    and the scale its frames are stored at (1: full resolution). Each reduction is logged."""
+    with recording_io.Reader(path, max_timeline_bytes=MAX_TIMELINE_BYTES) as r:
+        calib = r.calibration
+        n, (h, w) = r.n_frames, r.frame_shape
+        scale, keep, dtype = 1.0, n, np.uint16
+        if n * h * w * 2 / 1e6 > MAX_FRAMES_MB:
+            scale = working_scale(calib, work_width)
+            if scale < 1.0:
+                dtype = np.float32
+                intr = calib.intrinsics.scaled(scale)
+                h, w = intr.height, intr.width
+                log.warning("%s: %d frames of %d×%d are %.0f MB: binning them to %d×%d as they are read",
+                            path, n, calib.width, calib.height, n * calib.width * calib.height * 2e-6, w, h)
+            keep = min(n, int(MAX_FRAMES_MB * 1e6 // (h * w * np.dtype(dtype).itemsize)))
+            if keep < n:
+                log.warning("%s: keeping the first %d of %d frames (%.3g of %.3g s; %.0f MB of frames at "
+                            "most)", path, keep, n, r.t[keep - 1] - r.t[0], r.t[-1] - r.t[0], MAX_FRAMES_MB)
+        frames = np.empty((keep, h, w), dtype)
+        for i in range(keep):
+            f = r.frame(i)
+            frames[i] = f if scale == 1.0 else cv2.resize(f.astype(np.float32), (w, h),
+                                                          interpolation=cv2.INTER_AREA)
+        rec = recording_io.Recording(frames, r.t[:keep], r.gyro_t, r.gyro_rate, calib,
+                                     extra_attrs=r.group_attrs())
+    return rec, scale
+
+
+def scaled_calibration(calib: Calibration, scale: float) -> Calibration:
+    """The camera of frames binned to `scale` × their size: intrinsics scaled, the pixel pitch grown (so
+    Eq. 19's σ in pixels shrinks with them)."""
+    if scale == 1.0:
+        return calib
+    i = calib.intrinsics.scaled(scale)
+    return calib.replace(width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.cx, cy=i.cy,
+                         pixel_pitch_um=min(calib.pixel_pitch_um / scale, RANGES["pixel_pitch_um"][1]))
+
+
+def _named(e: CalibrationError, source: str, config: str | None):
+    """A value the analysis stepped to is out of the Calibration's range: name the model's source (the
+    --config file, else the recording whose attributes are the model) and the field."""
+    if config is not None:
+        return ConfigError(f"{config}: [calibration] {e.field}: {e.problem}")
+    group = "camera" if e.field in CAMERA_KEYS else "gyro"
+    return RecordingError(source, f"{group}.attrs['{e.field}']", e.problem)
 
 
 def _config_calibration(path: str) -> tuple[Calibration, str | None]:
@@ -75,11 +132,15 @@ def load_model(config: str | None, recs: list, paths: list[str]) -> tuple[Calibr
     return calib, None
 
 
-def _smear(recs, paths, calib: Calibration, out: Path, say) -> None:
-    """smear.json and smear_<i>.png: which kernel explains each recording's smear (`thermod.calib.smear`)."""
+def _smear(recs, paths, calib: Calibration, out: Path, say, scales, config: str | None) -> None:
+    """smear.json and smear_<i>.png: which kernel explains each recording's smear (`thermod.calib.smear`),
+    at the scale each recording's frames are held at."""
     results = []
     for i, (p, r) in enumerate(zip(paths, recs, strict=True)):
-        res = smear.compare(r.frames, r.t, r.gyro_t, r.gyro_rate, calib)
+        try:
+            res = smear.compare(r.frames, r.t, r.gyro_t, r.gyro_rate, scaled_calibration(calib, scales[i]))
+        except CalibrationError as e:
+            raise _named(e, p, config) from None
         results.append({"recording": str(p), **res.to_dict()})
         if res.frames:
             smear.plot(res, out / f"smear_{i}.png")
@@ -115,15 +176,19 @@ def run(args) -> int:
     def say(msg):
         print(msg, flush=True)
 
-    recs = [recording_io.read(p) for p in args.recordings]
+    loaded = [load(p, args.work_width) for p in args.recordings]
+    recs, scales = [r for r, _ in loaded], [s for _, s in loaded]
     calib, config_text = load_model(args.config, recs, args.recordings)
     data = []
-    for p, r in zip(args.recordings, recs, strict=True):
+    for p, r, fs in zip(args.recordings, recs, scales, strict=True):
         source = str(r.extra_attrs.get("motion", {}).get("source", "gyro"))
         if source != "gyro":      # thermod import VIDEO without --gyro: no independent motion
             say(f"{p}: the motion was estimated from the {source}'s own pictures, not measured by a "
                 "gyro: the gaps below measure the model against that estimate")
-        d = prepare(r, calib, name=p, work_width=args.work_width)
+        try:
+            d = prepare(r, calib, name=p, work_width=args.work_width, frames_scale=fs)
+        except CalibrationError as e:
+            raise _named(e, p, args.config) from None
         if d.reference == "static":
             say(f"{p}: {d.n_static} static frames, motion from t={d.t_onset:.3f} s, {len(d.frame_t)} motion "
                 f"frames; noise σ {math.sqrt(d.noise_var):.2f} counts at {d.fm.w}×{d.fm.h}")
@@ -132,12 +197,15 @@ def run(args) -> int:
                 f"{d.scene.shape[0]} at the pose of t={d.t_ref:.3f} s), {len(d.frame_t)} frames at "
                 f"{d.fm.w}×{d.fm.h}")
         data.append(d)
-    ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
-                  progress=say)
+    try:
+        ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
+                      progress=say)
+    except CalibrationError as e:        # a search stepped a field out of its range
+        raise _named(e, args.recordings[0], args.config) from None
     if config_text is None:       # model.toml: the packaged default configuration, new calibration
         config_text = cfgmod.default_path().read_text()
     write_report(ana, args.out, args.recordings, config_text)
-    _smear(recs, args.recordings, calib, Path(args.out), say)
+    _smear(recs, args.recordings, calib, Path(args.out), say, scales, args.config)
     for a in ana.ambiguous:
         say(f"{a['label']}: not named; model.toml keeps their values under test; to separate them record "
             f"{a['separating_motion']}")

@@ -247,11 +247,14 @@ class Reader:
     Everything a reader needs is checked on opening, before anything is allocated from the file's
     declarations: the calibration attributes (via `Calibration`), the declared shapes and dtypes
     against them, and that the file holds the bytes it declares. A frame that cannot be read later
-    raises RecordingError naming the file, the dataset and the frame.
+    raises RecordingError naming the file, the dataset and the frame. `max_timeline_bytes` lowers what
+    the timeline may take below `memory_budget()`.
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, max_timeline_bytes: int | None = None):
         self.path = Path(path)
+        self._budget = memory_budget() if max_timeline_bytes is None else min(memory_budget(),
+                                                                             max_timeline_bytes)
         self._f = open_file(self.path)
         try:
             self._open()
@@ -278,9 +281,9 @@ class Reader:
         ds_gr = _dataset(path, f, "gyro/rate", "f", 2, lambda s: s == (m, 3),
                          f"float32 rates of shape ({m}, 3) to match gyro/t")
         need = 8 * (n + m) + 4 * 3 * m + 4 * 3 * m     # the timeline, and its float32 conversion
-        if need > memory_budget():
-            raise RecordingError(path, "gyro/t", f"the timeline alone needs {_gib(need)}, more than half "
-                                 "this machine's memory")
+        if need > self._budget:
+            raise RecordingError(path, "gyro/t", f"the timeline alone ({n} frame times, {m} gyro samples) "
+                                 f"needs {_gib(need)}, more than the {_gib(self._budget)} allowed")
         self.t = _times(path, "camera/t", ds_t)
         self.gyro_t = _times(path, "gyro/t", ds_gt)
         with _Guard(path, "gyro/rate"):

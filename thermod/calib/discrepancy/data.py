@@ -3,16 +3,19 @@ forward model, and the guards on every size derived from the file before it is a
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from thermod.calib.discrepancy.sensor import FFCEvent, Response
-from thermod.calib.forward import ForwardModel, GridTooLarge, downsample
+from thermod.calib.forward import ForwardModel, GridTooLarge
 from thermod.errors import RecordingError
 from thermod.io import recording as recording_io
 from thermod.physics.calibration import Calibration
+
+log = logging.getLogger("thermod.calib.discrepancy")
 
 # Twice the largest full scale of common MEMS gyros (±2000 °/s): anything faster is not a rate in
 # rad/s (raw counts stored as rates, or a wrong unit).
@@ -21,7 +24,13 @@ MAX_GYRO_RATE_RAD_S = math.radians(4000.0)
 MIN_WORK_PX = 16
 MIN_STATIC_FRAMES = 3         # fewer before the motion: no static reference, the motion-only one
 MIN_COVERAGE = 2.5            # motion-only: canvas pixels seen by fewer frames are not part of the scene
-MAX_VIEWS_MB = 2048.0
+MAX_VIEWS_MB = 2048.0         # beyond this the recording is refused (the views at the asked resolution)
+# Every evaluation warps and filters all views, so their size sets the run time of the whole search: a
+# grid above this is worked at half the resolution (at most `MAX_HALVINGS` times), then on the first
+# motion frames only, each choice logged. `thermod sim`'s default recording needs 65 MB, tests ≤ 30 MB.
+WORK_VIEWS_MB = 128.0
+MAX_HALVINGS = 2
+MAX_STATIC_FRAMES = 500       # the last ones before the motion make the reference
 
 
 @dataclass(frozen=True)
@@ -55,7 +64,7 @@ class RecData:
     measured: np.ndarray          # float32 [n, h, w] motion frames
     frame_t: np.ndarray           # their camera times (nominal model)
     static_mean: np.ndarray       # float32 [h, w] reference incl. FPN
-    reference_full: np.ndarray    # float32 [H, W] static mean at full resolution
+    reference_full: np.ndarray    # float32 reference frame (static mean or motion anchor), working res
     noise_var: float              # temporal variance of one static frame (working res)
     n_static: int
     t_ref: float
@@ -115,13 +124,15 @@ def _static_sem(gyro_t, gyro_rate, t_onset_gyro):
 
 
 # ----------------------------------------------------------------------------------------- guards
-def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str):
+def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str, frames_scale: float = 1.0):
     """Everything `prepare` sizes from the file, checked before it is used (the calibration's own values
     are checked by `Calibration` itself)."""
     n, h, w = rec.frames.shape
-    if (h, w) != (calib.height, calib.width):
+    intr = calib.intrinsics.scaled(frames_scale)
+    if (h, w) != (intr.height, intr.width):
+        scaled = "" if frames_scale == 1.0 else f" (× {frames_scale:g}: {intr.width}×{intr.height})"
         raise RecordingError(name, "camera/frames", f"frame size {w}×{h} does not match the model's "
-                             f"width×height {calib.width}×{calib.height}")
+                             f"width×height {calib.width}×{calib.height}{scaled}")
     if n == 0:
         raise RecordingError(name, "camera/frames", "no frames: the workflow needs a static segment "
                              "followed by motion")
@@ -136,57 +147,156 @@ def _check_inputs(rec: recording_io.Recording, calib: Calibration, name: str):
                                  "scale/bias?)")
 
 
-def _working_scale(calib: Calibration, work_width: int) -> float:
+def working_scale(calib: Calibration, work_width: int) -> float:
+    """Working scale: halved until the width is within 1.5× `work_width` (at most 1/16)."""
     scale = 1.0
     while calib.width * scale > 1.5 * work_width and scale > 1 / 16:
         scale /= 2.0
     return scale
 
 
+def working_frames(frames, index, size: tuple[int, int], smooth_px: float = 0.0) -> np.ndarray:
+    """`frames[i]` for i in `index`, area-averaged to `size` (w, h) one frame at a time (float32
+    [len(index), h, w]): what `downsample` gives, without a float copy of the whole stack."""
+    import cv2
+
+    out = np.empty((len(index), size[1], size[0]), np.float32)
+    for j, i in enumerate(index):
+        f = np.asarray(frames[int(i)], np.float32)
+        g = f if f.shape == (size[1], size[0]) else cv2.resize(f, size, interpolation=cv2.INTER_AREA)
+        if smooth_px > 0:
+            g = cv2.GaussianBlur(g, (0, 0), smooth_px, borderType=cv2.BORDER_REPLICATE)
+        out[j] = g
+    return out
+
+
+def _grid_refusal(name: str, calib: Calibration, e: GridTooLarge) -> RecordingError:
+    """The view grid is beyond any budget: name what makes it fine (τ, the image speed, fx)."""
+    if e.tau_limited:      # the steps are τ/3 long: the grid shrinks in proportion as τ grows
+        need = max(calib.tau_s, 7.5e-5) * e.views_mb / MAX_VIEWS_MB   # (steps are ≥ 25 µs whatever τ)
+        return RecordingError(name, "camera.attrs['tau_s']", f"{e}; expected τ ≥ about {need:.2g} s for "
+                              "this length of motion (or a shorter recording)")
+    return RecordingError(name, "camera/t, gyro/rate", f"{e}; shorten the motion segment, lower "
+                          "--work-width, or check fx and tau_s")
+
+
+def _bounded_grid(name: str, calib: Calibration, scale: float, n_frames: int, build, min_frames: int,
+                  max_views_mb: float, work_views_mb: float):
+    """`build(scale, n, budget_mb)` (a ForwardModel on the first n motion frames, GridTooLarge beyond the
+    budget) within `work_views_mb`: at `scale` if it fits; else at up to `MAX_HALVINGS` halvings of it;
+    else on the first motion frames only (≥ `min_frames`). A grid beyond `max_views_mb` at `scale` is
+    refused. Returns (model, scale, frames kept); every reduction is logged."""
+    try:
+        fm = build(scale, n_frames, max_views_mb)
+    except GridTooLarge as e:
+        raise _grid_refusal(name, calib, e) from None
+    views_mb = len(fm.t_views) * fm.h * fm.w * 2 * 4 / 1e6
+    if views_mb <= work_views_mb:
+        return fm, scale, n_frames
+    s = scale
+    for _ in range(MAX_HALVINGS):
+        work = calib.intrinsics.scaled(s / 2)
+        if min(work.width, work.height) < MIN_WORK_PX:
+            break
+        s /= 2
+        try:
+            fm = build(s, n_frames, work_views_mb)
+        except GridTooLarge:
+            continue
+        log.warning("%s: the forward model's views need %.0f MB at %d×%d (budget %.0f MB): working at "
+                    "%d×%d instead", name, views_mb, *_size(calib, scale), work_views_mb, fm.w, fm.h)
+        return fm, s, n_frames
+    lo, hi, best = min_frames, n_frames - 1, None      # the most leading motion frames that fit
+    while lo <= hi:
+        mid = (lo + hi) // 2
+        try:
+            best = (build(s, mid, work_views_mb), mid)
+            lo = mid + 1
+        except GridTooLarge:
+            hi = mid - 1
+    if best is None:
+        raise RecordingError(name, "camera/t, gyro/rate", f"the forward model's views need {views_mb:.0f} MB "
+                             f"and {min_frames} motion frames need more than {work_views_mb:.0f} MB even at "
+                             f"{_size(calib, s)[0]}×{_size(calib, s)[1]}; expected slower motion (check the "
+                             "gyro rates, fx and tau_s)")
+    log.warning("%s: the forward model's views need %.0f MB for %d motion frames at %d×%d (budget %.0f MB): "
+                "working on the first %d motion frames at %d×%d", name, views_mb, n_frames,
+                *_size(calib, scale), work_views_mb, best[1], best[0].w, best[0].h)
+    return best[0], s, best[1]
+
+
+def _size(calib: Calibration, scale: float) -> tuple[int, int]:
+    work = calib.intrinsics.scaled(scale)
+    return work.width, work.height
+
+
 def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<recording>",
             scale: float | None = None, work_width: int = 160,
             offset_margin_s: float = 0.03, max_step_px: float = 1.0, smooth_px: float = 0.0,
-            max_views_mb: float = MAX_VIEWS_MB) -> RecData:
+            max_views_mb: float = MAX_VIEWS_MB, work_views_mb: float = WORK_VIEWS_MB,
+            frames_scale: float = 1.0) -> RecData:
     """Split a recording into reference and motion frames and build its forward model.
+
+    `rec.frames` may be stored at `frames_scale` × the calibration's size (`thermod discrepancy` bins
+    very large frames as it reads them); the working scale is at most that. The forward model's views
+    are kept within `work_views_mb` (`_bounded_grid`: a coarser working image, then fewer motion frames).
 
     Raises RecordingError (naming `name`) when there is no static segment, no motion, no gyro
     coverage of the motion frames, or when a size derived from the file (the working image, the
     forward model's time steps) would be unreasonable. The calibration's own values were checked when
     it was built (by the --config loader or the recording reader, which name their source).
     """
-    _check_inputs(rec, calib, name)
+    _check_inputs(rec, calib, name, frames_scale)
     if scale is None:
-        scale = _working_scale(calib, work_width)
+        scale = min(working_scale(calib, work_width), frames_scale)
     work = calib.intrinsics.scaled(scale)
     if min(work.width, work.height) < MIN_WORK_PX:
         raise RecordingError(name, "camera/frames", f"{calib.width}×{calib.height} frames give a "
                              f"{work.width}×{work.height} working image; need ≥ {MIN_WORK_PX} px a side")
+    _check_offset(rec, calib, name)
     seg = _segments(rec, calib, name, offset_margin_s)
     if seg is None:
-        return _prepare_motion(rec, calib, name, scale, offset_margin_s, max_step_px, smooth_px, max_views_mb)
+        return _prepare_motion(rec, calib, name, scale, offset_margin_s, max_step_px, smooth_px, max_views_mb,
+                               work_views_mb)
     static, moving, t_onset, t_ref = seg.static, seg.moving, seg.t_onset, seg.t_ref
-    n_static = int(static.sum())
-    st = rec.frames[static].astype(np.float32)
-    ref_full = st.mean(axis=0)
-    frame_t = rec.t[moving]
-    try:
-        fm = ForwardModel(ref_full, frame_t, rec.gyro_t, rec.gyro_rate, calib, t_ref=t_ref, scale=scale,
-                          max_step_px=max_step_px, max_views_mb=max_views_mb)
-    except GridTooLarge as e:
-        raise RecordingError(name, "camera/t, gyro/rate", f"{e}; shorten the motion segment, lower "
-                             "--work-width, or check fx and tau_s") from None
-    st_w = downsample(st, scale, smooth_px)
+    static_idx = np.flatnonzero(static)[-MAX_STATIC_FRAMES:]
+    n_static = len(static_idx)
+    moving_idx = np.flatnonzero(moving)
+
+    def build(s, n, budget):
+        w, h = _size(calib, s)
+        return ForwardModel(np.zeros((h, w), np.float32), rec.t[moving_idx[:n]], rec.gyro_t, rec.gyro_rate,
+                            calib, t_ref=t_ref, scale=s, max_step_px=max_step_px, max_views_mb=budget,
+                            prescaled=True)
+    fm, scale, n_moving = _bounded_grid(name, calib, scale, len(moving_idx), build, 2, max_views_mb,
+                                        work_views_mb)
+    moving_idx = moving_idx[:n_moving]
+    frame_t = rec.t[moving_idx]
+    size = (fm.w, fm.h)
+    st_w = working_frames(rec.frames, static_idx, size, smooth_px)
     static_mean = st_w.mean(axis=0)
     noise_var = max(float(np.mean((st_w - static_mean) ** 2) * n_static / max(n_static - 1, 1)),
                     quantisation_variance(scale))
     fm.set_reference(static_mean, None, prescaled=True)
-    measured = downsample(rec.frames[moving], scale, smooth_px)
+    measured = working_frames(rec.frames, moving_idx, size, smooth_px)
     gm = rec.gyro_t + calib.time_offset_s > t_onset
     base = seg.static_rate if seg.static_rate is not None else np.zeros(3)
     motion_rms = np.sqrt(np.mean((rec.gyro_rate[gm] - base) ** 2, axis=0)) if gm.any() else np.zeros(3)
-    return RecData(name, fm, measured, frame_t, static_mean, ref_full, noise_var, n_static, t_ref, t_onset,
-                   rec.gyro_t, rec.gyro_rate, seg.static_rate,
+    return RecData(name, fm, measured, frame_t, static_mean, static_mean, noise_var, n_static, t_ref,
+                   t_onset, rec.gyro_t, rec.gyro_rate, seg.static_rate,
                    _static_sem(rec.gyro_t, rec.gyro_rate, seg.t_onset_gyro), motion_rms)
+
+
+def _check_offset(rec, calib: Calibration, name: str) -> None:
+    """A time offset that moves the gyro past the whole recording is not a clock offset: refused."""
+    off = calib.time_offset_s
+    span = float(rec.t[-1] - rec.t[0]) if len(rec.t) else 0.0
+    if len(rec.gyro_t) and abs(off) > 0.5 * span:
+        g0, g1 = float(rec.gyro_t[0]) + off, float(rec.gyro_t[-1]) + off
+        raise RecordingError(name, "gyro.attrs['time_offset_s']", f"{off!r} s moves the gyro samples to "
+                             f"camera times [{g0:.3f}, {g1:.3f}] s, against frames in [{rec.t[0]:.3f}, "
+                             f"{rec.t[-1]:.3f}] s; expected an offset within ±{0.5 * span:.3g} s (half "
+                             "the time the frames span)")
 
 
 @dataclass(frozen=True)
@@ -257,7 +367,8 @@ def _pixel_speed(calib: Calibration, gyro_t, gyro_rate, scale: float):
 
 
 def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_margin_s: float,
-                    max_step_px: float, smooth_px: float, max_views_mb: float) -> RecData:
+                    max_step_px: float, smooth_px: float, max_views_mb: float,
+                    work_views_mb: float) -> RecData:
     """No static lead-in: every frame read ≥ 5τ after the gyro starts is predicted from a scene canvas
     estimated from the frames themselves (`problem.estimate_scene`), anchored at the pose of the frame
     whose preceding 5τ moved least (t_ref)."""
@@ -271,21 +382,26 @@ def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_mar
         raise RecordingError(name, "camera/t", "fewer than 3 frames are covered by gyro samples from 5τ "
                              "before their first row (no static segment either, so the reference must be "
                              "estimated from the moving frames)")
-    frame_t = rec.t[moving]
-    t_cam, speed = _pixel_speed(calib, rec.gyro_t, rec.gyro_rate, scale)
-    blur = [float(np.mean(speed[(t_cam >= t - period - 5 * tau) & (t_cam <= t)] if np.any(
-        (t_cam >= t - period - 5 * tau) & (t_cam <= t)) else np.inf)) for t in frame_t]
-    k_ref = int(np.argmin(blur))
-    t_ref = float(frame_t[k_ref])
     idx = np.flatnonzero(moving)
-    try:
-        fm = ForwardModel(rec.frames[idx[k_ref]].astype(np.float32), frame_t, rec.gyro_t, rec.gyro_rate,
-                          calib, t_ref=t_ref, t_start=t_start, scale=scale, max_step_px=max_step_px,
-                          max_views_mb=max_views_mb)
-    except GridTooLarge as e:
-        raise RecordingError(name, "camera/t, gyro/rate", f"{e}; shorten the recording, lower "
-                             "--work-width, or check fx and tau_s") from None
-    measured = downsample(rec.frames[moving], scale, smooth_px)
+    t_cam, speed = _pixel_speed(calib, rec.gyro_t, rec.gyro_rate, scale)
+    # mean speed over each frame's last period + 5τ (prefix sums: the gyro may be long)
+    csum = np.r_[0.0, np.cumsum(speed)]
+    i0 = np.searchsorted(t_cam, rec.t[idx] - period - 5 * tau, side="left")
+    i1 = np.searchsorted(t_cam, rec.t[idx], side="right")
+    cnt = i1 - i0
+    blur = np.where(cnt > 0, (csum[i1] - csum[i0]) / np.maximum(cnt, 1), np.inf)
+
+    def build(s, n, budget):
+        w, h = _size(calib, s)
+        return ForwardModel(np.zeros((h, w), np.float32), rec.t[idx[:n]], rec.gyro_t, rec.gyro_rate, calib,
+                            t_ref=float(rec.t[idx[int(np.argmin(blur[:n]))]]), t_start=t_start, scale=s,
+                            max_step_px=max_step_px, max_views_mb=budget, prescaled=True)
+    fm, scale, n = _bounded_grid(name, calib, scale, len(idx), build, 3, max_views_mb, work_views_mb)
+    idx = idx[:n]
+    k_ref = int(np.argmin(blur[:n]))
+    frame_t = rec.t[idx]
+    t_ref = float(frame_t[k_ref])
+    measured = working_frames(rec.frames, idx, (fm.w, fm.h), smooth_px)
     origin, shape = _canvas(fm, calib)
     scene = np.zeros(shape, np.float32)
     ix, iy = int(round(origin[0])), int(round(origin[1]))
@@ -293,9 +409,8 @@ def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_mar
     fm.set_reference(scene, None, prescaled=True, origin=origin)
     noise_var = max(noise_variance_spatial(measured), quantisation_variance(scale))
     motion_rms = np.sqrt(np.mean((rec.gyro_rate - rec.gyro_rate.mean(axis=0)) ** 2, axis=0))
-    d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(),
-                rec.frames[idx[k_ref]].astype(np.float32), noise_var, int(moving.sum()), t_ref, t_start,
-                rec.gyro_t, rec.gyro_rate, None, None, motion_rms,
+    d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(), measured[k_ref].copy(), noise_var, n,
+                t_ref, t_start, rec.gyro_t, rec.gyro_rate, None, None, motion_rms,
                 reference="motion", scene=scene, origin=origin,
                 noise_source="spatial high-pass of the motion frames")
     return d

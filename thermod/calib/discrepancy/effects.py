@@ -18,6 +18,7 @@ from thermod.calib.discrepancy import sensor
 from thermod.calib.discrepancy.data import Model
 from thermod.calib.discrepancy.fitting import current_ssr, scalar_fit, vector_fit, with_calib
 from thermod.calib.discrepancy.problem import StepContext
+from thermod.physics.calibration import RANGES
 from thermod.physics.effects import EFFECTS as VOCABULARY
 from thermod.physics.geometry import so3_log
 from thermod.physics.gyro_effects import continuations, detect_clip_level, group_delay_s
@@ -74,10 +75,14 @@ def fit_time_offset(ctx: StepContext, model: Model, max_offset_s: float = 0.03) 
     """Constant gyro → camera clock offset."""
     t0 = model.calib.time_offset_s
     grid = t0 + np.arange(-max_offset_s, max_offset_s + 1e-9, 0.005)
+    # the search stays inside the range a Calibration accepts (a model at its end searches one way)
+    lo_r, hi_r = RANGES["time_offset_s"][:2]
+    grid = grid[(grid >= lo_r) & (grid <= hi_r)]
 
     def make(x):
         return with_calib(model, time_offset_s=float(x))
-    x, ssr = scalar_fit(ctx, make, grid, t0 - max_offset_s, t0 + max_offset_s, 0.005, x0=t0)
+    x, ssr = scalar_fit(ctx, make, grid, max(t0 - max_offset_s, lo_r), min(t0 + max_offset_s, hi_r), 0.005,
+                        x0=t0)
     return FitResult("time_offset", make(x), ssr)
 
 
@@ -161,7 +166,9 @@ def timing_separation(ctx: StepContext, model: Model, h_s: float = 0.002) -> str
 
 def fit_time_constant(ctx: StepContext, model: Model) -> FitResult:
     tau = model.calib.tau_s
-    lo, hi = math.log(tau / 3.0), math.log(tau * 3.0)
+    # ×/÷ 3 about the model, inside the range a Calibration accepts
+    lo = math.log(max(tau / 3.0, RANGES["tau_s"][0]))
+    hi = math.log(min(tau * 3.0, RANGES["tau_s"][1]))
 
     def make(x):
         return with_calib(model, tau_s=float(math.exp(x)))
