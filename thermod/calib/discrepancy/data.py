@@ -28,7 +28,7 @@ MAX_VIEWS_MB = 2048.0         # beyond this the recording is refused (the views 
 # Every evaluation warps and filters all views, so their size sets the run time of the whole search: a
 # grid above this is worked at half the resolution (at most `MAX_HALVINGS` times), then on the first
 # motion frames only, each choice logged. `thermod sim`'s default recording needs 65 MB, tests ≤ 30 MB.
-WORK_VIEWS_MB = 128.0
+WORK_VIEWS_MB = 512.0
 MAX_HALVINGS = 2
 MAX_STATIC_FRAMES = 500       # the last ones before the motion make the reference
 
