@@ -134,3 +134,27 @@ def test_run_takes_its_signals_before_the_daemon_is_imported():
     got = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert got.returncode == 0, got.stderr[-2000:]
     assert got.stdout.split() == ["-"], got.stdout
+
+
+def test_a_signal_taken_while_the_main_thread_holds_the_events_lock_does_not_deadlock():
+    """A signal handler runs in the main thread between any two bytecodes, so a SIGTERM can land while
+    that thread holds the stop event's lock inside ``stop.wait`` (`Daemon.serve` waits 20 times a
+    second), and a SIGHUP while it holds the reload event's inside ``clear``. Setting the event there
+    from the handler deadlocked the daemon (systemd then kills it at TimeoutStopSec). In a process
+    with a deadline, since a deadlock cannot be interrupted."""
+    probe = (
+        "import signal, threading\n"
+        "from thermod.cli.run import signal_handlers\n"
+        "stop, reload_req = threading.Event(), threading.Event()\n"
+        "on_term, on_hup = signal_handlers(stop, reload_req)\n"
+        "with stop._cond:\n"
+        "    on_term(signal.SIGTERM, None)\n"
+        "with reload_req._cond:\n"
+        "    on_hup(signal.SIGHUP, None)\n"
+        "assert stop.wait(30) and reload_req.wait(30)\n"
+        "print('set', flush=True)\n")
+    try:
+        got = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the handler deadlocked on the event's lock")
+    assert got.returncode == 0 and got.stdout.split() == ["set"], got.stderr[-2000:]

@@ -58,19 +58,35 @@ def _warn_if_open(path: str) -> None:
                     "(systemd/thermod.tmpfiles.conf does)", path, stat.S_IMODE(mode))
 
 
-def run(args) -> int:
-    stop = threading.Event()
-    reload_req = threading.Event()
+def _set_from_handler(event: threading.Event) -> None:
+    """`event.set()` on behalf of a signal handler, by a thread of its own: a handler runs in the main
+    thread between any two bytecodes, possibly while that thread holds the event's lock (inside its
+    ``wait``, which `Daemon.serve` calls 20 times a second), where a direct ``set`` deadlocks."""
+    threading.Thread(target=event.set, name="thermod-signal", daemon=True).start()
+
+
+def signal_handlers(stop: threading.Event, reload_req: threading.Event):
+    """(on_term, on_hup): SIGTERM and SIGINT set `stop`, SIGHUP sets `reload_req`."""
 
     def on_term(signum, frame):
         log.info("%s: shutting down", signal.Signals(signum).name)
-        stop.set()
+        _set_from_handler(stop)
 
+    def on_hup(signum, frame):
+        _set_from_handler(reload_req)
+
+    return on_term, on_hup
+
+
+def run(args) -> int:
+    stop = threading.Event()
+    reload_req = threading.Event()
+    on_term, on_hup = signal_handlers(stop, reload_req)
     # first, before the daemon's and the schema's modules are imported (seconds on a loaded payload):
     # a stop during the start ends it there, and a SIGHUP then (a reload) waits for the daemon to serve
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
-    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    signal.signal(signal.SIGHUP, on_hup)
     from thermod.runtime import config  # the configuration's schema imports the physics (~1 s)
 
     if args.list_keys:
