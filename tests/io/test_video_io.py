@@ -324,7 +324,7 @@ def test_writer_refuses_bad_frames_and_times(tmp_path):
 
 def test_fps_is_for_tiff_sequences_only(tmp_path):
     mp4 = write_video(tmp_path / "a.mp4", _texture(2), [0, 0.1])
-    with pytest.raises(VideoError, match="TIFF sequences only"):
+    with pytest.raises(VideoError, match="image sequences .TIFF or PNG frames. only"):
         read_video(mp4, fps=30)
 
 

@@ -19,7 +19,7 @@ def add_arguments(p) -> None:
 
     p.add_argument("input", nargs="?", default=None,
                    help=".mcap file (or the .mcap.part of a killed `thermod record`: its complete "
-                   "messages), rosbag2 directory or ROS 1 .bag; with --gyro a video or TIFF sequence")
+                   "messages), rosbag2 directory or ROS 1 .bag; with --gyro a video or TIFF/PNG frames")
     p.add_argument("-o", "--output", default=None, help="recording to write (HDF5, format v1)")
     p.add_argument(
         "--image-topic",

@@ -3,10 +3,10 @@ format-v1 recording (`thermod.ingest.flight`).
 
 The camera comes from ``--calibration CAMERA.toml`` (a ``[camera]`` or ``[calibration]`` table,
 `thermod.io.camera_file`) or ``--camera PRESET`` (config/cameras/); one of the two is required, since
-the focal length and τ are not in the video. ``--fps`` gives a TIFF sequence's frame rate,
-``--log-index`` picks one log of a multi-log file, ``--start``/``--duration`` import a part of the
-video, ``--refine`` adds the discrepancy refinement (minutes on 2 cores; the sync alone takes
-seconds) and ``--report DIR`` writes sync.json and sync.png.
+the focal length and τ are not in the video. ``--fps`` gives an image sequence's frame rate (TIFF
+or PNG frames), ``--log-index`` picks one log of a multi-log file, ``--start``/``--duration`` import
+a part of the video, ``--refine`` adds the discrepancy refinement (minutes on 2 cores; the sync alone
+takes seconds) and ``--report DIR`` writes sync.json and sync.png.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from thermod.paths import directory_problem, output_problem
 
 def add_arguments(p) -> None:
     """The flight-import options, added to `thermod import`'s parser."""
-    g = p.add_argument_group("flight import (with --gyro: INPUT is a thermal video or a TIFF sequence)")
+    g = p.add_argument_group("flight import (with --gyro: INPUT is a thermal video or TIFF/PNG frames)")
     g.add_argument("--gyro", default=None, metavar="LOG",
                    help="flight-controller log: Betaflight .bbl/.bfl/.csv, ArduPilot .bin, PX4 .ulg, "
                         "Gyroflow .gcsv, …")
@@ -29,7 +29,8 @@ def add_arguments(p) -> None:
                    help="a camera preset instead of --calibration (thermod import --list-cameras)")
     g.add_argument("--list-cameras", action="store_true", help="list the camera presets and exit")
     g.add_argument("--fps", type=float, default=None, metavar="F",
-                   help="frame rate of a TIFF sequence (a video file's own timestamps are used)")
+                   help="frame rate of an image sequence (TIFF or PNG frames; a video file's own timestamps "
+                   "are used)")
     g.add_argument("--log-index", type=int, default=None, metavar="N",
                    help="which log of a file holding several (0-based; default the longest)")
     g.add_argument("--start", type=float, default=0.0, metavar="S",

@@ -18,14 +18,15 @@ VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".m4v", ".ts", ".mts", ".m2ts"
 
 
 def is_video(path: str) -> bool:
-    """A video file or a TIFF sequence (a glob, or a folder of TIFFs) rather than a ROS recording."""
-    from thermod.io.video import TIFF_SUFFIXES
+    """A video file or an image sequence (a glob, or a folder of TIFF or PNG frames) rather than a
+    ROS recording."""
+    from thermod.io.video import SEQUENCE_SUFFIXES
 
     p = Path(path)
     if any(ch in str(path) for ch in "*?["):
         return True
     if p.is_dir():
-        return any(q.suffix.lower() in TIFF_SUFFIXES for q in p.iterdir())
+        return any(q.suffix.lower() in SEQUENCE_SUFFIXES for q in p.iterdir())
     return p.suffix.lower() in VIDEO_SUFFIXES
 
 

@@ -2,8 +2,8 @@
 
 Reading (`iter_video`, `read_video`, `probe_video`): a video file FFmpeg decodes, grey formats as
 coded (uint8 or uint16, not rescaled), YUV as its luma plane as a player shows it (limited range
-mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a 16-bit TIFF sequence (a folder or
-a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
+mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a sequence of grey 8- or 16-bit TIFF or
+PNG frames (a folder or a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
 
 The rules it keeps: a frame's time is float64 s on the container's own clock (its presentation
 timestamp; variable frame rate kept), never mapped to the flight log's (the sync's job); times
@@ -43,6 +43,8 @@ DEFAULT_MAX_BYTES = 4 * 2**30     # read_video's in-memory stack
 WINDOW_TOLERANCE_S = 1e-6         # a frame this close to a time window's edge is on the edge
 WRITE_TIME_BASE = Fraction(1, 90000)
 TIFF_SUFFIXES = (".tif", ".tiff")
+PNG_SUFFIXES = (".png",)
+SEQUENCE_SUFFIXES = TIFF_SUFFIXES + PNG_SUFFIXES   # an image sequence's frames, one kind a sequence
 # what FFmpeg and PyAV raise on a damaged file (av.error.FFmpegError is a ValueError, and PyAV decodes
 # metadata strings itself); each becomes a VideoError naming the file
 _DECODE_ERRORS = (av.error.FFmpegError, ValueError, UnicodeError, OSError, EOFError)
@@ -67,7 +69,7 @@ class VideoInfo:
     """
 
     path: str
-    kind: str                     # "video" or "tiff-sequence"
+    kind: str                     # "video", "tiff-sequence" or "png-sequence"
     width: int
     height: int
     bit_depth: int
@@ -98,18 +100,18 @@ class VideoFrames:
     frames: np.ndarray
     t: np.ndarray
     info: VideoInfo
-    files: list[str] = field(default_factory=list)   # a TIFF sequence's files, in order
+    files: list[str] = field(default_factory=list)   # an image sequence's files, in order
     notes: list[str] = field(default_factory=list)   # what the reader kept or ignored (a cut, a rotation)
 
 
 # ----------------------------------------------------------------------------------------- reading
 def probe_video(source: str | os.PathLike, fps: float | None = None, *, stream: int | None = None
                 ) -> VideoInfo:
-    """The `VideoInfo` of a video file, a folder of TIFFs or a TIFF glob (which needs `fps`); `stream`
+    """The `VideoInfo` of a video file or an image sequence (TIFF or PNG frames: needs `fps`); `stream`
     is a container's stream index (default: `choose_stream`'s)."""
-    files = _tiff_files(source)
+    files = _sequence_files(source)
     if files is not None:
-        return _probe_tiffs(source, files, fps)
+        return _probe_sequence(source, files, fps)
     av = _av()
     path = _existing_file(source)
     try:
@@ -125,25 +127,25 @@ def iter_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
                ) -> Iterator[tuple[float, np.ndarray]]:
     """Yield (t_s, frame) one frame at a time: frame is [H, W] uint8 or uint16 (module docstring).
 
-    For a TIFF sequence `fps` (Hz) is required and frame k is at t0 + k / fps; for a video file
+    For an image sequence `fps` (Hz) is required and frame k is at t0 + k / fps; for a video file
     `fps` and `t0` must be left unset (its own timestamps are used). Raises `VideoError` for a
     truncated file, a missing video stream, zero frames or timestamps that do not increase; with a
     `notes` list, a file cut short after its first frame ends the frames with a note there instead."""
-    files = _tiff_files(source)
+    files = _sequence_files(source)
     if files is not None:
-        info = _probe_tiffs(source, files, fps)
-        yield from _iter_tiffs(info, files, float(fps), float(t0))
+        info = _probe_sequence(source, files, fps)
+        yield from _iter_sequence(info, files, float(fps), float(t0))
         return
     if fps is not None or t0:
-        raise VideoError(source, "fps/t0 apply to TIFF sequences only; a video file's own timestamps "
-                                 "are used")
+        raise VideoError(source, "fps/t0 apply to image sequences (TIFF or PNG frames) only; a video "
+                                 "file's own timestamps are used")
     yield from _iter_av(_existing_file(source), stream, notes)
 
 
 def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 0.0,
                max_bytes: int = DEFAULT_MAX_BYTES, *, start_s: float = 0.0,
                duration_s: float | None = None, stream: int | None = None) -> VideoFrames:
-    """Load a video (or TIFF sequence) into memory: `VideoFrames`, with every frame or those read from
+    """Load a video (or image sequence) into memory: `VideoFrames`, with every frame or those read from
     `start_s` to `start_s` + `duration_s` after the first frame (times stay the file's own).
 
     Refuses, before decoding, a whole video whose declared frame count needs more than `max_bytes`,
@@ -194,7 +196,7 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
                                  + (f" for {duration_s:g} s" if duration_s is not None else "")
                                  + (f" (the video lasts {last - first:.3g} s)" if first is not None else ""))
     frames = buf[:n] if n > 0.9 * buf.shape[0] else buf[:n].copy()
-    files = _tiff_files(source) or []
+    files = _sequence_files(source) or []
     return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files], notes)
 
 
@@ -206,7 +208,8 @@ def _av():
 def _existing_file(source) -> Path:
     path = Path(source)
     if not path.is_file():
-        raise VideoError(path, "no such file (expected a video file, a folder of TIFFs or a TIFF glob)")
+        raise VideoError(path, "no such file (expected a video file, or a folder or glob of TIFF or PNG "
+                               "frames)")
     return path
 
 
@@ -447,18 +450,24 @@ def _incomplete(info: VideoInfo, n: int, span: float, periods: list[float]) -> s
     return None
 
 
-# ----------------------------------------------------------------------------------- TIFF sequences
-def _tiff_files(source) -> list[Path] | None:
-    """The files of a TIFF sequence (a folder or a glob), or None when `source` names one file."""
+# ---------------------------------------------------------------------------------- image sequences
+def _sequence_files(source) -> list[Path] | None:
+    """The files of an image sequence (a folder or a glob of TIFF or PNG frames), or None when
+    `source` names one file. A folder's frames are its .tif/.tiff/.png files, all of one kind."""
     s = str(source)
     if any(ch in s for ch in "*?["):
         files = [Path(p) for p in glob.glob(s) if Path(p).is_file()]
         if not files:
-            raise VideoError(source, "the pattern matches no files (expected a TIFF sequence)")
+            raise VideoError(source, "the pattern matches no files (expected TIFF or PNG frames)")
     elif Path(s).is_dir():
-        files = [p for p in Path(s).iterdir() if p.is_file() and p.suffix.lower() in TIFF_SUFFIXES]
+        files = [p for p in Path(s).iterdir() if p.is_file() and p.suffix.lower() in SEQUENCE_SUFFIXES]
         if not files:
-            raise VideoError(source, "the folder holds no .tif/.tiff files (expected a TIFF sequence)")
+            raise VideoError(source, "the folder holds no .tif/.tiff/.png files (expected a sequence of "
+                                     "TIFF or PNG frames)")
+        kinds = {p.suffix.lower() in PNG_SUFFIXES for p in files}
+        if len(kinds) > 1:
+            raise VideoError(source, "the folder holds both TIFF and PNG files: expected the frames of one "
+                                     "sequence (give a glob, e.g. 'DIR/*.png', to choose)")
     else:
         return None
     if len(files) > MAX_FRAMES:
@@ -470,10 +479,40 @@ def _natural_key(p: Path):
     return [int(x) if x.isdigit() else x.lower() for x in re.split(r"(\d+)", p.name)]
 
 
+def _read_frame(path: Path) -> np.ndarray:
+    """One frame of an image sequence: a PNG by its name, else a TIFF."""
+    return _read_png(path) if path.suffix.lower() in PNG_SUFFIXES else _read_tiff(path)
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_COLOUR = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
+
+
+def _read_png(path: Path) -> np.ndarray:
+    """One grey PNG: its header (IHDR: size, bit depth, colour type) is checked before OpenCV decodes
+    and allocates it."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(29)
+    except OSError as e:
+        raise VideoError(path, f"cannot read it ({e.strerror or e})") from None
+    if len(head) < 29 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise VideoError(path, "not a PNG (no PNG signature and IHDR header)")
+    w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    depth, colour = head[24], head[25]
+    if colour != 0:
+        raise VideoError(path, f"{PNG_COLOUR.get(colour, f'colour type {colour}')} PNG: expected a "
+                               "single-channel grey PNG")
+    if depth not in (8, 16):
+        raise VideoError(path, f"{depth}-bit grey PNG: expected 8- or 16-bit grey")
+    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
+        raise VideoError(path, f"image size {w}×{h}: expected 1–{MAX_SIDE} px per side")
+    return _image(path, "a 16-bit grey PNG")
+
+
 def _read_tiff(path: Path) -> np.ndarray:
     """One grey TIFF: its declared size is checked (tifffile reads the header only) before OpenCV
     decodes and allocates it."""
-    import cv2
     import tifffile
 
     try:
@@ -486,35 +525,44 @@ def _read_tiff(path: Path) -> np.ndarray:
         raise VideoError(path, f"{samples} channels: expected a single-channel grey TIFF")
     if len(shape) != 2 or not all(1 <= v <= MAX_SIDE for v in shape):
         raise VideoError(path, f"image shape {shape}: expected one grey plane of 1–{MAX_SIDE} px per side")
+    return _image(path, "a 16-bit grey TIFF")
+
+
+def _image(path: Path, expected: str) -> np.ndarray:
+    """OpenCV's decode of an image file whose header was checked: one grey 8- or 16-bit plane."""
+    import cv2
+
     try:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     except cv2.error as e:
         raise VideoError(path, f"OpenCV cannot read it as an image ({e})") from None
     if img is None:
-        raise VideoError(path, "not an image OpenCV can read (expected a 16-bit grey TIFF)")
+        raise VideoError(path, f"not an image OpenCV can read (expected {expected})")
     if img.ndim == 3:
-        raise VideoError(path, f"{img.shape[2]} channels: expected a single-channel grey TIFF")
+        raise VideoError(path, f"{img.shape[2]} channels: expected {expected}")
     if img.dtype not in (np.uint8, np.uint16):
         raise VideoError(path, f"pixel type {img.dtype}: expected 8- or 16-bit unsigned grey")
     return img
 
 
-def _probe_tiffs(source, files: list[Path], fps: float | None) -> VideoInfo:
+def _probe_sequence(source, files: list[Path], fps: float | None) -> VideoInfo:
     if fps is None or not (isinstance(fps, (int, float)) and math.isfinite(fps) and 0 < fps <= 100_000):
-        raise VideoError(source, "a TIFF sequence has no timestamps: give its frame rate "
+        raise VideoError(source, "an image sequence has no timestamps: give its frame rate "
                                  f"(0 < fps ≤ 100000 Hz), got {fps!r}")
-    first = _read_tiff(files[0])
+    first = _read_frame(files[0])
     h, w = first.shape
     _check_size(files[0], w, h)
     depth = 16 if first.dtype == np.uint16 else 8
-    return VideoInfo(str(source), "tiff-sequence", w, h, depth, len(files), len(files) / fps, float(fps),
-                     "tiff", "gray16" if depth == 16 else "gray")
+    png = files[0].suffix.lower() in PNG_SUFFIXES
+    return VideoInfo(str(source), "png-sequence" if png else "tiff-sequence", w, h, depth, len(files),
+                     len(files) / fps, float(fps), "png" if png else "tiff",
+                     "gray16" if depth == 16 else "gray")
 
 
-def _iter_tiffs(info: VideoInfo, files: list[Path], fps: float, t0: float
+def _iter_sequence(info: VideoInfo, files: list[Path], fps: float, t0: float
                 ) -> Iterator[tuple[float, np.ndarray]]:
     for k, p in enumerate(files):
-        img = _read_tiff(p)
+        img = _read_frame(p)
         if img.shape != (info.height, info.width) or img.dtype != info.dtype:
             raise VideoError(p, f"{img.shape[1]}×{img.shape[0]} {img.dtype}: expected "
                                 f"{info.width}×{info.height} {info.dtype} like the sequence's first file")
