@@ -158,3 +158,13 @@ def test_a_signal_taken_while_the_main_thread_holds_the_events_lock_does_not_dea
     except subprocess.TimeoutExpired:
         pytest.fail("the handler deadlocked on the event's lock")
     assert got.returncode == 0 and got.stdout.split() == ["set"], got.stderr[-2000:]
+
+
+def test_ctrl_c_while_a_command_imports_exits_130_without_a_traceback(monkeypatch, capsys):
+    """A Ctrl-C during the seconds a numerical command takes to import is the same exit as one during
+    the command itself: 130, no KeyboardInterrupt traceback."""
+    def interrupted(name):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli.importlib, "import_module", interrupted)
+    assert cli.main(["deblur", "x.h5"]) == 130
+    assert "Traceback" not in capsys.readouterr().err

@@ -53,7 +53,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"thermod: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module_name, helptext = COMMANDS[name]
-    module = importlib.import_module(module_name)
+    try:
+        module = importlib.import_module(module_name)   # seconds for the numerical commands
+    except KeyboardInterrupt:                            # Ctrl-C meanwhile: as during the command
+        return 130
     parser = argparse.ArgumentParser(prog=f"thermod {name}", description=helptext)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     module.add_arguments(parser)
