@@ -2,6 +2,7 @@
 leaves, and a complete file cut at many byte offsets. What is imported is checked against what the
 `mcap` library's own streaming reader gets out of the same bytes."""
 
+import json
 import os
 import signal
 import struct
@@ -16,7 +17,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.reader import NonSeekingReader
+from mcap.reader import NonSeekingReader, make_reader
+from mcap.records import Footer, Header
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
 
 from thermod import cli
 from thermod.io import mcap, recording
@@ -65,69 +69,221 @@ def check_import_equals_stream(path: Path, out: Path, h: int, w: int) -> tuple[i
     return len(raw), len(imu)
 
 
-def test_a_killed_mcap_recorder_leaves_a_part_file_that_imports(tmp_path, caplog, capsys):
-    """A real `thermod record -o rec.mcap` process on a publisher, SIGKILLed once the library reads
-    frames and gyro in its ``.part``: `thermod import rec.mcap.part` recovers every complete frame and
-    gyro sample — those the library streams from the file — and says the file was truncated."""
-    h, w = 96, 128
-    calib = Calibration(width=w, height=h, cx=63.5, cy=47.5, fx=300.0, fy=310.0, tau_s=0.011)
-    out, part = tmp_path / "rec.mcap", tmp_path / "rec.mcap.part"
-    pub = Publisher("tcp://127.0.0.1:*", queue_size=512, hwm=512).start()
-    # this checkout's thermod in the recorder process, whatever the environment's install points at
+def start_recorder(out: Path, endpoint: str) -> subprocess.Popen:
+    """A real `thermod record -o OUT.mcap` process, this checkout's thermod whatever the environment's
+    install points at."""
     path = os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH"))))
     env = dict(os.environ, PYTHONPATH=path)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
-    proc = subprocess.Popen([sys.executable, "-m", "thermod.cli", "record", "-o", str(out), "--endpoint",
-                             pub.endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            env=env)
-    sent = 0
+    return subprocess.Popen([sys.executable, "-m", "thermod.cli", "record", "-o", str(out), "--endpoint",
+                             endpoint], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def kill(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait(30) == -signal.SIGKILL, proc.stderr.read()
+
+
+def valid_up_to_the_cut(path: Path) -> None:
+    """The mcap library reads `path` record by record, chunk CRCs checked, from its Header up to a
+    last record cut short, which is at most one chunk (1 MiB)."""
+    size = path.stat().st_size
+    records, end = [], 0
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False, validate_crcs=True).records:
+                records.append(record)
+                end = f.tell()
+        except (McapError, struct.error, ValueError):      # the library's own end at the cut
+            pass
+    assert isinstance(records[0], Header) and not any(isinstance(r, Footer) for r in records)
+    assert size - end <= (1 << 20) + 4096, (size, end)
+
+
+def test_a_killed_mcap_recorder_leaves_a_part_file_that_imports(tmp_path, caplog, capsys):
+    """Two real `thermod record -o X.mcap` processes on a publisher of ~50 frames/s (16×16, and 5 gyro
+    samples each: ~0.17 MB/s, so a 1 MiB chunk fills in ~6 s) with the daemon's health (its
+    calibration) every 0.5 s, the calibration changed partway as by a SIGHUP reload. `streaming` is
+    SIGKILLed while messages flow, 3 s after the change; `paused` once nothing has been sent for a
+    while and its ``.part`` holds every frame sent. `thermod import X.mcap.part` with no option
+    recovers every complete frame and gyro sample the library streams from each file, with the
+    daemon's last calibration and a warning that it changed; `streaming`'s frames reach to within 2 s
+    of its kill (the recorder ends its chunk every second), `paused`'s to the last frame sent (it does
+    so while nothing arrives, too)."""
+    h, w, per_frame = 16, 16, 5
+    calib = Calibration(width=w, height=h, cx=7.5, cy=7.5, fx=300.0, fy=310.0, tau_s=0.011)
+    reloaded = Calibration(width=w, height=h, cx=7.5, cy=7.5, fx=320.0, fy=330.0, tau_s=0.012)
+    names = ("streaming", "paused")
+    outs = {k: tmp_path / f"{k}.mcap" for k in names}
+    parts = {k: tmp_path / f"{k}.mcap.part" for k in names}
+    pub = Publisher("tcp://127.0.0.1:*", queue_size=512, hwm=512).start()
+    procs = {k: start_recorder(outs[k], pub.endpoint) for k in names}
+    sent_t: list[float] = []          # each frame's stamp: the host clock when it was sent
     try:
         deadline = time.monotonic() + 120      # a bound against a hang, not a measured time
+        seen = change = None
+        last_health = -np.inf
         while True:
-            assert proc.poll() is None, proc.stderr.read()
-            assert time.monotonic() < deadline, "the recorder never wrote frames and gyro"
-            t = 1000.0 + 0.02 * sent
-            pub.publish_health(calibration=calib)
-            pub.publish_raw(frame(sent, h, w), t, frame_id=sent)
-            pub.publish_frame(frame(sent, h, w).astype(np.float32), t, frame_id=sent, deblurred=True)
-            pub.publish_gyro(t - 0.02 + np.arange(20) * 1e-3, np.full((20, 3), 1e-3 * sent), seq=20 * sent)
-            sent += 1
-            time.sleep(0.01)
-            if sent % 10 == 0 and part.exists():
-                on_disk = streamed(part)
-                if len(on_disk.get(mcap.RAW_TOPIC, [])) >= 5 and len(on_disk.get(mcap.IMU_TOPIC, [])) >= 100:
-                    break
-        proc.send_signal(signal.SIGKILL)
-        assert proc.wait(30) == -signal.SIGKILL
+            for k, proc in procs.items():
+                assert proc.poll() is None, (k, proc.stderr.read())
+            now = time.monotonic()
+            assert now < deadline, "the recorders never wrote frames and gyro"
+            if now - last_health >= 0.5:
+                pub.publish_health(calibration=calib if change is None else reloaded)
+                last_health = now
+            i = len(sent_t)
+            pub.publish_raw(frame(i, h, w), now, frame_id=i)
+            pub.publish_frame(frame(i, h, w).astype(np.float32), now, frame_id=i, deblurred=True)
+            pub.publish_gyro(now - 0.02 + np.arange(per_frame) * 0.02 / per_frame,
+                             np.full((per_frame, 3), 1e-3 * i), seq=per_frame * i)
+            sent_t.append(now)
+            time.sleep(0.02)
+            if seen is None and i % 10 == 0:
+                got = [streamed(parts[k]) if parts[k].exists() else {} for k in names]
+                if all(len(g.get(mcap.RAW_TOPIC, [])) >= 5 and len(g.get(mcap.IMU_TOPIC, [])) >= 25
+                       for g in got):
+                    seen = now
+            if seen is not None and change is None and now - seen >= 1.0:
+                change = now
+                last_health = -np.inf           # the reloaded calibration goes out next
+            if change is not None and now - change >= 3.0:
+                break
+        kill(procs["streaming"])
+        killed_at = time.monotonic()
+        # nothing more is sent, not even health: only the recorder's own pace can end its chunk
+        while len(streamed(parts["paused"]).get(mcap.RAW_TOPIC, [])) < 5 or \
+                max(m.log_time for m in streamed(parts["paused"])[mcap.RAW_TOPIC]) < round(sent_t[-1] * 1e9):
+            assert procs["paused"].poll() is None, procs["paused"].stderr.read()
+            assert time.monotonic() < deadline, "the paused recorder never wrote its last frames"
+            time.sleep(0.2)
+        kill(procs["paused"])
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(30)
-        proc.stderr.close()
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(30)
+            proc.stderr.close()
         pub.stop()
-    assert part.exists() and not out.exists()
 
-    # without a calibration: the recorder writes it last, so the error says what to give
-    capsys.readouterr()
-    assert cli.main(["import", str(part), "-o", str(tmp_path / "a.h5")]) == 2
-    err = capsys.readouterr().err
-    assert f"{part}: no thermod calibration" in err and "truncated recording" in err, err
-    # nor from --tau and CameraInfo: the recorder writes camera info last too (not defaults in silence)
-    assert cli.main(["import", str(part), "-o", str(tmp_path / "a.h5"), "--tau", "0.011"]) == 2
-    assert f"no complete message on {mcap.CAMERA_INFO_TOPIC}" in capsys.readouterr().err
-    assert not (tmp_path / "a.h5").exists()
+    for k in names:
+        part = parts[k]
+        assert part.exists() and not outs[k].exists()
+        valid_up_to_the_cut(part)
+        caplog.clear()
+        capsys.readouterr()
+        assert cli.main(["import", str(part), "-o", str(tmp_path / f"{k}.h5")]) == 0, capsys.readouterr().err
+        n_frames, n_gyro = check_import_equals_stream(part, tmp_path / f"{k}.h5", h, w)
+        assert 5 <= n_frames <= len(sent_t) and 25 <= n_gyro <= per_frame * len(sent_t)
+        rec = recording.read(tmp_path / f"{k}.h5")
+        assert rec.calibration == reloaded, k
+        assert rec.extra_attrs["record"]["imported_calibration"] == "thermod metadata"
+        logged = [r.getMessage() for r in caplog.records]
+        assert sum("truncated MCAP file" in m for m in logged) == 1
+        changed = f"{part}: the calibration changed while recording (2 calibrations"
+        assert any(changed in m for m in logged), logged
+        # every frame on disk has its CameraInfo, from the calibration in force when it arrived
+        fx = camera_info_fx(part)
+        assert sorted(fx) == sorted(m.log_time for m in streamed(part)[mcap.RAW_TOPIC])
+        assert set(fx.values()) == {300.0, 320.0}, set(fx.values())
+        if k == "streaming":
+            lag = killed_at - rec.t[-1]
+            assert lag < 2.0, f"the last frame on disk was sent {lag:.2f} s before the kill"
+        else:
+            assert rec.t[-1] == pytest.approx(sent_t[-1], abs=1e-6)
 
-    toml = calibration_toml(tmp_path / "c.toml", calib)
+
+def camera_info_fx(path) -> dict[int, float]:
+    """{log time: fx} of the CameraInfo messages the mcap library decodes from `path` before the cut."""
+    out = {}
+    with open(path, "rb") as f:
+        reader = NonSeekingReader(f, decoder_factories=[DecoderFactory()])
+        try:
+            for _, _, message, info in reader.iter_decoded_messages(topics=[mcap.CAMERA_INFO_TOPIC],
+                                                                    log_time_order=False):
+                out[message.log_time] = float(info.k[0])
+        except (McapError, struct.error, ValueError):
+            pass
+    return out
+
+
+def test_the_recorder_writes_each_calibration_when_it_arrives(tmp_path, caplog, capsys):
+    """Frames before the first health message get their CameraInfo when its calibration arrives, which
+    is written and flushed at once (a copy of the ``.part`` then, as a kill would leave it, imports
+    with it); the same calibration again writes nothing, a new one (a reload) a second record. The
+    complete file imports the last one, with a warning; each CameraInfo has the one in force when its
+    frame arrived."""
+    h, w = 12, 16
+    first = Calibration(width=w, height=h, cx=7.5, cy=5.5, fx=200.0, fy=210.0, tau_s=0.01)
+    second = Calibration(width=w, height=h, cx=7.5, cy=5.5, fx=250.0, fy=260.0, tau_s=0.012)
+    out = tmp_path / "rec.mcap"
+    part = tmp_path / "rec.mcap.part"
+    writer = mcap.McapRecordWriter(out, flush_s=3600.0)     # no flush by the clock here
+
+    def raw(i):
+        writer.add("raw", {"t": 10.0 + 0.02 * i, "frame_id": i}, frame(i, h, w))
+
+    for i in range(3):
+        raw(i)
+    writer.add("health", {"t": 10.05, "calibration": {**first.as_dict(), "source": "config"}}, None)
+    (tmp_path / "early.mcap.part").write_bytes(part.read_bytes())
+    for i in range(3, 5):
+        raw(i)
+    writer.add("health", {"t": 10.1, "calibration": first.as_dict()}, None)
+    writer.add("health", {"t": 10.15, "calibration": second.as_dict()}, None)
+    for i in range(5, 7):
+        raw(i)
+    assert writer.finish(attrs={"endpoint": "x"}) == out and writer.source == "health"
+
+    assert camera_info_fx(tmp_path / "early.mcap.part") == {round((10.0 + 0.02 * i) * 1e9): 200.0
+                                                            for i in range(3)}
+    assert cli.main(["import", str(tmp_path / "early.mcap.part"), "-o", str(tmp_path / "early.h5")]) == 0
+    early = recording.read(tmp_path / "early.h5")
+    assert early.calibration == first and early.n_frames == 3
+
+    with open(out, "rb") as f:
+        reader = make_reader(f)
+        records = [m.metadata for m in reader.iter_metadata() if m.name == mcap.METADATA_NAME]
+    assert [json.loads(m["calibration"])["fx"] for m in records] == [200.0, 250.0, 250.0]
+    assert [m.get("from_t") for m in records] == ["10.05", "10.15", None]
+    assert records[-1]["calibration_source"] == "health" and records[-1]["endpoint"] == "x"
+    assert sorted(camera_info_fx(out).values()) == [200.0] * 5 + [250.0] * 2
     caplog.clear()
-    assert cli.main(["import", str(part), "-o", str(tmp_path / "rec.h5"), "--calibration", str(toml)]) == 0
-    n_frames, n_gyro = check_import_equals_stream(part, tmp_path / "rec.h5", h, w)
-    # what the recorder flushed: at least what was seen before the kill, at most what was sent
-    assert 5 <= n_frames <= sent and 100 <= n_gyro <= 20 * sent
-    warnings = [r.getMessage() for r in caplog.records if "truncated MCAP file" in r.getMessage()]
-    total = sum(len(v) for v in streamed(part).values())
-    assert len(warnings) == 1 and str(part) in warnings[0]
-    assert f"recovered the {total} complete messages" in warnings[0]
-    assert recording.read(tmp_path / "rec.h5").calibration.fx == 300.0
+    assert cli.main(["import", str(out), "-o", str(tmp_path / "rec.h5")]) == 0
+    assert recording.read(tmp_path / "rec.h5").calibration == second
+    assert any(f"{out}: the calibration changed while recording (2 calibrations" in r.getMessage()
+               and "in force from t = 10.15 s" in r.getMessage() for r in caplog.records)
+
+
+def test_a_recording_killed_before_any_calibration_needs_one(tmp_path, capsys):
+    """No health message yet, no --config: the ``.part`` has frames but no calibration, and the import
+    error says what to give."""
+    out, part = tmp_path / "rec.mcap", tmp_path / "rec.mcap.part"
+    writer = mcap.McapRecordWriter(out, flush_s=0.0)
+    for i in range(3):
+        writer.add("raw", {"t": 1.0 + 0.02 * i, "frame_id": i}, frame(i, 12, 16))
+    cut = tmp_path / "cut.mcap.part"
+    cut.write_bytes(part.read_bytes())
+    writer.discard()
+    capsys.readouterr()
+    assert cli.main(["import", str(cut), "-o", str(tmp_path / "a.h5")]) == 2
+    err = capsys.readouterr().err
+    assert f"{cut}: no thermod calibration" in err and "truncated recording" in err, err
+    assert "--calibration" in err and not (tmp_path / "a.h5").exists()
+
+
+def test_an_idle_recorder_ends_its_chunk(tmp_path):
+    """Messages then nothing: `tick` (what `record` calls while nothing arrives) ends the chunk once
+    `flush_s` have passed, so the ``.part`` holds every message though no more come."""
+    out, part = tmp_path / "rec.mcap", tmp_path / "rec.mcap.part"
+    writer = mcap.McapRecordWriter(out, Calibration(width=16, height=12, cx=7.5, cy=5.5), flush_s=0.2)
+    for i in range(4):
+        writer.add("raw", {"t": 1.0 + 0.02 * i, "frame_id": i}, frame(i, 12, 16))
+    time.sleep(0.3)
+    writer.tick()
+    got = streamed(part)
+    assert [m.sequence for m in got[mcap.RAW_TOPIC]] == list(range(4))
+    assert len(got[mcap.CAMERA_INFO_TOPIC]) == 4
+    writer.discard()
 
 
 # ------------------------------------------------------------------------------- cut at many offsets

@@ -6,7 +6,8 @@ calibration, in order of precedence: ``--calibration model.toml`` (its [calibrat
 ``thermod`` metadata of an MCAP written by thermod, a sensor_msgs/CameraInfo topic plus ``--tau``
 (the detector time constant, which no ROS message carries). An MCAP file cut short (the
 ``.mcap.part`` a killed `thermod record -o X.mcap` leaves) gives its complete messages, with a
-warning; its recorder writes the calibration last, so such a file needs ``--calibration``.
+warning, and the calibration its recorder wrote as soon as it received it (``--calibration`` is
+needed only when it was killed before that).
 """
 
 from __future__ import annotations

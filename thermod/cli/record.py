@@ -84,6 +84,8 @@ def record(sub: Subscriber, seconds: float | None, writer: RecordWriter, stop=la
                     silence.heard()
             elif silence is not None and silence.gone():
                 return writer            # no gyro batch will trail the last frame either
+            else:
+                writer.tick()            # what came before a pause reaches the file within ~1 s
         drain_end = time.monotonic() + drain_s
         while newest["gyro"] < newest["raw"] and (now := time.monotonic()) < drain_end:
             msg = sub.recv(min(0.2, drain_end - now))
@@ -132,7 +134,8 @@ def run(args) -> int:
     as_mcap = out.suffix.lower() == ".mcap"
     if as_mcap:
         from thermod.io.mcap import McapRecordWriter
-    writer = McapRecordWriter(out) if as_mcap else RecordWriter(out)
+    # the calibration goes into an MCAP file as soon as it is known: a killed recorder's .part has it
+    writer = McapRecordWriter(out, calibration) if as_mcap else RecordWriter(out)
     try:
         # A deep receive queue: a recorder must ride out disk stalls without losing messages.
         topics = ("raw", "gyro", "health") + (("frame",) if as_mcap else ())

@@ -5,7 +5,9 @@ uint16), gyro samples from one sensor_msgs/Imu topic (``angular_velocity``, take
 rates), both stamped with their header stamps. Topics are autodetected when the bag has one of each
 (or one of the usual names). The calibration, in order of precedence: a TOML file's [calibration]
 keys, the ``thermod`` metadata of an MCAP written by thermod, a sensor_msgs/CameraInfo topic plus τ
-(the detector time constant, which no ROS message carries). Messages are streamed into the output
+(the detector time constant, which no ROS message carries). Format v1 holds one calibration: when
+the ``thermod`` records of a recording hold several (the daemon's changed while it recorded), the
+last one written is imported for every frame, with a warning. Messages are streamed into the output
 (`thermod.io.stream_recording.RecordWriter`), never held.
 """
 
@@ -101,9 +103,11 @@ def _base_calibration(bag: mcap.Bag, info_topic: str | None, calibration,
     meta = bag.metadata.get(mcap.METADATA_NAME, {})
     if "calibration" in meta:
         try:
-            return Calibration.from_dict(json.loads(meta["calibration"])), "thermod metadata"
+            base = Calibration.from_dict(json.loads(meta["calibration"]))
         except (ValueError, TypeError, KeyError) as e:
             raise RecordingError(bag.path, "metadata thermod.calibration", f"unusable ({e})") from None
+        _warn_if_changed(bag)
+        return base, "thermod metadata"
     if calibration is not None:
         return None, "calibration file"
     missing = []
@@ -114,13 +118,33 @@ def _base_calibration(bag: mcap.Bag, info_topic: str | None, calibration,
     if tau is None:
         missing.append("the detector time constant (--tau S)")
     if missing:
-        cut = " (thermod record writes its calibration last, so a truncated recording has none)" \
-            if bag.truncated else ""
+        cut = (" (a truncated recording has none when its recorder was stopped before it received the "
+               "daemon's calibration, or was one that wrote it at the end)") if bag.truncated else ""
         raise ThermodError(
             f"{bag.path}: no thermod calibration in the bag; missing {' and '.join(missing)}{cut}: "
             "give --calibration model.toml (a [calibration] table) or those"
         )
     return None, "camera_info"
+
+
+def _warn_if_changed(bag: mcap.Bag) -> None:
+    """Say so when the ``thermod`` records hold more than one calibration: every frame is imported with
+    the last one, whatever was in force when it was taken."""
+    changes, last = [], None
+    for name, record in bag.metadata_records:
+        if name == mcap.METADATA_NAME and "calibration" in record:
+            try:
+                c = json.dumps(json.loads(record["calibration"]), sort_keys=True)
+            except (ValueError, TypeError):
+                continue            # an earlier record left unreadable: the last one is what is imported
+            if c != last:
+                changes.append(record.get("from_t"))
+                last = c
+    if len(changes) > 1:
+        since = f" (in force from t = {changes[-1]} s)" if changes[-1] is not None else ""
+        log.warning("%s: the calibration changed while recording (%d calibrations in the %s metadata); "
+                    "format v1 holds one, so every frame is imported with the last one written%s",
+                    bag.path, len(changes), mcap.METADATA_NAME, since)
 
 
 def _median_rate(t: list[float] | np.ndarray) -> float | None:

@@ -12,7 +12,10 @@ Written (`McapWriter`, CDR through ``mcap-ros2-support``; docs/design.md §3 "MC
 Header stamps and log times are the recording's times: host ``CLOCK_MONOTONIC`` seconds as mapped
 by thermod (frames: when the last row was read; gyro: the gyro's mapped clock, *before*
 ``time_offset_s``), not UNIX time. The whole thermod calibration travels in the MCAP metadata
-record ``thermod`` (key ``calibration``, JSON), so `thermod import` restores it exactly.
+record ``thermod`` (key ``calibration``, JSON), so `thermod import` restores it exactly. The
+recorder (`McapRecordWriter`) writes that record as soon as it knows the calibration, again at each
+change, and a last time with its attributes at the end; it ends a chunk at least every second, so a
+killed recorder's ``.part`` holds its calibration and all but about the last second.
 
 Read (`Bag`): a ``.mcap`` file through ``mcap`` + ``mcap_ros2``; a rosbag2 directory or a ROS 1
 ``.bag`` through ``rosbags``. Messages are streamed in log-time order, never loaded all at once. An
@@ -26,6 +29,7 @@ import json
 import logging
 import os
 import struct
+import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -242,6 +246,14 @@ class McapWriter:
         )
         self._w.add_metadata(METADATA_NAME, data)
 
+    def flush(self) -> None:
+        """End the chunk being built, if it holds a message, and hand the file to the OS: a process
+        killed afterwards leaves all of it in the ``.part`` file (no fsync: a power cut may not)."""
+        try:
+            self._w.flush()
+        except (OSError, ValueError) as e:
+            raise RecordingError(self.path, "file", f"cannot write {self.part} ({e})") from None
+
     def commit(self) -> Path:
         """Write the MCAP summary and rename the file into place."""
         try:
@@ -310,26 +322,42 @@ def export(recording_path: str | os.PathLike, out: str | os.PathLike) -> dict:
 
 class McapRecordWriter:
     """`thermod record` into MCAP: wire-v1 messages (``raw``, ``frame``, ``gyro``, ``health``)
-    straight to disk, same interface as the HDF5 recorder (`add`, `finish`, `discard`, `empty`).
+    straight to disk, same interface as the HDF5 recorder (`add`, `tick`, `finish`, `discard`,
+    `empty`), and what a kill loses is bounded:
 
-    Camera info is written at `finish`, when the calibration is settled (argument > health >
-    defaults sized to the frames), one per raw frame with its stamp (frame times are kept, 8 bytes
-    each)."""
+    - the chunk being built is ended and the file flushed at least every `flush_s` (`tick`);
+    - the calibration is written as soon as it is known — `calibration` (``--config``) at once, else
+      each ``health`` message's that differs from the one in force (the first, then a SIGHUP reload
+      or a monitor update) — as a ``thermod`` metadata record (``calibration``,
+      ``calibration_source``, ``from_t``: the health message's time);
+    - each raw frame gets a CameraInfo from the calibration in force when it arrives; frames received
+      before any calibration get theirs when one comes, or at `finish` (defaults sized to the frames).
 
-    def __init__(self, path: str | os.PathLike):
+    `finish` writes the final ``thermod`` record: the calibration last in force and the recorder's
+    attributes."""
+
+    def __init__(self, path: str | os.PathLike, calibration: Calibration | None = None,
+                 flush_s: float = 1.0):
         self.path = Path(path)
         self._w = McapWriter(self.path, compress=False)
-        self.frame_t: list[float] = []
-        self.frame_id: list[int] = []
+        self.n_frames = 0
         self.shape: tuple | None = None
         self.n_gyro = 0
         self.health = 0
-        self.calibration: dict | None = None
+        self.calibration: dict | None = None        # the last health message's, as received
         self.dropped = 0
+        self.source: str | None = None               # where the calibration in force came from
+        self._in_force: Calibration | None = None
+        self._in_force_json: str | None = None
+        self._pending: list[tuple[float, int]] = []  # raw frames still without their CameraInfo
+        self._unusable_health = False
+        self._flush_s, self._last_flush = flush_s, time.monotonic()
+        if calibration is not None:
+            self._put_calibration(calibration, "config", None)
 
     @property
     def empty(self) -> bool:
-        return not self.frame_t and self.n_gyro == 0
+        return self.n_frames == 0 and self.n_gyro == 0
 
     def add(self, topic: str, header: dict, array: np.ndarray) -> None:
         t = header.get("t")
@@ -337,11 +365,14 @@ class McapRecordWriter:
             if array.ndim != 2 or array.dtype != np.uint16 or t is None or not np.isfinite(t):
                 self.dropped += 1
                 return
-            fid = int(header.get("frame_id", len(self.frame_t)))
+            fid = int(header.get("frame_id", self.n_frames))
             self._w.raw(array, float(t), fid)
             self.shape = self.shape or array.shape
-            self.frame_t.append(float(t))
-            self.frame_id.append(fid)
+            self.n_frames += 1
+            if self._in_force is None:
+                self._pending.append((float(t), fid))
+            else:
+                self._w.camera_info(self._in_force, float(t), fid)
         elif topic == "frame":
             if array.ndim == 2 and t is not None and np.isfinite(t):
                 self._w.deblurred(np.asarray(array, np.float32), float(t), int(header.get("frame_id", 0)))
@@ -352,30 +383,68 @@ class McapRecordWriter:
             self.health += 1
             if isinstance(header.get("calibration"), dict):
                 self.calibration = header["calibration"]
+                self._health_calibration(self.calibration, t)
+        self.tick()
 
-    def settle_calibration(self, calibration: Calibration | None) -> tuple[Calibration, str]:
-        if calibration is not None:
-            return calibration, "config"
-        if self.calibration is not None:
-            try:
-                return Calibration.from_dict(self.calibration), "health"
-            except (TypeError, ValueError, KeyError):
-                pass
+    def tick(self) -> None:
+        """End the chunk and flush the file if `flush_s` have passed since the last time: a killed
+        recorder then loses at most about that much of what it received. Called after each message
+        and by `thermod.cli.record.record` while nothing arrives."""
+        if time.monotonic() - self._last_flush >= self._flush_s:
+            self._flush()
+
+    def _flush(self) -> None:
+        self._w.flush()
+        self._last_flush = time.monotonic()
+
+    def _health_calibration(self, d: dict, t) -> None:
+        if self.source == "config":          # --config wins over the daemon's
+            return
+        try:
+            calibration = Calibration.from_dict(d)
+        except (TypeError, ValueError, KeyError) as e:
+            if not self._unusable_health:    # once: health comes every second
+                log.warning("%s: the calibration in the health messages is unusable (%s); not written",
+                            self.path, e)
+                self._unusable_health = True
+            return
+        ok = t is not None and isinstance(t, (int, float)) and np.isfinite(t)
+        self._put_calibration(calibration, "health", float(t) if ok else None)
+
+    def _put_calibration(self, calibration: Calibration, source: str, t: float | None) -> None:
+        """Make `calibration` the one in force and write it now, unless it is already in force."""
+        if _calibration_json(calibration) == self._in_force_json:
+            return
+        self._adopt(calibration, source)
+        self._flush()           # the frames before it first, so the file's order is the arrival order
+        self._w.metadata(calibration, {"calibration_source": source, **({} if t is None else {"from_t": t})})
+        self._flush()           # a rare record, and the one an import of a killed recording needs
+
+    def _adopt(self, calibration: Calibration, source: str) -> None:
+        self._in_force, self._in_force_json, self.source = calibration, _calibration_json(calibration), source
+        for t, fid in self._pending:
+            self._w.camera_info(calibration, t, fid)
+        self._pending.clear()
+
+    def _defaults(self) -> Calibration:
         h, w = self.shape or (Calibration().height, Calibration().width)
         log.warning("no calibration received (no health messages) nor --config: writing defaults for a "
                     "%dx%d camera; fix them before deblurring", w, h)
-        return Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2), "defaults"
+        return Calibration(width=w, height=h, cx=(w - 1) / 2, cy=(h - 1) / 2)
 
     def finish(self, calibration: Calibration | None = None, attrs: dict | None = None) -> Path:
-        calibration, source = self.settle_calibration(calibration)
+        """The remaining CameraInfo and the final ``thermod`` record; close and rename. Calibration:
+        `calibration` (also for frames still without CameraInfo) > the one in force > defaults."""
         try:
-            for t, fid in zip(self.frame_t, self.frame_id, strict=True):
-                self._w.camera_info(calibration, t, fid)
+            if calibration is not None and _calibration_json(calibration) != self._in_force_json:
+                self._adopt(calibration, "config")
+            elif self._in_force is None:
+                self._adopt(self._defaults(), "defaults")
             self._w.metadata(
-                calibration,
+                self._in_force,
                 {
                     **(attrs or {}),
-                    "calibration_source": source,
+                    "calibration_source": self.source,
                     "health_messages": self.health,
                     "frames_dropped": self.dropped,
                 },
@@ -383,7 +452,10 @@ class McapRecordWriter:
         except RecordingError:
             self._w.abort(keep=True)
             raise
-        self.source = source
+        except (OSError, ValueError) as e:
+            self._w.abort(keep=True)
+            raise RecordingError(self.path, "file", f"could not complete the MCAP file ({e}); what was "
+                                 f"written is in {self._w.part}") from None
         return self._w.commit()
 
     @property
@@ -397,12 +469,18 @@ class McapRecordWriter:
         self._w.abort()
 
 
+def _calibration_json(calibration: Calibration) -> str:
+    """What tells two calibrations apart (`Calibration` holds arrays: no plain ``==``)."""
+    return json.dumps(calibration.as_dict(), sort_keys=True)
+
+
 # ----------------------------------------------------------------------------------------- reading
 class Bag:
     """Messages of a ``.mcap`` file, a rosbag2 directory or a ROS 1 ``.bag``, decoded.
 
     `topics` maps topic → message type (``sensor_msgs/msg/Image`` style for all three formats);
-    `counts` the number of messages per topic; `metadata` the MCAP metadata records by name.
+    `counts` the number of messages per topic; `metadata` the MCAP metadata records by name (the
+    last of each name), `metadata_records` all of them as (name, record), in the file's order.
     """
 
     def __init__(self, path: str | os.PathLike):
@@ -410,6 +488,7 @@ class Bag:
         self.topics: dict[str, str] = {}
         self.counts: dict[str, int] = {}
         self.metadata: dict[str, dict[str, str]] = {}
+        self.metadata_records: list[tuple[str, dict[str, str]]] = []
         self.truncated = False
         self._file = self._reader = None
         if not self.path.exists():
@@ -459,7 +538,8 @@ class Bag:
                 self.topics[ch.topic] = _ros2_name(schema.name) if schema else "?"
                 n = summary.statistics.channel_message_counts.get(cid, 0) if summary.statistics else 0
                 self.counts[ch.topic] = self.counts.get(ch.topic, 0) + n
-            self.metadata = {m.name: dict(m.metadata) for m in self._reader.iter_metadata()}
+            self.metadata_records = [(m.name, dict(m.metadata)) for m in self._reader.iter_metadata()]
+            self.metadata = dict(self.metadata_records)
         except (McapError, OSError, ValueError, KeyError, EOFError) as e:
             self.close()
             raise RecordingError(
@@ -502,6 +582,7 @@ class Bag:
                     n, end = n + 1, self._bounded.pos
                 elif isinstance(record, Metadata):
                     self.metadata[record.name] = dict(record.metadata)
+                    self.metadata_records.append((record.name, dict(record.metadata)))
                 elif isinstance(record, Footer):
                     return
         # what a record cut short raises inside the library: its reads come back short (EndOfFile,

@@ -66,8 +66,13 @@ class RecordWriter:
             self.health += 1
             if isinstance(header.get("calibration"), dict):
                 self.calibration = header["calibration"]
+        self.tick()
+
+    def tick(self) -> None:
+        """Flush (gyro batches included) if `flush_s` have passed since the last time: a crash then
+        loses at most ~1 s. Called after each message and while nothing arrives."""
         now = time.monotonic()
-        if now - self._last_flush > self._flush_s:  # a crash then loses at most ~1 s
+        if now - self._last_flush > self._flush_s:
             self._spool_gyro()
             self._w.flush()
             self._last_flush = now
