@@ -149,3 +149,66 @@ def test_long_recording_is_worked_on_its_first_motion_frames():
     d = D.prepare(rec, calib, name="long.h5", work_views_mb=4.0)
     assert 2 <= len(d.frame_t) < len(t) - 15
     assert len(d.fm.t_views) * d.fm.h * d.fm.w * 8 / 1e6 <= 4.0
+
+
+# The search's work cap, lowered so that it is reached at once on these small recordings (the default is
+# far above what they need: see `thermod.cli.discrepancy.MAX_SEARCH_WORK`).
+def _cap(work: float) -> str:
+    return f"import thermod.cli.discrepancy as m; m.MAX_SEARCH_WORK = {work!r}"
+
+
+def _assert_capped(r, out):
+    """A completed report (exit 0) whose search says, in its output, log and report, that it stopped early."""
+    import json
+
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "the search stopped early" in r.stdout and "the search stopped early" in r.stderr, r.stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["search_capped"].startswith("the search stopped early"), rep["search_capped"]
+    assert rep["work_pixel_steps"] >= rep["max_work_pixel_steps"] > 0
+    assert "**search capped**" in (out / "report.md").read_text()
+    assert (out / "smear.json").is_file() and (out / "model.toml").is_file()
+    return rep
+
+
+def test_search_at_its_work_cap_stops_and_says_so(sim_recording, tmp_path):
+    # a 20 ms offset is worth a search; the cap is reached by the nominal model's evaluation already
+    path = _altered(sim_recording, tmp_path / "late.h5", _attrs("gyro", time_offset_s=0.02))
+    r = _run(path, tmp_path, "--candidates", "time_offset,gyro_bias", "--no-fpn", code=_cap(1.0))
+    rep = _assert_capped(r, tmp_path / "out")
+    assert "before step 1" in rep["search_capped"] and rep["steps"] == []
+
+
+@pytest.fixture(scope="module")
+def motion_step_recording(tmp_path_factory):
+    """80×60, 0.4 s of shake with no static lead-in (the motion-only path), and a 1 rad/s step added to
+    the gyro's y rate after the first quarter: a motion no effect of the vocabulary explains."""
+    p = tmp_path_factory.mktemp("bounds") / "step.h5"
+    r = _thermod("sim", "-o", p, "--motion", "shake:2", "--seconds", "0.4", "--width", "80", "--height", "60",
+                 "--ifov-deg", "0.3128", "--no-truth", "--no-progress")
+    assert r.returncode == 0, r.stderr
+    with h5py.File(p, "r+") as f:
+        rate, t = f["gyro/rate"][()], f["gyro/t"][()]
+        rate[t > t[0] + 0.25 * (t[-1] - t[0]), 1] += 1.0
+        f["gyro/rate"][...] = rate
+    return p
+
+
+def test_motion_only_search_at_its_work_cap_completes_its_report(motion_step_recording, tmp_path):
+    # the cap falls inside the first step (after the scene canvas and the first fits): that step names
+    # nothing, and the report is written with the nominal model
+    r = _run(motion_step_recording, tmp_path, "--candidates", "time_offset,time_constant,gyro_bias",
+             code=_cap(3e8))
+    rep = _assert_capped(r, tmp_path / "out")
+    assert "no static lead-in" in r.stdout and rep["reference"] == "motion"
+    assert "in step 1" in rep["search_capped"] and rep["steps"] == []
+
+
+def test_long_focal_length_completes_with_the_smear_scan_inside_what_renders(sim_recording, tmp_path):
+    # fx = 1e4 px over 160 px (a 0.92° field of view, a long surveillance lens): the image moves up to
+    # ~30× as far as at the nominal focal length, so the smear scan's longer τ would render kernels past
+    # the renderer's limit (those frames are left out of the smear comparison, not the whole run)
+    path = _altered(sim_recording, tmp_path / "tele.h5", _attrs("camera", fx=1e4, fy=1e4))
+    r = _run(path, tmp_path, *QUICK, code=_cap(1.0))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (tmp_path / "out" / "smear.json").is_file() and (tmp_path / "out" / "report.md").is_file()

@@ -35,6 +35,7 @@ from thermod.physics.geometry import integrate_rotations
 __all__ = ["ForwardModel", "GridTooLarge", "downsample", "orientations", "predict_frames"]
 
 
+WARP_COST = 8             # a warped view's pixel against an IIR step's (`ForwardModel.work`)
 VIEW_CACHE_ENTRIES = 2    # calibrations whose warped views are kept (one search point and its neighbour)
 
 
@@ -464,6 +465,10 @@ class ForwardModel:
             raise ValueError(f"interpolation must be 'linear' or 'cubic', got {interpolation!r}")
         self._cubic = interpolation == "cubic"
         self._views: dict = {}          # gyro key → (V, M) for the current reference, oldest first
+        # Pixel-steps computed so far, weighted by their cost (an IIR pass over [n_steps + 1, h, w] 1, a
+        # warp of the views `WARP_COST`: two arrays through 16 cubic taps; the adjoint both):
+        # the run-time measure a caller bounds its searches by.
+        self.work = 0
         self._cache_slots = min(VIEW_CACHE_ENTRIES, int(cache_mb // max(views_mb, 1e-9)))
         self.origin = (0.0, 0.0)
         self.set_reference(reference, fpn, prescaled=prescaled)
@@ -535,6 +540,7 @@ class ForwardModel:
             self._views[key] = hit            # now the newest
             return hit
         Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
+        self.work += WARP_COST * len(Hs) * self.h * self.w
         V = np.empty((len(Hs), self.h, self.w), np.float32)
         M = np.empty_like(V)
         _warp_views(self.reference, self.support, self._inner, Hs, self.origin[0], self.origin[1],
@@ -582,6 +588,7 @@ class ForwardModel:
         wgt = np.empty_like(num)
         if n:
             jj, share, lam = self._row_steps(calib)
+            self.work += len(V) * self.h * self.w
             _iir_rows(V, M, self._alphas(calib), jj, share, lam, num, wgt)
         return num, wgt
 
@@ -628,6 +635,7 @@ class ForwardModel:
         if len(c):
             jj, share, lam = self._row_steps(calib)
             Hs = np.ascontiguousarray(self.homographies(calib, self.t_views))
+            self.work += (1 + WARP_COST) * len(Hs) * self.h * self.w   # the IIR back, the taps scattered
             _adjoint_rows(np.ascontiguousarray(c), self._alphas(calib), jj, share, lam, Hs,
                           self.origin[0], self.origin[1], self._cubic, grad)
         return grad

@@ -118,11 +118,14 @@ def compare(frames, frame_t, gyro_t, gyro_rate, calib: Calibration, *,
         src = warp(frames[k - 1], maps)
         measured = frames[k].astype(np.float32)
         pairs = {"none": (measured, src)}
-        kk, kj = kernels(float(t[k]), float(t[k - 1]), calib, True)
-        pairs["box"] = (blur(measured, kj), blur(src, kk))
-        for i, tau in enumerate(taus):
-            kk, kj = kernels(float(t[k]), float(t[k - 1]), calib.replace(tau_s=float(tau)), False)
-            pairs[i] = (blur(measured, kj), blur(src, kk))
+        try:
+            kk, kj = kernels(float(t[k]), float(t[k - 1]), calib, True)
+            pairs["box"] = (blur(measured, kj), blur(src, kk))
+            for i, tau in enumerate(taus):
+                kk, kj = kernels(float(t[k]), float(t[k - 1]), calib.replace(tau_s=float(tau)), False)
+                pairs[i] = (blur(measured, kj), blur(src, kk))
+        except KernelError:     # a kernel of the scan (the box, a longer τ) beyond what renders: not compared
+            continue
         for key, (left, right) in pairs.items():
             r, s_ = _affine_residual(left, right, mask)
             ssr[key].append(r)

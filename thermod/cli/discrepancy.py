@@ -31,6 +31,15 @@ log = logging.getLogger("thermod.calib.discrepancy")
 # working resolution as they are read, then only the first ones), and its timeline.
 MAX_FRAMES_MB = 512.0
 MAX_TIMELINE_BYTES = 512 * 2**20
+# The search's forward-model work (`ForwardModel.work`: IIR pixel-steps, a warped view's pixel counting
+# `WARP_COST`) at the default --work-width, in proportion to the working area at others. Every phase of
+# the search costs a bounded number of passes over the views, but their size follows the file (image
+# speed, τ, frames: up to `data.WORK_VIEWS_MB`, 8× what `thermod sim`'s default recording needs) and
+# each effect found adds a step: bounded here, past it no further phase starts and the report says so.
+# 5e11 is about 20 min of one core (2.4 ns a unit): `thermod sim`'s default size (640×480, 1 s of
+# shake:2) with one effect found took 1.25e11 (305 s of CPU), the suite's analyses at most 1e10; a file
+# at the views' budget (8× the default's) searching four steps would take some 4e12 (hours) without it.
+MAX_SEARCH_WORK = 5e11
 
 
 def load(path: str, work_width: int) -> tuple[recording_io.Recording, float]:
@@ -199,7 +208,7 @@ def run(args) -> int:
         data.append(d)
     try:
         ana = analyse(data, Model(calib), candidates=cands, max_steps=args.max_steps, fpn=not args.no_fpn,
-                      progress=say)
+                      max_work=MAX_SEARCH_WORK * (args.work_width / 160) ** 2, progress=say)
     except CalibrationError as e:        # a search stepped a field out of its range
         raise _named(e, args.recordings[0], args.config) from None
     if config_text is None:       # model.toml: the packaged default configuration, new calibration

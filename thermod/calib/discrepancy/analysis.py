@@ -4,6 +4,8 @@ structure is left that none of them explains (see the package docstring for the 
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -23,6 +25,8 @@ from thermod.calib.discrepancy.effects import (
 from thermod.calib.discrepancy.problem import Evaluation, Problem, StepContext, mean_residual_map
 from thermod.errors import ConfigError, RecordingError
 from thermod.io.json_safe import jsonable
+
+log = logging.getLogger("thermod.calib.discrepancy")
 
 GAP_DEFINITION = ("gap = ||measured - predicted|| / ||measured - reference view|| over pixels valid "
                   "in every view of the working-resolution motion frames (reference view: the static mean, "
@@ -96,6 +100,9 @@ class Analysis:
     # motion only, when no timing effect was named or found ambiguous: what the recording resolves of
     # them at the final model (`identify.resolution_at`); a change within it cannot be named
     resolution: dict = field(default_factory=dict)
+    capped: str = ""                # where the work cap stopped the search ("": it ran to the end)
+    work: int = 0                   # forward-model pixel-steps the search computed
+    max_work: float = 0.0
 
     @property
     def named(self) -> list[str]:
@@ -127,6 +134,8 @@ class Analysis:
             "response_signature_pooled_z": self.response_signature_pooled_z,
             "ambiguous": self.ambiguous, "identifiability": self.identifiability,
             "resolution": self.resolution,
+            "search_capped": self.capped, "work_pixel_steps": self.work,
+            "max_work_pixel_steps": self.max_work,
         }
 
     def snapshot(self, label: str, problem: Problem, ev: Evaluation) -> None:
@@ -190,6 +199,20 @@ class Analysis:
         self.seconds = seconds
 
 
+def _capped(problem: Problem, ana: Analysis, where: str, say) -> bool:
+    """The work cap is reached (`Problem.exhausted`); the first time, the search's stop is recorded in
+    `ana`, logged and said, naming the phase it stopped before."""
+    if not problem.exhausted:
+        return False
+    if not ana.capped:
+        ana.capped = (f"the search stopped early ({where}): the forward model's work reached its cap "
+                      f"({problem.work / 1e9:.3g} of {problem.max_work / 1e9:.3g} G pixel-steps, "
+                      f"{problem.n_evals} evaluations); what the search would have done next was not run")
+        log.warning("%s: %s", ", ".join(d.name for d in problem.recs), ana.capped)
+        say(ana.capped)
+    return True
+
+
 def _effects(candidates) -> list[Effect]:
     unknown = [c for c in candidates if c not in EFFECTS]
     if unknown:
@@ -227,7 +250,7 @@ def _refit(ctx: StepContext, model: Model, effects: list[Effect], fpn: bool, nom
     model = _refit_in_turn(ctx, model, effects, fpn, nominal, say)
     for effect in effects:
         start = effect.collapse(model) if effect.collapse is not None and len(effects) > 1 else None
-        if start is None:
+        if start is None or problem.exhausted:
             continue
         problem.refresh(model, fpn=fpn)
         ssr = problem.evaluate(model).ssr
@@ -248,6 +271,8 @@ def _refit_in_turn(ctx: StepContext, model: Model, effects: list[Effect], fpn: b
                    say) -> Model:
     problem = ctx.problem
     for effect in effects:
+        if problem.exhausted:       # `analyse` reports the cap at its next phase
+            break
         f = effect.fit(ctx, model)
         if f.ssr < problem.evaluate(model).ssr:
             model = f.model
@@ -269,6 +294,8 @@ def _settle(ctx: StepContext, model: Model, effects: list[Effect], nominal: Mode
     proj = dataclasses.replace(ctx, project=True, warm=True)
     before = problem.evaluate(model).ssr
     for _ in range(rounds):
+        if problem.exhausted:       # `analyse` reports the cap at its next phase
+            break
         problem.refresh(model, fpn=ctx.fpn, keep_mask=True)     # the canvas and FPN go on converging
         ssr = problem.evaluate(model).ssr
         problem.remember(model)
@@ -343,7 +370,7 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
             bic_min: float = 10.0, min_explained: float = 0.3, structured_excess: float = 0.3,
             unexplained_excess: float = 1.0, model_tol: float = 0.05, fpn: bool = True,
             polish: bool = True, min_pixels: int = 2000, identifiability: bool = True,
-            progress=None) -> Analysis:
+            max_work: float = math.inf, progress=None) -> Analysis:
     """Greedy search for the missing effects (see the package docstring for the criteria).
 
     `structured_excess`: candidates are tried while SSR exceeds the noise expectation by this
@@ -358,17 +385,20 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     resampling error). `min_explained`: a candidate must remove at least this fraction of the
     excess SSR. `bic_min`: decisive BIC gain on effective samples. `identifiability`: on motion-only
     recordings, the timing effects named are checked against their confounds (`identify`) before the
-    verdict; those the motion cannot tell apart are reported `ambiguous`, not named.
+    verdict; those the motion cannot tell apart are reported `ambiguous`, not named. `max_work`: the
+    forward-model work the search may do (`ForwardModel.work`); past it no further phase starts (a
+    step under way names nothing) and `Analysis.capped` says where it stopped.
     """
     say = progress or (lambda msg: None)
     t_start = time.monotonic()
     remaining = _effects(candidates)
     crit = Criteria(bic_min, min_explained, structured_excess, unexplained_excess, model_tol)
-    problem = Problem(recs)
+    problem = Problem(recs, max_work=max_work)
     problem.refresh(model, fpn=fpn)
     _check_overlap(recs, min_pixels)
     ev = problem.evaluate(model, keep=True)
-    ana = Analysis(problem.gap(ev.ssr), problem.gap(ev.ssr), problem.noise_floor(), [], False, model, model)
+    ana = Analysis(problem.gap(ev.ssr), problem.gap(ev.ssr), problem.noise_floor(), [], False, model, model,
+                   max_work=problem.max_work)
     kinds = sorted({d.reference for d in recs})
     ana.reference = kinds[0] if len(kinds) == 1 else "+".join(kinds)
     ana.noise_source = "; ".join(sorted({d.noise_source for d in recs}))
@@ -377,7 +407,8 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
     ana.snapshot("nominal", problem, ev)
     ctx = None
     searched = False
-    while remaining and len(ana.steps) < max_steps and crit.worth_searching(problem, ev.ssr):
+    while (remaining and len(ana.steps) < max_steps and crit.worth_searching(problem, ev.ssr)
+           and not _capped(problem, ana, f"before step {len(ana.steps) + 1}", say)):
         searched = True
         ctx = StepContext.at(problem, ev, ana.named, model_tol, fpn)
         chosen = _search_step(ctx, model, ev, remaining, crit, ana, say)
@@ -397,6 +428,7 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
         else:
             again = (new if fpn else implied) + [EFFECTS[n] for n in ana.named]
             model = _refit(ctx, model, again, fpn, ana.nominal, say)
+        _capped(problem, ana, f"in the refits after step {len(ana.steps) + 1}", say)   # the step stays named
         ev = problem.evaluate(model, keep=True)
         for e in new:
             fit = dataclasses.replace(chosen.fit, effect=e.name, n_params=1, unobservable=[])
@@ -407,33 +439,39 @@ def analyse(recs: list[RecData], model: Model, *, candidates=CANDIDATES, max_ste
                 + (f" (moved by the {chosen.effect.name} fit)" if e is not chosen.effect else ""))
             remaining.remove(e)
         ana.snapshot("+".join(e.name for e in new), problem, ev)
-    if polish and len(ana.steps) > 1:
+    if polish and len(ana.steps) > 1 and not _capped(problem, ana, "before the final refits", say):
         model = _refit(ctx, model, [EFFECTS[n] for n in ana.named], fpn, ana.nominal, say)
-        model = _prune(ctx, model, crit, ana, say)
+        if not _capped(problem, ana, "before the backward elimination", say):
+            model = _prune(ctx, model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
     # a residual worth a search, not beyond the model's precision, and no timing effect named: a pair
     # whose effects cancel one at a time (an offset of −readout/2) escapes the greedy search, not the
     # joint fit
     missed_timing = (searched and not set(ana.named) & set(identify.CONFOUNDED)
                      and not crit.unexplained(problem, ev.ssr))
-    if identifiability and problem.has_motion_reference and (set(ana.named) & identify.TRIGGERS
-                                                              or missed_timing):
+    if (identifiability and problem.has_motion_reference
+            and (set(ana.named) & identify.TRIGGERS or missed_timing)
+            and not _capped(problem, ana, "before the identifiability check", say)):
         if missed_timing:
             say("the search named no timing effect over a residual worth one: the four fitted jointly")
         model = _identify(StepContext.at(problem, ev, ana.named, model_tol, fpn), model, crit, ana, say)
         ev = problem.evaluate(model, keep=True)
-    if problem.has_motion_reference and not set(ana.named) & set(identify.CONFOUNDED) and not ana.ambiguous:
+    if (problem.has_motion_reference and not set(ana.named) & set(identify.CONFOUNDED) and not ana.ambiguous
+            and not _capped(problem, ana, "before the timing resolution", say)):
         say("what this recording resolves of the timing effects (smaller changes cannot be named):")
         ana.resolution = identify.resolution_at(StepContext.at(problem, ev, ana.named, model_tol, fpn),
                                                 model, ana.nominal)
         say("  " + format_resolution(ana.resolution))
         ev = problem.evaluate(model, keep=True)
+    ana.work = problem.work
     ana.finish(model, problem, ev, crit, time.monotonic() - t_start)
     for a in ana.ambiguous:
         say(f"{a['label']} — " + "; ".join(a["evidence"])
             + f"; to separate them record {a['separating_motion']}")
+    left = ("the search stopped early, before a candidate explained it" if ana.capped
+            else "no candidate explains it")
     say(f"final gap {ana.gap_final:.4f} (noise floor {ana.noise_floor:.4f}); "
-        + ("remaining residual is structured but no candidate explains it: UNEXPLAINED "
+        + (f"remaining residual is structured but {left}: UNEXPLAINED "
            f"({ana.unexplained_reason})" if ana.unexplained else "residual at the noise level"))
     return ana
 
@@ -499,6 +537,8 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
     """Fit every remaining candidate; the significant one explaining most of the excess, or None."""
     tried = []
     for effect in remaining:
+        if _capped(ctx.problem, ana, f"in step {len(ana.steps) + 1}, before the {effect.name} fit", say):
+            return None             # a step not all candidates were tried in names none of them
         c = _try(effect, ctx, model, ev)
         ana.record_candidate(c, ctx.problem)
         say(f"  {effect.name:16s} gap {ctx.problem.gap(c.fit.ssr):.4f}  "
@@ -508,6 +548,8 @@ def _search_step(ctx: StepContext, model: Model, ev: Evaluation, remaining: list
     ssr_before = ev.ssr
     if ctx.problem.has_motion_reference:
         tried, ssr_before = _project_scene(ctx, model, ev, tried, ana, say)
+        if ana.capped:
+            return None
     ok = [c for c in tried if c.significant(crit, ctx, ssr_before)]
     for c in [c for c in ok if not _beats_simpler(c, tried, ctx, crit)]:
         say(f"  {c.effect.name}: not decisively better than {c.effect.simpler}, which it generalises")
@@ -578,6 +620,9 @@ def _project_scene(ctx: StepContext, model: Model, ev: Evaluation, tried: list[C
         out = []
         excess = max(base - problem.noise_ss(), 1e-30)
         for c in best:
+            if _capped(problem, ana, f"in step {len(ana.steps) + 1}, before the projected {c.effect.name} "
+                       "fit", say):
+                break
             t0 = time.monotonic()
             m_best, ssr_best = c.fit.model, rebuilt(c.fit.model)
             problem.remember(m_best)

@@ -76,6 +76,8 @@ def vector_fit(ctx: StepContext, make, x0s, unit, bound, iters: int = 6, h: floa
     x = min((np.clip(np.asarray(x0, float), -bound, bound) for x0 in x0s), key=cost)
     lam = 1e-3
     for _ in range((min(iters, 2) if ctx.warm else iters) if len(x) else 0):
+        if problem.exhausted:       # an iteration costs a pass per parameter (one per FFC event)
+            break
         r0 = residuals(x)
         J = np.empty((len(r0), len(x)))
         for i in range(len(x)):

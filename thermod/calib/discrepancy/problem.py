@@ -50,11 +50,23 @@ def mask_margin_px(d: RecData) -> int:
 class Problem:
     """Residuals of all recordings under a candidate model, over fixed per-step masks."""
 
-    def __init__(self, recs: list[RecData], scene_iters: int = 3):
+    def __init__(self, recs: list[RecData], scene_iters: int = 3, max_work: float = math.inf):
         self.recs = recs
         self.n_evals = 0
         self.scene_iters = scene_iters
         self._projected: list = []      # (model, state) of the last projected fits (`remember`)
+        self.max_work = max_work
+        self._work0 = sum(d.fm.work for d in recs)
+
+    @property
+    def work(self) -> int:
+        """Forward-model pixel-steps computed since this problem was made (`ForwardModel.work`)."""
+        return sum(d.fm.work for d in self.recs) - self._work0
+
+    @property
+    def exhausted(self) -> bool:
+        """The work has reached `max_work`: the search takes no further phase."""
+        return self.work >= self.max_work
 
     def predict(self, model: Model, d: RecData):
         self.n_evals += 1

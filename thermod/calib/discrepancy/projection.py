@@ -34,6 +34,8 @@ def projected_lm(ctx: StepContext, make, x0, lo, hi, *, h: float = 0.25, iters: 
     ev = problem.evaluate(model, keep=True)
     cost, lam = ev.ssr + _prior_ss(x, prior), 1e-3
     for _ in range(iters if len(x) else 0):
+        if problem.exhausted:       # an iteration costs a pass per parameter (one per FFC event)
+            break
         J, r, X = projected_jacobian(problem, make, x, ev, h, lo, hi, scene_iters)
         if prior is not None:
             sw = np.sqrt(prior[1]) * np.ones(len(x))

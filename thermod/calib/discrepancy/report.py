@@ -298,6 +298,8 @@ def _markdown(ana: Analysis, inputs: list[str], figs: list[str]) -> str:
           "- gap = ‖measured − predicted‖ / ‖measured − static reference‖ over valid pixels of the "
           "motion frames",
           f"- unexplained structure left: **{'yes' if ana.unexplained else 'no'}**",
+          *([f"- **search capped**: {ana.capped}; the steps below are those it completed"]
+            if ana.capped else []),
           *[f"- **{a['label']}**: the flight cannot tell these apart (see Identifiability); none is named"
             for a in ana.ambiguous],
           *[f"- **{u['effect']} {u['param']}**: not resolved by this flight (see Identifiability); it keeps "
