@@ -2,11 +2,9 @@
 
 Written (`McapWriter`, CDR through ``mcap-ros2-support``; docs/design.md §3 "MCAP"):
 
-- ``/thermal/image_raw``, sensor_msgs/msg/Image 16UC1: camera frames, raw counts;
-- ``/thermal/image_deblurred``, sensor_msgs/msg/Image 32FC1: thermod's output frames (deblurred
-  or passed through), in the raw frames' counts;
-- ``/thermal/camera_info``, sensor_msgs/msg/CameraInfo: K from fx, fy, cx, cy, no distortion,
-  one per raw frame with its stamp;
+- ``/thermal/image_raw``, Image 16UC1: camera frames, raw counts; ``/thermal/image_deblurred``,
+  Image 32FC1: thermod's output frames (deblurred or passed through), in the raw frames' counts;
+- ``/thermal/camera_info``, CameraInfo: K from fx, fy, cx, cy, no distortion, one per raw frame;
 - ``/imu/data``, sensor_msgs/msg/Imu: raw gyro samples (gyro frame, rad/s), no orientation.
 
 Header stamps and log times are the recording's times: host ``CLOCK_MONOTONIC`` seconds as mapped
