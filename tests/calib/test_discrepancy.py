@@ -19,10 +19,10 @@ import math
 import subprocess
 import sys
 
-import h5py
 import numpy as np
 import pytest
 
+from tests.support.h5edit import edited_copy
 from thermod.calib import discrepancy as D
 from thermod.cli import discrepancy as discrepancy_cli
 from thermod.errors import ConfigError, RecordingError
@@ -476,15 +476,6 @@ def good_recording(tmp_path_factory):
     return p
 
 
-def _broken(src, dst, edit):
-    import shutil
-
-    shutil.copy(src, dst)
-    with h5py.File(dst, "r+") as f:
-        edit(f)
-    return dst
-
-
 def _int32_rates(f):
     raw = np.rint(np.degrees(f["gyro/rate"][()]) * 16.4).astype(np.int32)    # raw counts at ±2000 °/s
     del f["gyro/rate"]
@@ -518,7 +509,7 @@ def test_bad_input_is_a_one_line_error_exit_2(case, good_recording, tmp_path, ca
     if edit is None:
         path.write_bytes(b"this is not an HDF5 file\n" * 10)
     else:
-        _broken(good_recording, path, edit)
+        edited_copy(good_recording, path, edit)
     # Every allocation sized from the file is checked before it is made: no MemoryError, no
     # LinAlgError, no traceback; the error names the file and what is wrong in it.
     assert main(["discrepancy", str(path), "--out", str(tmp_path / "out")]) == 2

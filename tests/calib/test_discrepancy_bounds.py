@@ -7,7 +7,6 @@ address-space limit; recordings come from `thermod sim`, altered with h5py."""
 from __future__ import annotations
 
 import resource
-import shutil
 import subprocess
 import sys
 
@@ -15,6 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
+from tests.support.h5edit import edited_copy
 from thermod.calib.discrepancy import data as D
 from thermod.calib.smear import TAU_SCAN
 from thermod.physics.calibration import MAX_TAU_S
@@ -42,13 +42,6 @@ def sim_recording(tmp_path_factory):
                  "--height", "120", "--ifov-deg", "0.1564", "--no-truth", "--no-progress")
     assert r.returncode == 0, r.stderr
     return p
-
-
-def _altered(src, dst, edit):
-    shutil.copy(src, dst)
-    with h5py.File(dst, "r+") as f:
-        edit(f)
-    return dst
 
 
 def _attrs(group: str, **values):
@@ -79,7 +72,7 @@ REFUSED = {
 @pytest.mark.parametrize("case", list(REFUSED))
 def test_out_of_range_values_are_refused_naming_file_and_field(case, sim_recording, tmp_path):
     edit, field = REFUSED[case]
-    path = _altered(sim_recording, tmp_path / f"{case}.h5", edit)
+    path = edited_copy(sim_recording, tmp_path / f"{case}.h5", edit)
     if case == "tau_1us":         # τ-bound steps over 1 s of motion: beyond any working resolution
         with h5py.File(path, "r+") as f:
             _stretch_motion(f)
@@ -117,7 +110,7 @@ def test_large_frames_are_binned_as_they_are_read(sim_recording, tmp_path):
         a, s = f["camera"].attrs, 1024 / fr.shape[2]
         a["width"], a["height"], a["fx"], a["fy"] = 1024, 1024, a["fx"] * s, a["fx"] * s
         a["cx"] = a["cy"] = 511.5
-    path = _altered(sim_recording, tmp_path / "big.h5", upscale)
+    path = edited_copy(sim_recording, tmp_path / "big.h5", upscale)
     r = _run(path, tmp_path, *QUICK, code="import thermod.cli.discrepancy as m; m.MAX_FRAMES_MB = 8")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "big.h5: 25 frames of 1024×1024" in r.stderr and "binning them to 128×128" in r.stderr, r.stderr
@@ -126,7 +119,7 @@ def test_large_frames_are_binned_as_they_are_read(sim_recording, tmp_path):
 def test_tau_near_its_upper_end_scans_inside_the_range(sim_recording, tmp_path):
     # τ = 0.6 s: the smear scan (×2^¼ steps up to 2×) and the time-constant fit would step past 1 s.
     assert 0.6 * TAU_SCAN[-1] > MAX_TAU_S
-    path = _altered(sim_recording, tmp_path / "slow.h5", _attrs("camera", tau_s=0.6))
+    path = edited_copy(sim_recording, tmp_path / "slow.h5", _attrs("camera", tau_s=0.6))
     r = _run(path, tmp_path, "--candidates", "time_constant", "--max-steps", "1", "--no-fpn", memory=False)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "out" / "smear.json").is_file()
@@ -173,7 +166,7 @@ def _assert_capped(r, out):
 
 def test_search_at_its_work_cap_stops_and_says_so(sim_recording, tmp_path):
     # a 20 ms offset is worth a search; the cap is reached by the nominal model's evaluation already
-    path = _altered(sim_recording, tmp_path / "late.h5", _attrs("gyro", time_offset_s=0.02))
+    path = edited_copy(sim_recording, tmp_path / "late.h5", _attrs("gyro", time_offset_s=0.02))
     r = _run(path, tmp_path, "--candidates", "time_offset,gyro_bias", "--no-fpn", code=_cap(1.0))
     rep = _assert_capped(r, tmp_path / "out")
     assert "before step 1" in rep["search_capped"] and rep["steps"] == []
@@ -208,7 +201,7 @@ def test_long_focal_length_completes_with_the_smear_scan_inside_what_renders(sim
     # fx = 1e4 px over 160 px (a 0.92° field of view, a long surveillance lens): the image moves up to
     # ~30× as far as at the nominal focal length, so the smear scan's longer τ would render kernels past
     # the renderer's limit (those frames are left out of the smear comparison, not the whole run)
-    path = _altered(sim_recording, tmp_path / "tele.h5", _attrs("camera", fx=1e4, fy=1e4))
+    path = edited_copy(sim_recording, tmp_path / "tele.h5", _attrs("camera", fx=1e4, fy=1e4))
     r = _run(path, tmp_path, *QUICK, code=_cap(1.0))
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "out" / "smear.json").is_file() and (tmp_path / "out" / "report.md").is_file()
