@@ -367,3 +367,69 @@ def test_cut_at_record_boundaries_and_inside_records(whole, capsys):
 def test_cut_at_any_offset(whole, capsys, fraction):
     d, _ = whole
     check_cut(d, round(fraction * (d / "whole.mcap").stat().st_size), capsys)
+
+
+# ------------------------------------------------------------------ chunks that do not open in bounds
+def _compressed_file(path: Path, compression, payload: bytes) -> Path:
+    """One message of `payload` in one chunk, written by the mcap library's own Writer."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f, compression=compression)
+        w.start()
+        cid = w.register_channel("/blob", "application/octet-stream", 0)
+        w.add_message(cid, log_time=1, data=payload, publish_time=1)
+        w.finish()
+    return path
+
+
+def _chunks(path: Path) -> list:
+    from mcap.records import Chunk
+
+    with open(path, "rb") as f:
+        return [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+
+
+def _declare(path: Path, size: int) -> Path:
+    """`path` with its first chunk's declared uncompressed size (a u64) set to `size`."""
+    data = bytearray(path.read_bytes())
+    header_len = struct.unpack_from("<Q", data, len(mcap.MAGIC) + 1)[0]
+    at = len(mcap.MAGIC) + 9 + header_len                   # the chunk record: opcode, length, ...
+    assert data[at] == Opcode.CHUNK
+    struct.pack_into("<Q", data, at + 9 + 16, size)         # ... start, end time, uncompressed_size
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("kind", ["lz4", "zstd"])
+def test_a_chunk_that_decompresses_beyond_the_bound_is_refused_before_it_is_allocated(tmp_path, kind,
+                                                                                      monkeypatch):
+    """A compression bomb (8 MiB of zeros in a few kB) declaring 100 bytes, against a 1 MiB bound:
+    decoded up to the bound only and refused by `Bag`, naming the file; a true declaration over the
+    bound is refused from the field; under the bound the bomb's lie is named."""
+    from mcap.writer import CompressionType
+
+    comp = CompressionType.LZ4 if kind == "lz4" else CompressionType.ZSTD
+    path = _compressed_file(tmp_path / f"bomb_{kind}.mcap", comp, bytes(8 * 2**20))
+    (chunk,) = _chunks(path)
+    assert chunk.compression == kind and len(chunk.data) < 2**17
+    assert "declares 8388" in mcap.chunk_problem(chunk, limit=2**20)
+    (chunk,) = _chunks(_declare(path, 100))
+    assert "more than 1048576 bytes" in mcap.chunk_problem(chunk, limit=2**20)
+    assert "not the 100 it declares" in mcap.chunk_problem(chunk, limit=16 * 2**20)
+    monkeypatch.setattr(mcap, "MAX_CHUNK_BYTES", 2**20)
+    with pytest.raises(mcap.RecordingError, match=rf"bomb_{kind}\.mcap.*more than 1048576 bytes"):
+        mcap.Bag(path)
+
+
+def test_a_chunk_whose_size_field_lies_is_refused_by_thermod_import(tmp_path, capsys):
+    """The chunk's declared uncompressed size (a u64 the library allocates by) set to 2⁴⁰ in the file:
+    `thermod import` exits 2 naming the file, before any allocation of that size."""
+    from mcap.writer import CompressionType
+
+    path = _compressed_file(tmp_path / "lies.mcap", CompressionType.ZSTD, bytes(range(256)) * 64)
+    _declare(path, 2**40)
+    assert cli.main(["import", str(path), "-o", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "lies.mcap" in err and "declares 1099511627776 bytes uncompressed" in err, err
+    assert not (tmp_path / "x.h5").exists()

@@ -515,6 +515,7 @@ class Bag:
             if self._bounded.read(len(MAGIC)) != MAGIC:
                 raise RecordingError(self.path, "file", "not a readable MCAP file (it does not start with "
                                      "the MCAP magic)")
+            self._check_chunks(size)
             summary = None
             # A file cut short does not end with the magic; its last bytes are not a footer and any
             # offset read there is garbage, so the summary is only looked for before a closing magic.
@@ -546,6 +547,25 @@ class Bag:
         except RecordingError:
             self.close()
             raise
+
+    def _check_chunks(self, size: int) -> None:
+        """Every chunk the file holds opens within `MAX_CHUNK_BYTES` (`chunk_problem`), else a
+        `RecordingError` naming it. A file cut short is checked up to the cut (`_scan` reads it)."""
+        from mcap.exceptions import McapError
+        from mcap.records import Chunk
+        from mcap.stream_reader import StreamReader
+
+        self._bounded.seek(0)
+        try:
+            for record in StreamReader(self._bounded, record_size_limit=size, emit_chunks=True).records:
+                if isinstance(record, Chunk):
+                    why = chunk_problem(record)
+                    if why is not None:
+                        raise RecordingError(self.path, "file", f"not a readable MCAP file: the chunk "
+                                             f"ending at byte {self._bounded.pos} {why}")
+        except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error):
+            pass                  # damage or a cut: found again, and reported, where it is read
+        self._bounded.seek(0)
 
     def _scan(self, size: int) -> None:
         """Topics, counts and metadata of an MCAP file without a usable summary, read from the start
@@ -669,12 +689,50 @@ class Bag:
 
 
 MAGIC = b"\x89MCAP0\r\n"
+# a chunk's uncompressed size at most (recorders write chunks of 1–4 MiB; one 4096² float32 frame is
+# 64 MiB): a damaged or crafted size field, or a compression bomb, is refused before it is allocated
+MAX_CHUNK_BYTES = 256 * 2**20
 
 
 def is_mcap_name(path: str | os.PathLike) -> bool:
     """``X.mcap``, or ``X.mcap.part`` (what a recorder left when it could not finish)."""
     name = Path(path).name.lower()
     return name.endswith((".mcap", ".mcap.part"))
+
+
+def chunk_problem(chunk, limit: int | None = None) -> str | None:
+    """Why an MCAP `Chunk` record cannot be opened within `limit` bytes, or None. Its declared size,
+    the size its compressed frame declares and what it decompresses to (decoded up to `limit` + 1
+    bytes, never further) are each checked: the mcap library allocates by the first two and, for
+    LZ4, grows its output without a bound. `limit`: `MAX_CHUNK_BYTES` unless given."""
+    limit = MAX_CHUNK_BYTES if limit is None else int(limit)
+    declared = int(chunk.uncompressed_size)
+    if declared > limit:
+        return f"declares {declared} bytes uncompressed, over the {limit} a chunk may hold"
+    data = chunk.data
+    try:
+        if chunk.compression == "lz4":
+            import lz4.frame
+
+            framed = int(lz4.frame.get_frame_info(data).get("content_size") or 0)
+            out = len(lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=limit + 1))
+        elif chunk.compression == "zstd":
+            import io
+
+            import zstandard
+
+            framed = max(0, int(zstandard.frame_content_size(data)))
+            with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as r:
+                out = len(r.read(limit + 1))
+        else:
+            return None        # uncompressed: its bytes are in the file; unknown: the library says
+    except Exception as e:     # noqa: BLE001 - lz4 and zstandard raise their own kinds on damage
+        return f"its {chunk.compression} data do not decompress ({type(e).__name__}: {e})"
+    if framed > limit or out > limit:
+        return f"decompresses to more than {limit} bytes ({chunk.compression} ratio bomb or damage)"
+    if out != declared:
+        return f"decompresses to {out} bytes, not the {declared} it declares"
+    return None
 
 
 class _Bounded:
