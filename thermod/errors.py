@@ -31,3 +31,14 @@ class FileError(ThermodError):
 
 class StopRequested(ThermodError):
     """A stop (SIGTERM, SIGINT) came while waiting for something: that wait is abandoned."""
+
+    @staticmethod
+    def requested(abort) -> bool:
+        """Whether `abort` (a `threading.Event`, or None: no stop to hear) is set."""
+        return abort is not None and abort.is_set()
+
+    @classmethod
+    def check(cls, abort, when: str) -> None:
+        """Raise when `abort` is set; `when` completes "stop requested …" (e.g. "during the warm-up")."""
+        if cls.requested(abort):
+            raise cls(f"stop requested {when}")

@@ -161,14 +161,11 @@ def run(args) -> int:
     # the daemon gone: what it sent is written above, and the exit status says the recording ended early
     gone = None if silence.silent_s is None else gone_message("record", args.endpoint, silence.silent_s,
                                                               received=not writer.empty)
-    if writer.empty:
-        if gone is not None:
-            print(gone, file=sys.stderr)
-            return 1
+    if writer.empty and gone is None:
         raise ThermodError(f"nothing received from {args.endpoint} (raw/gyro); is `thermod run` up?")
-    if as_mcap:
+    if not writer.empty and as_mcap:
         print(f"wrote {out}: messages by topic {writer.counts}, calibration from {writer.source}")
-    else:
+    elif not writer.empty:
         _summary(out, attrs)
     if gone is not None:
         print(gone, file=sys.stderr)

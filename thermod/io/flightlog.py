@@ -136,15 +136,16 @@ def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> Fl
     if (columns := _betaflight_csv_columns(head)) is not None:
         return _read_betaflight_csv(path, *columns, log_index)
     if head.startswith(BOM):
-        return _without_bom(path, log_index)
+        return _without_bom(path, log_index, gcsv=head[len(BOM):].startswith(b"GYROFLOW IMU LOG"))
     if head.startswith(b"GYROFLOW IMU LOG"):
         _check_gcsv_header(path)
     return _read_telemetry_parser(path, log_index)
 
 
-def _without_bom(path: Path, log_index: int | None) -> FlightLog:
+def _without_bom(path: Path, log_index: int | None, gcsv: bool) -> FlightLog:
     """A text log behind a UTF-8 byte order mark: telemetry-parser recognises no format behind one, so
-    it reads a copy without it; errors and the log still name `path`."""
+    it reads a copy without it; errors and the log still name `path`. `gcsv`: a .gcsv's header is
+    checked first, as without the mark."""
     _check_tp_size(path)
     with tempfile.TemporaryDirectory(prefix="thermod-log-") as d:
         plain = Path(d) / path.name
@@ -152,7 +153,7 @@ def _without_bom(path: Path, log_index: int | None) -> FlightLog:
             src.seek(len(BOM))
             shutil.copyfileobj(src, dst)
         try:
-            if plain.read_bytes()[:16].startswith(b"GYROFLOW IMU LOG"):
+            if gcsv:
                 _check_gcsv_header(plain)
             log = _read_telemetry_parser(plain, log_index)
         except FlightLogError as e:

@@ -223,7 +223,8 @@ def choose_stream(streams) -> int | None:
         disp = int(s.disposition or 0)
         if disp & attached:
             continue
-        k = (bool(disp & default), _size(s)[0] * _size(s)[1])
+        w, h = _size(s)
+        k = (bool(disp & default), w * h)
         if key is None or k > key:
             best, key = s.index, k
     return best
@@ -325,7 +326,7 @@ def _iter_av(path: Path, stream: int | None = None, notes: list[str] | None = No
                          ) from None
     with c:
         info = _info_from_container(path, c, stream)
-        s = c.streams.video[[v.index for v in c.streams.video].index(info.stream_index)]
+        s = _video_stream(path, c, info.stream_index)
         # AVI stores no presentation times, only one slot per frame in decode order (with B-frames the
         # demuxer's pts follow that order, not the pictures'): the frames, in presentation order, take the
         # slots of the packets read so far, earliest first, as a decoder's reordering does with true pts

@@ -228,9 +228,8 @@ class Daemon:
         return True
 
     def _start(self, abort: threading.Event | None) -> None:
-        def check(step: str) -> None:
-            if abort is not None and abort.is_set():
-                raise StopRequested(f"stop requested {step}")
+        def check(when: str) -> None:
+            StopRequested.check(abort, when)
 
         cfg = self.cfg
         check("before the start")
@@ -290,9 +289,9 @@ class Daemon:
         outage."""
         deadline = time.monotonic() + timeout
         while self.gyro_ring.count == 0 and time.monotonic() < deadline and not self._stop.is_set() \
-                and self.gyro_state.state != "error" and not (abort is not None and abort.is_set()):
+                and self.gyro_state.state != "error" and not StopRequested.requested(abort):
             time.sleep(0.01)
-        if abort is not None and abort.is_set():
+        if StopRequested.requested(abort):
             return
         if self.gyro_ring.count == 0:
             log.warning("gyro: no sample yet (%s); starting the camera anyway", self.gyro_state.state)

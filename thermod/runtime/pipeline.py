@@ -274,8 +274,7 @@ class Pipeline:
 
     def _warmup(self, max_kernel_px: int, budget_s: float, abort: threading.Event | None) -> None:
         def check() -> None:
-            if abort is not None and abort.is_set():
-                raise StopRequested("stop requested during the warm-up")
+            StopRequested.check(abort, "during the warm-up")
 
         t0 = time.monotonic()
         self._set_process_limits()
@@ -346,8 +345,8 @@ class Pipeline:
                 if self._frames is not None:
                     self._frames.close()
                     self._frames = None
-                if abort is not None and abort.is_set():     # a child killed by the stop's signal
-                    raise StopRequested("stop requested while the solver children started") from None
+                # a child killed by the stop's signal
+                StopRequested.check(abort, "while the solver children started")
                 log.warning("solver processes unavailable (%s); solving in the worker threads", e)
         self._solvers = [InThread(self._factory, self._render) for _ in range(n)]
 

@@ -530,8 +530,7 @@ class InChild:
         """The child's next message; SolverError if it died, failed, or said nothing within `timeout`."""
         t_end = math.inf if timeout is None else time.monotonic() + timeout
         while True:
-            if self.abort is not None and self.abort.is_set():
-                raise StopRequested(f"solver child {self.worker}: stop requested while waiting for it")
+            StopRequested.check(self.abort, f"while waiting for solver child {self.worker}")
             left = t_end - time.monotonic()
             if left <= 0:
                 self._kill()             # hung: whatever it says later would answer the wrong job

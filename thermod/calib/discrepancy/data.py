@@ -64,7 +64,6 @@ class RecData:
     measured: np.ndarray          # float32 [n, h, w] motion frames
     frame_t: np.ndarray           # their camera times (nominal model)
     static_mean: np.ndarray       # float32 [h, w] reference incl. FPN
-    reference_full: np.ndarray    # float32 reference frame (static mean or motion anchor), working res
     noise_var: float              # temporal variance of one static frame (working res)
     n_static: int
     t_ref: float
@@ -282,7 +281,7 @@ def prepare(rec: recording_io.Recording, calib: Calibration, *, name: str = "<re
     gm = rec.gyro_t + calib.time_offset_s > t_onset
     base = seg.static_rate if seg.static_rate is not None else np.zeros(3)
     motion_rms = np.sqrt(np.mean((rec.gyro_rate[gm] - base) ** 2, axis=0)) if gm.any() else np.zeros(3)
-    return RecData(name, fm, measured, frame_t, static_mean, static_mean, noise_var, n_static, t_ref,
+    return RecData(name, fm, measured, frame_t, static_mean, noise_var, n_static, t_ref,
                    t_onset, rec.gyro_t, rec.gyro_rate, seg.static_rate,
                    _static_sem(rec.gyro_t, rec.gyro_rate, seg.t_onset_gyro), motion_rms)
 
@@ -409,7 +408,7 @@ def _prepare_motion(rec, calib: Calibration, name: str, scale: float, offset_mar
     fm.set_reference(scene, None, prescaled=True, origin=origin)
     noise_var = max(noise_variance_spatial(measured), quantisation_variance(scale))
     motion_rms = np.sqrt(np.mean((rec.gyro_rate - rec.gyro_rate.mean(axis=0)) ** 2, axis=0))
-    d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(), measured[k_ref].copy(), noise_var, n,
+    d = RecData(name, fm, measured, frame_t, measured[k_ref].copy(), noise_var, n,
                 t_ref, t_start, rec.gyro_t, rec.gyro_rate, None, None, motion_rms,
                 reference="motion", scene=scene, origin=origin,
                 noise_source="spatial high-pass of the motion frames")
