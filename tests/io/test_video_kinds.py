@@ -2,6 +2,7 @@
 decode: AVI's slot times with B-frames, several video streams and cover art, a file cut mid-stream,
 rotation and interlace flags, RGB's range, and the same kinds through `thermod import`."""
 
+import json
 import os
 import struct
 import subprocess
@@ -105,6 +106,30 @@ def test_a_file_cut_mid_stream_keeps_what_ffmpeg_decodes_with_a_note(tmp_path):
             assert got.notes and "kept" in got.notes[0], name
     with pytest.raises(video.VideoError, match=r"cut\.mkv: .*truncated"):
         list(video.iter_video(tmp_path / "cut.mkv"))           # streamed without notes: refused at the end
+
+
+def test_a_damaged_packet_mid_file_loses_only_the_frames_up_to_the_next_keyframe(tmp_path):
+    """A packet the decoder refuses (its NAL sizes zeroed, as a bad sector leaves it) once ended the
+    read there, losing the rest of the file; now the frames from the next keyframe on are kept, with
+    a note, and a stream read without notes is refused at its end."""
+    path = encode(tmp_path / "damaged.mp4", "-c:v", "libx264", "-g", "10", "-sc_threshold", "0", "-bf", "0",
+                  "-movflags", "+faststart", src=frames(n=30))
+    whole = video.read_video(path)
+    out = subprocess.run(["ffprobe", "-v", "error", "-select_streams", "v:0", "-show_entries",
+                          "packet=pos,size,flags", "-of", "json", str(path)], capture_output=True, text=True,
+                         check=True).stdout
+    packets = json.loads(out)["packets"]
+    assert [k for k, p in enumerate(packets) if "K" in p["flags"]] == [0, 10, 20]
+    pos, size = int(packets[13]["pos"]), int(packets[13]["size"])      # a P-frame of the second GOP
+    data = bytearray(path.read_bytes())
+    data[pos:pos + size] = bytes(size)
+    path.write_bytes(bytes(data))
+    got = video.read_video(path)
+    keep = np.r_[0:13, 20:30]                         # packets 13–19 lost; 20 is the next keyframe
+    assert np.allclose(got.t, whole.t[keep]) and np.array_equal(got.frames, whole.frames[keep])
+    assert len(got.notes) == 1 and "7 damaged packet(s)" in got.notes[0] and "resumed" in got.notes[0]
+    with pytest.raises(video.VideoError, match=r"damaged\.mp4: damaged data before frame 13"):
+        list(video.iter_video(path))
 
 
 def rotate_90(mp4: Path) -> None:

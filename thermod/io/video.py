@@ -10,9 +10,10 @@ timestamp; variable frame rate kept), never mapped to the flight log's (the sync
 increase strictly, and a repeated or decreasing timestamp is a `VideoError`, never re-ordered (AVI
 stores no presentation times: its frames are timed by their slots, as FFmpeg's best-effort time). Of
 several video streams the one FFmpeg would play is read (`choose_stream`; cover art never). A file cut
-short keeps the frames decoded before the cut, with a note (`VideoFrames.notes`). A
-side over `MAX_SIDE`, more than `MAX_FRAMES` frames or a stack over `max_bytes` is refused before it
-is allocated; `iter_video` streams one frame at a time.
+short keeps the frames decoded before the cut, with a note (`VideoFrames.notes`); a damaged packet
+loses the frames up to the next keyframe, where decoding resumes (a note). A side over `MAX_SIDE`,
+more than `MAX_FRAMES` frames or a stack over `max_bytes` is refused before it is allocated;
+`iter_video` streams one frame at a time.
 
 Writing (`VideoWriter`, `write_video`): 8-bit grey frames to H.264 (libx264, yuv420p) with the given
 times as timestamps (time base 1/90000 s). `PercentileAGC` is a thermal camera's automatic gain
@@ -332,7 +333,10 @@ def _iter_av(path: Path, stream: int | None = None, notes: list[str] | None = No
         # slots of the packets read so far, earliest first, as a decoder's reordering does with true pts
         slots = [] if c.format.name == "avi" else None
         n, first, last, periods, errors, damaged = 0, 0.0, -math.inf, [], [], []
-        for frame in _decoded(c, s, errors, slots):
+        skipped, resumes, resumed = [0], [], []   # packets left out; errors resumed after; frames there
+        for frame in _decoded(c, s, errors, slots, skipped, resumes):
+            if len(resumes) > len(resumed):      # decoding resumed at a keyframe after damaged packets
+                resumed.append(n + len(damaged))
             t = _frame_time(path, frame, n, s.time_base, heapq.heappop(slots) if slots else None)
             if frame.is_corrupt:       # its missing data concealed by the decoder: pixels no camera saw
                 damaged.append(n + len(damaged))
@@ -360,24 +364,54 @@ def _iter_av(path: Path, stream: int | None = None, notes: list[str] | None = No
     if damaged:
         notes.append(f"{len(damaged)} damaged frame(s) (decoded with missing data concealed) left out: "
                      f"{damaged[:10]}{' …' if len(damaged) > 10 else ''}")
-    problem = (f"decoding stopped at frame {n}: truncated or corrupt ({errors[0]})" if errors
-               else _incomplete(info, n, last - first, periods))
+    if resumed and notes is None:
+        raise VideoError(path, f"damaged data before frame {resumed[0]} ({errors[0]})")
+    if resumed:
+        notes.append(f"{skipped[0]} damaged packet(s) and the frames depending on them left out "
+                     f"({errors[0]}); decoding resumed at the next keyframe, frame(s) {resumed[:10]}"
+                     f"{' …' if len(resumed) > 10 else ''}")
+    stopped = errors[resumes[-1] if resumes else 0:]   # errors after the last resumption: the end
+    problem = (f"decoding stopped at frame {n}: truncated or corrupt ({stopped[0]})" if stopped
+               else _incomplete(info, n + skipped[0], last - first, periods))
     if problem and notes is None:
         raise VideoError(path, problem)
     if problem:
         notes.append(f"{problem}; the {n} frames decoded before it are kept")
 
 
-def _decoded(c, s, errors: list, slots: list | None = None):
-    """The stream's frames in presentation order, up to the first damaged or cut packet (whose error is
-    appended to `errors`): the frames the decoder holds then are flushed, not lost. With `slots`, each
-    packet's decode time is pushed onto that heap before its frames are decoded."""
+def _decoded(c, s, errors: list, slots: list | None = None, skipped: list | None = None,
+             resumes: list | None = None):
+    """The stream's frames in presentation order. A packet the decoder refuses (damaged data) is
+    left out with the packets after it up to the next keyframe, where decoding resumes (as FFmpeg's
+    CLI goes on, but with no frame decoded from a missing reference); a demuxer error (a cut packet
+    header) ends the stream. Each error is appended to `errors`, each packet left out counted in
+    `skipped[0]`, and `resumes` the number of errors each time decoding resumes after them (the
+    errors past the last stopped the stream); at an error the frames the decoder holds are flushed,
+    not lost. With `slots`, each decoded packet's decode time is pushed onto that heap first."""
+    skipped = [0] if skipped is None else skipped
+    resumes = [] if resumes is None else resumes
+    resync = False
     try:
         for packet in c.demux(s):
-            if slots is not None and packet.size and packet.dts is not None:
-                heapq.heappush(slots, packet.dts)
-            yield from s.decode(packet)
-    except _DECODE_ERRORS as e:     # the demuxer's (a cut packet header) or the decoder's
+            if resync and packet.size and not packet.is_keyframe:
+                skipped[0] += 1
+                continue
+            if resync and packet.size:
+                resumes.append(len(errors))
+            resync = False
+            slot = packet.dts if slots is not None and packet.size and packet.dts is not None else None
+            if slot is not None:
+                heapq.heappush(slots, slot)
+            try:
+                yield from s.decode(packet)
+            except _DECODE_ERRORS as e:     # the decoder's: this packet is lost, not the rest of the file
+                errors.append(e)
+                skipped[0] += 1
+                resync = True
+                if slot is not None and slot in slots:
+                    slots.remove(slot)
+                    heapq.heapify(slots)
+    except _DECODE_ERRORS as e:     # the demuxer's (a cut packet header): the end of what can be read
         errors.append(e)
     if not errors:                  # demux's last, empty packet has flushed the decoder
         return
