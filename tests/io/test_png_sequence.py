@@ -80,3 +80,27 @@ def test_dji_thermal_pngs_read_as_a_sequence(shared_data, require):
     assert got.info.kind == "png-sequence" and got.frames.shape == (len(files), 512, 640)
     for k, f in enumerate(files):
         assert np.array_equal(got.frames[k], cv2.imread(str(f), cv2.IMREAD_UNCHANGED))
+
+
+def test_a_folder_without_frames_or_with_a_cut_frame_is_refused_as_frames(ffmpeg, tmp_path):
+    """A folder of JPEGs (or nothing) given --camera and --fps was taken for a ROS bag and told that
+    --camera and --fps apply to a flight import only; it is refused as an image sequence now. A cut
+    8-bit PNG's error expected a 16-bit one."""
+    import os
+    import sys
+
+    jpgs = tmp_path / "jpgs"
+    jpgs.mkdir()
+    subprocess.run(["ffmpeg", "-v", "error", "-f", "lavfi", "-i", f"testsrc2=size={W}x{H}:rate=10",
+                    "-frames:v", "2", str(jpgs / "frame_%d.jpg")], check=True)
+    env = dict(os.environ, NUMBA_CACHE_DIR=os.environ.get("NUMBA_CACHE_DIR", str(tmp_path / "numba")))
+    r = subprocess.run([sys.executable, "-m", "thermod.cli", "import", str(jpgs), "-o",
+                        str(tmp_path / "a.h5"), "--camera", "boson640_14mm", "--fps", "30"],
+                       capture_output=True, text=True, env=env)
+    assert r.returncode == 2 and f"{jpgs}: the folder holds no .tif/.tiff/.png files" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "a.h5").exists()
+    cut = ffmpeg_pngs(tmp_path / "cut", "gray", n=2)
+    data = (cut / "frame_2.png").read_bytes()
+    (cut / "frame_2.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(VideoError, match=r"frame_2\.png: not an image .*expected an 8- or 16-bit grey PNG"):
+        read_video(cut, fps=10)

@@ -12,6 +12,8 @@ needed only when it was killed before that).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from thermod.errors import ThermodError
 
 
@@ -71,12 +73,14 @@ def run(args) -> int:
         return import_flight.run(args)
     from thermod.cli import import_video
 
-    if import_video.is_video(args.input):     # a video with no gyro: the motion from the pictures
-        return import_video.run(args)
     flight_only = [f"--{k.replace('_', '-')}" for k in ("camera", "fps", "log_index", "report", "duration")
                    if getattr(args, k) is not None]
     flight_only += [flag for flag, on in (("--refine", args.refine), ("--no-refine", args.no_refine),
                                           ("--start", bool(args.start)), ("--fit-tau", args.fit_tau)) if on]
+    # a video with no gyro: the motion from the pictures; a folder given video options is taken for
+    # image frames, so one without any is refused as such (not as a ROS bag)
+    if import_video.is_video(args.input) or (flight_only and Path(args.input).is_dir()):
+        return import_video.run(args)
     if flight_only:
         raise ThermodError(f"{args.input}: {', '.join(flight_only)} apply to a flight import "
                            "(with --gyro LOG)")

@@ -542,7 +542,7 @@ def _read_png(path: Path) -> np.ndarray:
         raise VideoError(path, f"{depth}-bit grey PNG: expected 8- or 16-bit grey")
     if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
         raise VideoError(path, f"image size {w}×{h}: expected 1–{MAX_SIDE} px per side")
-    return _image(path, "a 16-bit grey PNG")
+    return _image(path, "an 8- or 16-bit grey PNG")
 
 
 def _read_tiff(path: Path) -> np.ndarray:
@@ -555,12 +555,13 @@ def _read_tiff(path: Path) -> np.ndarray:
             page = tf.pages[0]
             shape, samples = tuple(int(v) for v in page.shape), int(page.samplesperpixel)
     except Exception as e:   # noqa: BLE001 - tifffile raises many kinds (TypeError, AttributeError, …) on damage
-        raise VideoError(path, f"not an image OpenCV can read (expected a 16-bit grey TIFF: {e})") from None
+        raise VideoError(path, f"not an image OpenCV can read (expected an 8- or 16-bit grey TIFF: {e})"
+                         ) from None
     if samples != 1:
         raise VideoError(path, f"{samples} channels: expected a single-channel grey TIFF")
     if len(shape) != 2 or not all(1 <= v <= MAX_SIDE for v in shape):
         raise VideoError(path, f"image shape {shape}: expected one grey plane of 1–{MAX_SIDE} px per side")
-    return _image(path, "a 16-bit grey TIFF")
+    return _image(path, "an 8- or 16-bit grey TIFF")
 
 
 def _image(path: Path, expected: str) -> np.ndarray:
