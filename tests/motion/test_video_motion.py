@@ -176,6 +176,31 @@ def test_a_duplicated_frame_and_a_scene_cut_are_flagged_and_invent_no_motion(cli
     assert not isinstance(plans[cut - 3], PassThrough) and not isinstance(plans[cut + 4], PassThrough)
 
 
+def test_frames_lost_or_a_clock_jump_leave_a_hole_not_a_guessed_rate(clip):
+    """A slow pan whose clock jumps by 1 s, or which loses ten frames: only the net rotation across
+    that interval is seen, and a spline through it once guessed the rate inside (no flag, samples
+    all through it); now the interval is a `gap` and the frame after it passes through."""
+    from thermod.restore.policy import PassThrough, plan_frame
+    from thermod.restore.settings import DeblurConfig
+
+    _, _, cam = clip
+    rng = np.random.default_rng(5)
+    scene = cv2.GaussianBlur(rng.uniform(0, 255, (HEIGHT + 8, WIDTH + 80)), (0, 0), 2.0)
+    scene = cv2.normalize(scene, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    pan = np.stack([scene[4:4 + HEIGHT, k:k + WIDTH] for k in range(60)])     # 1 px per frame
+    t60 = np.arange(60) / FPS
+    keep = np.r_[0:30, 40:60]
+    for frames, t in ((pan[:50], t60[:50] + (np.arange(50) >= 30)), (pan[keep], t60[keep])):
+        track = estimate_track(frames, t, cam.intrinsics, tau_s=TAU)
+        assert not np.isfinite(track.rate_at_frames()[29]).any(), "a rate guessed across the gap"
+        assert track.flagged()["gap"] == [30] and track.known.sum() >= len(t) - 3
+        gt, gr, _ = track.gyro(1000.0, lead_s=0.06, tail_s=track.lag_s + 0.004)
+        assert not ((gt > t[29] + 0.05) & (gt < t[30] - 0.05)).any(), "gyro samples inside the gap"
+        plan = plan_frame(float(t[30]), gt, gr, cam.replace(rate_hz=1000.0),
+                          DeblurConfig(mode="uniform", temporal_views=1))
+        assert isinstance(plan, PassThrough) and plan.reason == "gyro_gap"
+
+
 def thermod(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).parents[2] / ".numba_cache"))

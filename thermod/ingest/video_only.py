@@ -104,7 +104,8 @@ def import_video(video_path: str | os.PathLike, out: str | os.PathLike, camera: 
     flagged = track.flagged()
     for what, frames in flagged.items():
         if frames:
-            notes.append(f"{len(frames)} frame(s) {what}: {frames[:10]}{' …' if len(frames) > 10 else ''}"
+            label = "after a time gap (frames lost or the clock jumped)" if what == "gap" else what
+            notes.append(f"{len(frames)} frame(s) {label}: {frames[:10]}{' …' if len(frames) > 10 else ''}"
                          + (" (shows the previous view; the motion is interpolated across it)"
                             if what == "duplicate" else " (the motion into it is unknown: passed through)"))
     if track.overlay is not None:
@@ -229,7 +230,7 @@ def plot_track(track: RotationTrack, gyro_t, gyro_rate, path, truth: tuple | Non
             ax.plot(truth[0], truth[1][:, a] * deg, lw=1.0, color="k", alpha=0.6, label="true gyro")
         ax.plot(gyro_t, gyro_rate[:, a] * deg, ".", ms=1, color="C0", label="from the video (1 kHz)")
         ax.plot(tm, mean[:, a] * deg, "o", ms=3, color="C1", label="interval mean")
-        for what, color in (("duplicate", "C2"), ("cut", "C3"), ("untracked", "C4")):
+        for what, color in (("duplicate", "C2"), ("cut", "C3"), ("untracked", "C4"), ("gap", "C5")):
             for i, k in enumerate(track.flagged()[what]):
                 ax.axvline(track.frame_t[k], color=color, lw=0.8, ls="--", label=what if i == 0 and a == 0
                            else None)

@@ -4,12 +4,13 @@
 consecutive frames with the sync's picture motion (`thermod.motion.picture`: per-frame normalisation
 against an AGC; KLT corners; Kabsch in a two-point RANSAC against moving objects and parallax) after
 handling what a video brings that a gyro does not: static overlays are found (`static_overlay`) and
-inpainted; duplicated frames are left out (`duplicates`); cuts, textureless frames and fits far from
-their neighbours leave a hole, never invented motion; the blur's lag (τ, the exponential's centroid,
-Eq. 11, plus each band's share of the readout) shifts each measurement's time. A cubic spline of the
-cumulative rotation through each stretch without holes is the track; its derivative, sampled at
-`rate_hz`, is the camera-frame gyro with a σ per sample (`RotationTrack.gyro`). The rules in full:
-docs/design.md §3, "Importing a video without a gyro".
+inpainted; duplicated frames are left out (`duplicates`); cuts, textureless frames, fits far from
+their neighbours and time gaps (lost frames, `GAP_PERIODS`) leave a hole, never invented motion; the
+blur's lag (τ, the exponential's centroid, Eq. 11, plus each band's share of the readout) shifts
+each measurement's time. A cubic spline of the cumulative rotation through each stretch without
+holes is the track; its derivative, sampled at `rate_hz`, is the camera-frame gyro with a σ per
+sample (`RotationTrack.gyro`). The rules in full: docs/design.md §3, "Importing a video without a
+gyro".
 """
 
 from __future__ import annotations
@@ -37,12 +38,13 @@ OUTLIER_K = 8.0              # an interval's rate misses its neighbours' predict
 OUTLIER_MIN_RAD_S = math.radians(45.0)   # ... and by more than this
 BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
 SMOOTH_MIN_KNOTS = 6         # `gyro(smooth=True)`: stretches of fewer frames are interpolated
+GAP_PERIODS = 4.0            # an interval over this × the median frame interval: frames lost or a time jump
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
 WORK_WIDTH = 160             # the picture motion's working width
 SMOOTH_PX = 1.5              # the tracker's smoothing: it sees more of a comet's tail than its head
 
-STATUS = ("ok", "duplicate", "untracked", "cut")
+STATUS = ("ok", "duplicate", "untracked", "cut", "gap")
 
 
 class TrackError(MotionError):
@@ -57,7 +59,9 @@ class RotationTrack:
     (camera frame, rad; NaN where unknown), `sigma_rad` [N−1] its RMS error; `status` [N−1] one of
     `STATUS` per interval: "duplicate" (frame k+1 repeats frame k: the rotation across it is split by
     time), "untracked" (too few corners: textureless or changed beyond tracking), "cut" (a fit the
-    pictures do not confirm). `lag_s`: the registered positions' lag behind the read times.
+    pictures do not confirm), "gap" (over `GAP_PERIODS` frame intervals long: frames were lost or the
+    clock jumped, so only the net rotation across it could be seen). `lag_s`: the registered
+    positions' lag behind the read times.
     `overlay`: the static overlay found (working-resolution mask) or None."""
 
     frame_t: np.ndarray
@@ -77,8 +81,8 @@ class RotationTrack:
         return np.all(np.isfinite(self.rotvec), axis=1)
 
     def flagged(self) -> dict[str, list[int]]:
-        """Frame indices by flag: "duplicate" (frame repeats its predecessor), "cut" and "untracked"
-        (the motion into the frame is unknown)."""
+        """Frame indices by flag: "duplicate" (frame repeats its predecessor), "cut", "untracked" and
+        "gap" (the motion into the frame is unknown)."""
         return {s: [int(k) + 1 for k in np.flatnonzero(self.status == s)] for s in STATUS[1:]}
 
     def rate_at_frames(self) -> np.ndarray:
@@ -403,7 +407,11 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     tk = t[kept]
     ncc = np.full(len(kept) - 1, np.nan)
     status_kept = np.full(len(kept) - 1, "ok", dtype=object)
+    long = np.diff(t) > GAP_PERIODS * float(np.median(np.diff(t)))
     for i in range(len(kept) - 1):
+        if long[kept[i]:kept[i + 1]].any():    # the rate inside it unknown: a hole, never a spline's guess
+            status_kept[i] = "gap"
+            continue
         if not pm.valid[i]:
             status_kept[i] = "untracked"
             continue
@@ -413,7 +421,7 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     status_kept[_outliers(rv, tk, status_kept == "ok")] = "untracked"
     retried = np.zeros(len(kept) - 1, bool)
     measured = status_kept == "ok"
-    if measured.sum() < max(MIN_FRAMES - 1, MIN_MEASURED_FRACTION * len(measured)):
+    if measured.sum() < max(MIN_FRAMES - 1, MIN_MEASURED_FRACTION * int(np.sum(status_kept != "gap"))):
         raise TrackError(f"{name}: the camera rotation could be measured between only {int(measured.sum())} "
                          f"of {len(measured)} frame pairs (need ≥ {MIN_MEASURED_FRACTION:.0%}): too little "
                          "texture to track, or no frame like the next")
