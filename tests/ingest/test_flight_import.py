@@ -346,3 +346,8 @@ def test_deblur_video_of_a_16_bit_recording_uses_one_agc_for_both_halves(tmp_pat
     log = flightlog.read_flight_log(gcsv)
     assert log.t[0] >= 0 and abs(log.t[0]) < 2 / raw.calibration.rate_hz
     assert thermod("deblur", rec, "-o", tmp_path / "x.h5", "--side-by-side").returncode == 2
+    # a --video name no container for H.264 takes: refused before the deblur, not after it
+    for name in ("deb.gif", "deb.webm", "deb"):
+        r = thermod("deblur", rec, "-o", tmp_path / "y.h5", "--video", tmp_path / name)
+        assert r.returncode == 2 and f"{tmp_path / name}: cannot hold H.264" in r.stderr, r.stderr
+        assert not (tmp_path / "y.h5").exists() and "Traceback" not in r.stderr

@@ -176,8 +176,9 @@ def run(args) -> int:
     if args.video is not None:
         if len(args.inputs) != 1:
             raise ThermodError(f"--video {args.video}: takes one input recording, got {len(args.inputs)}")
-        if not args.video.parent.is_dir():
-            raise ThermodError(f"--video {args.video}: directory {args.video.parent} does not exist")
+        from thermod.io.video import VideoWriter
+
+        VideoWriter.check_path(args.video)     # a name H.264 cannot go in: refused before the deblur
     batch_job.deconvolver(cfg)     # bad --lambda/--alpha: one error before any file (and warm locally)
     jobs = [batch_job.Job(src, dst, cfg, args.config, celsius, model)
             for src, dst in zip(args.inputs, outs, strict=True)]

@@ -683,6 +683,25 @@ class VideoWriter:
         self._last_pts = pts
         self.n_frames += 1
 
+    @staticmethod
+    def check_path(path: str | os.PathLike) -> None:
+        """Refuse, before any work, a path whose container cannot hold H.264 (from its suffix: none,
+        .txt, .gif, .webm …) or whose folder cannot be written: a VideoError naming it."""
+        import tempfile
+
+        p = Path(path)
+        if not p.parent.is_dir():
+            raise VideoError(p, f"directory {p.parent} does not exist")
+        try:
+            with tempfile.NamedTemporaryFile(dir=p.parent, prefix=".thermod-check-", suffix=p.suffix) as tmp:
+                with _av().open(tmp.name, "w") as c:
+                    c.add_stream("libx264", rate=30)
+        except OSError as e:
+            raise VideoError(p, f"cannot write in {p.parent} ({e.strerror or e})") from None
+        except _DECODE_ERRORS as e:
+            raise VideoError(p, f"cannot hold H.264 (expected a .mp4, .mkv, .mov, .avi or .ts name: {e})"
+                             ) from None
+
     @property
     def t0(self) -> float | None:
         """The first frame's time: the file's timestamps are relative to it."""
