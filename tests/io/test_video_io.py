@@ -292,6 +292,32 @@ def test_absurd_sizes_and_memory_limits(tmp_path):
     assert np.allclose(part.t, [0.12, 0.16, 0.2, 0.24]) and part.frames.shape == (4, 120, 160)
 
 
+def test_a_stack_the_memory_refuses_is_a_video_error_not_a_memory_error(tmp_path, monkeypatch):
+    """The stack is sized by the header's frame count (up to 4 GiB: a y4m of a few MB declaring
+    16000×16000 asked for 3.8 GiB up front) and a refused allocation was a MemoryError, an internal
+    error; now a smaller buffer is tried and grown, and a VideoTooLarge names the file."""
+    import thermod.io.video as v
+
+    frames = _texture(10, seed=15)
+    mp4 = write_video(tmp_path / "ten.mp4", frames, np.arange(10) / 25.0)
+    empty, one = np.empty, 120 * 160
+
+    def scarce(shape, dtype=float, *a, **k):        # memory for `room` frames at most
+        if isinstance(shape, tuple) and len(shape) == 3 and shape[0] * shape[1] * shape[2] > room * one:
+            raise MemoryError(f"cannot allocate {shape}")
+        return empty(shape, dtype, *a, **k)
+
+    monkeypatch.setattr(np, "empty", scarce)
+    monkeypatch.setattr(v, "FALLBACK_BUFFER_BYTES", 3 * one, raising=False)
+    room = 10
+    whole = read_video(mp4)
+    room = 5                                         # a part: 7 asked, then 3 grown to 5
+    assert np.array_equal(read_video(mp4, duration_s=0.2).frames, whole.frames[:5])
+    room = 9                                         # 10 declared: 3, then grown one at a time to 9
+    with pytest.raises(VideoTooLarge, match=r"ten\.mp4: no memory for 10 frame\(s\) of 160×120"):
+        read_video(mp4)
+
+
 def test_a_time_window_keeps_the_files_times_and_refuses_an_empty_or_bad_one(tmp_path):
     frames = _texture(10, seed=13)
     mkv = _encode(tmp_path / "ten.mkv", "ffv1", "gray", frames, np.arange(10) * 40 + 1000)

@@ -41,6 +41,7 @@ from thermod.errors import FileError, ThermodError
 MAX_SIDE = 16384                  # px, as the recording format's calibration bounds
 MAX_FRAMES = 10_000_000
 DEFAULT_MAX_BYTES = 4 * 2**30     # read_video's in-memory stack
+FALLBACK_BUFFER_BYTES = 2**26     # its first buffer when one sized by the header cannot be had
 WINDOW_TOLERANCE_S = 1e-6         # a frame this close to a time window's edge is on the edge
 WRITE_TIME_BASE = Fraction(1, 90000)
 TIFF_SUFFIXES = (".tif", ".tiff")
@@ -170,7 +171,7 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
                               if info.duration_s and info.frame_rate_hz else 256)
     if duration_s is not None and info.frame_rate_hz:
         guess = min(guess, int(duration_s * info.frame_rate_hz) + 2)
-    buf = np.empty((min(max(guess, 1), cap), info.height, info.width), info.dtype)
+    buf = _frame_buffer(source, min(max(guess, 1), cap), info)
     times, notes = [], []
     first = last = None
     for t, f in iter_video(source, fps, t0, stream=None if info.kind != "video" else info.stream_index,
@@ -186,7 +187,7 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
             if n >= cap:
                 raise VideoTooLarge(source, f"more than {cap} frames of {info.width}×{info.height} "
                                             f"({max_bytes / 2**30:.2f} GiB limit); read a part of it")
-            grown = np.empty((min(2 * n, cap), info.height, info.width), info.dtype)
+            grown = _frame_buffer(source, min(2 * n, cap), info, n + 1)
             grown[:n] = buf
             buf = grown
         buf[n] = f
@@ -199,6 +200,19 @@ def read_video(source: str | os.PathLike, fps: float | None = None, t0: float = 
     frames = buf[:n] if n > 0.9 * buf.shape[0] else buf[:n].copy()
     files = _sequence_files(source) or []
     return VideoFrames(frames, np.asarray(times, dtype=np.float64), info, [str(p) for p in files], notes)
+
+
+def _frame_buffer(source, rows: int, info: VideoInfo, least: int = 1) -> np.ndarray:
+    """An empty [rows, H, W] stack, or, when the memory for one sized by the header is refused, the
+    `least` rows or at most `FALLBACK_BUFFER_BYTES` (grown as frames come); VideoTooLarge when even
+    that is refused."""
+    for r in (rows, max(least, min(rows, FALLBACK_BUFFER_BYTES // info.frame_bytes))):
+        try:
+            return np.empty((r, info.height, info.width), info.dtype)
+        except MemoryError:
+            continue
+    raise VideoTooLarge(source, f"no memory for {least} frame(s) of {info.width}×{info.height} "
+                                f"({least * info.frame_bytes / 2**20:.0f} MiB); read a part of it")
 
 
 def _av():
