@@ -273,6 +273,9 @@ def test_refuses_bad_input(flight, tmp_path):
                       '"loopIteration","time","motor[0]"\n0,1000,1000\n1,2000,1000\n')
     refused(thermod("import", sim.video_path, "--gyro", nogyro, "-o", out, "--calibration", cam),
             "nogyro.csv")
+    (tmp_path / "logs").mkdir()                  # refused before the video is read, naming the option
+    refused(thermod("import", sim.video_path, "--gyro", tmp_path / "logs", "-o", out, "--calibration", cam),
+            "--gyro", "logs: is a directory, expected a file")
     truncated = tmp_path / "truncated.mp4"
     data = sim.video_path.read_bytes()
     truncated.write_bytes(data[: len(data) // 3])

@@ -311,8 +311,14 @@ def test_unsupported_empty_missing_and_truncated_files(tmp_path):
     (tmp_path / "empty.bbl").write_bytes(b"")
     with pytest.raises(FlightLogError, match=r"empty\.bbl: empty file"):
         read_flight_log(tmp_path / "empty.bbl")
-    with pytest.raises(FlightLogError, match="no such file"):
+    with pytest.raises(FlightLogError, match=r"absent\.ulg: does not exist"):
         read_flight_log(tmp_path / "absent.ulg")
+    (tmp_path / "logs.bbl").mkdir()                                      # a folder, not "no such file"
+    with pytest.raises(FlightLogError, match=r"logs\.bbl: is a directory, expected a file"):
+        read_flight_log(tmp_path / "logs.bbl")
+    os.mkfifo(tmp_path / "pipe.bbl")
+    with pytest.raises(FlightLogError, match=r"pipe\.bbl: is a device or special file"):
+        read_flight_log(tmp_path / "pipe.bbl")
     data = ULG.read_bytes()
     (tmp_path / "cut.ulg").write_bytes(data[:2000])                       # the header and no data
     with pytest.raises(FlightLogError, match=r"cut\.ulg: (no gyro samples|pyulog cannot read it)"):

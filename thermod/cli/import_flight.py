@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from thermod.errors import ThermodError
-from thermod.paths import directory_problem, output_problem
+from thermod.paths import directory_problem, input_problem, output_problem
 
 
 def add_arguments(p) -> None:
@@ -85,6 +85,8 @@ def run(args) -> int:
     from thermod.ingest.flight import import_flight
 
     out = checked_video_options(args)
+    if (problem := input_problem(args.gyro)) is not None:          # before minutes of reading the video
+        raise ThermodError(f"--gyro {args.gyro}: {problem}")
     if args.log_index is not None and args.log_index < 0:
         raise ThermodError(f"--log-index {args.log_index}: expected 0 or more")
     if args.fit_tau:

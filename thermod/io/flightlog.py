@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.errors import FileError
-from thermod.paths import output_problem
+from thermod.paths import input_problem, output_problem
 
 log = logging.getLogger(__name__)
 
@@ -121,8 +121,8 @@ def read_flight_log(path: str | os.PathLike, log_index: int | None = None) -> Fl
     clock split at steps back or pauses over `SEGMENT_GAP_S`) gives the longest unless `log_index`
     (0-based) picks one; `FlightLog.n_logs` says how many there are."""
     path = Path(path)
-    if not path.is_file():
-        raise FlightLogError(path, "no such file (expected a flight-controller log)")
+    if (problem := input_problem(path)) is not None:
+        raise FlightLogError(path, problem)
     size = path.stat().st_size
     if size == 0:
         raise FlightLogError(path, "empty file (expected a flight-controller log)")
