@@ -441,6 +441,18 @@ def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
     assert log.n_dropped == 1 and len(log) == 4999
 
 
+
+def test_a_blackbox_log_without_gyro_is_refused_before_the_probe(tmp_path, monkeypatch):
+    """The probe parses every logged field of the file's first bytes (700 bytes of Python objects a
+    byte); for a log without gyroADC it went on to 16 MiB: 3.5 GB and 30 s for a 4 MB log. The log
+    is refused first, and the probe never reads more than 1 MiB."""
+    from thermod.io import flightlog
+    monkeypatch.setattr(flightlog, "_probe_prefix", lambda *a: pytest.fail("probed a log without gyro"))
+    (tmp_path / "nogyro.bbl").write_bytes(BBL.read_bytes().replace(b"gyroADC", b"gyroXYZ"))
+    with pytest.raises(FlightLogError, match=r"nogyro\.bbl: no gyro samples in this BlackBox"):
+        read_flight_log(tmp_path / "nogyro.bbl")
+    assert max(flightlog.PROBE_BYTES) <= 2**20
+
 # ----------------------------------------------------------------------------------------- fuzzing
 @functools.cache
 def _seeds() -> dict[str, bytes]:

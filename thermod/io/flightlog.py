@@ -48,7 +48,7 @@ MAX_CSV_BYTES = 2**30              # a Betaflight CSV is read a row at a time in
 MAX_BAD_ROW_FRACTION = 0.001       # unreadable CSV rows a log may have (a cut last row, a corrupt frame)
 HEAD_BYTES = 1 << 16               # where a text log's header rows are looked for
 BOM = b"\xef\xbb\xbf"                # a UTF-8 byte order mark, as Windows editors and exporters write it
-PROBE_BYTES = (2**15, 2**20, 2**24)
+PROBE_BYTES = (2**15, 2**18, 2**20)  # telemetry() holds ~700 bytes of Python objects per byte read
 SEGMENT_GAP_S = 1.0
 MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
@@ -320,13 +320,14 @@ def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
         parser = _tp_call(path, lambda: _tp_parser(alone))
         camera, model = str(parser.camera or ""), str(parser.model or "")
         imu = _tp_call(path, parser.normalized_imu)
+        rows = [r for r in (imu or []) if isinstance(r, dict) and r.get("gyro") is not None]
+        if not rows:      # before the probe, which would parse every other field of the file's first MiB
+            raise FlightLogError(path, f"no gyro samples in this {camera or 'log'} (gyro logging disabled, "
+                                       "or the file is truncated)")
+        if len(rows) > MAX_SAMPLES:
+            raise FlightLogError(path, f"{len(rows)} gyro samples, over the {MAX_SAMPLES} this reader "
+                                       "accepts")
         probe = _probe_prefix(path, Path(d) / "prefix")
-    rows = [r for r in (imu or []) if isinstance(r, dict) and r.get("gyro") is not None]
-    if not rows:
-        raise FlightLogError(path, f"no gyro samples in this {camera or 'log'} (gyro logging disabled, "
-                                   "or the file is truncated)")
-    if len(rows) > MAX_SAMPLES:
-        raise FlightLogError(path, f"{len(rows)} gyro samples, over the {MAX_SAMPLES} this reader accepts")
     try:
         a = np.array([(r["timestamp_ms"], *r["gyro"]) for r in rows], dtype=np.float64)
     except (KeyError, TypeError, ValueError):
