@@ -442,6 +442,18 @@ def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
 
 
 
+@pytest.mark.parametrize("field, value", [(b"acc_1G", b"abc"), (b"P interval", b"0"), (b"vbatref", b"")])
+def test_a_blackbox_header_the_parser_panics_on_says_so_once(tmp_path, capfd, field, value):
+    """fc-blackbox unwraps header values: a Rust panic, printed to stderr (with RUST_BACKTRACE a
+    backtrace of 30 lines) beside thermod's own error. It is one FlightLogError now."""
+    import re
+    data = re.sub(rb"H " + re.escape(field) + rb":[^\n]*", b"H " + field + b":" + value, BBL.read_bytes())
+    (tmp_path / "head.bbl").write_bytes(data)
+    with pytest.raises(FlightLogError, match=r"head\.bbl: the parser failed: truncated or corrupt \(\S"):
+        read_flight_log(tmp_path / "head.bbl")
+    assert "panicked" not in capfd.readouterr().err
+
+
 def test_a_blackbox_log_without_gyro_is_refused_before_the_probe(tmp_path, monkeypatch):
     """The probe parses every logged field of the file's first bytes (700 bytes of Python objects a
     byte); for a log without gyroADC it went on to 16 MiB: 3.5 GB and 30 s for a 4 MB log. The log
@@ -467,7 +479,7 @@ def _seeds() -> dict[str, bytes]:
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
-def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
+def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, capfd, data):
     suffix = data.draw(st.sampled_from([".bbl", ".ulg", ".gcsv", ".csv", ".bin"]))
     kind = data.draw(st.sampled_from(["random", "mutate", "text"]))
     if kind == "random":
@@ -488,11 +500,14 @@ def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, data):
         blob = bytes(b[: data.draw(st.integers(1, len(b)))])
     path = tmp_path / f"fuzz{suffix}"
     path.write_bytes(blob)
+    capfd.readouterr()
     try:
         log = read_flight_log(path)
     except FlightLogError as e:
         assert "fuzz" in str(e)
         return
+    finally:
+        assert "panicked" not in capfd.readouterr().err          # a Rust panic is the error, not a print
     _check(log)
     assert 10 <= log.rate_hz <= 100_000
 

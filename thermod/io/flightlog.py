@@ -31,6 +31,7 @@ import logging
 import math
 import os
 import shutil
+import sys
 import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -372,11 +373,46 @@ def _tp_parser(path: Path):
     return telemetry_parser.Parser(str(path))
 
 
+@contextlib.contextmanager
+def _rust_stderr(path: Path):
+    """File descriptor 2 into a temporary file while telemetry-parser runs: a Rust panic prints its
+    message (and with RUST_BACKTRACE a backtrace) there before it arrives as an exception, which
+    says the same. After a panic the capture goes to the debug log; else it is passed on to stderr.
+    The redirection is process-wide: logs are read by offline commands, one at a time."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):        # no fd 2 (an embedding host): nothing to keep clean
+        yield
+        return
+    panicked = False
+    with tempfile.TemporaryFile() as cap:
+        os.dup2(cap.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            panicked = True
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            cap.seek(0)
+            said = cap.read(1 << 16)
+            if panicked or b"panicked at" in said:
+                if said:
+                    log.debug("%s: telemetry-parser said: %s", path, said.decode("utf-8", "replace"))
+            elif said:
+                cap.seek(0)
+                while block := cap.read(1 << 16):
+                    os.write(2, block)
+
+
 def _tp_call(path: Path, fn):
     """Call into telemetry-parser; its failures (a Rust panic arrives as a BaseException) become a
-    FlightLogError naming the file."""
+    FlightLogError naming the file, and the panic's own print is kept off stderr."""
     try:
-        return fn()
+        with _rust_stderr(path):
+            return fn()
     except BaseException as e:            # noqa: BLE001 - pyo3's PanicException derives from BaseException
         if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
             raise
@@ -389,7 +425,8 @@ def _tp_call(path: Path, fn):
         if "No metadata" in msg:
             raise FlightLogError(path, "no gyro samples (no telemetry in the file, or it is truncated)"
                                  ) from None
-        raise FlightLogError(path, f"the parser failed: truncated or corrupt ({msg})") from None
+        raise FlightLogError(path, f"the parser failed: truncated or corrupt ({' '.join(msg.split())[:300]})"
+                             ) from None
 
 
 def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
@@ -403,7 +440,8 @@ def _probe_prefix(path: Path, folder: Path) -> tuple[float, str] | None:
             part = folder / path.name
             part.write_bytes(f.read(min(n, size)))
             try:
-                samples = _tp_parser(part).telemetry()
+                with _rust_stderr(path):
+                    samples = _tp_parser(part).telemetry()
             except BaseException as e:    # noqa: BLE001 - a cut record can make the parser panic
                 if isinstance(e, (KeyboardInterrupt, SystemExit, MemoryError)):
                     raise
