@@ -442,6 +442,48 @@ def test_isolated_out_of_order_samples_are_dropped_and_counted(tmp_path):
 
 
 
+def _betaflight_csv_rows(tmp_path, t, name="log.csv") -> tuple[list[str], list[list[str]]]:
+    """The three header rows and the data rows (as cells) of a Betaflight CSV at times `t`."""
+    w = np.random.default_rng(1).normal(0, 1, (len(t), 3))
+    lines = write_betaflight_csv(tmp_path / name, t, w).read_text().splitlines()
+    return lines[:3], [r.split(",") for r in lines[3:]]
+
+
+def test_betaflight_csvs_joined_end_to_end_are_read_as_logs_of_their_own(tmp_path):
+    """A Blackbox Explorer export, then a blackbox_decode one with other columns and units (``cat``):
+    the second's names are taken (its gyro was read from motor[0] and its time in s as µs before),
+    the header rows are not counted as damaged rows (a short log was refused for them)."""
+    rng = np.random.default_rng(2)
+    t1, w1 = 100 + np.arange(400) / 1000, rng.normal(0, 1, (400, 3))
+    first = write_betaflight_csv(tmp_path / "a.csv", t1, w1, integer_deg_s=False).read_text()
+    t2, w2 = 300 + np.arange(600) / 2000, rng.normal(0, 1, (600, 3))
+    deg = w2 @ np.diag([1.0, -1.0, -1.0]) / DEG
+    second = "loopIteration, time (s), motor[0], gyroADC[0] (deg/s), gyroADC[1] (deg/s), gyroADC[2] (deg/s)\n"
+    second += "".join(f"{i}, {t:.6f}, 1500, {x:.6f}, {y:.6f}, {z:.6f}\n" for i, (t, (x, y, z)) in
+                      enumerate(zip(t2, deg, strict=True)))
+    path = tmp_path / "joined.csv"
+    path.write_text(first + second + first)
+    log = read_flight_log(path)
+    assert log.n_logs == 3 and log.log_index == 1 and len(log) == 600
+    np.testing.assert_allclose(log.t, t2, atol=1e-9)
+    np.testing.assert_allclose(log.rate, w2, atol=1e-6)
+    third = read_flight_log(path, log_index=2)
+    np.testing.assert_allclose(third.t, t1, atol=1e-9)
+    np.testing.assert_allclose(third.rate, w1, atol=1e-6)
+
+
+def test_a_betaflight_csv_whose_32_bit_microsecond_clock_wraps_is_one_log(tmp_path):
+    """Betaflight's time is µs since power-up in 32 bits: 71.6 min after it, the counter wraps. An
+    exporter that does not carry it on (blackbox_decode does) gave two logs, and the longer half."""
+    head, rows = _betaflight_csv_rows(tmp_path, np.arange(4000) / 1000)
+    us = (2**32 - 1_500_000 + 1000 * np.arange(4000)) % 2**32
+    (tmp_path / "wrap.csv").write_text("\n".join(head + [",".join([r[0], str(u), *r[2:]])
+                                                         for r, u in zip(rows, us, strict=True)]) + "\n")
+    log = read_flight_log(tmp_path / "wrap.csv")
+    assert log.n_logs == 1 and len(log) == 4000
+    np.testing.assert_allclose(log.t, (2**32 - 1_500_000) * 1e-6 + np.arange(4000) / 1000, atol=1e-6)
+
+
 @pytest.mark.parametrize("field, value", [(b"acc_1G", b"abc"), (b"P interval", b"0"), (b"vbatref", b"")])
 def test_a_blackbox_header_the_parser_panics_on_says_so_once(tmp_path, capfd, field, value):
     """fc-blackbox unwraps header values: a Rust panic, printed to stderr (with RUST_BACKTRACE a

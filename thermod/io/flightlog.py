@@ -202,16 +202,9 @@ TIME_UNITS_S = {"": 1e-6, "us": 1e-6, "s": 1.0}           # blackbox_decode --un
 GYRO_UNITS_RAD_S = {"": DEG, "raw": DEG, "deg/s": DEG, "rad/s": 1.0}   # --unit-rotation; raw is °/s
 
 
-def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware: str,
-                         log_index: int | None) -> FlightLog:
-    """The ``time`` and ``gyroADC[0..2]`` columns of a Betaflight CSV, a row at a time (the other
-    columns are not kept). Betaflight and INAV log the gyro in °/s about x forward, y left, z up; a
-    blackbox_decode export states other units in brackets. A row that does not parse (a last row cut
-    by a crash, a corrupt frame's ``X`` time, ``NaN``) is skipped, up to `MAX_BAD_ROW_FRACTION`."""
-    size = path.stat().st_size
-    if size > MAX_CSV_BYTES:
-        raise FlightLogError(path, f"{size / 2**20:.0f} MiB, over the {MAX_CSV_BYTES / 2**20:.0f} MiB this "
-                                   "reader accepts for a Betaflight CSV; cut the log to the flight")
+def _csv_layout(path: Path, names: list[str]) -> tuple[list[int], float, float, bool]:
+    """(columns of time and gyroADC[0..2], seconds per time unit, rad/s per gyro unit, whether the
+    time is Betaflight's 32-bit µs counter) from a row of column names."""
     split = [_split_unit(n) for n in names]
     where = {base: (i, unit) for i, (base, unit) in reversed(list(enumerate(split)))}
     if "time" not in where:
@@ -228,11 +221,33 @@ def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware
     if len(g_units) != 1 or not g_units <= GYRO_UNITS_RAD_S.keys():
         raise FlightLogError(path, f"gyroADC columns in {' and '.join(sorted(map(repr, g_units)))}: expected "
                                    "one of raw (°/s), deg/s or rad/s for all three")
-    g_unit = g_units.pop()
+    return cols, TIME_UNITS_S[t_unit], GYRO_UNITS_RAD_S[g_units.pop()], t_unit != "s"
+
+
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware: str,
+                         log_index: int | None) -> FlightLog:
+    """The ``time`` and ``gyroADC[0..2]`` columns of a Betaflight CSV, a row at a time (the other
+    columns are not kept). Betaflight and INAV log the gyro in °/s about x forward, y left, z up; a
+    blackbox_decode export states other units in brackets. A row that does not parse (a last row cut
+    by a crash, a corrupt frame's ``X`` time, ``NaN``) is skipped, up to `MAX_BAD_ROW_FRACTION`.
+    Exports joined end to end are read as one: each header's rows are skipped and its column names
+    taken, and the 32-bit µs time wrapping past 2³² µs (71.6 min after power-up) is carried on."""
+    size = path.stat().st_size
+    if size > MAX_CSV_BYTES:
+        raise FlightLogError(path, f"{size / 2**20:.0f} MiB, over the {MAX_CSV_BYTES / 2**20:.0f} MiB this "
+                                   "reader accepts for a Betaflight CSV; cut the log to the flight")
+    cols, t_scale, g_scale, wraps = _csv_layout(path, names)
     values = array.array("d")
     n_rows = n_bad = 0
     first_bad = ""
-    last = max(cols)
     try:
         with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
             for _ in range(names_line + 1):
@@ -240,18 +255,23 @@ def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware
             for row in csv.reader(f, skipinitialspace=True):
                 if not row:
                     continue
+                head = row[0].strip()
+                if head == "loopIteration":                 # the names of a log joined after the first
+                    cols, t_scale, g_scale, more = _csv_layout(path, [c.strip() for c in row])
+                    wraps = wraps and more
+                    continue
+                if len(row) == 2 and not _is_number(head):   # a header row ("Product", "Firmware revision")
+                    continue
                 n_rows += 1
                 try:
-                    if len(row) <= last:
-                        raise ValueError
                     v = [float(row[c]) for c in cols]
                     if not all(math.isfinite(x) for x in v):
                         raise ValueError
-                except ValueError:
+                except (ValueError, IndexError):
                     n_bad += 1
                     first_bad = first_bad or f"data row {n_rows}: {','.join(row)[:80]!r}"
                     continue
-                values.extend(v)
+                values.extend((v[0] * t_scale, v[1] * g_scale, v[2] * g_scale, v[3] * g_scale))
                 if len(values) > 4 * MAX_SAMPLES:
                     raise FlightLogError(path, f"over {MAX_SAMPLES} gyro samples, the most this reader takes")
     except (csv.Error, UnicodeError) as e:
@@ -262,11 +282,27 @@ def _read_betaflight_csv(path: Path, names_line: int, names: list[str], firmware
     if n_bad:
         log.warning("%s: skipped %d unreadable data row(s) of %d (%s)", path, n_bad, n_rows, first_bad)
     a = np.frombuffer(values, dtype=np.float64).reshape(-1, 4)
-    t = a[:, 0] * TIME_UNITS_S[t_unit]
-    rate = (a[:, 1:] * GYRO_UNITS_RAD_S[g_unit]) @ FRD_FROM_BETAFLIGHT.T
+    t = _unwrap_us32(a[:, 0]) if wraps else a[:, 0]
+    rate = a[:, 1:] @ FRD_FROM_BETAFLIGHT.T
     t, rate, index, n_logs, lone = _pick_log(path, t, rate, log_index)
     return _finish(path, "betaflight-csv", t, rate, "FRD", "", index, n_logs,
                    f"BlackBox {firmware}".strip(), lone)
+
+
+US32_S = 2**32 * 1e-6      # Betaflight's time field: µs since power-up in 32 bits, 4294.967296 s
+
+
+def _unwrap_us32(t: np.ndarray) -> np.ndarray:
+    """Times (s) of a 32-bit µs counter carried past its wrap: a step back that lands within
+    `SEGMENT_GAP_S` after 2³² µs gains 2³² µs (blackbox_decode and Blackbox Explorer do this
+    themselves; other exporters write the counter as it is)."""
+    if len(t) < 2:
+        return t
+    dt = np.diff(t)
+    wrap = (dt < 0) & (dt + US32_S > 0) & (dt + US32_S <= SEGMENT_GAP_S)
+    if not np.any(wrap):
+        return t
+    return t + US32_S * np.r_[0, np.cumsum(wrap)]
 
 
 def _pick_log(path: Path, t: np.ndarray, rate: np.ndarray, log_index: int | None
