@@ -449,6 +449,28 @@ def _betaflight_csv_rows(tmp_path, t, name="log.csv") -> tuple[list[str], list[l
     return lines[:3], [r.split(",") for r in lines[3:]]
 
 
+def test_a_clock_that_repeats_every_stamp_is_refused_as_such(tmp_path):
+    """2 kHz rows on a 1 kHz clock: every stamp twice. Once each lone repeat was dropped nothing was
+    left and the error read "1 gyro sample(s)"; it names the repeat."""
+    head, rows = _betaflight_csv_rows(tmp_path, 100 + np.arange(4000) / 1000)
+    body = [",".join([r[0], rows[i // 2 * 2][1], *r[2:]]) for i, r in enumerate(rows)]
+    (tmp_path / "twice.csv").write_text("\n".join(head + body) + "\n")
+    with pytest.raises(FlightLogError, match=r"twice\.csv: gyro sample 1 at 100\.000000 s is not after the "
+                                             r"one before \(100\.000000 s\).*out of order or repeated"):
+        read_flight_log(tmp_path / "twice.csv")
+
+
+@pytest.mark.parametrize("us", [10**17, 10**300], ids=["3000 years", "1e294 s"])
+def test_a_time_no_log_clock_gives_is_refused(tmp_path, us):
+    """A time of 3000 years (float64 keeps 15 µs there: a 1 kHz log read at 993 Hz) or 10²⁹⁴ s (its
+    300 digits were the message)."""
+    head, rows = _betaflight_csv_rows(tmp_path, np.arange(3000) / 1000)
+    body = [",".join([r[0], str(us + int(r[1])), *r[2:]]) for r in rows]
+    (tmp_path / "far.csv").write_text("\n".join(head + body) + "\n")
+    with pytest.raises(FlightLogError, match=r"far\.csv: gyro sample 0 at 1e\+\d+ s: expected a log clock"):
+        read_flight_log(tmp_path / "far.csv")
+
+
 def test_betaflight_csvs_joined_end_to_end_are_read_as_logs_of_their_own(tmp_path):
     """A Blackbox Explorer export, then a blackbox_decode one with other columns and units (``cat``):
     the second's names are taken (its gyro was read from motor[0] and its time in s as µs before),

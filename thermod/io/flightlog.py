@@ -54,6 +54,7 @@ SEGMENT_GAP_S = 1.0
 MAX_SAMPLES = 200_000_000          # 8 kHz for ~7 hours
 MIN_RATE_HZ, MAX_RATE_HZ = 10.0, 100_000.0
 MAX_DROPPED_FRACTION = 0.001       # isolated out-of-order samples a log may have
+MAX_CLOCK_S = 1e10                 # ~300 years; float64 still resolves 2 µs there
 # no MEMS gyro reads this (the widest full scale, ±4000 °/s, is 70 rad/s); a log in °/s read as rad/s
 # exceeds it as soon as the camera turns at 80 °/s
 MAX_GYRO_RAD_S = 80.0
@@ -309,9 +310,7 @@ def _pick_log(path: Path, t: np.ndarray, rate: np.ndarray, log_index: int | None
               ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
     """(t, rate, index, number of logs, lone outliers dropped) of the log `log_index` picks (the
     longest by default) among the parts of the clock `_segments` finds, lone wild stamps dropped."""
-    # a lone wild stamp is a glitch to drop, not a boundary between logs
-    lone = _lone_outliers(t)
-    t, rate = t[~lone], rate[~lone]
+    t, rate, lone = _without_lone_outliers(path, t, rate)
     segments = _segments(t)
     if log_index is None:
         index = int(np.argmax([b - a for a, b in segments]))
@@ -320,7 +319,27 @@ def _pick_log(path: Path, t: np.ndarray, rate: np.ndarray, log_index: int | None
     else:
         raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
     lo, hi = segments[index]
-    return t[lo:hi], rate[lo:hi], index, len(segments), int(np.sum(lone))
+    return t[lo:hi], rate[lo:hi], index, len(segments), lone
+
+
+def _without_lone_outliers(path: Path, t: np.ndarray, rate: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(t, rate, count) without the lone wild stamps of `_lone_outliers` (a glitch to drop, not a
+    boundary between logs), checking the clock is one a log keeps: out-of-order stamps no more than
+    `MAX_DROPPED_FRACTION` (a clock that repeats every stamp is refused here, before dropping them
+    leaves nothing to judge) and the others within ±`MAX_CLOCK_S`."""
+    lone = _lone_outliers(t)
+    n = int(np.sum(lone))
+    if n > MAX_DROPPED_FRACTION * len(t):
+        i = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+        raise FlightLogError(path, f"gyro sample {i} at {_secs(t[i])} s is not after the one before "
+                                   f"({_secs(t[i - 1])} s): expected strictly increasing times ({n} of "
+                                   f"{len(t)} samples out of order or repeated)")
+    far = ~(np.abs(t) <= MAX_CLOCK_S) & ~lone
+    if np.any(far):
+        i = int(np.argmax(far))
+        raise FlightLogError(path, f"gyro sample {i} at {t[i]:.6g} s: expected a log clock within "
+                                   f"±{MAX_CLOCK_S:.0e} s (a corrupt time, or times in the wrong unit)")
+    return t[~lone], rate[~lone], n
 
 
 def _check_gcsv_header(path: Path, max_bytes: int = 1 << 16) -> None:
@@ -391,6 +410,11 @@ def _read_telemetry_parser(path: Path, log_index: int | None) -> FlightLog:
     t, rate, index, n_logs, lone = _pick_log(path, t, rate, log_index)
     return _finish(path, fmt, t, rate, frame, orientation if frame == "imu" else "", index, n_logs,
                    f"{camera} {model}".strip(), lone)
+
+
+def _secs(x: float) -> str:
+    """A log time for a message: µs digits, unless it is too large for them to mean anything."""
+    return f"{x:.6f}" if abs(x) < 1e9 else f"{x:.6g}"
 
 
 def _lone_outliers(t: np.ndarray) -> np.ndarray:
@@ -621,8 +645,8 @@ def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, o
             raise FlightLogError(path, f"{dropped_before} of {len(t) + dropped_before} gyro samples out of "
                                        "order with both neighbours: expected strictly increasing times")
         i = int(np.flatnonzero(~keep)[0])
-        raise FlightLogError(path, f"gyro sample {i} at {t[i]:.6f} s is not after the one before "
-                                   f"({t[i - 1]:.6f} s): expected strictly increasing times "
+        raise FlightLogError(path, f"gyro sample {i} at {_secs(t[i])} s is not after the one before "
+                                   f"({_secs(t[i - 1])} s): expected strictly increasing times "
                                    f"({dropped} of {len(t) + dropped_before} samples out of order)")
     t, rate = t[keep], rate[keep]
     dt = np.diff(t)
