@@ -506,6 +506,47 @@ def test_a_betaflight_csv_whose_32_bit_microsecond_clock_wraps_is_one_log(tmp_pa
     np.testing.assert_allclose(log.t, (2**32 - 1_500_000) * 1e-6 + np.arange(4000) / 1000, atol=1e-6)
 
 
+def _ulog_with_wild_stamp(data: bytes, sample: int, bit: int) -> bytes:
+    """The ULog `data` with one bit of sensor_combined's `sample`-th timestamp flipped."""
+    import struct
+
+    from pyulog import ULog
+    d = next(d for d in ULog(str(ULG), ["sensor_combined"]).data_list if d.name == "sensor_combined")
+    # a data record: size (u16), 'D', msg_id (u16), then the timestamp (u64)
+    key = struct.pack("<BH", ord("D"), d.msg_id) + struct.pack("<Q", int(d.data["timestamp"][sample]))
+    i = data.index(key) + 3
+    b = bytearray(data)
+    b[i + bit // 8] ^= 1 << (bit % 8)
+    return bytes(b)
+
+
+@pytest.mark.parametrize("bit", [30, 62])
+def test_a_ulog_with_one_wild_stamp_drops_it_as_the_other_readers_do(tmp_path, bit):
+    """One flipped bit of a ULog timestamp (2 ks or 10¹³ s ahead) refused the whole 10 s log as "not
+    after the one before"; the blackbox and CSV readers drop such a lone sample, and so does this."""
+    path = tmp_path / "wild.ulg"
+    path.write_bytes(_ulog_with_wild_stamp(ULG.read_bytes(), 1000, bit))
+    log = read_flight_log(path)
+    assert log.n_dropped == 1 and len(log) == 2372 and log.duration_s == pytest.approx(9.6176, abs=1e-4)
+
+
+def test_ulog_files_joined_end_to_end_are_separate_logs(tmp_path):
+    """``cat a.ulg b.ulg``: pyulog mixes the two up (either's samples, in no stated order, as one
+    log); each is read from its own header, the longest by default."""
+    data = ULG.read_bytes()
+    half = data[: len(data) // 2]
+    (tmp_path / "two.ulg").write_bytes(half + data)
+    log = read_flight_log(tmp_path / "two.ulg")
+    assert log.n_logs == 2 and log.log_index == 1 and len(log) == 2373
+    short = read_flight_log(tmp_path / "two.ulg", log_index=0)
+    assert short.log_index == 0 and 100 < len(short) < 2000
+    np.testing.assert_array_equal(short.t, log.t[: len(short)])
+    with pytest.raises(FlightLogError, match=r"two\.ulg: log 2: the file holds 2 log\(s\)"):
+        read_flight_log(tmp_path / "two.ulg", log_index=2)
+    (tmp_path / "junk.ulg").write_bytes(data + data[:20])        # a second header cut short: ignored
+    assert read_flight_log(tmp_path / "junk.ulg").n_logs == 1
+
+
 @pytest.mark.parametrize("field, value", [(b"acc_1G", b"abc"), (b"P interval", b"0"), (b"vbatref", b"")])
 def test_a_blackbox_header_the_parser_panics_on_says_so_once(tmp_path, capfd, field, value):
     """fc-blackbox unwraps header values: a Rust panic, printed to stderr (with RUST_BACKTRACE a
@@ -541,11 +582,11 @@ def _seeds() -> dict[str, bytes]:
                 ".csv": write_betaflight_csv(Path(d) / "s.csv", t, w).read_bytes()}
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, capfd, data):
     suffix = data.draw(st.sampled_from([".bbl", ".ulg", ".gcsv", ".csv", ".bin"]))
-    kind = data.draw(st.sampled_from(["random", "mutate", "text"]))
+    kind = data.draw(st.sampled_from(["random", "mutate", "text", "joined"]))
     if kind == "random":
         blob = data.draw(st.binary(max_size=2048))
     elif kind == "text":
@@ -558,10 +599,12 @@ def test_fuzzed_logs_give_a_log_or_a_flight_log_error(tmp_path, capfd, data):
         body = data.draw(st.text(alphabet="0123456789,.-e\nabc\"", max_size=400))
         blob = (head + body).encode()
     else:
-        b = bytearray(_seeds()[suffix])
-        for _ in range(data.draw(st.integers(1, 12))):
-            b[data.draw(st.integers(0, len(b) - 1))] = data.draw(st.integers(0, 255))
-        blob = bytes(b[: data.draw(st.integers(1, len(b)))])
+        blob = b""
+        for _ in range(1 if kind == "mutate" else data.draw(st.integers(2, 3))):    # joined: logs end to end
+            b = bytearray(_seeds()[suffix])
+            for _ in range(data.draw(st.integers(0 if kind == "joined" else 1, 12))):
+                b[data.draw(st.integers(0, len(b) - 1))] = data.draw(st.integers(0, 255))
+            blob += bytes(b[: data.draw(st.integers(1, len(b)))])
     path = tmp_path / f"fuzz{suffix}"
     path.write_bytes(blob)
     capfd.readouterr()

@@ -12,9 +12,10 @@ The rules it keeps: `t` is float64 s on the log's own clock, never shifted (the 
 is the sync's to find); `rate` is float64 [N, 3] rad/s in the frame `frame` names — ``"FRD"`` (the
 flight controller's body frame; Betaflight's FLU rates become (roll, −pitch, −yaw)), ``"imu"`` (a
 gcsv logger's own axes, its `orientation` string kept unapplied) or ``"gyroflow"`` (other formats).
-A file with several logs gives the longest (`log_index` picks another); ArduPilot's interleaved
-IMU instances give the first. A camera mount is a proper rotation ``camera_from_body`` (ω_camera =
-camera_from_body · ω_body; `FORWARD_CAMERA_FROM_FRD` for a forward, upright camera).
+A file with several logs (one per arming, or files joined end to end) gives the longest
+(`log_index` picks another); ArduPilot's interleaved IMU instances give the first. A camera mount
+is a proper rotation ``camera_from_body`` (ω_camera = camera_from_body · ω_body;
+`FORWARD_CAMERA_FROM_FRD` for a forward, upright camera).
 
 `write_gcsv`, `write_betaflight_csv` and `write_ardupilot_bin` write formats telemetry-parser reads
 back. Errors are `FlightLogError` naming the file; sizes and sample counts are bounded. Clocks,
@@ -26,7 +27,6 @@ from __future__ import annotations
 import array
 import contextlib
 import csv
-import io
 import logging
 import math
 import os
@@ -591,35 +591,22 @@ def _irregular(dt: np.ndarray) -> bool:
 
 
 def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
-    from pyulog import ULog
+    """PX4's gyro (`thermod.io.ulog`); of ULog files joined end to end, the longest by default."""
+    from thermod.io import ulog
 
-    if log_index not in (None, 0):
-        raise FlightLogError(path, f"log {log_index}: a ULog file holds one log")
-    topics = ["sensor_combined", "vehicle_angular_velocity"]
-    said = io.StringIO()          # pyulog prints a line per damaged record: one summary line instead
-    try:
-        with contextlib.redirect_stdout(said):
-            ulog = ULog(str(path), message_name_filter_list=topics, disable_str_exceptions=True)
-    except Exception as e:                # noqa: BLE001 - pyulog raises plain Exceptions on damage
-        raise FlightLogError(path, f"pyulog cannot read it: truncated or corrupt ULog "
-                                   f"({type(e).__name__}: {e})") from None
-    finally:
-        lines = [ln for ln in said.getvalue().splitlines() if ln.strip()]
-        if lines:
-            log.warning("%s: pyulog reported %d damaged or unexpected records (first: %s)", path, len(lines),
-                        lines[0][:200])
-    for name, cols in (("sensor_combined", ("gyro_rad[0]", "gyro_rad[1]", "gyro_rad[2]")),
-                       ("vehicle_angular_velocity", ("xyz[0]", "xyz[1]", "xyz[2]"))):
-        ds = [d for d in ulog.data_list if d.name == name and all(c in d.data for c in cols)]
-        if ds:
-            d = min(ds, key=lambda d: d.multi_id)
-            if len(d.data["timestamp"]) > MAX_SAMPLES:
-                raise FlightLogError(path, f"{name}: over {MAX_SAMPLES} samples")
-            t = np.asarray(d.data["timestamp"], dtype=np.float64) * 1e-6
-            rate = np.stack([np.asarray(d.data[c], dtype=np.float64) for c in cols], axis=1)
-            return _finish(path, "px4-ulog", t, rate, "FRD", "", 0, 1, f"PX4 {name}")
-    raise FlightLogError(path, "no gyro samples (expected a sensor_combined or vehicle_angular_velocity "
-                               "topic; the log may be truncated)")
+    logs, failed = ulog.gyro_logs(path, FlightLogError, MAX_SAMPLES)
+    if failed:
+        log.warning("%s: %d of the %d ULog files joined in it read without gyro (%s)", path, failed[0],
+                    failed[0] + len(logs), failed[1])
+    if log_index is None:
+        index = int(np.argmax([t[-1] - t[0] if len(t) else -1.0 for t, _, _ in logs]))
+    elif 0 <= log_index < len(logs):
+        index = int(log_index)
+    else:
+        raise FlightLogError(path, f"log {log_index}: the file holds {len(logs)} log(s)")
+    t, rate, name = logs[index]
+    t, rate, lone = _without_lone_outliers(path, t, rate)
+    return _finish(path, "px4-ulog", t, rate, "FRD", "", index, len(logs), f"PX4 {name}", lone)
 
 
 def _finish(path: Path, fmt: str, t: np.ndarray, rate: np.ndarray, frame: str, orientation: str,
