@@ -28,6 +28,7 @@ import logging
 import os
 import struct
 import time
+import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -506,7 +507,6 @@ class Bag:
     def _open_mcap(self) -> None:
         from mcap.exceptions import McapError
         from mcap.reader import SeekingReader
-        from mcap_ros2.decoder import DecoderFactory
 
         self._file = open(self.path, "rb")  # noqa: SIM115 (closed by close())
         try:
@@ -521,13 +521,14 @@ class Bag:
             # offset read there is garbage, so the summary is only looked for before a closing magic.
             if size >= 2 * len(MAGIC):
                 self._bounded.seek(size - len(MAGIC))
-            if size >= 2 * len(MAGIC) and self._bounded.read(len(MAGIC)) == MAGIC:
+            if (size >= 2 * len(MAGIC) and self._bounded.read(len(MAGIC)) == MAGIC
+                    and self._summary_intact(size)):
                 self._bounded.seek(0)     # the reader checks the magic where the file stands
-                self._reader = SeekingReader(self._bounded, decoder_factories=[DecoderFactory()],
+                self._reader = SeekingReader(self._bounded, decoder_factories=[_decoders()],
                                              record_size_limit=size)
                 try:
                     summary = self._reader.get_summary()
-                except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error):
+                except (McapError, *_DAMAGE):
                     summary = None
             if summary is None:
                 self._scan(size)
@@ -539,7 +540,7 @@ class Bag:
                 self.counts[ch.topic] = self.counts.get(ch.topic, 0) + n
             self.metadata_records = [(m.name, dict(m.metadata)) for m in self._reader.iter_metadata()]
             self.metadata = dict(self.metadata_records)
-        except (McapError, OSError, ValueError, KeyError, EOFError) as e:
+        except (McapError, OSError, *_DAMAGE) as e:
             self.close()
             raise RecordingError(
                 self.path, "file", f"not a readable MCAP file ({type(e).__name__}: {e})"
@@ -549,30 +550,63 @@ class Bag:
             raise
 
     def _check_chunks(self, size: int) -> None:
-        """Every chunk the file holds opens within `MAX_CHUNK_BYTES` (`chunk_problem`), else a
-        `RecordingError` naming it. A file cut short is checked up to the cut (`_scan` reads it)."""
+        """Every chunk the file holds opens within `MAX_CHUNK_BYTES` and matches its CRC
+        (`chunk_problem`), and the data section matches the CRC its DataEnd record stores, else a
+        `RecordingError` naming the damage. A file cut short is checked up to the cut (`_scan` reads
+        it)."""
         from mcap.exceptions import McapError
         from mcap.records import Chunk
-        from mcap.stream_reader import StreamReader
+        from mcap.stream_reader import CRCValidationError, StreamReader
 
         self._bounded.seek(0)
         try:
-            for record in StreamReader(self._bounded, record_size_limit=size, emit_chunks=True).records:
+            for record in StreamReader(self._bounded, record_size_limit=size, emit_chunks=True,
+                                       validate_crcs=True).records:
                 if isinstance(record, Chunk):
                     why = chunk_problem(record)
                     if why is not None:
                         raise RecordingError(self.path, "file", f"not a readable MCAP file: the chunk "
                                              f"ending at byte {self._bounded.pos} {why}")
-        except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error):
+        except CRCValidationError as e:
+            raise RecordingError(self.path, "file", f"not a readable MCAP file: its data section (to byte "
+                                 f"{self._bounded.pos}) has CRC-32 {e.actual:#010x}, not the "
+                                 f"{e.expected:#010x} its DataEnd record stores: damaged") from None
+        except (McapError, *_DAMAGE):
             pass                  # damage or a cut: found again, and reported, where it is read
         self._bounded.seek(0)
+
+    def _summary_intact(self, size: int) -> bool:
+        """The summary section matches the CRC the footer stores (none stored: taken as intact). A
+        damaged one is not used: `_scan` reads the data section, which `_check_chunks` checked."""
+        footer = 1 + 8 + 8 + 8 + 4            # opcode, length, summary_start, summary_offset_start, crc
+        at = size - len(MAGIC) - footer
+        if at < len(MAGIC):
+            return False
+        self._bounded.seek(at)
+        raw = self._bounded.read(footer)
+        start, _, crc = struct.unpack_from("<QQI", raw, 9)
+        if raw[0] != 0x02 or crc == 0 or start == 0:
+            return raw[0] == 0x02             # not a footer: the reader says why; no summary or no CRC
+        if not len(MAGIC) <= start <= at:
+            return False
+        self._bounded.seek(start)
+        value, left = 0, at + footer - 4 - start
+        while left > 0:
+            block = self._bounded.read(min(left, 1 << 20))
+            if not block:
+                return False
+            value, left = zlib.crc32(block, value), left - len(block)
+        if value != crc:
+            log.warning("%s: the MCAP summary section is damaged (CRC mismatch): reading the data "
+                        "section from the start instead", self.path)
+        return value == crc
 
     def _scan(self, size: int) -> None:
         """Topics, counts and metadata of an MCAP file without a usable summary, read from the start
         (`mcap.stream_reader.StreamReader`) up to its footer or, cut short, its last complete
         message; warns how many messages that leaves. No complete message: a `RecordingError`."""
         from mcap.exceptions import McapError
-        from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+        from mcap.records import Channel, DataEnd, Footer, Header, Message, Metadata, Schema
         from mcap.stream_reader import StreamReader
 
         self._reader = None
@@ -601,11 +635,11 @@ class Bag:
                 elif isinstance(record, Metadata):
                     self.metadata[record.name] = dict(record.metadata)
                     self.metadata_records.append((record.name, dict(record.metadata)))
-                elif isinstance(record, Footer):
-                    return
+                elif isinstance(record, (DataEnd, Footer)):
+                    return                # the data section is complete; the summary only repeats it
         # what a record cut short raises inside the library: its reads come back short (EndOfFile,
         # struct.error), a length runs past the end (RecordLengthLimitExceeded), a string is cut
-        except (McapError, ValueError, KeyError, EOFError, IndexError, struct.error) as e:
+        except (McapError, *_DAMAGE) as e:
             stop = f"{type(e).__module__}.{type(e).__name__}" + (f": {e}" if str(e) else "")
         except BaseException:
             self.close()
@@ -641,7 +675,7 @@ class Bag:
                 yield from (self._scanned_messages(topics) if self._reader is None else (
                     (channel.topic, msg) for _, channel, _, msg in
                     self._reader.iter_decoded_messages(topics=topics, log_time_order=True)))
-            except (McapError, ValueError, EOFError, IndexError, KeyError, struct.error) as e:
+            except (McapError, *_DAMAGE) as e:
                 raise RecordingError(
                     self.path, ",".join(topics), f"cannot decode a message ({type(e).__name__}: {e})"
                 ) from None
@@ -661,13 +695,12 @@ class Bag:
         it whole to sort by log time): the messages `_scan` counted, no further, so the cut end is
         never read."""
         from mcap.reader import NonSeekingReader
-        from mcap_ros2.decoder import DecoderFactory
 
         left = sum(self.counts.get(t, 0) for t in set(topics))
         if left == 0:
             return
         self._bounded.seek(0)
-        reader = NonSeekingReader(self._bounded, decoder_factories=[DecoderFactory()],
+        reader = NonSeekingReader(self._bounded, decoder_factories=[_decoders()],
                                   record_size_limit=self._bounded.size)
         for _, channel, _, msg in reader.iter_decoded_messages(topics=topics, log_time_order=False):
             yield channel.topic, msg
@@ -692,6 +725,42 @@ MAGIC = b"\x89MCAP0\r\n"
 # a chunk's uncompressed size at most (recorders write chunks of 1–4 MiB; one 4096² float32 frame is
 # 64 MiB): a damaged or crafted size field, or a compression bomb, is refused before it is allocated
 MAX_CHUNK_BYTES = 256 * 2**20
+# What the mcap readers raise, besides McapError, on a damaged record: a short read (EndOfFile,
+# struct.error), a string cut or not UTF-8, a garbage u64 length (OverflowError from an in-memory read)
+_DAMAGE = (ValueError, KeyError, EOFError, IndexError, struct.error, OverflowError)
+
+
+def _decoders():
+    """mcap-ros2-support's CDR decoders, with every failure — a schema that does not parse (its parser
+    raises its own kinds and prints to stderr), a message its schema does not decode — reported as
+    the `McapError` `Bag.messages` turns into a RecordingError naming the file and topic."""
+    import contextlib
+    import io
+
+    from mcap.exceptions import McapError
+    from mcap_ros2.decoder import DecoderFactory
+
+    class Decoders(DecoderFactory):
+        def decoder_for(self, message_encoding, schema):
+            name = getattr(schema, "name", "?")
+            try:
+                with contextlib.redirect_stderr(io.StringIO()):
+                    decode = super().decoder_for(message_encoding, schema)
+            except Exception as e:  # noqa: BLE001 - the vendored rosidl parser raises its own kinds
+                raise McapError(f"schema {name!r} is not a valid ros2msg definition "
+                                f"({type(e).__name__}: {e})") from None
+            if decode is None:
+                return None
+
+            def guarded(data: bytes):
+                try:
+                    return decode(data)
+                except Exception as e:  # noqa: BLE001 - CDR decoding of damaged bytes raises any kind
+                    raise McapError(f"a message does not decode as its schema {name!r} "
+                                    f"({type(e).__name__}: {e})") from None
+            return guarded
+
+    return Decoders()
 
 
 def is_mcap_name(path: str | os.PathLike) -> bool:
@@ -704,18 +773,22 @@ def chunk_problem(chunk, limit: int | None = None) -> str | None:
     """Why an MCAP `Chunk` record cannot be opened within `limit` bytes, or None. Its declared size,
     the size its compressed frame declares and what it decompresses to (decoded up to `limit` + 1
     bytes, never further) are each checked: the mcap library allocates by the first two and, for
-    LZ4, grows its output without a bound. `limit`: `MAX_CHUNK_BYTES` unless given."""
+    LZ4, grows its output without a bound. Then its records against their CRC (when the writer
+    stored one: 0 is none), which the library does not check by default: a flipped byte inside a
+    chunk would otherwise be imported as a pixel, a time or a length. `limit`: `MAX_CHUNK_BYTES`
+    unless given."""
     limit = MAX_CHUNK_BYTES if limit is None else int(limit)
     declared = int(chunk.uncompressed_size)
     if declared > limit:
         return f"declares {declared} bytes uncompressed, over the {limit} a chunk may hold"
     data = chunk.data
+    framed = 0
     try:
         if chunk.compression == "lz4":
             import lz4.frame
 
             framed = int(lz4.frame.get_frame_info(data).get("content_size") or 0)
-            out = len(lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=limit + 1))
+            records = lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=limit + 1)
         elif chunk.compression == "zstd":
             import io
 
@@ -723,15 +796,21 @@ def chunk_problem(chunk, limit: int | None = None) -> str | None:
 
             framed = max(0, int(zstandard.frame_content_size(data)))
             with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as r:
-                out = len(r.read(limit + 1))
+                records = r.read(limit + 1)
+        elif chunk.compression == "":
+            records = data
         else:
-            return None        # uncompressed: its bytes are in the file; unknown: the library says
+            return None        # unknown: the library says
     except Exception as e:     # noqa: BLE001 - lz4 and zstandard raise their own kinds on damage
         return f"its {chunk.compression} data do not decompress ({type(e).__name__}: {e})"
-    if framed > limit or out > limit:
+    if framed > limit or len(records) > limit:
         return f"decompresses to more than {limit} bytes ({chunk.compression} ratio bomb or damage)"
-    if out != declared:
-        return f"decompresses to {out} bytes, not the {declared} it declares"
+    if len(records) != declared:
+        return f"decompresses to {len(records)} bytes, not the {declared} it declares"
+    crc = zlib.crc32(records)
+    if chunk.uncompressed_crc and crc != chunk.uncompressed_crc:
+        return (f"holds records whose CRC-32 is {crc:#010x}, not the {chunk.uncompressed_crc:#010x} it "
+                "stores: damaged")
     return None
 
 
