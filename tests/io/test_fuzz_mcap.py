@@ -1,7 +1,8 @@
 """`thermod import` of damaged and malformed MCAP files: bytes flipped or overwritten anywhere, a chunk
-whose CRC or compressed data is wrong, a summary section damaged, schemas that do not parse, messages
-of another encoding. Each is refused with exit status 2 and an error naming the file, or imported
-exactly (never a frame or sample the file did not hold)."""
+whose CRC or compressed data is wrong, a summary section damaged, schemas that do not parse or do not
+match their messages, messages of another encoding, images whose geometry disagrees with their data,
+and a `thermod` calibration record that is not a calibration. Each is refused with exit status 2 and
+an error naming the file, or imported exactly (never a frame or sample the file did not hold)."""
 
 import json
 import struct
@@ -163,9 +164,10 @@ def imu(t: float, rate=(0.1, 0.2, 0.3)) -> dict:
             "linear_acceleration_covariance": [0.0] * 9}
 
 
-def bag_bytes(path, images=None, *, schemas=None, encodings=None, meta=None, ) -> bytes:
+def bag_bytes(path, images=None, *, schemas=None, encodings=None, meta=None, huge=0) -> bytes:
     """An MCAP written by the mcap library (not thermod): raw frames and gyro samples, the schema
-    texts (`schemas`: type → text) and message encodings (`encodings`: topic → name) as given."""
+    texts (`schemas`: type → text) and message encodings (`encodings`: topic → name) as given; the
+    first `huge` gyro samples 1e300 rad/s about x."""
     images = [image(1.0 + 0.02 * i) for i in range(N)] if images is None else images
     with open(path, "wb") as f:
         w = Writer(f, compression=CompressionType.NONE)
@@ -175,7 +177,8 @@ def bag_bytes(path, images=None, *, schemas=None, encodings=None, meta=None, ) -
         ch = {topic: w.register_channel(topic, (encodings or {}).get(topic, MessageEncoding.CDR), ids[kind])
               for topic, kind in ((mcap.RAW_TOPIC, mcap.IMAGE), (mcap.IMU_TOPIC, mcap.IMU))}
         msgs = [(m, mcap.RAW_TOPIC, mcap.IMAGE) for m in images]
-        msgs += [(imu(0.99 + 0.002 * k), mcap.IMU_TOPIC, mcap.IMU) for k in range(N * PER)]
+        msgs += [(imu(0.99 + 0.002 * k, (1e300 if k < huge else 0.1, 0.2, 0.3)), mcap.IMU_TOPIC, mcap.IMU)
+                 for k in range(N * PER)]
         msgs.sort(key=lambda m: (m[0]["header"]["stamp"]["sec"], m[0]["header"]["stamp"]["nanosec"]))
         for seq, (m, topic, kind) in enumerate(msgs):
             ns = m["header"]["stamp"]["sec"] * 10**9 + m["header"]["stamp"]["nanosec"]
@@ -188,10 +191,14 @@ def bag_bytes(path, images=None, *, schemas=None, encodings=None, meta=None, ) -
 
 @pytest.mark.parametrize(("schemas", "expect"), [
     ({mcap.IMAGE: "this is ::: not a definition\n"}, "not a valid ros2msg definition"),
+    ({mcap.IMU: mcap.MSGDEFS[mcap.IMAGE]}, "/imu/data"),          # named Imu, defines an Image
+    ({mcap.IMU: ""}, "/imu/data"),
+    ({mcap.IMAGE: mcap.MSGDEFS[mcap.CAMERA_INFO]}, "/thermal/image_raw"),
+    ({mcap.IMAGE: "uint64 extra\n" + mcap.MSGDEFS[mcap.IMAGE]}, "/thermal/image_raw"),
 ])
 def test_a_schema_that_does_not_match_its_messages_is_refused(tmp_path, capsys, schemas, expect):
     """A schema that does not parse was an internal error (the vendored rosidl parser's exceptions and
-    prints to stderr)."""
+    prints to stderr); one that parses into another type, an AttributeError for a missing field."""
     rc, err, _ = run_import(tmp_path, bag_bytes(tmp_path / "b.mcap", schemas=schemas), capsys)
     assert rc == 2 and expect in err, err
     assert "Error with" not in err and "Error processing" not in err, err
@@ -202,3 +209,49 @@ def test_messages_of_another_encoding_are_refused(tmp_path, capsys, encoding):
     data = bag_bytes(tmp_path / "b.mcap", encodings={mcap.IMU_TOPIC: encoding})
     rc, err, _ = run_import(tmp_path, data, capsys)
     assert rc == 2 and encoding in err, err
+
+
+@pytest.mark.parametrize(("kw", "expect"), [
+    ({"step": 0}, "step 0 does not fit"), ({"step": W}, "step 8 does not fit"),
+    ({"step": 10**9}, "does not fit"), ({"h": 0, "data": b""}, "does not fit"),
+    ({"h": 2**31, "data": b"\0" * 100}, "does not fit"), ({"data": b"\0" * 10}, "10 data bytes"),
+    ({"encoding": "rgb8"}, "not single-channel"),
+    ({"h": W, "w": H, "step": 2 * H}, "6×8"),                     # the calibration's 8×6 turned round
+    ({"h": 2000, "w": 1, "step": 2, "data": b"\0" * 4000}, "1×2000"),
+])
+def test_an_image_whose_geometry_disagrees_is_refused(tmp_path, capsys, kw, expect):
+    """Geometry that does not fit its data, or frames of another size than the calibration's: the
+    latter was reported against the output file and its .part (which was removed)."""
+    images = [image(1.0 + 0.02 * i, **kw) for i in range(N)]
+    rc, err, _ = run_import(tmp_path, bag_bytes(tmp_path / "b.mcap", images), capsys)
+    assert rc == 2 and expect in err and "/thermal/image_raw" in err, err
+    assert ".part" not in err, err
+
+
+@pytest.mark.parametrize(("text", "expect"), [
+    ("{not json", "unusable"), ("[1, 2]", "expected a JSON object"), ('"x"', "expected a JSON object"),
+    ("[" * 100000 + "]" * 100000, "unusable"),
+    (json.dumps({**CALIB.as_dict(), "width": 10**400}), "width"),
+    (json.dumps({**CALIB.as_dict(), "fx": float("nan")}), "fx"),
+    (json.dumps({**CALIB.as_dict(), "width": 9}), "8×6"),
+])
+def test_a_thermod_calibration_record_that_is_not_one_is_refused(tmp_path, capsys, text, expect):
+    """A list, a deep nesting or a huge integer were a silent default calibration, a RecursionError
+    and an OverflowError; a width not the frames' was reported against the output's .part."""
+    data = bag_bytes(tmp_path / "b.mcap", meta={"calibration": text})
+    rc, err, _ = run_import(tmp_path, data, capsys)
+    assert rc == 2 and expect in err and ".part" not in err, err
+
+
+def test_what_is_reported_is_what_was_written(tmp_path, capsys):
+    """Gyro samples beyond float32 are dropped as non-finite (with a numpy overflow warning before) and
+    frames of a repeated time once: the summary counted what was received, not what was written."""
+    images = [image(1.0 + 0.02 * min(i, 3)) for i in range(N)]       # the last two repeat a time
+    data = bag_bytes(tmp_path / "b.mcap", images, huge=7)
+    rc, err, rec = run_import(tmp_path, data, capsys)
+    out = capsys.readouterr().out
+    assert rc == 0 and "RuntimeWarning" not in err, err
+    assert rec.n_frames == 4 and len(rec.gyro_t) == N * PER - 7
+    assert cli.main(["import", str(tmp_path / "in.mcap"), "-o", str(tmp_path / "again.h5")]) == 0
+    out = capsys.readouterr().out
+    assert f"4 frames from {mcap.RAW_TOPIC}, {N * PER - 7} gyro samples" in out, out

@@ -13,6 +13,7 @@ last one written is imported for every frame, with a warning. Messages are strea
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from dataclasses import dataclass
@@ -65,12 +66,22 @@ def import_bag(input_path, output, *, image_topic: str | None = None, imu_topic:
         try:
             info, frame_t, gyro_t = _stream(bag, writer, image_topic, imu_topic, info_topic)
             calib = _calibration(bag, base, info, frame_t, gyro_t, calibration, tau_s)
+            _check_size(bag, image_topic, writer.frame_shape, calib, calibration, source)
             writer.finish(calib, {"imported_from": str(bag.path), "image_topic": image_topic,
                                   "imu_topic": imu_topic, "imported_calibration": source})
         except BaseException:
             writer.discard()
             raise
-    return BagImport(out, len(frame_t), len(gyro_t), image_topic, imu_topic, source)
+    return BagImport(out, writer.written["frames"], writer.written["gyro"], image_topic, imu_topic, source)
+
+
+def _check_size(bag, topic: str, shape, calib: Calibration, calibration, source: str) -> None:
+    """The frames are the calibration's width × height, else an error naming the bag, the topic and
+    where the calibration came from (before `finish`, which would name the output)."""
+    if shape is not None and tuple(shape) != (calib.height, calib.width):
+        where = f"--calibration {calibration}" if calibration is not None else source
+        raise RecordingError(bag.path, topic, f"frames are {shape[1]}×{shape[0]} (width×height) but the "
+                             f"calibration ({where}) is {calib.width}×{calib.height}")
 
 
 def pick_topic(
@@ -103,8 +114,11 @@ def _base_calibration(bag: mcap.Bag, info_topic: str | None, calibration,
     meta = bag.metadata.get(mcap.METADATA_NAME, {})
     if "calibration" in meta:
         try:
-            base = Calibration.from_dict(json.loads(meta["calibration"]))
-        except (ValueError, TypeError, KeyError) as e:
+            d = json.loads(meta["calibration"])
+            if not isinstance(d, dict):
+                raise TypeError(f"expected a JSON object of calibration keys, got {type(d).__name__}")
+            base = Calibration.from_dict(d)
+        except (ValueError, TypeError, KeyError, OverflowError, RecursionError) as e:
             raise RecordingError(bag.path, "metadata thermod.calibration", f"unusable ({e})") from None
         _warn_if_changed(bag)
         return base, "thermod metadata"
@@ -135,7 +149,7 @@ def _warn_if_changed(bag: mcap.Bag) -> None:
         if name == mcap.METADATA_NAME and "calibration" in record:
             try:
                 c = json.dumps(json.loads(record["calibration"]), sort_keys=True)
-            except (ValueError, TypeError):
+            except (ValueError, TypeError, RecursionError):
                 continue            # an earlier record left unreadable: the last one is what is imported
             if c != last:
                 changes.append(record.get("from_t"))
@@ -160,27 +174,32 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
     n = 0
     topics = [t for t in (image_topic, imu_topic, info_topic) if t is not None]
     for topic, msg in bag.messages(topics):
+        with _fields(bag, topic):
+            if topic == image_topic:
+                image = mcap.image_array(msg, bag.path, topic)
+                t = mcap.from_stamp(msg.header.stamp)
+            elif topic == imu_topic:
+                v = msg.angular_velocity
+                sample = (mcap.from_stamp(msg.header.stamp), (float(v.x), float(v.y), float(v.z)))
+            elif info is None:
+                info = mcap.camera_info_intrinsics(msg)
         if topic == image_topic:
-            image = mcap.image_array(msg, bag.path, topic)
             if image.dtype == np.float32:
                 raise RecordingError(
                     bag.path,
                     topic,
                     "32FC1 frames are not raw detector counts; choose the raw image topic with --image-topic",
                 )
-            t = mcap.from_stamp(msg.header.stamp)
             writer.add("raw", {"t": t, "frame_id": len(frame_t)}, image.astype(np.uint16, copy=False))
             frame_t.append(t)
         elif topic == imu_topic:
-            v = msg.angular_velocity
-            batch[n] = (mcap.from_stamp(msg.header.stamp), (v.x, v.y, v.z))
+            with np.errstate(over="ignore"):    # a rate beyond float32: inf, dropped as non-finite
+                batch[n] = sample
             n += 1
             if n == GYRO_BATCH:
                 writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
                 gyro_t.extend(batch["t"][:n].tolist())
                 n = 0
-        elif info is None:
-            info = mcap.camera_info_intrinsics(msg)
     if n:
         writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
         gyro_t.extend(batch["t"][:n].tolist())
@@ -189,6 +208,18 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
     if sum(writer.dropped.values()):
         raise RecordingError(bag.path, image_topic, f"frames of varying size ({dict(writer.dropped)})")
     return info, frame_t, gyro_t
+
+
+@contextlib.contextmanager
+def _fields(bag, topic: str):
+    """A message without the fields of the type its schema names (a schema that does not match its
+    messages decodes into another type): a RecordingError naming the bag and the topic."""
+    try:
+        yield
+    except (AttributeError, TypeError, IndexError, ValueError, OverflowError) as e:
+        raise RecordingError(bag.path, topic, f"a message without the fields of {bag.topics.get(topic)} "
+                             f"({type(e).__name__}: {e}): its schema does not match the type it "
+                             "names") from None
 
 
 def _calibration(bag, base, info, frame_t, gyro_t, calibration, tau) -> Calibration:

@@ -45,7 +45,13 @@ class RecordWriter:
         self._spooled = 0          # gyro batches on disk already
         self.calibration: dict | None = None
         self.health = 0
+        self.written = {"frames": 0, "gyro": 0}     # what `finish` put in the file
         self._flush_s, self._last_flush = flush_s, time.monotonic()
+
+    @property
+    def frame_shape(self) -> tuple[int, int] | None:
+        """(height, width) of the frames kept (the first one's), None before any."""
+        return self._shape
 
     @property
     def empty(self) -> bool:
@@ -111,8 +117,9 @@ class RecordWriter:
         ``.part`` file keeps every received frame and gyro sample and the error names it."""
         w = self._w
         try:
+            gyro = self._gyro()
             for name, data in zip(("gyro/t", "gyro/rate", "record/gyro_seq", "record/gyro_gap_before"),
-                                  self._gyro(), strict=True):
+                                  gyro, strict=True):
                 w.rewrite(name, data)           # in time order, repeats and non-finite samples out
             calibration, source = self._calibration(calibration)
             if self._shape is None:
@@ -124,6 +131,7 @@ class RecordWriter:
                                    "health_messages": self.health,
                                    "frames_dropped": sum(self.dropped.values()) + dup})
             w.commit(calibration)
+            self.written = {"frames": self.n_frames - dup, "gyro": len(gyro[0])}
         except (OSError, ValueError, KeyError, TypeError) as e:
             w.abort(keep=True)
             raise RecordingError(self.path, "file", f"could not complete the recording ({e}); the received "

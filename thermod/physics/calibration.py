@@ -379,7 +379,11 @@ def _scalar(key, v):
 def _number(key: str, v) -> float:
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
         raise CalibrationError(key, f"expected a number, got {_show(v)}")
-    x = float(v)
+    try:
+        x = float(v)
+    except OverflowError:       # an integer beyond any float (JSON integers are unbounded)
+        raise CalibrationError(key, f"expected a finite number, got an integer of {len(str(abs(v)))} "
+                                    "digits") from None
     if not math.isfinite(x):
         raise CalibrationError(key, f"expected a finite number, got {x!r}")
     return x
