@@ -212,6 +212,11 @@ def test_deblur_never_fails_unexpectedly(workdir, muts):
 # found by a sweep of bad inputs: a recording with no frames had no first frame to put the gyro on
 @example(muts=[("replace", "camera/frames", np.zeros((0, H, W), np.uint16)),
                ("replace", "camera/t", np.zeros(0, np.float64))])
+# found by a sweep of bad inputs: times and rates a recording holds but a .gcsv cannot were reported
+# against the output file, with a --tscale/--gscale to choose that `thermod export` does not have
+@example(muts=[("replace", "gyro/t", np.linspace(0.0, 1e300, 100))])
+@example(muts=[("replace", "gyro/t", 0.05 + 5e-7 * np.arange(100))])
+@example(muts=[("replace", "gyro/rate", np.full((100, 3), 3e38, np.float32))])
 def test_export_never_fails_unexpectedly(workdir, muts):
     p = _mutated(workdir, muts)
     out = workdir / "out.gcsv"

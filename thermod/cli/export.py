@@ -42,11 +42,39 @@ def gcsv_series(path) -> tuple[np.ndarray, np.ndarray, dict]:
     keep = t >= 0.0
     if np.count_nonzero(keep) < 2:
         raise ThermodError(f"{path}: fewer than 2 gyro samples from the first frame on; nothing to export")
+    _check_gcsv_range(path, t[keep], rate[keep], imported)
     extra = {"frame_readout_time": f"{calib.readout_s * 1e3:.6g}", "frame_rate": f"{calib.frame_rate_hz:.6g}",
              "frame_width": calib.width, "frame_height": calib.height}
     if source != "gyro":        # estimated (thermod import VIDEO without --gyro): the file says so
         extra["motion_source"] = source
     return t[keep], rate[keep], extra
+
+
+# What a .gcsv holds (`flightlog.write_gcsv`: integer µs and µrad/s, exact in float64 up to 2⁵³)
+GCSV_TICK_S, GCSV_LSB_RAD_S = 1e-6, 1e-6
+GCSV_MAX_T_S = 1e9                       # 31 years of video clock
+GCSV_MAX_RATE_RAD_S = 2.0**53 * GCSV_LSB_RAD_S
+
+
+def _check_gcsv_range(path, t: np.ndarray, rate: np.ndarray, imported: bool) -> None:
+    """The synced series fits a .gcsv, else an error naming the recording's field: times within
+    `GCSV_MAX_T_S` of the video clock's zero and at least a tick apart, rates within its integers."""
+    zero = "the imported video's start" if imported else "the first frame (camera/t[0])"
+    if not t[-1] <= GCSV_MAX_T_S:
+        raise ThermodError(f"{path}: gyro/t: samples run to {t[-1]:.6g} s after {zero}; a .gcsv holds "
+                           f"times within {GCSV_MAX_T_S:g} s of it")
+    ticks = np.round(t / GCSV_TICK_S)
+    if np.any(same := np.diff(ticks) <= 0):
+        i = int(np.flatnonzero(same)[0])
+        raise ThermodError(f"{path}: gyro/t: samples {i} and {i + 1} from {zero} on are "
+                           f"{t[i + 1] - t[i]:.3g} s apart (calibrated); a .gcsv counts whole "
+                           f"{GCSV_TICK_S * 1e6:g} µs ticks")
+    big = np.abs(rate) > GCSV_MAX_RATE_RAD_S
+    if np.any(big):
+        i = int(np.flatnonzero(big.any(axis=1))[0])
+        raise ThermodError(f"{path}: gyro/rate: the calibrated camera-frame rate at sample {i} from {zero} "
+                           f"on is {np.abs(rate[i]).max():.4g} rad/s (from gyro/rate and the gyro attributes "
+                           f"bias_rad_s, scale); a .gcsv holds at most {GCSV_MAX_RATE_RAD_S:.4g}")
 
 
 def run(args) -> int:
