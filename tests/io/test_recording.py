@@ -68,7 +68,13 @@ def _replace(f, name, data):
     (lambda f: _replace(f, "camera/t", np.array([0.02, 0.04])), "camera/t", "one per frame"),
     (lambda f: _replace(f, "gyro/rate", np.zeros((50, 2), np.float32)), "gyro/rate", "(50, 3)"),
     (lambda f: f["gyro"].attrs.__setitem__("R_cam_gyro", np.eye(2)), "R_cam_gyro", "3×3"),
+    (lambda f: _replace(f, "gyro/rate", np.full((50, 3), np.nan, np.float32)), "gyro/rate",
+     "nan at sample 0"),
+    # finite float64 beyond float32: was called "NaN or infinite" after a cast that numpy warned about
+    (lambda f: _replace(f, "gyro/rate", np.r_[np.zeros((7, 3)), np.full((43, 3), -1e300)]), "gyro/rate",
+     "value -1e+300 at sample 7: expected finite rad/s within float32's range"),
 ])
+@pytest.mark.filterwarnings("error")            # nothing numpy or h5py warns about on the way
 def test_damaged_file_gives_clear_error(rec_path, damage, field, expected):
     _damage(rec_path, damage)
     with pytest.raises(RecordingError) as e:

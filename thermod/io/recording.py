@@ -280,17 +280,21 @@ class Reader:
         m = ds_gt.shape[0]
         ds_gr = _dataset(path, f, "gyro/rate", "f", 2, lambda s: s == (m, 3),
                          f"float32 rates of shape ({m}, 3) to match gyro/t")
-        need = 8 * (n + m) + 4 * 3 * m + 4 * 3 * m     # the timeline, and its float32 conversion
+        need = 8 * (n + m) + ds_gr.dtype.itemsize * 3 * m + 4 * 3 * m   # the timeline, its float32 copy
         if need > self._budget:
             raise RecordingError(path, "gyro/t", f"the timeline alone ({n} frame times, {m} gyro samples) "
                                  f"needs {_gib(need)}, more than the {_gib(self._budget)} allowed")
         self.t = _times(path, "camera/t", ds_t)
         self.gyro_t = _times(path, "gyro/t", ds_gt)
         with _Guard(path, "gyro/rate"):
-            self.gyro_rate = np.asarray(ds_gr[()], dtype=np.float32)
-        if not np.all(np.isfinite(self.gyro_rate)):
-            bad = int(np.flatnonzero(~np.all(np.isfinite(self.gyro_rate), axis=1))[0])
-            raise RecordingError(path, "gyro/rate", f"NaN or infinite value at sample {bad}")
+            stored = np.asarray(ds_gr[()])
+        ok = np.abs(stored) <= np.finfo(np.float32).max         # False for NaN
+        if not np.all(ok):
+            bad = int(np.flatnonzero(~np.all(ok, axis=1))[0])
+            v = stored[bad][~ok[bad]][0]
+            raise RecordingError(path, "gyro/rate", f"value {float(v)!r} at sample {bad}: expected finite "
+                                 "rad/s within float32's range")
+        self.gyro_rate = stored.astype(np.float32)
 
     # ------------------------------------------------------------------------------ frames
     @property
