@@ -201,3 +201,18 @@ def test_two_pairs_in_a_row_leave_a_hole(swaying):
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["untracked"] == 2 and tr.counts["bridged"] == 0
     assert [s.gap_before for s in got].count(True) == 1
+
+
+def test_lost_frames_leave_a_hole_one_lost_frame_does_not(swaying):
+    rec, motion = swaying
+    keep = [k for k in range(30) if not 10 <= k <= 13]        # four frames lost: an interval of 5 periods
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    got = run(tr, [rec.frames[k] for k in keep], rec.t[keep])
+    assert tr.counts["gap"] == 1 and [s.gap_before for s in got].count(True) == 1
+    t = np.concatenate([s.t for s in got])
+    assert not ((t > rec.t[9]) & (t < rec.t[14] - CALIB.tau_s - CALIB.readout_s)).any()
+    one = [k for k in range(30) if k != 12]                   # one frame lost: measured across
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    got = run(tr, [rec.frames[k] for k in one], rec.t[one])
+    assert tr.counts["gap"] == 0 and not any(s.gap_before for s in got)
+    assert tr.counts["measured"] == len(one) - 1

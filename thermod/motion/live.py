@@ -15,14 +15,16 @@ extrapolated over more than (t_{k−1} − m_k)⁺ = (τ + lead · readout − �
 The rule it keeps: a rate only where the pictures measured it, or across one interval between two
 measured ones (a pair that cannot be registered: too little texture, or a cut, `MIN_REGISTERED_NCC`),
 which is bridged by its neighbours' rates with σ widened by half their difference. Two unknown
-intervals in a row stop the samples; the next say `gap_before`, and the frames whose kernel window
-spans the hole pass through. A repeated frame is skipped and the next registered across it. A static
+intervals in a row, or one over `GAP_PERIODS` frame intervals (frames lost, a camera stalled), stop
+the samples; the next say `gap_before`, and the frames whose kernel window spans the hole pass
+through. A repeated frame is skipped and the next registered across it. A static
 overlay (a logo, OSD text) is found as the import finds it (`thermod.motion.track.overlay_mask`), on
 running means over the stream (`OverlayWatch`), and no corner is taken on it.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 
@@ -31,6 +33,7 @@ import numpy as np
 from thermod.motion.picture import U8_PER_UNIT, PairRegistrar
 from thermod.motion.track import (
     DUPLICATE_ABS,
+    GAP_PERIODS,
     MIN_REGISTERED_NCC,
     OVERLAY_MOVING_RATIO,
     gradient_magnitude,
@@ -44,6 +47,8 @@ LEAD_SAMPLES = 3          # samples sent past the frame time (the kernel window'
 MAX_REPEATS = 2           # repeated frames skipped in a row; then the pair is registered anyway (a still,
                           # noiseless scene repeats without a camera fault)
 MAX_BRIDGED = 1           # unknown intervals between two measured ones that their rates are interpolated over
+INTERVALS = 31            # frame intervals the gap rule's median period is taken over
+MIN_INTERVALS = 5         # ... and how many it needs first
 DEFAULT_RATE_HZ = 1000.0
 # corners and pyramid levels per pair: 100 and 2 (a working frame moves a few px per period) against the
 # import's 150 and 3 took 4.7 ms a frame for 7.3 at 640×480, with the rate error 5.5 °/s RMS for 5.2
@@ -115,8 +120,10 @@ class LiveTrack:
         self._gap = False
         self._repeats = 0
         self._unknown = 0                    # unknown intervals since the anchor's
+        self._last_t = -math.inf             # the newest frame's time, repeated or not
+        self._intervals: collections.deque[float] = collections.deque(maxlen=INTERVALS)
         self.counts = {"frames": 0, "measured": 0, "untracked": 0, "cut": 0, "duplicate": 0, "bridged": 0,
-                       "samples": 0}
+                       "gap": 0, "samples": 0}
         self.overlay = OverlayWatch()
         self.last_sigma_rad_s = math.nan
 
@@ -133,6 +140,9 @@ class LiveTrack:
         """`push` of a frame already turned into its working image (`prepare`)."""
         t = float(t)
         self.counts["frames"] += 1
+        if t > self._last_t > -math.inf:
+            self._intervals.append(t - self._last_t)
+        self._last_t = max(self._last_t, t)
         prev, t_prev = self._prev, self._prev_t
         if prev is not None and self._repeats < MAX_REPEATS and \
                 np.median(np.abs(cur.astype(np.int16) - prev)) <= DUPLICATE_ABS * U8_PER_UNIT:
@@ -142,6 +152,11 @@ class LiveTrack:
         self._repeats = 0
         self._prev, self._prev_t = cur, t
         if prev is None or not t > t_prev:
+            return None
+        period = float(np.median(self._intervals)) if len(self._intervals) >= MIN_INTERVALS else math.inf
+        if t - t_prev > GAP_PERIODS * period:
+            self.counts["gap"] += 1     # only the net rotation across it was seen: a hole, not a guess
+            self._lose_stretch()
             return None
         self.overlay.add(prev, cur)
         overlay = self.overlay.mask
