@@ -78,6 +78,9 @@ def test_thermal_weights_and_photon_average():
     ({"scale": (1e300,)}, "scale", "(0, 100]"),            # overflowed the kernel's size
     ({"scale": (1.0, 1.0)}, "scale", "1 or 3"),
     ({"bias_rad_s": (0.0, float("nan"), 0.0)}, "bias_rad_s", "finite"),
+    # beyond any gyro's full scale: the kernel renderer spent 27 s on 1e300, then a numpy ValueError
+    ({"bias_rad_s": (1e300, 0.0, 0.0)}, "bias_rad_s", "within ±174.5 rad/s"),
+    ({"bias_rad_s": (0.0, 0.0, -175.0)}, "bias_rad_s", "within ±174.5 rad/s"),
     ({"fx": 0.0}, "fx", "positive"),
     ({"fy": -5.0}, "fy", "positive"),
     ({"fx": 1e9}, "fx", "field of view"),           # 640 px over 4e-5°: not a camera
@@ -153,4 +156,23 @@ def test_config_file_gets_the_same_check_with_its_name(tmp_path):
     p = tmp_path / "model.toml"
     p.write_text("[calibration]\nfx = 1e9\n")      # in range for the key alone, not for the camera
     with pytest.raises(ConfigError, match=rf"{p}: calibration\.fx: expected a focal length"):
+        load_calibration(p)
+
+
+def test_a_bias_at_the_bound_is_a_kernel_error_not_a_crash(tmp_path):
+    """At the largest bias a calibration may hold the renderer refuses the window at once, by name;
+    a file beyond it names its key."""
+    from thermod.errors import ConfigError
+    from thermod.io.calibration_file import load_calibration
+    from thermod.physics.calibration import MAX_GYRO_RANGE_RAD_S
+    from thermod.physics.kernels.render import render_kernel_grid
+    from thermod.physics.kernels.types import KernelError
+
+    c = Calibration(bias_rad_s=(MAX_GYRO_RANGE_RAD_S, 0.0, -MAX_GYRO_RANGE_RAD_S))
+    t = np.arange(0.0, 0.2, 0.001)
+    with pytest.raises(KernelError, match="gyro"):
+        render_kernel_grid(t, np.zeros((t.size, 3)), c, 0.1, grid=(2, 2))
+    p = tmp_path / "model.toml"
+    p.write_text("[calibration]\nbias_rad_s = [1e300, 0.0, 0.0]\n")
+    with pytest.raises(ConfigError, match=rf"^{p}: calibration\.bias_rad_s: expected 3 numbers within"):
         load_calibration(p)

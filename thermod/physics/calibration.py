@@ -141,6 +141,9 @@ class Calibration:
         _check_gyro_effects(self)
         set_(self, "gyro_clip_run_gains", _run_gains(self))
         set_(self, "bias_rad_s", _vector("bias_rad_s", self.bias_rad_s, (3,)))
+        if not all(abs(x) <= MAX_GYRO_RANGE_RAD_S for x in self.bias_rad_s):   # no gyro measures more
+            raise CalibrationError("bias_rad_s", f"expected 3 numbers within ±{MAX_GYRO_RANGE_RAD_S:.4g} "
+                                                 f"rad/s (±10000 °/s), got {list(self.bias_rad_s)}")
         scale = _vector("scale", self.scale, (1, 3))
         scale = scale * 3 if len(scale) == 1 else scale
         if not all(0 < x <= MAX_GYRO_SCALE for x in scale):
