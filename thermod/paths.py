@@ -27,6 +27,8 @@ def input_problem(path: str | os.PathLike) -> str | None:
         return "does not exist"
     except OSError as e:
         return f"cannot inspect it ({e.strerror or e})"
+    except ValueError:                   # a NUL character: no file has such a name
+        return "is not a path (it holds a NUL character)"
     if stat.S_ISDIR(mode):
         return "is a directory, expected a file"
     if not stat.S_ISREG(mode):

@@ -15,7 +15,7 @@ import pytest
 
 from thermod.cli import main
 from thermod.io import recording
-from thermod.paths import cache_dir, directory_problem, output_problem
+from thermod.paths import cache_dir, directory_problem, input_problem, output_problem
 from thermod.physics.calibration import Calibration
 from thermod.physics.deconv.plans import wisdom_path
 from thermod.sim.playback import PlaybackSpec, cache_path
@@ -79,6 +79,11 @@ def test_writers_refuse_a_target_that_is_not_a_regular_file(tmp_path, command, t
     if target == "fifo":
         assert stat.S_ISFIFO(out.stat().st_mode)                    # untouched
     assert not list(tmp_path.glob("**/*.part"))
+
+
+def test_a_path_with_a_nul_character_is_a_problem_not_a_value_error(tmp_path):
+    assert input_problem(f"{tmp_path}/a\0b") == "is not a path (it holds a NUL character)"
+    assert "does not exist" in input_problem(tmp_path / "nope") and input_problem(__file__) is None
 
 
 def test_output_and_directory_problems(tmp_path):

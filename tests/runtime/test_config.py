@@ -1,7 +1,9 @@
 """Configuration: the packaged files load, and every kind of mistake is one ConfigError naming the
 file, the dotted key and what was expected."""
 
+import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -256,6 +258,11 @@ def test_reload_applies_a_good_file(daemon):
     (lambda b: b.replace(b"width = 640", b"width = 320"),
      r"calibration\.width/height: expected the running camera's frame size 640×480, got 320×480"),
     (None, r"no such configuration file"),
+    # accepted before: the gyro bias went to the workers (a 27 s kernel render, then a ValueError) ...
+    (lambda b: b.replace(b"bias_rad_s = [0.0, 0.0, 0.0]", b"bias_rad_s = [1e300, 0.0, 0.0]"),
+     r"calibration\.bias_rad_s: expected 3 numbers within"),
+    # ... and a motion the next start could not play
+    (lambda b: b.replace(b'motion = "multirotor:60"', b'motion = "zzz"'), r"sim\.motion: expected a looping"),
 ])
 def test_reload_failure_keeps_running_on_the_old_configuration(daemon, damage, why):
     d, p = daemon
@@ -348,6 +355,34 @@ def test_a_bad_override_never_blames_the_file(tmp_path):
     with pytest.raises(ConfigError, match=r"^--set publish\.curve_secret_key=nokey: CURVE key file '"
                                           + str(Path.cwd() / "nokey")):
         config.load(None, {"publish.curve_secret_key": "nokey"})
+
+
+@pytest.mark.parametrize("key, value, problem", [
+    ("motion", "zzz", r"sim\.motion: expected a looping motion spec .*unknown motion 'zzz'"),
+    ("motion", "pan:50", r"sim\.motion: expected a looping motion spec .*not periodic"),
+    ("motion", "sway:2:0", r"sim\.motion: expected a looping motion spec"),
+    ("motion", "vibration:10:0", r"sim\.motion: expected a motion within .*not finite"),
+    # a hang before: the loop's pre-render runs in proportion to the rate (and ignored SIGTERM)
+    ("motion", "multirotor:1e300", r"sim\.motion: expected a motion within the simulated gyro's "
+                                   r"±2000 °/s, got 'multirotor:1e300' \(peak [\d.]+e\+300 °/s\)"),
+    ("scene", "zzz", r"sim\.scene: expected bars, points, texture, real\[:N\] or an image file: "
+                     r"'zzz' does not exist"),
+    ("scene", "", r"sim\.scene: expected bars, .* got ''"),
+    ("scene", "/dev/null", r"sim\.scene: expected .*a device or special file"),
+    ("scene", "a\0b", r"sim\.scene: expected .*NUL character"),
+    ("cache_dir", "a\0b", r"sim\.cache_dir: expected a directory path without NUL characters"),
+])
+def test_a_sim_spec_the_payload_cannot_play_is_refused_at_load(tmp_path, key, value, problem):
+    """[sim] scene and motion are checked when the file is read, naming the file and key: they were
+    read only at the start, as `thermod sim`'s --scene/--motion (or a ValueError for a NUL)."""
+    p = _write(tmp_path, BASE + f"[sim]\n{key} = {json.dumps(value)}\n")
+    with pytest.raises(ConfigError) as ei:
+        config.load(p)
+    msg = str(ei.value)
+    assert msg.startswith(f"{p}: sim.{key}: ") and re.search(problem, msg), msg
+    assert "--motion" not in msg and "--scene" not in msg and len(msg.splitlines()) == 1
+    p.write_text(BASE + "[sim]\nscene = \"bars\"\nmotion = \"multirotor:600\"\n")   # ~1900 °/s: fits
+    assert config.load(p).sim.motion == "multirotor:600"
 
 
 def test_dataclass_defaults_are_the_schema_defaults():

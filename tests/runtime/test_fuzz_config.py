@@ -9,6 +9,7 @@ import math
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -162,6 +163,33 @@ def test_one_key_of_a_valid_config_set_to_anything(dotted, value):
     except AttributeError:
         return                                    # the path runs through a non-table: parse sees that
     only_config_error(config.parse, raw, NAME)
+
+
+numbers = (st.floats(allow_nan=True, allow_infinity=True) | st.integers(-10**6, 10**6)
+           | st.sampled_from([0, 1e300, -1e-300, 5e-324, 2000]))
+motion_specs = st.builds(lambda name, args: name + "".join(f":{a!r}" for a in args),
+                         st.sampled_from(["sway", "static", "shake", "vibration", "multirotor", "pan", "slew",
+                                          "zzz", ""]), st.lists(numbers, max_size=3)) | st.text(max_size=12)
+
+
+@FUZZ
+@given(motion_specs, st.sampled_from([0.2, 2.0, 120.0]))
+def test_an_accepted_sim_motion_is_one_the_payload_can_play(spec, loop_s):
+    """Whatever [sim] motion parse accepts loops and stays finite and within the simulated gyro's
+    range (a huge one used to be accepted, then pre-rendered for hours at the start)."""
+    from thermod.runtime.sources import SIM_GYRO_FULL_SCALE_DPS
+    from thermod.sim import playback
+
+    raw = toml_tables.loads(SHIPPED["sim.toml"], NAME)
+    raw["sim"].update(motion=spec, loop_s=loop_s, scene="bars")
+    try:
+        cfg = config.parse(raw, NAME)
+    except ConfigError as e:
+        assert str(e).startswith(f"{NAME}: sim.motion: expected "), str(e)
+        return
+    m = playback.loop_motion(cfg.sim.motion, loop_s, cfg.sim.seed)
+    w = np.degrees(m.omega(np.linspace(0.0, loop_s, 4001)))
+    assert np.all(np.isfinite(w)) and np.abs(w).max() <= 1.01 * SIM_GYRO_FULL_SCALE_DPS, spec
 
 
 def test_the_fuzzers_reach_valid_and_invalid_configs():

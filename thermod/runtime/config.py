@@ -98,7 +98,9 @@ class SimConfig:
                            doc="the simulated camera's true thermal time constant (s); 0 = [calibration]'s")
     netd_k: float = setting(DEFAULT_NETD_K, lo=0.0, hi=10.0,
                             doc="the simulated camera's temporal noise (NETD, K RMS; 0 = noiseless)")
-    cache_dir: str = setting("", doc='"" = thermod.paths.cache_dir() ($XDG_CACHE_HOME/thermod)')
+    cache_dir: str = setting("", doc='"" = thermod.paths.cache_dir() ($XDG_CACHE_HOME/thermod)',
+                             rule=lambda v: "a directory path without NUL characters" if "\0" in v else None,
+                             accepts="a directory path")
     ffc_interval_s: float = setting(0.0, lo=0.0, hi=86400.0,
                                     doc="a flat-field correction (shutter/NUC) every this many s; 0 = never")
     ffc_duration_s: float = setting(0.5, lo=0.0, lo_open=True, hi=10.0,
@@ -395,6 +397,10 @@ def parse(raw: dict, path: str = "<memory>", *, check_devices: bool = True,
     deblur = read_deblur(problems, top.take("deblur") if top.has("deblur") else {})
     radiometry = _radiometry(problems, top.take("radiometry") if top.has("radiometry") else {})
     top.done()
+    spec_keys = ("sim", "sim.scene", "sim.motion", "sim.loop_s", "sim.seed")   # what the check reads
+    if uses_sim and not any(k in spec_keys for k, _ in problems.items):
+        for key, text in sources.sim_problems(tables["sim"]):
+            problems.add(f"sim.{key}", text)
     if uses_sim and not problems.items:
         c, s = calibration, tables["sim"]
         if abs(c.frame_rate_hz - s.frame_rate_hz) > 1e-9 or abs(c.rate_hz - s.gyro_rate_hz) > 1e-9:

@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import functools
 import ipaddress
+import math
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from thermod.errors import ConfigError
+from thermod.errors import ConfigError, ThermodError
 from thermod.io.toml_tables import Key
+from thermod.paths import input_problem
 
 if TYPE_CHECKING:
     from thermod.io.clock import ClockMapper
@@ -251,6 +253,52 @@ def simulated_payload(cfg: Config):
         return None
     from thermod.sim.payload import SimPayload
     return SimPayload(cfg.sim, cfg.calibration)
+
+
+# The payload's gyro is an emulated ICM-42688-P at ±2000 °/s (`thermod.sim.payload.emulated_icm42688`): a
+# faster motion would clip there, and the loop's pre-render takes time in proportion to the rate.
+SIM_GYRO_FULL_SCALE_DPS = 2000.0
+
+
+def sim_problems(sim) -> Iterator[tuple[str, str]]:
+    """(key, what was expected) for each spec of a ``[sim]`` table (`SimConfig`) the payload could not
+    play: an unknown scene or one whose image is unreadable, a motion it cannot parse, one that does not
+    loop, is not finite or turns faster than its gyro measures."""
+    import numpy as np
+
+    from thermod.sim import playback, scenes
+
+    try:
+        name = sim.scene.partition(":")[0]
+        if name == "real":
+            scenes.real_frame(sim.scene)            # None: no real frames, the texture stands in
+        elif not sim.scene.strip():
+            raise ThermodError("got ''")
+        elif name not in ("bars", "points", "texture"):
+            if (problem := input_problem(sim.scene)) is not None:
+                raise ThermodError(f"{sim.scene!r} {problem}")
+            scenes.read_image(sim.scene)
+    except ThermodError as e:
+        yield "scene", f"expected bars, points, texture, real[:N] or an image file: {_unprefixed(e)}"
+    try:
+        with np.errstate(all="ignore"):             # an overflow is an infinite rate, refused below
+            motion = playback.loop_motion(sim.motion, sim.loop_s, sim.seed)
+            t = np.linspace(0.0, sim.loop_s, min(200_001, int(sim.loop_s * 1000) + 1))
+            peak = float(np.degrees(np.abs(motion.omega(t)).max()))
+    except (ThermodError, ValueError, ArithmeticError) as e:
+        yield "motion", f"expected a looping motion spec (sway, static, shake, vibration, multirotor): " \
+                        f"{_unprefixed(e)}"
+        return
+    if not peak <= SIM_GYRO_FULL_SCALE_DPS:
+        got = f"peak {peak:.4g} °/s" if math.isfinite(peak) else "a rate that is not finite"
+        yield "motion", (f"expected a motion within the simulated gyro's ±{SIM_GYRO_FULL_SCALE_DPS:g} °/s, "
+                         f"got {sim.motion!r} ({got})")
+
+
+def _unprefixed(e: Exception) -> str:
+    """A simulator message without the command-line option it names (``--motion``, ``--scene``)."""
+    text = str(e) or type(e).__name__
+    return text.removeprefix("--motion ").removeprefix("--motion: ").removeprefix("--scene ")
 
 
 def calibration_in_force(cfg: Config, camera: Source) -> tuple[Calibration, str]:
