@@ -357,6 +357,25 @@ def test_a_bad_override_never_blames_the_file(tmp_path):
         config.load(None, {"publish.curve_secret_key": "nokey"})
 
 
+@pytest.mark.parametrize("given, problem", [
+    ({"a..b": 1}, r"^--set a\.\.b=1: expected a dotted key"),
+    ({".x": 1}, r"^--set \.x=1: expected a dotted key"),
+    ({"deblur.": 1}, r"^--set deblur\.=1: expected a dotted key"),
+    ({"deblur.lambda.x": 1}, r"^--set deblur\.lambda\.x=1: expected a number, got \{'x': 1\}$"),
+    ({"newtable.key": 1}, r"^--set newtable\.key=1: unknown key$"),
+    ({"sim.cache_dir": "a\0b"}, r"^--set sim\.cache_dir='a\\x00b': expected a directory path"),  # not raw
+])
+def test_an_override_that_is_not_a_key_of_the_file_blames_the_override(given, problem):
+    """A key with an empty part, or one that creates a table the file does not have, is the --set's
+    problem (it used to name the file: "sim.toml: a: unknown key")."""
+    with pytest.raises(ConfigError, match=problem):
+        config.load(None, given)
+    text = "=".join(f"{k}={v}" for k, v in given.items())
+    if ".." in text or text.startswith(".") or ".=" in text:
+        with pytest.raises(ConfigError, match=r"^--set '.*': expected KEY=VALUE with KEY a dotted key"):
+            config.parse_override(text)
+
+
 @pytest.mark.parametrize("key, value, problem", [
     ("motion", "zzz", r"sim\.motion: expected a looping motion spec .*unknown motion 'zzz'"),
     ("motion", "pan:50", r"sim\.motion: expected a looping motion spec .*not periodic"),

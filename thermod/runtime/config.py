@@ -341,16 +341,24 @@ def default_path() -> Path:
     return Path(str(resources.files("thermod.configs").joinpath("sim.toml")))
 
 
-def _apply_override(problems: Problems, raw: dict, dotted: str, value: Any) -> None:
+def _apply_override(problems: Problems, raw: dict, dotted: str, value: Any) -> list[str]:
+    """Set dotted key `dotted` of `raw` to `value`; the tables it had to create (their problems are the
+    override's, not the file's)."""
     parts = dotted.split(".")
-    node = raw
+    if not all(p.strip() for p in parts):
+        problems.add(dotted, "expected a dotted key like deblur.lambda (no empty parts)")
+        return []
+    node, created = raw, []
     for i, p in enumerate(parts[:-1]):
+        if p not in node:
+            created.append(".".join(parts[:i + 1]))
         nxt = node.setdefault(p, {})
         if not isinstance(nxt, dict):
             problems.add(dotted, f"{'.'.join(parts[:i + 1])} is not a table, so it has no key {parts[-1]!r}")
-            return
+            return created
         node = nxt
     node[parts[-1]] = value
+    return created
 
 
 def override_text(key: str, value: Any) -> str:
@@ -361,7 +369,7 @@ def override_text(key: str, value: Any) -> str:
         try:
             lit = value if not isinstance(tomllib.loads(f"v = {value}")["v"], str) else repr(value)
         except (tomllib.TOMLDecodeError, RecursionError):
-            lit = value                  # a bare string, as typed
+            lit = value if value.isprintable() else repr(value)    # a bare string, as typed
     else:
         lit = repr(value) if not isinstance(value, list) else str(value)
     return f"--set {key}={lit}"
@@ -426,7 +434,8 @@ def load(path: str | os.PathLike | None = None, overrides: dict[str, Any] | None
     origins = {**{k: override_text(k, v) for k, v in (overrides or {}).items()}, **(origins or {})}
     problems = Problems(name, origins)
     for k, v in (overrides or {}).items():
-        _apply_override(problems, raw, k, v)
+        for table in _apply_override(problems, raw, k, v):
+            origins.setdefault(table, origins[k])
     problems.raise_if_any()
     return parse(raw, name, check_devices=check_devices, origins=origins)
 
@@ -437,6 +446,9 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"--set {text!r}: expected KEY=VALUE, e.g. deblur.method=wiener")
     k, v = text.split("=", 1)
     k = k.strip()
+    if not all(p.strip() for p in k.split(".")):
+        raise ConfigError(f"--set {text!r}: expected KEY=VALUE with KEY a dotted key, "
+                          "e.g. deblur.method=wiener")
     try:
         val = tomllib.loads(f"v = {v.strip()}")["v"]
     except (tomllib.TOMLDecodeError, RecursionError):
