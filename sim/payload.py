@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from thermod.drivers.camera_base import CameraSource, Frame
-from thermod.errors import DeviceError
+from thermod.errors import DeviceError, StopRequested
 from thermod.physics.calibration import Calibration
 from thermod.sim import playback
 from thermod.sim.scenes import COUNTS_PER_K
@@ -83,12 +83,18 @@ class SimPayload:
     def cached(self) -> bool:
         return self.cache_path.exists()
 
-    def prepare(self) -> None:
-        """Load the pre-rendered loop from the cache, rendering (once, slowly) if it is missing."""
+    def prepare(self, abort=None) -> None:
+        """Load the pre-rendered loop from the cache, rendering (once, slowly) if it is missing. Once
+        `abort` (a threading.Event) is set, the rendering ends at its next frame with StopRequested
+        and nothing is cached."""
         if self.loop is not None:
             return
         t0 = time.monotonic()
-        self.loop = playback.load(self.spec, self._cache_dir)
+
+        def stop_if_asked(_frames: int) -> None:
+            StopRequested.check(abort, "while pre-rendering the simulated payload")
+
+        self.loop = playback.load(self.spec, self._cache_dir, progress=stop_if_asked if abort else False)
         self.frames = np.ascontiguousarray(self.loop.frames)
         self.truth = np.asarray(self.loop.truth, np.float32)
         self.noise = self._noise_bank()

@@ -132,8 +132,9 @@ def cache_path(spec: PlaybackSpec, directory: str | os.PathLike | None = None) -
 
 
 def load(spec: PlaybackSpec | None = None, directory: str | os.PathLike | None = None,
-         progress: bool = False) -> Playback:
-    """The cached loop for `spec` (default `PlaybackSpec()`), rendering and caching it first if needed."""
+         progress=False) -> Playback:
+    """The cached loop for `spec` (default `PlaybackSpec()`), rendering and caching it first if needed
+    (`progress` as `thermod.sim.synth.simulate`'s)."""
     from thermod.sim.synth import simulate
 
     spec = spec or PlaybackSpec()

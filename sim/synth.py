@@ -17,6 +17,8 @@ camera rate there) and `frame_R` (R(t_k), camera→world, world = the camera at 
 
 from __future__ import annotations
 
+import contextlib
+
 import json
 import math
 from collections.abc import Mapping
@@ -119,6 +121,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     of a slow camera (`slow_fps`, motion `compression`× slower) re-timed into the fast motion
     (`detector.render_time_compressed`); thermal detector only, no rolling readout.
     `movers`: `thermod.sim.movers.HotObject`s, warm bodies moving in the world (fine-time renderer).
+    `progress`: True for a progress bar, or a callable(frames rendered) called after each frame (an
+    exception it raises ends the simulation).
     """
     _check_method(method, kind, effects)
     nominal = _nominal_calibration(calib, frame_rate)
@@ -134,7 +138,7 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     mot = mo.parse(motion, seed)
     sc = _sphere_scene(scene, truth_cal, seed)
     traj, gyro_lo, gyro_hi = _trajectory(mot, t_frames, truth_cal, kind, exposure_s, history_tau)
-    with _progress_bar(n if progress else 0) as bar:
+    with (contextlib.nullcontext(progress) if callable(progress) else _progress_bar(n if progress else 0)) as bar:
         if method == "fine":
             par = (NearGround(*fx["parallax"], seed=seed, t_ref=float(t_frames[0])) if "parallax" in fx
                    else None)

@@ -539,3 +539,32 @@ def test_a_reload_sent_during_the_start_is_taken_once_the_daemon_serves(payload)
     log.join(60.0)
     assert rc == 0, log.text()[-3000:]
     assert "Traceback" not in log.text(), log.text()[-3000:]
+
+
+@pytest.mark.slow
+def test_a_stop_during_the_first_pre_rendering_ends_it(tmp_path):
+    """systemd's stop while a new machine pre-renders the simulated payload's loop (minutes, once):
+    the rendering ends at its next frame, nothing half-made is cached, and the daemon exits 0. It
+    used to render to the end, deaf to the signal, until systemd killed it."""
+    e = env() | {"THERMOD_CACHE_DIR": str(tmp_path)}      # no cached loop: the first start's rendering
+    proc = subprocess.Popen([str(THERMOD), "run", "--endpoint", private_endpoint(), "--seconds", "300"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=e, text=True)
+    log = _Log(proc.stderr)
+    log.start()
+    try:
+        deadline = time.monotonic() + 120              # a hang bound: the daemon's imports
+        while "pre-rendering" not in log.text():
+            assert time.monotonic() < deadline and proc.poll() is None, log.text()[-3000:]
+            time.sleep(0.05)
+        time.sleep(1.0)                                # inside the rendering, not before it
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=TIMEOUT_STOP_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    log.join(60.0)
+    err = log.text()
+    assert rc == 0, err[-3000:]
+    assert "start abandoned" in err and "loop ready" not in err, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert not list(tmp_path.glob("playback-*.h5")), "a half-rendered loop was cached"

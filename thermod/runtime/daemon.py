@@ -218,8 +218,8 @@ class Daemon:
 
         `abort` (the stop signal's event, as `serve` gets it): set before the start is done, it ends
         the start between two steps, and the seconds of the workers' warm-up within a fraction of a
-        second (`Pipeline.warmup`); returns False then, True once started. The payload's preparation
-        (the simulated payload's loop, read or rendered here) runs to its end."""
+        second (`Pipeline.warmup`) and the simulated payload's first pre-rendering at its next frame;
+        returns False then, True once started."""
         try:
             self._start(abort)
         except StopRequested as e:
@@ -245,7 +245,7 @@ class Daemon:
                 log.warning("simulated payload: first start, pre-rendering %.0f s of frames (cached in %s); "
                             "this takes a while once", cfg.sim.loop_s, self.payload.cache_path)
                 self.notifier.extend_timeout(600.0)      # beyond TimeoutStartSec, once
-            self.payload.prepare()
+            self.payload.prepare(abort)
         check("before the warm-up")
         log.info("warming up %d deconvolution workers", self.pipeline.n_workers)
         dt = self.pipeline.warmup(abort=abort)
