@@ -18,7 +18,6 @@ camera rate there) and `frame_R` (R(t_k), camera→world, world = the camera at 
 from __future__ import annotations
 
 import contextlib
-
 import json
 import math
 from collections.abc import Mapping
@@ -138,7 +137,8 @@ def simulate(scene="texture", motion="pan:50", seconds: float = 1.0, calib: Cali
     mot = mo.parse(motion, seed)
     sc = _sphere_scene(scene, truth_cal, seed)
     traj, gyro_lo, gyro_hi = _trajectory(mot, t_frames, truth_cal, kind, exposure_s, history_tau)
-    with (contextlib.nullcontext(progress) if callable(progress) else _progress_bar(n if progress else 0)) as bar:
+    hook = contextlib.nullcontext(progress) if callable(progress) else _progress_bar(n if progress else 0)
+    with hook as bar:
         if method == "fine":
             par = (NearGround(*fx["parallax"], seed=seed, t_ref=float(t_frames[0])) if "parallax" in fx
                    else None)
