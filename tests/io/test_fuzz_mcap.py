@@ -212,10 +212,10 @@ def test_messages_of_another_encoding_are_refused(tmp_path, capsys, encoding):
 
 
 @pytest.mark.parametrize(("kw", "expect"), [
-    ({"step": 0}, "step 0 does not fit"), ({"step": W}, "step 8 does not fit"),
-    ({"step": 10**9}, "does not fit"), ({"h": 0, "data": b""}, "does not fit"),
-    ({"h": 2**31, "data": b"\0" * 100}, "does not fit"), ({"data": b"\0" * 10}, "10 data bytes"),
-    ({"encoding": "rgb8"}, "not single-channel"),
+    ({"step": 0}, "step 0 is less than a row"), ({"step": W}, "step 8 is less than a row"),
+    ({"step": 10**9}, "height × step"), ({"h": 0, "data": b""}, "must be positive"),
+    ({"h": 2**31, "data": b"\0" * 100}, "height × step"), ({"data": b"\0" * 10}, "data holds 10 bytes"),
+    ({"encoding": "rgb8"}, "a colour image"),
     ({"h": W, "w": H, "step": 2 * H}, "6×8"),                     # the calibration's 8×6 turned round
     ({"h": 2000, "w": 1, "step": 2, "data": b"\0" * 4000}, "1×2000"),
 ])

@@ -455,7 +455,7 @@ def test_import_errors_name_file_topic_and_what_is_missing(tmp_path, capsys):
     _small_mcap(tmp_path / "ok.mcap")
     assert "missing the detector time constant (--tau S)" in fails(tmp_path / "ok.mcap")
     _small_mcap(tmp_path / "rgb.mcap", encoding_ok=False)
-    assert "rgb.mcap: /a/image_raw: image encoding 'rgb8' is not single-channel" in fails(
+    assert "rgb.mcap: /a/image_raw: image encoding 'rgb8': a colour image" in fails(
         tmp_path / "rgb.mcap", "--tau", 0.01
     )
 

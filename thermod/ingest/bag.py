@@ -1,14 +1,16 @@
 """A ROS recording (MCAP, rosbag2 directory, ROS 1 .bag) → format v1 (`import_bag`).
 
 Frames come from one sensor_msgs/Image topic (raw counts: mono16/16UC1, or 8-bit widened to
-uint16), gyro samples from one sensor_msgs/Imu topic (``angular_velocity``, taken as raw gyro-frame
-rates), both stamped with their header stamps. Topics are autodetected when the bag has one of each
-(or one of the usual names). The calibration, in order of precedence: a TOML file's [calibration]
-keys, the ``thermod`` metadata of an MCAP written by thermod, a sensor_msgs/CameraInfo topic plus τ
-(the detector time constant, which no ROS message carries). Format v1 holds one calibration: when
-the ``thermod`` records of a recording hold several (the daemon's changed while it recorded), the
-last one written is imported for every frame, with a warning. Messages are streamed into the output
-(`thermod.io.stream_recording.RecordWriter`), never held.
+uint16; other encodings and CompressedImage are refused by name), gyro samples from one
+sensor_msgs/Imu topic (``angular_velocity``, taken as raw gyro-frame rates), both stamped with their
+header stamps, or with the bag's log times for a topic whose driver leaves them 0 (`_Clock`).
+Topics are autodetected when the bag has one of each (or one of the usual names). The calibration,
+in order of precedence: a TOML file's [calibration] keys, the ``thermod`` metadata of an MCAP
+written by thermod, a sensor_msgs/CameraInfo topic plus τ (the detector time constant, which no ROS
+message carries); what CameraInfo cannot give (K all zeros, another size) the TOML must. Format v1
+holds one calibration: when the ``thermod`` records of a recording hold several (the daemon's
+changed while it recorded), the last one written is imported for every frame, with a warning.
+Messages are streamed into the output (`thermod.io.stream_recording.RecordWriter`), never held.
 """
 
 from __future__ import annotations
@@ -33,6 +35,10 @@ log = logging.getLogger(__name__)
 IMAGE_TOPICS = (mcap.RAW_TOPIC, "/flir_boson/image_raw", "/thermal/image", "/camera/image_raw", "/image_raw")
 IMU_TOPICS = (mcap.IMU_TOPIC, "/imu", "/imu/data_raw", "/mavros/imu/data_raw", "/mavros/imu/data")
 GYRO_BATCH = 1024
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+COMPRESSED_NOTE = (" (PNG or JPEG frames, which thermod does not decode: record the driver's raw "
+                   "sensor_msgs/Image topic)")
+RAW_ENCODINGS = {"mono16": 2, "16UC1": 2, "mono8": 1, "8UC1": 1}     # bytes per pixel
 
 
 @dataclass(frozen=True)
@@ -64,24 +70,16 @@ def import_bag(input_path, output, *, image_topic: str | None = None, imu_topic:
         base, source = _base_calibration(bag, info_topic, calibration, tau_s)
         writer = RecordWriter(out)
         try:
-            info, frame_t, gyro_t = _stream(bag, writer, image_topic, imu_topic, info_topic)
-            calib = _calibration(bag, base, info, frame_t, gyro_t, calibration, tau_s)
-            _check_size(bag, image_topic, writer.frame_shape, calib, calibration, source)
+            info, shape, frame_t, gyro_t, clocks = _stream(bag, writer, image_topic, imu_topic, info_topic)
+            calib = _calibration(bag, base, info, info_topic, image_topic, shape, frame_t, gyro_t,
+                                 calibration, tau_s)
             writer.finish(calib, {"imported_from": str(bag.path), "image_topic": image_topic,
-                                  "imu_topic": imu_topic, "imported_calibration": source})
+                                  "imu_topic": imu_topic, "imported_calibration": source,
+                                  "image_clock": clocks[image_topic], "imu_clock": clocks[imu_topic]})
         except BaseException:
             writer.discard()
             raise
     return BagImport(out, writer.written["frames"], writer.written["gyro"], image_topic, imu_topic, source)
-
-
-def _check_size(bag, topic: str, shape, calib: Calibration, calibration, source: str) -> None:
-    """The frames are the calibration's width × height, else an error naming the bag, the topic and
-    where the calibration came from (before `finish`, which would name the output)."""
-    if shape is not None and tuple(shape) != (calib.height, calib.width):
-        where = f"--calibration {calibration}" if calibration is not None else source
-        raise RecordingError(bag.path, topic, f"frames are {shape[1]}×{shape[0]} (width×height) but the "
-                             f"calibration ({where}) is {calib.width}×{calib.height}")
 
 
 def pick_topic(
@@ -93,7 +91,8 @@ def pick_topic(
         if wanted not in bag.topics:
             raise RecordingError(bag.path, wanted, f"no such topic; {msgtype} topics: {have or 'none'}")
         if bag.topics[wanted] != msgtype:
-            raise RecordingError(bag.path, wanted, f"is {bag.topics[wanted]}, expected {msgtype}")
+            raise RecordingError(bag.path, wanted, f"is {bag.topics[wanted]}, expected {msgtype}"
+                                 + (COMPRESSED_NOTE if bag.topics[wanted] == COMPRESSED else ""))
         return wanted
     if len(have) == 1:
         return have[0]
@@ -103,7 +102,9 @@ def pick_topic(
     if not have:
         if not required:
             return None
-        raise RecordingError(bag.path, what, f"no {msgtype} topic (topics: {sorted(bag.topics) or 'none'})")
+        packed = sorted(t for t, m in bag.topics.items() if m == COMPRESSED and msgtype == mcap.IMAGE)
+        raise RecordingError(bag.path, what, f"no {msgtype} topic (topics: {sorted(bag.topics) or 'none'})"
+                             + (f"; {', '.join(packed)}: {COMPRESSED}{COMPRESSED_NOTE}" if packed else ""))
     raise RecordingError(bag.path, what, f"several {msgtype} topics {have}: choose one with --{what}")
 
 
@@ -167,32 +168,106 @@ def _median_rate(t: list[float] | np.ndarray) -> float | None:
     return float(1.0 / np.median(dt)) if len(dt) else None
 
 
+def _encoding_problem(enc: str) -> str:
+    """Why frames of encoding `enc` are not imported."""
+    low = enc.lower()
+    kind = ("float values (a temperature image or a processed view), not raw detector counts"
+            if low.startswith(("32f", "64f")) else
+            "a Bayer colour mosaic" if low.startswith("bayer") else
+            "a YUV colour image" if low.startswith(("yuv", "uyvy", "yuyv", "nv")) else
+            "a colour image (a colourised view?)" if low.startswith(("rgb", "bgr")) else
+            "not a single-channel image encoding thermod reads")
+    return (f"image encoding {enc!r}: {kind}; {', '.join(RAW_ENCODINGS)} expected (choose the raw "
+            "image topic with --image-topic)")
+
+
+class _Clock:
+    """The times of one topic's messages: their header stamps or, when its first message is not
+    stamped (0, as some drivers leave it), the bag's log times (when the recorder received each)
+    for the whole topic, with a warning. Counts stamps that are 0 among stamped ones, or not after
+    the one before, for `report`."""
+
+    def __init__(self, path, topic: str):
+        self.path, self.topic = path, topic
+        self.source: str | None = None
+        self.unstamped = self.backwards = 0
+        self.first_back: tuple[int, float, float] | None = None
+        self._n, self._last = 0, -np.inf
+
+    def __call__(self, msg, log_ns: int) -> float | None:
+        s = msg.header.stamp
+        zero = int(s.sec) == 0 and int(s.nanosec) == 0
+        if self.source is None:
+            self.source = "log time" if zero else "header stamp"
+            if zero:
+                log.warning("%s: %s: header stamp 0 (the driver does not stamp its messages): the bag's "
+                            "log times are taken instead, i.e. when the recorder received each message, "
+                            "transport latency included", self.path, self.topic)
+        self._n += 1
+        if self.source == "log time":
+            t = int(log_ns) * 1e-9
+        elif zero:
+            self.unstamped += 1
+            return None
+        else:
+            t = mcap.from_stamp(s)
+        if t <= self._last:
+            self.backwards += 1
+            if self.first_back is None:
+                self.first_back = (self._n, t, self._last)
+        self._last = max(self._last, t)
+        return t
+
+    def report(self) -> None:
+        if self.unstamped:
+            log.warning("%s: %s: %d messages with header stamp 0 among stamped ones dropped",
+                        self.path, self.topic, self.unstamped)
+        if self.backwards:
+            i, t, last = self.first_back
+            log.warning("%s: %s: %d %s not after the one before (the first: message %d at %.6f s, after "
+                        "%.6f s): put in time order, repeated times dropped", self.path, self.topic,
+                        self.backwards, self.source + "s", i, t, last)
+
+
 def _stream(bag, writer, image_topic, imu_topic, info_topic):
-    """Messages → writer; returns the first CameraInfo's intrinsics and the frame and gyro times."""
+    """Messages → writer; returns the first CameraInfo's intrinsics, the frames' shape, the frame and
+    gyro times, and the clock each of the two topics was read on (`_Clock`)."""
     info, frame_t, gyro_t = None, [], []
     batch = np.zeros(GYRO_BATCH, GYRO_DTYPE)
     n = 0
+    clocks = {image_topic: _Clock(bag.path, image_topic), imu_topic: _Clock(bag.path, imu_topic)}
+    encoding = shape = None
+    n_images = 0
     topics = [t for t in (image_topic, imu_topic, info_topic) if t is not None]
-    for topic, msg in bag.messages(topics):
+    for topic, msg, log_ns in bag.messages(topics):
         with _fields(bag, topic):
             if topic == image_topic:
+                enc = str(msg.encoding)
+                if enc not in RAW_ENCODINGS:
+                    raise RecordingError(bag.path, topic, _encoding_problem(enc))
                 image = mcap.image_array(msg, bag.path, topic)
-                t = mcap.from_stamp(msg.header.stamp)
+                t = clocks[topic](msg, log_ns)
             elif topic == imu_topic:
+                t = clocks[topic](msg, log_ns)
                 v = msg.angular_velocity
-                sample = (mcap.from_stamp(msg.header.stamp), (float(v.x), float(v.y), float(v.z)))
+                sample = (t, (float(v.x), float(v.y), float(v.z)))
             elif info is None:
                 info = mcap.camera_info_intrinsics(msg)
         if topic == image_topic:
-            if image.dtype == np.float32:
-                raise RecordingError(
-                    bag.path,
-                    topic,
-                    "32FC1 frames are not raw detector counts; choose the raw image topic with --image-topic",
-                )
+            if encoding is None:
+                encoding, shape = enc, image.shape
+            elif image.dtype.itemsize != RAW_ENCODINGS[encoding] or image.shape != shape:
+                raise RecordingError(bag.path, topic, f"frames change from {shape[1]}×{shape[0]} {encoding} "
+                                     f"to {image.shape[1]}×{image.shape[0]} {enc} (message {n_images + 1}): "
+                                     "one size and depth expected")
+            n_images += 1
+            if t is None:
+                continue
             writer.add("raw", {"t": t, "frame_id": len(frame_t)}, image.astype(np.uint16, copy=False))
             frame_t.append(t)
         elif topic == imu_topic:
+            if t is None:
+                continue
             with np.errstate(over="ignore"):    # a rate beyond float32: inf, dropped as non-finite
                 batch[n] = sample
             n += 1
@@ -203,11 +278,11 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
     if n:
         writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
         gyro_t.extend(batch["t"][:n].tolist())
+    for clock in clocks.values():
+        clock.report()
     if not frame_t:
         raise RecordingError(bag.path, image_topic, "no frames")
-    if sum(writer.dropped.values()):
-        raise RecordingError(bag.path, image_topic, f"frames of varying size ({dict(writer.dropped)})")
-    return info, frame_t, gyro_t
+    return info, shape, frame_t, gyro_t, {t: c.source or "no message" for t, c in clocks.items()}
 
 
 @contextlib.contextmanager
@@ -222,27 +297,45 @@ def _fields(bag, topic: str):
                              "names") from None
 
 
-def _calibration(bag, base, info, frame_t, gyro_t, calibration, tau) -> Calibration:
-    if base is None and info is None and calibration is None:
-        # a CameraInfo topic without a message: defaults would pass for the camera's model
-        raise RecordingError(bag.path, "CameraInfo", "no message to take the camera intrinsics from; "
-                             "give --calibration model.toml (a [calibration] table)")
-    if base is None and info is not None:
-        if info["distorted"]:
-            log.warning(
-                "%s: CameraInfo declares lens distortion; thermod models a pinhole camera and ignores it",
-                bag.path,
-            )
-        kw = {k: info[k] for k in ("width", "height", "fx", "fy", "cx", "cy")}
+def _calibration(bag, base, info, info_topic, image_topic, shape, frame_t, gyro_t, calibration,
+                 tau) -> Calibration:
+    """The recording's calibration: `base` (thermod metadata), else the CameraInfo `info` and the
+    bag's rates, then the TOML file `calibration` over it. Without a usable CameraInfo the TOML must
+    give fx and fy, and τ must come from --tau or the TOML: defaults would pass for the camera's."""
+    h, w = shape
+    if base is None:
+        rates = (("frame_rate_hz", _median_rate(frame_t)), ("rate_hz", _median_rate(gyro_t)))
+        extra = {k: r for k, r in rates if r is not None}
         if tau is not None:
-            kw["tau_s"] = tau
-        for key, rate in (("frame_rate_hz", _median_rate(frame_t)), ("rate_hz", _median_rate(gyro_t))):
-            if rate is not None:
-                kw[key] = rate
-        try:
-            base = Calibration(**kw)
-        except (TypeError, ValueError) as e:
-            raise RecordingError(bag.path, "CameraInfo", f"unusable camera model ({e})") from None
+            extra["tau_s"] = tau
+        problem = (f"no {mcap.CAMERA_INFO} {'message' if info_topic else 'topic'} to take the camera "
+                   "intrinsics from" if info is None else _info_problem(info, shape))
+        if problem is None:
+            try:
+                kw = {k: info[k] for k in ("width", "height", "fx", "fy", "cx", "cy")}
+                base = Calibration(**kw, **extra)
+            except (TypeError, ValueError) as e:
+                problem = f"unusable camera model ({e})"
+        lacking = _toml_lacks(calibration, ("fx", "fy") if problem else ()) + (
+            _toml_lacks(calibration, ("tau_s",)) if tau is None else [])
+        where = info_topic or "CameraInfo"
+        if lacking:
+            need = (f"{problem}; " if problem else "") + f"{calibration} gives no {' nor '.join(lacking)}"
+            raise RecordingError(bag.path, where, f"{need}: add them to its [calibration] table"
+                                 + (" (τ: or give --tau)" if "tau_s" in lacking else ""))
+        if problem is not None and calibration is None:
+            raise RecordingError(bag.path, where, f"{problem}: give --calibration model.toml with fx, fy "
+                                 "(and cx, cy) in its [calibration] table")
+        if problem is not None:
+            if info_topic is not None:
+                log.warning("%s: %s: %s: the intrinsics of %s are taken", bag.path, info_topic, problem,
+                            calibration)
+            # fx, fy are the TOML's; the frames give the size, the centre the default principal point
+            base = Calibration(width=w, height=h, fx=float(w), fy=float(w), cx=(w - 1) / 2, cy=(h - 1) / 2,
+                               **extra)
+        elif info["distorted"]:
+            log.warning("%s: %s declares lens distortion (%s); thermod models a pinhole camera and ignores "
+                        "it", bag.path, where, info["distortion_model"] or "no model named")
         log.warning(
             "gyro axes taken as the camera axes (R_cam_gyro = I), bias 0, time offset 0: give "
             "--calibration to set them"
@@ -250,5 +343,30 @@ def _calibration(bag, base, info, frame_t, gyro_t, calibration, tau) -> Calibrat
     if calibration is not None:
         from thermod.io import calibration_file
 
-        return calibration_file.load_calibration(calibration, base)
+        base = calibration_file.load_calibration(calibration, base)
+    if (base.height, base.width) != (h, w):
+        raise RecordingError(bag.path, image_topic, f"frames are {w}×{h}, the calibration "
+                             f"({calibration or 'thermod metadata'}) is for {base.width}×{base.height}")
     return base
+
+
+def _info_problem(info: dict, shape: tuple[int, int]) -> str | None:
+    """Why a CameraInfo's intrinsics cannot be the camera's, or None."""
+    k = np.array([info[n] for n in ("fx", "fy", "cx", "cy")])
+    if not np.all(np.isfinite(k)) or not np.any(k):
+        return ("K is all zeros (what an uncalibrated camera driver publishes)" if not np.any(k) else
+                f"K holds non-finite values (fx, fy, cx, cy = {', '.join(map(str, k))})")
+    if (info["height"], info["width"]) != tuple(shape):
+        return (f"CameraInfo is for {info['width']}×{info['height']} images, the frames are "
+                f"{shape[1]}×{shape[0]}")
+    return None
+
+
+def _toml_lacks(calibration, keys: tuple) -> list[str]:
+    """The `keys` the [calibration] table of the TOML file `calibration` does not give."""
+    if calibration is None or not keys:
+        return []
+    from thermod.io.toml_tables import read_toml
+
+    table = read_toml(Path(calibration)).get("calibration")
+    return [k for k in keys if not isinstance(table, dict) or k not in table]

@@ -497,11 +497,13 @@ class Bag:
         elif self.path.is_dir() or self.path.suffix.lower() == ".bag":
             self._open_rosbags()
         else:
+            beside = (f" (a rosbag2 .db3 file is read through its directory: give {self.path.parent})"
+                      if self.path.suffix.lower() == ".db3" else "")
             raise RecordingError(
                 self.path,
                 "file",
                 "expected an .mcap file (or the .mcap.part of an unfinished one), a rosbag2 directory "
-                "(metadata.yaml + .db3/.mcap) or a ROS 1 .bag",
+                f"(metadata.yaml + .db3/.mcap) or a ROS 1 .bag{beside}",
             )
 
     def _open_mcap(self) -> None:
@@ -660,20 +662,53 @@ class Bag:
             self._reader = AnyReader([self.path], default_typestore=get_typestore(Stores.LATEST))
             self._reader.open()
         except (AnyReaderError, OSError, ValueError, KeyError) as e:
-            raise RecordingError(self.path, "file", f"not a readable rosbag ({e})") from None
+            why = " ".join(str(e).split())         # YAML errors span several lines
+            meta = self.path / "metadata.yaml"     # its problems name it, or the version it holds
+            if self.path.is_dir() and (not meta.exists() or "metadata" in why or "version" in why):
+                self._reader = None
+                self._open_without_metadata(why)
+                return
+            if self.path.is_file() and "index" in why.lower():
+                raise RecordingError(self.path, "file", "ROS 1 bag without a usable index: a recording "
+                                     "killed before it closed leaves one (the index is written last); "
+                                     f"`rosbag reindex {self.path.name}` rebuilds it (rosbags: {why})"
+                                     ) from None
+            raise RecordingError(self.path, "file", f"not a readable rosbag ({why})") from None
         for c in self._reader.connections:
             self.topics[c.topic] = _ros2_name(c.msgtype)
             self.counts[c.topic] = self.counts.get(c.topic, 0) + int(c.msgcount)
 
-    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, object]]:
-        """(topic, decoded message) of `topics`, in log-time order, one at a time."""
+    def _open_without_metadata(self, why: str) -> None:
+        """A rosbag2 directory whose metadata.yaml rosbags cannot use (`why`): missing (`ros2 bag
+        record` writes it last, so a killed recorder leaves none) or damaged. Its one ``.mcap`` file
+        is then read on its own, with a warning; anything else is refused, naming what is there."""
+        meta = self.path / "metadata.yaml"
+        mcaps = sorted(p for p in self.path.iterdir() if p.is_file() and is_mcap_name(p))
+        dbs = sorted(p.name for p in self.path.iterdir() if p.suffix == ".db3")
+        if len(mcaps) == 1 and not dbs:
+            log.warning("%s: not readable as a rosbag2 directory (%s): reading %s on its own",
+                        self.path, why, mcaps[0].name)
+            self.path = mcaps[0]
+            self._open_mcap()
+            return
+        files = [p.name for p in mcaps] + dbs
+        if not files:
+            raise RecordingError(self.path, "file", f"not a readable rosbag: no .db3 or .mcap file in it "
+                                 f"({why})")
+        killed = ("metadata.yaml is missing (a `ros2 bag record` killed before it closed leaves none)"
+                  if not meta.exists() else f"not a readable rosbag ({why})")
+        raise RecordingError(self.path, "file", f"{killed}: `ros2 bag reindex {self.path}` rebuilds "
+                             f"metadata.yaml from {', '.join(files)}")
+
+    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, object, int]]:
+        """(topic, decoded message, log time ns) of `topics`, in log-time order, one at a time."""
         topics = list(topics)
         if self._file is not None:
             from mcap.exceptions import McapError
 
             try:
                 yield from (self._scanned_messages(topics) if self._reader is None else (
-                    (channel.topic, msg) for _, channel, _, msg in
+                    (channel.topic, msg, message.log_time) for _, channel, message, msg in
                     self._reader.iter_decoded_messages(topics=topics, log_time_order=True)))
             except (McapError, *_DAMAGE) as e:
                 raise RecordingError(
@@ -681,14 +716,14 @@ class Bag:
                 ) from None
             return
         conns = [c for c in self._reader.connections if c.topic in topics]
-        for conn, _, data in self._reader.messages(connections=conns):
+        for conn, log_ns, data in self._reader.messages(connections=conns):
             try:
                 msg = self._reader.deserialize(data, conn.msgtype)
             except Exception as e:  # noqa: BLE001 - rosbags raises several kinds on damaged data
                 raise RecordingError(
                     self.path, conn.topic, f"cannot decode a {conn.msgtype} message ({type(e).__name__}: {e})"
                 ) from None
-            yield conn.topic, msg
+            yield conn.topic, msg, int(log_ns)
 
     def _scanned_messages(self, topics: list[str]) -> Iterator[tuple[str, object]]:
         """A file without a summary, in file order (`mcap.reader.NonSeekingReader`, which would load
@@ -702,8 +737,8 @@ class Bag:
         self._bounded.seek(0)
         reader = NonSeekingReader(self._bounded, decoder_factories=[_decoders()],
                                   record_size_limit=self._bounded.size)
-        for _, channel, _, msg in reader.iter_decoded_messages(topics=topics, log_time_order=False):
-            yield channel.topic, msg
+        for _, channel, message, msg in reader.iter_decoded_messages(topics=topics, log_time_order=False):
+            yield channel.topic, msg, message.log_time
             left -= 1
             if left == 0:
                 return
@@ -859,22 +894,27 @@ def image_array(msg, path, topic: str) -> np.ndarray:
     enc = str(msg.encoding)
     if enc not in _ENCODINGS:
         raise RecordingError(
-            path, topic, f"image encoding {enc!r} is not single-channel ({', '.join(_ENCODINGS)} expected)"
+            path, topic, f"image encoding {enc!r} is not one thermod reads ({', '.join(_ENCODINGS)} expected)"
         )
     dt = np.dtype(_ENCODINGS[enc]).newbyteorder(">" if msg.is_bigendian else "<")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = msg.data if isinstance(msg.data, np.ndarray) else np.frombuffer(msg.data, np.uint8)
-    if h <= 0 or w <= 0 or step < w * dt.itemsize or data.size < h * step:
-        raise RecordingError(
-            path, topic, f"image {w}×{h} {enc} step {step} does not fit its {data.size} data bytes"
-        )
+    size = f"image {w}×{h} {enc}"
+    if h <= 0 or w <= 0:
+        raise RecordingError(path, topic, f"{size}: height and width must be positive")
+    if step < w * dt.itemsize:
+        raise RecordingError(path, topic, f"{size}: step {step} is less than a row's {w * dt.itemsize} "
+                             f"bytes (width × {dt.itemsize})")
+    if data.size < h * step:
+        raise RecordingError(path, topic, f"{size}: data holds {data.size} bytes, height × step = "
+                             f"{h} × {step} = {h * step} expected")
     rows = np.asarray(data[: h * step], np.uint8).reshape(h, step)[:, : w * dt.itemsize]
     return np.ascontiguousarray(rows).view(dt).reshape(h, w).astype(dt.newbyteorder("="))
 
 
 def camera_info_intrinsics(msg) -> dict:
     """width, height, fx, fy, cx, cy of a sensor_msgs/CameraInfo (ROS 2 ``k`` or ROS 1 ``K``) and
-    whether it declares a non-zero distortion."""
+    whether it declares a non-zero distortion (and its ``distortion_model``)."""
     k = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, np.float64).ravel()
     d = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, np.float64).ravel()
     return {
@@ -885,4 +925,5 @@ def camera_info_intrinsics(msg) -> dict:
         "cx": float(k[2]),
         "cy": float(k[5]),
         "distorted": bool(np.any(d != 0)),
+        "distortion_model": str(getattr(msg, "distortion_model", "")),
     }
