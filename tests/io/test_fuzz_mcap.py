@@ -255,3 +255,11 @@ def test_what_is_reported_is_what_was_written(tmp_path, capsys):
     assert cli.main(["import", str(tmp_path / "in.mcap"), "-o", str(tmp_path / "again.h5")]) == 0
     out = capsys.readouterr().out
     assert f"4 frames from {mcap.RAW_TOPIC}, {N * PER - 7} gyro samples" in out, out
+
+
+def test_an_imu_topic_with_no_finite_rate_is_refused(tmp_path, capsys):
+    """Every sample beyond float32 (or NaN): the import used to write a recording with no gyro at
+    all, with a warning, that every later command could only pass through."""
+    rc, err, _ = run_import(tmp_path, bag_bytes(tmp_path / "b.mcap", huge=N * PER), capsys)
+    assert rc == 2 and mcap.IMU_TOPIC in err and "finite angular_velocity" in err, err
+    assert not (tmp_path / "out.h5").exists() and ".part" not in err, err

@@ -237,7 +237,7 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
     n = 0
     clocks = {image_topic: _Clock(bag.path, image_topic), imu_topic: _Clock(bag.path, imu_topic)}
     encoding = shape = None
-    n_images = 0
+    n_images = usable = 0
     topics = [t for t in (image_topic, imu_topic, info_topic) if t is not None]
     for topic, msg, log_ns in bag.messages(topics):
         with _fields(bag, topic):
@@ -270,6 +270,7 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
                 continue
             with np.errstate(over="ignore"):    # a rate beyond float32: inf, dropped as non-finite
                 batch[n] = sample
+            usable += bool(np.all(np.isfinite(batch["rate"][n])))
             n += 1
             if n == GYRO_BATCH:
                 writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
@@ -282,6 +283,9 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
         clock.report()
     if not frame_t:
         raise RecordingError(bag.path, image_topic, "no frames")
+    if gyro_t and not usable:        # a recording whose gyro is all dropped would deblur nothing
+        raise RecordingError(bag.path, imu_topic, f"none of its {len(gyro_t)} messages has a finite "
+                             "angular_velocity")
     return info, shape, frame_t, gyro_t, {t: c.source or "no message" for t, c in clocks.items()}
 
 
