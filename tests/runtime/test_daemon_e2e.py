@@ -468,6 +468,14 @@ def test_a_stop_during_the_warm_up_ends_it_and_every_child(payload, sig):
     up the warm-up at once, kills its children and exits 0, as after any stop. It used to finish the
     warm-up first (4-15 s measured, deaf to the signal), and to start the stream before stopping it."""
     proc, log, kids = _in_warm_up(private_endpoint())
+    err = _start_abandoned(proc, log, sig)
+    assert "deconvolution workers ready" not in err, err[-3000:]
+    assert _all_gone(kids) == [], (kids, err[-3000:])
+
+
+def _start_abandoned(proc: subprocess.Popen, log: _Log, sig=signal.SIGTERM) -> str:
+    """Stop `proc` with `sig` during its start: it exits 0 within systemd's stop timeout, having
+    abandoned the start, with no traceback. Returns its log."""
     try:
         proc.send_signal(sig)
         rc = proc.wait(timeout=TIMEOUT_STOP_S)      # a hang bound: the stop takes well under a second
@@ -477,9 +485,8 @@ def test_a_stop_during_the_warm_up_ends_it_and_every_child(payload, sig):
     log.join(60.0)
     err = log.text()
     assert rc == 0, err[-3000:]
-    assert "start abandoned" in err and "deconvolution workers ready" not in err, err[-3000:]
-    assert "Traceback" not in err, err[-3000:]
-    assert _all_gone(kids) == [], (kids, err[-3000:])
+    assert "start abandoned" in err and "Traceback" not in err, err[-3000:]
+    return err
 
 
 @pytest.mark.slow
@@ -557,14 +564,9 @@ def test_a_stop_during_the_first_pre_rendering_ends_it(tmp_path):
             assert time.monotonic() < deadline and proc.poll() is None, log.text()[-3000:]
             time.sleep(0.05)
         time.sleep(1.0)                                # inside the rendering, not before it
-        proc.send_signal(signal.SIGTERM)
-        rc = proc.wait(timeout=TIMEOUT_STOP_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    log.join(60.0)
-    err = log.text()
-    assert rc == 0, err[-3000:]
-    assert "start abandoned" in err and "loop ready" not in err, err[-3000:]
-    assert "Traceback" not in err, err[-3000:]
+    except BaseException:
+        proc.kill()
+        raise
+    err = _start_abandoned(proc, log)
+    assert "loop ready" not in err, err[-3000:]
     assert not list(tmp_path.glob("playback-*.h5")), "a half-rendered loop was cached"
