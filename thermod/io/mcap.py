@@ -761,8 +761,9 @@ MAGIC = b"\x89MCAP0\r\n"
 # 64 MiB): a damaged or crafted size field, or a compression bomb, is refused before it is allocated
 MAX_CHUNK_BYTES = 256 * 2**20
 # What the mcap readers raise, besides McapError, on a damaged record: a short read (EndOfFile,
-# struct.error), a string cut or not UTF-8, a garbage u64 length (OverflowError from an in-memory read)
-_DAMAGE = (ValueError, KeyError, EOFError, IndexError, struct.error, OverflowError)
+# struct.error), a string cut or not UTF-8, a garbage u64 length (OverflowError from an in-memory read),
+# compressed data that does not decompress (lz4's and zstd's RuntimeError) in a chunk stored with no CRC
+_DAMAGE = (ValueError, KeyError, EOFError, IndexError, struct.error, OverflowError, RuntimeError)
 
 
 def _decoders():
