@@ -38,7 +38,6 @@ GYRO_BATCH = 1024
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 COMPRESSED_NOTE = (" (PNG or JPEG frames, which thermod does not decode: record the driver's raw "
                    "sensor_msgs/Image topic)")
-RAW_ENCODINGS = {"mono16": 2, "16UC1": 2, "mono8": 1, "8UC1": 1}     # bytes per pixel
 
 
 @dataclass(frozen=True)
@@ -177,7 +176,7 @@ def _encoding_problem(enc: str) -> str:
             "a YUV colour image" if low.startswith(("yuv", "uyvy", "yuyv", "nv")) else
             "a colour image (a colourised view?)" if low.startswith(("rgb", "bgr")) else
             "not a single-channel image encoding thermod reads")
-    return (f"image encoding {enc!r}: {kind}; {', '.join(RAW_ENCODINGS)} expected (choose the raw "
+    return (f"image encoding {enc!r}: {kind}; {', '.join(mcap.RAW_ENCODINGS)} expected (choose the raw "
             "image topic with --image-topic)")
 
 
@@ -236,14 +235,23 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
     batch = np.zeros(GYRO_BATCH, GYRO_DTYPE)
     n = 0
     clocks = {image_topic: _Clock(bag.path, image_topic), imu_topic: _Clock(bag.path, imu_topic)}
-    encoding = shape = None
+    encoding = shape = dtype = None
     n_images = usable = 0
     topics = [t for t in (image_topic, imu_topic, info_topic) if t is not None]
+
+    def flush():
+        nonlocal n, usable
+        chunk = batch[:n].copy()
+        writer.add("gyro", {"sample_seq": len(gyro_t)}, chunk)
+        gyro_t.extend(chunk["t"].tolist())
+        usable += int(np.isfinite(chunk["rate"]).all(axis=1).sum())
+        n = 0
+
     for topic, msg, log_ns in bag.messages(topics):
         with _fields(bag, topic):
             if topic == image_topic:
                 enc = str(msg.encoding)
-                if enc not in RAW_ENCODINGS:
+                if enc not in mcap.RAW_ENCODINGS:
                     raise RecordingError(bag.path, topic, _encoding_problem(enc))
                 image = mcap.image_array(msg, bag.path, topic)
                 t = clocks[topic](msg, log_ns)
@@ -255,8 +263,8 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
                 info = mcap.camera_info_intrinsics(msg)
         if topic == image_topic:
             if encoding is None:
-                encoding, shape = enc, image.shape
-            elif image.dtype.itemsize != RAW_ENCODINGS[encoding] or image.shape != shape:
+                encoding, shape, dtype = enc, image.shape, image.dtype
+            elif image.dtype != dtype or image.shape != shape:
                 raise RecordingError(bag.path, topic, f"frames change from {shape[1]}×{shape[0]} {encoding} "
                                      f"to {image.shape[1]}×{image.shape[0]} {enc} (message {n_images + 1}): "
                                      "one size and depth expected")
@@ -270,15 +278,11 @@ def _stream(bag, writer, image_topic, imu_topic, info_topic):
                 continue
             with np.errstate(over="ignore"):    # a rate beyond float32: inf, dropped as non-finite
                 batch[n] = sample
-            usable += bool(np.all(np.isfinite(batch["rate"][n])))
             n += 1
             if n == GYRO_BATCH:
-                writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
-                gyro_t.extend(batch["t"][:n].tolist())
-                n = 0
+                flush()
     if n:
-        writer.add("gyro", {"sample_seq": len(gyro_t)}, batch[:n].copy())
-        gyro_t.extend(batch["t"][:n].tolist())
+        flush()
     for clock in clocks.values():
         clock.report()
     if not frame_t:

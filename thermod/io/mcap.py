@@ -878,14 +878,15 @@ def _ros2_name(msgtype: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
 
 
-# Image encodings that are raw detector counts, and their element type.
-_ENCODINGS = {
+# Image encodings that are raw detector counts, and their element type; `image_array` also reads
+# 32FC1, what thermod writes its deblurred frames as.
+RAW_ENCODINGS = {
     "mono16": np.uint16,
     "16UC1": np.uint16,
     "mono8": np.uint8,
     "8UC1": np.uint8,
-    "32FC1": np.float32,
 }
+_ENCODINGS = {**RAW_ENCODINGS, "32FC1": np.float32}
 
 
 def image_array(msg, path, topic: str) -> np.ndarray:
