@@ -312,14 +312,19 @@ def _pick_log(path: Path, t: np.ndarray, rate: np.ndarray, log_index: int | None
     longest by default) among the parts of the clock `_segments` finds, lone wild stamps dropped."""
     t, rate, lone = _without_lone_outliers(path, t, rate)
     segments = _segments(t)
-    if log_index is None:
-        index = int(np.argmax([b - a for a, b in segments]))
-    elif 0 <= log_index < len(segments):
-        index = int(log_index)
-    else:
-        raise FlightLogError(path, f"log {log_index}: the file holds {len(segments)} log(s)")
+    index = _chosen(path, [b - a for a, b in segments], log_index)
     lo, hi = segments[index]
     return t[lo:hi], rate[lo:hi], index, len(segments), lone
+
+
+def _chosen(path: Path, sizes: list, log_index: int | None) -> int:
+    """The index of the log `log_index` (0-based) names among logs of these `sizes`, or of the
+    largest; a FlightLogError when there is no such log."""
+    if log_index is None:
+        return int(np.argmax(sizes))
+    if 0 <= log_index < len(sizes):
+        return int(log_index)
+    raise FlightLogError(path, f"log {log_index}: the file holds {len(sizes)} log(s)")
 
 
 def _without_lone_outliers(path: Path, t: np.ndarray, rate: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -598,12 +603,7 @@ def _read_ulog(path: Path, log_index: int | None) -> FlightLog:
     if failed:
         log.warning("%s: %d of the %d ULog files joined in it read without gyro (%s)", path, failed[0],
                     failed[0] + len(logs), failed[1])
-    if log_index is None:
-        index = int(np.argmax([t[-1] - t[0] if len(t) else -1.0 for t, _, _ in logs]))
-    elif 0 <= log_index < len(logs):
-        index = int(log_index)
-    else:
-        raise FlightLogError(path, f"log {log_index}: the file holds {len(logs)} log(s)")
+    index = _chosen(path, [t[-1] - t[0] if len(t) else -1.0 for t, _, _ in logs], log_index)
     t, rate, name = logs[index]
     t, rate, lone = _without_lone_outliers(path, t, rate)
     return _finish(path, "px4-ulog", t, rate, "FRD", "", index, len(logs), f"PX4 {name}", lone)
