@@ -50,6 +50,9 @@ def test_the_daemon_deblurs_with_the_motion_measured_from_its_frames():
     c = d.pipeline.calib
     np.testing.assert_array_equal(c.gyro_to_camera_matrix, np.eye(3))
     assert c.time_offset_s == 0 and c.bias_rad_s == (0.0, 0.0, 0.0)
+    # the latency loop's goal: the configured p99 plus the frame every frame waits for its motion
+    goal = config.load(None, opts).deblur.latency_p99_s + 1 / c.frame_rate_hz
+    assert d.pipeline.governor.latency_goal_s == pytest.approx(goal)
     seen = []
     h, running = run(d, seen, lambda o: (o.frame_id, o.deblurred, o.method, o.reason),
                      then=lambda: (d.health(), list(seen)))
@@ -83,6 +86,9 @@ def test_a_reload_keeps_the_video_sources_calibration_and_takes_a_new_tau():
     c = d.pipeline.calib
     assert c.tau_s == 0.011 and c.time_offset_s == 0 and d.gyro.track is not track
     assert d.gyro.track.tau_s == 0.011
+    assert d.pipeline.governor.latency_goal_s == pytest.approx(d.cfg.deblur.latency_p99_s)   # added once
+    assert d.cfg.deblur.latency_p99_s == pytest.approx(config.load(None, opts).deblur.latency_p99_s
+                                                       + 1 / c.frame_rate_hz)
     np.testing.assert_array_equal(c.gyro_to_camera_matrix, np.eye(3))
 
 

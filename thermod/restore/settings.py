@@ -72,7 +72,7 @@ DEBLUR = with_defaults(DeblurConfig, {
     "max_solve_s": Key(float, lo=0.0, lo_open=True, hi=10.0, doc="governor: longest solve wanted per frame"),
     "headroom": Key(float, lo=0.0, hi=0.9, doc="governor: share of the budget kept free"),
     "latency_p99_s": Key(float, lo=0.001, hi=60.0, doc="governor: the p99 latency (read to published) "
-                         "it scales its budget to hold"),
+                         "it scales its budget to hold (with a video gyro source: plus one frame period)"),
     "m": Key(float, lo=1.0, hi=20.0, doc="kernel window = m·τ"),
     "min_coverage": Key(float, lo=0.0, hi=1.0, doc="gyro coverage below this → pass through"),
     "ffc_settle_s": Key(float, lo=0.0, hi=60.0, doc="pass through this long after an FFC; absent: m·τ"),

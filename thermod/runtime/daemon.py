@@ -337,13 +337,19 @@ class Daemon:
 
     def _for_video_motion(self, cfg: configmod.Config) -> configmod.Config:
         """`cfg` as a video source runs it: its rates are the camera's own, on the frames' clock (the
-        calibration's gyro part is the identity), and a frame waits for the next one's registration."""
+        calibration's gyro part is the identity), a frame waits for the next one's registration, and
+        the p99 latency goal is one frame period longer."""
         if self._offer_frame is None:
             return cfg
         calib = self.gyro.calibration_for(cfg.calibration)
         wait = max(cfg.pipeline.wait_timeout_s, self.gyro.samples_wait_s(calib.frame_rate_hz))
+        # the latency loop holds the p99 the source allows: the configured one plus the frame period
+        # every frame waits for the next one's registration (a goal it cannot reach pins the loop at
+        # its floor, and the stream at the cheapest rung)
+        goal = cfg.deblur.latency_p99_s + 1.0 / calib.frame_rate_hz
         return dataclasses.replace(cfg, calibration=calib,
-                                   pipeline=dataclasses.replace(cfg.pipeline, wait_timeout_s=wait))
+                                   pipeline=dataclasses.replace(cfg.pipeline, wait_timeout_s=wait),
+                                   deblur=dataclasses.replace(cfg.deblur, latency_p99_s=goal))
 
     def reload(self) -> bool:
         """SIGHUP: re-read the configuration and apply its calibration and deblur settings live.
