@@ -175,11 +175,11 @@ def test_watch_says_when_the_motion_comes_from_the_video():
 
     assert motion_lines({"motion_source": "gyro"}) == []
     h = {"motion_source": "video", "devices": {"gyro": {"stats": {
-        "frames": 500, "measured": 495, "bridged": 2, "untracked": 3, "cut": 1, "duplicate": 0,
+        "frames": 500, "measured": 495, "dense": 4, "bridged": 2, "untracked": 3, "cut": 1, "duplicate": 0,
         "sigma_rad_s": 0.01}}}}
     (line,) = motion_lines(h)
     assert line.startswith("motion       from the video (no gyro): 495 of 500 frame pairs registered")
-    assert "2 bridged, 3 untracked, 1 cuts" in line and "last σ 0.57 °/s" in line
+    assert "(4 by every pixel), 2 bridged, 3 untracked, 1 cuts" in line and "last σ 0.57 °/s" in line
 
 
 def test_side_by_side_without_raw_is_the_frame_alone():

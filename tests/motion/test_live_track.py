@@ -172,6 +172,7 @@ def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying
         return None if len(calls) == 10 else measure(*a, **k)
 
     tr.reg.measure = failing_once
+    tr.reg.measure_dense = lambda *a, **k: None              # nor by every pixel
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["untracked"] == 1 and tr.counts["bridged"] == 1
     assert not any(s.gap_before for s in got)
@@ -188,6 +189,43 @@ def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying
     assert np.median(sig[inside]) > np.median(sig[~inside])             # and it says it is less sure there
 
 
+def test_a_pair_whose_corners_disagree_is_registered_by_every_pixel_without_a_wait(swaying):
+    # the simulated payload's low-texture turns (80 °/s, 10 working px a frame) lost 2 % of their pairs
+    # to the corners, each bridged a period late; every pixel (ECC) measured them to 0.4–1 px
+    rec, motion = swaying
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    measure, calls = tr.reg.measure, []
+
+    def corners_fail_once(*a, **k):
+        calls.append(1)
+        return None if len(calls) == 10 else measure(*a, **k)
+
+    tr.reg.measure = corners_fail_once
+    got = run(tr, rec.frames[:20], rec.t[:20])
+    assert tr.counts["dense"] == 1 and tr.counts["untracked"] == tr.counts["bridged"] == 0
+    # frame 9's samples come with frame 10, as with every pair: no period of waiting for frame 11
+    assert len(got) == 19 and got[9].t[-1] == pytest.approx(rec.t[9] + LEAD_SAMPLES * 1e-3, abs=1e-3)
+    t = np.concatenate([s.t for s in got])
+    w = np.concatenate([s.rate for s in got])
+    inside = (t > rec.t[9] - CALIB.tau_s) & (t < rec.t[10] - CALIB.tau_s)
+    truth = motion.omega(t[inside] - rec.t[0])
+    assert math.sqrt(np.mean((w[inside] - truth) ** 2) / np.mean(truth ** 2)) < 2 * RATE_TOL
+
+
+def test_the_dense_fit_measures_a_rotation_and_refuses_a_blank_frame(swaying):
+    rec, motion = swaying
+    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
+    reg = tr.reg
+    a, b = tr.prepare(rec.frames[9]), tr.prepare(rec.frames[10])
+    fit = reg.measure_dense(a, b)                               # from no prediction at all
+    corners = reg.measure(a, b, bands=False)
+    assert fit is not None and fit.n_features == 0 and np.all(np.isnan(fit.band_rotvec))
+    np.testing.assert_allclose(fit.rotvec, corners.rotvec, atol=1.5 / reg.f_px)     # within 1.5 working px
+    assert 0 < fit.noise_rad < 5 / reg.f_px
+    blank = np.full_like(b, 128)
+    assert reg.measure_dense(a, blank) is None
+
+
 def test_two_pairs_in_a_row_leave_a_hole(swaying):
     rec, _ = swaying
     tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
@@ -198,6 +236,7 @@ def test_two_pairs_in_a_row_leave_a_hole(swaying):
         return None if len(calls) in (10, 11) else measure(*a, **k)
 
     tr.reg.measure = failing_twice
+    tr.reg.measure_dense = lambda *a, **k: None
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["untracked"] == 2 and tr.counts["bridged"] == 0
     assert [s.gap_before for s in got].count(True) == 1

@@ -211,8 +211,9 @@ def motion_lines(h: dict) -> list[str]:
     st = ((h.get("devices") or {}).get("gyro") or {}).get("stats") or {}
     sigma = st.get("sigma_rad_s")
     return [f"motion       from the video (no gyro): {st.get('measured', 0)} of {st.get('frames', 0)} frame "
-            f"pairs registered, {st.get('bridged', 0)} bridged, {st.get('untracked', 0)} untracked, "
-            f"{st.get('cut', 0)} cuts, {st.get('duplicate', 0)} repeats, {st.get('gap', 0)} time gaps"
+            f"pairs registered ({st.get('dense', 0)} by every pixel), {st.get('bridged', 0)} bridged, "
+            f"{st.get('untracked', 0)} untracked, {st.get('cut', 0)} cuts, {st.get('duplicate', 0)} repeats, "
+            f"{st.get('gap', 0)} time gaps"
             + (f", a static overlay on {100 * st['overlay_fraction']:.1f} % left out"
                if isinstance(st.get("overlay_fraction"), (int, float)) and st["overlay_fraction"] > 0 else "")
             + (f", last σ {math.degrees(sigma):.2f} °/s" if isinstance(sigma, (int, float))

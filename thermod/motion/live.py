@@ -12,8 +12,8 @@ beyond the newest one. Frame k arrives with ω_k, so the samples up to t_{k−1}
 go out then: a frame is deblurred one frame period later than with a gyro, never with a rate
 extrapolated over more than (t_{k−1} − m_k)⁺ = (τ + lead · readout − ½ period)⁺.
 
-The rule it keeps: a rate only where the pictures measured it, or across one interval between two
-measured ones (a pair that cannot be registered: too little texture, or a cut, `MIN_REGISTERED_NCC`),
+The rule it keeps: a rate only where the pictures measured it (by corners, else by every pixel), or
+across one interval between two measured ones (a pair that cannot be registered: a cut, a blank frame),
 which is bridged by its neighbours' rates with σ widened by half their difference. Two unknown
 intervals in a row, or one over `GAP_PERIODS` frame intervals (frames lost, a camera stalled), stop
 the samples; the next say `gap_before`, and the frames whose kernel window spans the hole pass
@@ -122,8 +122,8 @@ class LiveTrack:
         self._unknown = 0                    # unknown intervals since the anchor's
         self._last_t = -math.inf             # the newest frame's time, repeated or not
         self._intervals: collections.deque[float] = collections.deque(maxlen=INTERVALS)
-        self.counts = {"frames": 0, "measured": 0, "untracked": 0, "cut": 0, "duplicate": 0, "bridged": 0,
-                       "gap": 0, "samples": 0}
+        self.counts = {"frames": 0, "measured": 0, "dense": 0, "untracked": 0, "cut": 0, "duplicate": 0,
+                       "bridged": 0, "gap": 0, "samples": 0}
         self.overlay = OverlayWatch()
         self.last_sigma_rad_s = math.nan
 
@@ -162,6 +162,9 @@ class LiveTrack:
         overlay = self.overlay.mask
         predicted = self._anchor[1] * (t - t_prev) if self._anchor is not None else None
         fit = self.reg.measure(prev, cur, bands=False, predicted=predicted, exclude=overlay)
+        if fit is None:                # too few corners agree: every pixel, rather than a bridge's wait
+            fit = self.reg.measure_dense(prev, cur, predicted=predicted, exclude=overlay)
+            self.counts["dense"] += fit is not None
         status = "untracked" if fit is None else "ok"
         if fit is not None and not registered_ncc(prev.astype(np.float32), cur.astype(np.float32), fit.rotvec,
                                                   self.reg.work, overlay) >= MIN_REGISTERED_NCC:
