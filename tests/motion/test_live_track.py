@@ -162,17 +162,25 @@ def test_the_video_source_hands_the_daemon_camera_frame_rates(swaying):
     assert 0 < st["register_delay_ms_p50"] <= st["register_delay_ms_p99"] < 1000
 
 
-def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying):
-    rec, motion = swaying
+def corners_failing(pairs: tuple[int, ...], dense: bool = False) -> LiveTrack:
+    """A track whose corners fail on the `pairs`-th measured pairs (1-based: 10 is the pair into frame
+    10), and every pixel with them unless `dense`."""
     tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
     measure, calls = tr.reg.measure, []
 
-    def failing_once(*a, **k):               # the pair into frame 10 cannot be registered
+    def failing(*a, **k):
         calls.append(1)
-        return None if len(calls) == 10 else measure(*a, **k)
+        return None if len(calls) in pairs else measure(*a, **k)
 
-    tr.reg.measure = failing_once
-    tr.reg.measure_dense = lambda *a, **k: None              # nor by every pixel
+    tr.reg.measure = failing
+    if not dense:
+        tr.reg.measure_dense = lambda *a, **k: None
+    return tr
+
+
+def test_one_pair_that_cannot_be_registered_is_bridged_by_its_neighbours(swaying):
+    rec, motion = swaying
+    tr = corners_failing((10,))              # the pair into frame 10 cannot be registered
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["untracked"] == 1 and tr.counts["bridged"] == 1
     assert not any(s.gap_before for s in got)
@@ -193,14 +201,7 @@ def test_a_pair_whose_corners_disagree_is_registered_by_every_pixel_without_a_wa
     # the simulated payload's low-texture turns (80 °/s, 10 working px a frame) lost 2 % of their pairs
     # to the corners, each bridged a period late; every pixel (ECC) measured them to 0.4–1 px
     rec, motion = swaying
-    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
-    measure, calls = tr.reg.measure, []
-
-    def corners_fail_once(*a, **k):
-        calls.append(1)
-        return None if len(calls) == 10 else measure(*a, **k)
-
-    tr.reg.measure = corners_fail_once
+    tr = corners_failing((10,), dense=True)
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["dense"] == 1 and tr.counts["untracked"] == tr.counts["bridged"] == 0
     # frame 9's samples come with frame 10, as with every pair: no period of waiting for frame 11
@@ -228,15 +229,7 @@ def test_the_dense_fit_measures_a_rotation_and_refuses_a_blank_frame(swaying):
 
 def test_two_pairs_in_a_row_leave_a_hole(swaying):
     rec, _ = swaying
-    tr = LiveTrack(CALIB.intrinsics, tau_s=CALIB.tau_s, readout_s=CALIB.readout_s)
-    measure, calls = tr.reg.measure, []
-
-    def failing_twice(*a, **k):
-        calls.append(1)
-        return None if len(calls) in (10, 11) else measure(*a, **k)
-
-    tr.reg.measure = failing_twice
-    tr.reg.measure_dense = lambda *a, **k: None
+    tr = corners_failing((10, 11))
     got = run(tr, rec.frames[:20], rec.t[:20])
     assert tr.counts["untracked"] == 2 and tr.counts["bridged"] == 0
     assert [s.gap_before for s in got].count(True) == 1
