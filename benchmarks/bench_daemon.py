@@ -654,10 +654,12 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
 
 
 def loop_text(gov: dict) -> str:
-    """The governor's latency loop at the run's end: its budget scale and how often it moved."""
+    """The governor's latency loop at the run's end: its budget scale, how often it moved, and how many
+    late frames it solved cheaper than the rung."""
     if "latency_scale" not in gov:
         return "-"
-    return f"×{gov['latency_scale']:.2f} ({gov.get('tightened', 0)}↓ {gov.get('relaxed', 0)}↑)"
+    return f"×{gov['latency_scale']:.2f} ({gov.get('tightened', 0)}↓ {gov.get('relaxed', 0)}↑, " \
+           f"{gov.get('late', 0)} late)"
 
 
 def load_text(gov: dict) -> str:

@@ -618,3 +618,19 @@ def test_a_tail_over_the_latency_goal_coarsens_the_grid_to_its_floor_and_back():
     assert g.scale == 1.0 and g.counts["relaxed"] == 9                       # 0.3 × 1.15⁹ > 1
     labels, t = feed(g, t, 1.0, wiener, needed=(6, 8), floor=(2, 3))
     assert labels[-1] == "wiener 6×8"
+
+
+def test_a_late_frame_is_solved_by_what_lets_it_finish_in_time_this_frame_only():
+    # the p99 goal 60 ms less the margin (25 %): 45 ms from its arrival to its solve's end, predicted
+    g = seeded()
+    assert g.choose((3, 4), 0.0, age_s=0.005).label == "kf 3×4"                  # 5 + 20 ms: in time
+    assert g.choose((3, 4), 0.02, age_s=0.030).label == "kf_fast 3×4"            # 15 ms left: 12
+    assert g.choose((3, 4), 0.04, age_s=0.040).label == "wiener 2×3"             # 5 ms left: 4.4
+    assert g.choose((3, 4), 0.06, age_s=0.050).label == "wiener"                 # none: the cheapest
+    assert g.counts["late"] == 3 and g.index == 0 and g.counts["degrades"] == 0  # the rung stays
+    assert g.choose((3, 4), 0.08).label == "kf 3×4"
+    # a goal the stream cannot miss (the loop off), or no governor: the frame's age changes nothing
+    assert seeded(DeblurConfig(temporal_views=1, latency_p99_s=60.0)).choose((3, 4), 0.0, age_s=0.05).label \
+        == "kf 3×4"
+    off = seeded(DeblurConfig(temporal_views=1, governor=False))
+    assert off.choose((3, 4), 0.0, age_s=0.05).label == "kf 3×4" and off.counts["late"] == 0

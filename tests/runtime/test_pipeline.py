@@ -202,6 +202,31 @@ def test_waits_for_gyro_then_deblurs(sharp):
     assert outs[0].t_done >= t_gyro                          # published once the gyro covered it
 
 
+def test_a_frame_whose_motion_comes_late_is_solved_by_what_finishes_in_time(sharp):
+    rng = np.random.default_rng(2)
+    col = Collector()
+    gr, fr, p = make(col, wait=60.0, deblur=DeblurConfig(latency_p99_s=0.4))   # late: past 300 ms
+    p.start()
+    try:
+        t_gyro = time.monotonic() - 0.1
+        seq = gyro_until(gr, t_gyro - 0.2, t_gyro)
+        for k, late in ((1, False), (2, True)):
+            tf = time.monotonic() + 0.03
+            img, _ = blurry_frame(sharp, tf, rng)
+            fr.write(img, tf, frame_id=k, arrival=time.monotonic())
+            time.sleep(0.35 if late else 0.0)         # past 75 % of the p99 goal before its solve
+            seq = gyro_until(gr, t_gyro + 1 / RATE, tf + 0.005, seq)
+            t_gyro = tf + 0.005
+            col.wait(k)
+    finally:
+        p.stop()
+    first, second = col.out
+    assert first.deblurred and second.deblurred
+    assert second.method == "wiener_half" and second.grid == (1, 1)    # the cheapest the ladder has
+    assert first.method != "wiener_half" or first.grid != (1, 1)
+    assert p.governor.counts["late"] == 1 and p.governor.index == 0     # that frame only
+
+
 def test_missing_gyro_times_out_and_passes_through(sharp):
     col = Collector()
     gr, fr, p = make(col, wait=3.0)

@@ -13,7 +13,8 @@ over its reference) and O the median round trip around a child's solve (`overhea
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
-Tail: `released` scales both limits toward the published p99 `latency_p99_s` (the latency loop).
+Tail: `released` scales both limits toward the published p99 `latency_p99_s` (the latency loop);
+a frame that comes late (`choose`'s `age_s`) is solved by what its predicted cost lets it finish in.
 
 It has no clock or thread of its own: the pipeline calls `choose` (scheduler), `observe` (workers)
 and `overloaded` (queue) with the host time, so tests drive it with a deterministic feed. The rules
@@ -130,7 +131,7 @@ class Governor:
         self._needed: collections.deque = collections.deque()   # (time, grid, floor) of recent frames
         self._memo: dict = {}          # costs derived from the state above, cleared when it changes
         self.counts = {"degrades": 0, "climbs": 0, "failed_climbs": 0, "overload_steps": 0, "stalls": 0,
-                       "tightened": 0, "relaxed": 0}
+                       "tightened": 0, "relaxed": 0, "late": 0}
         self.frames: dict[str, int] = {}                   # frames per choice label
 
     # ------------------------------------------------------------------ costs
@@ -357,10 +358,12 @@ class Governor:
         floors = sorted((f for _, _, f in self._needed), key=cells) or [(1, 1)]
         return worst, floors[len(floors) // 2]
 
-    def choose(self, needed: tuple[int, int], now: float, floor: tuple[int, int] = (1, 1)) -> Choice:
+    def choose(self, needed: tuple[int, int], now: float, floor: tuple[int, int] = (1, 1),
+               age_s: float = 0.0) -> Choice:
         """The rung and grid for a frame whose blur needs the grid `needed` ((1, 1): uniform); a
         coarsening rung coarsens it no further than `floor` (the grid within ``temporal_tol_px``)
-        while the workers keep up there, the last rung beyond it only as a last resort."""
+        while the workers keep up there, the last rung beyond it only as a last resort. `age_s`: how
+        long ago the frame arrived (`_in_time`)."""
         with self._lock:
             if not self.enabled:
                 r = self.rungs[0]
@@ -388,9 +391,28 @@ class Governor:
             while g is None and i < self.last:                        # this frame only: a cheaper rung
                 i += 1
                 g = self._pick(i, needed, floor)
-            c = Choice(self.rungs[i], g or (1, 1), i)
+            i, g = self._in_time(i, g or (1, 1), needed, floor, age_s)
+            c = Choice(self.rungs[i], g, i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
+
+    def _in_time(self, i: int, g: tuple[int, int], needed: tuple[int, int], floor: tuple[int, int],
+                 age_s: float) -> tuple[int, tuple[int, int]]:
+        """Rung i over grid g, unless a frame that came `age_s` ago would end its solve past ``(1 − margin)``
+        of the p99 goal (predicted, the queue left out): then the best rung from i down, and grid down
+        to the floor (the last rung beyond it), predicted within what is left, else the last rung over
+        one kernel. A late frame (a long wait for its motion, a stalled host) is the tail the loop
+        would otherwise answer by cheapening every frame."""
+        left = self.latency_goal_s * (1.0 - self.margin) - age_s
+        if not (self.enabled and age_s > 0 and math.isfinite(left)) or \
+                self._predict(self.family(self.rungs[i]), g[0] * g[1]) <= left:
+            return i, g
+        self.counts["late"] += 1
+        for j in range(i, self.last + 1):
+            gj = self._fits(j, needed, left, floor, beyond_floor=j == self.last)
+            if gj is not None:
+                return j, gj
+        return self.last, (1, 1)
 
     def overloaded(self, now: float) -> None:
         """A job was dropped for overload. When the current rung's predicted cost (over the finest

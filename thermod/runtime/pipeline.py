@@ -506,7 +506,9 @@ class Pipeline:
         chosen = []
 
         def choose(needed, floor):
-            chosen.append(self.governor.choose(needed, time.monotonic(), floor))
+            now = time.monotonic()
+            # since its arrival, on the host clock: a replay's frame times keep its recording's pace
+            chosen.append(self.governor.choose(needed, now, floor, age_s=now - slot.arrival))
             return chosen[-1].grid
 
         order = order_kernel(slot.t, w.t, w.rate, s.calib, s.deblur, gap=w.gap, online=self.gyro_online,
