@@ -160,6 +160,23 @@ def test_rotation_interlace_and_rgb_are_read_as_coded_and_said(tmp_path):
     assert got.info.full_range and np.array_equal(got.frames, src)
 
 
+def test_deep_rgb_and_grey_alpha_are_read_at_16_bits_never_cut_to_8(tmp_path):
+    """16-bit counts an NLE or a PNG exporter stores as RGB48, GBRP16 (FFV1), RGBA64 or grey + alpha
+    were read as 8-bit (swscale's grey, the low byte lost, no note); now 16-bit, the grey exactly."""
+    src = np.random.default_rng(2).integers(0, 65536, (3, H, W)).astype("<u2")
+    for pix, codec in (("rgb48be", "png"), ("gbrp16le", "ffv1"), ("rgba64be", "png"), ("ya16be", "png"),
+                       ("gray9le", "ffv1")):
+        out = tmp_path / f"{pix}.mkv"
+        subprocess.run(["ffmpeg", "-v", "error", "-f", "rawvideo", "-pix_fmt", "gray16le", "-s", f"{W}x{H}",
+                        "-r", str(FPS), "-i", "-", "-c:v", codec, "-pix_fmt", pix, str(out)],
+                       input=src.tobytes(), check=True)
+        got = video.read_video(out)
+        assert (got.info.bit_depth, got.frames.dtype) == (16, np.uint16), pix
+        want = src >> 7 if pix == "gray9le" else src          # grey formats as coded: 9 bits (rounded)
+        err = np.abs(got.frames.astype(int) - want).max()
+        assert err <= (pix == "gray9le"), (pix, err)
+
+
 # ------------------------------------------------------------------------------------ through the CLI
 def thermod(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ)

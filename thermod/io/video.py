@@ -2,8 +2,9 @@
 
 Reading (`iter_video`, `read_video`, `probe_video`): a video file FFmpeg decodes, grey formats as
 coded (uint8 or uint16, not rescaled), YUV as its luma plane as a player shows it (limited range
-mapped to full, `limited_to_full`; `VideoInfo.luma_only`), or a sequence of grey 8- or 16-bit TIFF or
-PNG frames (a folder or a glob, natural order of names) whose frame k is at ``t0 + k / fps``.
+mapped to full, `limited_to_full`; `VideoInfo.luma_only`), RGB as its luma (uint16 whenever a
+component has over 8 bits), or a sequence of grey 8- or 16-bit TIFF or PNG frames (a folder or a
+glob, natural order of names) whose frame k is at ``t0 + k / fps``.
 
 The rules it keeps: a frame's time is float64 s on the container's own clock (its presentation
 timestamp; variable frame rate kept), never mapped to the flight log's (the sync's job); times
@@ -50,7 +51,8 @@ SEQUENCE_SUFFIXES = TIFF_SUFFIXES + PNG_SUFFIXES   # an image sequence's frames,
 # what FFmpeg and PyAV raise on a damaged file (av.error.FFmpegError is a ValueError, and PyAV decodes
 # metadata strings itself); each becomes a VideoError naming the file
 _DECODE_ERRORS = (av.error.FFmpegError, ValueError, UnicodeError, OSError, EOFError)
-_GREY16 = {"gray16le", "gray16be", "gray10le", "gray10be", "gray12le", "gray12be", "gray14le", "gray14be"}
+_GREY16 = {"gray16le", "gray16be", "gray9le", "gray9be", "gray10le", "gray10be", "gray12le", "gray12be",
+           "gray14le", "gray14be"}
 
 
 class VideoError(FileError):
@@ -275,7 +277,7 @@ def _info_from_container(path: Path, c, stream: int | None = None) -> VideoInfo:
     w, h = int(cc.width or 0), int(cc.height or 0)
     _check_size(path, w, h)
     pix = cc.pix_fmt or (s.format.name if s.format else "") or ""
-    depth = 16 if pix in _GREY16 or _is_high_depth_yuv(pix) else 8
+    depth = 16 if pix in _GREY16 or _is_high_depth_yuv(pix) or _component_bits(pix) > 8 else 8
     luma_only = pix not in ("gray",) and pix not in _GREY16
     # a player shows YUV as limited range unless the stream says full (yuvj*, or the range flag: 2 = JPEG);
     # RGB and palette formats have no range (swscale's grey of them is full range)
@@ -319,6 +321,15 @@ _LIMITED_TO_FULL_8 = limited_to_full(np.arange(256))
 def _coded_bits(pix: str) -> int:
     m = re.search(r"(9|10|12|14|16)(le|be)$", pix)
     return int(m.group(1)) if m else 16
+
+
+def _component_bits(pix: str) -> int:
+    """The most bits of any component of pixel format `pix` (0 when FFmpeg does not know it): over 8,
+    the frames are read as 16-bit (RGB48, GBRP16, grey + alpha at 16 bits …), never cut to 8."""
+    try:
+        return max((int(c.bits) for c in av.VideoFormat(pix).components), default=0)
+    except (ValueError, TypeError):
+        return 0
 
 
 def _is_high_depth_yuv(pix: str) -> bool:
@@ -478,8 +489,16 @@ def _grey(path: Path, frame, info: VideoInfo) -> np.ndarray:
         dt = np.dtype("<u2" if fmt.endswith("le") else ">u2")
         a = np.frombuffer(plane, dt).reshape(-1, plane.line_size // 2)[:h, :w].astype(np.uint16)
         return a if info.full_range else limited_to_full(a, _coded_bits(fmt))
+    if info.bit_depth == 16 and frame.format.is_rgb:
+        # swscale's 16-bit grey of deep RGB keeps about 8 bits (codes off by up to ±250): the BT.601
+        # luma of its exact RGB48 instead, so a grey picture stored as RGB comes back as it was
+        rgb = frame.to_ndarray(format="rgb48le").astype(np.float32)
+        return np.clip(np.rint(rgb @ _BT601_LUMA), 0, 65535).astype(np.uint16)
     target = "gray16le" if info.bit_depth == 16 else "gray"
     return np.ascontiguousarray(frame.to_ndarray(format=target))
+
+
+_BT601_LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 def _incomplete(info: VideoInfo, n: int, span: float, periods: list[float]) -> str | None:
