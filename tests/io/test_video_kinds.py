@@ -177,6 +177,30 @@ def test_deep_rgb_and_grey_alpha_are_read_at_16_bits_never_cut_to_8(tmp_path):
         assert err <= (pix == "gray9le"), (pix, err)
 
 
+def test_a_repeated_or_backward_time_that_the_muxer_moved_one_tick_on_is_refused(tmp_path):
+    """A frame whose time repeats (or goes back) is refused from Matroska, but MP4 and NUT move it one
+    tick after the previous frame: those files imported with a frame 0.1 ms after the one before (a
+    rate spike across it), or, with every other time repeated, failed on a calibration field naming
+    no file; both are now refused naming the file and the frame."""
+    from thermod.ingest.camera_video import read_camera_video
+    from thermod.ingest.video_only import VideoImportError
+    from thermod.physics.calibration import Calibration
+
+    cam = Calibration().replace(width=W, height=H, fx=100.0, fy=100.0, cx=W / 2 - 0.5, cy=H / 2 - 0.5,
+                                frame_rate_hz=FPS)
+    back = (r"setpts=round((N-2*eq(N\,5))/10/TB)", r"frame 5 at 0\.4000\d+ s comes 0\.0977 ms after frame 4")
+    repeat = (r"setpts=round(floor(N/2)/10/TB)", r"0\.0122 ms apart at the median \(81920 fps")
+    cases = {"back.mp4": ("libx264", *back), "repeat.nut": ("ffv1", *repeat)}
+    for name, (codec, setpts, message) in cases.items():
+        path = encode(tmp_path / name, "-c:v", codec, "-bf", "0", "-vf", setpts, "-fps_mode", "passthrough")
+        assert np.all(np.diff(video.read_video(path).t) > 0)        # the muxer made them increase
+        with pytest.raises(VideoImportError, match=rf"{name.replace('.', '[.]')}: .*{message}"):
+            read_camera_video(path, cam, VideoImportError, "a test")
+    ok = encode(tmp_path / "ok.mp4", "-c:v", "libx264", "-vf", r"setpts=round((N+3*gt(N\,5))/10/TB)",
+                "-fps_mode", "passthrough")
+    assert len(read_camera_video(ok, cam, VideoImportError, "a test").frames.t) == N     # a gap is no fault
+
+
 # ------------------------------------------------------------------------------------ through the CLI
 def thermod(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ)

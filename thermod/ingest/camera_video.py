@@ -1,9 +1,11 @@
 """A thermal video read for an ingest, checked against the camera that shot it (`read_camera_video`):
 its size must be the camera's, it needs two frames or more, and its own frame rate (the median frame
 interval of its container timestamps) replaces the camera file's, with a note when they differ by more
-than `FRAME_RATE_TOLERANCE`, and the readout is held within one frame period. Of a file's several video
-streams the one of the camera's size is read (else the one a player would play), with a note; the
-reader's notes (a cut, a rotation) are passed on."""
+than `FRAME_RATE_TOLERANCE`, and the readout is held within one frame period. A frame much closer to
+the one before than the median interval (`MIN_INTERVAL_SHARE`), or a median rate over a camera's, is
+refused: a time that repeats or goes back, moved one tick on by the muxer (MP4 and NUT do). Of a
+file's several video streams the one of the camera's size is read (else the one a player would
+play), with a note; the reader's notes (a cut, a rotation) are passed on."""
 
 from __future__ import annotations
 
@@ -12,9 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from thermod.io import video
-from thermod.physics.calibration import Calibration
+from thermod.physics.calibration import RANGES, Calibration
 
 FRAME_RATE_TOLERANCE = 0.05   # the video's rate may differ this much from the camera file's before a note
+MIN_INTERVAL_SHARE = 0.1      # a frame interval under this × the median is a timestamp, not a frame period
 
 
 @dataclass
@@ -48,7 +51,7 @@ def read_camera_video(video_path, camera: Calibration, error: type[Exception], n
                     f"{camera.width}×{camera.height} px")
     if len(vf.t) < 2:
         raise error(f"{video_path}: {len(vf.t)} frame(s); {needs}")
-    period = float(np.median(np.diff(vf.t)))
+    period = _frame_period(video_path, vf.t, error)
     rate = 1.0 / period
     notes = list(vf.notes)
     if len(info.video_streams) > 1:
@@ -60,6 +63,26 @@ def read_camera_video(video_path, camera: Calibration, error: type[Exception], n
                      f"{camera.frame_rate_hz:.3g}: the video's rate is used")
     camera = camera.replace(frame_rate_hz=rate, readout_s=min(camera.readout_s, 0.99 * period))
     return CameraVideo(vf, camera, period, notes)
+
+
+def _frame_period(video_path, t: np.ndarray, error: type[Exception]) -> float:
+    """The median frame interval (s), once every interval is a plausible frame period (module
+    docstring)."""
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    top = RANGES["frame_rate_hz"][1]
+    if not period >= 1.0 / top:
+        raise error(f"{video_path}: the frames are {period * 1e3:.3g} ms apart at the median "
+                    f"({1.0 / period:.6g} fps, over the {top:g} fps of a camera): timestamps that repeat, "
+                    "moved one tick apart by the muxer? expected one frame per frame interval")
+    short = np.flatnonzero(dt < MIN_INTERVAL_SHARE * period)
+    if len(short):
+        k = int(short[0]) + 1
+        raise error(f"{video_path}: frame {k} at {t[k]:.6f} s comes {dt[k - 1] * 1e3:.3g} ms after frame "
+                    f"{k - 1}, under {MIN_INTERVAL_SHARE:g} of the median frame interval "
+                    f"({period * 1e3:.3g} ms); {len(short)} such frame(s): a repeated or backward timestamp "
+                    "that the muxer moved one tick on? expected one frame per frame interval")
+    return period
 
 
 def put_frames_and_gyro(w, vf: video.VideoFrames, gyro_t, gyro_rate, calib: Calibration) -> None:
