@@ -265,6 +265,22 @@ def test_a_video_too_short_or_without_texture_is_refused(clip, tmp_path):
     assert not (tmp_path / "a.h5").exists() and not (tmp_path / "b.h5").exists()
 
 
+def test_frames_hours_apart_are_refused_not_sampled_at_1_khz_between():
+    """A clip whose times are 10⁵ × too long (a wrong time base: the real clip's frames 72 min apart)
+    imported as a gyro sampled at 1 kHz across every interval: 10⁸ samples, a 2.4 GB recording from
+    24 frames. Frames over MAX_PERIOD_S apart are now refused, naming the clip."""
+    from thermod.physics.geometry import Intrinsics
+
+    rng = np.random.default_rng(6)
+    scene = cv2.GaussianBlur(rng.uniform(0, 255, (72, 120)), (0, 0), 2.0).astype(np.float32)
+    frames = np.stack([scene[4:68, k:k + 80] for k in range(8)])
+    intr = Intrinsics(80, 64, 100.0, 100.0, 39.5, 31.5)
+    with pytest.raises(TrackError, match=r"slow: the frames are 3600 s apart .*expected at least 0\.5 fps"):
+        estimate_track(frames, np.arange(8) * 3600.0, intr, tau_s=TAU, name="slow")
+    track = estimate_track(frames, np.arange(8) * 1.0, intr, tau_s=TAU)          # 1 fps: still tracked
+    assert len(track.gyro(1000.0)[0]) < 8000
+
+
 def test_the_real_drone_clip_finds_its_logo_and_its_repeated_frames(shared_data, require):
     """The real ICI clip (shared/data/video, SOURCES.md: a logo burnt into the top-left corner, no
     gyro): the overlay is found there by itself, and the frames flagged as repeats are those whose

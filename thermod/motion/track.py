@@ -5,12 +5,12 @@ consecutive frames with the sync's picture motion (`thermod.motion.picture`: per
 against an AGC; KLT corners; Kabsch in a two-point RANSAC against moving objects and parallax) after
 handling what a video brings that a gyro does not: static overlays are found (`static_overlay`) and
 inpainted; duplicated frames are left out (`duplicates`); cuts, textureless frames, fits far from
-their neighbours and time gaps (lost frames, `GAP_PERIODS`) leave a hole, never invented motion; the
-blur's lag (τ, the exponential's centroid, Eq. 11, plus each band's share of the readout) shifts
-each measurement's time. A cubic spline of the cumulative rotation through each stretch without
-holes is the track; its derivative, sampled at `rate_hz`, is the camera-frame gyro with a σ per
-sample (`RotationTrack.gyro`). The rules in full: docs/design.md §3, "Importing a video without a
-gyro".
+their neighbours and time gaps (lost frames, `GAP_PERIODS`) leave a hole, never invented motion
+(frames over `MAX_PERIOD_S` apart are refused); the blur's lag (τ, the exponential's centroid,
+Eq. 11, plus each band's share of the readout) shifts each measurement's time. A cubic spline of
+the cumulative rotation through each stretch without holes is the track; its derivative, sampled at
+`rate_hz`, is the camera-frame gyro with a σ per sample (`RotationTrack.gyro`). The rules in full:
+docs/design.md §3, "Importing a video without a gyro".
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ OUTLIER_MIN_RAD_S = math.radians(45.0)   # ... and by more than this
 BAND_SMOOTHING = 1e-3        # the banded fit's second-difference penalty, relative to the median weight
 SMOOTH_MIN_KNOTS = 6         # `gyro(smooth=True)`: stretches of fewer frames are interpolated
 GAP_PERIODS = 4.0            # an interval over this × the median frame interval: frames lost or a time jump
+MAX_PERIOD_S = 2.0           # a median frame interval over this: no rate during a frame can be told (and the
+                             # gyro, sampled at rate_hz across every interval, would grow with it unbounded)
 HOLE_PERIODS = 6             # samples left out before a stretch that follows an unknown interval (a
                              # hole is > thermod.restore.policy.MAX_STEP_PERIODS periods)
 WORK_WIDTH = 160             # the picture motion's working width
@@ -380,8 +382,8 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
                    work_width: int = WORK_WIDTH, name: str = "video", progress=None) -> RotationTrack:
     """The rotation track of a video (module docstring). `frames` [N, H, W] grey or a sequence of
     [H, W] frames (AGC allowed); `frame_t` [N] s (a frame's time: its last row read); `tau_s`,
-    `readout_s` the camera's. Raises `TrackError` naming `name` when the video is too short or has
-    too little texture to track."""
+    `readout_s` the camera's. Raises `TrackError` naming `name` when the video is too short, its
+    frames too far apart (`MAX_PERIOD_S`) or it has too little texture to track."""
 
     n = len(frames)
     t = np.asarray(frame_t, np.float64)
@@ -389,6 +391,11 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
         raise TrackError(f"{name}: {n} frame(s); a rotation track from the pictures needs ≥ {MIN_FRAMES}")
     if t.shape != (n,) or not np.all(np.isfinite(t)) or not np.all(np.diff(t) > 0):
         raise TrackError(f"{name}: frame times must be {n} finite, increasing seconds")
+    period = float(np.median(np.diff(t)))
+    if period > MAX_PERIOD_S:
+        raise TrackError(f"{name}: the frames are {period:.4g} s apart at the median ({1 / period:.3g} fps): "
+                         "the camera's rotation during a frame cannot be told from pictures so far apart; "
+                         f"expected at least {1 / MAX_PERIOD_S:g} fps (a wrong time base?)")
     shape = np.shape(frames[0])
     if shape != (intrinsics.height, intrinsics.width):
         raise TrackError(f"{name}: {shape[1] if len(shape) > 1 else '?'}×{shape[0]} px frames but the "
@@ -407,7 +414,7 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     tk = t[kept]
     ncc = np.full(len(kept) - 1, np.nan)
     status_kept = np.full(len(kept) - 1, "ok", dtype=object)
-    long = np.diff(t) > GAP_PERIODS * float(np.median(np.diff(t)))
+    long = np.diff(t) > GAP_PERIODS * period
     for i in range(len(kept) - 1):
         if long[kept[i]:kept[i + 1]].any():    # the rate inside it unknown: a hole, never a spline's guess
             status_kept[i] = "gap"
