@@ -281,6 +281,17 @@ def test_frames_hours_apart_are_refused_not_sampled_at_1_khz_between():
     assert len(track.gyro(1000.0)[0]) < 8000
 
 
+def test_a_strip_too_thin_for_the_working_image_is_refused_naming_the_clip():
+    """A line-scan-like 4096×8 video shrinks to 160×0 working pixels: OpenCV's resize asserted (an
+    internal error); now a TrackError naming the clip and the working size."""
+    from thermod.physics.geometry import Intrinsics
+
+    frames = np.random.default_rng(7).integers(0, 256, (6, 8, 4096), dtype=np.uint8)
+    intr = Intrinsics(4096, 8, 2000.0, 2000.0, 2047.5, 3.5)
+    with pytest.raises(TrackError, match=r"strip: 4096×8 px frames are 160×0 px .*≥ 8 px per side"):
+        estimate_track(frames, np.arange(6) / FPS, intr, tau_s=TAU, name="strip")
+
+
 def test_the_real_drone_clip_finds_its_logo_and_its_repeated_frames(shared_data, require):
     """The real ICI clip (shared/data/video, SOURCES.md: a logo burnt into the top-left corner, no
     gyro): the overlay is found there by itself, and the frames flagged as repeats are those whose

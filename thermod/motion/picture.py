@@ -28,6 +28,7 @@ from thermod.physics.geometry import Intrinsics, so3_log
 
 MIN_INTERVALS = 20            # picture intervals with a rotation estimate a sync needs
 MIN_FEATURES = 8              # tracked corners a rotation estimate needs
+MIN_WORK_SIDE = 8             # px per side of the working image (a frame shrunk to the working width)
 BANDS = 3                     # horizontal bands of a frame fitted apart (rolling readout)
 MIN_MOTION_SNR = 5.0          # picture rotation RMS over its measurement noise RMS
 MIN_MOTION_PX = 0.25          # picture rotation RMS per interval, in working-image pixels
@@ -202,6 +203,10 @@ class PairRegistrar:
 
         self.full = intrinsics
         self.work, self.scale = _work_intrinsics(intrinsics, work_width)
+        if min(self.work.width, self.work.height) < MIN_WORK_SIDE:
+            raise MotionError(f"{intrinsics.width}×{intrinsics.height} px frames are {self.work.width}×"
+                              f"{self.work.height} px at the tracker's working width: expected ≥ "
+                              f"{MIN_WORK_SIDE} px per side (a strip this thin cannot be tracked)")
         self.K_inv = self.work.K_inv
         self.f_px = math.sqrt(self.work.fx * self.work.fy)
         self.rng = np.random.default_rng(seed)

@@ -405,8 +405,11 @@ def estimate_track(frames, frame_t, intrinsics: Intrinsics, *, tau_s: float, rea
     overlay = static_overlay(work, dup)
     mask_full = None if overlay is None else full_resolution(overlay, intrinsics.width, intrinsics.height)
     kept = np.flatnonzero(~dup)
-    pm = picture_motion(_Inpainted(frames, mask_full, kept), t[kept], intrinsics, work_width=work_width,
-                        smooth_px=SMOOTH_PX, progress=progress)
+    try:
+        pm = picture_motion(_Inpainted(frames, mask_full, kept), t[kept], intrinsics, work_width=work_width,
+                            smooth_px=SMOOTH_PX, progress=progress)
+    except MotionError as e:
+        raise TrackError(f"{name}: {e}") from None
     noise = pm.noise_rad()
     rv = pm.rotvec.copy()
     # the picture motion's working frames may differ in size from ours by rounding: compare at ours
