@@ -201,6 +201,17 @@ def test_a_repeated_or_backward_time_that_the_muxer_moved_one_tick_on_is_refused
     assert len(read_camera_video(ok, cam, VideoImportError, "a test").frames.t) == N     # a gap is no fault
 
 
+def test_an_animated_gif_is_a_video_not_a_ros_bag(tmp_path):
+    """A thermal viewer's GIF export was sent to the ROS bag reader ("expected an .mcap file …");
+    FFmpeg reads it (palette of greys, 1/100 s delays), so it is imported as a video."""
+    from thermod.cli.import_video import is_video
+
+    gif = encode(tmp_path / "export.gif")
+    got = video.read_video(gif)
+    assert is_video(str(gif)) and np.array_equal(got.frames, frames())
+    assert np.allclose(np.diff(got.t), 1 / FPS)
+
+
 # ------------------------------------------------------------------------------------ through the CLI
 def thermod(*args) -> subprocess.CompletedProcess:
     env = dict(os.environ)

@@ -14,7 +14,7 @@ from thermod.errors import ThermodError
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".avi", ".m4v", ".ts", ".mts", ".m2ts", ".webm", ".mpg", ".mpeg",
                   ".h264", ".264", ".hevc", ".h265", ".nut", ".mxf", ".flv", ".3gp", ".y4m", ".ogv", ".wmv",
-                  ".asf", ".mjpeg", ".mjpg", ".tif", ".tiff")
+                  ".asf", ".mjpeg", ".mjpg", ".gif", ".apng", ".tif", ".tiff")
 
 
 def is_video(path: str) -> bool:
