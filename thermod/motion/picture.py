@@ -346,6 +346,8 @@ def picture_motion(frames, frame_t, intrinsics: Intrinsics, *, work_width: int =
     for k in range(1, n):
         cur = reg.prepare(frames[k])
         fit = reg.measure(prev, cur)
+        if fit is None:         # corners that disagree: every pixel, from the last pair's rotation
+            fit = reg.measure_dense(prev, cur, predicted=rotvec[k - 2] if k >= 2 else None)
         if fit is not None:
             rotvec[k - 1], info[k - 1], nfeat[k - 1], resid[k - 1] = fit.rotvec, fit.info, fit.n_features, \
                 fit.residual_px
