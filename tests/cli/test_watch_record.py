@@ -268,11 +268,16 @@ def test_watch_summary_of_a_daemon_health_is_short_lines():
            "stats": {k: 0 for k in ("samples", "batches", "overflows", "gaps", "lost", "crc_errors",
                                     "io_errors", "resets", "invalid", "recoveries", "bad_counts")}}
     cam = dict(dev, state="reconnecting", errors=3, restarts=1, last_error="stream timeout")
+    gov = {"method": "wiener", "ladder": ["temporal", "wiener", "wiener_half"], "budget_ms": 25.5,
+           "latency_scale": 0.8, "latency_goal_ms": 60.0, "load": 1.2, "degrades": 2, "climbs": 1, "late": 7}
     st.add("health", {"rates": {"gyro_hz": 1001.0, "frames_out_hz": 48.05},
                       "drops": {"jobs_dropped": 73, "gyro_lost": 0, "camera_frames_lost": 0},
-                      "devices": {"gyro": dev, "camera": cam}}, None)
+                      "devices": {"gyro": dev, "camera": cam}, "governor": gov}, None)
     lines = st.format().splitlines()
     assert max(len(ln) for ln in lines) <= 110, lines
+    g = lines.index("governor     wiener (ladder temporal > wiener > wiener_half), budget 25.5 ms "
+                    "(×0.80 for a p99 of 60 ms)")
+    assert lines[g + 1] == "             load ×1.20, down 2 up 1, 7 late frames solved cheaper"
     assert "devices      gyro running, camera reconnecting (3 errors, 1 restart: stream timeout)" in lines
     assert "daemon drops jobs_dropped=73" in lines
 

@@ -156,9 +156,9 @@ class WatchStats:
                 nan = float("nan")
                 lines.append(f"governor     {g['method']} (ladder {' > '.join(g.get('ladder', []))}), budget "
                              f"{g.get('budget_ms', nan):.1f} ms (×{g.get('latency_scale', 1.0):.2f} "
-                             f"for a p99 of {g.get('latency_goal_ms', nan):.0f} ms), "
-                             f"load ×{g.get('load', nan):.2f}, "
-                             f"down {g.get('degrades', 0)} up {g.get('climbs', 0)}")
+                             f"for a p99 of {g.get('latency_goal_ms', nan):.0f} ms)")
+                lines.append(f"             load ×{g.get('load', nan):.2f}, down {g.get('degrades', 0)} up "
+                             f"{g.get('climbs', 0)}, {g.get('late', 0)} late frames solved cheaper")
             lines += cpu_lines(h)
             lines += motion_lines(h)
             lines.append(f"daemon rates {_compact(h.get('rates'))}")
