@@ -286,7 +286,6 @@ class PairRegistrar:
         return PairFit(so3_log(Q), _information(rb, sigma), int(mask.sum()), sigma * self.f_px, brot, binfo,
                        blead, float(np.mean(lead)))
 
-
     def measure_dense(self, prev: np.ndarray, cur: np.ndarray, *, predicted: np.ndarray | None = None,
                       exclude: np.ndarray | None = None) -> PairFit | None:
         """The rotation from `prev` to `cur` by dense registration, for a pair whose corners do not
