@@ -9,6 +9,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from thermod.drivers.video_gyro import VideoGyro
 from thermod.motion.live import LEAD_SAMPLES, LiveTrack
@@ -248,3 +250,33 @@ def test_lost_frames_leave_a_hole_one_lost_frame_does_not(swaying):
     got = run(tr, [rec.frames[k] for k in one], rec.t[one])
     assert tr.counts["gap"] == 0 and not any(s.gap_before for s in got)
     assert tr.counts["measured"] == len(one) - 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(8, 200), st.integers(8, 150), st.integers(0, 2**32 - 1),
+       st.sampled_from(["noise", "flat", "same"]),
+       st.sampled_from([None, (math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), (0.05, -0.02, 0.1), (1e6, 0.0, 0.0)]),
+       st.sampled_from([None, "all", "none", "half"]))
+@example(200, 8, 0, "same", None, None)           # a strip whose border leaves no row for the grid
+def test_the_dense_fit_of_any_pair_is_a_finite_rotation_or_none(w, h, seed, kind, predicted, exclude):
+    """Any working size, picture, prediction and overlay: a finite rotation with a finite noise, or
+    None; never an exception or a numpy warning (a strip too thin for its grid, a flat pair, a warp to
+    infinity)."""
+    import warnings
+
+    from thermod.motion.picture import PairRegistrar
+
+    c = Calibration(width=w, height=h, fx=1.2 * w, fy=1.2 * w, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    reg = PairRegistrar(c.intrinsics, work_width=160)
+    H, W = reg.work.height, reg.work.width
+    rng = np.random.default_rng(seed)
+    a = rng.integers(0, 256, (H, W), dtype=np.uint8) if kind != "flat" else np.full((H, W), 128, np.uint8)
+    b = a.copy() if kind != "noise" else rng.integers(0, 256, (H, W), dtype=np.uint8)
+    mask = {None: None, "all": np.ones((H, W), bool), "none": np.zeros((H, W), bool),
+            "half": np.arange(W)[None, :].repeat(H, 0) < W // 2}[exclude]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = reg.measure_dense(a, b, predicted=None if predicted is None else np.array(predicted),
+                                exclude=mask)
+    if fit is not None:
+        assert np.all(np.isfinite(fit.rotvec)) and math.isfinite(fit.noise_rad) and fit.noise_rad > 0

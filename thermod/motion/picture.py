@@ -311,7 +311,7 @@ class PairRegistrar:
                           self.edge:self.work.width - self.edge:DENSE_GRID]
         a = np.c_[xs.ravel(), ys.ravel()].astype(np.float64)
         b = np.c_[a, np.ones(len(a))] @ W.astype(np.float64).T      # x of prev lies at W x in cur
-        if not np.all(np.abs(b[:, 2]) > 1e-6):
+        if len(a) < 3 or not np.all(np.abs(b[:, 2]) > 1e-6):      # a strip without a grid; a warp to infinity
             return None
         b = b[:, :2] / b[:, 2:]
         ra, rb = _rays(a, self.K_inv), _rays(b, self.K_inv)
