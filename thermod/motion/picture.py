@@ -198,7 +198,8 @@ class PairRegistrar:
     (the percentiles of the working image, not of the full frame: cheaper, for a live stream)."""
 
     def __init__(self, intrinsics: Intrinsics, *, work_width: int = 160, max_features: int = 150,
-                 seed: int = 0, smooth_px: float = 0.0, resize_first: bool = False, lk_levels: int = 3):
+                 seed: int = 0, smooth_px: float = 0.0, resize_first: bool = False, lk_levels: int = 3,
+                 lk_window: int = 15):
         import cv2
 
         self.full = intrinsics
@@ -215,7 +216,7 @@ class PairRegistrar:
         self.edge = max(3, self.work.width // 40)
         self.border[self.edge:-self.edge, self.edge:-self.edge] = 1
         self.max_features, self.smooth_px, self.resize_first = max_features, smooth_px, resize_first
-        self.lk = {"winSize": (15, 15), "maxLevel": int(lk_levels),
+        self.lk = {"winSize": (int(lk_window), int(lk_window)), "maxLevel": int(lk_levels),
                    "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)}
 
     def prepare(self, frame, exclude: np.ndarray | None = None) -> np.ndarray:
