@@ -253,11 +253,7 @@ class PairRegistrar:
         if p0 is None or len(p0) < MIN_FEATURES:
             return None
         lk, guess = self.lk, None
-        if predicted is not None and np.all(np.isfinite(predicted)):
-            from thermod.physics.geometry import so3_exp
-
-            # v_prev = Q v_cur: corner p of prev lies at K Qᵀ K⁻¹ p in cur
-            H = self.work.K @ so3_exp(predicted).T @ self.K_inv
+        if (H := self._homography(predicted)) is not None:
             guess = cv2.perspectiveTransform(p0.astype(np.float64), H).astype(np.float32)
             lk = {**self.lk, "flags": cv2.OPTFLOW_USE_INITIAL_FLOW}
         p1, st, _ = cv2.calcOpticalFlowPyrLK(prev, cur, p0, guess.copy() if guess is not None else None, **lk)
@@ -287,6 +283,15 @@ class PairRegistrar:
         return PairFit(so3_log(Q), _information(rb, sigma), int(mask.sum()), sigma * self.f_px, brot, binfo,
                        blead, float(np.mean(lead)))
 
+    def _homography(self, rotvec: np.ndarray | None) -> np.ndarray | None:
+        """Where a working pixel of the first frame lies in the second after the rotation `rotvec`
+        (v_prev = Q v_cur: p ↦ K Qᵀ K⁻¹ p), or None without a finite one."""
+        if rotvec is None or not np.all(np.isfinite(rotvec)):
+            return None
+        from thermod.physics.geometry import so3_exp
+
+        return self.work.K @ so3_exp(rotvec).T @ self.K_inv
+
     def measure_dense(self, prev: np.ndarray, cur: np.ndarray, *, predicted: np.ndarray | None = None,
                       exclude: np.ndarray | None = None) -> PairFit | None:
         """The rotation from `prev` to `cur` by dense registration, for a pair whose corners do not
@@ -296,10 +301,8 @@ class PairRegistrar:
         at the grid's rays. None when ECC does not converge."""
         import cv2
 
-        from thermod.physics.geometry import so3_exp
-
-        H0 = np.eye(3) if predicted is None or not np.all(np.isfinite(predicted)) else \
-            self.work.K @ so3_exp(predicted).T @ self.K_inv
+        H0 = self._homography(predicted)
+        H0 = np.eye(3) if H0 is None else H0
         keep = None if exclude is None else (~exclude.astype(bool)).astype(np.uint8)
         try:
             stop = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, DENSE_ITERATIONS, 1e-4)
