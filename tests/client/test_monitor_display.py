@@ -30,7 +30,9 @@ def test_watch_text_shows_applied_and_estimate():
     assert "in force (monitor)" in text and "time offset 1.70 ms" in text
     assert "[12.30, -4.50, 2.00] ± [1.10, 0.90, 6.00] mrad/s" in text
     assert "time offset 6.54 ± 0.41 ms" in text and "tau not estimated" in text
-    assert "CPU 7.2 %" in text and "2 changes applied" in text
+    assert "CPU 7.2 % of a core, applies" in text and "2 changes applied" in text
+    settled = calibration_lines({**CAL, "monitor": {**CAL["monitor"], "cpu_share": 0.009, "settled": True}})
+    assert "CPU 0.9 % of a core (settled: watching for drift), applies" in "\n".join(settled)
     s = WatchStats()
     s.add("health", {"calibration": CAL, "rates": {}, "drops": {}, "devices": {}}, None)
     assert "6.54 ± 0.41 ms" in s.format()
@@ -91,3 +93,4 @@ def test_page_shows_the_estimate(pub, require, tmp_path):
     cal = cal[:cal.index("</div>")]
     assert "calibration (monitor)" in cal and "offset 6.54 ± 0.41 ms" in cal, cal
     assert "[12.30, -4.50, 2.00] ± [1.10, 0.90, 6.00] mrad/s" in cal and "not estimated" in cal
+    assert "monitor CPU 7.2 %, applies" in cal, cal          # not settled: said only when it is

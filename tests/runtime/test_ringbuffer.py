@@ -165,9 +165,11 @@ def test_frame_ring_in_order_reads_and_overrun():
     s = fr.get(1, timeout=0)
     assert s.index == 1 and s.frame_id == 2 and s.t == pytest.approx(0.02) and np.all(s.image == 1)
     assert fr.get(3, timeout=0.01) is None
+    assert fr.stamp(1) == pytest.approx((0.02, 0.021)) and fr.stamp(3) is None
     for k in range(3, 9):
         fr.write(np.full((6, 8), k, np.uint16), t=k * 0.02, frame_id=k + 1, arrival=0.0)
     assert fr.get(2, timeout=0) == 5          # overwritten: oldest available is 5
+    assert fr.stamp(4) is None and fr.stamp(5) == pytest.approx((0.1, 0.0)) and fr.stamp(9) is None
     with pytest.raises(ValueError, match=r"frame shape \(5, 8\) does not match the ring's \(6, 8\)"):
         fr.write(np.zeros((5, 8), np.uint16), 0.0, 0, 0.0)
 

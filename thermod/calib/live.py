@@ -44,6 +44,7 @@ TAIL_SPAN = 8.0         # of τ_max: how far back the tails are followed (e^−8
 TAU_MODEL_ERROR = 0.05  # of τ: the floor of τ's σ (see `LiveEstimator.fit_tau`)
 TAU_WIDTH = 160         # px: τ is measured at this working width (its cost does not grow with the frame)
 TAU_WINDOW_S = 12.0     # s: the window of τ measurements (at least the motion's window)
+MAX_WINDOW_S = 60.0     # s: the longest a stretched window grows (`LiveEstimator.stretch`)
 TAU_REF = 6             # TAU_SCAN[TAU_REF] = 1: the τ in force
 TAU_MIN_LEVER_PX = 0.5  # working px: a patch pair whose tails differ less shows nothing of τ
 TAU_BLOCKS = 16         # τ's jackknife blocks: σ from g blocks has g − 1 degrees of freedom
@@ -435,17 +436,33 @@ class LiveEstimator:
     def __init__(self, window_s: float = 4.0, blocks: int = 8, tau_window_s: float | None = None):
         self.window_s = float(window_s)
         self.tau_window_s = max(self.window_s, TAU_WINDOW_S if tau_window_s is None else float(tau_window_s))
+        self._windows = (self.window_s, self.tau_window_s)
+        self.keep, self.max_window_s = 0, MAX_WINDOW_S
         self.blocks = int(blocks)
         self.pairs: deque[Pair] = deque()
         self.tau_pairs: deque[Pair] = deque()
 
     def add(self, pair: Pair) -> None:
         self.pairs.append(pair)
-        while self.pairs and pair.t_b - self.pairs[0].t_a > self.window_s:
-            self.pairs.popleft()
         if pair.tau_coherence is not None:
             self.tau_pairs.append(pair)
-        while self.tau_pairs and pair.t_b - self.tau_pairs[0].t_a > self.tau_window_s:
+        self._trim(pair.t_b)
+
+    def stretch(self, factor: float, keep: int = 0, max_window_s: float = MAX_WINDOW_S) -> None:
+        """Keep `factor` × the windows it was made with (at most `max_window_s`), and at least `keep`
+        pairs within that: pairs taken `factor` times more sparsely then still fill a fit. Pairs beyond
+        a shortened window go now."""
+        cap = max(float(max_window_s), self._windows[0])
+        self.window_s, self.tau_window_s = (min(w * float(factor), max(cap, w)) for w in self._windows)
+        self.keep, self.max_window_s = int(keep), cap
+        if self.pairs:
+            self._trim(self.pairs[-1].t_b)
+
+    def _trim(self, newest_t: float) -> None:
+        while self.pairs and newest_t - self.pairs[0].t_a > self.window_s and \
+                (len(self.pairs) > self.keep or newest_t - self.pairs[0].t_a > self.max_window_s):
+            self.pairs.popleft()
+        while self.tau_pairs and newest_t - self.tau_pairs[0].t_a > self.tau_window_s:
             self.tau_pairs.popleft()
 
     def span(self) -> tuple[float, float] | None:

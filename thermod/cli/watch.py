@@ -244,7 +244,8 @@ def calibration_lines(cal) -> list[str]:
         out.append(f"  monitor    {e.get('n_pairs', 0)} frame pairs, residual "
                    f"{_num(e.get('residual_px'), 1, 3)} px (in force "
                    f"{_num(e.get('residual_applied_px'), 1, 3)}), CPU "
-                   f"{_num(mon.get('cpu_share'), 100, 1)} % of a core, "
+                   f"{_num(mon.get('cpu_share'), 100, 1)} % of a core"
+                   f"{' (settled: watching for drift)' if mon.get('settled') else ''}, "
                    f"{'applies' if mon.get('apply') else 'reports only'}, "
                    f"{mon.get('changes_applied', 0)} changes applied")
     elif mon.get("enabled"):

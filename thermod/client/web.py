@@ -474,8 +474,8 @@ function calText(cal) {
     h += "<br>estimate: bias " + vec(e.gyro_bias_rad_s) + " ± " + vec(e.gyro_bias_rad_s_sigma) +
       " mrad/s<br>offset " + ms(e.time_offset_s) + " ± " + ms(e.time_offset_s_sigma) + " ms, τ " +
       (e.tau_s === null ? "not estimated" : ms(e.tau_s) + " ± " + ms(e.tau_s_sigma) + " ms") +
-      "<br>monitor CPU " + fmt(100 * m.cpu_share, 1) + " %, " + (m.apply ? "applies" : "reports only") +
-      ", " + (m.changes_applied || 0) + " changes";
+      "<br>monitor CPU " + fmt(100 * m.cpu_share, 1) + " %" + (m.settled ? " (settled)" : "") + ", " +
+      (m.apply ? "applies" : "reports only") + ", " + (m.changes_applied || 0) + " changes";
   } else if (m.enabled) {
     h += "<br>estimate: none yet";
   }

@@ -147,7 +147,8 @@ class PipelineConfig:
                                         "own; about 190 MB more memory each); false: in the worker thread")
     job_queue: int = setting(4, lo=1, hi=64, doc="deblur jobs waiting for a worker (overload drops oldest)")
     frame_ring: int = setting(32, lo=2, hi=1024, doc="frames buffered between camera thread and scheduler")
-    gyro_ring_s: float = setting(10.0, lo=0.5, hi=600.0, doc="seconds of gyro history kept")
+    gyro_ring_s: float = setting(30.0, lo=0.5, hi=600.0,
+                                 doc="seconds of gyro history kept (a settled monitor fits over this less 2)")
     wait_timeout_s: float = setting(0.05, lo=0.0, hi=2.0,
                                     doc="max wait after a frame's time for the gyro to cover it")
     reorder_timeout_s: float = setting(0.5, lo=0.0, hi=10.0, doc="max wait to publish frames in order")
@@ -191,6 +192,9 @@ class MonitorConfig:
     enabled: bool = setting(True)
     apply: bool = setting(False, doc="apply a significant, stable estimate that lowers the residual")
     cpu_share: float = setting(0.05, lo=0.001, hi=1.0, doc="the share of one core it may use, at most")
+    settled_cpu_share: float = setting(
+        0.01, lo=0.001, hi=1.0, doc="its share, at most, once `stable_windows` fits in a row agree with "
+        "the calibration in force (it then watches for drift over windows stretched by the shares' ratio)")
     window_s: float = setting(4.0, lo=0.5, hi=60.0,
                               doc="rolling window of frame pairs one estimate is fitted on")
     width: int = setting(320, lo=32, hi=1024,

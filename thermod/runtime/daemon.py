@@ -121,7 +121,8 @@ class Daemon:
         elif cfg.monitor.enabled:
             from thermod.runtime.monitor import Monitor
             self.monitor = Monitor(cfg.monitor, self.gyro_ring, self.frame_ring, lambda: self.pipeline.calib,
-                                   short_of_cpu=lambda: self.pipeline.short_of_cpu())
+                                   short_of_cpu=lambda: self.pipeline.short_of_cpu(),
+                                   gyro_history_s=cfg.pipeline.gyro_ring_s)
         self._stop = threading.Event()
         self.gyro_state = DeviceState(self.gyro.name)
         self.pipeline.gyro_delivered = lambda: self.gyro_state.last_data

@@ -8,7 +8,10 @@ gap, and gyro windows with a gap are skipped.
 
 The rules it keeps: frames come first. The thread runs at nice 19 and after each piece of work of
 CPU time c sleeps c·(1/cpu_share − 1), so it uses at most ``cpu_share`` of one core; while the
-pipeline is short of CPU (`short_of_cpu`) it does no work at all (``yielded_s``). τ uses at most
+pipeline is short of CPU (`short_of_cpu`) it does no work at all (``yielded_s``). Once
+``stable_windows`` fits in a row agree with the calibration in force it is settled: it watches for
+drift with ``settled_cpu_share``, its window and fit period stretched by the shares' ratio, until a
+fit departs (`_settle`). τ uses at most
 `TAU_CPU_SHARE` of the thread's CPU, on pairs drawn at random (`TAU_PICK`: a fixed cadence aliases
 with a periodic motion). A window whose bias and offset are confounded (`Estimate.ambiguous`) is
 never applied; otherwise a change must lie ``k_sigma`` σ from the calibration in force in
@@ -32,6 +35,7 @@ import time
 import numpy as np
 
 from thermod.calib.live import (
+    MAX_WINDOW_S,
     MIN_PAIRS,
     MIN_RESPONSE,
     TAIL_SPAN,
@@ -57,6 +61,7 @@ BACKLOG = 16                 # frames the monitor may lag behind the camera befo
 CPU_PERIOD_S = 10.0          # the CPU share reported is measured over about this long
 TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the monitor's own CPU time
 TAU_PICK = 0.5               # the chance that an affordable pair is measured for τ
+GYRO_MARGIN_S = 1.0          # s of gyro history a window leaves unused at each end (tails, offset, stamps)
 YIELD_S = 0.25               # while the pipeline is short of CPU the monitor checks again this often
 
 
@@ -64,8 +69,10 @@ class Monitor:
     """One monitor thread over the daemon's rings. ``calib()`` returns the calibration in force."""
 
     def __init__(self, cfg: MonitorConfig, gyro_ring: GyroRing, frame_ring: FrameRing, calib,
-                 short_of_cpu=None):
+                 short_of_cpu=None, gyro_history_s: float = MAX_WINDOW_S + 2 * GYRO_MARGIN_S):
         self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
+        # a fit needs the gyro over its whole window: a stretched window ends where the ring's history does
+        self._max_window_s = max(cfg.window_s, min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S))
         self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
         self._registrars: dict[tuple, Registrar] = {}
@@ -84,6 +91,8 @@ class Monitor:
         self.counters = collections.Counter()
         self._rng = random.Random()
         self.changes: list[dict] = []          # every change applied: at, before, after, residuals
+        self._agreeing = 0                     # consecutive fits that agree with the calibration in force
+        self.settled = False
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> Monitor:
@@ -104,7 +113,8 @@ class Monitor:
 
     def state(self) -> dict:
         return {"enabled": True, "apply": self.cfg.apply, "cpu_share": self.cpu_share(),
-                "cpu_share_max": self.cfg.cpu_share, "pairs_in_window": len(self.estimator.pairs),
+                "cpu_share_max": self._share(), "settled": self.settled,
+                "pairs_in_window": len(self.estimator.pairs),
                 "changes_applied": len(self.changes), **dict(self.counters)}
 
     def cpu_share(self) -> float | None:
@@ -146,7 +156,15 @@ class Monitor:
             while len(self._cpu) > 2 and now - self._cpu[1][0] > CPU_PERIOD_S:
                 self._cpu.popleft()
             # the budget: idle long enough that work / (work + idle) ≤ cpu_share
-            self._stop.wait((c1 - c0) * (1.0 / self.cfg.cpu_share - 1.0) if worked else 0.01)
+            self._stop.wait((c1 - c0) * (1.0 / self._share() - 1.0) if worked else 0.01)
+
+    def _share(self) -> float:
+        """The share of one core it may use now."""
+        return min(self.cfg.settled_cpu_share, self.cfg.cpu_share) if self.settled else self.cfg.cpu_share
+
+    def _stretch(self) -> float:
+        """How much sparser pairs come now than at the full share (the window and fit period grow by it)."""
+        return self.cfg.cpu_share / self._share()
 
     def _registrar_for(self, calib: Calibration, width: int | None = None) -> Registrar:
         width = self.cfg.width if width is None else width
@@ -167,7 +185,7 @@ class Monitor:
         ib = max(self._last_b + 1, head - min(BACKLOG, self.frame_ring.capacity // 2), 1)
         if ib <= head - 1:
             worked = self._register(ib - 1, ib)
-        if now - self._last_fit >= FIT_PERIOD_S and len(self.estimator.pairs) > 0:
+        if now - self._last_fit >= FIT_PERIOD_S * self._stretch() and len(self.estimator.pairs) > 0:
             self._last_fit = now
             self._fit()
             worked = True
@@ -183,22 +201,26 @@ class Monitor:
 
     def _register(self, ia: int, ib: int) -> bool:
         calib = self._calib()
-        a = self.frame_ring.get(ia, 0.0)
-        b = self.frame_ring.get(ib, 0.0)
-        if not hasattr(a, "image") or not hasattr(b, "image"):
+        stamp = self.frame_ring.stamp(ib)
+        if stamp is None:
             self._last_b = ib
             return False
         bias, offset = self._current(calib)
-        # the comet tails of the τ scan reach TAIL_SPAN τ_max behind frame a's first row
-        reach = TAIL_SPAN * TAU_SCAN[-1] * calib.tau_s + calib.readout_s
-        g0 = float(calib.camera_time_to_gyro(a.t - reach)) - 0.01
-        g1 = float(calib.camera_time_to_gyro(b.t)) + 0.01
+        # asked until the gyro covers frame b: the frames are copied only then
+        g1 = float(calib.camera_time_to_gyro(stamp[0])) + 0.01
         if not self.gyro_ring.newest_t >= g1 + abs(offset - calib.time_offset_s):
-            if time.monotonic() - b.arrival > 0.5:          # the gyro will not come (offline)
+            if time.monotonic() - stamp[1] > 0.5:          # the gyro will not come (offline)
                 self._last_b = ib
                 self.counters["pairs_no_gyro"] += 1
             return False
         self._last_b = ib
+        a = self.frame_ring.get(ia, 0.0)
+        b = self.frame_ring.get(ib, 0.0)
+        if not hasattr(a, "image") or not hasattr(b, "image"):
+            return False
+        # the comet tails of the τ scan reach TAIL_SPAN τ_max behind frame a's first row
+        reach = TAIL_SPAN * TAU_SCAN[-1] * calib.tau_s + calib.readout_s
+        g0 = float(calib.camera_time_to_gyro(a.t - reach)) - 0.01
         if a.ffc or b.ffc or b.gap_before:
             self.counters["pairs_skipped"] += 1
             return False
@@ -265,8 +287,36 @@ class Monitor:
         with self._lock:
             self._last = est
         self._history.append(est)
+        self._settle(self._agrees(est, calib))
         if self.cfg.apply:
             self._consider(calib, est, integral)
+
+    def _agrees(self, est, calib: Calibration) -> bool | None:
+        """Whether a fit finds the calibration in force within ``k_sigma`` σ (bias on every axis, offset,
+        τ when estimated); None for an ambiguous fit, which can say neither."""
+        if est.ambiguous:
+            return None
+        k = self.cfg.k_sigma
+        return not (np.any(np.abs(est.bias_rad_s - np.asarray(calib.bias_rad_s, float)) > k * _stat(est))
+                    or abs(est.time_offset_s - calib.time_offset_s) > k * est.time_offset_sigma
+                    or (est.tau_s is not None and est.tau_sigma is not None
+                        and abs(est.tau_s - calib.tau_s) > k * est.tau_sigma))
+
+    def _settle(self, agrees: bool | None) -> None:
+        """Settle after ``stable_windows`` agreeing fits in a row; leave on the first that departs. A
+        monitor watching a calibration the stream confirms needs few pairs; one that sees a change
+        needs its full share to confirm it in ``stable_windows`` fits."""
+        if agrees is None:
+            return
+        self._agreeing = self._agreeing + 1 if agrees else 0
+        settled = self._agreeing >= self.cfg.stable_windows
+        if settled != self.settled:
+            self.settled = settled
+            self.counters["settled" if settled else "unsettled"] += 1
+            # settled, the window holds at least a fit's worth twice over: on a host slower than the
+            # settled share assumes, a window of sparse pairs would hold too few to fit at all
+            self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS if settled else 0,
+                                   max_window_s=self._max_window_s)
 
     def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
         """Propose the estimate when it is significant, stable and lowers the residual. The motion
@@ -308,6 +358,7 @@ class Monitor:
         self._history.clear()
         if not new:
             return
+        self._settle(False)          # the calibration changes: it is confirmed afresh
         log.info("calibration monitor: applying %s", "; ".join(
             f"{k} {_fmt(v[0])} → {_fmt(v[1])}" for k, v in change.items() if k != "at"))
         self.changes.append(change)

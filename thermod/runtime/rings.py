@@ -249,6 +249,15 @@ class FrameRing:
             self._cond.notify_all()
         return h
 
+    def stamp(self, index: int) -> tuple[float, float] | None:
+        """Frame `index`'s (t, arrival) without copying its image; None if not written yet or
+        overwritten."""
+        s = index % self.capacity
+        if not (max(0, self._claimed - self.capacity) <= index < self._head):
+            return None
+        t, arrival = float(self._t[s]), float(self._arrival[s])
+        return (t, arrival) if self._claimed - self.capacity <= index else None
+
     def get(self, index: int, timeout: float) -> FrameSlot | None | int:
         """Frame `index`: a `FrameSlot` copy; None if not yet written after `timeout` s; or, if it
         has already been overwritten, the (int) index of the oldest frame still available."""
