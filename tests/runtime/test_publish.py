@@ -11,7 +11,7 @@ import zmq.auth
 
 from thermod.chaos import FROZEN_SUBSCRIBER
 from thermod.client.subscriber import Subscriber
-from thermod.errors import ThermodError
+from thermod.errors import ConfigError, ThermodError
 from thermod.io.endpoints import TransportError, is_loopback
 from thermod.io.wire import MessageError, decode
 from thermod.runtime import config
@@ -401,6 +401,31 @@ def test_gyro_coalescing_flushes_on_time():
         sub.close()
     with Publisher(EP, gyro_batch_s=0) as p:  # no coalescing: one message per call
         assert [p.publish_gyro(np.array([float(i)]), np.zeros((1, 3)), seq=i) for i in range(3)] == [0, 1, 2]
+
+
+def test_a_gyro_batch_being_coalesced_wakes_the_sender_once():
+    """Each wake is a pass of the sender's loop in the daemon's Python: a driver batch every 1–2 ms
+    woke it for every call, though only the batch's start (to arm its timer) and a message need it."""
+    p = Publisher(EP, gyro_batch_s=5.0)
+    wakes = []
+    real_set = p._wake.set
+    p._wake.set = lambda: wakes.append(1) or real_set()
+    for s in range(0, 40, 2):
+        assert p.publish_gyro(1.0 + np.arange(s, s + 2) * 1e-3, np.zeros((2, 3)), seq=s) is None
+    assert len(wakes) == 1
+    p.publish_gyro(np.array([2.0]), np.zeros((1, 3)), seq=100)   # not contiguous: one message, one batch
+    assert len(wakes) == 3
+
+
+def test_the_daemon_s_gyro_messages_follow_its_configuration():
+    from thermod.runtime import config
+    from thermod.runtime.daemon import Daemon
+
+    assert config.load(None).publish.gyro_batch_s == 0.05
+    d = Daemon(config.load(None, {"publish.gyro_batch_s": 0.2, "publish.endpoint": EP}))  # not started
+    assert d.publisher.gyro_batch_s == 0.2
+    with pytest.raises(ConfigError, match="publish.gyro_batch_s"):
+        config.load(None, {"publish.gyro_batch_s": 2.0})
 
 
 # ------------------------------------------------------------------------------ endpoints and security

@@ -122,6 +122,8 @@ class PublishConfig:
                             accepts="tcp://HOST:PORT, ipc://PATH or inproc://NAME")
     raw: bool = setting(False, doc="publish the raw frames too (topic raw)")
     gyro: bool = setting(True)
+    gyro_batch_s: float = setting(0.05, lo=0.0, hi=1.0,
+                                  doc="gyro samples coalesced into one message for up to this long (s)")
     kernel: bool = setting(True, doc="the blur kernel of every deblurred frame (topic kernel)")
     hwm: int = setting(endpoints.DEFAULT_HWM, lo=1, hi=1_000_000, doc="messages queued per subscriber")
     health_period_s: float = setting(1.0, lo=0.05, hi=60.0)

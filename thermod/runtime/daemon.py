@@ -95,7 +95,7 @@ class Daemon:
             publisher = Publisher(p.endpoint, hwm=p.hwm, curve_secret_key_file=p.curve_secret_key,
                                   authorized_keys_dir=p.curve_authorized_keys,
                                   allow_insecure_remote=p.allow_insecure_remote,
-                                  max_queue_bytes=int(p.max_queue_mb * 2**20),
+                                  max_queue_bytes=int(p.max_queue_mb * 2**20), gyro_batch_s=p.gyro_batch_s,
                                   max_message_bytes=cfg.calibration.width * cfg.calibration.height * 4)
         self.publisher = publisher
         self._camera_radiometry = _UNREAD     # model = "camera": the constants, read at the first frame

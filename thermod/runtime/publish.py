@@ -121,7 +121,7 @@ class Publisher:
                  max_queue_bytes: int = DEFAULT_MAX_QUEUE_BYTES, max_message_bytes: int | None = None,
                  curve_secret_key_file=None, authorized_keys_dir=None, allow_insecure_remote: bool = False,
                  stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S,
-                 queue_size: int = 1024, queue_bytes: int = 64 << 20, gyro_batch_s: float = 0.01,
+                 queue_size: int = 1024, queue_bytes: int = 64 << 20, gyro_batch_s: float = 0.05,
                  linger_s: float = 0.5, context: zmq.Context | None = None):
         if queue_size < 1 or hwm < 1:
             raise ValueError("queue_size and hwm must be at least 1")
@@ -313,7 +313,8 @@ class Publisher:
             if p is not None and (gap_before or int(seq) != p["seq"] + p["n"] or extra != p["extra"]):
                 out = self._flush_gyro_locked()
                 p = None
-            if p is None:
+            started = p is None
+            if started:
                 self._gyro = p = {"t": [], "rate": [], "seq": int(seq), "n": 0, "since": now,
                                   "gap_before": bool(gap_before), "n_lost": int(n_lost), "extra": extra}
             p["t"].append(t)
@@ -321,8 +322,10 @@ class Publisher:
             p["n"] += n
             if now - p["since"] >= self.gyro_batch_s or p["n"] >= 4096:
                 out = self._flush_gyro_locked()
-        if self._gyro is not None:
-            self._wake.set()  # the sender thread flushes it if no batch follows in time
+        if started and self._gyro is not None:
+            # once a batch: the sender then waits at most gyro_batch_s, and flushes it if no call does
+            # (a wake on every call cost a pass of the sender's loop per driver batch)
+            self._wake.set()
         return out
 
     def _flush_gyro_locked(self, older_than: float | None = None) -> int | None:
