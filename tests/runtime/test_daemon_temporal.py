@@ -72,3 +72,28 @@ def test_the_default_daemon_deblurs_temporally():
     assert c.get("temporal_alone", 0) <= 1 + c.get("catch_up", 0)          # the first frame only
     by = h["governor"]["deblurred_by"]
     assert by.get("temporal", 0) >= len(temporal) - 2                      # health counts them too
+
+
+def test_a_9_fps_camera_is_deblurred_without_the_temporal_rung():
+    """An export-limited 9 Hz core: no prior is ever within the temporal rung's age limit. The daemon
+    starts (its workers' warm-up used to refuse the rung: exit with an internal error) and deblurs by
+    Wiener."""
+    opts = {"publish.endpoint": private_endpoint(), "calibration.width": 160,
+            "calibration.height": 120, "calibration.fx": 366.0, "calibration.fy": 366.0,
+            "calibration.frame_rate_hz": 9.0, "sim.frame_rate_hz": 9.0,
+            "pipeline.workers": 2, "monitor.enabled": False}
+    d = Daemon(config.load(None, opts))
+    seen = []
+    d.pipeline.emit = lambda o, emit=d.pipeline.emit: seen.append((o.deblurred, o.method)) or emit(o)
+    assert [r.name for r in d.pipeline.governor.rungs] == ["wiener", "wiener_half"]
+    d.start()
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 3.0:
+            d.tick()
+            time.sleep(0.05)
+        running = list(seen)
+    finally:
+        d.stop()
+    assert len(running) >= 15
+    assert all(ok and method.startswith("wiener") for ok, method in running), running

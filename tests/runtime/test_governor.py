@@ -74,6 +74,18 @@ def test_budget_and_ladder_follow_the_configuration():
     assert coarser_grids((3, 4), 4 / 3) == [(3, 4), (2, 3), (1, 1)]
 
 
+def test_a_camera_too_slow_for_a_prior_gets_no_temporal_rung(caplog):
+    """At 9 fps (an export-limited core) every prior is older than MAX_AGE_S: the temporal rung would
+    never find one, and the workers' warm-up refused it (the daemon exited with an internal error)."""
+    from thermod.physics.deconv.recursive import MAX_AGE_S
+
+    assert [r.name for r in Governor(DeblurConfig(), 9.0, 2).rungs] == ["wiener", "wiener_half"]
+    assert "temporal deblurring off: a frame period of 111 ms" in caplog.text
+    assert [r.name for r in ladder(DeblurConfig(), 1.0 / MAX_AGE_S)][0] == "temporal"      # the edge: kept
+    assert [r.name for r in Governor(DeblurConfig(), 30.0, 2).rungs][0] == "temporal"
+    assert [r.name for r in Governor(SINGLE, 9.0, 2).rungs] == ["kf", "kf_fast", "wiener"]   # not temporal
+
+
 def test_fits_runs_the_best_rung_over_the_grid_the_frame_needs():
     g = seeded()
     assert g.choose((3, 4), 0.0).label == "kf 3×4"

@@ -25,13 +25,17 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import math
 import statistics
 import threading
 from dataclasses import dataclass
 
+from thermod.physics.deconv.recursive import MAX_AGE_S
 from thermod.physics.kernels.grids import coarser_grids
 from thermod.restore.settings import DeblurConfig
+
+log = logging.getLogger(__name__)
 
 FAST_KF_ITERATIONS = 3            # β = 1, 8, 64: K&F's continuation at ×8 instead of ×2√2
 WINDOW = 15                       # solves per key in the sliding median
@@ -62,10 +66,16 @@ class Rung:
         return dataclasses.replace(base, method=self.method, kf_iterations=self.kf_iterations)
 
 
-def ladder(deblur: DeblurConfig) -> list[Rung]:
-    """The rungs the configuration allows, best first."""
+def ladder(deblur: DeblurConfig, frame_rate_hz: float | None = None) -> list[Rung]:
+    """The rungs the configuration allows, best first. The temporal rung needs a camera whose frame
+    period is within a prior's `MAX_AGE_S`: below ~10 fps (an export-limited 9 Hz core) no prior is
+    ever young enough, and its ladder starts at ``wiener``."""
     varying = deblur.mode != "uniform"
     last = Rung("wiener", "wiener", None, varying, coarsens=True)
+    if deblur.temporal_views > 1 and frame_rate_hz is not None and 1.0 / frame_rate_hz > MAX_AGE_S:
+        log.warning("temporal deblurring off: a frame period of %.0f ms leaves no prior within its %.0f ms "
+                    "age limit; the ladder starts at wiener", 1e3 / frame_rate_hz, 1e3 * MAX_AGE_S)
+        return [last, Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)]
     if deblur.temporal_views > 1:
         return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last,
                 Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)]
@@ -104,7 +114,7 @@ class Governor:
     def __init__(self, deblur: DeblurConfig, frame_rate_hz: float, workers: int, aspect: float = 4 / 3, *,
                  hold_s: float = 2.0, max_hold_s: float = 32.0, margin: float = 0.25):
         self.deblur = deblur
-        self.rungs = ladder(deblur)
+        self.rungs = ladder(deblur, frame_rate_hz)
         self.full_last = max(i for i, r in enumerate(self.rungs) if not r.half)   # keeps its floor in keep_s
         self.last = len(self.rungs) - 1      # the rung that goes below its floor when nothing else fits
         self.enabled = bool(deblur.governor)
