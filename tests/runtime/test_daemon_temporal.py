@@ -56,20 +56,24 @@ def test_the_default_daemon_deblurs_temporally():
     assert ids == sorted(ids)
     temporal = [s for s in running if s[2] == "temporal"]
     deblurred = [s for s in running if s[1]]
-    g = {k: h["governor"][k] for k in ("cost_ms", "load", "frames", "degrades", "overload_steps", "stalls")}
-    # Every frame the temporal rung made had a prior (the first frame and catch-ups aside), and the
-    # rung held the stream unless the governor stepped down, which it does only when measured costs
-    # or overloads say the machine is loaded (a shared test host can be): then the method degrades,
-    # never the share of frames deblurred.
+    g = {k: h["governor"].get(k, 0) for k in ("cost_ms", "load", "frames", "degrades", "climbs",
+                                              "overload_steps", "stalls")}
+    # Every frame the temporal rung made had a prior (the first frame, catch-ups and the first frame
+    # back after a step down aside: its last prior may be past MAX_AGE_S), and the rung held the stream
+    # unless the governor stepped down, which it does only when measured costs or overloads say the
+    # machine is loaded (a shared test host can be): then the method degrades, never the share of
+    # frames deblurred. (A bare clone's suite at 748d785 saw 3 frames alone: the first and one step
+    # down and back, beside the other test worker.)
+    alone_allowed = 1 + c.get("catch_up", 0) + g["climbs"]
     on_temporal = len(temporal) + c.get("temporal_alone", 0)
-    assert len(temporal) >= 0.99 * on_temporal - 1, (g, c)
+    assert len(temporal) >= 0.99 * (on_temporal - alone_allowed), (g, c)
     if g["degrades"] == 0:
         assert len(temporal) >= 0.99 * len(deblurred), (g, c)
     else:
         assert len(temporal) >= 0.2 * len(deblurred), (g, c)      # it started, and stayed a while, there
     assert all(s[3] >= 1 for s in temporal)
     assert not [s for s in running if not s[1]], c                         # none went out raw
-    assert c.get("temporal_alone", 0) <= 1 + c.get("catch_up", 0)          # the first frame only
+    assert c.get("temporal_alone", 0) <= alone_allowed, (g, c)
     by = h["governor"]["deblurred_by"]
     assert by.get("temporal", 0) >= len(temporal) - 2                      # health counts them too
 
