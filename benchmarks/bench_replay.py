@@ -3,6 +3,7 @@ replayed in real time through the default daemon and deblurred offline, both sco
 
     .venv/bin/python -m benchmarks.bench_replay [--seconds 6] [--cases N] [--size 640x480]
     .venv/bin/python -m benchmarks.bench_replay --rung-in-order     # the ceiling at 100 % temporal
+    .venv/bin/python -m benchmarks.bench_replay --rung-columns 2    # where across the frame it loses
 
 Each recording (`thermod.sim.synth`, `make run`'s camera: 640×480 at 50 fps, τ 8 ms, NETD 50 mK, a
 paper-grade gyro) is a scene under a motion the tests do not use; they are cached in
@@ -152,10 +153,11 @@ def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float],
     return [psnr(r.deblurred[k], truth[k]) for k in range(len(truth))], ok, wall
 
 
-def rung_in_order(rec, truth: np.ndarray, stride: int) -> list[float]:
+def rung_in_order(rec, truth: np.ndarray, stride: int, keep=None) -> list[float]:
     """PSNR per frame of the daemon's temporal rung at 100 %: `config/sim.toml`'s deblur, its adaptive
     kernel grid, the recursive solve over its Wiener solver with the prior from frame t − `stride`
-    (2: two workers, each frame's predecessor still being solved), in read order."""
+    (2: two workers, each frame's predecessor still being solved), in read order. `keep(i, image)`
+    sees each restored frame."""
     from thermod.physics.deconv.recursive import RecursiveDeconvolver
     from thermod.restore.plan import make_deconvolver, render
     from thermod.runtime.config import load
@@ -176,7 +178,45 @@ def rung_in_order(rec, truth: np.ndarray, stride: int) -> list[float]:
         prior = estimates.pop(i - stride, None)
         img, estimates[i] = rd.solve(frame, kernel, t, rec.gyro_t, rec.gyro_rate, prior)
         out.append(psnr(img, truth[i]))
+        if keep is not None:
+            keep(i, img)
     return out
+
+
+def squared_errors(est, truth) -> np.ndarray:
+    """Per-pixel squared error on `psnr`'s 8-bit scale."""
+    from benchmarks.bench_quality import to8
+
+    lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
+    return (to8(est, lo, hi).astype(np.float64) - to8(truth, lo, hi).astype(np.float64)) ** 2
+
+
+def by_columns(case: int, seconds: float, size, skip_s: float, cache: Path, bands: int = 10) -> list[tuple]:
+    """[(first column, last column, rung MSE, offline MSE)]: the rung (prior t − 1) and `thermod deblur`
+    on every 5th frame after `skip_s`, their squared errors averaged per band of columns."""
+    from thermod.io import recording
+
+    path = recording_for(case, seconds, size, cache)
+    rec = recording.read(path)
+    truth = np.asarray(rec.extras["truth/frames"], np.float32)
+    with tempfile.TemporaryDirectory(prefix="thermod-replay-") as d:
+        out = Path(d) / "offline.h5"
+        subprocess.run([str(THERMOD), "deblur", str(path), "-o", str(out)], check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        off = recording.read(out).deblurred
+    first = int(round(skip_s * rec.calibration.frame_rate_hz))
+    rung, offline_ = [], []
+
+    def keep(i, img):
+        if i >= first and i % 5 == 0:
+            rung.append(squared_errors(img, truth[i]).mean(0))
+            offline_.append(squared_errors(off[i], truth[i]).mean(0))
+
+    rung_in_order(rec, truth, 1, keep)
+    r, o = np.mean(rung, axis=0), np.mean(offline_, axis=0)
+    edges = np.linspace(0, size[0], bands + 1).astype(int)
+    return [(a, b, float(r[a:b].mean()), float(o[a:b].mean()))
+            for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 def run_in_order(case: int, seconds: float, size, skip_s: float, cache: Path) -> dict:
@@ -229,6 +269,9 @@ def main(argv=None) -> int:
     ap.add_argument("--skip", type=float, default=2.0, help="seconds of warm-up left out of the scores")
     ap.add_argument("--cases", type=int, default=len(CASES))
     ap.add_argument("--size", default="640x480")
+    ap.add_argument("--rung-columns", type=int, default=None, metavar="CASE",
+                    help="no daemon: the rung in read order (prior t − 1) and `thermod deblur` on recording "
+                         "CASE (0–5), their squared error per band of columns")
     ap.add_argument("--rung-in-order", action="store_true",
                     help="no daemon: its temporal rung run offline in read order (what it publishes at "
                          "100 %% temporal) against `thermod deblur`")
@@ -240,6 +283,15 @@ def main(argv=None) -> int:
 
     print(yardstick_line(), "(before the runs)", flush=True)
     print(jitter_line(), flush=True)
+    if args.rung_columns is not None:
+        if not 0 <= args.rung_columns < len(CASES):
+            ap.error(f"--rung-columns: expected a recording 0–{len(CASES) - 1}, got {args.rung_columns}")
+        print(f"{' / '.join(CASES[args.rung_columns])}, every 5th frame after {args.skip:g} s")
+        print("| columns | rung MSE | `thermod deblur` MSE | rung − offline dB |")
+        print("|---|---|---|---|")
+        for a, b, r, o in by_columns(args.rung_columns, args.seconds, size, args.skip, cache):
+            print(f"| {a}–{b} | {r:.2f} | {o:.2f} | {10 * np.log10(o / r):+.2f} |")
+        return 0
     if args.rung_in_order:
         return print_in_order(args, size, cache)
     rows = []
