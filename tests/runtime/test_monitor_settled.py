@@ -15,11 +15,12 @@ CAL = Calibration(width=160, height=120, fx=366.0, fy=366.0, cx=79.5, cy=59.5)
 SIGMA = 0.001                # rad/s, s: each fit's stated 1-σ
 
 
-def _fit(bias=(0.0, 0.0, 0.0), offset=None, ambiguous=False) -> Estimate:
+def _fit(bias=(0.0, 0.0, 0.0), offset=None, ambiguous=False, tau="in force") -> Estimate:
+    tau = CAL.tau_s if tau == "in force" else tau
     return Estimate(bias_rad_s=np.array(bias), bias_sigma=np.full(3, SIGMA),
                     time_offset_s=CAL.time_offset_s if offset is None else offset, time_offset_sigma=SIGMA,
                     t=0.0, n_pairs=40, residual_px=0.1, residual_applied_px=0.1, ambiguous=ambiguous,
-                    bias_sigma_stat=np.full(3, SIGMA))
+                    bias_sigma_stat=np.full(3, SIGMA), tau_s=tau, tau_sigma=None if tau is None else 0.0005)
 
 
 def _monitor(**cfg) -> Monitor:
@@ -56,6 +57,15 @@ def test_an_ambiguous_fit_neither_settles_nor_wakes_the_monitor():
         [False, False, False, False]
     assert _feed(m, [_fit()]) == [True]
     assert _feed(m, [_fit(bias=(1, 1, 1), ambiguous=True)]) == [True]
+
+
+def test_a_fit_without_tau_cannot_settle_the_monitor():
+    """τ is measured with a quarter of the monitor's CPU: settled before its first τ, the monitor would
+    rarely measure one (bench_monitor: a camera's τ of 10 ms against 8 in force was never found)."""
+    m = _monitor()
+    assert _feed(m, [_fit(tau=None)] * 5) == [False] * 5
+    assert _feed(m, [_fit(tau=CAL.tau_s * 1.5)]) == [False]         # 12 ms against 8, σ 0.5 ms: departs
+    assert _feed(m, [_fit()] * 3 + [_fit(tau=None)]) == [False, False, True, True]   # settled stays so
 
 
 def test_the_settled_share_is_never_above_the_full_one():

@@ -292,15 +292,16 @@ class Monitor:
             self._consider(calib, est, integral)
 
     def _agrees(self, est, calib: Calibration) -> bool | None:
-        """Whether a fit finds the calibration in force within ``k_sigma`` σ (bias on every axis, offset,
-        τ when estimated); None for an ambiguous fit, which can say neither."""
-        if est.ambiguous:
+        """Whether a fit finds the calibration in force within ``k_sigma`` σ (bias on every axis, offset
+        and τ); None for an ambiguous fit, or one without τ, which cannot confirm the calibration (a
+        monitor settled before its first τ would rarely measure one: τ 10 ms against 8 was never
+        found)."""
+        if est.ambiguous or est.tau_s is None or est.tau_sigma is None:
             return None
         k = self.cfg.k_sigma
         return not (np.any(np.abs(est.bias_rad_s - np.asarray(calib.bias_rad_s, float)) > k * _stat(est))
                     or abs(est.time_offset_s - calib.time_offset_s) > k * est.time_offset_sigma
-                    or (est.tau_s is not None and est.tau_sigma is not None
-                        and abs(est.tau_s - calib.tau_s) > k * est.tau_sigma))
+                    or abs(est.tau_s - calib.tau_s) > k * est.tau_sigma)
 
     def _settle(self, agrees: bool | None) -> None:
         """Settle after ``stable_windows`` agreeing fits in a row; leave on the first that departs. A
