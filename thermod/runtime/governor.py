@@ -72,13 +72,13 @@ def ladder(deblur: DeblurConfig, frame_rate_hz: float | None = None) -> list[Run
     ever young enough, and its ladder starts at ``wiener``."""
     varying = deblur.mode != "uniform"
     last = Rung("wiener", "wiener", None, varying, coarsens=True)
+    half = Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)
     if deblur.temporal_views > 1 and frame_rate_hz is not None and 1.0 / frame_rate_hz > MAX_AGE_S:
         log.warning("temporal deblurring off: a frame period of %.0f ms leaves no prior within its %.0f ms "
                     "age limit; the ladder starts at wiener", 1e3 / frame_rate_hz, 1e3 * MAX_AGE_S)
-        return [last, Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)]
+        return [last, half]
     if deblur.temporal_views > 1:
-        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last,
-                Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)]
+        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last, half]
     if deblur.method == "wiener":
         return [last]
     rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]

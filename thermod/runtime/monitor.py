@@ -72,7 +72,8 @@ class Monitor:
                  short_of_cpu=None, gyro_history_s: float = MAX_WINDOW_S + 2 * GYRO_MARGIN_S):
         self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
         # a fit needs the gyro over its whole window: a stretched window ends where the ring's history does
-        self._max_window_s = max(cfg.window_s, min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S))
+        # (`LiveEstimator.stretch` never shortens it below the configured window)
+        self._max_window_s = min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S)
         self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
         self._registrars: dict[tuple, Registrar] = {}
