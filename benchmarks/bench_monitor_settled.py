@@ -37,7 +37,7 @@ class BiasStep(GyroDrift):
 
     def bias(self, t) -> np.ndarray:
         t = np.asarray(t, np.float64)[..., None]
-        return np.where(t >= STEP_T, np.asarray(STEP), 0.0) + 0.0 * t
+        return np.where(t >= STEP_T, np.asarray(STEP), 0.0)
 
 
 def one_run(settled_share: float) -> dict:

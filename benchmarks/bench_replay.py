@@ -91,14 +91,19 @@ def _toml(v) -> str:
     return repr(v)
 
 
+def on_truth_scale(est, truth) -> tuple[np.ndarray, np.ndarray]:
+    """(truth, est) on the truth's 8-bit 0.5–99.5 % scale."""
+    from benchmarks.bench_quality import to8
+
+    lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
+    return to8(truth, lo, hi), to8(est, lo, hi)
+
+
 def psnr(est, truth) -> float:
     """PSNR (dB) on the truth's 8-bit 0.5–99.5 % scale, as bench_temporal_daemon scores."""
     from skimage.metrics import peak_signal_noise_ratio
 
-    from benchmarks.bench_quality import to8
-
-    lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
-    return float(peak_signal_noise_ratio(to8(truth, lo, hi), to8(est, lo, hi), data_range=255))
+    return float(peak_signal_noise_ratio(*on_truth_scale(est, truth), data_range=255))
 
 
 def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
@@ -137,7 +142,8 @@ def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
             for k, (d, m, ms, img) in got.items()}
 
 
-def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float], list[bool], float]:
+def deblur_offline(rec_path: Path, work: Path):
+    """`thermod deblur` with its defaults: (the restored frames, which were deblurred, wall seconds)."""
     import h5py
 
     from thermod.io import recording
@@ -147,10 +153,14 @@ def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float],
     subprocess.run([str(THERMOD), "deblur", str(rec_path), "-o", str(out)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     wall = time.perf_counter() - t0
-    r = recording.read(out)
     with h5py.File(out) as f:
         ok = f["deblurred/deblurred"][()].astype(bool).tolist()
-    return [psnr(r.deblurred[k], truth[k]) for k in range(len(truth))], ok, wall
+    return recording.read(out).deblurred, ok, wall
+
+
+def offline(rec_path: Path, truth: np.ndarray, work: Path) -> tuple[list[float], list[bool], float]:
+    restored, ok, wall = deblur_offline(rec_path, work)
+    return [psnr(restored[k], truth[k]) for k in range(len(truth))], ok, wall
 
 
 def rung_in_order(rec, truth: np.ndarray, stride: int, keep=None) -> list[float]:
@@ -185,10 +195,8 @@ def rung_in_order(rec, truth: np.ndarray, stride: int, keep=None) -> list[float]
 
 def squared_errors(est, truth) -> np.ndarray:
     """Per-pixel squared error on `psnr`'s 8-bit scale."""
-    from benchmarks.bench_quality import to8
-
-    lo, hi = (float(v) for v in np.percentile(truth, (0.5, 99.5)))
-    return (to8(est, lo, hi).astype(np.float64) - to8(truth, lo, hi).astype(np.float64)) ** 2
+    t8, e8 = on_truth_scale(est, truth)
+    return (e8.astype(np.float64) - t8.astype(np.float64)) ** 2
 
 
 def by_columns(case: int, seconds: float, size, skip_s: float, cache: Path, bands: int = 10) -> list[tuple]:
@@ -200,10 +208,7 @@ def by_columns(case: int, seconds: float, size, skip_s: float, cache: Path, band
     rec = recording.read(path)
     truth = np.asarray(rec.extras["truth/frames"], np.float32)
     with tempfile.TemporaryDirectory(prefix="thermod-replay-") as d:
-        out = Path(d) / "offline.h5"
-        subprocess.run([str(THERMOD), "deblur", str(path), "-o", str(out)], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        off = recording.read(out).deblurred
+        off, _, _ = deblur_offline(path, Path(d))
     first = int(round(skip_s * rec.calibration.frame_rate_hz))
     rung, offline_ = [], []
 
