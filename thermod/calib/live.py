@@ -438,23 +438,28 @@ class LiveEstimator:
         self.tau_window_s = max(self.window_s, TAU_WINDOW_S if tau_window_s is None else float(tau_window_s))
         self._windows = (self.window_s, self.tau_window_s)
         self.keep, self.max_window_s = 0, MAX_WINDOW_S
+        self.tau_keep = 0
         self.blocks = int(blocks)
         self.pairs: deque[Pair] = deque()
         self.tau_pairs: deque[Pair] = deque()
+        self._tau_kept = 0            # patch pairs with a τ measurement in `tau_pairs`
 
     def add(self, pair: Pair) -> None:
         self.pairs.append(pair)
         if pair.tau_coherence is not None:
             self.tau_pairs.append(pair)
+            self._tau_kept += _tau_measured(pair)
         self._trim(pair.t_b)
 
-    def stretch(self, factor: float, keep: int = 0, max_window_s: float = MAX_WINDOW_S) -> None:
+    def stretch(self, factor: float, keep: int = 0, max_window_s: float = MAX_WINDOW_S,
+                tau_keep: int = 0) -> None:
         """Keep `factor` × the windows it was made with (at most `max_window_s`), and at least `keep`
-        pairs within that: pairs taken `factor` times more sparsely then still fill a fit. Pairs beyond
-        a shortened window go now."""
+        pairs within that: pairs taken `factor` times more sparsely then still fill a fit. The τ window
+        keeps at least `tau_keep` measured patch pairs, up to `MAX_WINDOW_S` (its measurements need no
+        gyro history). Pairs beyond a shortened window go now."""
         cap = max(float(max_window_s), self._windows[0])
         self.window_s, self.tau_window_s = (min(w * float(factor), max(cap, w)) for w in self._windows)
-        self.keep, self.max_window_s = int(keep), cap
+        self.keep, self.max_window_s, self.tau_keep = int(keep), cap, int(tau_keep)
         if self.pairs:
             self._trim(self.pairs[-1].t_b)
 
@@ -462,8 +467,10 @@ class LiveEstimator:
         while self.pairs and newest_t - self.pairs[0].t_a > self.window_s and \
                 (len(self.pairs) > self.keep or newest_t - self.pairs[0].t_a > self.max_window_s):
             self.pairs.popleft()
-        while self.tau_pairs and newest_t - self.tau_pairs[0].t_a > self.tau_window_s:
-            self.tau_pairs.popleft()
+        while self.tau_pairs and newest_t - self.tau_pairs[0].t_a > self.tau_window_s and \
+                (self._tau_kept - _tau_measured(self.tau_pairs[0]) >= self.tau_keep
+                 or newest_t - self.tau_pairs[0].t_a > max(MAX_WINDOW_S, self.tau_window_s)):
+            self._tau_kept -= _tau_measured(self.tau_pairs.popleft())
 
     def span(self) -> tuple[float, float] | None:
         return (self.pairs[0].t_a, self.pairs[-1].t_b) if self.pairs else None
@@ -586,8 +593,9 @@ class LiveEstimator:
         q, blk = self._tau_rows(taus)
         tau, sigma, problem = tau_peak(q, blk, taus)
         if problem is not None:
-            where = (f" in the last {self.tau_window_s:g} s (or the monitor had no CPU to spare for it)"
-                     if len(q) < MIN_TAU_PATCHES else "")
+            held = self.tau_pairs[-1].t_b - self.tau_pairs[0].t_a if self.tau_pairs else 0.0
+            where = (f" in the last {max(self.tau_window_s, held):.0f} s (or the monitor had no CPU to spare "
+                     "for it)" if len(q) < MIN_TAU_PATCHES else "")
             return None, None, len(q), f"tau_s: not estimated: {problem}{where}"
         return tau, sigma, len(q), None
 
@@ -629,6 +637,11 @@ class LiveEstimator:
         est = np.array(est)
         d = est - est.mean(axis=0)
         return (g - 1) / g * d.T @ d
+
+
+def _tau_measured(pair: Pair) -> int:
+    """The patch pairs of `pair` whose τ coherence was measured (`Registrar.tau_coherence`)."""
+    return int(np.all(np.isfinite(pair.tau_coherence), axis=1).sum())
 
 
 def tau_peak(q: np.ndarray, blk: np.ndarray, taus: np.ndarray

@@ -11,15 +11,14 @@ CPU time c sleeps c·(1/cpu_share − 1), so it uses at most ``cpu_share`` of on
 pipeline is short of CPU (`short_of_cpu`) it does no work at all (``yielded_s``). Once
 ``stable_windows`` fits in a row agree with the calibration in force it is settled: it watches for
 drift with ``settled_cpu_share``, its window and fit period stretched by the shares' ratio, until a
-fit departs (`_settle`). τ uses at most
-`TAU_CPU_SHARE` of the thread's CPU, on pairs drawn at random (`TAU_PICK`: a fixed cadence aliases
-with a periodic motion). A window whose bias and offset are confounded (`Estimate.ambiguous`) is
-never applied; otherwise a change must lie ``k_sigma`` σ from the calibration in force in
-``stable_windows`` consecutive, mutually agreeing fits and lower its own residual on the window
-(the registration residual for bias and offset, the tail-phase misfit for τ). Each change is logged,
-counted and applied by the daemon through `Pipeline.update` (`take_proposal`); a τ change re-centres
-the τ scan. A SIGHUP reload puts the configuration's (or a replayed recording's) calibration back in
-force and the monitor goes on from there. In full: docs/design.md §6, "The live calibration monitor".
+fit departs (`_settle`). The windows keep two fits' worth of pairs (a slow host lengthens them). τ uses
+at most `TAU_CPU_SHARE` of the thread's CPU, on pairs drawn at random (`TAU_PICK`). A window whose
+bias and offset are confounded (`Estimate.ambiguous`) is never applied; otherwise a change must lie
+``k_sigma`` σ from the calibration in force in ``stable_windows`` consecutive, mutually agreeing fits
+and lower its own residual on the window (the registration residual for bias and offset, the
+tail-phase misfit for τ). Each change is logged, counted and applied by the daemon through
+`Pipeline.update` (`take_proposal`); a τ change re-centres the τ scan. A SIGHUP reload puts the
+configuration's (or a recording's) calibration back in force. In full: docs/design.md §6.
 """
 
 from __future__ import annotations
@@ -38,6 +37,7 @@ from thermod.calib.live import (
     MAX_WINDOW_S,
     MIN_PAIRS,
     MIN_RESPONSE,
+    MIN_TAU_PATCHES,
     TAIL_SPAN,
     TAU_REF,
     TAU_SCAN,
@@ -76,6 +76,10 @@ class Monitor:
         self._max_window_s = min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S)
         self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
+        # the windows hold at least a fit's worth twice over (the motion's up to the gyro's history): on
+        # a host too slow to register that many in ``window_s`` (τ waits for them) they lengthen instead
+        self.estimator.stretch(1.0, keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
+                               tau_keep=2 * MIN_TAU_PATCHES)
         self._registrars: dict[tuple, Registrar] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -315,10 +319,8 @@ class Monitor:
         if settled != self.settled:
             self.settled = settled
             self.counters["settled" if settled else "unsettled"] += 1
-            # settled, the window holds at least a fit's worth twice over: on a host slower than the
-            # settled share assumes, a window of sparse pairs would hold too few to fit at all
-            self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS if settled else 0,
-                                   max_window_s=self._max_window_s)
+            self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
+                                   tau_keep=2 * MIN_TAU_PATCHES)
 
     def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
         """Propose the estimate when it is significant, stable and lowers the residual. The motion
