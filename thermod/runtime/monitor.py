@@ -63,6 +63,8 @@ TAU_CPU_SHARE = 0.25         # τ is measured with at most this share of the mon
 TAU_PICK = 0.5               # the chance that an affordable pair is measured for τ
 GYRO_MARGIN_S = 1.0          # s of gyro history a window leaves unused at each end (tails, offset, stamps)
 YIELD_S = 0.25               # while the pipeline is short of CPU the monitor checks again this often
+TAU_CONFIRM = 0.15           # of τ: a fit confirms τ only this close, at CONFIRM_Z σ (a 25 % error cost
+CONFIRM_Z = 2.0              # 0.9 dB on bench_monitor's τ 10/8; the σ floor is 5 %, so σ ≤ 7.5 % needed)
 
 
 class Monitor:
@@ -297,16 +299,21 @@ class Monitor:
             self._consider(calib, est, integral)
 
     def _agrees(self, est, calib: Calibration) -> bool | None:
-        """Whether a fit finds the calibration in force within ``k_sigma`` σ (bias on every axis, offset
-        and τ); None for an ambiguous fit, or one without τ, which cannot confirm the calibration (a
-        monitor settled before its first τ would rarely measure one: τ 10 ms against 8 was never
-        found)."""
+        """False when a fit departs from the calibration in force by more than ``k_sigma`` σ (bias on
+        any axis, offset or τ); True when it confirms it: τ within `TAU_CONFIRM` of the τ in force at
+        `CONFIRM_Z` σ. None (neither way) for an ambiguous fit, one without τ (settled before its first
+        τ, a monitor would rarely measure one) and one whose τ is too uncertain to have seen an error
+        that matters (τ 9.5 ± 1.2 ms is within 4 σ of 8 ms, and settled on, while the truth was 10)."""
         if est.ambiguous or est.tau_s is None or est.tau_sigma is None:
             return None
         k = self.cfg.k_sigma
-        return not (np.any(np.abs(est.bias_rad_s - np.asarray(calib.bias_rad_s, float)) > k * _stat(est))
-                    or abs(est.time_offset_s - calib.time_offset_s) > k * est.time_offset_sigma
-                    or abs(est.tau_s - calib.tau_s) > k * est.tau_sigma)
+        if (np.any(np.abs(est.bias_rad_s - np.asarray(calib.bias_rad_s, float)) > k * _stat(est))
+                or abs(est.time_offset_s - calib.time_offset_s) > k * est.time_offset_sigma
+                or abs(est.tau_s - calib.tau_s) > k * est.tau_sigma):
+            return False
+        if abs(est.tau_s - calib.tau_s) + CONFIRM_Z * est.tau_sigma > TAU_CONFIRM * calib.tau_s:
+            return None
+        return True
 
     def _settle(self, agrees: bool | None) -> None:
         """Settle after ``stable_windows`` agreeing fits in a row; leave on the first that departs. A
