@@ -1,15 +1,14 @@
 """Recursive temporal deconvolution: the previous restored frame, warped by the gyro into frame t's
 geometry, is the prior of frame t's solve (a Kalman filter per spatial frequency).
 
-Frame t is solved alone by Wiener (x₀) and corrected by the prior, per frequency, to the posterior
-mean (K̄Y + (A + R)T² P) / (|K|² + R + A T²):
+Frame t is solved alone by Wiener (x₀) and corrected by the prior's difference, per frequency:
 
-    X = X₀ + w (P − X₀) + v X₀,   w = (A + R) T² / D,   v = R T² / D,   D = |K|² + R + A T²
+    X = X₀ + w (P − X₀),   w = Π / (|K|² + (1 − β) R + Π)
 
-with R = |F∇|²/λ the single-frame solve's Tikhonov prior, A the prior's data information (forgotten
-by γ = `MEMORY` per frame and limited by a registration error of `REGISTRATION_PX`) and T the warp's
-interpolation gain (`interpolation_gain`). v X₀ undoes x₀'s shrinkage where the prior's information
-replaces the image prior; the frequencies a kernel nulls come from the prior.
+with R = |F∇|²/λ the single-frame solve's Tikhonov prior, β = `PRIOR_REG` and Π = (A + β R)·T² the
+prior's precision: A its data information (forgotten by γ = `MEMORY` per frame and limited by a
+registration error of `REGISTRATION_PX`), T the warp's interpolation gain (`interpolation_gain`).
+The frequencies a kernel nulls come from the prior, the rest are averaged by information.
 
 The rule it keeps: where the warped prior disagrees with x₀ beyond x₀'s own predicted noise (a
 moving hot object, parallax, new scene at a border, an FFC step, a registration error) or the gyro
@@ -46,6 +45,7 @@ TEST_WINDOW_PX = 5           # box (on the 2×2 means: ~10 px) of the disagreeme
 DISAGREE = (2.0, 4.0)        # test's local mean square / its reference: full weight below, none above
 HALF_TEST_SLACK = 4.0        # the test on 2×2 means: its reference × this (the means cut x₀'s noise by
                              # up to 4, not a misregistration's residual at the blur's scale)
+PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
 SPECTRUM_MIN = 128           # the weights' spectrum: at least this many points per axis (a power of two)
@@ -73,17 +73,17 @@ class Estimate:
 
 # ---------------------------------------------------------------------------------- numba passes
 @njit(cache=True, nogil=True, fastmath=True)
-def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, norm, by, bx, H, W, V, I):
+def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, bx, H, W, I):
     """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
-    Iₒ the prior's at the nearest old frequency), R = c |F∇|², D = |K|² + R + A T²:
-    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm (A + R) T² / D and
-    V = norm R T² / D (the correction's), I = |K|² + A T² (this frame's information). Returns the
-    mean over the full spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain,
-    Parseval) and the same times by[i]·bx[j] (its gain after a filter of that power response, e.g.
-    a 2×2 mean)."""
+    Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
+    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm Π / (|K|² + (1 − β) R + Π)
+    (the correction's), I = |K|² + A T² (this frame's information). Returns the mean over the full
+    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval) and the same
+    times by[i]·bx[j] (its gain after a filter of that power response, e.g. a 2×2 mean)."""
     h, w = K2.shape
     one, zero, eps = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
-    gain, q, c, norm = np.float32(gain), np.float32(q), np.float32(c), np.float32(norm)
+    gain, q, c = np.float32(gain), np.float32(q), np.float32(c)
+    beta, norm = np.float32(beta), np.float32(norm)
     full_w = 2 * (w - 1)
     mult = np.empty(w, np.float32)         # columns the half spectrum stands for (1 or 2)
     mult_b = np.empty(w, np.float32)
@@ -95,7 +95,7 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, norm, by, bx, H,
     for i in range(h):
         # row views and float32 row sums let the inner loop vectorise (2.2× faster than indexing)
         inf, k2i, g2i, t2i = info[rows[i]], K2[i], g2[i], T2[i]
-        Hi, Wi, Vi, Ii = H[i], W[i], V[i], I[i]
+        Hi, Wi, Ii = H[i], W[i], I[i]
         s = np.float32(0.0)
         s_b = np.float32(0.0)
         for j in range(w):
@@ -107,9 +107,8 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, norm, by, bx, H,
             t2 = t2i[j]
             inv = one / (k2 + r + eps)
             Hi[j] = norm * k2 * inv
-            d = norm * t2 / (k2 + r + a * t2 + eps)
-            Wi[j] = (a + r) * d
-            Vi[j] = r * d
+            p = (a + beta * r) * t2
+            Wi[j] = norm * p / (k2 + (one - beta) * r + p + eps)
             Ii[j] = k2 + a * t2
             g = k2 * inv * inv
             s += mult[j] * g
@@ -197,16 +196,6 @@ def _add_correction(x0, corr, rng, out):
 
 
 @njit(cache=True, nogil=True)
-def _fill_masked(x0, m, lo, scale, out):
-    """out[:h, :w] = m · x0 (unit range), zero beyond."""
-    hp, wp = out.shape
-    h, w = x0.shape
-    for i in range(hp):
-        for j in range(wp):
-            out[i, j] = m[i, j] * (x0[i, j] - lo) * scale if (i < h and j < w) else 0.0
-
-
-@njit(cache=True, nogil=True)
 def _fill_difference(p, x0, m, lo, scale, out):
     """out[:h, :w] = m · (p − x0) (unit range), zero beyond: outside the frame x₀ is trusted."""
     hp, wp = out.shape
@@ -249,15 +238,13 @@ def _upsample_maps(cx, cy, step, inset, mx, my, support):
 
 
 @njit(cache=True, nogil=True)
-def _weigh_sampled(wgt, rows, cols, factor, X, out, add=False):
-    """out = factor · wgt[rows[i], cols[j]] · X (a weight read off another spectrum's grid); `add`:
-    out += that."""
+def _weigh_sampled(wgt, rows, cols, factor, X, out):
+    """out = factor · wgt[rows[i], cols[j]] · X (a weight read off another spectrum's grid)."""
     h, w = X.shape
     for i in range(h):
         ri = rows[i]
         for j in range(w):
-            v = X[i, j] * (factor * wgt[ri, cols[j]])
-            out[i, j] = out[i, j] + v if add else v
+            out[i, j] = X[i, j] * (factor * wgt[ri, cols[j]])
 
 
 def _spectrum_shape(kshape, plan_shape) -> tuple[int, int]:
@@ -278,13 +265,11 @@ def _full_shape(half_spectrum: np.ndarray) -> tuple[int, int]:
     return half_spectrum.shape[0], 2 * (half_spectrum.shape[1] - 1)
 
 
-def _weigh_forward(plan, wgt: np.ndarray, add: bool = False) -> None:
-    """plan.cin = wgt · F(plan.rin), the weights read off their own grid at the plan's frequencies;
-    `add`: plan.cin += that."""
+def _weigh_forward(plan, wgt: np.ndarray) -> None:
+    """plan.cin = wgt · F(plan.rin), the weights read off their own grid at the plan's frequencies."""
     spec = _full_shape(wgt)
     _weigh_sampled(wgt, _frequency_index(plan.shape[0], spec[0], half=False),
-                   _frequency_index(plan.shape[1], spec[1], half=True), np.float32(1.0), plan.fwd(), plan.cin,
-                   add)
+                   _frequency_index(plan.shape[1], spec[1], half=True), np.float32(1.0), plan.fwd(), plan.cin)
 
 
 @functools.lru_cache(maxsize=64)
@@ -456,11 +441,11 @@ class RecursiveDeconvolver:
         spec = _full_shape(K2)
         rows = _frequency_index(spec[0], past.shape[0], half=False)
         cols = _frequency_index(spec[1], past.shape[1], half=True)
-        Hw, Ww, Vw, info = (np.empty_like(K2) for _ in range(4))
+        Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
         by, bx = self._box_gain(spec)
         nb_full, nb_half = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
-                                             self._gain(spec), self._g2(spec), float(c), float(plan.norm),
-                                             by, bx, Hw, Ww, Vw, info)
+                                           self._gain(spec), self._g2(spec), float(c), PRIOR_REG,
+                                           float(plan.norm), by, bx, Hw, Ww, info)
         tp = _lap("spectral_w", tp)
         if self.half_test:
             m = self._test_half(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_half)
@@ -470,17 +455,15 @@ class RecursiveDeconvolver:
         self.last_weight = float(m[::4, ::4].mean())
         self.last_prior_frames = n
         tp = _lap("mean", tp)
-        # the correction x₀ + F⁻¹[w F(m (p − x₀)) + v F(m x₀)]
+        # the correction x₀ + F⁻¹[w F(m (p − x₀))]
         _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
         tp = _lap("corr_fill", tp)
         _weigh_forward(plan, Ww)
-        _fill_masked(x0, m, np.float32(lo), scale, plan.rin)
-        _weigh_forward(plan, Vw, add=True)
         tp = _lap("corr_fwd", tp)
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
         tp = _lap("corr_inv", tp)
-        self.last_fft_pairs += 2.5 - (0.75 if self.half_test else 0.0)   # the test's: a quarter of the points
+        self.last_fft_pairs += 2.0 - (0.75 if self.half_test else 0.0)   # a quarter of the points
         return out, info
 
     def _test_full(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
