@@ -56,6 +56,44 @@ def test_the_recursive_solve_beats_the_single_frame_wiener_it_corrects(stride):
     np.testing.assert_allclose(res[-1][0], single.run(rec.frames[-1], k), atol=1e-3)
 
 
+def test_a_steady_pan_keeps_gaining_where_every_frame_shares_the_kernel_s_weak_frequencies():
+    """On a steady pan every frame's kernel weakens the same frequencies. The posterior keeps adding
+    each frame's data there; correcting the Wiener x₀ (shrunk towards 0) by the prior alone did not:
+    +0.36 dB over Wiener on this stream (0.24–0.59 per frame), +1.12 dB with x₀'s shrinkage undone."""
+    rec = record(pan(40), netd=0.06, n=12)
+    res = stream(rec, RecursiveDeconvolver(SMALL))
+    gains = [psnr(x, t) - psnr(s, t) for s, x, t in res[5:]]
+    assert np.mean(gains) > 0.8 and min(gains) > 0.6, gains
+
+
+def test_the_spectral_weights_give_the_posterior_mean():
+    """X₀ + W (P − X₀) + V X₀ = (K̄Y + (A + αR) T² P) / (|K|² + αR + A T²) per frequency, with
+    X₀ = K̄Y / (|K|² + R) and I = |K|² + A T²; for α = T = 1 the joint Wiener solve of every frame seen,
+    from the previous one's posterior mean P."""
+    from thermod.physics.deconv.recursive import PRIOR_WEIGHT, _spectral_weights
+
+    rng = np.random.default_rng(0)
+    h, w = 4, 5
+    K2 = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
+    g2 = rng.uniform(0.0, 2.0, (h, w)).astype(np.float32)
+    T2 = rng.uniform(0.5, 1.0, (h, w)).astype(np.float32)
+    info = rng.uniform(0.1, 3.0, (h, w)).astype(np.float32)   # the prior's I, at the same frequencies
+    c = 0.3
+    for alpha in (1.0, PRIOR_WEIGHT):
+        out = [np.empty((h, w), np.float32) for _ in range(4)]
+        _spectral_weights(info, np.arange(h), np.arange(w), 1.0, 0.0, K2, T2, g2, c, alpha, 1.0, np.ones(h),
+                          np.ones(w), *out)
+        H, W, V, I = out
+        A, R = info, c * g2
+        KY = rng.normal(size=(h, w))             # K̄Y at each frequency (real: the weights are)
+        P = rng.normal(size=(h, w))
+        X0 = KY / (K2 + R)
+        posterior = (KY + (A + alpha * R) * T2 * P) / (K2 + alpha * R + A * T2)
+        np.testing.assert_allclose(X0 + W * (P - X0) + V * X0, posterior, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(H, K2 / (K2 + R), rtol=1e-5)
+        np.testing.assert_allclose(I, K2 + A * T2, rtol=1e-5)
+
+
 def test_without_a_usable_prior_the_result_is_the_single_solve():
     rec = record(pan(30), n=3)
     rd = RecursiveDeconvolver(SMALL)

@@ -1,14 +1,15 @@
 """Recursive temporal deconvolution: the previous restored frame, warped by the gyro into frame t's
 geometry, is the prior of frame t's solve (a Kalman filter per spatial frequency).
 
-Frame t is solved alone by Wiener (x₀) and corrected by the prior's difference, per frequency:
+Frame t is solved alone by Wiener (x₀) and corrected, per frequency, to the posterior mean
+(K̄Y + (A + αR) T² P) / D, D = |K|² + αR + A T², with K̄Y = (|K|² + R) X₀:
 
-    X = X₀ + w (P − X₀),   w = Π / (|K|² + (1 − β) R + Π)
+    X = X₀ + w (P − X₀) + v X₀,   w = (A + αR) T² / D,   v = (R − αR (1 − T²)) / D
 
-with R = |F∇|²/λ the single-frame solve's Tikhonov prior, β = `PRIOR_REG` and Π = (A + β R)·T² the
-prior's precision: A its data information (forgotten by γ = `MEMORY` per frame and limited by a
+R = |F∇|²/λ is the single-frame solve's Tikhonov prior, α = `PRIOR_WEIGHT` its weight in the
+combination, A the prior's data information (forgotten by γ = `MEMORY` per frame and limited by a
 registration error of `REGISTRATION_PX`), T the warp's interpolation gain (`interpolation_gain`).
-The frequencies a kernel nulls come from the prior, the rest are averaged by information.
+v X₀ undoes x₀'s shrinkage; it is applied to x₀ before the prior's mask, so no mask edge rings.
 
 The rule it keeps: where the warped prior disagrees with x₀ beyond x₀'s own predicted noise (a
 moving hot object, parallax, new scene at a border, an FFC step, a registration error) or the gyro
@@ -45,7 +46,7 @@ TEST_WINDOW_PX = 5           # box (on the 2×2 means: ~10 px) of the disagreeme
 DISAGREE = (2.0, 4.0)        # test's local mean square / its reference: full weight below, none above
 HALF_TEST_SLACK = 4.0        # the test on 2×2 means: its reference × this (the means cut x₀'s noise by
                              # up to 4, not a misregistration's residual at the blur's scale)
-PRIOR_REG = 1.0              # β: the prior's precision counts the image prior R too (module docstring)
+PRIOR_WEIGHT = 2.0           # α: the image prior's weight in the combination (1: −0.40 dB on multirotor:40)
 MAX_AGE_S = 0.1              # a prior older than this (camera clock) is not used
 SUPPORT_INSET_PX = 4         # warped support shrunk by this much (interpolation, the cubic's reach)
 SPECTRUM_MIN = 128           # the weights' spectrum: at least this many points per axis (a power of two)
@@ -73,17 +74,18 @@ class Estimate:
 
 # ---------------------------------------------------------------------------------- numba passes
 @njit(cache=True, nogil=True, fastmath=True)
-def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, bx, H, W, I):
+def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, alpha, norm, by, bx, H, W, V, I):
     """One pass over the half spectrum. With A = gain · Iₒ / (1 + q Iₒ) (the carried information,
-    Iₒ the prior's at the nearest old frequency), R = c |F∇|², Π = (A + β R) T²:
-    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm Π / (|K|² + (1 − β) R + Π)
-    (the correction's), I = |K|² + A T² (this frame's information). Returns the mean over the full
+    Iₒ the prior's at the nearest old frequency), R = c |F∇|², D = |K|² + αR + A T²:
+    H = norm |K|² / (|K|² + R) (the single solve's response), W = norm (A + αR) T² / D and
+    V = norm (R − αR (1 − T²)) / D (the correction's), I = |K|² + A T² (this frame's information).
+    Returns the mean over the full
     spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval) and the same
     times by[i]·bx[j] (its gain after a filter of that power response, e.g. a 2×2 mean)."""
     h, w = K2.shape
     one, zero, eps = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
     gain, q, c = np.float32(gain), np.float32(q), np.float32(c)
-    beta, norm = np.float32(beta), np.float32(norm)
+    alpha, norm = np.float32(alpha), np.float32(norm)
     full_w = 2 * (w - 1)
     mult = np.empty(w, np.float32)         # columns the half spectrum stands for (1 or 2)
     mult_b = np.empty(w, np.float32)
@@ -95,7 +97,7 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, 
     for i in range(h):
         # row views and float32 row sums let the inner loop vectorise (2.2× faster than indexing)
         inf, k2i, g2i, t2i = info[rows[i]], K2[i], g2[i], T2[i]
-        Hi, Wi, Ii = H[i], W[i], I[i]
+        Hi, Wi, Vi, Ii = H[i], W[i], V[i], I[i]
         s = np.float32(0.0)
         s_b = np.float32(0.0)
         for j in range(w):
@@ -107,8 +109,10 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, beta, norm, by, 
             t2 = t2i[j]
             inv = one / (k2 + r + eps)
             Hi[j] = norm * k2 * inv
-            p = (a + beta * r) * t2
-            Wi[j] = norm * p / (k2 + (one - beta) * r + p + eps)
+            ar = alpha * r
+            d = norm / (k2 + ar + a * t2 + eps)
+            Wi[j] = (a + ar) * t2 * d
+            Vi[j] = (r - ar * (one - t2)) * d
             Ii[j] = k2 + a * t2
             g = k2 * inv * inv
             s += mult[j] * g
@@ -193,6 +197,28 @@ def _add_correction(x0, corr, rng, out):
     for i in range(h):
         for j in range(w):
             out[i, j] = x0[i, j] + corr[i, j] * rng
+
+
+@njit(cache=True, nogil=True)
+def _fill_mirrored(x0, lo, scale, out):
+    """out = x₀ (unit range), mirrored beyond its edges (cv2's BORDER_REFLECT): a step at the frame's
+    edge would ring through v."""
+    hp, wp = out.shape
+    h, w = x0.shape
+    for i in range(hp):
+        si = i if i < h else max(2 * h - 1 - i, 0)
+        for j in range(wp):
+            sj = j if j < w else max(2 * w - 1 - j, 0)
+            out[i, j] = (x0[si, sj] - lo) * scale
+
+
+@njit(cache=True, nogil=True)
+def _add_masked(out, m, u, rng):
+    """out += m · u · rng over out's shape (u: padded)."""
+    h, w = out.shape
+    for i in range(h):
+        for j in range(w):
+            out[i, j] += m[i, j] * u[i, j] * rng
 
 
 @njit(cache=True, nogil=True)
@@ -441,11 +467,11 @@ class RecursiveDeconvolver:
         spec = _full_shape(K2)
         rows = _frequency_index(spec[0], past.shape[0], half=False)
         cols = _frequency_index(spec[1], past.shape[1], half=True)
-        Hw, Ww, info = np.empty_like(K2), np.empty_like(K2), np.empty_like(K2)
+        Hw, Ww, Vw, info = (np.empty_like(K2) for _ in range(4))
         by, bx = self._box_gain(spec)
         nb_full, nb_half = _spectral_weights(past.info, rows, cols, self.memory ** n, n * q, K2,
-                                           self._gain(spec), self._g2(spec), float(c), PRIOR_REG,
-                                           float(plan.norm), by, bx, Hw, Ww, info)
+                                             self._gain(spec), self._g2(spec), float(c), PRIOR_WEIGHT,
+                                             float(plan.norm), by, bx, Hw, Ww, Vw, info)
         tp = _lap("spectral_w", tp)
         if self.half_test:
             m = self._test_half(img, x0, p, support, ok, buf, plan, Hw, lo, scale, sigma * sigma * nb_half)
@@ -455,7 +481,7 @@ class RecursiveDeconvolver:
         self.last_weight = float(m[::4, ::4].mean())
         self.last_prior_frames = n
         tp = _lap("mean", tp)
-        # the correction x₀ + F⁻¹[w F(m (p − x₀))]
+        # the correction x₀ + F⁻¹[w F(m (p − x₀))] + m F⁻¹[v F(x₀)]
         _fill_difference(p, x0, m, np.float32(lo), scale, plan.rin)
         tp = _lap("corr_fill", tp)
         _weigh_forward(plan, Ww)
@@ -463,7 +489,12 @@ class RecursiveDeconvolver:
         out = np.empty_like(x0)
         _add_correction(x0, plan.inv(), np.float32(hi - lo), out)
         tp = _lap("corr_inv", tp)
-        self.last_fft_pairs += 2.0 - (0.75 if self.half_test else 0.0)   # a quarter of the points
+        _fill_mirrored(x0, np.float32(lo), scale, plan.rin)
+        _weigh_forward(plan, Vw)
+        _add_masked(out, m, plan.inv(), np.float32(hi - lo))
+        tp = _lap("unshrink", tp)
+        # the test's pair (a quarter of the points with half_test), the correction's and the unshrinking's
+        self.last_fft_pairs += 3.0 - (0.75 if self.half_test else 0.0)
         return out, info
 
     def _test_full(self, img, x0, p, support, ok, buf, plan, Hw, lo, scale, expected):
