@@ -577,7 +577,7 @@ class LiveEstimator:
         q, blk = [], []
         n = len(pairs)
         for i, p in enumerate(pairs):
-            ok = np.all(np.isfinite(p.tau_coherence), axis=1)
+            ok = _tau_rows_measured(p)
             q.append(p.tau_coherence[ok])
             blk += [i * TAU_BLOCKS // max(n, 1)] * int(ok.sum())
         if not q:
@@ -639,9 +639,13 @@ class LiveEstimator:
         return (g - 1) / g * d.T @ d
 
 
+def _tau_rows_measured(pair: Pair) -> np.ndarray:
+    """[P] bool: the patch pairs of `pair` whose τ coherence was measured (`Registrar.tau_coherence`)."""
+    return np.all(np.isfinite(pair.tau_coherence), axis=1)
+
+
 def _tau_measured(pair: Pair) -> int:
-    """The patch pairs of `pair` whose τ coherence was measured (`Registrar.tau_coherence`)."""
-    return int(np.all(np.isfinite(pair.tau_coherence), axis=1).sum())
+    return int(_tau_rows_measured(pair).sum())
 
 
 def tau_peak(q: np.ndarray, blk: np.ndarray, taus: np.ndarray

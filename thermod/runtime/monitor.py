@@ -78,10 +78,6 @@ class Monitor:
         self._max_window_s = min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S)
         self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
-        # the windows hold at least a fit's worth twice over (the motion's up to the gyro's history): on
-        # a host too slow to register that many in ``window_s`` (τ waits for them) they lengthen instead
-        self.estimator.stretch(1.0, keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
-                               tau_keep=2 * MIN_TAU_PATCHES)
         self._registrars: dict[tuple, Registrar] = {}
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -100,6 +96,7 @@ class Monitor:
         self.changes: list[dict] = []          # every change applied: at, before, after, residuals
         self._agreeing = 0                     # consecutive fits that agree with the calibration in force
         self.settled = False
+        self._fit_windows()
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> Monitor:
@@ -326,8 +323,14 @@ class Monitor:
         if settled != self.settled:
             self.settled = settled
             self.counters["settled" if settled else "unsettled"] += 1
-            self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
-                                   tau_keep=2 * MIN_TAU_PATCHES)
+            self._fit_windows()
+
+    def _fit_windows(self) -> None:
+        """The estimator's windows for the share in force, holding at least a fit's worth twice over (the
+        motion's up to the gyro's history): on a host too slow to register that many in ``window_s``
+        (τ waits for them) they lengthen instead."""
+        self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
+                               tau_keep=2 * MIN_TAU_PATCHES)
 
     def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
         """Propose the estimate when it is significant, stable and lowers the residual. The motion

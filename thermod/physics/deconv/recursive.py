@@ -79,9 +79,9 @@ def _spectral_weights(info, rows, cols, gain, q, K2, T2, g2, c, alpha, norm, by,
     Iₒ the prior's at the nearest old frequency), R = c |F∇|², D = |K|² + αR + A T²:
     H = norm |K|² / (|K|² + R) (the single solve's response), W = norm (A + αR) T² / D and
     V = norm (R − αR (1 − T²)) / D (the correction's), I = |K|² + A T² (this frame's information).
-    Returns the mean over the full
-    spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise gain, Parseval) and the same
-    times by[i]·bx[j] (its gain after a filter of that power response, e.g. a 2×2 mean)."""
+    Returns the mean over the full spectrum of |K|² / (|K|² + R)² (the Wiener solution's white-noise
+    gain, Parseval) and the same times by[i]·bx[j] (its gain after a filter of that power response,
+    e.g. a 2×2 mean)."""
     h, w = K2.shape
     one, zero, eps = np.float32(1.0), np.float32(0.0), np.float32(1e-12)
     gain, q, c = np.float32(gain), np.float32(q), np.float32(c)
