@@ -623,8 +623,8 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s.
     The monitor's shares are s times the configured (its work is per second, like the gyro's).
     `sets`: more ``KEY=VALUE`` overrides of the daemon's configuration."""
+    from benchmarks.emulation import daemon_sets
     from benchmarks.yardstick import jitter_line, yardstick_line, yardstick_ms
-    from thermod.runtime import config
 
     rows, extra, scale = [], [f"sources.gyro.kind={gyro}", *sets], 1.0
     here = yardstick_ms()
@@ -633,13 +633,7 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
     if like_yardstick_ms is not None:
         scale = here / float(like_yardstick_ms)
         fps = fps / scale
-        extra.append(f"deblur.max_solve_s={config.load().deblur.max_solve_s * scale:.4f}")
-        extra.append(f"deblur.latency_p99_s={config.load().deblur.latency_p99_s * scale:.4f}")
-        # the monitor's share is per second: on the emulated machine it registers s times more pairs a
-        # second than this host at the same share (its windows are seconds of motion, not frames)
-        mon = config.load().monitor
-        extra.append(f"monitor.cpu_share={min(1.0, mon.cpu_share * scale):.4f}")
-        extra.append(f"monitor.settled_cpu_share={min(1.0, mon.settled_cpu_share * scale):.4f}")
+        extra += daemon_sets(scale)
         line += f"; emulating a machine at {like_yardstick_ms:g} ms: {fps:.1f} fps, times ÷ {scale:.2f}"
     truth = prepared_payload(size, fps)
     for _ in range(repeats):

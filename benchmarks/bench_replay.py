@@ -48,7 +48,6 @@ def calibration(size):
 
 def recording_for(case: int, seconds: float, size, directory: Path) -> Path:
     """The case's recording (simulated once, then cached)."""
-    from thermod.io import recording
     from thermod.sim import synth
     from thermod.sim.gyro_model import GyroErrorModel
 
@@ -57,10 +56,16 @@ def recording_for(case: int, seconds: float, size, directory: Path) -> Path:
     if not path.exists():
         rec = synth.simulate(scene, motion, seconds, calibration(size), effects={"netd": 0.05},
                              seed=20 + case, gyro=GyroErrorModel.paper())
-        tmp = path.with_suffix(".tmp.h5")
-        recording.write(tmp, rec)
-        tmp.replace(path)
+        _write(path, rec)
     return path
+
+
+def _write(path: Path, rec) -> None:
+    from thermod.io import recording
+
+    tmp = path.with_suffix(".tmp.h5")
+    recording.write(tmp, rec)
+    tmp.replace(path)
 
 
 def replay_toml(rec: Path, endpoint: str, out: Path) -> Path:
@@ -106,21 +111,26 @@ def psnr(est, truth) -> float:
     return float(peak_signal_noise_ratio(*on_truth_scale(est, truth), data_range=255))
 
 
-def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
-    """Replay through `thermod run`; per frame (index in the recording): deblurred, method, latency, PSNR.
-    The frames are scored after the run: scoring them as they arrive took CPU from the daemon."""
+def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path, scale: float = 1.0,
+         sets: tuple[str, ...] = ()) -> dict:
+    """Replay through `thermod run` (with `sets` overrides); per frame (index in the recording):
+    deblurred, method, latency (ms ÷ `scale`, the recording's clock slowdown), PSNR. The frames are
+    scored after the run: scoring them as they arrive took CPU from the daemon."""
     from thermod.client.subscriber import Subscriber
 
     ep = f"ipc://{work}/pub.sock"
     toml = replay_toml(rec_path, ep, work / "replay.toml")
     env = dict(os.environ)
     env.setdefault("NUMBA_CACHE_DIR", str(REPO / ".numba_cache"))
-    proc = subprocess.Popen([str(THERMOD), "run", "-c", str(toml)], stdout=subprocess.DEVNULL,
+    cmd = [str(THERMOD), "run", "-c", str(toml)]
+    for kv in sets:
+        cmd += ["--set", kv]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, env=env, text=True)
     got: dict[int, tuple] = {}
     try:
         with Subscriber(ep, topics=("frame",), rcvhwm=100000) as sub:
-            deadline = time.monotonic() + 240 + n_frames / 50.0
+            deadline = time.monotonic() + 240 + scale * n_frames / 50.0
             while time.monotonic() < deadline and proc.poll() is None:
                 m = sub.recv(timeout=0.5)
                 if m is None:
@@ -129,7 +139,8 @@ def live(rec_path: Path, truth: np.ndarray, n_frames: int, work: Path) -> dict:
                     continue
                 _, h, img = m
                 k = int(h["frame_id"])         # a replay numbers its frames by their index in the recording
-                got[k] = (bool(h["deblurred"]), h.get("method"), 1e3 * (h["published"] - h["t"]), img)
+                ms = 1e3 * (h["published"] - h["t"]) / scale
+                got[k] = (bool(h["deblurred"]), h.get("method"), ms, img)
                 if len(got) >= n_frames:
                     break
     finally:
@@ -243,7 +254,10 @@ def run_in_order(case: int, seconds: float, size, skip_s: float, cache: Path) ->
     return row
 
 
-def run_case(case: int, seconds: float, size, skip_s: float, cache: Path) -> dict:
+def run_case(case: int, seconds: float, size, skip_s: float, cache: Path, scale: float = 1.0,
+             sets: tuple[str, ...] = ()) -> dict:
+    """The daemon live (on the recording's clock slowed `scale` times, with `sets`) and `thermod deblur`
+    (on the recording as made) on one recording."""
     from thermod.io import recording
 
     path = recording_for(case, seconds, size, cache)
@@ -252,15 +266,21 @@ def run_case(case: int, seconds: float, size, skip_s: float, cache: Path) -> dic
     blurry = [psnr(rec.frames[k].astype(np.float32), truth[k]) for k in range(len(truth))]
     with tempfile.TemporaryDirectory(prefix="thermod-replay-") as d:
         work = Path(d)
-        lv = live(path, truth, len(truth), work)
+        live_path = path
+        if scale != 1.0:     # the emulated machine's world: the recording's clock slowed `scale` times
+            from benchmarks.emulation import stretched
+
+            live_path = work / "slowed.h5"
+            _write(live_path, stretched(rec, scale))
+        lv = live(live_path, truth, len(truth), work, scale, sets)
         off, off_ok, off_wall = offline(path, truth, work)
     first = int(round(skip_s * rec.calibration.frame_rate_hz))
     both = [k for k in range(first, len(truth)) if k in lv and lv[k][0] and off_ok[k]]
     lat = [v[2] for k, v in lv.items() if k >= first]
-    methods = [v[1] for k, v in lv.items() if k >= first]
+    methods = [str(v[1]) for k, v in lv.items() if k >= first]
     return {"case": f"{CASES[case][0]} / {CASES[case][1]}", "frames": len(truth), "published": len(lv),
             "deblurred_pct": 100.0 * sum(v[0] for k, v in lv.items() if k >= first) / max(1, len(methods)),
-            "temporal_pct": 100.0 * sum(m == "temporal" for m in methods) / max(1, len(methods)),
+            "temporal_pct": 100.0 * sum(m.startswith("temporal") for m in methods) / max(1, len(methods)),
             "p99_ms": float(np.percentile(lat, 99)) if lat else math.nan,
             "live": float(np.median([lv[k][3] for k in both])) if both else math.nan,
             "offline": float(np.median([off[k] for k in both])) if both else math.nan,
@@ -280,14 +300,29 @@ def main(argv=None) -> int:
     ap.add_argument("--rung-in-order", action="store_true",
                     help="no daemon: its temporal rung run offline in read order (what it publishes at "
                          "100 %% temporal) against `thermod deblur`")
+    ap.add_argument("--like-yardstick", type=float, default=None, metavar="MS",
+                    help="emulate a machine whose yardstick reads MS ms/frame (benchmarks/emulation.py): "
+                         "each recording replayed on a clock slowed by this machine's yardstick / MS, the "
+                         "latencies reported on that machine's time scale")
     args = ap.parse_args(argv)
+    if args.like_yardstick is not None and not args.like_yardstick > 0:
+        ap.error(f"--like-yardstick: expected a yardstick in ms/frame > 0, got {args.like_yardstick:g}")
     size = tuple(int(v) for v in args.size.lower().replace("×", "x").split("x"))
     cache = Path(os.environ.get("TMPDIR", "/tmp")) / "thermod_replay"
     cache.mkdir(parents=True, exist_ok=True)
-    from benchmarks.yardstick import jitter_line, yardstick_line
+    from benchmarks.yardstick import jitter_line, yardstick_line, yardstick_ms
 
-    print(yardstick_line(), "(before the runs)", flush=True)
+    here = yardstick_ms()
+    print(yardstick_line(ms=here), "(before the runs)", flush=True)
     print(jitter_line(), flush=True)
+    scale, sets = 1.0, ()
+    if args.like_yardstick is not None and not (args.rung_in_order or args.rung_columns is not None):
+        from benchmarks.emulation import daemon_sets
+
+        scale = here / args.like_yardstick
+        sets = tuple(daemon_sets(scale))
+        print(f"emulating a machine at {args.like_yardstick:g} ms: recordings replayed {scale:.2f}× slower, "
+              f"latencies ÷ {scale:.2f}", flush=True)
     if args.rung_columns is not None:
         if not 0 <= args.rung_columns < len(CASES):
             ap.error(f"--rung-columns: expected a recording 0–{len(CASES) - 1}, got {args.rung_columns}")
@@ -304,7 +339,7 @@ def main(argv=None) -> int:
           "| deblurred % | temporal % | p99 ms | frames scored |")
     print("|---|---|---|---|---|---|---|---|---|", flush=True)
     for case in range(min(args.cases, len(CASES))):
-        r = run_case(case, args.seconds, size, args.skip, cache)
+        r = run_case(case, args.seconds, size, args.skip, cache, scale, sets)
         rows.append(r)
         print(f"| {r['case']} | {r['live']:.2f} | {r['offline']:.2f} | {r['live'] - r['offline']:+.2f} | "
               f"{r['blurry']:.2f} | {r['deblurred_pct']:.1f} | {r['temporal_pct']:.1f} | {r['p99_ms']:.1f} | "
