@@ -620,8 +620,8 @@ def payload(seconds: float, quotas=(None, 1.2, 1.0), repeats: int = 1, size: tup
 
     `like_yardstick_ms`: emulate a machine whose yardstick reads that (`emulated`): every frame's work
     takes s = this machine's yardstick / that times longer here, so the camera runs at fps / s and the
-    latency cap ``max_solve_s`` is s times the configured one; latencies are reported divided by s.
-    The monitor's shares are s times the configured (its work is per second, like the gyro's).
+    latency caps and the windows of seconds are s times the configured (`benchmarks.emulation`);
+    latencies are reported divided by s.
     `sets`: more ``KEY=VALUE`` overrides of the daemon's configuration."""
     from benchmarks.emulation import daemon_sets
     from benchmarks.yardstick import jitter_line, yardstick_line, yardstick_ms
@@ -699,10 +699,10 @@ def print_payload(rows: list[dict]) -> None:
     totals = {"parent", "parent_without_sim", "overhead_without_sim", "overhead_without_sim_mean"}
     stages = sorted({k for r in rows for k in r["cpu"]} - totals)
     scaled = any(r.get("time_scale", 1.0) != 1.0 for r in rows)
-    # emulated: the 1 kHz gyro's work and the monitor's are per second, not per frame, and run at this
-    # host's speed; on the emulated machine they would take 1/s of it (an estimate, said as one)
+    # emulated: the simulated 1 kHz gyro's work is per second of this host's clock, not per frame; on
+    # the emulated machine it would take 1/s of it (an estimate, said as one)
     print("| CPU quota | " + " | ".join(stages) + " | all but solves and sim (median; mean) |"
-          + (" the same, the gyro's and monitor's ÷ s (emulated machine) |" if scaled else "")
+          + (" the same, the gyro's ÷ s (emulated machine) |" if scaled else "")
           + " stage ms p50/p99 |")
     print("|---" * (len(stages) + 3 + scaled) + "|")
     for r in rows:
@@ -711,7 +711,7 @@ def print_payload(rows: list[dict]) -> None:
         lat = ", ".join(f"{k} {v[0]:.1f}/{v[1]:.1f}" for k, v in r["stage_ms"].items())
         rest = c.get("overhead_without_sim", float("nan"))
         mean = c.get("overhead_without_sim_mean", float("nan"))
-        per_second = c.get("gyro_driver", 0.0) + c.get("gyro_process", 0.0) + c.get("monitor", 0.0)
+        per_second = c.get("gyro_driver", 0.0) + c.get("gyro_process", 0.0)
         less = per_second * (1 - 1 / r.get("time_scale", 1.0))
         like = f" {rest - less:.1f}; {mean - less:.1f} |" if scaled else ""
         print(f"| {q} | " + " | ".join(f"{c.get(k, 0.0):.1f}" for k in stages)

@@ -17,10 +17,10 @@ latency (`health.pipeline.stage_ms`). `--size` and `--rate` run another sensor. 
 simulated payload) ≤ 20 % of one core.
 
 `--like-yardstick MS` emulates a faster (or slower) machine of that yardstick: each frame's work takes
-s = (this machine's yardstick / MS) times longer here, so the camera runs at rate / s and the latency
-cap at s times the configured, and latencies are printed divided by s. The 1 kHz gyro's work is not
-scaled, so the parent's share is overstated by its driver's. The monitor's shares are s times the
-configured (it registers the emulated machine's pairs per second); a column divides both by s.
+s = (this machine's yardstick / MS) times longer here, so the camera runs at rate / s, the latency
+caps and the windows of seconds at s times the configured (`benchmarks/emulation.py`), and latencies
+are printed divided by s. The 1 kHz gyro's work is not scaled, so the parent's share is overstated by
+its driver's; a column divides it by s.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 replayed in real time through the default daemon and deblurred offline, both scored against the truth.
 
     .venv/bin/python -m benchmarks.bench_replay [--seconds 6] [--cases N] [--size 640x480]
+    .venv/bin/python -m benchmarks.bench_replay --like-yardstick 326   # a machine of that yardstick
     .venv/bin/python -m benchmarks.bench_replay --rung-in-order     # the ceiling at 100 % temporal
     .venv/bin/python -m benchmarks.bench_replay --rung-columns 2    # where across the frame it loses
 

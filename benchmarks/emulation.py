@@ -11,9 +11,10 @@ Two ways to slow the world:
 - a recording: `stretched` scales its clock by s (times × s, rates ÷ s, τ × s, rates in Hz ÷ s), so the
   daemon meets a camera and a gyro that run s times slower and render the same kernels in pixels.
 
-`daemon_sets` gives the daemon's overrides for either: its latency caps × s, and the monitor's shares × s
-(its work is per second of motion, like the gyro's; at this host's share it would register s times
-fewer frame pairs a second than on the emulated machine).
+`daemon_sets` gives the daemon's overrides for either: its latency caps × s, and its windows of
+seconds × s (the monitor's fit window, the gyro history), so that they hold as many frames as on the
+emulated machine. CPU shares stay as configured: a share of a core s times slower, in a world s times
+slower, does the same work per frame.
 """
 
 from __future__ import annotations
@@ -29,11 +30,10 @@ def daemon_sets(scale: float, cfg=None) -> list[str]:
     from thermod.runtime import config
 
     cfg = cfg or config.load()
-    mon = cfg.monitor
     return [f"deblur.max_solve_s={cfg.deblur.max_solve_s * scale:.4f}",
             f"deblur.latency_p99_s={cfg.deblur.latency_p99_s * scale:.4f}",
-            f"monitor.cpu_share={min(1.0, mon.cpu_share * scale):.4f}",
-            f"monitor.settled_cpu_share={min(1.0, mon.settled_cpu_share * scale):.4f}"]
+            f"monitor.window_s={cfg.monitor.window_s * scale:.3f}",
+            f"pipeline.gyro_ring_s={cfg.pipeline.gyro_ring_s * scale:.3f}"]
 
 
 def stretched(rec, scale: float):

@@ -44,11 +44,13 @@ def test_stretched_recording_renders_the_same_kernels(scale, mode):
                 np.testing.assert_allclose(kb.weights, ka.weights, atol=2e-5 * float(ka.weights.max()))
 
 
-def test_daemon_sets_scale_the_latency_caps_and_the_monitor_shares():
+def test_daemon_sets_scale_the_latency_caps_and_the_windows_not_the_shares():
     from thermod.runtime import config
 
     cfg = config.load()
     sets = dict(s.split("=") for s in daemon_sets(2.0, cfg))
     assert float(sets["deblur.max_solve_s"]) == pytest.approx(2 * cfg.deblur.max_solve_s, abs=1e-4)
     assert float(sets["deblur.latency_p99_s"]) == pytest.approx(2 * cfg.deblur.latency_p99_s, abs=1e-4)
-    assert float(sets["monitor.cpu_share"]) == pytest.approx(min(1.0, 2 * cfg.monitor.cpu_share), abs=1e-4)
+    assert float(sets["monitor.window_s"]) == pytest.approx(2 * cfg.monitor.window_s)
+    assert float(sets["pipeline.gyro_ring_s"]) == pytest.approx(2 * cfg.pipeline.gyro_ring_s)
+    assert not any(k.endswith("cpu_share") for k in sets)
