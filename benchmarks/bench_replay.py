@@ -14,8 +14,8 @@ observed from a subscriber in this process; `thermod deblur` runs with its defau
 frame on the truth's 8-bit 0.5–99.5 % scale, the median over the frames after the first `--skip`
 seconds (the daemon's warm-up) that both deblurred. Prints, per recording, the daemon's and the
 offline PSNR, the blurry frames', the gap, the daemon's share deblurred and temporal and its latency
-p99 (published − frame time), and the machine's yardstick. Target (issue 35): the daemon within
-0.3 dB of `thermod deblur`, ≥ 80 % temporal, ≥ 99.5 % deblurred, p99 ≤ 60 ms on 2 cores.
+p95 and p99 (published − frame time), and the machine's yardstick. Target (issue 35): the daemon within
+0.3 dB of `thermod deblur`, ≥ 80 % temporal, ≥ 99.5 % deblurred, p95 ≤ 45 and p99 ≤ 60 ms on 2 cores.
 """
 
 from __future__ import annotations
@@ -282,6 +282,7 @@ def run_case(case: int, seconds: float, size, skip_s: float, cache: Path, scale:
     return {"case": f"{CASES[case][0]} / {CASES[case][1]}", "frames": len(truth), "published": len(lv),
             "deblurred_pct": 100.0 * sum(v[0] for k, v in lv.items() if k >= first) / max(1, len(methods)),
             "temporal_pct": 100.0 * sum(m.startswith("temporal") for m in methods) / max(1, len(methods)),
+            "p95_ms": float(np.percentile(lat, 95)) if lat else math.nan,
             "p99_ms": float(np.percentile(lat, 99)) if lat else math.nan,
             "live": float(np.median([lv[k][3] for k in both])) if both else math.nan,
             "offline": float(np.median([off[k] for k in both])) if both else math.nan,
@@ -337,13 +338,14 @@ def main(argv=None) -> int:
         return print_in_order(args, size, cache)
     rows = []
     print("| recording (scene / motion) | daemon dB | `thermod deblur` dB | daemon − offline | blurry dB "
-          "| deblurred % | temporal % | p99 ms | frames scored |")
-    print("|---|---|---|---|---|---|---|---|---|", flush=True)
+          "| deblurred % | temporal % | p95 ms | p99 ms | frames scored |")
+    print("|---|---|---|---|---|---|---|---|---|---|", flush=True)
     for case in range(min(args.cases, len(CASES))):
         r = run_case(case, args.seconds, size, args.skip, cache, scale, sets)
         rows.append(r)
         print(f"| {r['case']} | {r['live']:.2f} | {r['offline']:.2f} | {r['live'] - r['offline']:+.2f} | "
-              f"{r['blurry']:.2f} | {r['deblurred_pct']:.1f} | {r['temporal_pct']:.1f} | {r['p99_ms']:.1f} | "
+              f"{r['blurry']:.2f} | {r['deblurred_pct']:.1f} | {r['temporal_pct']:.1f} | {r['p95_ms']:.1f} | "
+              f"{r['p99_ms']:.1f} | "
               f"{r['scored']} |", flush=True)
     gaps = [r["live"] - r["offline"] for r in rows]
     per_frame = np.median([r["offline_s_per_frame"] for r in rows])
