@@ -12,9 +12,9 @@ Two ways to slow the world:
   daemon meets a camera and a gyro that run s times slower and render the same kernels in pixels.
 
 `daemon_sets` gives the daemon's overrides for either: its latency caps × s, and its windows of
-seconds × s (the monitor's fit window, the gyro history), so that they hold as many frames as on the
-emulated machine. CPU shares stay as configured: a share of a core s times slower, in a world s times
-slower, does the same work per frame.
+seconds × s (the monitor's fit window and its stretch limit, the gyro history), so that they hold as
+many frames as on the emulated machine. CPU shares stay as configured: a share of a core s times
+slower, in a world s times slower, does the same work per frame.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ def daemon_sets(scale: float, cfg=None) -> list[str]:
     return [f"deblur.max_solve_s={cfg.deblur.max_solve_s * scale:.4f}",
             f"deblur.latency_p99_s={cfg.deblur.latency_p99_s * scale:.4f}",
             f"monitor.window_s={cfg.monitor.window_s * scale:.3f}",
+            f"monitor.max_window_s={cfg.monitor.max_window_s * scale:.3f}",
             f"pipeline.gyro_ring_s={cfg.pipeline.gyro_ring_s * scale:.3f}"]
 
 

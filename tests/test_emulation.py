@@ -53,4 +53,5 @@ def test_daemon_sets_scale_the_latency_caps_and_the_windows_not_the_shares():
     assert float(sets["deblur.latency_p99_s"]) == pytest.approx(2 * cfg.deblur.latency_p99_s, abs=1e-4)
     assert float(sets["monitor.window_s"]) == pytest.approx(2 * cfg.monitor.window_s)
     assert float(sets["pipeline.gyro_ring_s"]) == pytest.approx(2 * cfg.pipeline.gyro_ring_s)
+    assert float(sets["monitor.max_window_s"]) == pytest.approx(2 * cfg.monitor.max_window_s)
     assert not any(k.endswith("cpu_share") for k in sets)

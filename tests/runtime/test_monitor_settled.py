@@ -199,3 +199,26 @@ def test_sparse_tau_measurements_are_kept_until_a_fit_has_twice_its_patches_up_t
         m.estimator.add(Pair(0.05 * k, 0.05 * k + 0.02, np.zeros((4, 2)), np.zeros((4, 2)), np.ones(4), taus,
                              coherence))
     assert m.estimator.tau_pairs[-1].t_b - m.estimator.tau_pairs[0].t_a <= 12.0
+
+
+def test_max_window_s_bounds_how_far_both_windows_stretch():
+    """``max_window_s`` is the stretch limit of both windows (the motion's also within the gyro
+    history): a host emulating a slower world, or a payload that keeps more history, sets it."""
+    from thermod.calib.live import MIN_PAIRS, MIN_TAU_PATCHES, TAU_SCAN
+
+    taus = CAL.tau_s * TAU_SCAN
+    coherence = np.ones((4, len(taus)))
+    for cap, history, motion_cap in ((120.0, 200.0, 120.0), (120.0, 62.0, 60.0), (30.0, 200.0, 30.0)):
+        m = Monitor(MonitorConfig(max_window_s=cap), None, None, lambda: CAL, gyro_history_s=history)
+        est = m.estimator
+        spans, tau_spans = [], []
+        for k in range(80):                  # one pair every 4 s, each with 4 measured τ patch pairs
+            est.add(Pair(4.0 * k, 4.0 * k + 0.1, np.zeros((4, 2)), np.zeros((4, 2)), np.ones(4), taus,
+                         coherence))
+            spans.append(est.pairs[-1].t_b - est.pairs[0].t_a)
+            tau_spans.append(est.tau_pairs[-1].t_b - est.tau_pairs[0].t_a)
+        # 2 × MIN_PAIRS pairs every 4 s need 160 s; 2 × MIN_TAU_PATCHES patch pairs need 48 s
+        assert max(spans) <= motion_cap and max(spans) > motion_cap - 4.5, (cap, history, max(spans))
+        assert len(est.pairs) < 2 * MIN_PAIRS
+        assert max(tau_spans) <= max(cap, 12.0)
+        assert len(est._tau_rows(taus)[0]) >= min(2 * MIN_TAU_PATCHES, 4 * int(cap / 4.0))

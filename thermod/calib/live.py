@@ -438,7 +438,7 @@ class LiveEstimator:
         self.tau_window_s = max(self.window_s, TAU_WINDOW_S if tau_window_s is None else float(tau_window_s))
         self._windows = (self.window_s, self.tau_window_s)
         self.keep, self.max_window_s = 0, MAX_WINDOW_S
-        self.tau_keep = 0
+        self.tau_keep, self.max_tau_window_s = 0, MAX_WINDOW_S
         self.blocks = int(blocks)
         self.pairs: deque[Pair] = deque()
         self.tau_pairs: deque[Pair] = deque()
@@ -452,14 +452,15 @@ class LiveEstimator:
         self._trim(pair.t_b)
 
     def stretch(self, factor: float, keep: int = 0, max_window_s: float = MAX_WINDOW_S,
-                tau_keep: int = 0) -> None:
+                tau_keep: int = 0, max_tau_window_s: float = MAX_WINDOW_S) -> None:
         """Keep `factor` × the windows it was made with (at most `max_window_s`), and at least `keep`
         pairs within that: pairs taken `factor` times more sparsely then still fill a fit. The τ window
-        keeps at least `tau_keep` measured patch pairs, up to `MAX_WINDOW_S` (its measurements need no
-        gyro history). Pairs beyond a shortened window go now."""
+        keeps at least `tau_keep` measured patch pairs, up to `max_tau_window_s` (its measurements need
+        no gyro history). Pairs beyond a shortened window go now."""
         cap = max(float(max_window_s), self._windows[0])
         self.window_s, self.tau_window_s = (min(w * float(factor), max(cap, w)) for w in self._windows)
         self.keep, self.max_window_s, self.tau_keep = int(keep), cap, int(tau_keep)
+        self.max_tau_window_s = float(max_tau_window_s)
         if self.pairs:
             self._trim(self.pairs[-1].t_b)
 
@@ -469,7 +470,7 @@ class LiveEstimator:
             self.pairs.popleft()
         while self.tau_pairs and newest_t - self.tau_pairs[0].t_a > self.tau_window_s and \
                 (self._tau_kept - _tau_measured(self.tau_pairs[0]) >= self.tau_keep
-                 or newest_t - self.tau_pairs[0].t_a > max(MAX_WINDOW_S, self.tau_window_s)):
+                 or newest_t - self.tau_pairs[0].t_a > max(self.max_tau_window_s, self.tau_window_s)):
             self._tau_kept -= _tau_measured(self.tau_pairs.popleft())
 
     def span(self) -> tuple[float, float] | None:

@@ -199,6 +199,9 @@ class MonitorConfig:
         "the calibration in force (it then watches for drift over windows stretched by the shares' ratio)")
     window_s: float = setting(4.0, lo=0.5, hi=60.0,
                               doc="rolling window of frame pairs one estimate is fitted on")
+    max_window_s: float = setting(60.0, lo=1.0, hi=600.0,
+                                  doc="the longest its windows stretch to hold a fit's pairs when they come "
+                                  "sparsely (s; the motion's also within the gyro history)")
     width: int = setting(320, lo=32, hi=1024,
                          doc="frames are registered at this width (px; at most the frame's)")
     k_sigma: float = setting(4.0, lo=1.0, hi=100.0,

@@ -75,7 +75,7 @@ class Monitor:
         self.cfg, self.gyro_ring, self.frame_ring, self._calib = cfg, gyro_ring, frame_ring, calib
         # a fit needs the gyro over its whole window: a stretched window ends where the ring's history does
         # (`LiveEstimator.stretch` never shortens it below the configured window)
-        self._max_window_s = min(MAX_WINDOW_S, gyro_history_s - 2 * GYRO_MARGIN_S)
+        self._max_window_s = min(cfg.max_window_s, gyro_history_s - 2 * GYRO_MARGIN_S)
         self._short_of_cpu = short_of_cpu or (lambda: False)
         self.estimator = LiveEstimator(cfg.window_s)
         self._registrars: dict[tuple, Registrar] = {}
@@ -330,7 +330,7 @@ class Monitor:
         motion's up to the gyro's history): on a host too slow to register that many in ``window_s``
         (τ waits for them) they lengthen instead."""
         self.estimator.stretch(self._stretch(), keep=2 * MIN_PAIRS, max_window_s=self._max_window_s,
-                               tau_keep=2 * MIN_TAU_PATCHES)
+                               tau_keep=2 * MIN_TAU_PATCHES, max_tau_window_s=self.cfg.max_window_s)
 
     def _consider(self, calib: Calibration, est, integral: GyroIntegral) -> None:
         """Propose the estimate when it is significant, stable and lowers the residual. The motion
