@@ -48,7 +48,8 @@ def calibration(size):
 
 
 def recording_for(case: int, seconds: float, size, directory: Path) -> Path:
-    """The case's recording (simulated once, then cached)."""
+    """The case's recording (simulated once, then cached; `recording.write` is atomic)."""
+    from thermod.io import recording
     from thermod.sim import synth
     from thermod.sim.gyro_model import GyroErrorModel
 
@@ -57,16 +58,8 @@ def recording_for(case: int, seconds: float, size, directory: Path) -> Path:
     if not path.exists():
         rec = synth.simulate(scene, motion, seconds, calibration(size), effects={"netd": 0.05},
                              seed=20 + case, gyro=GyroErrorModel.paper())
-        _write(path, rec)
+        recording.write(path, rec)
     return path
-
-
-def _write(path: Path, rec) -> None:
-    from thermod.io import recording
-
-    tmp = path.with_suffix(".tmp.h5")
-    recording.write(tmp, rec)
-    tmp.replace(path)
 
 
 def replay_toml(rec: Path, endpoint: str, out: Path) -> Path:
@@ -272,7 +265,7 @@ def run_case(case: int, seconds: float, size, skip_s: float, cache: Path, scale:
             from benchmarks.emulation import stretched
 
             live_path = work / "slowed.h5"
-            _write(live_path, stretched(rec, scale))
+            recording.write(live_path, stretched(rec, scale))
         lv = live(live_path, truth, len(truth), work, scale, sets)
         off, off_ok, off_wall = offline(path, truth, work)
     first = int(round(skip_s * rec.calibration.frame_rate_hz))
