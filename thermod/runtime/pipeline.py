@@ -11,8 +11,8 @@ solving in a child process of its own (`thermod.runtime.solvers`), so N workers 
 worker renders the kernel or kernel grid (Eq. 16–19) and applies the coverage rule there.
 
 Temporal rungs take the newest restored frame before k as the prior (`PRIOR_FRAMES` are kept); a
-worker whose predecessor is still being solved waits for it after its own solve, at most half the
-budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_AGE_S` + readout back
+worker whose predecessor is still being solved temporally waits for it after its own solve, at most
+half the budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_AGE_S` + readout back
 for the warp; a frame solved without a prior is published as ``wiener``.
 
 Nothing received is lost silently: a job that waited longer than the budget is solved by its
@@ -132,14 +132,15 @@ def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
     now); its cheapest rung when the job waited longer than a solve may take (``caught_up``): the
     queue backed up (a burst of frames, a stall) and drains that way before it overflows. A temporal
     rung is its own catch-up (its cost is within the budget by choice, so the queue drains at its
-    pace): a caught-up temporal job only stops waiting for its predecessor's result."""
+    pace): a caught-up temporal job only stops waiting for its predecessor's result. An alternating
+    rung's temporal solve is over the budget by design: caught up, it goes to the cheapest rung."""
     if choice is None:
         return gov.rungs[0], False
     rung = choice.rung
     if rung in gov.rungs and gov.index > choice.index:
         rung = gov.rungs[gov.index]
     if gov.enabled and rung is not gov.rungs[-1] and waited_s > gov.budget_s:
-        return (rung if rung.temporal else gov.rungs[-1]), True
+        return (rung if rung.temporal and rung.every == 1 else gov.rungs[-1]), True
     return rung, False
 
 
@@ -649,14 +650,15 @@ class Pipeline:
                 job = self._jobs.popleft()
             t_start = time.monotonic()
             index = job.slot.index
-            with self._est_cond:
-                self._solving.add(index)
             self._worker_busy_since[i] = time.monotonic()
             est = None
             try:
                 s = self._settings
                 gov = self.governor
                 rung, caught_up = rung_for(gov, job.choice, time.monotonic() - job.t_queued)
+                if rung.temporal:         # only a temporal solve leaves a prior worth waiting for
+                    with self._est_cond:
+                        self._solving.add(index)
                 if caught_up:
                     self._count("catch_up", 1)
                 wait_s = 0.0 if caught_up else 0.5 * gov.budget_s
@@ -673,7 +675,7 @@ class Pipeline:
                 est = got.estimate
                 if got.start_partial:
                     self._count("start_partial_kernels", 1)
-                method, prior_frames, grid = rung.name, got.prior_frames, got.grid
+                method, prior_frames, grid = rung.published, got.prior_frames, got.grid
                 if rung.temporal:
                     if prior_frames == 0:
                         method = single_method(rung)
