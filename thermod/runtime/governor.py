@@ -10,7 +10,7 @@ floor, that the predicted cost allows within the latency budget ``min(workers / 
 Cost: predicted = reference × L + O, with a reference per (solver family, kernel cells) timed at
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
 over its reference) and O the median round trip around a child's solve (`overhead_s`); an alternating
-rung costs the mean of its two solves, its temporal one held within 75 % of the latency goal.
+rung costs the mean of its two solves, its temporal one held within ``keep_s``.
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
@@ -230,11 +230,11 @@ class Governor:
         return (one(r) + (r.every - 1) * one(self.rungs[i + 1])) / r.every
 
     def _alone_fits(self, i: int, cells: int) -> bool:
-        """An alternating rung's temporal solve, by itself, ends within ``(1 − margin)`` of the
-        latency goal (scaled by the loop); every other rung's solve is its mean (always True)."""
+        """An alternating rung's temporal solve, by itself, is predicted within the keep limit (the
+        longest solve the temporal rung is kept at, so its frames' latency is no worse); every other
+        rung's solve is its mean (always True)."""
         r = self.rungs[i]
-        return r.every <= 1 or \
-            self._predict(self.family(r), cells) <= self.latency_goal_s * self.scale * (1.0 - self.margin)
+        return r.every <= 1 or self._predict(self.family(r), cells) <= self.keep_limit_s
 
     def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
         """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
