@@ -13,8 +13,8 @@ no loop): the same deblur, pipeline, governor and monitor. It is fed by its repl
 observed from a subscriber in this process; `thermod deblur` runs with its defaults. PSNR: the whole
 frame on the truth's 8-bit 0.5–99.5 % scale, the median over the frames after the first `--skip`
 seconds (the daemon's warm-up) that both deblurred. Prints, per recording, the daemon's and the
-offline PSNR, the blurry frames', the gap (and its mean over the frames: the median of a stream that
-alternates methods falls between them), the daemon's share deblurred and temporal and its latency
+offline PSNR, the blurry frames', the gap (and its mean over the frames: a stream that mixes methods
+has a median between them), the daemon's share deblurred and temporal and its latency
 p95 and p99 (published − frame time), and the machine's yardstick. Target (issue 35): the daemon within
 0.3 dB of `thermod deblur`, ≥ 80 % temporal, ≥ 99.5 % deblurred, p95 ≤ 45 and p99 ≤ 60 ms on 2 cores.
 """

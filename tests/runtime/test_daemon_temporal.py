@@ -33,7 +33,7 @@ def test_the_default_daemon_deblurs_temporally():
 
     d.pipeline.emit = keep
     gov = d.pipeline.governor
-    assert [r.name for r in gov.rungs] == ["temporal", "temporal_alternate", "wiener", "wiener_half"]
+    assert [r.name for r in gov.rungs] == ["temporal", "wiener", "wiener_half"]
     d.start()
     try:
         # warm-up measured every rung's cost, the temporal ones with a prior

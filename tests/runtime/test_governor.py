@@ -65,14 +65,12 @@ def test_budget_and_ladder_follow_the_configuration():
     assert not any(r.varying for r in ladder(DeblurConfig(mode="uniform")))
     # temporal (the default): the recursive rungs first; the Wiener-based one coarsens before giving up
     # and below them Wiener at half resolution, coarsening too, the last resort before raw frames
-    # (every frame, then every other one with Wiener between)
     default = ladder(DeblurConfig())
-    assert [r.name for r in default] == ["temporal", "temporal_alternate", "wiener", "wiener_half"]
-    assert [(r.temporal, r.coarsens, r.method, r.half, r.varying, r.every) for r in default] == [
-        (True, True, "wiener", False, True, 1), (True, True, "wiener", False, True, 2),
-        (False, True, "wiener", False, True, 1), (False, True, "wiener", True, True, 1)]
-    assert [r.published for r in default] == ["temporal", "temporal", "wiener", "wiener_half"]
-    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == [r.name for r in default]
+    assert [r.name for r in default] == ["temporal", "wiener", "wiener_half"]
+    assert [(r.temporal, r.coarsens, r.method, r.half, r.varying) for r in default] == [
+        (True, True, "wiener", False, True), (False, True, "wiener", False, True),
+        (False, True, "wiener", True, True)]
+    assert [r.name for r in ladder(DeblurConfig(method="wiener"))] == ["temporal", "wiener", "wiener_half"]
     assert coarser_grids((3, 4), 4 / 3) == [(3, 4), (2, 3), (1, 1)]
 
 
@@ -84,9 +82,6 @@ def test_a_camera_too_slow_for_a_prior_gets_no_temporal_rung(caplog):
     assert [r.name for r in Governor(DeblurConfig(), 9.0, 2).rungs] == ["wiener", "wiener_half"]
     assert "temporal deblurring off: a frame period of 111 ms" in caplog.text
     assert [r.name for r in ladder(DeblurConfig(), 1.0 / MAX_AGE_S)][0] == "temporal"      # the edge: kept
-    # every other frame's prior is two periods old: the alternating rung needs twice the rate
-    assert [r.name for r in ladder(DeblurConfig(), 1.0 / MAX_AGE_S)] == ["temporal", "wiener", "wiener_half"]
-    assert [r.name for r in ladder(DeblurConfig(), 2.0 / MAX_AGE_S)][1] == "temporal_alternate"
     assert [r.name for r in Governor(DeblurConfig(), 30.0, 2).rungs][0] == "temporal"
     assert [r.name for r in Governor(SINGLE, 9.0, 2).rungs] == ["kf", "kf_fast", "wiener"]   # not temporal
 
@@ -273,8 +268,7 @@ def test_the_temporal_rung_gives_up_its_grid_before_its_method():
     keep up with solves up to 34 ms (2 workers / 50 fps × 0.85). On a machine 2.5× slower the grid
     the frames need no longer fits (40 ms) but one kernel does (20 ms): the frames stay temporal, on
     one kernel. At 4× (32 ms uniform, over the budget but within 34 ms) they still do; only at 4.5×
-    (36 ms) does Wiener alone take over (over the grid: 27 ms, coarsened to fit): a temporal solve
-    over 34 ms is not taken on alternate frames either."""
+    (36 ms) does Wiener alone take over (over the grid: 27 ms, coarsened to fit)."""
     g = Governor(DeblurConfig(), FPS, 2)
     for fam, cells, ms in (("temporal", 1, 8), ("temporal", 12, 16), ("wiener", 1, 3), ("wiener", 12, 6)):
         g.seed(fam, cells, ms / 1e3)
@@ -394,69 +388,6 @@ def test_slow_machine_degrades_the_method_not_the_share_of_frames():
         assert g["method"] == "temporal"
 
 
-def test_half_the_frames_come_back_temporal_where_the_temporal_rung_cannot_climb_back():
-    """Temporal on one kernel costs 30 ms, Wiener 10: the temporal rung is kept (within keep_s, 34 ms)
-    but, once a burst has stepped it down, cannot climb back (over 75 % of keep_s, 25.5 ms). The
-    alternating rung can (its mean 20 ms; its temporal solve within keep_s): every other frame comes
-    back temporal. At 36 ms (over keep_s) the temporal solve is not taken, even on alternate frames."""
-    g = Governor(DeblurConfig(), FPS, 2)
-    for fam, ms in (("temporal", 30), ("wiener", 10)):
-        g.seed(fam, 1, ms / 1e3)
-    cost = {"temporal": 30e-3, "wiener": 10e-3}
-    labels, t = feed(g, 0.0, 2.0, lambda f, c: cost[f], needed=(1, 1))
-    assert labels == ["temporal"] * 100                                   # kept
-    labels, t = feed(g, t, 3.0, lambda f, c: 2.0 * cost[f], needed=(1, 1))
-    assert labels[-1] == "wiener"                                         # the burst
-    labels, t = feed(g, t, 10.0, lambda f, c: cost[f], needed=(1, 1))
-    assert g.rungs[g.index].name == "temporal_alternate"
-    assert sorted(set(labels[-200::2])) in (["temporal_alternate"], ["wiener"])   # strictly alternating
-    assert sorted(labels[-2:]) == ["temporal_alternate", "wiener"]
-    labels, t = feed(g, t, 10.0, lambda f, c: 1.2 * cost[f], needed=(1, 1))   # temporal 36 ms
-    assert labels[-100:] == ["wiener"] * 100
-
-
-def test_the_alternating_rung_publishes_temporal_frames_two_apart_without_waiting_for_wiener():
-    """The governor held on ``temporal_alternate`` (its hold made endless): every other frame is solved
-    temporally with the last temporal frame as its prior (two back), the frames between by Wiener.
-    A temporal frame does not wait for the Wiener frame before it (that one leaves no prior)."""
-    col = Collector()
-    gr, fr = GyroRing(20000), FrameRing(32, (H, W))
-    cfg = PipelineConfig(workers=2, job_queue=8, wait_timeout_s=0.5, reorder_timeout_s=2.0)
-    p = Pipeline(gr, fr, CAL, DeblurConfig(), cfg, col)
-    p.warmup(max_kernel_px=8)
-    gov = p.governor
-    assert [r.name for r in gov.rungs][:2] == ["temporal", "temporal_alternate"]
-    gov.index, gov.hold_s, gov._last_change = 1, math.inf, time.monotonic()   # no climb, no step down:
-    gov._ref = {k: 1e-6 for k in gov._ref}                                   # every rung fits
-    img = load_scene("texture", (H, W), seed=3).astype(np.uint16)
-    n = 60
-    p.start()
-    try:
-        t0 = time.monotonic() + 0.05
-        tg = t0 - 0.3 + np.arange(int((0.4 + n / FPS) * 1000)) / 1000.0
-        gr.write(tg, np.tile(np.float32([0.0, 0.3, 0.8]), (len(tg), 1)), 0)
-        for i in range(n):
-            t = t0 + i / FPS
-            time.sleep(max(0.0, t - time.monotonic()))
-            fr.write(img, t, frame_id=i + 1, arrival=time.monotonic())
-        outs = col.wait(n)
-    finally:
-        p.stop()
-    st = p.stats()
-    c, g = st["counters"], st["governor"]
-    assert [o.frame_id for o in outs] == list(range(1, n + 1))
-    assert c["deblurred"] + c.get("passthrough_overload", 0) == n and c["deblurred"] >= n - 1
-    assert g["method"] == "temporal_alternate"
-    methods = [o.method for o in outs]
-    temporal = [i for i, m in enumerate(methods) if m == "temporal"]
-    assert set(methods) <= {"temporal", "wiener", "wiener_half"}
-    assert all(b - a >= 2 for a, b in zip(temporal, temporal[1:], strict=False))   # never two in a row
-    assert all(outs[i].prior_frames == 2 for i in temporal)                # the prior: the last temporal one
-    assert c.get("temporal_prior_wait_timeouts", 0) == 0
-    # every other frame is temporal, but for the first (no prior yet) and those the host made late
-    assert len(temporal) + c.get("catch_up", 0) + g["late"] + c.get("temporal_alone", 0) >= n // 2
-
-
 def test_watch_counts_frames_by_the_method_in_their_header():
     from thermod.cli.watch import WatchStats, method_label
 
@@ -534,9 +465,7 @@ def test_the_temporal_rung_climbs_back_to_its_floor_as_it_is_kept_there():
     labels, t = feed(g, t, 3.0, lambda f, c: cost(f, c, 2.0), needed=(6, 8), floor=(3, 4))
     assert labels[-1].startswith("wiener") and g.counts["degrades"] == 1
     labels, t = feed(g, t, 6.0, cost, needed=(6, 8), floor=(3, 4))
-    assert any(x.startswith("temporal_alternate") for x in labels)   # the way back up
-    assert labels[-100:].count("temporal 3×4") == 100 and g.counts["climbs"] == 2
-    assert g.counts["failed_climbs"] == 0
+    assert labels[-100:].count("temporal 3×4") == 100 and g.counts["climbs"] == 1
 
 
 def test_the_last_rung_keeps_its_floor_over_the_latency_budget():

@@ -2,15 +2,14 @@
 
 A frame whose solve does not fit the time the machine has for it is not dropped: `Governor.choose`
 picks the best rung of a ladder of methods (`ladder`: with temporal deblurring ``temporal`` →
-``temporal_alternate`` (temporal on every other frame, Wiener between) → ``wiener`` → ``wiener_half``;
-single-frame ``kf`` → ``kf_fast`` → ``wiener``) and the finest kernel grid, down to the frame's
-floor, that the predicted cost allows within the latency budget ``min(workers / fps, max_solve_s) ×
-(1 − headroom)``, or on the floor within ``keep_s = workers / fps × (1 − headroom)``.
+``wiener`` → ``wiener_half``; single-frame ``kf`` → ``kf_fast`` → ``wiener``) and the finest kernel
+grid, down to the frame's floor, that the predicted cost allows within the latency budget
+``min(workers / fps, max_solve_s) × (1 − headroom)``, or on the floor within ``keep_s = workers /
+fps × (1 − headroom)``, the longest solve the workers keep up with.
 
 Cost: predicted = reference × L + O, with a reference per (solver family, kernel cells) timed at
 warm-up (`seed`), one load factor L for the machine (`observe`: the sliding median of the key in use
-over its reference) and O the median round trip around a child's solve (`overhead_s`); an alternating
-rung costs the mean of its two solves, its temporal one held within ``keep_s``.
+over its reference) and O the median round trip around a child's solve (`overhead_s`).
 Hysteresis: it steps down at once when the current rung fits neither limit, and up only to a rung
 within ``(1 − margin)`` of the budget, or on its floor within ``(1 − margin)`` of ``keep_s``, ``hold_s``
 after its last change; a climb undone within two holds doubles the hold (up to ``max_hold_s``).
@@ -61,12 +60,6 @@ class Rung:
     temporal: bool = False        # the recursive temporal solve over that own solve
     coarsens: bool = False        # may coarsen the grid the frame needs when it does not fit
     half: bool = False            # solved at half resolution (`thermod.physics.deconv.half`)
-    every: int = 1                # temporal on one frame in `every`; the frames between go to the next rung
-
-    @property
-    def published(self) -> str:
-        """The method its frames carry in their header (an alternating rung's are ``temporal``)."""
-        return "temporal" if self.temporal else self.name
 
     def deblur(self, base: DeblurConfig) -> DeblurConfig:
         """The DeblurConfig a worker builds this rung's deconvolver from."""
@@ -76,8 +69,7 @@ class Rung:
 def ladder(deblur: DeblurConfig, frame_rate_hz: float | None = None) -> list[Rung]:
     """The rungs the configuration allows, best first. The temporal rung needs a camera whose frame
     period is within a prior's `MAX_AGE_S`: below ~10 fps (an export-limited 9 Hz core) no prior is
-    ever young enough, and its ladder starts at ``wiener``. ``temporal_alternate`` takes its prior
-    two frames back, so it needs two frame periods within that age."""
+    ever young enough, and its ladder starts at ``wiener``."""
     varying = deblur.mode != "uniform"
     last = Rung("wiener", "wiener", None, varying, coarsens=True)
     half = Rung("wiener_half", "wiener", None, varying, coarsens=True, half=True)
@@ -86,11 +78,7 @@ def ladder(deblur: DeblurConfig, frame_rate_hz: float | None = None) -> list[Run
                     "age limit; the ladder starts at wiener", 1e3 / frame_rate_hz, 1e3 * MAX_AGE_S)
         return [last, half]
     if deblur.temporal_views > 1:
-        temporal = Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True)
-        if frame_rate_hz is not None and 2.0 / frame_rate_hz > MAX_AGE_S:
-            return [temporal, last, half]
-        alternate = dataclasses.replace(temporal, name="temporal_alternate", every=2)
-        return [temporal, alternate, last, half]
+        return [Rung("temporal", "wiener", None, varying, temporal=True, coarsens=True), last, half]
     if deblur.method == "wiener":
         return [last]
     rungs = [Rung("kf", "kf", deblur.kf_iterations, varying)]
@@ -139,7 +127,6 @@ class Governor:
         self._released: collections.deque = collections.deque()   # (time, latency) since the last revision
         self.hold_s, self.base_hold_s, self.max_hold_s, self.margin = hold_s, hold_s, max_hold_s, margin
         self.index = 0
-        self._phase = 0                 # an alternating rung's place in its cycle (0: a temporal frame)
         self._last_change = -math.inf
         self._last_climb = -math.inf
         self._lock = threading.Lock()
@@ -161,8 +148,6 @@ class Governor:
     @staticmethod
     def family(rung: Rung) -> str:
         """The solver a rung runs (costs are kept per family and cell count)."""
-        if rung.temporal:
-            return "temporal"
         if rung.name == "kf" and rung.kf_iterations is not None:
             return f"{rung.name}{rung.kf_iterations}"
         return rung.name
@@ -217,24 +202,6 @@ class Governor:
 
     def _predict(self, family: str, cells: int) -> float:
         return self._reference(family, cells) * self.load + self.overhead_s
-
-    def _cost(self, i: int, cells: int, load: float | None = None) -> float:
-        """Rung i's predicted cost a frame over `cells` kernel cells, at the load factor or `load`:
-        an alternating rung's is the mean of its temporal solve and the next rung's."""
-        def one(rung):
-            return self._reference(self.family(rung), cells) * (self.load if load is None else load) \
-                + self.overhead_s
-        r = self.rungs[i]
-        if r.every <= 1:
-            return one(r)
-        return (one(r) + (r.every - 1) * one(self.rungs[i + 1])) / r.every
-
-    def _alone_fits(self, i: int, cells: int) -> bool:
-        """An alternating rung's temporal solve, by itself, is predicted within the keep limit (the
-        longest solve the temporal rung is kept at, so its frames' latency is no worse); every other
-        rung's solve is its mean (always True)."""
-        r = self.rungs[i]
-        return r.every <= 1 or self._predict(self.family(r), cells) <= self.keep_limit_s
 
     def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
         """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
@@ -335,8 +302,10 @@ class Governor:
               beyond_floor: bool = False) -> tuple[int, int] | None:
         """The grid rung i solves a frame needing `needed` with, if its predicted cost is within
         `limit`, else None: `needed` itself (a coarsening rung: the finest grid of `_grids` that fits)."""
+        r = self.rungs[i]
+        fam = self.family(r)
         for g in self._grids(i, needed, floor, beyond_floor):
-            if self._cost(i, g[0] * g[1]) <= limit and self._alone_fits(i, g[0] * g[1]):
+            if self._predict(fam, g[0] * g[1]) <= limit:
                 return g
         return None
 
@@ -375,12 +344,12 @@ class Governor:
         if not self.rungs[i].coarsens:
             return None
         g = self._grids(i, needed, floor)[-1]
-        keeps = self._keep_cost(i, g) <= (self.keep_limit_s if limit is None else limit)
-        return g if keeps and self._alone_fits(i, g[0] * g[1]) else None
+        return g if self._keep_cost(i, g) <= (self.keep_limit_s if limit is None else limit) else None
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
-        return self._cost(i, grid[0] * grid[1], self._keep_load())
+        ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
+        return ref * self._keep_load() + self.overhead_s
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
@@ -432,20 +401,10 @@ class Governor:
             while g is None and i < self.last:                        # this frame only: a cheaper rung
                 i += 1
                 g = self._pick(i, needed, floor)
-            if g is not None and self.rungs[i].every > 1:
-                i, g = self._alternate(i, g)
             i, g = self._in_time(i, g or (1, 1), needed, floor, age_s)
             c = Choice(self.rungs[i], g, i)
             self.frames[c.label] = self.frames.get(c.label, 0) + 1
             return c
-
-    def _alternate(self, i: int, g: tuple[int, int]) -> tuple[int, tuple[int, int]]:
-        """An alternating rung i solves one frame in ``every`` temporally (its prior the last such
-        frame), and the frames between by the next rung, all over g: the grid its cost (`_cost`)
-        was predicted over."""
-        on = self._phase == 0
-        self._phase = (self._phase + 1) % self.rungs[i].every
-        return (i, g) if on else (i + 1, g)
 
     def _in_time(self, i: int, g: tuple[int, int], needed: tuple[int, int], floor: tuple[int, int],
                  age_s: float) -> tuple[int, tuple[int, int]]:

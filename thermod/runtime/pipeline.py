@@ -132,15 +132,14 @@ def rung_for(gov: Governor, choice: Choice | None, waited_s: float) -> tuple:
     now); its cheapest rung when the job waited longer than a solve may take (``caught_up``): the
     queue backed up (a burst of frames, a stall) and drains that way before it overflows. A temporal
     rung is its own catch-up (its cost is within the budget by choice, so the queue drains at its
-    pace): a caught-up temporal job only stops waiting for its predecessor's result. An alternating
-    rung's temporal solve is over the budget by design: caught up, it goes to the cheapest rung."""
+    pace): a caught-up temporal job only stops waiting for its predecessor's result."""
     if choice is None:
         return gov.rungs[0], False
     rung = choice.rung
     if rung in gov.rungs and gov.index > choice.index:
         rung = gov.rungs[gov.index]
     if gov.enabled and rung is not gov.rungs[-1] and waited_s > gov.budget_s:
-        return (rung if rung.temporal and rung.every == 1 else gov.rungs[-1]), True
+        return (rung if rung.temporal else gov.rungs[-1]), True
     return rung, False
 
 
@@ -675,7 +674,7 @@ class Pipeline:
                 est = got.estimate
                 if got.start_partial:
                     self._count("start_partial_kernels", 1)
-                method, prior_frames, grid = rung.published, got.prior_frames, got.grid
+                method, prior_frames, grid = rung.name, got.prior_frames, got.grid
                 if rung.temporal:
                     if prior_frames == 0:
                         method = single_method(rung)

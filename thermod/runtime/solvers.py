@@ -219,12 +219,9 @@ def rung_costs(solver, settings, rungs, img, uniform, grids, repeats: int = 2) -
     is timed with a prior: the frame before, restored, warped across one frame period of roll."""
     period = 1.0 / settings.calib.frame_rate_hz
     gyro = warm_gyro(settings.calib)
-    out, timed = [], set()
+    out = []
     for rung in rungs:
         fam = Governor.family(rung)
-        if fam in timed:                          # an alternating rung runs the temporal one's solver
-            continue
-        timed.add(fam)
         for k in [uniform, *(grids if rung.varying else [])]:
             first = None
             if rung.temporal:
