@@ -12,8 +12,8 @@ worker renders the kernel or kernel grid (Eq. 16–19) and applies the coverage 
 
 Temporal rungs take the newest restored frame before k as the prior (`PRIOR_FRAMES` are kept); a
 worker whose predecessor is still being solved temporally waits for it after its own solve, at most
-half the budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_AGE_S` + readout back
-for the warp; a frame solved without a prior is published as ``wiener``.
+half the budget, else takes k − 2. A temporal job carries a gyro window reaching `MAX_AGE_S` +
+readout back for the warp; a frame solved without a prior is published as ``wiener``.
 
 Nothing received is lost silently: a job that waited longer than the budget is solved by its
 cheapest rung (``catch_up``); a full queue drops its oldest job (``overload``); a worker that raises
@@ -234,7 +234,7 @@ class Pipeline:
         self._frames: SharedFrames | None = None   # process mode: the frames shared with the children
         self._est_cond = threading.Condition()
         self._estimates: collections.OrderedDict = collections.OrderedDict()   # index → Estimate
-        self._solving: set[int] = set()           # indices a worker is solving now
+        self._solving: set[int] = set()           # indices a worker is solving temporally now
         self._overload_drops: collections.deque = collections.deque(maxlen=SHORT_OF_CPU_DROPS)  # when
         self._in_ffc = False              # scheduler thread only: the last frame was flagged ffc
         self._ffc_last_t: float | None = None   # read time of the last frame flagged ffc
