@@ -1,9 +1,11 @@
 """What a subscriber on loopback may lose (tests that read a running daemon): ZeroMQ's PUB drops for
 a subscriber that falls its send high-water mark behind, which a loaded host that starves the test's
-loop causes (CI: 1 gyro and 1 raw message of hundreds). Seqs run on per topic, and a loss is rare,
-not a pattern: a seq that skipped as it counted would lose half."""
+loop causes. How many depends on the load: CI lost 1 gyro and 1 raw message of hundreds on one run,
+and 3 of 16 frames at 640×480 on another, where the test's own loop also encodes previews. Every such
+loss shows as a jump of the topic's seq and is counted; what the bound tells apart is a pattern: a seq
+that skipped as it counted would lose about as many as arrive."""
 
-RARE = 0.1                # the share of a topic's received messages that may have been lost
+RARE = 0.5                # the share of a topic's received messages that may have been lost
 
 
 def losses(sub) -> tuple[dict, dict, int]:
