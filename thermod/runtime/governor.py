@@ -200,8 +200,10 @@ class Governor:
             return rlo * cells / lo
         return rlo + (rhi - rlo) * (cells - lo) / (hi - lo)
 
-    def _predict(self, family: str, cells: int) -> float:
-        return self._reference(family, cells) * self.load + self.overhead_s
+    def _predict(self, family: str, cells: int, load: float | None = None) -> float:
+        """The predicted cost (s) of a solve over `cells` kernel cells: reference × load + overhead, at
+        the load factor or `load`."""
+        return self._reference(family, cells) * (self.load if load is None else load) + self.overhead_s
 
     def observe(self, family: str, cells: int, seconds: float, now: float, overhead_s: float = 0.0) -> None:
         """A worker's measured solve time (s; the solve itself) and the round trip around it, at host
@@ -348,8 +350,7 @@ class Governor:
 
     def _keep_cost(self, i: int, grid: tuple[int, int]) -> float:
         """Rung i's predicted cost over `grid` for the keep rules: at the load of the last `KEEP_S`."""
-        ref = self._reference(self.family(self.rungs[i]), grid[0] * grid[1])
-        return ref * self._keep_load() + self.overhead_s
+        return self._predict(self.family(self.rungs[i]), grid[0] * grid[1], self._keep_load())
 
     def _keep_load(self) -> float:
         """The median load of the last `KEEP_S` of solves (the load factor until there are enough)."""
