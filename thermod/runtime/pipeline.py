@@ -600,7 +600,7 @@ class Pipeline:
 
     def _prior_for(self, index: int, wait_s: float):
         """The newest restored frame before `index` (within `PRIOR_FRAMES`), waiting up to `wait_s`
-        for index − 1 while a worker is solving it; None when there is none."""
+        for index − 1 while a worker is solving it temporally; None when there is none."""
         deadline = time.monotonic() + wait_s
         with self._est_cond:
             while index - 1 in self._solving and index - 1 not in self._estimates:
